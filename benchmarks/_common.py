@@ -1,0 +1,51 @@
+"""Helpers for benchmark scripts: timing, peak memory, and writing a fragment."""
+
+from __future__ import annotations
+
+import resource
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def time_call(fn: Callable[[], object], *, repeat: int = 3, warmup: int = 1) -> float:
+    """Median wall time in seconds of `fn()` over `repeat` runs after `warmup`."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    times.sort()
+    return times[len(times) // 2]
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MiB (Linux ru_maxrss is KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def md_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    def fmt(x: object) -> str:
+        if isinstance(x, float):
+            return f"{x:.4g}"
+        return str(x)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(fmt(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def write_fragment(name: str, title: str, body: str) -> Path:
+    """Write docs/bench/<name>.md: a section with the command that reproduces it."""
+    path = ROOT / "docs" / "bench" / f"{name}.md"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = f"## {title}\n\nReproduce: `make bench ONLY={name}`\n\n{body.rstrip()}\n"
+    path.write_text(text)
+    return path

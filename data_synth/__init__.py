@@ -1,0 +1,3 @@
+"""data_synth package."""
+
+import mvgeo.common.deps  # noqa: F401  (cv2 before pycolmap: docs/conventions.md)

@@ -1,0 +1,77 @@
+import numpy as np
+import pytest
+
+from mvgeo.common import ConfigError, InputError, ShapeError, StageTimer, atomic_output_dir, check_shape
+from mvgeo.common.imageio import list_images, read_image, write_image
+
+
+def test_input_error_names_path_and_fix(tmp_path):
+    err = InputError("cannot decode image", path=tmp_path / "x.png", fix="re-export it")
+    assert "x.png" in str(err) and "re-export it" in str(err)
+
+
+def test_config_error_names_key():
+    err = ConfigError("unknown key", key="cameras.rig.radus", path="scene.toml", expected="one of radius, count")
+    assert "cameras.rig.radus" in str(err) and "scene.toml" in str(err)
+
+
+def test_check_shape():
+    check_shape(np.zeros((2, 5, 3, 3)), ["*", 3, 3])
+    check_shape(np.zeros((4, 2)), ["N", 2])
+    with pytest.raises(ShapeError, match="expected shape"):
+        check_shape(np.zeros((4, 3)), ["N", 2])
+    with pytest.raises(ShapeError):
+        check_shape(np.zeros((3,)), ["*", 3, 3])
+
+
+def test_atomic_dir_success_and_failure(tmp_path):
+    out = tmp_path / "out"
+    with atomic_output_dir(out) as tmp:
+        (tmp / "a.txt").write_text("1")
+        assert not out.exists()
+    assert (out / "a.txt").read_text() == "1"
+    with pytest.raises(RuntimeError), atomic_output_dir(out) as tmp:
+        (tmp / "b.txt").write_text("2")
+        raise RuntimeError("boom")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temp left behind
+    assert not (out / "b.txt").exists() and (out / "a.txt").exists()  # old output untouched
+
+
+def test_stage_timer():
+    t = StageTimer()
+    with t.stage("a"):
+        pass
+    with t.stage("a"):
+        pass
+    d = t.as_dict()
+    assert set(d) == {"a", "total"} and d["a"] >= 0
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_image_roundtrip(tmp_path, rng, bits):
+    img = rng.random((7, 5, 3)).astype(np.float32)
+    write_image(tmp_path / "a.png", img, bits=bits)
+    back = read_image(tmp_path / "a.png")
+    assert back.shape == (7, 5, 3) and back.dtype == np.float32
+    # quantisation error is at most half a step
+    assert np.abs(back - img).max() <= 0.5 / (2**bits - 1) + 1e-7
+
+
+def test_image_errors(tmp_path):
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    with pytest.raises(InputError, match="bad.png"):
+        read_image(tmp_path / "bad.png")
+    with pytest.raises(InputError, match="does not exist"):
+        list_images(tmp_path / "nope")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no images"):
+        list_images(empty)
+
+
+def test_grayscale_is_replicated(tmp_path):
+    from mvgeo.common.deps import cv2
+
+    cv2.imwrite(str(tmp_path / "g.png"), np.full((4, 6), 128, np.uint8))
+    img = read_image(tmp_path / "g.png")
+    assert img.shape == (4, 6, 3) and np.allclose(img, 128 / 255)
