@@ -1,0 +1,181 @@
+"""COLMAP sparse models (`sparse/0/`): the one place that reads and writes them.
+
+Everything goes through pycolmap, so text and binary files are exactly what
+COLMAP writes. Poses are `cam_from_world` (3, 4) float64 `[R | t]`, our
+quaternions are wxyz; pycolmap's `Rigid3d` is xyzw and is converted here only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mvgeo.camera import Camera
+from mvgeo.common.deps import pycolmap
+from mvgeo.common.errors import InputError
+
+
+@dataclass
+class PosedImage:
+    """One registered image.
+
+    Attributes:
+        name: file name relative to the images folder (e.g. "000.png").
+        camera_id: key into `SparseModel.cameras`.
+        cam_from_world: (3, 4) float64 `[R | t]`, x_cam = R x_world + t.
+    """
+
+    name: str
+    camera_id: int
+    cam_from_world: np.ndarray
+
+    def __post_init__(self) -> None:
+        m = np.asarray(self.cam_from_world, dtype=np.float64)
+        if m.shape == (4, 4):
+            m = m[:3]
+        if m.shape != (3, 4):
+            raise InputError(f"cam_from_world of image {self.name!r} must be (3, 4) or (4, 4), got {m.shape}")
+        self.cam_from_world = m
+
+    @property
+    def R(self) -> np.ndarray:
+        return self.cam_from_world[:, :3]
+
+    @property
+    def t(self) -> np.ndarray:
+        return self.cam_from_world[:, 3]
+
+    @property
+    def centre_world(self) -> np.ndarray:
+        """(3,) camera centre in world coordinates, -R^T t."""
+        return -self.R.T @ self.t
+
+
+@dataclass
+class SparseModel:
+    """Cameras, registered images (sorted by name) and an optional point cloud.
+
+    Attributes:
+        cameras: camera_id -> Camera.
+        images: registered images.
+        points_xyz: (P, 3) float64 world points (may be empty).
+        points_rgb: (P, 3) uint8 colours.
+    """
+
+    cameras: dict[int, Camera]
+    images: list[PosedImage]
+    points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    points_rgb: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
+
+    def __post_init__(self) -> None:
+        self.images = sorted(self.images, key=lambda im: im.name)
+        self.points_xyz = np.asarray(self.points_xyz, dtype=np.float64).reshape(-1, 3)
+        self.points_rgb = np.asarray(self.points_rgb, dtype=np.uint8).reshape(-1, 3)
+        if len(self.points_xyz) != len(self.points_rgb):
+            raise InputError("points_xyz and points_rgb must have the same length")
+        for im in self.images:
+            if im.camera_id not in self.cameras:
+                raise InputError(f"image {im.name!r} refers to missing camera {im.camera_id}")
+
+    @property
+    def names(self) -> list[str]:
+        return [im.name for im in self.images]
+
+    def image(self, name: str) -> PosedImage:
+        for im in self.images:
+            if im.name == name:
+                return im
+        raise KeyError(name)
+
+    def camera_of(self, name: str) -> Camera:
+        return self.cameras[self.image(name).camera_id]
+
+    def cam_from_world_by_name(self) -> dict[str, np.ndarray]:
+        """name -> (3, 4) cam_from_world (the input of `mvgeo.metrics.compare_poses`)."""
+        return {im.name: im.cam_from_world.copy() for im in self.images}
+
+
+def _quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
+    # local to avoid depending on mvgeo.transforms from the I/O layer; robust (Shepperd) method
+    from scipy.spatial.transform import Rotation
+
+    q_xyzw = Rotation.from_matrix(R).as_quat()
+    q = np.array([q_xyzw[3], q_xyzw[0], q_xyzw[1], q_xyzw[2]])
+    return q if q[0] >= 0 else -q
+
+
+def _rigid3d_from_cam_from_world(m: np.ndarray):
+    q = _quat_wxyz_from_R(m[:, :3])
+    xyzw = np.array([q[1], q[2], q[3], q[0]])  # pycolmap Rotation3d takes xyzw
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(xyzw), m[:, 3].copy())
+
+
+def to_pycolmap(model: SparseModel):
+    """Build a `pycolmap.Reconstruction` (trivial rigs/frames, one per camera/image)."""
+    rec = pycolmap.Reconstruction()
+    for cam_id, cam in model.cameras.items():
+        pc = pycolmap.Camera(model=cam.model, width=cam.width, height=cam.height, params=cam.params.copy(),
+                             camera_id=int(cam_id))
+        rec.add_camera_with_trivial_rig(pc)
+    for image_id, im in enumerate(model.images, start=1):
+        pim = pycolmap.Image(name=im.name, camera_id=int(im.camera_id), image_id=image_id)
+        rec.add_image_with_trivial_frame(pim, _rigid3d_from_cam_from_world(im.cam_from_world))
+    for xyz, rgb in zip(model.points_xyz, model.points_rgb):
+        rec.add_point3D(np.asarray(xyz, np.float64), pycolmap.Track(), np.asarray(rgb, np.uint8))
+    return rec
+
+
+def from_pycolmap(rec) -> SparseModel:
+    """Convert a `pycolmap.Reconstruction` (registered images only)."""
+    cameras = {
+        int(cid): Camera(cam.model.name, cam.width, cam.height, np.asarray(cam.params, np.float64))
+        for cid, cam in rec.cameras.items()
+    }
+    images = []
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        m = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
+        images.append(PosedImage(image.name, int(image.camera_id), m))
+    if rec.num_points3D():
+        pts = list(rec.points3D.values())
+        xyz = np.array([p.xyz for p in pts], dtype=np.float64)
+        rgb = np.array([p.color for p in pts], dtype=np.uint8)
+    else:
+        xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return SparseModel(cameras, images, xyz, rgb)
+
+
+def read_sparse_model(path: str | Path) -> SparseModel:
+    """Read a COLMAP model folder (`cameras`, `images`, `points3D` as .bin or .txt).
+
+    Raises:
+        InputError: the folder or its files are missing or unreadable.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError("COLMAP model folder does not exist", path=path,
+                         fix="pass a folder holding cameras/images/points3D .bin or .txt (e.g. sparse/0)")
+    has_bin = all((path / f"{n}.bin").is_file() for n in ("cameras", "images", "points3D"))
+    has_txt = all((path / f"{n}.txt").is_file() for n in ("cameras", "images", "points3D"))
+    if not (has_bin or has_txt):
+        raise InputError("no complete COLMAP model (cameras, images, points3D as .bin or .txt)", path=path,
+                         fix="point at the sparse/0 folder of a COLMAP or mvgeo/data-synth output")
+    try:
+        rec = pycolmap.Reconstruction(str(path))
+    except Exception as exc:  # pycolmap raises plain exceptions on corrupt files
+        raise InputError(f"cannot read COLMAP model: {exc}", path=path) from exc
+    return from_pycolmap(rec)
+
+
+def write_sparse_model(path: str | Path, model: SparseModel, *, binary: bool) -> None:
+    """Write `model` as a COLMAP model into folder `path` (created if needed)."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    rec = to_pycolmap(model)
+    if binary:
+        rec.write_binary(str(path))
+    else:
+        rec.write_text(str(path))
