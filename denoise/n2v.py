@@ -1,0 +1,184 @@
+"""Noise2Void training of the UNet (Krull et al. 2019), with the N2V2 options.
+
+Training follows the paper: random patches from all views; each pixel masked
+independently with probability ``p = 0.04`` and its value replaced (see
+`denoise.masking`); ``out = masked + alpha * UNet(masked)`` with
+``alpha = 0.5`` (normalised units, `denoise.model`); mean-squared error against
+the *unmasked* noisy value on the masked pixels only. Adam with a linear
+warm-up and a cosine decay of the learning rate. Everything is seeded.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from denoise.images import images_to_tensors
+from denoise.masking import REPLACEMENTS, Replacement, mask_pixels
+from denoise.model import N2VModel
+from denoise.patches import effective_patch_px, sample_patches
+from denoise.unet import UNet, UNetConfig
+from mvgeo.common.errors import ConfigError
+from mvgeo.common.progress import progress_bar
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class N2VConfig:
+    """Round-1 (Noise2Void) training options. Defaults are the CPU preset ``"default"``.
+
+    Attributes:
+        unet: network architecture (width 16, 4 levels).
+        steps: optimiser steps (each one batch).
+        batch_size: patches per step.
+        patch_px: patch side in pixels (smaller images use their smallest side).
+        lr: peak Adam learning rate.
+        warmup_frac: fraction of `steps` with a linear learning-rate warm-up.
+        min_lr_frac: the cosine decay ends at ``lr * min_lr_frac``.
+        mask_prob: probability that a pixel is masked (N2V: 0.04).
+        replacement: ``"permute"`` (N2V paper), ``"uniform_withCP"`` or ``"median"`` (N2V2).
+        radius: window radius for ``uniform_withCP`` / ``median`` (N2V: 5).
+        alpha: residual scale in ``out = masked + alpha * UNet(masked)``.
+        augment: random rot90/flip of patches.
+    """
+
+    unet: UNetConfig = field(default_factory=UNetConfig)
+    steps: int = 600
+    batch_size: int = 8
+    patch_px: int = 64
+    lr: float = 2e-3
+    warmup_frac: float = 0.05
+    min_lr_frac: float = 0.02
+    mask_prob: float = 0.04
+    replacement: Replacement = "permute"
+    radius: int = 5
+    alpha: float = 0.5
+    augment: bool = True
+
+    def __post_init__(self) -> None:
+        positive = ("steps", "batch_size", "patch_px", "radius")
+        for key in positive:
+            if getattr(self, key) < 1:
+                raise ConfigError(f"must be >= 1, got {getattr(self, key)}", key=key)
+        if not self.lr > 0:
+            raise ConfigError(f"must be > 0, got {self.lr}", key="lr")
+        if not 0 < self.mask_prob < 1:
+            raise ConfigError(f"must be in (0, 1), got {self.mask_prob}", key="mask_prob")
+        if not 0 <= self.warmup_frac < 1 or not 0 <= self.min_lr_frac <= 1:
+            raise ConfigError("warmup_frac must be in [0, 1) and min_lr_frac in [0, 1]", key="warmup_frac")
+        if self.replacement not in REPLACEMENTS:
+            raise ConfigError(f"unknown replacement {self.replacement!r}", key="replacement",
+                              expected=" or ".join(REPLACEMENTS))
+
+
+#: Named presets. ``fast``: tests and the demo (seconds); ``default``: a scene in a few
+#: minutes on 2 CPU cores; ``n2v2``: the default with the N2V2 anti-checkerboard options.
+N2V_PRESETS: dict[str, N2VConfig] = {
+    "fast": N2VConfig(unet=UNetConfig(width=8), steps=60, batch_size=4, patch_px=48),
+    "default": N2VConfig(),
+    "n2v2": N2VConfig(unet=UNetConfig(blurpool=True, top_skip=False), replacement="median"),
+}
+
+
+def n2v_preset(name: str, **overrides) -> N2VConfig:
+    """A preset by name, with field overrides (e.g. ``steps=200``)."""
+    if name not in N2V_PRESETS:
+        raise ConfigError(f"unknown preset {name!r}", key="preset", expected=" or ".join(N2V_PRESETS))
+    return replace(N2V_PRESETS[name], **overrides)
+
+
+def lr_factor(step: int, *, steps: int, warmup_frac: float, min_lr_frac: float) -> float:
+    """Learning-rate multiplier at `step` (0-based): linear warm-up, then cosine to `min_lr_frac`."""
+    warm = int(round(warmup_frac * steps))
+    if step < warm:
+        return (step + 1) / warm
+    t = (step - warm) / max(1, steps - warm)
+    return min_lr_frac + (1 - min_lr_frac) * 0.5 * (1 + math.cos(math.pi * min(t, 1.0)))
+
+
+def channel_stats(tensors: Sequence[torch.Tensor]) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Per-channel mean and standard deviation over all pixels (std floored at `N2VModel.STD_FLOOR`)."""
+    flat = torch.cat([t.reshape(t.shape[0], -1).double() for t in tensors], dim=1)
+    mean = flat.mean(1)
+    std = flat.std(1, correction=0).clamp_min(N2VModel.STD_FLOOR)
+    return tuple(float(v) for v in mean), tuple(float(v) for v in std)
+
+
+def masked_mse(out: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean squared error over masked pixels and all channels (0 if nothing is masked).
+
+    Args:
+        out, target: ``[B, C, H, W]``.
+        mask: ``[B, 1, H, W]`` bool.
+    """
+    m = mask.to(out.dtype)
+    denom = (m.sum() * out.shape[1]).clamp_min(1.0)
+    return (((out - target) ** 2) * m).sum() / denom
+
+
+def new_model(config: N2VConfig, tensors: Sequence[torch.Tensor], *, seed: int) -> N2VModel:
+    """A freshly initialised model (weights from `seed`, global RNG state left untouched)."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        unet = UNet(config.unet)
+    mean, std = channel_stats(tensors)
+    return N2VModel(unet=unet, mean=mean, std=std, alpha=config.alpha)
+
+
+def train_n2v(images: Sequence[np.ndarray], config: N2VConfig | None = None, *, seed: int = 0,
+              model: N2VModel | None = None) -> N2VModel:
+    """Train a UNet with Noise2Void on the noisy `images` themselves.
+
+    Args:
+        images: ``(H, W, 3)`` float32 RGB in ``[0, 1]`` (``(H, W)`` grayscale accepted); sizes may differ.
+        config: training options (default: the ``default`` preset).
+        seed: seeds the weights, the patches and the masks.
+        model: continue training this model instead of a new one (its normalisation is kept).
+
+    Returns:
+        The trained `N2VModel` (in eval mode), with the per-step losses in ``history``.
+
+    Raises:
+        InputError: empty list, non-finite values, images below 2x2 px.
+    """
+    config = config or N2VConfig()
+    tensors = images_to_tensors(images)
+    rng = np.random.default_rng(seed)
+    gen = torch.Generator().manual_seed(seed)
+    model = model or new_model(config, tensors, seed=seed)
+    patch = effective_patch_px(tensors, config.patch_px)
+    if patch < config.patch_px:
+        _log.warning("images are smaller than the %d px patch; training on %d px patches", config.patch_px, patch)
+    # Normalise once; the network's residual lives in normalised units (see N2VModel.apply).
+    mean = torch.tensor(model.mean).reshape(3, 1, 1)
+    std = torch.tensor(model.std).reshape(3, 1, 1)
+    normed = [(t - mean) / std for t in tensors]
+    unet = model.unet
+    unet.train()
+    opt = torch.optim.Adam(unet.parameters(), lr=config.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: lr_factor(s, steps=config.steps, warmup_frac=config.warmup_frac,
+                                 min_lr_frac=config.min_lr_frac))
+    with progress_bar(desc="n2v", total=config.steps) as bar:
+        for _ in range(config.steps):
+            batch, _ = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
+                                      augment=config.augment)
+            mb = mask_pixels(batch, p=config.mask_prob, replacement=config.replacement, radius=config.radius,
+                             generator=gen)
+            out = mb.masked + model.alpha * unet(mb.masked)
+            loss = masked_mse(out, batch, mb.mask)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            model.history.append(loss.item())
+            bar.update(1)
+            bar.set_postfix(loss=f"{model.history[-1]:.4f}")
+    unet.eval()
+    return model

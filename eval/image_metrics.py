@@ -1,0 +1,82 @@
+"""PSNR, SSIM and LPIPS of rendered or denoised images against references.
+
+Works on the project's numpy images (H x W x 3 float32 RGB in [0, 1], see
+docs/conventions.md); the per-metric functions in `eval.psnr`, `eval.ssim`
+and `eval.lpips` take torch batches.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from eval.lpips import lpips
+from eval.psnr import psnr
+from eval.ssim import ssim
+from mvgeo.common.errors import ShapeError
+
+__all__ = ["ImageScores", "score_images"]
+
+
+@dataclass(frozen=True)
+class ImageScores:
+    """Per-image scores, in the order the images were given.
+
+    Attributes:
+        psnr_db: (N,) PSNR in dB (`inf` for identical images).
+        ssim: (N,) mean SSIM.
+        lpips: (N,) LPIPS-AlexNet v0.1 distance (lower is better).
+    """
+
+    psnr_db: np.ndarray
+    ssim: np.ndarray
+    lpips: np.ndarray
+
+    def mean(self) -> dict[str, float]:
+        """Means over images: `{"psnr_db", "ssim", "lpips"}`.
+
+        The PSNR mean is the mean of per-image dB values (the NeRF/3DGS
+        convention), not the PSNR of the pooled MSE.
+        """
+        return {"psnr_db": float(np.mean(self.psnr_db)), "ssim": float(np.mean(self.ssim)),
+                "lpips": float(np.mean(self.lpips))}
+
+
+def _to_batch(img: np.ndarray, name: str) -> torch.Tensor:
+    arr = np.asarray(img)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise ShapeError(f"{name}: expected an (H, W, 3) image, got {arr.shape}")
+    return torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32)).permute(2, 0, 1)[None]
+
+
+def score_images(preds: Sequence[np.ndarray], targets: Sequence[np.ndarray], *,
+                 with_lpips: bool = True) -> ImageScores:
+    """Score each `preds[i]` against `targets[i]`.
+
+    Args:
+        preds: images (H_i, W_i, 3) float in [0, 1] (renders are not clipped
+            here; clip them first if the method would).
+        targets: reference images, same sizes as `preds`.
+        with_lpips: compute LPIPS (needs H, W >= 31); NaN otherwise.
+
+    Returns:
+        `ImageScores` with one value per pair.
+
+    Raises:
+        ShapeError: different counts or sizes.
+    """
+    if len(preds) != len(targets):
+        raise ShapeError(f"preds and targets: {len(preds)} vs {len(targets)} images")
+    p_db, s, lp = [], [], []
+    with torch.no_grad():
+        for i, (p, t) in enumerate(zip(preds, targets, strict=True)):
+            pb, tb = _to_batch(p, f"preds[{i}]"), _to_batch(t, f"targets[{i}]")
+            if pb.shape != tb.shape:
+                raise ShapeError(f"preds[{i}] {tuple(p.shape)} and targets[{i}] {tuple(t.shape)} differ in size")
+            p_db.append(float(psnr(pb, tb)[0]))
+            s.append(float(ssim(pb, tb)[0]))
+            lp.append(float(lpips(pb, tb)[0]) if with_lpips else float("nan"))
+    return ImageScores(np.asarray(p_db), np.asarray(s), np.asarray(lp))

@@ -1,0 +1,145 @@
+"""Typed settings of the Denoise-GS pipeline, with the `fast`, `default` and `best` presets.
+
+Component settings name a preset of the component's own config
+(`denoise.N2VConfig`, `mvgeo.align.AlignConfig`, `splat.TrainConfig`, ...)
+plus the few knobs the pipeline and the cost report sweep; `None` keeps the
+component preset's value. Every field is part of the stage hashes, so
+changing one re-runs the stages it affects and nothing else.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Literal
+
+from mvgeo.common.errors import ConfigError
+
+__all__ = ["PRESETS", "AlignSettings", "DenoiseSettings", "PipelineConfig", "SplatSettings", "preset"]
+
+Round2Loss = Literal["joint", "charbonnier"]
+
+
+@dataclass(frozen=True)
+class DenoiseSettings:
+    """N2V-UNet training (round 1), fine-tuning (rounds >= 2) and inference.
+
+    Attributes:
+        n2v_preset: name of a `denoise` N2V preset for round 1.
+        n2v_steps: training steps; None keeps the preset's.
+        passes: inference maskings averaged per image (the paper's K).
+        round2_preset: name of a `denoise` round-2 fine-tuning preset.
+        round2_steps: fine-tuning steps; None keeps the preset's.
+        round2_loss: "joint" (the paper's loss) or "charbonnier" (Table 2 ablation).
+    """
+
+    n2v_preset: str = "default"
+    n2v_steps: int | None = None
+    passes: int = 8
+    round2_preset: str = "default"
+    round2_steps: int | None = None
+    round2_loss: Round2Loss = "joint"
+
+
+@dataclass(frozen=True)
+class AlignSettings:
+    """Pose-free alignment (`mvgeo.align`).
+
+    Attributes:
+        preset: name of an `AlignConfig` preset.
+        max_size_px: long side the images are downscaled to; None keeps the preset's.
+        iters: global-alignment iterations; None keeps the preset's.
+    """
+
+    preset: str = "default"
+    max_size_px: int | None = None
+    iters: int | None = None
+
+
+@dataclass(frozen=True)
+class SplatSettings:
+    """Gaussian splatting with pose optimisation (`splat`).
+
+    Attributes:
+        preset: name of a `splat` `TrainConfig` preset.
+        iters: training iterations; None keeps the preset's.
+    """
+
+    preset: str = "default"
+    iters: int | None = None
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """The whole `denoise-gs run`.
+
+    Attributes:
+        views: K, the number of views kept for rounds >= 2 (k-means clusters
+            over camera poses; the sharpest image of each cluster).
+        rounds: 1 = round 1 only; N > 1 repeats the second round N - 1 times.
+        seed: master seed; each stage derives its own from (seed, round, stage).
+        select_views: False = rounds >= 2 use every view (Table 2 ablation).
+        device: torch device for the networks and the splatting ("cpu", "cuda").
+        denoise, align, splat: component settings.
+    """
+
+    views: int = 12
+    rounds: int = 2
+    seed: int = 0
+    select_views: bool = True
+    device: str = "cpu"
+    denoise: DenoiseSettings = field(default_factory=DenoiseSettings)
+    align: AlignSettings = field(default_factory=AlignSettings)
+    splat: SplatSettings = field(default_factory=SplatSettings)
+
+    def __post_init__(self) -> None:
+        if self.views < 2:
+            raise ConfigError(f"must be at least 2, got {self.views}", key="views", expected="an integer >= 2")
+        if self.rounds < 1:
+            raise ConfigError(f"must be at least 1, got {self.rounds}", key="rounds", expected="an integer >= 1")
+        if self.denoise.passes < 1:
+            raise ConfigError(f"must be at least 1, got {self.denoise.passes}", key="denoise.passes")
+        if self.denoise.round2_loss not in ("joint", "charbonnier"):
+            raise ConfigError(f"unknown loss {self.denoise.round2_loss!r}", key="denoise.round2_loss",
+                              expected="'joint' or 'charbonnier'")
+        for key, value in (("denoise.n2v_steps", self.denoise.n2v_steps),
+                           ("denoise.round2_steps", self.denoise.round2_steps),
+                           ("align.max_size_px", self.align.max_size_px), ("align.iters", self.align.iters),
+                           ("splat.iters", self.splat.iters)):
+            if value is not None and value < 1:
+                raise ConfigError(f"must be positive, got {value}", key=key)
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able dict (for hashing and report.json)."""
+        return dataclasses.asdict(self)
+
+
+#: Named presets. `fast`: the demo and tests (minutes on 2 CPU cores);
+#: `default`: the components' default presets; `best`: N2V2 with longer
+#: training (not yet measured against `default`; see `denoise-gs cost`).
+PRESETS: dict[str, PipelineConfig] = {
+    "fast": PipelineConfig(
+        denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40),
+        align=AlignSettings(preset="fast"),
+        splat=SplatSettings(preset="fast"),
+    ),
+    "default": PipelineConfig(),
+    "best": PipelineConfig(
+        denoise=DenoiseSettings(n2v_preset="n2v2", n2v_steps=1500, passes=8, round2_steps=400),
+        align=AlignSettings(preset="best"),
+        splat=SplatSettings(preset="best"),
+    ),
+}
+
+
+def preset(name: str, *, views: int | None = None, rounds: int | None = None, seed: int | None = None,
+           select_views: bool | None = None, device: str | None = None) -> PipelineConfig:
+    """Preset `name` with the given top-level fields replaced (None keeps the preset's).
+
+    Raises:
+        ConfigError: unknown preset name or an invalid value.
+    """
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}", key="preset", expected=" | ".join(PRESETS))
+    given = {"views": views, "rounds": rounds, "seed": seed, "select_views": select_views, "device": device}
+    return dataclasses.replace(PRESETS[name], **{k: v for k, v in given.items() if v is not None})

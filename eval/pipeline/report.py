@@ -1,0 +1,121 @@
+"""`OUT/report.json` and `OUT/report.md` (with contact sheets) of a pipeline run."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from eval.contact_sheet import contact_sheet
+from eval.pipeline.config import PipelineConfig
+from eval.pipeline.views import view_files
+from mvgeo.common.atomic import atomic_write_text
+from mvgeo.common.errors import InputError
+from mvgeo.common.imageio import read_image, write_image
+
+if TYPE_CHECKING:
+    from eval.pipeline.run import RoundResult
+
+__all__ = ["CONTACT_ROWS", "write_report"]
+
+#: Views shown per contact sheet (evenly spaced over the round's views).
+CONTACT_ROWS = 6
+
+
+def _json_safe(x: object) -> object:
+    """Replace non-finite floats (not valid JSON) by strings."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_safe(v) for v in x]
+    return x
+
+
+def _images(folder: Path) -> dict[str, Path]:
+    try:
+        return view_files(folder)
+    except InputError:
+        return {}
+
+
+def _contact_sheet_png(out: Path, images_dir: Path, rd: Path, r: int) -> Path | None:
+    denoised = _images(rd / "denoised")
+    if not denoised:
+        return None
+    noisy, renders = _images(images_dir), _images(rd / "renders")
+    names = list(denoised)
+    idx = np.unique(np.linspace(0, len(names) - 1, min(CONTACT_ROWS, len(names))).round().astype(int))
+    shown = [names[i] for i in idx]
+    rows = [[read_image(noisy[n]) if n in noisy else None, read_image(denoised[n]),
+             read_image(renders[n]) if n in renders else None] for n in shown]
+    sheet = contact_sheet(rows, titles=["noisy", f"denoised (round {r})", f"render (round {r})"],
+                          row_labels=shown)
+    path = out / "report_files" / f"contact_round{r}.png"
+    write_image(path, sheet)
+    return path
+
+
+def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds: Sequence[RoundResult],
+                 timings_s: dict[str, float]) -> tuple[Path, Path]:
+    """Write `report.json`, `report.md` and `report_files/contact_round<N>.png`.
+
+    Args:
+        out: the run's output folder.
+        images_dir: the noisy inputs (first column of the contact sheets).
+        config: the run's settings.
+        rounds: per-round stage results.
+        timings_s: this invocation's seconds per stage (skipped stages absent) and `total`.
+
+    Returns:
+        (report.json, report.md) paths.
+    """
+    stages = []
+    selected: dict[str, list[str]] = {}
+    for rnd in rounds:
+        for name, res in rnd.stages.items():
+            stages.append({"round": rnd.index, "stage": name, "key": res.key, "skipped": res.skipped,
+                           "seconds": round(res.seconds, 4), "summary": res.summary})
+            if name == "select":
+                selected[f"round{rnd.index}"] = list(res.summary.get("selected", []))
+    sheets = {rnd.index: _contact_sheet_png(out, images_dir, rnd.dir, rnd.index) for rnd in rounds}
+    report = {
+        "images_dir": str(images_dir),
+        "settings": config.to_dict(),
+        "timings_s_this_run": timings_s,
+        "seconds_per_stage_recorded": {f"round{s['round']}/{s['stage']}": s["seconds"] for s in stages},
+        "stages": stages,
+        "selected_views": selected,
+        "rounds": [{"index": rnd.index, "dir": rnd.dir.name} for rnd in rounds],
+        "contact_sheets": {f"round{k}": str(v.relative_to(out)) for k, v in sheets.items() if v is not None},
+    }
+    json_path, md_path = out / "report.json", out / "report.md"
+    atomic_write_text(json_path, json.dumps(_json_safe(report), indent=2) + "\n")
+
+    lines = ["# Denoise-GS run", "", f"- inputs: `{images_dir}`",
+             f"- rounds: {config.rounds}, views kept for rounds >= 2: {config.views}, seed: {config.seed}, "
+             f"device: {config.device}", ""]
+    lines += ["## Stages", "", "| round | stage | status | seconds | key |", "|---|---|---|---|---|"]
+    for s in stages:
+        status = "skipped (complete)" if s["skipped"] else "ran"
+        lines.append(f"| {s['round']} | {s['stage']} | {status} | {s['seconds']:.2f} | `{s['key'][:12]}` |")
+    total = sum(s["seconds"] for s in stages)
+    lines += ["", f"Recorded stage time, all rounds: {total:.1f} s (this invocation: "
+              f"{timings_s.get('total', 0.0):.1f} s; skipped stages cost nothing).", ""]
+    if selected:
+        lines += ["## Selected views", ""]
+        lines += [f"- {k}: {', '.join(v)}" for k, v in selected.items()]
+        lines.append("")
+    if any(sheets.values()):
+        lines += ["## Contact sheets (noisy | denoised | render)", ""]
+        for k, v in sheets.items():
+            if v is not None:
+                lines += [f"### Round {k}", "", f"![round {k}]({v.relative_to(out).as_posix()})", ""]
+    lines += ["## Settings", "", "```json", json.dumps(config.to_dict(), indent=2), "```", ""]
+    atomic_write_text(md_path, "\n".join(lines))
+    return json_path, md_path

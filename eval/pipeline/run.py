@@ -1,0 +1,150 @@
+"""`run_pipeline`: Denoise-GS's rounds as resumable stages.
+
+Round 1: denoise (train N2V on every noisy image, denoise all) -> align ->
+splat (training with pose optimisation) -> render at every input pose.
+Round r >= 2: select views from round r-1 (pose k-means, K = `views`, sharpest
+per cluster) -> refine (fine-tune the round r-1 UNet with the joint loss
+against round r-1's renders of the selected views, denoise them) -> align ->
+splat -> render.
+
+Layout (each stage commits its outputs atomically; `roundN/stages/*.json`
+hold the keys; see `eval.pipeline.stage`):
+
+    OUT/roundN/denoised/*.png, n2v_model.pt      (denoise / refine)
+    OUT/roundN/align/sparse/0/, points.npz        (align: initial poses and points)
+    OUT/roundN/sparse/0/, point_cloud.ply         (splat: optimised poses, Gaussians)
+    OUT/roundN/renders/*.png                      (render)
+    OUT/roundN/selection.json                     (select, rounds >= 2)
+    OUT/report.json, OUT/report.md, OUT/report_files/*.png
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from eval.pipeline.config import PipelineConfig
+from eval.pipeline.hashing import hash_files, hash_json
+from eval.pipeline.lock import output_lock
+from eval.pipeline.report import write_report
+from eval.pipeline.stage import StageResult, StageRunner, StageSpec
+from eval.pipeline.stages import PipelineStages, check_product_components, product_stages
+from eval.pipeline.validate import validate_run_inputs
+from mvgeo.common.timing import StageTimer
+
+__all__ = ["PipelineResult", "RoundResult", "run_pipeline", "stage_seed"]
+
+_log = logging.getLogger(__name__)
+
+
+def stage_seed(seed: int, round_index: int, stage: str) -> int:
+    """A stage's seed, derived from the master seed, the round and the stage name (31 bits)."""
+    return int(hash_json([seed, round_index, stage])[:8], 16) & 0x7FFFFFFF
+
+
+@dataclass(frozen=True)
+class RoundResult:
+    """One round's stages, by stage name (`denoise` or `select`+`refine`, `align`, `splat`, `render`)."""
+
+    index: int
+    dir: Path
+    stages: dict[str, StageResult]
+
+
+@dataclass(frozen=True)
+class PipelineResult:
+    """What `run_pipeline` produced.
+
+    Attributes:
+        out: the output folder.
+        rounds: per-round stage results.
+        timings_s: this invocation's seconds per stage (`roundN/stage`) and `total`;
+            skipped stages are absent.
+        report_json, report_md: the report files.
+    """
+
+    out: Path
+    rounds: list[RoundResult]
+    timings_s: dict[str, float]
+    report_json: Path
+    report_md: Path
+
+
+def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images: StageResult,
+                  config: PipelineConfig, r: int) -> dict[str, StageResult]:
+    """align -> splat -> render on the round's denoised images."""
+    label = f"round{r}"
+    al = runner.run(StageSpec("align", rd, stages.align, ("align",), inputs={"images": rd / "denoised"},
+                              upstream=(images,), settings=asdict(config.align),
+                              seed=stage_seed(config.seed, r, "align")), label=f"{label}/align")
+    sp = runner.run(StageSpec("splat", rd, stages.splat, ("sparse", "point_cloud.ply"),
+                              inputs={"images": rd / "denoised", "align": rd / "align"}, upstream=(images, al),
+                              settings={**asdict(config.splat), "device": config.device},
+                              seed=stage_seed(config.seed, r, "splat")), label=f"{label}/splat")
+    re = runner.run(StageSpec("render", rd, stages.render, ("renders",),
+                              inputs={"sparse": rd / "sparse", "scene": rd / "point_cloud.ply"}, upstream=(sp,),
+                              settings={"device": config.device}, seed=0), label=f"{label}/render")
+    return {"align": al, "splat": sp, "render": re}
+
+
+def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig, *,
+                 stages: PipelineStages | None = None, force: bool = False) -> PipelineResult:
+    """Run (or resume) Denoise-GS on a folder of noisy, unposed images.
+
+    Args:
+        images_dir: folder of noisy images (PNG/JPEG/TIFF, 8 or 16 bit).
+        out: output folder (created; one run at a time, enforced by a lock file).
+        config: settings (see `eval.pipeline.config.PRESETS`).
+        stages: the stage functions; default the product's (`product_stages()`).
+        force: re-run every stage even when complete outputs exist.
+
+    Raises:
+        InputError: bad inputs, found before any compute (see `validate_run_inputs`).
+        MissingComponentError: a stage needs a component that is not available.
+    """
+    images_dir, out = Path(images_dir), Path(out)
+    files = validate_run_inputs(images_dir, out, config)
+    if stages is None:
+        check_product_components(config)  # fail now, not after an hour of round 1
+        stages = product_stages()
+    timer = StageTimer()
+    runner = StageRunner(timer=timer, force=force)
+    # The noisy inputs enter the keys by content (only the image files, so an
+    # OUT folder inside IMAGES_DIR or unrelated files there change nothing).
+    noisy_digest = hash_files(files.values())
+    d = config.denoise
+    rounds: list[RoundResult] = []
+    with output_lock(out):
+        rd = out / "round1"
+        den = runner.run(StageSpec(
+            "denoise", rd, stages.denoise, ("denoised", "n2v_model.pt"), inputs={"noisy": images_dir},
+            settings={"noisy_digest": noisy_digest, "n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps,
+                      "passes": d.passes, "device": config.device},
+            seed=stage_seed(config.seed, 1, "denoise")), label="round1/denoise")
+        scene = _scene_stages(runner, stages, rd, den, config, 1)
+        rounds.append(RoundResult(1, rd, {"denoise": den, **scene}))
+        for r in range(2, config.rounds + 1):
+            prev, rd = rounds[-1], out / f"round{r}"
+            sel = runner.run(StageSpec(
+                "select", rd, stages.select, ("selection.json",),
+                inputs={"sparse": prev.dir / "sparse", "images": prev.dir / "denoised"},
+                upstream=(prev.stages["splat"], prev.stages.get("denoise") or prev.stages["refine"]),
+                settings={"views": config.views, "select_views": config.select_views},
+                seed=stage_seed(config.seed, r, "select")), label=f"round{r}/select")
+            model_stage = prev.stages.get("denoise") or prev.stages["refine"]
+            ref = runner.run(StageSpec(
+                "refine", rd, stages.refine, ("denoised", "n2v_model.pt"),
+                inputs={"noisy": images_dir, "selection": rd / "selection.json",
+                        "model": prev.dir / "n2v_model.pt", "renders": prev.dir / "renders"},
+                upstream=(sel, model_stage, prev.stages["render"]),
+                settings={"noisy_digest": noisy_digest, "round2_preset": d.round2_preset,
+                          "round2_steps": d.round2_steps, "round2_loss": d.round2_loss, "passes": d.passes,
+                          "device": config.device},
+                seed=stage_seed(config.seed, r, "refine")), label=f"round{r}/refine")
+            scene = _scene_stages(runner, stages, rd, ref, config, r)
+            rounds.append(RoundResult(r, rd, {"select": sel, "refine": ref, **scene}))
+        report_json, report_md = write_report(out, images_dir=images_dir, config=config, rounds=rounds,
+                                              timings_s=timer.as_dict())
+    _log.info("report: %s", report_md)
+    return PipelineResult(out, rounds, timer.as_dict(), report_json, report_md)

@@ -1,0 +1,214 @@
+"""The product's stage functions: Denoise-GS's steps as disk-in, disk-out functions.
+
+Each function has the `StageFn` signature (`fn(ctx) -> summary`), reads
+`ctx.inputs`, writes the outputs `eval.pipeline.run` declares for it into
+`ctx.work_dir`, and calls the component packages through
+`eval.pipeline.components` (a missing component raises
+`MissingComponentError`; nothing is faked).
+
+| stage     | inputs                                   | outputs                                   |
+|-----------|------------------------------------------|-------------------------------------------|
+| denoise   | noisy                                    | denoised/, n2v_model.pt                   |
+| align     | images                                   | align/ (sparse/0/, points.npz)            |
+| splat     | images, align                            | sparse/0/, point_cloud.ply                |
+| render    | sparse, scene                            | renders/                                  |
+| select    | images, sparse                           | selection.json                            |
+| refine    | noisy, selection, model, renders         | denoised/, n2v_model.pt                   |
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from eval.pipeline.components import component_config, require
+from eval.pipeline.config import PipelineConfig
+from eval.pipeline.stage import StageContext, StageFn
+from eval.pipeline.views import read_views, view_files, write_views
+from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
+
+__all__ = ["PipelineStages", "align", "check_product_components", "denoise", "product_stages", "refine", "render",
+           "select", "splat"]
+
+
+@dataclass(frozen=True)
+class PipelineStages:
+    """The stage functions `run_pipeline` calls; tests pass small real ones."""
+
+    denoise: StageFn
+    align: StageFn
+    splat: StageFn
+    render: StageFn
+    select: StageFn
+    refine: StageFn
+
+
+def _history_summary(history: object) -> dict[str, object]:
+    """First/last values of a training history (a list of losses, or a dict of such lists), JSON-able."""
+    out: dict[str, object] = {}
+    if isinstance(history, list | tuple) and history and isinstance(history[-1], int | float):
+        history = {"loss": history}
+    if isinstance(history, Mapping):
+        for k, v in history.items():
+            if isinstance(v, list | tuple) and v and isinstance(v[-1], int | float):
+                out[k] = {"first": float(v[0]), "last": float(v[-1]), "count": len(v)}
+    return out
+
+
+def _n2v_config(s: Mapping[str, object], need: str):
+    return component_config("denoise.n2v", "N2V_PRESETS", s["n2v_preset"], {"steps": s["n2v_steps"]},
+                            needed_for=need)
+
+
+def _round2_config(s: Mapping[str, object], need: str):
+    # The joint loss is Round2Config's default; the Charbonnier-only ablation needs a
+    # `loss` field that denoise.round2 does not offer yet (MissingComponentError then).
+    overrides = {"steps": s["round2_steps"], "loss": None if s["round2_loss"] == "joint" else s["round2_loss"]}
+    return component_config("denoise.round2", "ROUND2_PRESETS", s["round2_preset"], overrides, needed_for=need,
+                            config_cls="Round2Config")
+
+
+def denoise(ctx: StageContext) -> Mapping[str, object]:
+    """Round 1: train the N2V-UNet on all noisy images, denoise them all."""
+    need = "denoise stage (round 1)"
+    s = ctx.settings
+    cfg = _n2v_config(s, need)
+    train_n2v = require("denoise.n2v", "train_n2v", needed_for=need)
+    denoise_images = require("denoise.inference", "denoise_images", needed_for=need)
+    save_checkpoint = require("denoise.model", "save_checkpoint", needed_for=need)
+    noisy = read_views(ctx.inputs["noisy"])
+    model = train_n2v(list(noisy.values()), cfg, seed=ctx.seed)
+    out = denoise_images(model, list(noisy.values()), passes=s["passes"], seed=ctx.seed)
+    write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
+    save_checkpoint(ctx.work_dir / "n2v_model.pt", model)
+    return {"views": list(noisy), "train": _history_summary(getattr(model, "history", None))}
+
+
+def align(ctx: StageContext) -> Mapping[str, object]:
+    """Pose-free alignment of the denoised images (`mvgeo.align`)."""
+    need = "align stage"
+    s = ctx.settings
+    cfg = component_config("mvgeo.align", "ALIGN_PRESETS", s["preset"],
+                           {"max_size": s["max_size_px"], "iters": s["iters"]}, needed_for=need)
+    align_images = require("mvgeo.align", "align_images", needed_for=need)
+    files = view_files(ctx.inputs["images"])
+    res = align_images(list(files.values()), cfg)
+    out = ctx.work_dir / "align"
+    write_sparse_model(out / "sparse" / "0", res.sparse_model, binary=True)
+    np.savez(out / "points.npz", xyz=np.asarray(res.points_xyz, np.float64),
+             rgb=np.asarray(res.points_rgb, np.uint8), conf=np.asarray(res.points_conf, np.float64))
+    stats = res.stats if isinstance(res.stats, Mapping) else getattr(res.stats, "__dict__", {})
+    return {"registered": len(res.sparse_model.images), "points": int(len(res.points_xyz)),
+            "stats": json.loads(json.dumps(stats, default=str))}
+
+
+def splat(ctx: StageContext) -> Mapping[str, object]:
+    """Gaussian splatting with pose optimisation, initialised from the alignment."""
+    need = "splat stage"
+    s = ctx.settings
+    cfg = component_config("splat", "TRAIN_PRESETS", s["preset"], {"iters": s["iters"]}, needed_for=need)
+    train_gaussians = require("splat", "train_gaussians", needed_for=need)
+    save_ply = require("splat", "save_ply", needed_for=need)
+    sparse = read_sparse_model(ctx.inputs["align"] / "sparse" / "0")
+    pts = np.load(ctx.inputs["align"] / "points.npz")
+    stems = [n.rsplit(".", 1)[0] for n in sparse.names]
+    images = read_views(ctx.inputs["images"], stems)
+    cameras = [sparse.camera_of(n) for n in sparse.names]
+    cam_from_world = np.stack([sparse.image(n).cam_from_world for n in sparse.names])
+    res = train_gaussians(list(images.values()), cameras, cam_from_world, pts["xyz"], pts["rgb"], cfg)
+    save_ply(res.model, ctx.work_dir / "point_cloud.ply")
+    optimised = [PosedImage(im.name, im.camera_id, np.asarray(res.cam_from_world_optimized[i])[:3])
+                 for i, im in enumerate(sparse.images)]
+    write_sparse_model(ctx.work_dir / "sparse" / "0",
+                       SparseModel(sparse.cameras, optimised, sparse.points_xyz, sparse.points_rgb), binary=True)
+    return {"views": stems, "train": _history_summary(res.history)}
+
+
+def render(ctx: StageContext) -> Mapping[str, object]:
+    """Render the trained Gaussians at every pose of the round's `sparse/0`."""
+    need = "render stage"
+    load_ply = require("splat", "load_ply", needed_for=need)
+    render_views = require("splat", "render_views", needed_for=need)
+    sparse = read_sparse_model(ctx.inputs["sparse"] / "0")
+    model = load_ply(ctx.inputs["scene"])
+    cameras = [sparse.camera_of(n) for n in sparse.names]
+    cam_from_world = np.stack([sparse.image(n).cam_from_world for n in sparse.names])
+    images = render_views(model, cameras, cam_from_world)
+    stems = [n.rsplit(".", 1)[0] for n in sparse.names]
+    write_views(ctx.work_dir / "renders", dict(zip(stems, images, strict=True)))
+    return {"views": stems}
+
+
+def select(ctx: StageContext) -> Mapping[str, object]:
+    """Views for the next round: pose k-means (K = views) + sharpest (Laplacian variance) per cluster."""
+    need = "view selection stage"
+    s = ctx.settings
+    sparse = read_sparse_model(ctx.inputs["sparse"] / "0")
+    stems = [n.rsplit(".", 1)[0] for n in sparse.names]
+    if not s["select_views"] or len(stems) <= s["views"]:
+        selection = {"names": stems, "method": "all" if not s["select_views"] else "all (N <= K)"}
+    else:
+        select_views = require("denoise.view_selection", "select_views", needed_for=need)
+        images = read_views(ctx.inputs["images"], stems)
+        cfw = {stem: sparse.image(n).cam_from_world for stem, n in zip(stems, sparse.names, strict=True)}
+        sel = select_views(cfw, images, s["views"], seed=ctx.seed)
+        selection = {"names": list(sel.names), "method": "kmeans+laplacian",
+                     "cluster_of": {k: int(v) for k, v in dict(sel.cluster_of).items()},
+                     "laplacian_var": {k: float(v) for k, v in dict(sel.laplacian_var).items()}}
+    (ctx.work_dir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
+    return {"selected": selection["names"], "method": selection["method"]}
+
+
+def refine(ctx: StageContext) -> Mapping[str, object]:
+    """Rounds >= 2: fine-tune the UNet against the previous renders on the selected views, denoise them."""
+    need = "refine stage (round >= 2)"
+    s = ctx.settings
+    cfg = _round2_config(s, need)
+    load_checkpoint = require("denoise.model", "load_checkpoint", needed_for=need)
+    finetune_round2 = require("denoise.round2", "finetune_round2", needed_for=need)
+    denoise_images = require("denoise.inference", "denoise_images", needed_for=need)
+    save_checkpoint = require("denoise.model", "save_checkpoint", needed_for=need)
+    names = json.loads((ctx.inputs["selection"]).read_text())["names"]
+    noisy = read_views(ctx.inputs["noisy"], names)
+    renders = read_views(ctx.inputs["renders"], names)
+    model = load_checkpoint(ctx.inputs["model"], device=s["device"])
+    model = finetune_round2(model, list(noisy.values()), list(renders.values()), cfg, seed=ctx.seed)
+    out = denoise_images(model, list(noisy.values()), passes=s["passes"], seed=ctx.seed)
+    write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
+    save_checkpoint(ctx.work_dir / "n2v_model.pt", model)
+    return {"views": names, "train": _history_summary(getattr(model, "history", None))}
+
+
+def check_product_components(config: PipelineConfig) -> None:
+    """Check, before any compute, that every component function and preset a run needs exists.
+
+    Raises:
+        MissingComponentError: naming the first missing piece.
+    """
+    need = "denoise-gs run"
+    d, a, sp = config.denoise, config.align, config.splat
+    _n2v_config({"n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps}, need)
+    for module, name in (("denoise.n2v", "train_n2v"), ("denoise.inference", "denoise_images"),
+                         ("denoise.model", "save_checkpoint")):
+        require(module, name, needed_for=need)
+    component_config("mvgeo.align", "ALIGN_PRESETS", a.preset, {"max_size": a.max_size_px, "iters": a.iters},
+                     needed_for=need)
+    require("mvgeo.align", "align_images", needed_for=need)
+    component_config("splat", "TRAIN_PRESETS", sp.preset, {"iters": sp.iters}, needed_for=need)
+    for name in ("train_gaussians", "save_ply", "load_ply", "render_views"):
+        require("splat", name, needed_for=need)
+    if config.rounds >= 2:
+        _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,
+                        "round2_loss": d.round2_loss}, need)
+        for module, name in (("denoise.model", "load_checkpoint"), ("denoise.round2", "finetune_round2")):
+            require(module, name, needed_for=need)
+        if config.select_views:
+            require("denoise.view_selection", "select_views", needed_for=need)
+
+
+def product_stages() -> PipelineStages:
+    """The real Denoise-GS stages."""
+    return PipelineStages(denoise=denoise, align=align, splat=splat, render=render, select=select, refine=refine)

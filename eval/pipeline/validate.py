@@ -1,0 +1,121 @@
+"""Up-front input checks for `denoise-gs run` and `denoise-gs eval`, before any compute.
+
+Everything a stage would reject hours later is rejected here with an
+`InputError` that names the file and the fix (the CLI exits with code 2).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from eval.pipeline.config import PipelineConfig
+from eval.pipeline.views import view_files
+from mvgeo.common.errors import InputError
+from mvgeo.common.imageio import read_image
+
+__all__ = ["MIN_IMAGE_SIZE_PX", "DatasetFolder", "validate_dataset_folder", "validate_run_inputs"]
+
+#: Smallest image side accepted: LPIPS-AlexNet needs 31 px, alignment and the
+#: 4-level UNet need more than a handful of pixels; 32 covers all.
+MIN_IMAGE_SIZE_PX = 32
+#: Pose-free alignment needs at least two views.
+MIN_VIEWS = 2
+
+
+def validate_run_inputs(images_dir: Path, out: Path, config: PipelineConfig) -> dict[str, Path]:
+    """Check the inputs of `run_pipeline`; return stem -> image file.
+
+    Checks: the folder exists and holds images with distinct stems, each one
+    decodes and is at least `MIN_IMAGE_SIZE_PX` on each side, there are at
+    least two, and at least `config.views` when a second round will select
+    views (with fewer images than K the selection would be meaningless, so we
+    stop and ask for a smaller `--views` instead of silently using all views);
+    `out` is not a file and not the input folder itself.
+
+    Raises:
+        InputError: naming the offending file/option and the fix.
+    """
+    images_dir = Path(images_dir)
+    files = view_files(images_dir)
+    for path in files.values():
+        img = read_image(path)
+        if min(img.shape[:2]) < MIN_IMAGE_SIZE_PX:
+            raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px; at least {MIN_IMAGE_SIZE_PX} px per "
+                             "side is needed", path=path, fix="use larger images")
+    n = len(files)
+    if n < MIN_VIEWS:
+        raise InputError(f"only {n} image(s); pose-free reconstruction needs at least {MIN_VIEWS}",
+                         path=images_dir, fix="add more views of the scene")
+    if config.rounds >= 2 and config.select_views and n < config.views:
+        raise InputError(f"{n} images but --views {config.views}: round 2 keeps K = --views views chosen "
+                         f"among the inputs, so K cannot exceed the number of images", path=images_dir,
+                         fix=f"pass --views {n} (or fewer), or add images")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", path=out, fix="choose another --out")
+    if out.resolve() == images_dir.resolve():
+        raise InputError("--out is the input folder", path=out, fix="write the results to a separate folder")
+    return files
+
+
+@dataclass(frozen=True)
+class DatasetFolder:
+    """A checked evaluation dataset.
+
+    Attributes:
+        root: the folder.
+        train: stems of the training views (the only noisy images a method sees).
+        test: stems of the held-out views (scored against `clean/`).
+        images: stem -> noisy image file; clean: stem -> clean image file.
+    """
+
+    root: Path
+    train: list[str]
+    test: list[str]
+    images: dict[str, Path]
+    clean: dict[str, Path]
+
+
+def validate_dataset_folder(root: Path) -> DatasetFolder:
+    """Check an evaluation dataset: `images/`, `clean/`, `split.json`, ground-truth `sparse/0/`.
+
+    Raises:
+        InputError: a part is missing or inconsistent (names the part and the fix).
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError("dataset folder does not exist", path=root,
+                         fix="pass a data_synth scene name, a scene .toml, or a dataset folder")
+    fix = "a dataset folder holds images/ (noisy), clean/, split.json and sparse/0/ (as `data-synth render` writes)"
+    for part in ("images", "clean"):
+        if not (root / part).is_dir():
+            raise InputError(f"dataset has no {part}/ folder", path=root / part, fix=fix)
+    split_path = root / "split.json"
+    if not split_path.is_file():
+        raise InputError("dataset has no split.json (train/test views)", path=split_path, fix=fix)
+    if not (root / "sparse" / "0").is_dir():
+        raise InputError("dataset has no ground-truth sparse/0/ cameras", path=root / "sparse" / "0", fix=fix)
+    try:
+        split = json.loads(split_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"cannot parse split.json ({exc})", path=split_path, fix=fix) from exc
+    if not isinstance(split, dict) or not all(isinstance(split.get(k), list) for k in ("train", "test")):
+        raise InputError('split.json must be {"train": [names], "test": [names]}', path=split_path)
+    images = view_files(root / "images")
+    clean = view_files(root / "clean")
+    train = [Path(str(n)).stem for n in split["train"]]
+    test = [Path(str(n)).stem for n in split["test"]]
+    if not train or not test:
+        raise InputError(f"split.json needs training and held-out views (has {len(train)} train, "
+                         f"{len(test)} test)", path=split_path)
+    if set(train) & set(test):
+        raise InputError(f"views {sorted(set(train) & set(test))} are both train and test", path=split_path)
+    for name in train:
+        if name not in images:
+            raise InputError(f"training view {name!r} has no noisy image", path=root / "images")
+    for name in test:
+        if name not in clean:
+            raise InputError(f"held-out view {name!r} has no clean image", path=root / "clean")
+    return DatasetFolder(root, train, test, images, clean)

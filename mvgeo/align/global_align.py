@@ -1,0 +1,524 @@
+"""DUSt3R's global alignment of pairwise pointmaps, in torch.
+
+Unknowns (float32 by default, CPU unless the inputs say otherwise):
+
+- per view n: a log-depth map `log_depth[n]: (H_n, W_n)`, a pose
+  `world_from_cam[n]` as an (unnormalised) wxyz quaternion and a translation,
+  and a log-focal (one shared log-focal with `shared_focal=True`);
+- per pair e = (i, j): a similarity `world_from_pair[e]` (quaternion,
+  translation, log-scale) that maps the pair's pointmaps (camera-i frame) into
+  the world.
+
+Objective (DUSt3R eq. 5, Euclidean norm, not squared):
+
+    L = sum_e sum_{v in {i, j}} sum_p  log(conf_v^e[p]) * || X_v[p] - sigma_e * P_e X_v^e[p] || / (H_v W_v)
+
+where `X_v[p]` is pixel p of view v back-projected with its depth, focal and
+pose. The pair scales are renormalised so that their geometric mean is
+`pinned_scale` (the scene cannot collapse to a point). Pixels with conf == 1
+have zero weight and are skipped. The principal point stays at the image
+centre.
+
+Initialisation: a maximum spanning tree over pair scores, chaining views with
+confidence-weighted Procrustes with scale (Umeyama), then each view's pose by
+PnP on its chained pointmap, depth from that pose, and each pair's similarity
+by Procrustes against the chained points.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from mvgeo.align.graph import components, maximum_spanning_tree
+from mvgeo.align.pairs import PairPrediction
+from mvgeo.common.deps import cv2
+from mvgeo.common.errors import DegenerateGeometryError, InputError
+from mvgeo.common.progress import progress_bar
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class GlobalAlignConfig:
+    """Options of the global alignment (defaults as DUSt3R/InstantSplat).
+
+    Attributes:
+        iters: Adam iterations (0: initialisation only).
+        lr: base learning rate.
+        lr_min: final learning rate of the cosine schedule.
+        shared_focal: one focal for all views (InstantSplat's focal averaging);
+            requires all views to have the same pointmap size.
+        optimize_focal: False keeps the focal lengths at their initial values
+            (known intrinsics).
+        pinned_scale: geometric mean of the pair scales.
+        dtype: torch dtype of the optimisation (float32; float64 for tests).
+        device: torch device ("cpu" by default).
+    """
+
+    iters: int = 300
+    lr: float = 0.01
+    lr_min: float = 1e-6
+    shared_focal: bool = False
+    optimize_focal: bool = True
+    pinned_scale: float = 1.0
+    dtype: torch.dtype = torch.float32
+    device: str = "cpu"
+
+
+@dataclass
+class GlobalAlignResult:
+    """Output of `global_align` (numpy, float64 geometry).
+
+    Attributes:
+        cam_from_world: (N, 3, 4) poses.
+        focal_px: (N,) focals in pixels of each view's pointmap grid.
+        depth: list of (H_n, W_n) z-depth maps.
+        pts_world: list of (H_n, W_n, 3) dense points in the world frame.
+        conf: list of (H_n, W_n) per-pixel confidence (max over the pairs that see it).
+        loss_history: loss per iteration (index 0: after initialisation).
+        init_loss: loss after initialisation.
+        final_loss: loss after optimisation.
+    """
+
+    cam_from_world: np.ndarray
+    focal_px: np.ndarray
+    depth: list[np.ndarray]
+    pts_world: list[np.ndarray]
+    conf: list[np.ndarray]
+    loss_history: list[float] = field(default_factory=list)
+    init_loss: float = float("nan")
+    final_loss: float = float("nan")
+
+
+# --------------------------------------------------------------------------- small kernels
+
+
+def R_from_quat_wxyz(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices from (not necessarily unit) wxyz quaternions.
+
+    Args:
+        q: (..., 4).
+
+    Returns:
+        (..., 3, 3), same dtype/device.
+    """
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    rows = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]
+    return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
+
+
+def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 4) unit wxyz quaternions with w >= 0 (via scipy, xyzw converted)."""
+    from scipy.spatial.transform import Rotation
+
+    xyzw = Rotation.from_matrix(np.asarray(R, np.float64).reshape(-1, 3, 3)).as_quat()
+    q = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+    q = np.where(q[:, :1] < 0, -q, q)
+    return q.reshape(*np.shape(R)[:-2], 4)
+
+
+def weighted_umeyama(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Weighted similarity (s, R, t) minimising sum w ||dst - (s R src + t)||^2.
+
+    Temporary local copy until `mvgeo.transforms.umeyama` lands (then this
+    delegates to it).
+
+    Args:
+        src, dst: (M, 3) float64. w: (M,) non-negative weights.
+
+    Raises:
+        DegenerateGeometryError: fewer than 3 weighted points or all coincident.
+    """
+    try:
+        from mvgeo.transforms import umeyama  # type: ignore[attr-defined]
+    except ImportError:
+        umeyama = None
+    if umeyama is not None:
+        res = umeyama(src, dst, weights=w, with_scale=True)
+        return _unpack_sim3(res)
+    w = np.asarray(w, np.float64)
+    if np.count_nonzero(w > 0) < 3:
+        raise DegenerateGeometryError("Procrustes needs at least 3 weighted points")
+    w = w / w.sum()
+    mu_s = w @ src
+    mu_d = w @ dst
+    cs, cd = src - mu_s, dst - mu_d
+    var_s = float(w @ np.sum(cs * cs, axis=1))
+    if var_s <= 1e-18:
+        raise DegenerateGeometryError("Procrustes source points are all coincident")
+    cov = (cd * w[:, None]).T @ cs
+    U, S, Vt = np.linalg.svd(cov)
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / var_s)
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def _unpack_sim3(res) -> tuple[float, np.ndarray, np.ndarray]:
+    if isinstance(res, tuple) and len(res) == 3:
+        s, R, t = res
+        return float(s), np.asarray(R, np.float64), np.asarray(t, np.float64)
+    for names in (("scale", "R", "t"), ("s", "R", "t")):
+        if all(hasattr(res, n) for n in names):
+            return float(getattr(res, names[0])), np.asarray(res.R, np.float64), np.asarray(res.t, np.float64)
+    m = np.asarray(res, np.float64)  # (4, 4) or (3, 4) sRt
+    sR = m[:3, :3]
+    s = float(np.cbrt(np.linalg.det(sR)))
+    return s, sR / s, m[:3, 3]
+
+
+def pixel_rays(H: int, W: int, focal_px: float) -> np.ndarray:
+    """(H, W, 3) rays (x/z, y/z, 1) of the pixel centres, principal point at (W/2, H/2)."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
+    return np.stack([(u - W / 2.0) / focal_px, (v - H / 2.0) / focal_px, np.ones_like(u)], axis=-1)
+
+
+# --------------------------------------------------------------------------- the problem
+
+
+@dataclass
+class _Terms:
+    """All (edge, view, pixel) residual terms, flattened and sorted by edge (torch tensors).
+
+    Terms of pair e occupy `edge_start[e]:edge_start[e + 1]`.
+    """
+
+    flat: torch.Tensor  # (M,) long, index into the concatenated pixels of all views
+    pred: torch.Tensor  # (M, 3) pair-frame points
+    weight: torch.Tensor  # (M,) log(conf) / (H_v W_v)
+    edge_start: list[int]
+
+
+def _build_terms(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], offsets: np.ndarray,
+                 dtype: torch.dtype, device: torch.device) -> _Terms:
+    flats, pts, wts, starts = [], [], [], [0]
+    for p in preds:
+        count = 0
+        for v, P, C in ((p.i, p.pts_i, p.conf_i), (p.j, p.pts_j, p.conf_j)):
+            H, W = sizes_hw[v]
+            if P.shape[:2] != (H, W):
+                raise InputError(f"pair ({p.i}, {p.j}): pointmap of view {v} is {P.shape[:2]}, expected {(H, W)}")
+            c = np.asarray(C, np.float64).reshape(-1)
+            P = np.asarray(P, np.float64).reshape(-1, 3)
+            keep = np.flatnonzero((c > 1.0) & np.all(np.isfinite(P), axis=1))
+            flats.append(offsets[v] + keep)
+            pts.append(P[keep])
+            wts.append(np.log(c[keep]) / (H * W))
+            count += len(keep)
+        starts.append(starts[-1] + count)
+
+    def t(x, dt):
+        return torch.as_tensor(np.concatenate(x), dtype=dt, device=device)
+
+    return _Terms(t(flats, torch.long), t(pts, dtype), t(wts, dtype), starts)
+
+
+class _Params(torch.nn.Module):
+    def __init__(self, log_depth, q_wfc, t_wfc, log_focal, q_pair, t_pair, logs_pair, *, optimize_focal: bool):
+        super().__init__()
+        self.log_depth = torch.nn.Parameter(log_depth)
+        self.q_wfc = torch.nn.Parameter(q_wfc)
+        self.t_wfc = torch.nn.Parameter(t_wfc)
+        self.log_focal = torch.nn.Parameter(log_focal, requires_grad=optimize_focal)
+        self.q_pair = torch.nn.Parameter(q_pair)
+        self.t_pair = torch.nn.Parameter(t_pair)
+        self.logs_pair = torch.nn.Parameter(logs_pair)
+
+
+@dataclass
+class _Grid:
+    """Pixel grids of all views, concatenated like `log_depth` (torch tensors)."""
+
+    du: torch.Tensor  # (P,) u - cx
+    dv: torch.Tensor  # (P,) v - cy
+    focal_of_pixel: torch.Tensor  # (P,) long, index into log_focal
+    view_start: list[int]  # pixels of view n: view_start[n]:view_start[n + 1]
+
+
+def world_points(params: _Params, grid: _Grid) -> torch.Tensor:
+    """(P, 3) every pixel of every view back-projected into the world."""
+    depth = torch.exp(params.log_depth)
+    f = torch.exp(params.log_focal)[grid.focal_of_pixel]
+    x_cam = torch.stack([grid.du / f * depth, grid.dv / f * depth, depth], dim=-1)
+    R = R_from_quat_wxyz(params.q_wfc)
+    parts = [x_cam[a:b] @ R[n].T + params.t_wfc[n]
+             for n, (a, b) in enumerate(zip(grid.view_start[:-1], grid.view_start[1:]))]
+    return torch.cat(parts)
+
+
+def alignment_loss(params: _Params, terms: _Terms, grid: _Grid, *, pinned_scale: float) -> torch.Tensor:
+    """The DUSt3R objective (module docstring), vectorised over pixels, looped over views and pairs."""
+    x_world = world_points(params, grid)[terms.flat]
+    logs = params.logs_pair - params.logs_pair.mean() + math.log(pinned_scale)
+    scale = torch.exp(logs)
+    Rp = R_from_quat_wxyz(params.q_pair)
+    st = terms.edge_start
+    aligned = torch.cat([scale[e] * (terms.pred[st[e]:st[e + 1]] @ Rp[e].T) + params.t_pair[e]
+                         for e in range(len(st) - 1)])
+    return torch.sum(terms.weight * torch.linalg.norm(x_world - aligned, dim=-1))
+
+
+def alignment_loss_reference(preds: Sequence[PairPrediction], *, cam_from_world: np.ndarray, focal_px: np.ndarray,
+                             depth: Sequence[np.ndarray], pair_sim: Sequence[tuple[float, np.ndarray, np.ndarray]],
+                             pinned_scale: float) -> float:
+    """Slow, obvious float64 evaluation of the objective with loops (the tests' reference).
+
+    `pair_sim[e] = (s, R, t)` maps pair e's frame to the world before the scale
+    renormalisation (which this function applies).
+    """
+    mean_log = np.mean([math.log(s) for s, _, _ in pair_sim])
+    total = 0.0
+    for e, p in enumerate(preds):
+        s, Rp, tp = pair_sim[e]
+        s = math.exp(math.log(s) - mean_log) * pinned_scale
+        for v, P, C in ((p.i, p.pts_i, p.conf_i), (p.j, p.pts_j, p.conf_j)):
+            H, W = P.shape[:2]
+            R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
+            rays = pixel_rays(H, W, float(focal_px[v]))
+            for r in range(H):
+                for c in range(W):
+                    if C[r, c] <= 1.0:
+                        continue
+                    x_cam = rays[r, c] * depth[v][r, c]
+                    x_world = R.T @ (x_cam - t)
+                    aligned = s * Rp @ P[r, c] + tp
+                    total += math.log(C[r, c]) / (H * W) * np.linalg.norm(x_world - aligned)
+    return total
+
+
+# --------------------------------------------------------------------------- initialisation
+
+
+@dataclass
+class AlignInit:
+    """Initial values (numpy float64) for the optimisation."""
+
+    cam_from_world: np.ndarray  # (N, 3, 4)
+    focal_px: np.ndarray  # (N,)
+    depth: list[np.ndarray]  # (H_n, W_n)
+    pair_sim: list[tuple[float, np.ndarray, np.ndarray]]  # pair frame -> world
+
+
+def _valid(C: np.ndarray, P: np.ndarray) -> np.ndarray:
+    return (C > 1.0) & np.all(np.isfinite(P), axis=-1)
+
+
+def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], *,
+                            focal_init_px: np.ndarray) -> AlignInit:
+    """DUSt3R's MST initialisation (see the module docstring).
+
+    Args:
+        preds: the pair predictions (a connected graph over all views).
+        sizes_hw: (H_n, W_n) per view.
+        focal_init_px: (N,) focal per view used for PnP.
+
+    Raises:
+        DegenerateGeometryError: a view could not be chained or posed.
+    """
+    n = len(sizes_hw)
+    edges = [(p.i, p.j) for p in preds]
+    order = maximum_spanning_tree(n, edges, [max(p.score, 1e-6) for p in preds])
+    pts_world: dict[int, np.ndarray] = {}
+    conf_world: dict[int, np.ndarray] = {}
+    for k in order:
+        p = preds[k]
+        if not pts_world:
+            pts_world[p.i], conf_world[p.i] = p.pts_i.astype(np.float64), p.conf_i
+            pts_world[p.j], conf_world[p.j] = p.pts_j.astype(np.float64), p.conf_j
+            continue
+        if p.i in pts_world and p.j in pts_world:
+            continue
+        known, P_known, C_known, new, P_new, C_new = (
+            (p.i, p.pts_i, p.conf_i, p.j, p.pts_j, p.conf_j) if p.i in pts_world
+            else (p.j, p.pts_j, p.conf_j, p.i, p.pts_i, p.conf_i))
+        ok = _valid(C_known, P_known) & _valid(conf_world[known], pts_world[known])
+        w = np.log(C_known[ok]) * np.log(conf_world[known][ok])
+        s, R, t = weighted_umeyama(P_known[ok].astype(np.float64), pts_world[known][ok], w)
+        pts_world[new] = s * P_new.astype(np.float64) @ R.T + t
+        conf_world[new] = C_new
+    missing = [v for v in range(n) if v not in pts_world]
+    if missing:
+        raise DegenerateGeometryError(f"views {missing} are not connected to the others by any pair")
+    cam_from_world = np.zeros((n, 3, 4))
+    depth = []
+    for v in range(n):
+        H, W = sizes_hw[v]
+        ok = _valid(conf_world[v], pts_world[v])
+        rows, cols = np.nonzero(ok)
+        if len(rows) < 6:
+            raise DegenerateGeometryError(f"view {v}: only {len(rows)} confident pixels, cannot estimate its pose")
+        uv_cv = np.stack([cols, rows], axis=1).astype(np.float64)  # OpenCV pixel centres at integers (= ours - 0.5)
+        K_cv = np.array([[focal_init_px[v], 0, W / 2.0 - 0.5], [0, focal_init_px[v], H / 2.0 - 0.5], [0, 0, 1]])
+        obj = pts_world[v][ok]
+        okp, rvec, tvec = cv2.solvePnP(obj, uv_cv, K_cv, None, flags=cv2.SOLVEPNP_SQPNP)
+        if not okp:
+            raise DegenerateGeometryError(f"view {v}: PnP on its chained pointmap failed")
+        rvec, tvec = cv2.solvePnPRefineLM(obj, uv_cv, K_cv, None, rvec, tvec)
+        R = cv2.Rodrigues(rvec)[0]
+        cam_from_world[v] = np.concatenate([R, tvec.reshape(3, 1)], axis=1)
+        z = (pts_world[v] @ R.T + tvec.reshape(1, 1, 3))[..., 2]
+        med = float(np.median(z[ok]))
+        if not med > 0:
+            raise DegenerateGeometryError(f"view {v}: its chained points lie behind the camera")
+        z = np.where(ok & (z > 1e-3 * med), z, med)
+        depth.append(z)
+    pair_sim = []
+    for p in preds:
+        src, dst, w = [], [], []
+        for v, P, C in ((p.i, p.pts_i, p.conf_i), (p.j, p.pts_j, p.conf_j)):
+            ok = _valid(C, P)
+            H, W = sizes_hw[v]
+            R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
+            x_cam = pixel_rays(H, W, float(focal_init_px[v])) * depth[v][..., None]
+            src.append(P[ok].astype(np.float64))
+            dst.append((x_cam[ok] - t) @ R)  # R^T (x - t)
+            w.append(np.log(C[ok]))
+        pair_sim.append(weighted_umeyama(np.concatenate(src), np.concatenate(dst), np.concatenate(w)))
+    return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth, pair_sim)
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], *,
+                 config: GlobalAlignConfig = GlobalAlignConfig(), focal_init_px: np.ndarray | None = None,
+                 init: AlignInit | None = None) -> GlobalAlignResult:
+    """Recover poses, focals and dense depth from pairwise pointmaps.
+
+    Args:
+        preds: pair predictions; together they must connect all views.
+        sizes_hw: (H_n, W_n) of each view's pointmap grid.
+        config: options.
+        focal_init_px: (N,) initial (or known, with `optimize_focal=False`)
+            focals; default: per view, the median of the pairs' estimates.
+        init: precomputed initialisation (default: `init_from_spanning_tree`).
+
+    Returns:
+        `GlobalAlignResult` (the world frame is arbitrary, scale set by `pinned_scale`).
+
+    Raises:
+        DegenerateGeometryError: disconnected views or failed initialisation.
+        InputError: no pairs, or `shared_focal` with views of different sizes.
+    """
+    n = len(sizes_hw)
+    if not preds:
+        raise InputError("global alignment needs at least one pair prediction")
+    comps = components(n, [(p.i, p.j) for p in preds])
+    if len(comps) > 1:
+        raise DegenerateGeometryError(
+            "the pair graph is disconnected: " + "; ".join(f"group {k}: views {c}" for k, c in enumerate(comps)))
+    if config.shared_focal and len(set(map(tuple, sizes_hw))) > 1:
+        raise InputError("shared_focal needs all views at the same pointmap size")
+    if focal_init_px is None:
+        focal_init_px = focal_estimates(preds, n)
+        if config.shared_focal:
+            focal_init_px = np.full(n, float(np.exp(np.mean(np.log(focal_init_px)))))
+    focal_init_px = np.asarray(focal_init_px, np.float64)
+    if init is None:
+        init = init_from_spanning_tree(preds, sizes_hw, focal_init_px=focal_init_px)
+
+    dev, dt = torch.device(config.device), config.dtype
+    # Renormalise the world so that the pair scales' geometric mean is already pinned.
+    gm = math.exp(np.mean([math.log(s) for s, _, _ in init.pair_sim]))
+    c = config.pinned_scale / gm
+    log_depth = torch.as_tensor(np.concatenate([np.log(d * c).reshape(-1) for d in init.depth]), dtype=dt, device=dev)
+    offsets = np.concatenate([[0], np.cumsum([h * w for h, w in sizes_hw])[:-1]])
+    world_from_cam_R = np.transpose(init.cam_from_world[:, :, :3], (0, 2, 1))
+    world_from_cam_t = -np.einsum("nij,nj->ni", world_from_cam_R, init.cam_from_world[:, :, 3]) * c
+    q_pair = quat_wxyz_from_R(np.stack([R for _, R, _ in init.pair_sim]))
+    t_pair = np.stack([t for _, _, t in init.pair_sim]) * c
+    logs_pair = np.log([s for s, _, _ in init.pair_sim])
+    if config.shared_focal:
+        log_focal = np.array([np.mean(np.log(init.focal_px))])
+        focal_index = np.zeros(n, dtype=np.int64)
+    else:
+        log_focal = np.log(init.focal_px)
+        focal_index = np.arange(n)
+    T = lambda x: torch.as_tensor(np.asarray(x), dtype=dt, device=dev)  # noqa: E731
+    params = _Params(log_depth, T(quat_wxyz_from_R(world_from_cam_R)), T(world_from_cam_t), T(log_focal),
+                     T(q_pair), T(t_pair), T(logs_pair), optimize_focal=config.optimize_focal)
+    terms = _build_terms(preds, sizes_hw, offsets, dt, dev)
+    du = np.concatenate([(pixel_rays(h, w, 1.0)[..., 0]).reshape(-1) for h, w in sizes_hw])
+    dv = np.concatenate([(pixel_rays(h, w, 1.0)[..., 1]).reshape(-1) for h, w in sizes_hw])
+    fpix = np.concatenate([np.full(h * w, focal_index[n]) for n, (h, w) in enumerate(sizes_hw)])
+    grid = _Grid(T(du), T(dv), torch.as_tensor(fpix, dtype=torch.long, device=dev),
+                 [int(x) for x in np.concatenate([offsets, [offsets[-1] + sizes_hw[-1][0] * sizes_hw[-1][1]]])])
+    kw = dict(pinned_scale=config.pinned_scale)
+
+    with torch.no_grad():
+        init_loss = float(alignment_loss(params, terms, grid, **kw))
+    history = [init_loss]
+    trainable = [p for p in params.parameters() if p.requires_grad]
+    if config.iters > 0:
+        opt = torch.optim.Adam(trainable, lr=config.lr, betas=(0.9, 0.9))
+        with progress_bar(desc="global alignment", total=config.iters) as bar:
+            for it in range(config.iters):
+                frac = it / max(config.iters - 1, 1)
+                lr = config.lr_min + (config.lr - config.lr_min) * 0.5 * (1 + math.cos(math.pi * frac))
+                for g in opt.param_groups:
+                    g["lr"] = lr
+                opt.zero_grad()
+                loss = alignment_loss(params, terms, grid, **kw)
+                if not torch.isfinite(loss):
+                    raise DegenerateGeometryError(f"global alignment diverged (loss {float(loss)}) at iteration {it}")
+                loss.backward()
+                opt.step()
+                history.append(float(loss.detach()))
+                bar.update(1)
+                if it % 20 == 0:
+                    bar.set_postfix(loss=f"{float(loss):.4g}")
+        with torch.no_grad():
+            history.append(float(alignment_loss(params, terms, grid, **kw)))
+    _log.info("global alignment: loss %.5g -> %.5g over %d iterations", init_loss, history[-1], config.iters)
+    return _collect(params, preds, sizes_hw, focal_index, offsets, init_loss, history)
+
+
+def focal_estimates(preds: Sequence[PairPrediction], n: int) -> np.ndarray:
+    """(N,) median over pairs of each view's focal estimate (nan-free; raises if a view has none)."""
+    per_view: list[list[float]] = [[] for _ in range(n)]
+    for p in preds:
+        if np.isfinite(p.focal_i_px) and p.focal_i_px > 0:
+            per_view[p.i].append(p.focal_i_px)
+        if p.focal_j_px is not None and np.isfinite(p.focal_j_px) and p.focal_j_px > 0:
+            per_view[p.j].append(p.focal_j_px)
+    allf = [f for fs in per_view for f in fs]
+    if not allf:
+        raise DegenerateGeometryError("no pair produced a focal estimate")
+    return np.array([np.median(fs) if fs else np.median(allf) for fs in per_view])
+
+
+def _collect(params: _Params, preds, sizes_hw, focal_index, offsets, init_loss, history) -> GlobalAlignResult:
+    with torch.no_grad():
+        R_wfc = R_from_quat_wxyz(params.q_wfc).double().cpu().numpy()
+        t_wfc = params.t_wfc.double().cpu().numpy()
+        focal = np.exp(params.log_focal.double().cpu().numpy())[focal_index]
+        log_depth = params.log_depth.double().cpu().numpy()
+    n = len(sizes_hw)
+    cam_from_world = np.zeros((n, 3, 4))
+    depth, pts_world, conf = [], [], []
+    for v in range(n):
+        H, W = sizes_hw[v]
+        R = R_wfc[v].T
+        cam_from_world[v] = np.concatenate([R, (-R @ t_wfc[v]).reshape(3, 1)], axis=1)
+        d = np.exp(log_depth[offsets[v]:offsets[v] + H * W]).reshape(H, W)
+        depth.append(d)
+        pts_world.append((pixel_rays(H, W, float(focal[v])) * d[..., None]) @ R_wfc[v].T + t_wfc[v])
+        conf.append(np.ones((H, W)))
+    for p in preds:
+        conf[p.i] = np.maximum(conf[p.i], p.conf_i)
+        conf[p.j] = np.maximum(conf[p.j], p.conf_j)
+    return GlobalAlignResult(cam_from_world, focal, depth, pts_world, conf, history, init_loss, history[-1])

@@ -1,0 +1,502 @@
+"""Robust relative pose from two views (numpy float64): calibrated and shared-unknown-focal.
+
+Both estimators take pixel matches in our convention (top-left pixel centre
+at (0.5, 0.5), docs/conventions.md) and return a `RelativePoseResult` with
+``cam2_from_cam1 = [R | t]``, ``|t| = 1`` (scale is unobservable), inlier
+mask and explicit validity: ``success`` is False, with a ``reason``, when
+too few inliers survive, when the baseline is too small for the translation
+to mean anything (pure rotation gives tiny triangulation angles), or — for
+the uncalibrated estimator — when a homography explains the matches (planar
+scene or pure rotation: F and the focal length are then not determined).
+
+Pipeline (own implementation; OpenCV's USAC is available as ``backend="opencv"``
+and is the reference in the tests):
+
+1. Seeded LO-MSAC (`mvgeo.ransac`) with our minimal solvers
+   (`mvgeo.epipolar.essential_5point`, `fundamental_7point`), scored by the
+   Sampson distance **in pixels**, LO with the linear 8-point solver.
+2. Pose from E: the four decompositions, cheirality by Lee–Civera mid2
+   triangulation of the inliers (`mvgeo.triangulate`).
+3. Levenberg–Marquardt refinement of ``(R, t)`` (and ``log f``) on the
+   inliers' Sampson distances (scipy ``least_squares``), then inliers are
+   re-selected with the refined model.
+
+Focal length from F (uncalibrated, shared focal, principal point at the
+image centre): a 1-D search over ``f`` minimising the essential-matrix
+singular-value gap ``(s1 - s2) / (s1 + s2)`` of ``E(f) = K(f)^T F K(f)``
+(a coarse log grid, then bounded Brent), followed by the joint LM above. We
+do not use Bougnoux's closed form: it returns ``f^2 < 0`` under noise and is
+singular whenever the optical axes are coplanar (two cameras looking at a
+common point, i.e. every object-centric capture), while the search always
+returns a positive focal. No method escapes the true ambiguity (Sturm 2001:
+optical axes meeting at a point equidistant from both centres, e.g. a
+turntable), so the result carries ``focal_rel_std`` from the LM covariance
+and ``focal_well_determined``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+from scipy.optimize import least_squares, minimize_scalar
+
+from mvgeo.common.deps import cv2
+from mvgeo.common.errors import ShapeError, check_shape
+from mvgeo.epipolar import (
+    decompose_essential,
+    essential_5point,
+    essential_from_linear,
+    essential_from_pose,
+    fundamental_7point,
+    fundamental_8point,
+    fundamental_from_essential,
+    project_to_essential,
+    sampson_distance,
+)
+from mvgeo.ransac import RansacConfig, ransac
+from mvgeo.transforms import so3_exp
+from mvgeo.triangulate import TriangulationCriteria, triangulate_two_view
+
+__all__ = [
+    "TwoViewConfig",
+    "RelativePoseResult",
+    "FocalEstimate",
+    "estimate_relative_pose",
+    "estimate_relative_pose_uncalibrated",
+    "estimate_fundamental",
+    "focal_from_fundamental",
+    "pose_from_essential",
+]
+
+
+@dataclass(frozen=True)
+class TwoViewConfig:
+    """Options of the two-view estimators.
+
+    Attributes:
+        ransac: sampling options; ``ransac.threshold_px`` is the Sampson
+            distance threshold in pixels.
+        min_inliers: fewer inliers than this -> ``success=False``.
+        min_median_angle_deg: median parallax (rotation-compensated ray angle) of the inliers below
+            this -> ``success=False`` (pure rotation / too small a baseline).
+        max_homography_ratio: uncalibrated only: if a homography has at least
+            this fraction of F's inliers the scene is planar or the motion a
+            pure rotation -> ``success=False``.
+        refine: run the final Levenberg–Marquardt refinement.
+        focal_search_range: focal search interval as multiples of ``max(W, H)``
+            (0.2 .. 5 covers ~170 deg down to ~11 deg horizontal field of view).
+        max_focal_rel_std: ``focal_well_determined`` requires the LM relative
+            standard deviation of ``f`` below this.
+        noise_floor_px: measurement noise assumed at least this large when
+            computing ``focal_rel_std`` (so exact synthetic data cannot make a
+            degenerate geometry look well determined).
+        backend: ``"own"`` (default) or ``"opencv"`` (``cv2.findEssentialMat`` /
+            ``findFundamentalMat`` with USAC_MAGSAC, then steps 2-3 above).
+    """
+
+    ransac: RansacConfig = field(default_factory=RansacConfig)
+    min_inliers: int = 15
+    min_median_angle_deg: float = 0.5
+    max_homography_ratio: float = 0.9
+    refine: bool = True
+    focal_search_range: tuple[float, float] = (0.2, 5.0)
+    max_focal_rel_std: float = 0.05
+    noise_floor_px: float = 0.1
+    backend: Literal["own", "opencv"] = "own"
+
+
+@dataclass(frozen=True)
+class RelativePoseResult:
+    """Relative pose ``cam2_from_cam1`` from matches, with validity.
+
+    Attributes:
+        success: True when the pose can be trusted (see `TwoViewConfig`).
+        reason: empty on success, else why not.
+        R: (3, 3) rotation (identity when nothing was found).
+        t: (3,) unit translation (zeros when nothing was found).
+        E: (3, 3) essential matrix (normalised coordinates, unit norm).
+        F: (3, 3) fundamental matrix on our pixel coordinates (unit norm).
+        inlier_mask: (N,) bool, Sampson distance < threshold for the final model.
+        n_inliers: ``inlier_mask.sum()``.
+        in_front_mask: (N,) bool, inliers triangulating in front of both cameras.
+        median_angle_deg: median parallax of the inliers: angle between the
+            rotation-compensated rays ``f1`` and ``R^T f2`` (the triangulation
+            angle for intersecting rays; independent of ``t``).
+        iterations: RANSAC samples drawn.
+        focal_px: shared focal length (uncalibrated estimator), else None.
+        focal_rel_std: relative standard deviation of ``focal_px`` (LM covariance), else None.
+        focal_well_determined: ``focal_rel_std <= max_focal_rel_std`` (uncalibrated only).
+        homography_ratio: homography inliers / F inliers (uncalibrated only).
+    """
+
+    success: bool
+    reason: str
+    R: np.ndarray
+    t: np.ndarray
+    E: np.ndarray
+    F: np.ndarray
+    inlier_mask: np.ndarray
+    n_inliers: int
+    in_front_mask: np.ndarray
+    median_angle_deg: float
+    iterations: int
+    focal_px: float | None = None
+    focal_rel_std: float | None = None
+    focal_well_determined: bool | None = None
+    homography_ratio: float | None = None
+
+
+@dataclass(frozen=True)
+class FocalEstimate:
+    """Shared focal length from a fundamental matrix.
+
+    Attributes:
+        focal_px: minimiser of the singular-value gap on the search interval.
+        cost: ``(s1 - s2) / (s1 + s2)`` at ``focal_px`` (0 for an exact F).
+        at_bound: the minimum lies on the search interval's boundary (suspect).
+    """
+
+    focal_px: float
+    cost: float
+    at_bound: bool
+
+
+def _check_matches(uv1, uv2) -> tuple[np.ndarray, np.ndarray]:
+    u1 = np.asarray(uv1, dtype=np.float64)
+    u2 = np.asarray(uv2, dtype=np.float64)
+    check_shape(u1, ["N", 2], "uv1_px")
+    check_shape(u2, [u1.shape[0], 2], "uv2_px")
+    ok = np.all(np.isfinite(u1), axis=1) & np.all(np.isfinite(u2), axis=1)
+    if not ok.all():
+        raise ShapeError(f"uv1_px/uv2_px: {np.count_nonzero(~ok)} non-finite coordinates")
+    return u1, u2
+
+
+def _to_norm(u: np.ndarray, K: np.ndarray) -> np.ndarray:
+    Kinv = np.linalg.inv(K)
+    return u @ Kinv[:2, :2].T + Kinv[:2, 2]
+
+
+def _failure(n: int, reason: str, iterations: int = 0, **extra) -> RelativePoseResult:
+    z = np.zeros(n, bool)
+    return RelativePoseResult(
+        success=False, reason=reason, R=np.eye(3), t=np.zeros(3), E=np.zeros((3, 3)), F=np.zeros((3, 3)),
+        inlier_mask=z, n_inliers=0, in_front_mask=z.copy(), median_angle_deg=0.0, iterations=iterations, **extra,
+    )
+
+
+_CHEIRALITY = TriangulationCriteria(min_angle_deg=0.0, max_angular_error_deg=180.0, max_range=1e8)
+
+
+def pose_from_essential(E, x1, x2) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Choose among the four decompositions of E by cheirality (mid2 triangulation).
+
+    Args:
+        E: (3, 3).
+        x1: (N, 2) normalised coordinates, camera 1 (typically the inliers).
+        x2: (N, 2) camera 2.
+
+    Returns:
+        ``R (3, 3)``, ``t (3,)`` unit, ``in_front (N,)`` bool, ``angle_deg (N,)``.
+    """
+    Rs, ts = decompose_essential(E)
+    r1 = np.c_[x1, np.ones(len(x1))]
+    r2 = np.c_[x2, np.ones(len(x2))]
+    best = None
+    for R, t in zip(Rs, ts, strict=True):
+        tri = triangulate_two_view(r1, r2, np.c_[R, t], method="mid2", criteria=_CHEIRALITY)
+        front = tri.in_front & tri.finite
+        if best is None or front.sum() > best[2].sum():
+            best = (R, t, front, tri.angle_deg)
+    return best
+
+
+def _tangent_basis(t: np.ndarray) -> np.ndarray:
+    """(3, 2) orthonormal basis of the plane orthogonal to unit t."""
+    a = np.eye(3)[np.argmin(np.abs(t))]
+    b1 = np.cross(t, a)
+    b1 /= np.linalg.norm(b1)
+    return np.stack([b1, np.cross(t, b1)], axis=1)
+
+
+def _refine(u1, u2, K1_fn, K2_fn, R0, t0, log_f0: float | None, noise_floor_px: float):
+    """LM on Sampson distances (pixels). Returns R, t, f (or None), rel_std of f (or None)."""
+    B = _tangent_basis(t0)
+    n_f = 0 if log_f0 is None else 1
+
+    def unpack(p):
+        R = so3_exp(p[n_f:n_f + 3]) @ R0
+        t = t0 + B @ p[n_f + 3:n_f + 5]
+        t = t / np.linalg.norm(t)
+        lf = None if log_f0 is None else log_f0 + p[0]
+        return R, t, lf
+
+    def F_of(p):
+        R, t, lf = unpack(p)
+        K1, K2 = K1_fn(lf), K2_fn(lf)
+        return np.linalg.inv(K2).T @ essential_from_pose(R, t) @ np.linalg.inv(K1)
+
+    def resid(p):
+        F = F_of(p)
+        h1 = np.c_[u1, np.ones(len(u1))]
+        h2 = np.c_[u2, np.ones(len(u2))]
+        Fx1 = h1 @ F.T
+        Ftx2 = h2 @ F
+        num = np.sum(h2 * Fx1, axis=1)
+        den = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
+        return num / np.maximum(den, 1e-300)  # signed Sampson distance (pixels)
+
+    p0 = np.zeros(n_f + 5)
+    sol = least_squares(resid, p0, method="lm", x_scale="jac", max_nfev=200)
+    R, t, lf = unpack(sol.x)
+    rel_std = None
+    if log_f0 is not None:
+        J = sol.jac
+        m = len(u1)
+        sigma2 = max(float(np.sum(sol.fun**2)) / max(m - J.shape[1], 1), noise_floor_px**2)
+        JtJ = J.T @ J
+        try:
+            cov = np.linalg.inv(JtJ) * sigma2
+            rel_std = float(np.sqrt(cov[0, 0])) if cov[0, 0] >= 0 and np.isfinite(cov[0, 0]) else np.inf
+        except np.linalg.LinAlgError:
+            rel_std = np.inf
+        # A near-singular J^T J (degenerate geometry) shows up as a huge variance; cap at inf.
+        if np.linalg.cond(JtJ) > 1e14:
+            rel_std = np.inf
+    return R, t, (None if lf is None else float(np.exp(lf))), rel_std
+
+
+def _finish(u1, u2, K1, K2, E, ransac_inliers, iterations, config, *, extra=None) -> RelativePoseResult:
+    """Cheirality, refinement, inlier re-selection and validity for a calibrated pair."""
+    n = len(u1)
+    extra = dict(extra or {})
+    thr = config.ransac.threshold_px
+    x1, x2 = _to_norm(u1, K1), _to_norm(u2, K2)
+    idx = np.flatnonzero(ransac_inliers)
+    R, t, _, _ = pose_from_essential(E, x1[idx], x2[idx])
+    if config.refine and len(idx) >= 6:
+        R, t, _, _ = _refine(u1[idx], u2[idx], lambda _: K1, lambda _: K2, R, t, None, config.noise_floor_px)
+    E = essential_from_pose(R, t)
+    E = E / np.linalg.norm(E)
+    F = fundamental_from_essential(E, K1, K2)
+    inliers = sampson_distance(F, u1, u2) < thr
+    idx = np.flatnonzero(inliers)
+    tri = triangulate_two_view(np.c_[x1[idx], np.ones(len(idx))], np.c_[x2[idx], np.ones(len(idx))], np.c_[R, t],
+                               method="mid2", criteria=_CHEIRALITY)
+    front_idx = tri.in_front & tri.finite
+    in_front = np.zeros(n, bool)
+    in_front[idx[front_idx]] = True
+    # Parallax = angle between the rotation-compensated rays; it does not depend on t, so it also
+    # measures pure rotation (where any t fits and the triangulated points are meaningless).
+    f1 = np.c_[x1[idx], np.ones(len(idx))]
+    f2 = np.c_[x2[idx], np.ones(len(idx))] @ R
+    parallax = np.degrees(np.arctan2(np.linalg.norm(np.cross(f1, f2), axis=1), np.sum(f1 * f2, axis=1)))
+    med = float(np.median(parallax)) if len(idx) else 0.0
+    reason = ""
+    if inliers.sum() < config.min_inliers:
+        reason = f"only {int(inliers.sum())} inliers (< min_inliers={config.min_inliers})"
+    elif med < config.min_median_angle_deg:
+        reason = (f"median parallax {med:.3g} deg < {config.min_median_angle_deg} deg: "
+                  "baseline too small (pure rotation?), translation direction is not determined")
+    elif in_front.sum() < 0.5 * inliers.sum():
+        reason = "most inliers fail the cheirality test"
+    return RelativePoseResult(
+        success=reason == "", reason=reason, R=R, t=t, E=E, F=F, inlier_mask=inliers, n_inliers=int(inliers.sum()),
+        in_front_mask=in_front, median_angle_deg=med, iterations=iterations, **extra,
+    )
+
+
+def estimate_relative_pose(uv1_px, uv2_px, K1, K2, *, config: TwoViewConfig | None = None) -> RelativePoseResult:
+    """Calibrated relative pose: 5-point LO-MSAC, cheirality, LM refinement.
+
+    Args:
+        uv1_px: (N, 2) pixel coordinates in image 1 (our convention; undistorted
+            pinhole pixels — unproject distorted cameras first).
+        uv2_px: (N, 2) matching pixels in image 2.
+        K1: (3, 3) intrinsics of camera 1 (cx, cy in our convention).
+        K2: (3, 3) intrinsics of camera 2.
+        config: `TwoViewConfig`.
+
+    Returns:
+        `RelativePoseResult` with ``cam2_from_cam1``.
+    """
+    config = config or TwoViewConfig()
+    u1, u2 = _check_matches(uv1_px, uv2_px)
+    K1 = np.asarray(K1, dtype=np.float64)
+    K2 = np.asarray(K2, dtype=np.float64)
+    check_shape(K1, [3, 3], "K1")
+    check_shape(K2, [3, 3], "K2")
+    n = len(u1)
+    if n < 5:
+        return _failure(n, f"need >= 5 matches, got {n}")
+    x1, x2 = _to_norm(u1, K1), _to_norm(u2, K2)
+    thr = config.ransac.threshold_px
+    if config.backend == "opencv":
+        f_mean = 0.25 * (K1[0, 0] + K1[1, 1] + K2[0, 0] + K2[1, 1])
+        E, mask = cv2.findEssentialMat(x1, x2, np.eye(3), method=cv2.USAC_MAGSAC, prob=config.ransac.confidence,
+                                       threshold=thr / f_mean, maxIters=config.ransac.max_iterations)
+        if E is None or mask is None or E.shape != (3, 3):
+            return _failure(n, "OpenCV findEssentialMat found no model")
+        E = project_to_essential(E)
+        F = fundamental_from_essential(E, K1, K2)
+        return _finish(u1, u2, K1, K2, E, sampson_distance(F, u1, u2) < thr, 0, config)
+
+    def resid(E):
+        return sampson_distance(fundamental_from_essential(E, K1, K2), u1, u2)
+
+    res = ransac(
+        n, 5,
+        lambda s: essential_5point(x1[s], x2[s]),
+        resid,
+        config=config.ransac,
+        fit_nonminimal=lambda idx: [essential_from_linear(x1[idx], x2[idx])] if len(idx) >= 8 else [],
+    )
+    if res.model is None or res.inlier_mask.sum() < 5:
+        return _failure(n, "RANSAC found no model with >= 5 inliers", res.iterations)
+    return _finish(u1, u2, K1, K2, res.model, res.inlier_mask, res.iterations, config)
+
+
+def estimate_fundamental(uv1_px, uv2_px, *, config: TwoViewConfig | None = None):
+    """Fundamental matrix by 7-point LO-MSAC (or OpenCV USAC_MAGSAC), Sampson threshold in pixels.
+
+    Args:
+        uv1_px: (N, 2), N >= 8.
+        uv2_px: (N, 2).
+        config: `TwoViewConfig`.
+
+    Returns:
+        ``(F (3, 3) or None, inlier_mask (N,), iterations)``; F is refit on all
+        inliers with the normalised 8-point algorithm.
+    """
+    config = config or TwoViewConfig()
+    u1, u2 = _check_matches(uv1_px, uv2_px)
+    n = len(u1)
+    thr = config.ransac.threshold_px
+    if n < 8:
+        return None, np.zeros(n, bool), 0
+    if config.backend == "opencv":
+        F, mask = cv2.findFundamentalMat(u1, u2, cv2.USAC_MAGSAC, thr, config.ransac.confidence,
+                                         config.ransac.max_iterations)
+        if F is None or F.shape != (3, 3):
+            return None, np.zeros(n, bool), 0
+        F = F / np.linalg.norm(F)
+        return F, sampson_distance(F, u1, u2) < thr, 0
+    res = ransac(
+        n, 7,
+        lambda s: fundamental_7point(u1[s], u2[s]),
+        lambda F: sampson_distance(F, u1, u2),
+        config=config.ransac,
+        fit_nonminimal=lambda idx: [fundamental_8point(u1[idx], u2[idx])] if len(idx) >= 8 else [],
+    )
+    if res.model is None:
+        return None, res.inlier_mask, res.iterations
+    F = res.model
+    mask = res.inlier_mask
+    if mask.sum() >= 8:
+        F8 = fundamental_8point(u1[mask], u2[mask])
+        if np.sum(np.minimum(sampson_distance(F8, u1, u2), thr) ** 2) <= np.sum(
+            np.minimum(sampson_distance(F, u1, u2), thr) ** 2
+        ):
+            F = F8
+    return F, sampson_distance(F, u1, u2) < thr, res.iterations
+
+
+def _K(f: float, c: tuple[float, float]) -> np.ndarray:
+    return np.array([[f, 0.0, c[0]], [0.0, f, c[1]], [0.0, 0.0, 1.0]])
+
+
+def focal_from_fundamental(F, image_size_wh, *, search_range: tuple[float, float] = (0.2, 5.0)) -> FocalEstimate:
+    """Shared focal length (principal point at the image centre) by 1-D search.
+
+    Minimises ``g(f) = (s1 - s2) / (s1 + s2)`` over the singular values of
+    ``E(f) = K(f)^T F K(f)``: zero exactly at the true focal for noise-free F.
+
+    Args:
+        F: (3, 3) on our pixel coordinates.
+        image_size_wh: ``(W, H)``; the principal point is ``(W/2, H/2)`` (our convention).
+        search_range: interval as multiples of ``max(W, H)``.
+
+    Returns:
+        `FocalEstimate`.
+    """
+    F = np.asarray(F, dtype=np.float64)
+    check_shape(F, [3, 3], "F")
+    W, H = image_size_wh
+    c = (W / 2.0, H / 2.0)
+    scale = float(max(W, H))
+
+    def cost(log_f: float) -> float:
+        K = _K(np.exp(log_f), c)
+        s = np.linalg.svd(K.T @ F @ K, compute_uv=False)
+        return float((s[0] - s[1]) / max(s[0] + s[1], 1e-300))
+
+    lo, hi = np.log(search_range[0] * scale), np.log(search_range[1] * scale)
+    grid = np.linspace(lo, hi, 121)
+    vals = np.array([cost(g) for g in grid])
+    k = int(np.argmin(vals))
+    a, b = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    opt = minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": 1e-10})
+    log_f = float(opt.x) if opt.fun <= vals[k] else float(grid[k])
+    at_bound = bool(abs(log_f - lo) < 1e-6 or abs(log_f - hi) < 1e-6)
+    return FocalEstimate(focal_px=float(np.exp(log_f)), cost=min(float(opt.fun), float(vals[k])), at_bound=at_bound)
+
+
+def estimate_relative_pose_uncalibrated(
+    uv1_px, uv2_px, image_size_wh, *, config: TwoViewConfig | None = None, seed: int | None = None
+) -> RelativePoseResult:
+    """Relative pose and a shared focal length from matches of one unknown pinhole camera.
+
+    Assumes both images come from the same camera (same focal length),
+    square pixels, principal point at the image centre, no distortion.
+
+    Args:
+        uv1_px: (N, 2) pixels in image 1 (our convention).
+        uv2_px: (N, 2) matching pixels in image 2.
+        image_size_wh: ``(W, H)`` of both images.
+        config: `TwoViewConfig`.
+        seed: overrides ``config.ransac.seed`` when given.
+
+    Returns:
+        `RelativePoseResult` with ``focal_px``, ``focal_rel_std``,
+        ``focal_well_determined`` and ``homography_ratio`` filled in.
+    """
+    config = config or TwoViewConfig()
+    if seed is not None:
+        config = replace(config, ransac=replace(config.ransac, seed=int(seed)))
+    u1, u2 = _check_matches(uv1_px, uv2_px)
+    n = len(u1)
+    W, H = image_size_wh
+    c = (W / 2.0, H / 2.0)
+    thr = config.ransac.threshold_px
+    F, mask, iters = estimate_fundamental(u1, u2, config=config)
+    if F is None or mask.sum() < 8:
+        return _failure(n, "no fundamental matrix with >= 8 inliers", iters)
+    h_ratio = 0.0
+    Hm, hmask = cv2.findHomography(u1, u2, cv2.RANSAC, thr, maxIters=2000, confidence=0.999)
+    if Hm is not None and hmask is not None:
+        h_ratio = float(hmask.sum()) / float(mask.sum())
+    focal = focal_from_fundamental(F, (W, H), search_range=config.focal_search_range)
+    f0 = focal.focal_px
+    K0 = _K(f0, c)
+    E = project_to_essential(K0.T @ F @ K0)
+    idx = np.flatnonzero(mask)
+    x1, x2 = _to_norm(u1[idx], K0), _to_norm(u2[idx], K0)
+    R, t, _, _ = pose_from_essential(E, x1, x2)
+    f, rel_std = f0, np.inf
+    if len(idx) >= 7:
+        R, t, f, rel_std = _refine(u1[idx], u2[idx], lambda lf: _K(np.exp(lf), c), lambda lf: _K(np.exp(lf), c),
+                                   R, t, float(np.log(f0)), config.noise_floor_px)
+    K = _K(f, c)
+    E = essential_from_pose(R, t)
+    out = _finish(u1, u2, K, K, E / np.linalg.norm(E), sampson_distance(fundamental_from_essential(E, K, K), u1, u2)
+                  < thr, iters, replace(config, refine=False),
+                  extra=dict(focal_px=f, focal_rel_std=rel_std, focal_well_determined=bool(
+                      rel_std <= config.max_focal_rel_std and not focal.at_bound), homography_ratio=h_ratio))
+    # The homography test names the root cause, so it takes precedence over the symptoms it causes.
+    if h_ratio >= config.max_homography_ratio:
+        out = replace(out, success=False, reason=(
+            f"a homography explains {h_ratio:.0%} of the F inliers (planar scene or pure rotation): "
+            "F and the focal length are not determined"))
+    return out

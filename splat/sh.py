@@ -1,0 +1,104 @@
+"""Real spherical harmonics up to degree 3, as used by 3DGS and gsplat.
+
+Colours are `eval_sh(...) + 0.5`, clamped at 0 (done by the renderer).
+Coefficient layout: `sh: (..., K, 3)` with `K = (degree + 1) ** 2`, basis index
+first, RGB last; `sh[..., 0, :]` is the DC term.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+SH_C0 = 0.5 / math.sqrt(math.pi)  # 0.28209479177387814
+_C1 = math.sqrt(3.0 / (4.0 * math.pi))
+_C2 = (
+    0.5 * math.sqrt(15.0 / math.pi),
+    -0.5 * math.sqrt(15.0 / math.pi),
+    0.25 * math.sqrt(5.0 / math.pi),
+    -0.5 * math.sqrt(15.0 / math.pi),
+    0.25 * math.sqrt(15.0 / math.pi),
+)
+_C3 = (
+    -0.25 * math.sqrt(35.0 / (2.0 * math.pi)),
+    0.5 * math.sqrt(105.0 / math.pi),
+    -0.25 * math.sqrt(21.0 / (2.0 * math.pi)),
+    0.25 * math.sqrt(7.0 / math.pi),
+    -0.25 * math.sqrt(21.0 / (2.0 * math.pi)),
+    0.25 * math.sqrt(105.0 / math.pi),
+    -0.25 * math.sqrt(35.0 / (2.0 * math.pi)),
+)
+
+
+def num_sh_bases(degree: int) -> int:
+    """Number of SH basis functions for `degree` in 0..3."""
+    if degree not in (0, 1, 2, 3):
+        raise ValueError(f"SH degree must be 0..3, got {degree}")
+    return (degree + 1) ** 2
+
+
+def rgb_to_sh_dc(rgb: torch.Tensor) -> torch.Tensor:
+    """Colour in [0, 1] -> DC coefficient such that the rendered colour equals it."""
+    return (rgb - 0.5) / SH_C0
+
+
+def sh_dc_to_rgb(sh_dc: torch.Tensor) -> torch.Tensor:
+    """Inverse of `rgb_to_sh_dc`."""
+    return sh_dc * SH_C0 + 0.5
+
+
+def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """Basis values at unit directions.
+
+    Args:
+        degree: 0..3.
+        dirs: (..., 3) unit vectors (world frame, from the camera centre to the Gaussian).
+
+    Returns:
+        (..., (degree + 1) ** 2) basis values, in the 3DGS ordering.
+    """
+    num_sh_bases(degree)
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-_C1 * y, _C1 * z, -_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [
+            _C2[0] * xy,
+            _C2[1] * yz,
+            _C2[2] * (2.0 * zz - xx - yy),
+            _C2[3] * xz,
+            _C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        out += [
+            _C3[0] * y * (3 * xx - yy),
+            _C3[1] * xy * z,
+            _C3[2] * y * (4 * zz - xx - yy),
+            _C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            _C3[4] * x * (4 * zz - xx - yy),
+            _C3[5] * z * (xx - yy),
+            _C3[6] * x * (xx - 3 * yy),
+        ]
+    return torch.stack(out, -1)
+
+
+def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Evaluate SH colour (before the +0.5 offset) using the first `(degree+1)**2` bases.
+
+    Args:
+        degree: active degree, 0..3; `sh` may hold more bases than used.
+        sh: (..., K, 3) coefficients, `K >= (degree + 1) ** 2`.
+        dirs: (..., 3) directions; normalised here (zero vectors give the DC term only).
+
+    Returns:
+        (..., 3) colour offsets.
+    """
+    k = num_sh_bases(degree)
+    if sh.shape[-2] < k:
+        raise ValueError(f"sh has {sh.shape[-2]} bases, degree {degree} needs {k}")
+    dirs = torch.nn.functional.normalize(dirs, dim=-1)
+    basis = sh_basis(degree, dirs)
+    return (basis[..., :, None] * sh[..., :k, :]).sum(-2)

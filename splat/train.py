@@ -1,0 +1,259 @@
+"""InstantSplat-style training: Gaussians and per-view pose corrections, jointly.
+
+Recipe (InstantSplat / 3DGS): initialise from a coloured point cloud, Adam with
+per-parameter learning rates (means decaying exponentially, scaled by the
+scene extent), loss 0.8 L1 + 0.2 (1 - SSIM), one random training view per
+iteration, SH degree raised every `sh_degree_interval` iterations, per-view
+left-multiplied se(3) pose corrections `cam_from_world_i = exp(delta_i) @
+cam_from_world_i^init` with their own decaying learning rate, densification
+off by default (sparse views). Seeded and deterministic on CPU.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from mvgeo.camera import Camera
+from mvgeo.common.errors import InputError
+from mvgeo.common.progress import progress_bar
+from mvgeo.common.timing import StageTimer
+from mvgeo.transforms_torch import se3_exp
+from splat.cameras_torch import as_cam_from_world, homogeneous, pinhole_K
+from splat.densify import DensifyConfig, DensifyState, accumulate, densify_and_prune
+from splat.gaussian_model import GaussianModel
+from splat.losses import photometric_loss, psnr
+from splat.rasterize import RasterConfig
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainConfig:
+    """Training options. Defaults follow InstantSplat (1000 iterations, poses optimised).
+
+    Attributes:
+        iters: optimisation steps (one view each).
+        sh_degree: maximum SH degree 0..3.
+        sh_degree_interval: the active SH degree goes up by one every this many steps.
+        lr_means: initial learning rate of the means, times the scene extent.
+        lr_means_final: final learning rate of the means (exponential decay), times the scene extent.
+        lr_quats, lr_scales, lr_opacity, lr_sh0, lr_shN: constant learning rates (3DGS's).
+        optimize_poses: learn per-view se(3) corrections.
+        lr_pose, lr_pose_final: pose learning rate, decayed exponentially.
+        fix_first_pose: keep view 0's pose fixed (removes the gauge freedom of moving
+            the scene and all cameras together).
+        ssim_weight: weight of (1 - SSIM); L1 gets 1 - ssim_weight.
+        init_opacity: opacity of initial Gaussians.
+        background: RGB behind the Gaussians.
+        densify: adaptive density control, None = off (the sparse-view default).
+        seed: seeds the view order (and densification sampling).
+        raster: rasterizer options.
+        log_every: record history every this many steps.
+    """
+
+    iters: int = 1000
+    sh_degree: int = 3
+    sh_degree_interval: int = 250
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_quats: float = 1e-3
+    lr_scales: float = 5e-3
+    lr_opacity: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    optimize_poses: bool = True
+    lr_pose: float = 1e-4
+    lr_pose_final: float = 1e-6
+    fix_first_pose: bool = True
+    ssim_weight: float = 0.2
+    init_opacity: float = 0.1
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    densify: DensifyConfig | None = None
+    seed: int = 0
+    raster: RasterConfig = field(default_factory=RasterConfig)
+    log_every: int = 10
+
+
+#: Named presets. "instantsplat": the default; "gt_poses": known poses, no pose learning;
+#: "dense_views": many views, densification on; "quick": a 300-step smoke run.
+TRAIN_PRESETS: dict[str, TrainConfig] = {
+    "instantsplat": TrainConfig(),
+    "gt_poses": TrainConfig(optimize_poses=False),
+    "dense_views": TrainConfig(iters=3000, optimize_poses=False, densify=DensifyConfig(stop_iter=1500)),
+    "quick": TrainConfig(iters=300, sh_degree_interval=100),
+}
+
+
+@dataclass
+class TrainHistory:
+    """Per-step records (every `log_every` steps and the last).
+
+    Attributes:
+        iteration, loss, psnr_db (of the view trained on at that step), elapsed_s, num_gaussians.
+    """
+
+    iteration: list[int] = field(default_factory=list)
+    loss: list[float] = field(default_factory=list)
+    psnr_db: list[float] = field(default_factory=list)
+    elapsed_s: list[float] = field(default_factory=list)
+    num_gaussians: list[int] = field(default_factory=list)
+
+
+@dataclass
+class TrainResult:
+    """Output of `train_gaussians`.
+
+    Attributes:
+        model: trained Gaussians.
+        cam_from_world_optimized: (N, 3, 4) float64 poses after the learned corrections
+            (equal to the input when poses are not optimised).
+        history: the training curve.
+        timings_s: seconds per stage (`StageTimer.as_dict()`).
+    """
+
+    model: GaussianModel
+    cam_from_world_optimized: np.ndarray
+    history: TrainHistory
+    timings_s: dict[str, float]
+
+
+def scene_extent(cam_from_world: np.ndarray, points_xyz: np.ndarray) -> float:
+    """3DGS's `cameras_extent`: 1.1 x the largest camera-centre distance from their mean,
+    or the points' spread when the cameras (nearly) coincide."""
+    R = cam_from_world[:, :, :3]
+    centres = -np.einsum("nji,nj->ni", R, cam_from_world[:, :, 3])
+    radius = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) * 1.1
+    if radius < 1e-6:
+        radius = float(np.linalg.norm(points_xyz - points_xyz.mean(0), axis=1).max()) if len(points_xyz) else 1.0
+    return max(radius, 1e-6)
+
+
+def _check_inputs(images, cameras, cam_from_world):
+    if len(images) == 0:
+        raise InputError("no training images")
+    if len(images) != len(cameras):
+        raise InputError(f"{len(images)} images but {len(cameras)} cameras")
+    poses = as_cam_from_world(cam_from_world, len(images))
+    for i, (img, cam) in enumerate(zip(images, cameras, strict=True)):
+        if img.shape != (cam.height, cam.width, 3):
+            raise InputError(f"image {i} has shape {img.shape}, camera says ({cam.height}, {cam.width}, 3)",
+                             fix="pass images at the size the cameras were calibrated/rendered at")
+    return poses
+
+
+def _lr_at(step: int, total: int, lr0: float, lr1: float) -> float:
+    t = min(max(step / max(total, 1), 0.0), 1.0)
+    return float(np.exp((1 - t) * np.log(lr0) + t * np.log(lr1)))
+
+
+def train_gaussians(images: list[np.ndarray], cameras: list[Camera], cam_from_world: np.ndarray,
+                    init_points_xyz: np.ndarray, init_points_rgb: np.ndarray,
+                    config: TrainConfig | None = None, *, device: str | torch.device = "cpu") -> TrainResult:
+    """Train Gaussians (and optionally pose corrections) on posed images.
+
+    Args:
+        images: N float32 HxWx3 RGB arrays in [0, 1].
+        cameras: N pinhole cameras (sizes must match the images).
+        cam_from_world: (N, 3, 4) or (N, 4, 4) initial world-to-camera poses.
+        init_points_xyz: (P, 3) initial points (e.g. `mvgeo align` output).
+        init_points_rgb: (P, 3) uint8 or float colours.
+        config: `TrainConfig` (default: InstantSplat's recipe).
+        device: torch device.
+
+    Returns:
+        `TrainResult`.
+    """
+    cfg = config or TrainConfig()
+    timer = StageTimer()
+    with timer.stage("setup"):
+        poses = _check_inputs(images, cameras, cam_from_world)
+        n_views = len(images)
+        model = GaussianModel.from_points(init_points_xyz, init_points_rgb, sh_degree=cfg.sh_degree,
+                                          init_opacity=cfg.init_opacity, device=device)
+        extent = scene_extent(poses, np.asarray(init_points_xyz, dtype=np.float64).reshape(-1, 3))
+        targets = [torch.as_tensor(np.ascontiguousarray(im, dtype=np.float32), device=device).permute(2, 0, 1)
+                   for im in images]
+        Ks = [pinhole_K(c, device=device) for c in cameras]
+        base = homogeneous(torch.as_tensor(poses, dtype=torch.float32, device=device))
+        bg = torch.tensor(cfg.background, dtype=torch.float32, device=device)
+        deltas = torch.zeros(n_views, 6, dtype=torch.float32, device=device, requires_grad=cfg.optimize_poses)
+        groups = [
+            {"params": [model.means], "lr": cfg.lr_means * extent, "name": "means"},
+            {"params": [model.quats], "lr": cfg.lr_quats, "name": "quats"},
+            {"params": [model.log_scales], "lr": cfg.lr_scales, "name": "log_scales"},
+            {"params": [model.opacity_logits], "lr": cfg.lr_opacity, "name": "opacity_logits"},
+            {"params": [model.sh0], "lr": cfg.lr_sh0, "name": "sh0"},
+            {"params": [model.shN], "lr": cfg.lr_shN, "name": "shN"},
+        ]
+        if cfg.optimize_poses:
+            groups.append({"params": [deltas], "lr": cfg.lr_pose, "name": "pose"})
+        optimizer = torch.optim.Adam(groups, eps=1e-15)
+        gen = torch.Generator().manual_seed(cfg.seed)
+        dstate = DensifyState.zeros(model.num_gaussians, device) if cfg.densify else None
+        pose_mask = torch.ones(n_views, 1, device=device)
+        if cfg.fix_first_pose:
+            pose_mask[0] = 0
+
+    history = TrainHistory()
+    start = time.perf_counter()
+    order: list[int] = []
+    with progress_bar(desc="splat train", total=cfg.iters) as bar, timer.stage("optimize"):
+        for step in range(cfg.iters):
+            if not order:
+                order = torch.randperm(n_views, generator=gen).tolist()
+            i = order.pop()
+            for group in optimizer.param_groups:
+                if group["name"] == "means":
+                    group["lr"] = _lr_at(step, cfg.iters, cfg.lr_means, cfg.lr_means_final) * extent
+                elif group["name"] == "pose":
+                    group["lr"] = _lr_at(step, cfg.iters, cfg.lr_pose, cfg.lr_pose_final)
+            degree = min(cfg.sh_degree, step // max(cfg.sh_degree_interval, 1))
+            cam = se3_exp(deltas[i] * pose_mask[i]) @ base[i]
+            cam_i = cameras[i]
+            out = model.render(cam, Ks[i], cam_i.width, cam_i.height, sh_degree=degree, background=bg,
+                               config=cfg.raster)
+            if dstate is not None:
+                out.projected.means2d.retain_grad()
+            loss = photometric_loss(out.rgb, targets[i], ssim_weight=cfg.ssim_weight)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            if dstate is not None and cfg.densify is not None and step < cfg.densify.stop_iter:
+                accumulate(dstate, out.projected.means2d.grad, out.projected.visible, cam_i.width, cam_i.height)
+                if step >= cfg.densify.start_iter and (step + 1) % cfg.densify.every == 0:
+                    model, dstate = densify_and_prune(model, optimizer, dstate, cfg.densify, extent, gen)
+            if step % cfg.log_every == 0 or step == cfg.iters - 1:
+                history.iteration.append(step)
+                history.loss.append(float(loss.item()))
+                history.psnr_db.append(psnr(out.rgb, targets[i]))
+                history.elapsed_s.append(time.perf_counter() - start)
+                history.num_gaussians.append(model.num_gaussians)
+                bar.set_postfix(loss=f"{loss.item():.4f}", n=model.num_gaussians)
+            bar.update(1)
+
+    with torch.no_grad():
+        final = se3_exp(deltas.detach().double() * pose_mask.double()) @ homogeneous(torch.as_tensor(poses))
+    _log.info("trained %d Gaussians for %d steps in %.1f s", model.num_gaussians, cfg.iters,
+              time.perf_counter() - start)
+    return TrainResult(model=model, cam_from_world_optimized=final[:, :3].cpu().numpy(), history=history,
+                       timings_s=timer.as_dict())
+
+
+def preset(name: str, **overrides) -> TrainConfig:
+    """A copy of `TRAIN_PRESETS[name]` with fields overridden.
+
+    Raises:
+        InputError: unknown preset or field name.
+    """
+    if name not in TRAIN_PRESETS:
+        raise InputError(f"unknown training preset {name!r}", fix=f"use one of {', '.join(TRAIN_PRESETS)}")
+    fields = TrainConfig.__dataclass_fields__
+    bad = [k for k in overrides if k not in fields]
+    if bad:
+        raise InputError(f"unknown TrainConfig field(s) {bad}", fix=f"valid fields: {', '.join(fields)}")
+    return replace(TRAIN_PRESETS[name], **overrides)

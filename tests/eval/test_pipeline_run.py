@@ -1,0 +1,192 @@
+"""The pipeline framework end to end with small real stage functions (tests/eval/_tiny_stages.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from eval.pipeline import PipelineConfig, preset, run_pipeline
+from eval.pipeline.lock import LOCK_NAME
+from mvgeo.common.errors import InputError
+from mvgeo.common.imageio import write_image
+from mvgeo.sparse_model import read_sparse_model
+from tests.eval._tiny_stages import TinyStages, make_scene
+
+ALL_STAGES = {"denoise", "align", "splat", "render", "select", "refine"}
+
+
+def _cfg(**kw) -> PipelineConfig:
+    return preset("fast", views=3, **kw)
+
+
+def _leftovers(out):
+    return [p for p in out.rglob(".*") if p.name != LOCK_NAME]
+
+
+@pytest.fixture()
+def scene(tmp_path):
+    return make_scene(tmp_path / "images", n=5)
+
+
+def test_two_rounds_layout_report_and_selection(tmp_path, scene):
+    tiny = TinyStages()
+    out = tmp_path / "out"
+    res = run_pipeline(scene, out, _cfg(rounds=2), stages=tiny.stages())
+    assert dict(tiny.calls) == {"denoise": 1, "align": 2, "splat": 2, "render": 2, "select": 1, "refine": 1}
+    for r in (1, 2):
+        rd = out / f"round{r}"
+        assert (rd / "denoised").is_dir() and (rd / "renders").is_dir() and (rd / "point_cloud.ply").is_file()
+        assert read_sparse_model(rd / "sparse" / "0").names
+    # Round 1 covers every view; round 2 only the K selected ones.
+    assert len(list((out / "round1" / "denoised").glob("*.png"))) == 5
+    selected = json.loads((out / "round2" / "selection.json").read_text())["names"]
+    assert len(selected) == 3
+    assert sorted(p.stem for p in (out / "round2" / "denoised").glob("*.png")) == selected
+    report = json.loads(res.report_json.read_text())
+    assert report["selected_views"] == {"round2": selected}
+    assert {s["stage"] for s in report["stages"]} == ALL_STAGES
+    assert set(report["timings_s_this_run"]) >= {"round1/denoise", "round2/refine", "total"}
+    assert report["settings"]["views"] == 3
+    md = res.report_md.read_text()
+    assert "contact_round1.png" in md and "contact_round2.png" in md
+    sheet = out / "report_files" / "contact_round2.png"
+    assert sheet.is_file() and sheet.stat().st_size > 0
+    assert not _leftovers(out)
+    assert not (out / LOCK_NAME).exists()
+
+
+def test_rerun_skips_complete_stages(tmp_path, scene):
+    tiny = TinyStages()
+    out = tmp_path / "out"
+    run_pipeline(scene, out, _cfg(), stages=tiny.stages())
+    first = dict(tiny.calls)
+    res = run_pipeline(scene, out, _cfg(), stages=tiny.stages())
+    assert dict(tiny.calls) == first  # nothing ran again
+    assert all(s.skipped for r in res.rounds for s in r.stages.values())
+    assert res.timings_s == {"total": 0.0}
+    # force re-runs everything
+    run_pipeline(scene, out, _cfg(), stages=tiny.stages(), force=True)
+    assert all(tiny.calls[k] == 2 * first[k] for k in first)
+
+
+def test_setting_change_reruns_only_what_it_affects(tmp_path, scene):
+    tiny = TinyStages()
+    out = tmp_path / "out"
+    cfg = _cfg(rounds=1)
+    run_pipeline(scene, out, cfg, stages=tiny.stages())
+    changed = PipelineConfig(views=cfg.views, rounds=1, denoise=cfg.denoise, align=cfg.align,
+                             splat=type(cfg.splat)(preset=cfg.splat.preset, iters=123))
+    run_pipeline(scene, out, changed, stages=tiny.stages())
+    assert dict(tiny.calls) == {"denoise": 1, "align": 1, "splat": 2, "render": 2}
+
+
+def test_input_change_reruns_from_the_start(tmp_path, scene):
+    tiny = TinyStages()
+    out = tmp_path / "out"
+    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny.stages())
+    write_image(scene / "view_002.png", np.full((40, 48, 3), 0.5, np.float32))
+    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny.stages())
+    # denoise sees new content; align's key chains denoise's key, and so on down.
+    assert dict(tiny.calls) == {"denoise": 2, "align": 2, "splat": 2, "render": 2}
+    # A non-image file in the input folder changes nothing.
+    (scene / "notes.txt").write_text("hello")
+    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny.stages())
+    assert tiny.calls["denoise"] == 2
+
+
+@pytest.mark.parametrize("stage", ["denoise", "splat"])
+def test_interrupted_run_resumes(tmp_path, scene, stage):
+    tiny = TinyStages()
+    out = tmp_path / "out"
+    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny.stages())
+    baseline = dict(tiny.calls)
+    # Change the seed so every stage must re-run, then interrupt mid-stage.
+    tiny.fail_next.add(stage)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(scene, out, _cfg(rounds=2, seed=7), stages=tiny.stages())
+    rd = out / "round1"
+    # The interrupted stage's record is gone (old outputs are stale, not trusted), no temp folders remain,
+    # and the lock is released.
+    assert not (rd / "stages" / f"{stage}.json").exists()
+    assert not _leftovers(out) and not (out / LOCK_NAME).exists()
+    calls_before = dict(tiny.calls)
+    run_pipeline(scene, out, _cfg(rounds=2, seed=7), stages=tiny.stages())
+    # Stages that completed before the interruption are not repeated.
+    if stage == "splat":
+        assert tiny.calls["denoise"] == calls_before["denoise"] == baseline["denoise"] + 1
+        assert tiny.calls["align"] == calls_before["align"] + 1  # round 2 only
+    assert tiny.calls[stage] == calls_before[stage] + (1 if stage == "denoise" else 2)
+    assert (out / "round2" / "renders").is_dir()
+
+
+def test_bad_inputs_fail_before_any_stage(tmp_path, scene):
+    tiny = TinyStages()
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match="--views 12"):
+        run_pipeline(scene, out, preset("fast", views=12), stages=tiny.stages())
+    # With one round there is no selection, so K > N is fine.
+    with pytest.raises(InputError, match="does not exist"):
+        run_pipeline(tmp_path / "nope", out, _cfg(), stages=tiny.stages())
+    (scene / "view_001.png").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="view_001.png"):
+        run_pipeline(scene, out, _cfg(), stages=tiny.stages())
+    assert not tiny.calls and not out.exists()
+
+
+def test_fewer_images_than_views_ok_for_one_round(tmp_path, scene):
+    tiny = TinyStages()
+    run_pipeline(scene, tmp_path / "out", preset("fast", views=12, rounds=1), stages=tiny.stages())
+    assert tiny.calls["render"] == 1
+
+
+def test_duplicate_stems_and_tiny_images(tmp_path, scene):
+    shutil.copy(scene / "view_000.png", scene / "view_000.jpg")
+    with pytest.raises(InputError, match="share the name"):
+        run_pipeline(scene, tmp_path / "out", _cfg(), stages=TinyStages().stages())
+    small = tmp_path / "small"
+    small.mkdir()
+    for i in range(3):
+        write_image(small / f"{i}.png", np.zeros((20, 20, 3), np.float32))
+    with pytest.raises(InputError, match="32 px"):
+        run_pipeline(small, tmp_path / "out2", _cfg(), stages=TinyStages().stages())
+
+
+def test_live_lock_refuses_second_run(tmp_path, scene):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / LOCK_NAME).write_text(str(os.getppid()))  # the test runner's parent: alive
+    with pytest.raises(InputError, match="another run"):
+        run_pipeline(scene, out, _cfg(), stages=TinyStages().stages())
+    (out / LOCK_NAME).write_text("999999999")  # no such process: stale lock is taken over
+    run_pipeline(scene, out, _cfg(rounds=1), stages=TinyStages().stages())
+
+
+@pytest.mark.slow  # real N2V training: ~20 s unloaded, minutes on a loaded 2-core machine
+def test_product_denoise_select_refine_stages(tmp_path):
+    """The product's denoise, select and refine stages with the real `denoise` package (fast settings),
+    the geometry stages from the tiny set (alignment/splatting are tested in their packages)."""
+    import dataclasses
+
+    from eval.pipeline import DenoiseSettings, product_stages
+
+    scene = make_scene(tmp_path / "images", n=5, size_wh=(64, 48))
+    tiny = TinyStages()
+    real = product_stages()
+    stages = dataclasses.replace(tiny.stages(), denoise=real.denoise, select=real.select, refine=real.refine)
+    cfg = dataclasses.replace(preset("fast", views=3),
+                              denoise=DenoiseSettings(n2v_preset="fast", n2v_steps=8, passes=1, round2_steps=3))
+    res = run_pipeline(scene, tmp_path / "out", cfg, stages=stages)
+    r1, r2 = res.rounds
+    assert r1.stages["denoise"].summary["train"]["loss"]["count"] == 8
+    selected = r2.stages["select"].summary["selected"]
+    assert len(selected) == 3 and r2.stages["select"].summary["method"] == "kmeans+laplacian"
+    assert sorted(p.stem for p in (r2.dir / "denoised").glob("*.png")) == sorted(selected)
+    # Round-2 history continues round 1's (the same UNet, fine-tuned).
+    assert r2.stages["refine"].summary["train"]["loss"]["count"] == 11
+    from denoise.model import load_checkpoint
+
+    assert len(load_checkpoint(r2.dir / "n2v_model.pt").history) == 11

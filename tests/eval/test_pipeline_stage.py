@@ -1,0 +1,126 @@
+"""StageRunner: keys, skipping, atomic commit, and errors; config presets; component lookup."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from eval.pipeline import PRESETS, MissingComponentError, StageRunner, StageSpec, preset
+from eval.pipeline.components import component_config, require
+from mvgeo.common.errors import ConfigError, DgsError
+
+
+def _writer(text: str, calls: list):
+    def fn(ctx):
+        calls.append(ctx.seed)
+        (ctx.work_dir / "a.txt").write_text(text)
+        (ctx.work_dir / "d").mkdir()
+        (ctx.work_dir / "d" / "b.txt").write_text(text * 2)
+        return {"n": len(text)}
+    return fn
+
+
+def _spec(tmp_path, fn, **kw):
+    base = {"name": "s", "stage_dir": tmp_path / "st", "fn": fn, "outputs": ("a.txt", "d")}
+    base.update(kw)
+    return StageSpec(**base)
+
+
+def test_key_depends_on_settings_seed_inputs_and_upstream(tmp_path):
+    f = tmp_path / "in.txt"
+    f.write_text("x")
+    fn = _writer("a", [])
+    base = _spec(tmp_path, fn, inputs={"f": f}, hashed_inputs=("f",), settings={"k": 1}, seed=3)
+    k0 = base.key()
+    assert _spec(tmp_path, fn, inputs={"f": f}, hashed_inputs=("f",), settings={"k": 1}, seed=3).key() == k0
+    assert _spec(tmp_path, fn, inputs={"f": f}, hashed_inputs=("f",), settings={"k": 2}, seed=3).key() != k0
+    assert _spec(tmp_path, fn, inputs={"f": f}, hashed_inputs=("f",), settings={"k": 1}, seed=4).key() != k0
+    f.write_text("y")
+    assert base.key() != k0
+    up = StageRunner().run(_spec(tmp_path, fn, name="up"))
+    assert _spec(tmp_path, fn, inputs={"f": f}, hashed_inputs=("f",), settings={"k": 1}, seed=3,
+                 upstream=(up,)).key() != base.key()
+
+
+def test_commit_skip_and_replace(tmp_path):
+    calls: list = []
+    runner = StageRunner()
+    r1 = runner.run(_spec(tmp_path, _writer("one", calls)))
+    assert not r1.skipped and r1.summary == {"n": 3}
+    assert (tmp_path / "st" / "a.txt").read_text() == "one"
+    assert (tmp_path / "st" / "d" / "b.txt").read_text() == "oneone"
+    rec = json.loads((tmp_path / "st" / "stages" / "s.json").read_text())
+    assert rec["key"] == r1.key
+    r2 = runner.run(_spec(tmp_path, _writer("one", calls)))
+    assert r2.skipped and r2.summary == {"n": 3} and len(calls) == 1
+    # Deleting an output makes the stage incomplete.
+    (tmp_path / "st" / "a.txt").unlink()
+    assert not runner.run(_spec(tmp_path, _writer("one", calls))).skipped
+    # New settings: outputs are replaced, folders included (no stale files inside `d`).
+    (tmp_path / "st" / "d" / "stale.txt").write_text("old")
+    runner.run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
+    assert (tmp_path / "st" / "a.txt").read_text() == "two"
+    assert sorted(p.name for p in (tmp_path / "st" / "d").iterdir()) == ["b.txt"]
+    assert list(runner.timer.seconds) == ["s"]
+
+
+def test_failing_stage_leaves_old_outputs_unrecorded(tmp_path):
+    runner = StageRunner()
+    runner.run(_spec(tmp_path, _writer("one", [])))
+
+    def boom(ctx):
+        (ctx.work_dir / "a.txt").write_text("half")
+        raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError):
+        runner.run(_spec(tmp_path, boom, settings={"v": 2}))
+    assert (tmp_path / "st" / "a.txt").read_text() == "one"  # untouched
+    assert not (tmp_path / "st" / "stages" / "s.json").exists()  # ...but no longer trusted
+    assert not [p for p in (tmp_path / "st").iterdir() if p.name.startswith(".")]
+
+
+def test_undeclared_output_and_bad_summary(tmp_path):
+    def lazy(ctx):
+        (ctx.work_dir / "a.txt").write_text("x")
+        return {}
+
+    with pytest.raises(DgsError, match=r"\['d'\]"):
+        StageRunner().run(_spec(tmp_path, lazy))
+
+    def bad_summary(ctx):
+        _writer("x", [])(ctx)
+        return {"obj": object()}
+
+    with pytest.raises(DgsError, match="JSON"):
+        StageRunner().run(_spec(tmp_path, bad_summary))
+    assert not (tmp_path / "st" / "stages" / "s.json").exists()
+
+
+def test_presets_and_validation():
+    assert set(PRESETS) == {"fast", "default", "best"}
+    assert preset("fast", views=4, rounds=3).views == 4
+    assert preset("default") == PRESETS["default"]
+    with pytest.raises(ConfigError, match="preset"):
+        preset("fastest")
+    with pytest.raises(ConfigError, match="views"):
+        preset("fast", views=1)
+    with pytest.raises(ConfigError, match="rounds"):
+        preset("fast", rounds=0)
+
+
+def test_missing_components_are_named():
+    with pytest.raises(MissingComponentError, match="no_such_pkg_xyz"):
+        require("no_such_pkg_xyz", "f", needed_for="test")
+    with pytest.raises(MissingComponentError, match="eval.psnr.train_everything"):
+        require("eval.psnr", "train_everything", needed_for="test")
+    with pytest.raises(MissingComponentError, match="PRESETS_NOPE"):
+        component_config("eval.pipeline.config", "PRESETS_NOPE", "fast", {}, needed_for="test")
+    # A real presets table: unknown preset and unknown field are named too.
+    with pytest.raises(MissingComponentError, match="'turbo'"):
+        component_config("eval.pipeline.config", "PRESETS", "turbo", {}, needed_for="test")
+    with pytest.raises(MissingComponentError, match="steps"):
+        component_config("eval.pipeline.config", "PRESETS", "fast", {"steps": 3}, needed_for="test")
+    cfg = component_config("eval.pipeline.config", "PRESETS", "fast", {"views": 5, "rounds": None},
+                           needed_for="test")
+    assert cfg.views == 5 and cfg.rounds == PRESETS["fast"].rounds

@@ -1,0 +1,76 @@
+"""Synthetic pairwise pointmaps from known geometry (a sphere in front of a plane)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mvgeo.align.global_align import pixel_rays
+from mvgeo.align.pairs import PairPrediction
+
+SPHERE_C = np.array([0.0, 0.0, 4.0])
+SPHERE_R = 1.0
+PLANE_Z = 6.0
+
+
+def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(3, 4) cam_from_world for a camera at `centre` looking at `target` (y roughly down)."""
+    z = target - centre
+    z = z / np.linalg.norm(z)
+    x = np.cross(np.array([0.0, 1.0, 0.0]), z)  # OpenCV: y down, so x = y_down x z... keep right-handed
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return np.concatenate([R, (-R @ centre).reshape(3, 1)], axis=1)
+
+
+def render_depth(cam_from_world: np.ndarray, H: int, W: int, focal: float) -> np.ndarray:
+    """(H, W) z-depth of the sphere-and-plane scene."""
+    R, t = cam_from_world[:, :3], cam_from_world[:, 3]
+    C = -R.T @ t
+    rays_cam = pixel_rays(H, W, focal)  # z = 1
+    d = rays_cam @ R  # world directions (R^T ray), z-depth parametrisation: x = C + s * d, s = z-depth
+    # plane z_world = PLANE_Z
+    s_plane = (PLANE_Z - C[2]) / d[..., 2]
+    # sphere |C + s d - Sc|^2 = r^2
+    oc = C - SPHERE_C
+    a = np.sum(d * d, axis=-1)
+    b = 2 * d @ oc
+    c = oc @ oc - SPHERE_R**2
+    disc = b * b - 4 * a * c
+    s_sph = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
+    return np.minimum(np.where(s_plane > 0, s_plane, np.inf), np.where(s_sph > 0, s_sph, np.inf))
+
+
+def make_views(n: int, *, H: int = 24, W: int = 32, focal: float = 30.0, radius: float = 0.8):
+    """n cameras on an arc looking at the sphere. Returns (cam_from_world (n,3,4), depths)."""
+    poses, depths = [], []
+    for k in range(n):
+        a = -0.5 + k / max(n - 1, 1)
+        centre = np.array([radius * np.sin(a), 0.3 * np.cos(3 * a), 4.0 - 4.0 * np.cos(a) - 0.2 * k / n])
+        centre[2] = 0.0 + 0.3 * np.sin(2 * a)
+        poses.append(look_at(centre, SPHERE_C + np.array([0.1 * a, -0.05, 0.0])))
+        depths.append(render_depth(poses[-1], H, W, focal))
+    return np.stack(poses), depths
+
+
+def make_pairs(poses, depths, focal: float, rng: np.random.Generator, *, noise: float = 0.0,
+               focal_err: float = 0.0, pairs=None) -> list[PairPrediction]:
+    """Exact (or noisy) pairwise pointmaps in camera i's frame at a random scale per pair."""
+    n = len(poses)
+    H, W = depths[0].shape
+    pairs = pairs or [(i, j) for i in range(n) for j in range(i + 1, n)]
+    out = []
+    for i, j in pairs:
+        s = float(np.exp(rng.normal(0, 0.5)))
+        pts = []
+        for v in (i, j):
+            x_cam = pixel_rays(H, W, focal) * depths[v][..., None]
+            Rv, tv = poses[v][:, :3], poses[v][:, 3]
+            x_w = (x_cam - tv) @ Rv
+            x_i = x_w @ poses[i][:, :3].T + poses[i][:, 3]
+            x_i = x_i + noise * rng.normal(size=x_i.shape) * np.linalg.norm(x_i, axis=-1, keepdims=True)
+            pts.append((s * x_i).astype(np.float32))
+        conf = [(1.5 + 3 * rng.random((H, W))).astype(np.float32) for _ in range(2)]
+        f_est = focal * (1 + focal_err * rng.normal())
+        out.append(PairPrediction(i, j, pts[0], pts[1], conf[0], conf[1], f_est, f_est))
+    return out

@@ -1,0 +1,153 @@
+"""Camera models against cv2.projectPoints / undistortPoints, mrcal.project / unproject and pycolmap."""
+
+import cv2
+import mrcal
+import numpy as np
+import pytest
+
+from mvgeo.camera import Camera
+from mvgeo.common.errors import InputError
+
+W, H = 640, 480
+
+
+def make_camera(model, rng):
+    f = rng.uniform(400, 700)
+    fy = f * rng.uniform(0.95, 1.05)
+    cx, cy = W / 2 + rng.uniform(-10, 10), H / 2 + rng.uniform(-10, 10)
+    k = rng.uniform(-1, 1, 8) * np.array([0.1, 0.02, 0.002, 0.002, 0.005, 0.05, 0.01, 0.002])
+    params = {
+        "SIMPLE_PINHOLE": [f, cx, cy],
+        "PINHOLE": [f, fy, cx, cy],
+        "SIMPLE_RADIAL": [f, cx, cy, k[0]],
+        "OPENCV": [f, fy, cx, cy, *k[:4]],
+        "FULL_OPENCV": [f, fy, cx, cy, *k],
+    }[model]
+    return Camera(model, W, H, np.array(params))
+
+
+def points_in_view(rng, n, half_fov=0.6):
+    xy = rng.uniform(-half_fov, half_fov, (n, 2))
+    z = rng.uniform(0.5, 20, (n, 1))
+    return np.c_[xy, np.ones(n)] * z
+
+
+MODELS = ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "OPENCV", "FULL_OPENCV"]
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_project_matches_opencv_mrcal_pycolmap(model, rng):
+    for _ in range(10):
+        cam = make_camera(model, rng)
+        P = points_in_view(rng, 200)
+        pr = cam.project(P, with_jacobians=True)
+        assert pr.valid.all()
+        # OpenCV: top-left pixel centre at (0, 0) -> add 0.5.
+        K_cv, d_cv = cam.to_opencv()
+        uv_cv, J_cv = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K_cv, d_cv if d_cv.size else None)
+        # 1e-9 px: both evaluate the same polynomial in float64 (differences are rounding, ~1e-13).
+        np.testing.assert_allclose(pr.uv_px, uv_cv[:, 0] + 0.5, atol=1e-9)
+        # OpenCV's Jacobian w.r.t. tvec equals d uv / d point when R = I, t = 0.
+        J_t = J_cv[:, 3:6].reshape(-1, 2, 3)
+        np.testing.assert_allclose(pr.d_uv_d_point, J_t, rtol=1e-7, atol=1e-7)
+        # mrcal: same 0.5 shift; gradients compared directly (SIMPLE models: d/df = d/dfx + d/dfy).
+        lens, intr = cam.to_mrcal()
+        q, dq_dp, dq_di = mrcal.project(np.ascontiguousarray(P), lens, intr, get_gradients=True)
+        np.testing.assert_allclose(pr.uv_px, q + 0.5, atol=1e-9)
+        np.testing.assert_allclose(pr.d_uv_d_point, dq_dp, rtol=1e-9, atol=1e-9)
+        if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL"):
+            dq_di = np.concatenate([dq_di[..., :1] + dq_di[..., 1:2], dq_di[..., 2:4], dq_di[..., 4:5]], -1)
+            dq_di = dq_di[..., : cam.params.size]
+        np.testing.assert_allclose(pr.d_uv_d_params, dq_di, rtol=1e-9, atol=1e-9)
+        # pycolmap's own camera model implementation (same pixel convention).
+        np.testing.assert_allclose(pr.uv_px, cam.to_pycolmap().img_from_cam(P), atol=1e-9)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_jacobians_against_central_differences(model, rng):
+    cam = make_camera(model, rng)
+    P = points_in_view(rng, 30)
+    pr = cam.project(P, with_jacobians=True)
+    h = 1e-6
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = h
+        fd = (cam.project(P + d).uv_px - cam.project(P - d).uv_px) / (2 * h)
+        # Central differences: truncation O(h^2 * |f'''|) + rounding O(eps * |uv| / h) ~ 1e-7 px/m.
+        np.testing.assert_allclose(pr.d_uv_d_point[..., k], fd, rtol=1e-6, atol=1e-5)
+    for k in range(cam.params.size):
+        hp = 1e-6 * max(1.0, abs(cam.params[k]))
+        pp, pm = cam.params.copy(), cam.params.copy()
+        pp[k] += hp
+        pm[k] -= hp
+        fd = (Camera(model, W, H, pp).project(P).uv_px - Camera(model, W, H, pm).project(P).uv_px) / (2 * hp)
+        np.testing.assert_allclose(pr.d_uv_d_params[..., k], fd, rtol=1e-6, atol=1e-4)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_unproject_roundtrip_and_against_references(model, rng):
+    for _ in range(5):
+        cam = make_camera(model, rng)
+        P = points_in_view(rng, 300)
+        uv = cam.project(P).uv_px
+        un = cam.unproject(uv)
+        assert un.valid.all() and un.converged.all() and un.residual_px.max() <= 1e-9
+        # Newton converged to 1e-9 px: ray error < 1e-9 px / f ~ 1e-11 (normalised units).
+        np.testing.assert_allclose(un.rays_cam, P / P[:, 2:], atol=1e-10)
+        lens, intr = cam.to_mrcal()
+        v = mrcal.unproject(uv - 0.5, lens, intr)
+        np.testing.assert_allclose(un.rays_cam[:, :2], v[:, :2] / v[:, 2:], atol=1e-7)
+        K_cv, d_cv = cam.to_opencv()
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+        xy_cv = cv2.undistortPoints((uv - 0.5)[:, None], K_cv, d_cv if d_cv.size else np.zeros(4), None, None,
+                                    None, crit)[:, 0]
+        # OpenCV's fixed-point iteration converges more slowly; 1e-7 normalised ~ 1e-4 px.
+        np.testing.assert_allclose(un.rays_cam[:, :2], xy_cv, atol=1e-7)
+
+
+def test_unproject_flags_points_beyond_distortion_fold():
+    # k1 < 0 strong barrel: r_d = r (1 + k1 r^2) peaks at r = 1/sqrt(-3 k1); beyond its maximum
+    # distorted radius no undistorted point maps there, so the inverse does not exist.
+    cam = Camera("SIMPLE_RADIAL", W, H, np.array([300.0, 320.0, 240.0, -0.3]))
+    r_max = 1 / np.sqrt(0.9)
+    rd_max = r_max * (1 - 0.3 * r_max**2)
+    u_beyond = 320 + 300 * rd_max * np.array([0.5, 0.99, 1.01, 1.5])
+    un = cam.unproject(np.c_[u_beyond, np.full(4, 240.0)])
+    assert un.valid.tolist() == [True, True, False, False]
+    assert np.all(np.isfinite(un.rays_cam))
+    # Projection beyond the fold is flagged too, and points behind the camera.
+    pr = cam.project(np.array([[0.5 * r_max, 0, 1], [1.5 * r_max, 0, 1], [0.1, 0, -1], [0, 0, 0]]))
+    assert pr.valid.tolist() == [True, False, False, False]
+    assert np.all(np.isfinite(pr.uv_px))
+
+
+def test_scaled_camera_exact_in_pixel_edge_convention(rng):
+    cam = make_camera("OPENCV", rng)
+    half = cam.scaled(W // 2, H // 2)
+    P = points_in_view(rng, 50)
+    # Resizing maps pixel edges 0..W to 0..W/2, so uv scales exactly by 1/2 in our convention.
+    np.testing.assert_allclose(half.project(P).uv_px, cam.project(P).uv_px / 2, atol=1e-10)
+    # OpenCV's cv2.resize uses the same (centre-aligned) mapping: the top-left pixel centre 0.5 -> 0.25
+    # of a new pixel, i.e. new = old / 2 in edge coordinates.
+    simple = Camera("SIMPLE_RADIAL", W, H, np.array([500.0, 320.0, 240.0, 0.01]))
+    aniso = simple.scaled(320, 480)
+    assert aniso.model == "OPENCV" and aniso.fx == 250 and aniso.fy == 500
+    np.testing.assert_allclose(aniso.project(P).uv_px, simple.project(P).uv_px * [0.5, 1.0], atol=1e-10)
+    with pytest.raises(InputError):
+        cam.scaled(0, 10)
+
+
+def test_interop_roundtrips(rng):
+    for model in MODELS:
+        cam = make_camera(model, rng)
+        back = Camera.from_pycolmap(cam.to_pycolmap())
+        assert back.model == model and np.array_equal(back.params, cam.params)
+        lens, intr = cam.to_mrcal()
+        m = Camera.from_mrcal(lens, intr, W, H)
+        P = points_in_view(rng, 20)
+        np.testing.assert_allclose(m.project(P).uv_px, cam.project(P).uv_px, atol=1e-9)
+        K_cv, d_cv = cam.to_opencv()
+        o = Camera.from_opencv(K_cv, d_cv, W, H)
+        np.testing.assert_allclose(o.project(P).uv_px, cam.project(P).uv_px, atol=1e-9)
+    with pytest.raises(InputError):
+        Camera.from_mrcal("LENSMODEL_CAHVOR", np.zeros(9), W, H)

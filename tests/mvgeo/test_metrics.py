@@ -1,0 +1,123 @@
+"""Pose metrics: invariances, known answers, and brute-force references."""
+
+import numpy as np
+import pytest
+
+from mvgeo import metrics as mt
+from mvgeo import transforms as tf
+from mvgeo.common.errors import DegenerateGeometryError
+
+
+def random_poses(rng, n):
+    w = rng.normal(size=(n, 3))
+    return tf.se3_exp(np.concatenate([w / np.linalg.norm(w, axis=1, keepdims=True) * rng.uniform(0, 3, (n, 1)),
+                                      rng.normal(size=(n, 3))], 1))
+
+
+def test_rotation_error_known_angles_and_small_angle_accuracy(rng):
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    ang = np.array([1e-10, 1e-6, 0.1, 1.0, np.pi - 1e-9, np.pi])
+    R = tf.so3_exp(axis * ang[:, None])
+    # atan2 form: relative accuracy ~1e-15 even at 1e-10 rad (arccos would give 0 or 1e-8).
+    np.testing.assert_allclose(mt.rotation_error_deg(R, np.eye(3)), np.degrees(ang), rtol=1e-9)
+    B = tf.so3_exp(rng.normal(size=(100, 3)))
+    np.testing.assert_allclose(mt.rotation_error_deg(B @ R[2], B), np.degrees(0.1), rtol=1e-12)
+
+
+def test_translation_direction_error():
+    e = mt.translation_direction_error_deg([[1, 0, 0], [1, 0, 0], [1, 0, 0], [0, 0, 0]],
+                                           [[2, 0, 0], [0, 3, 0], [-1, 0, 0], [1, 0, 0]])
+    np.testing.assert_allclose(e[:3], [0, 90, 180], atol=1e-12)
+    assert np.isnan(e[3])
+
+
+def test_relative_errors_invariant_to_similarity_and_exact_for_perturbation(rng):
+    ref = random_poses(rng, 6)
+    world_from_new = tf.sim3_exp(np.r_[rng.normal(size=6), 0.7])
+    # The same cameras in another world frame and scale: cam_from_new = cam_from_world @ world_from_new,
+    # with the scale moved into the translation (rigid cam_from_world up to scale).
+    s = np.exp(0.7)
+    est = np.stack([tf.compose(T, world_from_new) for T in ref])
+    est[:, :3, :3] /= s
+    rel = mt.relative_pose_errors(est, ref)
+    assert rel.pairs.shape == (15, 2)
+    # Invariance holds to rounding: 1e-5 degrees.
+    assert rel.rotation_deg.max() < 1e-5 and np.nanmax(rel.translation_deg) < 1e-5
+    # Rotate camera 0 by 3 degrees about its own centre: all pairs with camera 0 show exactly 3 deg.
+    bad = ref.copy()
+    C0 = tf.camera_centre(ref[0])
+    R_new = tf.so3_exp([0, np.radians(3), 0]) @ ref[0, :3, :3]
+    bad[0] = tf.matrix_from_Rt(R_new, -R_new @ C0)
+    rel = mt.relative_pose_errors(bad, ref)
+    with0 = rel.pairs[:, 0] == 0
+    np.testing.assert_allclose(rel.rotation_deg[with0], 3.0, rtol=1e-9)
+    assert rel.rotation_deg[~with0].max() < 1e-9
+
+
+def test_ate_recovers_sim3_and_reports_error(rng):
+    ref_c = rng.normal(size=(10, 3))
+    sim = tf.sim3_exp(np.r_[rng.normal(size=6), -0.5])
+    est_c = tf.apply(tf.invert(sim), ref_c)
+    res = mt.ate(est_c, ref_c)
+    assert res.rmse < 1e-12
+    np.testing.assert_allclose(res.ref_from_est.matrix, sim, atol=1e-12)
+    noisy = est_c.copy()
+    noisy[3] += 0.1
+    res = mt.ate(noisy, ref_c)
+    assert 0 < res.rmse < 0.2 and res.errors.shape == (10,) and res.max == res.errors.max()
+
+
+def test_rpe_zero_for_scaled_estimate_and_known_error(rng):
+    ref = random_poses(rng, 5)
+    est = ref.copy()
+    est[:, :3, 3] *= 0.5
+    r = mt.rpe(est, ref, scale=2.0)
+    assert r.translation_rmse < 1e-12 and r.rotation_rmse_deg < 1e-9
+    est = ref.copy()
+    est[2, :3, 3] += [0.3, 0.0, 0.0]
+    r = mt.rpe(est, ref)
+    assert r.translation_errors.shape == (4,)
+    # Only motions involving frame 2 (pairs 1-2 and 2-3) are wrong, each by 0.3 in translation.
+    np.testing.assert_allclose(r.translation_errors, [0, 0.3, 0.3, 0], atol=1e-12)
+    with pytest.raises(DegenerateGeometryError):
+        mt.rpe(est, ref, delta=5)
+
+
+def test_pose_auc_against_fine_numeric_integration(rng):
+    e = np.concatenate([rng.exponential(8.0, 200), [np.inf, np.nan]])
+    auc = mt.pose_auc(e, thresholds=(5, 10, 20))
+    for thr, val in auc.items():
+        # Slow reference: recall is linearly interpolated between sorted errors; integrate on a fine grid.
+        s = np.sort(np.where(np.isfinite(e), e, np.inf))
+        xs = np.concatenate([[0.0], s[np.isfinite(s)]])
+        ys = np.arange(xs.size) / e.size
+        grid = np.linspace(0, thr, 200001)
+        ref = np.mean(np.interp(grid, xs, ys))
+        # Grid step 1e-4 deg: rectangle-rule error < 1e-4 relative.
+        assert abs(val - ref) < 1e-4
+    assert mt.pose_auc([0.0, 0.0])[5.0] == 1.0
+    assert mt.pose_auc([np.inf])[5.0] == 0.0
+    assert mt.accuracy_at([1, 6, 11, np.nan]) == {5.0: 0.25, 10.0: 0.5, 20.0: 0.75}
+
+
+def test_compare_poses_registration_and_perfect_match(rng):
+    ref_T = random_poses(rng, 6)
+    names = [f"img{i:02d}.png" for i in range(6)]
+    ref = dict(zip(names, ref_T, strict=True))
+    world_from_new = tf.se3_exp(rng.normal(size=6))
+    est = {n: tf.compose(T, world_from_new)[:3] * np.r_[1, 1, 1, 3.0] for n, T in ref.items()}
+    est["extra.png"] = np.eye(4)
+    m = mt.compare_poses(est, ref)
+    assert m.registered_fraction == 1.0 and m.n_pairs_total == 15
+    assert m.rra[5.0] == 1.0 and m.rta[5.0] == 1.0 and m.auc[5.0] > 0.999
+    assert m.ate is not None and m.ate.rmse < 1e-10
+    del est[names[0]], est[names[1]]
+    m = mt.compare_poses(est, ref)
+    assert m.n_registered == 4 and m.registered_fraction == pytest.approx(4 / 6)
+    # 6 of 15 pairs remain measured; unregistered pairs count as failures.
+    assert m.rotation_deg.shape == (6,)
+    assert m.rra[5.0] == pytest.approx(6 / 15)
+    assert set(m.summary()) >= {"rra@5", "rta@10", "auc@20", "ate_rmse", "registered_fraction"}
+    with pytest.raises(DegenerateGeometryError):
+        mt.compare_poses(est, {names[0]: ref_T[0]})

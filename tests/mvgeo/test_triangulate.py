@@ -1,0 +1,111 @@
+"""Triangulation against cv2.triangulatePoints and mrcal's mid2 / geometric, with validity flags."""
+
+import cv2
+import mrcal
+import numpy as np
+import pytest
+
+from mvgeo import transforms as tf
+from mvgeo.camera import Camera
+from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.triangulate import TriangulationCriteria, triangulate_multiview, triangulate_two_view, triangulate_views_px
+
+
+def _pair(rng, n=500, noise=1e-3):
+    X = rng.normal(size=(n, 3)) + [0, 0, 6]
+    T = tf.se3_exp(np.r_[rng.normal(scale=0.2, size=3), -1.0, 0.1, 0.2])[:3]
+    X2 = X @ T[:, :3].T + T[:, 3]
+    r1 = X + rng.normal(scale=noise, size=X.shape)
+    r2 = X2 + rng.normal(scale=noise, size=X.shape)
+    return X, T, r1, r2
+
+
+def _rt01(T):
+    # mrcal Rt01 = [R01; t01] maps camera-1 coordinates into camera 0 (our camera 1 = mrcal cam0).
+    R, t = T[:, :3], T[:, 3]
+    return np.ascontiguousarray(np.vstack([R.T, -R.T @ t]))
+
+
+def test_mid2_and_midpoint_equal_mrcal(rng):
+    X, T, r1, r2 = _pair(rng)
+    ours = triangulate_two_view(r1, r2, T, method="mid2")
+    ref = mrcal.triangulate_leecivera_mid2(r1, r2, Rt01=_rt01(T), v_are_local=True)
+    # Same closed form, float64: agreement to rounding (1e-12 at depth ~6).
+    np.testing.assert_allclose(ours.points, ref, atol=1e-12)
+    ours = triangulate_two_view(r1, r2, T, method="midpoint")
+    ref = mrcal.triangulate_geometric(r1, r2, Rt01=_rt01(T), v_are_local=True)
+    np.testing.assert_allclose(ours.points, ref, atol=1e-10)
+    assert ours.valid.mean() > 0.95
+
+
+def test_dlt_equals_opencv_on_exact_data_and_is_accurate_with_noise(rng):
+    X, T, r1, r2 = _pair(rng, noise=0.0)
+    ours = triangulate_two_view(r1, r2, T, method="dlt")
+    Xh = cv2.triangulatePoints(np.eye(4)[:3], T, (r1[:, :2] / r1[:, 2:]).T, (r2[:, :2] / r2[:, 2:]).T)
+    np.testing.assert_allclose(ours.points, (Xh[:3] / Xh[3]).T, atol=1e-9)
+    np.testing.assert_allclose(ours.points, X, atol=1e-9)
+    # With noise our DLT (unit rays, 3 rows per view) and OpenCV's (z = 1, 2 rows) weight the algebraic
+    # error differently; both must be about as accurate as each other.
+    X, T, r1, r2 = _pair(rng, noise=2e-3)
+    ours = triangulate_two_view(r1, r2, T, method="dlt").points
+    Xh = cv2.triangulatePoints(np.eye(4)[:3], T, (r1[:, :2] / r1[:, 2:]).T, (r2[:, :2] / r2[:, 2:]).T)
+    e_ours = np.median(np.linalg.norm(ours - X, axis=1))
+    e_cv = np.median(np.linalg.norm((Xh[:3] / Xh[3]).T - X, axis=1))
+    assert e_ours < 1.1 * e_cv
+
+
+def test_validity_flags_where_mrcal_returns_zero_or_nonsense(rng):
+    T = np.c_[np.eye(3), [-1.0, 0, 0]]  # camera 2 centre at x = +1
+    # 0: good point; 1: divergent rays (meet behind); 2: parallel rays (point at infinity);
+    # 3: nearly parallel (far away, angle 1e-6 rad); 4: point behind both cameras.
+    X_good = np.array([0.3, 0.1, 5.0])
+    r1 = np.array([X_good, [-0.1, 0, 1], [0, 0, 1], [0, 0, 1], [0.2, 0, -1]])
+    r2 = np.array([X_good + T[:, 3], [0.3, 0, 1], [0, 0, 1], [-1e-6, 0, 1], [-0.8, 0, -1]])
+    tri = triangulate_two_view(r1, r2, T, method="mid2")
+    assert tri.valid.tolist() == [True, False, False, False, False]
+    assert np.all(np.isfinite(tri.points))
+    assert not tri.in_front[1] and not tri.finite[2] and tri.angle_deg[3] < 0.01 and not tri.in_front[4]
+    mr = mrcal.triangulate_leecivera_mid2(r1, r2, Rt01=_rt01(T), v_are_local=True)
+    # mrcal reports divergent rays as (0, 0, 0) and returns a huge, unflagged point for case 3.
+    assert np.all(mr[1] == 0) and np.linalg.norm(mr[3]) > 1e5
+    for method in ("midpoint", "dlt"):
+        tri = triangulate_two_view(r1, r2, T, method=method)
+        assert tri.valid.tolist() == [True, False, False, False, False], method
+        assert np.all(np.isfinite(tri.points))
+    with pytest.raises(DegenerateGeometryError):
+        triangulate_two_view(r1, r2, np.eye(4)[:3])
+
+
+def test_multiview_refinement_and_pixels(rng):
+    n, V = 200, 5
+    X = rng.uniform(-1, 1, (n, 3)) + [0, 0, 5]
+    poses = []
+    for v in range(V):
+        ang = np.radians(-20 + 10 * v)
+        R = tf.so3_exp([0, -ang, 0])
+        C = np.array([5 * np.sin(ang), 0, 5 - 5 * np.cos(ang)])
+        poses.append(np.c_[R, -R @ C])
+    poses = np.stack(poses)
+    cams = [Camera("OPENCV", 640, 480, np.array([500, 500, 320, 240, -0.05, 0.01, 0.0, 0.0]))] * V
+    uv = np.stack([cams[v].project(X @ poses[v, :, :3].T + poses[v, :, 3]).uv_px for v in range(V)])
+    uv_noisy = uv + rng.normal(scale=0.5, size=uv.shape)
+    observed = rng.random((V, n)) > 0.2
+    tri = triangulate_views_px(uv_noisy, cams, poses, observed=observed)
+    enough = observed.sum(0) >= 2
+    assert np.all(tri.valid[enough] | (tri.angle_deg[enough] < 1.5))
+    assert not tri.valid[~enough].any()
+    err = np.linalg.norm(tri.points - X, axis=1)[tri.valid]
+    # 0.5 px noise at f = 500 and depth 5 with 10-40 deg angles: ~5 mm.
+    assert np.median(err) < 0.01
+    # Refined (angular Gauss-Newton) is no worse than plain DLT on reprojection error.
+    tri_plain = triangulate_views_px(uv_noisy, cams, poses, observed=observed)
+    assert tri.reprojection_error_px[tri.valid].max() < 4.0
+    rays = np.stack([cams[v].unproject(uv_noisy[v]).rays_cam for v in range(V)])
+    dlt = triangulate_multiview(rays, poses, observed=observed, refine=False)
+    ref = triangulate_multiview(rays, poses, observed=observed, refine=True)
+    both = dlt.valid & ref.valid
+    assert np.median(ref.angular_error_deg[both]) <= np.median(dlt.angular_error_deg[both]) + 1e-12
+    assert tri_plain.points.shape == (n, 3)
+    # Exact data: the multi-view result is exact.
+    exact = triangulate_views_px(uv, cams, poses, criteria=TriangulationCriteria(min_angle_deg=0.0))
+    np.testing.assert_allclose(exact.points, X, atol=1e-8)
