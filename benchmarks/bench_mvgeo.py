@@ -16,18 +16,16 @@ import os
 import platform
 import time
 
+import mrcal
 import numpy as np
+from _common import md_table, peak_rss_mb, time_call, write_fragment  # sets sys.path to the repo root
 
-from _common import md_table, peak_rss_mb, time_call, write_fragment  # noqa: I001  (sys.path set by _common)
-
-import mrcal  # noqa: E402
-
-from mvgeo import transforms as tf  # noqa: E402
-from mvgeo.common.deps import cv2  # noqa: E402
-from mvgeo.metrics import rotation_error_deg, translation_direction_error_deg  # noqa: E402
-from mvgeo.ransac import RansacConfig  # noqa: E402
-from mvgeo.triangulate import TriangulationCriteria, triangulate_multiview, triangulate_two_view  # noqa: E402
-from mvgeo.twoview import TwoViewConfig, estimate_relative_pose  # noqa: E402
+from mvgeo import transforms as tf
+from mvgeo.common.deps import cv2
+from mvgeo.metrics import rotation_error_deg, translation_direction_error_deg
+from mvgeo.ransac import RansacConfig
+from mvgeo.triangulate import TriangulationCriteria, triangulate_multiview, triangulate_two_view
+from mvgeo.twoview import TwoViewConfig, estimate_relative_pose
 
 F_PX = 500.0
 NOISE_PX = 0.5

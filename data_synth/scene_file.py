@@ -18,9 +18,10 @@ from typing import Any
 from data_synth.effects import effect_table, parse_effect
 from data_synth.schema import from_table, join_key, to_table
 from data_synth.spec import (
-    _RIG_KEYS,
+    RIG_KEYS,
     CameraSpec,
     LightingSpec,
+    ObjectSpec,
     RenderSpec,
     RigSpec,
     SceneInfo,
@@ -123,11 +124,11 @@ def parse_scene(data: Mapping[str, Any], *, path: Path | None = None) -> SceneSp
 
     rig_table = table("rig")
     rig_type = rig_table.get("type", "forward")
-    if isinstance(rig_type, str) and rig_type in _RIG_KEYS:
+    if isinstance(rig_type, str) and rig_type in RIG_KEYS:
         for k in rig_table:
-            if k != "type" and k not in _RIG_KEYS[rig_type]:
+            if k != "type" and k not in RIG_KEYS[rig_type]:
                 raise ConfigError(f"does not apply to a `{rig_type}` rig", key=join_key("rig", k), path=path,
-                                  expected="one of " + ", ".join(sorted(_RIG_KEYS[rig_type] | {"type"})))
+                                  expected="one of " + ", ".join(sorted(RIG_KEYS[rig_type] | {"type"})))
 
     textures_table = table("textures")
     if not textures_table:
@@ -141,8 +142,6 @@ def parse_scene(data: Mapping[str, Any], *, path: Path | None = None) -> SceneSp
     if not isinstance(objects_list, list) or not objects_list:
         raise ConfigError("no objects defined", key="objects", path=path,
                           expected="at least one [[objects]] table")
-    from data_synth.spec import ObjectSpec
-
     objects = tuple(_as(ObjectSpec, o, f"objects[{i}]", path) for i, o in enumerate(objects_list))
     if path is not None:  # user meshes: relative to the scene file; stored absolute in the resolved spec
         objects = tuple(
@@ -244,7 +243,7 @@ def scene_to_table(spec: SceneSpec) -> dict[str, Any]:
 
 def _rig_table(rig: RigSpec) -> dict[str, Any]:
     full = to_table(rig)
-    keep = _RIG_KEYS[rig.type] | {"type"}
+    keep = RIG_KEYS[rig.type] | {"type"}
     return {k: v for k, v in full.items() if k in keep}
 
 

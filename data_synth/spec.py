@@ -108,7 +108,7 @@ class PoseSpec:
         return self
 
 
-_RIG_KEYS = {
+RIG_KEYS = {
     "forward": {"center", "look_at", "up", "pattern", "extent", "depth_jitter", "position_jitter",
                 "rotation_jitter_deg", "seed", "views"},
     "ring": {"look_at", "up", "radius", "height", "start_deg", "position_jitter", "rotation_jitter_deg",

@@ -15,7 +15,7 @@ from data_synth.spec import TextureSpec
 # Offsets between the seeds of a texture's independent noise fields.
 _WARP_SEED, _DETAIL_SEED = 7919, 104729
 _WARP_OCTAVES = 2  # warps are smooth: more octaves cost time and look the same
-_DETAIL_CHROMA = 0.25  # colour share of the fine-detail modulation
+_DETAIL_CHROMA = np.array([0.25, 0.0, -0.25], np.float32)  # colour part of the fine-detail modulation
 
 
 def color_ramp(s: np.ndarray, colors: np.ndarray) -> np.ndarray:
@@ -41,9 +41,11 @@ def pattern_value(spec: TextureSpec, points: np.ndarray) -> np.ndarray:
     """The scalar pattern s in [0, 1] at (M, 3) local points (before the colour ramp)."""
     p = np.asarray(points, dtype=np.float32) / np.float32(spec.scale)
     if spec.warp > 0 and spec.pattern != "constant":
-        # Domain warp: displace the lookup by a smooth vector noise field (channels 1-3).
-        disp = fbm(p, octaves=min(spec.octaves, _WARP_OCTAVES), lacunarity=spec.lacunarity, gain=spec.gain,
-                   seed=spec.seed + _WARP_SEED)[:, 1:4]
+        # Domain warp: displace the lookup by a smooth vector noise field (three independent fields).
+        octaves = min(spec.octaves, _WARP_OCTAVES)
+        d01 = fbm(p, octaves=octaves, lacunarity=spec.lacunarity, gain=spec.gain, seed=spec.seed + _WARP_SEED)
+        d2 = fbm(p, octaves=octaves, lacunarity=spec.lacunarity, gain=spec.gain, seed=spec.seed + _WARP_SEED + 1)
+        disp = np.concatenate([d01, d2[:, :1]], axis=1)
         p = p + np.float32(spec.warp) * disp
     if spec.pattern == "constant":
         return np.zeros(p.shape[0], np.float32)
@@ -78,7 +80,7 @@ def evaluate_texture(spec: TextureSpec, points: np.ndarray) -> np.ndarray:
     if spec.detail > 0:
         q = pts / np.float32(spec.detail_scale)
         grain = fbm(q, octaves=spec.detail_octaves, gain=0.6, seed=spec.seed + _DETAIL_SEED)
-        # Brightness grain (channel 0) with a little colour grain (channels 1-3).
-        mod = grain[:, :1] + np.float32(_DETAIL_CHROMA) * grain[:, 1:4]
+        # Brightness grain (field 0) with a little colour grain along red-blue (field 1).
+        mod = grain[:, :1] + grain[:, 1:2] * _DETAIL_CHROMA
         rgb = rgb * (1 + np.float32(spec.detail) * mod)
     return np.clip(rgb, 0.0, 1.0).astype(np.float32, copy=False)

@@ -6,41 +6,32 @@ Every input problem is reported before any compute, with exit code 2.
 from __future__ import annotations
 
 import argparse
-import importlib.resources
+import importlib.util
 import logging
 from collections.abc import Sequence
 from pathlib import Path
 
+from eval.evaluate import EVAL_METHODS, EvalConfig, evaluate_dataset, scene_dataset
 from eval.pipeline import PRESETS, preset, run_pipeline, validate_dataset_folder
 from eval.pipeline.components import require
+from eval.pipeline.lock import output_lock
+from eval.results import write_results
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.errors import DgsError, InputError
 
-__all__ = ["EVAL_METHODS", "build_parser", "main", "resolve_scene_source"]
+__all__ = ["build_parser", "main", "resolve_scene_source"]
 
 _log = logging.getLogger(__name__)
 
-#: Methods of `denoise-gs eval` (issue 8): baselines (a)-(e), the Table 2
-#: ablations and the Table 3 round counts.
-EVAL_METHODS = (
-    "3dgs_gt_poses",        # (a) 3DGS on the noisy images with ground-truth poses
-    "instantsplat",         # (b) our alignment + splat on the noisy images
-    "nlm_instantsplat",     # (c) non-local means, then (b)
-    "n2v_round1",           # (d) Denoise-GS round 1 only
-    "denoise_gs",           # (e) Denoise-GS, 2 rounds
-    "ablate_no_round2",     # Table 2
-    "ablate_no_selection",
-    "ablate_charbonnier",
-    "rounds_1", "rounds_2", "rounds_3", "rounds_4",  # Table 3
-)
-
-
 def _builtin_scenes() -> list[str]:
-    try:
-        folder = importlib.resources.files("data_synth") / "scenes"
-        return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
-    except (ModuleNotFoundError, FileNotFoundError, NotADirectoryError):
+    # Located without importing data_synth (its import pulls in open3d: seconds).
+    spec = importlib.util.find_spec("data_synth")
+    if spec is None or not spec.submodule_search_locations:
         return []
+    names = set()
+    for loc in spec.submodule_search_locations:
+        names.update(p.stem for p in (Path(loc) / "scenes").glob("*.toml"))
+    return sorted(names)
 
 
 def resolve_scene_source(scene: str) -> tuple[str, Path | str]:
@@ -67,13 +58,6 @@ def resolve_scene_source(scene: str) -> tuple[str, Path | str]:
                      fix=f"built-in scenes: {', '.join(names) or '(data_synth not installed)'}")
 
 
-def _validate_methods(methods: Sequence[str]) -> list[str]:
-    unknown = [m for m in methods if m not in EVAL_METHODS]
-    if unknown:
-        raise InputError(f"unknown method(s) {unknown}", fix=f"choose from {', '.join(EVAL_METHODS)}")
-    return list(dict.fromkeys(methods))
-
-
 def _cmd_run(args: argparse.Namespace) -> int:
     config = preset(args.preset, views=args.views, rounds=args.rounds, seed=args.seed,
                     select_views=False if args.no_select else None, device=args.device)
@@ -84,18 +68,21 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     kind, source = resolve_scene_source(args.scene)
-    methods = _validate_methods(args.methods)
-    if args.seeds < 1:
-        raise InputError(f"--seeds must be at least 1, got {args.seeds}")
-    preset(args.preset)  # validates the name
+    config = EvalConfig(methods=tuple(dict.fromkeys(args.methods)), seeds=args.seeds, preset=args.preset,
+                        views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
+                        device=args.device)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a folder", path=out, fix="choose another --out")
     if kind != "dataset":
         require("data_synth", "render_scene", needed_for="denoise-gs eval on a scene")
-    _log.info("eval: %s %s, methods %s, %d seed(s)", kind, source, ", ".join(methods), args.seeds)
-    raise DgsError("denoise-gs eval: the method runs (baselines, ablations, held-out pose fitting) are not "
-                   "implemented yet; the inputs above were validated. Use `denoise-gs run` meanwhile.")
+    with output_lock(out):
+        name, folder = scene_dataset(kind, source, out)
+        dataset = validate_dataset_folder(folder)
+        rows = evaluate_dataset(dataset, out, config, scene=name)
+        _, md = write_results(out, rows, title=f"denoise-gs eval: {name}")
+    print(f"results: {md}")
+    return 0
 
 
 def _cmd_cost(args: argparse.Namespace) -> int:
@@ -133,6 +120,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                      "denoise_gs"], metavar="METHOD",
                     help=f"any of: {', '.join(EVAL_METHODS)}")
     ev.add_argument("--preset", choices=sorted(PRESETS), default="default")
+    ev.add_argument("--views", type=int, default=None, help="K for rounds >= 2 (default min(12, training views))")
+    ev.add_argument("--pose-fit-iters", type=int, default=None, help="held-out pose refinement steps")
+    ev.add_argument("--splat-iters", type=int, default=None, help="splat training iterations (all methods)")
+    ev.add_argument("--device", default="cpu")
     ev.set_defaults(func=_cmd_eval)
 
     cost = sub.add_parser("cost", help="accuracy-time trade-off sweep on a scene")

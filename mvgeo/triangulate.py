@@ -31,7 +31,7 @@ from typing import Literal
 import numpy as np
 
 from mvgeo.common.errors import DegenerateGeometryError, ShapeError, check_shape
-from mvgeo.transforms import Rt_from_matrix, invert
+from mvgeo.transforms import Rt_from_matrix
 
 __all__ = [
     "TriangulationCriteria",
@@ -112,7 +112,7 @@ def _check_rays(rays, name: str) -> np.ndarray:
     return r
 
 
-def _finalise(points_h_or_none, points, finite, centres, rays_world, criteria, cam_R, cam_t):
+def _finalise(points, finite, centres, rays_world, criteria, cam_R, cam_t):
     """Common validity computation. centres (V, 3); rays_world (V, N, 3); cam_R (V, 3, 3), cam_t (V, 3)."""
     baseline = max(float(np.max(np.linalg.norm(centres - centres[0], axis=-1))), 1e-300)
     max_range = criteria.max_range * baseline
@@ -224,7 +224,7 @@ def triangulate_two_view(
         raise ShapeError(f"method: expected 'mid2', 'midpoint' or 'dlt', got {method!r}")
     centres = np.stack([np.zeros(3), c2])
     rays_world = np.stack([r1, r2 @ R])
-    return _finalise(None, points, finite, centres, rays_world, criteria,
+    return _finalise(points, finite, centres, rays_world, criteria,
                      np.stack([np.eye(3), R]), np.stack([np.zeros(3), t]))
 
 
@@ -295,7 +295,7 @@ def triangulate_multiview(
         points = _refine_angular(points, finite, _unit(rays), R, t, obs)
     centres = -np.einsum("vji,vj->vi", R, t)
     rays_world = np.where(obs[..., None], np.einsum("vji,vnj->vni", R, rays), 0.0)
-    return _finalise(None, points, finite, centres, rays_world, criteria, R, t)
+    return _finalise(points, finite, centres, rays_world, criteria, R, t)
 
 
 def _refine_angular(points, finite, f, R, t, obs, iterations: int = 5):
@@ -371,12 +371,3 @@ def triangulate_views_px(
         points=tri.points, valid=valid, in_front=tri.in_front, angle_deg=tri.angle_deg, range=tri.range,
         angular_error_deg=tri.angular_error_deg, finite=tri.finite, reprojection_error_px=err,
     )
-
-
-def cam2_from_cam1_of(cam1_from_world, cam2_from_world) -> np.ndarray:
-    """Relative pose ``cam2_from_cam1 = cam2_from_world @ world_from_cam1`` as (4, 4)."""
-    A = np.asarray(cam2_from_world, dtype=np.float64)
-    B = invert(np.asarray(cam1_from_world, dtype=np.float64))
-    Ah = np.vstack([A[:3], [0, 0, 0, 1]])
-    Bh = np.vstack([B[:3], [0, 0, 0, 1]])
-    return Ah @ Bh

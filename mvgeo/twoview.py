@@ -276,8 +276,18 @@ def _finish(u1, u2, K1, K2, E, ransac_inliers, iterations, config, *, extra=None
     x1, x2 = _to_norm(u1, K1), _to_norm(u2, K2)
     idx = np.flatnonzero(ransac_inliers)
     R, t, _, _ = pose_from_essential(E, x1[idx], x2[idx])
-    if config.refine and len(idx) >= 6:
+    inliers = ransac_inliers
+    # Refine on the inliers, re-select them with the refined model, repeat until the set is stable.
+    for _ in range(3 if config.refine else 0):
+        if len(idx) < 6:
+            break
         R, t, _, _ = _refine(u1[idx], u2[idx], lambda _: K1, lambda _: K2, R, t, None, config.noise_floor_px)
+        new = sampson_distance(fundamental_from_essential(essential_from_pose(R, t), K1, K2), u1, u2) < thr
+        stable = np.array_equal(new, inliers)
+        inliers = new
+        idx = np.flatnonzero(inliers)
+        if stable:
+            break
     E = essential_from_pose(R, t)
     E = E / np.linalg.norm(E)
     F = fundamental_from_essential(E, K1, K2)
@@ -343,8 +353,11 @@ def estimate_relative_pose(uv1_px, uv2_px, K1, K2, *, config: TwoViewConfig | No
         F = fundamental_from_essential(E, K1, K2)
         return _finish(u1, u2, K1, K2, E, sampson_distance(F, u1, u2) < thr, 0, config)
 
+    h1, h2 = np.c_[u1, np.ones(n)], np.c_[u2, np.ones(n)]
+    K1inv, K2invT = np.linalg.inv(K1), np.linalg.inv(K2).T
+
     def resid(E):
-        return sampson_distance(fundamental_from_essential(E, K1, K2), u1, u2)
+        return _sampson_h(K2invT @ E @ K1inv, h1, h2)
 
     res = ransac(
         n, 5,
@@ -383,10 +396,11 @@ def estimate_fundamental(uv1_px, uv2_px, *, config: TwoViewConfig | None = None)
             return None, np.zeros(n, bool), 0
         F = F / np.linalg.norm(F)
         return F, sampson_distance(F, u1, u2) < thr, 0
+    h1, h2 = np.c_[u1, np.ones(n)], np.c_[u2, np.ones(n)]
     res = ransac(
         n, 7,
         lambda s: fundamental_7point(u1[s], u2[s]),
-        lambda F: sampson_distance(F, u1, u2),
+        lambda F: _sampson_h(F, h1, h2),
         config=config.ransac,
         fit_nonminimal=lambda idx: [fundamental_8point(u1[idx], u2[idx])] if len(idx) >= 8 else [],
     )
@@ -401,6 +415,15 @@ def estimate_fundamental(uv1_px, uv2_px, *, config: TwoViewConfig | None = None)
         ):
             F = F8
     return F, sampson_distance(F, u1, u2) < thr, res.iterations
+
+
+def _sampson_h(F: np.ndarray, h1: np.ndarray, h2: np.ndarray) -> np.ndarray:
+    """Sampson distance for homogeneous points (N, 3); the hot loop of RANSAC scoring (no checks)."""
+    Fx1 = h1 @ F.T
+    Ftx2 = h2 @ F
+    num = np.abs(np.einsum("ij,ij->i", h2, Fx1))
+    den2 = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    return num / np.sqrt(np.where(den2 > 0, den2, 1.0))
 
 
 def _K(f: float, c: tuple[float, float]) -> np.ndarray:

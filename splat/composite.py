@@ -192,6 +192,11 @@ def _composite_tiles_torch(means2d, conics, colors, opacities, bins: TileBins, w
         acc_parts.append(acc)
         trans_parts.append(tr)
         start = end
+    if need_grad and not any(t.requires_grad for t in acc_parts):
+        # Nothing touched any tile: keep the outputs in the graph (all gradients are zero), as the cpp path does.
+        tie = sum((t * 0).sum() for t in (means2d, conics, colors, opacities) if t.requires_grad)
+        acc_parts = [t + tie for t in acc_parts]
+        trans_parts = [t + tie for t in trans_parts]
     acc = torch.cat(acc_parts, 0).reshape(bins.tiles_y, bins.tiles_x, ts, ts, C)
     tr = torch.cat(trans_parts, 0).reshape(bins.tiles_y, bins.tiles_x, ts, ts)
     acc = acc.permute(0, 2, 1, 3, 4).reshape(bins.tiles_y * ts, bins.tiles_x * ts, C)[:height, :width]

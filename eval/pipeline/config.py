@@ -61,11 +61,11 @@ class SplatSettings:
     """Gaussian splatting with pose optimisation (`splat`).
 
     Attributes:
-        preset: name of a `splat` `TrainConfig` preset.
+        preset: name of a `splat.train.TRAIN_PRESETS` entry ("instantsplat", "quick", ...).
         iters: training iterations; None keeps the preset's.
     """
 
-    preset: str = "default"
+    preset: str = "instantsplat"
     iters: int | None = None
 
 
@@ -121,13 +121,13 @@ PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40),
         align=AlignSettings(preset="fast"),
-        splat=SplatSettings(preset="fast"),
+        splat=SplatSettings(preset="quick"),
     ),
     "default": PipelineConfig(),
     "best": PipelineConfig(
         denoise=DenoiseSettings(n2v_preset="n2v2", n2v_steps=1500, passes=8, round2_steps=400),
         align=AlignSettings(preset="best"),
-        splat=SplatSettings(preset="best"),
+        splat=SplatSettings(preset="instantsplat", iters=2000),
     ),
 }
 

@@ -18,6 +18,7 @@ Each function has the `StageFn` signature (`fn(ctx) -> summary`), reads
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -71,6 +72,11 @@ def _round2_config(s: Mapping[str, object], need: str):
                             config_cls="Round2Config")
 
 
+def _train_config(s: Mapping[str, object], seed: int, need: str):
+    return component_config("splat.train", "TRAIN_PRESETS", s["preset"], {"iters": s["iters"], "seed": seed},
+                            needed_for=need)
+
+
 def denoise(ctx: StageContext) -> Mapping[str, object]:
     """Round 1: train the N2V-UNet on all noisy images, denoise them all."""
     need = "denoise stage (round 1)"
@@ -109,31 +115,34 @@ def splat(ctx: StageContext) -> Mapping[str, object]:
     """Gaussian splatting with pose optimisation, initialised from the alignment."""
     need = "splat stage"
     s = ctx.settings
-    cfg = component_config("splat", "TRAIN_PRESETS", s["preset"], {"iters": s["iters"]}, needed_for=need)
-    train_gaussians = require("splat", "train_gaussians", needed_for=need)
-    save_ply = require("splat", "save_ply", needed_for=need)
+    cfg = _train_config(s, ctx.seed, need)
+    train_gaussians = require("splat.train", "train_gaussians", needed_for=need)
+    save_ply = require("splat.ply", "write_gaussian_ply", needed_for=need)
     sparse = read_sparse_model(ctx.inputs["align"] / "sparse" / "0")
     pts = np.load(ctx.inputs["align"] / "points.npz")
     stems = [n.rsplit(".", 1)[0] for n in sparse.names]
     images = read_views(ctx.inputs["images"], stems)
     cameras = [sparse.camera_of(n) for n in sparse.names]
     cam_from_world = np.stack([sparse.image(n).cam_from_world for n in sparse.names])
-    res = train_gaussians(list(images.values()), cameras, cam_from_world, pts["xyz"], pts["rgb"], cfg)
-    save_ply(res.model, ctx.work_dir / "point_cloud.ply")
+    res = train_gaussians(list(images.values()), cameras, cam_from_world, pts["xyz"], pts["rgb"], cfg,
+                          device=s["device"])
+    save_ply(ctx.work_dir / "point_cloud.ply", res.model)
     optimised = [PosedImage(im.name, im.camera_id, np.asarray(res.cam_from_world_optimized[i])[:3])
                  for i, im in enumerate(sparse.images)]
     write_sparse_model(ctx.work_dir / "sparse" / "0",
                        SparseModel(sparse.cameras, optimised, sparse.points_xyz, sparse.points_rgb), binary=True)
-    return {"views": stems, "train": _history_summary(res.history)}
+    history = dataclasses.asdict(res.history) if dataclasses.is_dataclass(res.history) else res.history
+    return {"views": stems, "train": _history_summary(history),
+            "timings_s": dict(getattr(res, "timings_s", {}) or {})}
 
 
 def render(ctx: StageContext) -> Mapping[str, object]:
     """Render the trained Gaussians at every pose of the round's `sparse/0`."""
     need = "render stage"
-    load_ply = require("splat", "load_ply", needed_for=need)
-    render_views = require("splat", "render_views", needed_for=need)
+    load_ply = require("splat.ply", "read_gaussian_ply", needed_for=need)
+    render_views = require("splat.render", "render_views", needed_for=need)
     sparse = read_sparse_model(ctx.inputs["sparse"] / "0")
-    model = load_ply(ctx.inputs["scene"])
+    model = load_ply(ctx.inputs["scene"], device=ctx.settings["device"])
     cameras = [sparse.camera_of(n) for n in sparse.names]
     cam_from_world = np.stack([sparse.image(n).cam_from_world for n in sparse.names])
     images = render_views(model, cameras, cam_from_world)
@@ -197,9 +206,10 @@ def check_product_components(config: PipelineConfig) -> None:
     component_config("mvgeo.align", "ALIGN_PRESETS", a.preset, {"max_size": a.max_size_px, "iters": a.iters},
                      needed_for=need)
     require("mvgeo.align", "align_images", needed_for=need)
-    component_config("splat", "TRAIN_PRESETS", sp.preset, {"iters": sp.iters}, needed_for=need)
-    for name in ("train_gaussians", "save_ply", "load_ply", "render_views"):
-        require("splat", name, needed_for=need)
+    _train_config({"preset": sp.preset, "iters": sp.iters}, config.seed, need)
+    for module, name in (("splat.train", "train_gaussians"), ("splat.ply", "write_gaussian_ply"),
+                         ("splat.ply", "read_gaussian_ply"), ("splat.render", "render_views")):
+        require(module, name, needed_for=need)
     if config.rounds >= 2:
         _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,
                         "round2_loss": d.round2_loss}, need)

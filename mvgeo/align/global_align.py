@@ -40,6 +40,8 @@ from mvgeo.align.pairs import PairPrediction
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.progress import progress_bar
+from mvgeo.transforms import quat_from_R, umeyama
+from mvgeo.transforms_torch import R_from_quat
 
 _log = logging.getLogger(__name__)
 
@@ -59,6 +61,10 @@ class GlobalAlignConfig:
         pinned_scale: geometric mean of the pair scales.
         dtype: torch dtype of the optimisation (float32; float64 for tests).
         device: torch device ("cpu" by default).
+        torch_threads: intra-op CPU threads during the optimisation (restored
+            afterwards); 0 keeps torch's setting. The default 1 is deliberate:
+            the work is many small ops, and on a shared 2-core machine two
+            threads were measured ~40x slower than one (spin-waiting threads).
     """
 
     iters: int = 300
@@ -69,6 +75,7 @@ class GlobalAlignConfig:
     pinned_scale: float = 1.0
     dtype: torch.dtype = torch.float32
     device: str = "cpu"
+    torch_threads: int = 1
 
 
 @dataclass
@@ -99,86 +106,18 @@ class GlobalAlignResult:
 # --------------------------------------------------------------------------- small kernels
 
 
-def R_from_quat_wxyz(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices from (not necessarily unit) wxyz quaternions.
-
-    Args:
-        q: (..., 4).
-
-    Returns:
-        (..., 3, 3), same dtype/device.
-    """
-    q = q / q.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
-
-
-def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) -> (..., 4) unit wxyz quaternions with w >= 0 (via scipy, xyzw converted)."""
-    from scipy.spatial.transform import Rotation
-
-    xyzw = Rotation.from_matrix(np.asarray(R, np.float64).reshape(-1, 3, 3)).as_quat()
-    q = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
-    q = np.where(q[:, :1] < 0, -q, q)
-    return q.reshape(*np.shape(R)[:-2], 4)
-
-
 def weighted_umeyama(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Weighted similarity (s, R, t) minimising sum w ||dst - (s R src + t)||^2.
-
-    Temporary local copy until `mvgeo.transforms.umeyama` lands (then this
-    delegates to it).
-
-    Args:
-        src, dst: (M, 3) float64. w: (M,) non-negative weights.
+    """Confidence-weighted Procrustes with scale: (s, R, t) with dst ~ s R src + t (mvgeo.transforms.umeyama).
 
     Raises:
-        DegenerateGeometryError: fewer than 3 weighted points or all coincident.
+        DegenerateGeometryError: fewer than 3 weighted points, or a degenerate configuration.
     """
-    try:
-        from mvgeo.transforms import umeyama  # type: ignore[attr-defined]
-    except ImportError:
-        umeyama = None
-    if umeyama is not None:
-        res = umeyama(src, dst, weights=w, with_scale=True)
-        return _unpack_sim3(res)
-    w = np.asarray(w, np.float64)
     if np.count_nonzero(w > 0) < 3:
-        raise DegenerateGeometryError("Procrustes needs at least 3 weighted points")
-    w = w / w.sum()
-    mu_s = w @ src
-    mu_d = w @ dst
-    cs, cd = src - mu_s, dst - mu_d
-    var_s = float(w @ np.sum(cs * cs, axis=1))
-    if var_s <= 1e-18:
-        raise DegenerateGeometryError("Procrustes source points are all coincident")
-    cov = (cd * w[:, None]).T @ cs
-    U, S, Vt = np.linalg.svd(cov)
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / var_s)
-    t = mu_d - s * R @ mu_s
-    return s, R, t
-
-
-def _unpack_sim3(res) -> tuple[float, np.ndarray, np.ndarray]:
-    if isinstance(res, tuple) and len(res) == 3:
-        s, R, t = res
-        return float(s), np.asarray(R, np.float64), np.asarray(t, np.float64)
-    for names in (("scale", "R", "t"), ("s", "R", "t")):
-        if all(hasattr(res, n) for n in names):
-            return float(getattr(res, names[0])), np.asarray(res.R, np.float64), np.asarray(res.t, np.float64)
-    m = np.asarray(res, np.float64)  # (4, 4) or (3, 4) sRt
-    sR = m[:3, :3]
-    s = float(np.cbrt(np.linalg.det(sR)))
-    return s, sR / s, m[:3, 3]
+        raise DegenerateGeometryError("Procrustes needs at least 3 points with positive confidence")
+    sim = umeyama(src, dst, weights=w, with_scale=True)
+    if not sim.scale > 0:
+        raise DegenerateGeometryError("Procrustes gave a non-positive scale (all target points coincide)")
+    return float(sim.scale), sim.R, sim.t
 
 
 def pixel_rays(H: int, W: int, focal_px: float) -> np.ndarray:
@@ -254,9 +193,9 @@ def world_points(params: _Params, grid: _Grid) -> torch.Tensor:
     depth = torch.exp(params.log_depth)
     f = torch.exp(params.log_focal)[grid.focal_of_pixel]
     x_cam = torch.stack([grid.du / f * depth, grid.dv / f * depth, depth], dim=-1)
-    R = R_from_quat_wxyz(params.q_wfc)
+    R = R_from_quat(params.q_wfc)
     parts = [x_cam[a:b] @ R[n].T + params.t_wfc[n]
-             for n, (a, b) in enumerate(zip(grid.view_start[:-1], grid.view_start[1:]))]
+             for n, (a, b) in enumerate(zip(grid.view_start[:-1], grid.view_start[1:], strict=True))]
     return torch.cat(parts)
 
 
@@ -265,7 +204,7 @@ def alignment_loss(params: _Params, terms: _Terms, grid: _Grid, *, pinned_scale:
     x_world = world_points(params, grid)[terms.flat]
     logs = params.logs_pair - params.logs_pair.mean() + math.log(pinned_scale)
     scale = torch.exp(logs)
-    Rp = R_from_quat_wxyz(params.q_pair)
+    Rp = R_from_quat(params.q_pair)
     st = terms.edge_start
     aligned = torch.cat([scale[e] * (terms.pred[st[e]:st[e + 1]] @ Rp[e].T) + params.t_pair[e]
                          for e in range(len(st) - 1)])
@@ -439,7 +378,7 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
     offsets = np.concatenate([[0], np.cumsum([h * w for h, w in sizes_hw])[:-1]])
     world_from_cam_R = np.transpose(init.cam_from_world[:, :, :3], (0, 2, 1))
     world_from_cam_t = -np.einsum("nij,nj->ni", world_from_cam_R, init.cam_from_world[:, :, 3]) * c
-    q_pair = quat_wxyz_from_R(np.stack([R for _, R, _ in init.pair_sim]))
+    q_pair = quat_from_R(np.stack([R for _, R, _ in init.pair_sim]))
     t_pair = np.stack([t for _, _, t in init.pair_sim]) * c
     logs_pair = np.log([s for s, _, _ in init.pair_sim])
     if config.shared_focal:
@@ -449,7 +388,7 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
         log_focal = np.log(init.focal_px)
         focal_index = np.arange(n)
     T = lambda x: torch.as_tensor(np.asarray(x), dtype=dt, device=dev)  # noqa: E731
-    params = _Params(log_depth, T(quat_wxyz_from_R(world_from_cam_R)), T(world_from_cam_t), T(log_focal),
+    params = _Params(log_depth, T(quat_from_R(world_from_cam_R)), T(world_from_cam_t), T(log_focal),
                      T(q_pair), T(t_pair), T(logs_pair), optimize_focal=config.optimize_focal)
     terms = _build_terms(preds, sizes_hw, offsets, dt, dev)
     du = np.concatenate([(pixel_rays(h, w, 1.0)[..., 0]).reshape(-1) for h, w in sizes_hw])
@@ -457,8 +396,21 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
     fpix = np.concatenate([np.full(h * w, focal_index[n]) for n, (h, w) in enumerate(sizes_hw)])
     grid = _Grid(T(du), T(dv), torch.as_tensor(fpix, dtype=torch.long, device=dev),
                  [int(x) for x in np.concatenate([offsets, [offsets[-1] + sizes_hw[-1][0] * sizes_hw[-1][1]]])])
-    kw = dict(pinned_scale=config.pinned_scale)
 
+    old_threads = torch.get_num_threads()
+    if config.torch_threads > 0:
+        torch.set_num_threads(config.torch_threads)
+    try:
+        history = _optimise(params, terms, grid, config)
+    finally:
+        torch.set_num_threads(old_threads)
+    _log.info("global alignment: loss %.5g -> %.5g over %d iterations", history[0], history[-1], config.iters)
+    return _collect(params, preds, sizes_hw, focal_index, offsets, history[0], history)
+
+
+def _optimise(params: _Params, terms: _Terms, grid: _Grid, config: GlobalAlignConfig) -> list[float]:
+    """Adam with a cosine schedule; returns the loss history (first: initial, last: final)."""
+    kw = dict(pinned_scale=config.pinned_scale)
     with torch.no_grad():
         init_loss = float(alignment_loss(params, terms, grid, **kw))
     history = [init_loss]
@@ -480,11 +432,10 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
                 history.append(float(loss.detach()))
                 bar.update(1)
                 if it % 20 == 0:
-                    bar.set_postfix(loss=f"{float(loss):.4g}")
+                    bar.set_postfix(loss=f"{history[-1]:.4g}")
         with torch.no_grad():
             history.append(float(alignment_loss(params, terms, grid, **kw)))
-    _log.info("global alignment: loss %.5g -> %.5g over %d iterations", init_loss, history[-1], config.iters)
-    return _collect(params, preds, sizes_hw, focal_index, offsets, init_loss, history)
+    return history
 
 
 def focal_estimates(preds: Sequence[PairPrediction], n: int) -> np.ndarray:
@@ -503,7 +454,7 @@ def focal_estimates(preds: Sequence[PairPrediction], n: int) -> np.ndarray:
 
 def _collect(params: _Params, preds, sizes_hw, focal_index, offsets, init_loss, history) -> GlobalAlignResult:
     with torch.no_grad():
-        R_wfc = R_from_quat_wxyz(params.q_wfc).double().cpu().numpy()
+        R_wfc = R_from_quat(params.q_wfc).double().cpu().numpy()
         t_wfc = params.t_wfc.double().cpu().numpy()
         focal = np.exp(params.log_focal.double().cpu().numpy())[focal_index]
         log_depth = params.log_depth.double().cpu().numpy()

@@ -94,7 +94,7 @@ def maximum_spanning_tree(n_images: int, edges: Sequence[tuple[int, int]], score
     cols = np.array([k[1] for k in keys])
     mat = coo_matrix((np.array([cost[best[k]] for k in keys]), (rows, cols)), shape=(n_images, n_images))
     tree = minimum_spanning_tree(mat).tocoo()
-    tree_edges = [best[(min(a, b), max(a, b))] for a, b in zip(tree.row, tree.col)]
+    tree_edges = [best[(min(a, b), max(a, b))] for a, b in zip(tree.row, tree.col, strict=True)]
     # BFS order starting from the strongest tree edge.
     tree_edges.sort(key=lambda k: -s[k])
     ordered: list[int] = []

@@ -120,3 +120,54 @@ def test_user_mesh_renders(tmp_path):
     depth = np.load(out / "depth" / "view_000.npy")
     # The torus (at 2 m) is the nearest thing in the middle of view 0.
     assert np.nanmin(depth[18:30, 26:38]) < 2.2
+
+
+def test_outputs_only_when_needed(tmp_path):
+    from data_synth.dataset import render_needs
+
+    base = TINY_SCENE.replace('outputs = ["depth", "alpha", "normals"]', "outputs = []")
+    spec = load_scene(write_scene(tmp_path, base, "none.toml"))
+    assert render_needs(spec) == type(render_needs(spec))(depth=False, alpha=False, normals=False)
+    out = render_scene(write_scene(tmp_path, base, "none.toml"), tmp_path / "none")
+    assert not (out / "depth").exists() and not (out / "alpha").exists()
+    # A depth-dependent defocus makes depth necessary (computed) without writing it.
+    defocus = base + '\n[[effects]]\ntype = "defocus_blur"\nradius_px = 2.0\nfocus_depth = 3.0\n'
+    spec = load_scene(write_scene(tmp_path, defocus, "defocus.toml"))
+    assert render_needs(spec).depth
+    out = render_scene(write_scene(tmp_path, defocus, "defocus.toml"), tmp_path / "defocus")
+    assert not (out / "depth").exists()
+    assert (out / "images" / "view_000.png").read_bytes() != (out / "clean" / "view_000.png").read_bytes()
+
+
+def test_sixteen_bit_output(tmp_path):
+    from mvgeo.common.deps import cv2
+
+    text = TINY_SCENE.replace("supersample = 2", "supersample = 2\nbit_depth = 16")
+    out = render_scene(write_scene(tmp_path, text), tmp_path / "ds")
+    raw = cv2.imread(str(out / "clean" / "view_000.png"), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint16
+    assert len(np.unique(raw)) > 256  # real 16-bit values, not 8-bit data scaled up
+
+
+def test_distorted_camera_is_written_as_opencv_and_matches_pycolmap(tmp_path):
+    from data_synth import SceneRenderer, rig_views
+    from data_synth.intrinsics import camera_from_spec, camera_rays, sample_positions
+    from mvgeo.common.deps import pycolmap
+
+    text = TINY_SCENE.replace("fov_x_deg = 60.0", "fov_x_deg = 60.0\ndistortion = [-0.15, 0.03, 0.001, -0.001]")
+    path = write_scene(tmp_path, text)
+    out = render_scene(path, tmp_path / "ds")
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    pc_cam = rec.cameras[1]
+    assert pc_cam.model.name == "OPENCV"
+    # Lift pixel centres with our (undistorted) rays and depth; COLMAP's OPENCV projection must
+    # land back on the pixel centres (tolerance: 1e-6 px, float32 depth scales points only along rays).
+    spec = load_scene(path)
+    cam = camera_from_spec(spec.camera, tuple(spec.render.size))
+    view = rig_views(spec.rig)[0]
+    depth = SceneRenderer.from_spec(spec).render(cam, view.cam_from_world, supersample=1, depth=True).depth
+    uv = sample_positions(tuple(spec.render.size), 1).reshape(-1, 2)
+    dirs, valid = camera_rays(cam, uv)
+    ok = valid & np.isfinite(depth.reshape(-1))
+    x_cam = dirs[ok] * depth.reshape(-1)[ok, None].astype(np.float64)
+    np.testing.assert_allclose(np.asarray(pc_cam.img_from_cam(x_cam)), uv[ok], atol=1e-6)

@@ -1,0 +1,168 @@
+"""Evaluation results: per-run rows, mean +- std over seeds, `results.json`, `results.md`, bar charts."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mvgeo.common.atomic import atomic_write_text
+
+__all__ = ["METRICS", "RunScores", "SummaryCell", "plot_bars", "results_markdown", "summarise", "write_results"]
+
+#: metric -> (label, higher is better)
+METRICS: dict[str, tuple[str, bool]] = {
+    "psnr_db": ("PSNR (dB)", True),
+    "ssim": ("SSIM", True),
+    "lpips": ("LPIPS", False),
+    "rot_err_deg": ("rot. err. (deg)", False),
+    "ate": ("ATE (GT units)", False),
+    "seconds": ("time (s)", False),
+}
+
+
+@dataclass(frozen=True)
+class RunScores:
+    """One method on one scene with one seed; held-out image metrics are means over held-out views.
+
+    Attributes:
+        scene, method, seed: identify the run.
+        psnr_db, ssim, lpips: held-out views against the clean images.
+        rot_err_deg: mean relative rotation error of the training poses (NaN when poses are given).
+        ate: absolute trajectory error of the training camera centres after Sim(3), GT units (NaN when given).
+        seconds: end-to-end wall time of the method.
+        per_view: held-out view -> {"psnr_db", "ssim", "lpips"}.
+    """
+
+    scene: str
+    method: str
+    seed: int
+    psnr_db: float
+    ssim: float
+    lpips: float
+    rot_err_deg: float = float("nan")
+    ate: float = float("nan")
+    seconds: float = float("nan")
+    per_view: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SummaryCell:
+    """Mean and sample standard deviation over seeds (std NaN for one seed; NaNs ignored)."""
+
+    mean: float
+    std: float
+    n: int
+
+    def format(self, digits: int) -> str:
+        if self.n == 0:
+            return "n/a"
+        if self.n == 1 or math.isnan(self.std):
+            return f"{self.mean:.{digits}f}"
+        return f"{self.mean:.{digits}f} ± {self.std:.{digits}f}"
+
+
+def _cell(values: Sequence[float]) -> SummaryCell:
+    v = np.asarray([x for x in values if not math.isnan(x)], np.float64)
+    if v.size == 0:
+        return SummaryCell(float("nan"), float("nan"), 0)
+    return SummaryCell(float(v.mean()), float(v.std(ddof=1)) if v.size > 1 else float("nan"), int(v.size))
+
+
+def summarise(rows: Sequence[RunScores]) -> dict[str, dict[str, dict[str, SummaryCell]]]:
+    """scene -> method -> metric -> `SummaryCell`, methods in first-seen order."""
+    out: dict[str, dict[str, dict[str, SummaryCell]]] = {}
+    groups: dict[tuple[str, str], list[RunScores]] = {}
+    for r in rows:
+        groups.setdefault((r.scene, r.method), []).append(r)
+    for (scene, method), rs in groups.items():
+        out.setdefault(scene, {})[method] = {m: _cell([getattr(r, m) for r in rs]) for m in METRICS}
+    return out
+
+
+_DIGITS = {"psnr_db": 2, "ssim": 3, "lpips": 3, "rot_err_deg": 2, "ate": 4, "seconds": 0}
+
+
+def results_markdown(rows: Sequence[RunScores], *, title: str = "Evaluation") -> str:
+    """Per-scene tables, mean ± std over seeds, best value per column in bold."""
+    summary = summarise(rows)
+    lines = [f"# {title}", "", "Held-out views scored against the clean images; mean ± sample std over seeds "
+             "(n = seeds). Training-pose errors after Sim(3) registration to ground truth.", ""]
+    for scene, methods in summary.items():
+        seeds = max(c["psnr_db"].n for c in methods.values())
+        lines += [f"## {scene} ({seeds} seed(s))", "",
+                  "| method | " + " | ".join(lbl for lbl, _ in METRICS.values()) + " |",
+                  "|---" * (len(METRICS) + 1) + "|"]
+        best = {}
+        for m, (_, higher) in METRICS.items():
+            vals = [c[m].mean for c in methods.values() if c[m].n]
+            if vals and m != "seconds":
+                best[m] = max(vals) if higher else min(vals)
+        for method, cells in methods.items():
+            row = []
+            for m in METRICS:
+                text = cells[m].format(_DIGITS[m])
+                if m in best and cells[m].n and cells[m].mean == best[m] and len(methods) > 1:
+                    text = f"**{text}**"
+                row.append(text)
+            lines.append(f"| {method} | " + " | ".join(row) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot_bars(rows: Sequence[RunScores], path: Path, *, metric: str = "psnr_db") -> Path:
+    """Bar chart of `metric` per method (error bars: std over seeds), one group per scene; PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    summary = summarise(rows)
+    scenes = list(summary)
+    methods = list(dict.fromkeys(m for s in summary.values() for m in s))
+    width = 0.8 / max(1, len(methods))
+    fig, ax = plt.subplots(figsize=(max(4.0, 1.6 * len(scenes) * max(1, len(methods)) ** 0.5), 3.2), dpi=120)
+    for j, method in enumerate(methods):
+        means = [summary[s][method][metric].mean if method in summary[s] else np.nan for s in scenes]
+        stds = [summary[s][method][metric].std if method in summary[s] else np.nan for s in scenes]
+        ax.bar(np.arange(len(scenes)) + (j - (len(methods) - 1) / 2) * width, means, width,
+               yerr=np.nan_to_num(stds), capsize=2, label=method)
+    ax.set_xticks(np.arange(len(scenes)), scenes)
+    ax.set_ylabel(METRICS[metric][0])
+    ax.legend(fontsize=7, ncols=2)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _json_safe(x: object) -> object:
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_safe(v) for v in x]
+    return x
+
+
+def write_results(out: Path, rows: Sequence[RunScores], *, title: str = "Evaluation") -> tuple[Path, Path]:
+    """Write `results.json` (rows + summary; NaN -> null), `results.md` and `figures/<metric>.png`."""
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {s: {m: {k: asdict(c) for k, c in cells.items()} for m, cells in ms.items()}
+               for s, ms in summarise(rows).items()}
+    json_path, md_path = out / "results.json", out / "results.md"
+    atomic_write_text(json_path, json.dumps(_json_safe({"runs": [asdict(r) for r in rows], "summary": summary}),
+                                            indent=2) + "\n")
+    md = results_markdown(rows, title=title)
+    figs = []
+    for metric in ("psnr_db", "ssim", "lpips"):
+        figs.append(plot_bars(rows, out / "figures" / f"{metric}.png", metric=metric))
+    md += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figs) + "\n"
+    atomic_write_text(md_path, md)
+    return json_path, md_path

@@ -1,0 +1,275 @@
+"""The default `PointmapModel`: classical, weight-free pairwise pointmaps.
+
+For each pair (i, j):
+
+1. SIFT (OpenCV) on the alignment-resolution images, mutual nearest
+   neighbours with Lowe's ratio test;
+2. robust relative pose: `mvgeo.twoview.estimate_relative_pose_uncalibrated`
+   (shared unknown focal, principal point at the centre) or, with known
+   intrinsics, the calibrated `estimate_relative_pose`;
+3. dense correspondences at the pointmap resolution: the inlier matches are
+   densified with OpenCV's edge-aware interpolator (EpicFlow) and refined by
+   DIS optical flow, both ways, keeping pixels that pass a forward-backward
+   check and lie near their epipolar line;
+4. triangulation of every kept pixel (`mvgeo.triangulate.triangulate_two_view`,
+   cheirality, triangulation angle, angular error);
+5. confidence = 1 + `conf_max` * forward-backward term * angle term * epipolar
+   term, so 1 means "unknown" (those pixels get a placeholder depth, the
+   median along the ray, and zero weight in the alignment).
+
+Pointmaps are in camera i's frame with the pair's baseline as unit length.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mvgeo.align.pairs import PairFailure, PairPrediction
+from mvgeo.common.deps import cv2
+from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.progress import progress
+from mvgeo.epipolar import sampson_distance
+from mvgeo.transforms import skew
+from mvgeo.triangulate import TriangulationCriteria, triangulate_two_view
+from mvgeo.twoview import TwoViewConfig, estimate_relative_pose, estimate_relative_pose_uncalibrated
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ClassicalPairConfig:
+    """Options of the classical pair estimator.
+
+    Attributes:
+        pointmap_size_px: long side of the pointmaps (and of the depth maps the
+            global alignment optimises). 160 px keeps 12 views at ~20k pixels
+            each, which the CPU alignment handles in tens of seconds.
+        sift_features: SIFT keypoints per image (at the alignment resolution).
+        ratio: Lowe's ratio test threshold.
+        min_matches: fewer putative matches -> the pair fails.
+        two_view: options of the relative-pose estimators (RANSAC threshold in
+            pixels at the alignment resolution).
+        fb_max_px: forward-backward consistency limit, pixels at the pointmap resolution.
+        epipolar_max_px: Sampson distance limit of a dense match, pointmap pixels.
+        angle_ref_deg: triangulation angle at which the angle term saturates to 1.
+        conf_max: confidence of a perfect pixel is 1 + conf_max.
+        triangulation: validity criteria of the dense triangulation.
+    """
+
+    pointmap_size_px: int = 160
+    sift_features: int = 4000
+    ratio: float = 0.8
+    min_matches: int = 30
+    two_view: TwoViewConfig = field(default_factory=lambda: TwoViewConfig())
+    fb_max_px: float = 1.0
+    epipolar_max_px: float = 1.5
+    angle_ref_deg: float = 5.0
+    conf_max: float = 10.0
+    triangulation: TriangulationCriteria = field(
+        default_factory=lambda: TriangulationCriteria(min_angle_deg=0.5, max_angular_error_deg=2.0))
+
+
+@dataclass
+class ImageFeatures:
+    """SIFT of one image. uv_px: (K, 2) our pixel convention; desc: (K, 128) float32."""
+
+    uv_px: np.ndarray
+    desc: np.ndarray
+
+
+def pointmap_shape(height: int, width: int, long_side_px: int) -> tuple[int, int]:
+    """(H, W) of the pointmap grid for an image, long side `long_side_px` (never upsampled)."""
+    s = min(1.0, long_side_px / max(height, width))
+    return max(1, round(height * s)), max(1, round(width * s))
+
+
+def _gray_u8(image: np.ndarray) -> np.ndarray:
+    g = cv2.cvtColor(np.ascontiguousarray(image, dtype=np.float32), cv2.COLOR_RGB2GRAY)
+    return np.clip(np.rint(g * 255.0), 0, 255).astype(np.uint8)
+
+
+def extract_features(image: np.ndarray, *, n_features: int) -> ImageFeatures:
+    """SIFT keypoints (converted to our pixel convention: OpenCV + 0.5) and descriptors."""
+    sift = cv2.SIFT_create(nfeatures=n_features)
+    kps, desc = sift.detectAndCompute(_gray_u8(image), None)
+    if desc is None or not kps:
+        return ImageFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    uv = np.array([k.pt for k in kps], dtype=np.float64) + 0.5
+    return ImageFeatures(uv, desc.astype(np.float32))
+
+
+def match_features(a: ImageFeatures, b: ImageFeatures, *, ratio: float) -> np.ndarray:
+    """(M, 2) index pairs: mutual nearest neighbours passing the ratio test both ways."""
+    if len(a.desc) < 2 or len(b.desc) < 2:
+        return np.zeros((0, 2), np.int64)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+
+    def one_way(x, y):
+        out = {}
+        for m in bf.knnMatch(x, y, k=2):
+            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
+                out[m[0].queryIdx] = m[0].trainIdx
+        return out
+
+    ab, ba = one_way(a.desc, b.desc), one_way(b.desc, a.desc)
+    pairs = [(q, t) for q, t in ab.items() if ba.get(t) == q]
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def _resize(image: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    if image.shape[:2] == hw:
+        return image
+    return cv2.resize(image, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
+
+
+def dense_flow(gray_a: np.ndarray, gray_b: np.ndarray, uv_a_px: np.ndarray, uv_b_px: np.ndarray) -> np.ndarray:
+    """(H, W, 2) flow a -> b: sparse matches densified (edge-aware), refined by DIS.
+
+    Args:
+        gray_a, gray_b: (H, W) uint8 images of the same size.
+        uv_a_px, uv_b_px: (M, 2) matches in our pixel convention at this resolution.
+    """
+    H, W = gray_a.shape
+    # OpenCV pixel centres sit at integers: ours - 0.5 (docs/conventions.md).
+    src = (uv_a_px - 0.5).astype(np.float32)
+    dst = (uv_b_px - 0.5).astype(np.float32)
+    inside = (src[:, 0] >= 0) & (src[:, 0] <= W - 1) & (src[:, 1] >= 0) & (src[:, 1] <= H - 1)
+    src, dst = src[inside], dst[inside]
+    interp = cv2.ximgproc.createEdgeAwareInterpolator()
+    interp.setK(min(32, max(len(src) - 1, 1)))
+    init = interp.interpolate(cv2.cvtColor(gray_a, cv2.COLOR_GRAY2BGR), src.reshape(-1, 1, 2),
+                              cv2.cvtColor(gray_b, cv2.COLOR_GRAY2BGR), dst.reshape(-1, 1, 2))
+    dis = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    return dis.calc(gray_a, gray_b, np.ascontiguousarray(init, dtype=np.float32))
+
+
+class ClassicalPointmapModel:
+    """SIFT + two-view geometry + dense flow + triangulation as a `PointmapModel`.
+
+    Args:
+        config: `ClassicalPairConfig`.
+        K_align: optional known intrinsics per image, (N, 3, 3) at the alignment
+            resolution (undistorted images); None estimates a shared focal per pair.
+        seed: RANSAC seed (deterministic results).
+    """
+
+    def __init__(self, config: ClassicalPairConfig = ClassicalPairConfig(), *, K_align: np.ndarray | None = None,
+                 seed: int = 0):
+        self.config = config
+        self.K_align = None if K_align is None else np.asarray(K_align, np.float64)
+        self.seed = seed
+
+    @property
+    def pointmap_size_px(self) -> int:
+        return self.config.pointmap_size_px
+
+    def predict_pairs(self, images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int]]
+                      ) -> tuple[list[PairPrediction], list[PairFailure]]:
+        """Predict every pair; failures come back with reasons instead of raising.
+
+        Args:
+            images: N images (H, W, 3) float32 RGB at the alignment resolution.
+            pairs: (i, j) index pairs.
+        """
+        cfg = self.config
+        feats = [extract_features(im, n_features=cfg.sift_features)
+                 for im in progress(images, desc="SIFT", total=len(images))]
+        small = []
+        for im in images:
+            hw = pointmap_shape(im.shape[0], im.shape[1], cfg.pointmap_size_px)
+            small.append(_gray_u8(_resize(im, hw)))
+        preds, fails = [], []
+        for i, j in progress(pairs, desc="pairwise pointmaps", total=len(pairs)):
+            try:
+                preds.append(self._predict_one(images, feats, small, i, j))
+            except (_PairFailed, DegenerateGeometryError) as exc:
+                fails.append(PairFailure(i, j, str(exc)))
+                _log.debug("pair (%d, %d) failed: %s", i, j, exc)
+        return preds, fails
+
+    def _predict_one(self, images, feats, small, i: int, j: int) -> PairPrediction:
+        cfg = self.config
+        m = match_features(feats[i], feats[j], ratio=cfg.ratio)
+        if len(m) < cfg.min_matches:
+            raise _PairFailed(f"only {len(m)} SIFT matches (need {cfg.min_matches})")
+        u1, u2 = feats[i].uv_px[m[:, 0]], feats[j].uv_px[m[:, 1]]
+        Ha, Wa = images[i].shape[:2]
+        if self.K_align is None:
+            rel = estimate_relative_pose_uncalibrated(u1, u2, (Wa, Ha), config=cfg.two_view, seed=self.seed)
+            f_align_i = f_align_j = float(rel.focal_px)
+        else:
+            rel = estimate_relative_pose(u1, u2, self.K_align[i], self.K_align[j], config=cfg.two_view)
+            f_align_i, f_align_j = float(self.K_align[i][0, 0]), float(self.K_align[j][0, 0])
+        if not rel.success:
+            raise _PairFailed(f"relative pose: {rel.reason}")
+        # Everything below works on the pointmap grid.
+        Hi, Wi = small[i].shape
+        Hj, Wj = small[j].shape
+        si, sj = Wi / images[i].shape[1], Wj / images[j].shape[1]
+        Ki = self._K_small(i, f_align_i, si, Hi, Wi)
+        Kj = self._K_small(j, f_align_j, sj, Hj, Wj)
+        inl = rel.inlier_mask
+        a, b = u1[inl] * si, u2[inl] * sj
+        if Hi != Hj or Wi != Wj:
+            raise _PairFailed("images of different sizes are not supported by the dense matcher")
+        flow_ij = dense_flow(small[i], small[j], a, b)
+        flow_ji = dense_flow(small[j], small[i], b, a)
+        R, t = rel.R, rel.t  # cam_j_from_cam_i, |t| = 1
+        F = np.linalg.inv(Kj).T @ skew(t) @ R @ np.linalg.inv(Ki)
+        cam_j_from_i = np.concatenate([R, t.reshape(3, 1)], axis=1)
+        cam_i_from_j = np.concatenate([R.T, (-R.T @ t).reshape(3, 1)], axis=1)
+        pts_i, conf_i = self._pointmap(flow_ij, flow_ji, Ki, Kj, F, cam_j_from_i)
+        pts_j_in_j, conf_j = self._pointmap(flow_ji, flow_ij, Kj, Ki, F.T, cam_i_from_j)
+        pts_j = pts_j_in_j @ R  # R^T (x_j - t)
+        pts_j = pts_j - (R.T @ t)
+        n_ok = int(np.count_nonzero(conf_i > 1) + np.count_nonzero(conf_j > 1))
+        if n_ok < 0.02 * (conf_i.size + conf_j.size):
+            raise _PairFailed(f"only {n_ok} dense pixels passed the consistency checks")
+        return PairPrediction(i, j, pts_i.astype(np.float32), pts_j.astype(np.float32), conf_i.astype(np.float32),
+                              conf_j.astype(np.float32), float(Ki[0, 0]), float(Kj[0, 0]))
+
+    def _K_small(self, v: int, f_align: float, s: float, H: int, W: int) -> np.ndarray:
+        if self.K_align is None:
+            return np.array([[f_align * s, 0, W / 2.0], [0, f_align * s, H / 2.0], [0, 0, 1]])
+        K = self.K_align[v].copy()
+        K[:2] *= s
+        return K
+
+    def _pointmap(self, flow_ab, flow_ba, Ka, Kb, F_ab, cam_b_from_a) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) points of view a's pixels in frame a, (H, W) confidence."""
+        cfg = self.config
+        H, W = flow_ab.shape[:2]
+        v, u = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
+        ua = np.stack([u, v], -1).reshape(-1, 2)
+        ub = ua + flow_ab.reshape(-1, 2)
+        # Backward flow sampled at the forward target (bilinear; OpenCV centres at integers).
+        back = cv2.remap(flow_ba, (ub[:, 0] - 0.5).astype(np.float32).reshape(H, W),
+                         (ub[:, 1] - 0.5).astype(np.float32).reshape(H, W), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=(1e6, 1e6))
+        fb = np.linalg.norm(flow_ab.reshape(-1, 2) + back.reshape(-1, 2), axis=1)
+        inside = (ub[:, 0] > 0) & (ub[:, 0] < W) & (ub[:, 1] > 0) & (ub[:, 1] < H)
+        sampson = sampson_distance(F_ab, ua, ub)
+        rays_a = np.concatenate([ua, np.ones((len(ua), 1))], 1) @ np.linalg.inv(Ka).T
+        rays_b = np.concatenate([ub, np.ones((len(ub), 1))], 1) @ np.linalg.inv(Kb).T
+        tri = triangulate_two_view(rays_a, rays_b, cam_b_from_a, criteria=cfg.triangulation)
+        ok = inside & (fb < cfg.fb_max_px) & (sampson < cfg.epipolar_max_px) & tri.valid
+        q = (np.exp(-0.5 * (fb / (0.5 * cfg.fb_max_px)) ** 2)
+             * np.minimum(tri.angle_deg / cfg.angle_ref_deg, 1.0)
+             * np.exp(-0.5 * (sampson / (0.5 * cfg.epipolar_max_px)) ** 2))
+        conf = np.where(ok, 1.0 + cfg.conf_max * q, 1.0)
+        pts = tri.points.copy()
+        if np.any(ok):
+            med = float(np.median(pts[ok, 2]))
+            pts[~ok] = rays_a[~ok] / rays_a[~ok, 2:3] * med
+        else:
+            pts = rays_a / rays_a[:, 2:3]
+        return pts.reshape(H, W, 3), conf.reshape(H, W)
+
+
+class _PairFailed(Exception):
+    pass
+

@@ -1,0 +1,100 @@
+"""Dense scene output: co-visibility pruning and confidence-aware downsampling.
+
+InstantSplat keeps each surface once: a pixel's point is dropped when another
+view sees the same surface (its depth there agrees) with a higher confidence.
+The remaining cloud is then thinned to a point budget on a voxel grid,
+keeping the most confident point per voxel.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarray], conf: Sequence[np.ndarray],
+                      cam_from_world: np.ndarray, K: Sequence[np.ndarray], *, rel_depth_tol: float = 0.03
+                      ) -> list[np.ndarray]:
+    """Per view, a (H, W) bool mask of the pixels to keep.
+
+    A pixel p of view n is dropped when it projects inside view m (m != n) to
+    the nearest pixel q with |z_m(p) - depth_m[q]| < rel_depth_tol * depth_m[q]
+    and conf_m[q] > conf_n[p] (ties: the lower view index wins).
+
+    Args:
+        pts_world: N arrays (H_n, W_n, 3).
+        depth: N arrays (H_n, W_n) z-depth.
+        conf: N arrays (H_n, W_n).
+        cam_from_world: (N, 3, 4).
+        K: N (3, 3) intrinsics of the pointmap grids (our pixel convention).
+        rel_depth_tol: relative depth agreement for "same surface".
+    """
+    n = len(pts_world)
+    keep = [np.ones(d.shape, bool) for d in depth]
+    for a in range(n):
+        P = pts_world[a].reshape(-1, 3)
+        ca = conf[a].reshape(-1)
+        drop = np.zeros(len(P), bool)
+        for b in range(n):
+            if b == a:
+                continue
+            R, t = cam_from_world[b][:, :3], cam_from_world[b][:, 3]
+            x = P @ R.T + t
+            z = x[:, 2]
+            Hb, Wb = depth[b].shape
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = K[b][0, 0] * x[:, 0] / z + K[b][0, 2]
+                v = K[b][1, 1] * x[:, 1] / z + K[b][1, 2]
+            ok = (z > 0) & (u >= 0) & (u < Wb) & (v >= 0) & (v < Hb)
+            idx = np.flatnonzero(ok)
+            col = np.floor(u[idx]).astype(np.int64)
+            row = np.floor(v[idx]).astype(np.int64)
+            db = depth[b][row, col]
+            cb = conf[b][row, col]
+            same = np.abs(z[idx] - db) < rel_depth_tol * db
+            better = (cb > ca[idx]) | ((cb == ca[idx]) & (b < a))
+            drop[idx[same & better]] = True
+        keep[a] = ~drop.reshape(depth[a].shape)
+    return keep
+
+
+def voxel_downsample_by_confidence(points: np.ndarray, conf: np.ndarray, budget: int) -> np.ndarray:
+    """Indices of at most `budget` points: the most confident point per voxel.
+
+    The voxel size is found by bisection (on a log scale) so that the number
+    of occupied voxels is the largest not exceeding `budget`.
+
+    Args:
+        points: (P, 3). conf: (P,). budget: maximum number of points (>= 1).
+
+    Returns:
+        (K,) int64 indices into `points`, K <= budget, sorted.
+    """
+    P = len(points)
+    if P <= budget:
+        return np.arange(P)
+    extent = float(np.max(np.ptp(points, axis=0)))
+    if not extent > 0:
+        return np.argsort(-conf)[:budget]
+
+    def pick(size: float) -> np.ndarray:
+        keys = np.floor((points - points.min(axis=0)) / size).astype(np.int64)
+        order = np.lexsort((-conf, keys[:, 2], keys[:, 1], keys[:, 0]))
+        k = keys[order]
+        first = np.ones(P, bool)
+        first[1:] = np.any(k[1:] != k[:-1], axis=1)
+        return np.sort(order[first])
+
+    lo, hi = extent * 1e-6, extent  # hi gives ~1 voxel
+    best = pick(hi)
+    for _ in range(30):
+        mid = np.sqrt(lo * hi)
+        sel = pick(mid)
+        if len(sel) <= budget:
+            hi, best = mid, sel
+        else:
+            lo = mid
+        if hi / lo < 1.01:
+            break
+    return best

@@ -1,0 +1,142 @@
+"""`splat train DATA_DIR --out OUT` and `splat render MODEL_DIR --cameras SPARSE_DIR --out DIR`.
+
+Thin: parse, call `splat.train` / `splat.render`, write files, report.
+Output of `train` (written atomically):
+
+    OUT/point_cloud.ply     3DGS PLY of the trained Gaussians
+    OUT/sparse/0/           the training cameras with optimised poses (COLMAP text)
+    OUT/train_curve.png     loss and PSNR against iteration
+    OUT/history.json        the curve's numbers; OUT/report.json: config, timings, counts
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mvgeo.common.atomic import atomic_output_dir
+from mvgeo.common.cli import add_common_args, run_cli
+from mvgeo.common.errors import InputError
+from mvgeo.common.imageio import write_image
+from mvgeo.common.timing import StageTimer
+from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
+from splat.dataset import load_views, points_from_depth, read_point_cloud_ply
+from splat.ply import read_gaussian_ply, write_gaussian_ply
+from splat.render import render_views
+from splat.train import TRAIN_PRESETS, preset, train_gaussians
+
+
+def _plot_curve(path: Path, history) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    ax[0].plot(history.iteration, history.loss)
+    ax[0].set(xlabel="iteration", ylabel="loss (0.8 L1 + 0.2 D-SSIM)", yscale="log")
+    ax[1].plot(history.iteration, history.psnr_db)
+    ax[1].set(xlabel="iteration", ylabel="train-view PSNR (dB)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _init_points(args, data_dir: Path, views):
+    if args.init is None:
+        if len(views.sparse.points_xyz) >= 2:
+            return views.sparse.points_xyz, views.sparse.points_rgb
+        raise InputError("the sparse model has no 3D points to initialise from", path=data_dir / "sparse",
+                         fix="pass --init POINTS.ply (e.g. from `mvgeo align`), or --init depth for a "
+                             "data-synth folder with depth/")
+    if args.init == "depth":
+        return points_from_depth(data_dir, views, stride_px=args.depth_stride)
+    return read_point_cloud_ply(args.init)
+
+
+def _train(args) -> int:
+    data_dir = Path(args.data_dir)
+    timer = StageTimer()
+    overrides = {"optimize_poses": args.optimize_poses, "seed": args.seed}
+    if args.iters is not None:
+        if args.iters < 1:
+            raise InputError(f"--iters must be >= 1, got {args.iters}")
+        overrides["iters"] = args.iters
+    config = preset(args.preset, **overrides)
+    with timer.stage("load"):
+        views = load_views(data_dir, split="train")
+        xyz, rgb = _init_points(args, data_dir, views)
+    result = train_gaussians(views.images, views.cameras, views.cam_from_world, xyz, rgb, config,
+                             device=args.device)
+    timer.seconds.update({f"train.{k}": v for k, v in result.timings_s.items() if k != "total"})
+    with timer.stage("write"), atomic_output_dir(args.out) as tmp:
+        write_gaussian_ply(tmp / "point_cloud.ply", result.model)
+        ids = {name: views.sparse.image(name).camera_id for name in views.names}
+        images = [PosedImage(n, ids[n], p) for n, p in zip(views.names, result.cam_from_world_optimized, strict=True)]
+        cams = {cid: views.sparse.cameras[cid] for cid in set(ids.values())}
+        (tmp / "sparse" / "0").mkdir(parents=True)
+        write_sparse_model(tmp / "sparse" / "0", SparseModel(cameras=cams, images=images), binary=False)
+        _plot_curve(tmp / "train_curve.png", result.history)
+        (tmp / "history.json").write_text(json.dumps(dataclasses.asdict(result.history)))
+        report = {"data_dir": str(data_dir), "train_views": views.names, "num_init_points": int(len(xyz)),
+                  "num_gaussians": result.model.num_gaussians, "preset": args.preset,
+                  "config": json.loads(json.dumps(dataclasses.asdict(config), default=str)),
+                  "timings_s": timer.as_dict()}
+        (tmp / "report.json").write_text(json.dumps(report, indent=2))
+    print(f"trained {result.model.num_gaussians} Gaussians on {len(views.names)} views in "
+          f"{result.timings_s['total']:.1f} s -> {args.out}")
+    return 0
+
+
+def _render(args) -> int:
+    model_dir = Path(args.model_dir)
+    ply = model_dir / "point_cloud.ply" if model_dir.is_dir() else model_dir
+    model = read_gaussian_ply(ply, device=args.device)
+    sparse = read_sparse_model(Path(args.cameras))
+    if not sparse.images:
+        raise InputError("the camera model has no images to render", path=args.cameras)
+    cams = [sparse.camera_of(n) for n in sparse.names]
+    poses = np.stack([im.cam_from_world for im in sparse.images])
+    with torch.no_grad():
+        imgs = render_views(model, cams, poses)
+    with atomic_output_dir(args.out) as tmp:
+        for name, img in zip(sparse.names, imgs, strict=True):
+            write_image(tmp / (Path(name).stem + ".png"), img)
+    print(f"rendered {len(imgs)} views -> {args.out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="splat", description="Gaussian splatting: train and render (CPU or CUDA).")
+    add_common_args(parser)
+    sub = parser.add_subparsers(dest="command", required=True)
+    tr = sub.add_parser("train", help="train Gaussians on DATA_DIR (images/ + sparse/0/, split.json train views)")
+    tr.add_argument("data_dir", help="folder with images/ and sparse/0/ (and optionally split.json, depth/)")
+    tr.add_argument("--out", required=True, help="output folder (replaced atomically)")
+    tr.add_argument("--iters", type=int, default=None, help="iterations (default: the preset's, 1000)")
+    tr.add_argument("--optimize-poses", action=argparse.BooleanOptionalAction, default=False,
+                    help="learn per-view pose corrections (InstantSplat); off for ground-truth poses")
+    tr.add_argument("--init", default=None,
+                    help="initial points: a point-cloud PLY, or 'depth' to back-project DATA_DIR/depth/*.npy; "
+                         "default: the sparse model's points")
+    tr.add_argument("--depth-stride", type=int, default=4, help="pixel stride for --init depth")
+    tr.add_argument("--preset", default="instantsplat", choices=sorted(TRAIN_PRESETS))
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--device", default="cpu")
+    tr.set_defaults(func=_train)
+    rd = sub.add_parser("render", help="render a trained model at the cameras of a COLMAP model")
+    rd.add_argument("model_dir", help="`splat train` output folder (or a 3DGS point_cloud.ply)")
+    rd.add_argument("--cameras", required=True, help="COLMAP model folder (cameras + images)")
+    rd.add_argument("--out", required=True, help="output folder of PNGs (replaced atomically)")
+    rd.add_argument("--device", default="cpu")
+    rd.set_defaults(func=_render)
+    return parser
+
+
+def main(argv=None) -> int:
+    return run_cli(lambda args: args.func(args), build_parser(), argv)
