@@ -137,12 +137,12 @@ def undistort(xy_dist, dist, *, tol: float = 1e-12, max_iterations: int = 50) ->
     err = cur.xy_dist - target
     res = np.linalg.norm(err, axis=-1)
     res = np.where(np.isfinite(res), res, np.inf)
-    it = 0
-    for it in range(1, max_iterations + 1):  # noqa: B007  (reported below)
+    iterations = 0
+    for _ in range(max_iterations):
         active = res > tol
         if not np.any(active):
-            it -= 1
             break
+        iterations += 1
         J = cur.d_xy
         det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
         det_safe = np.where(np.abs(det) > 1e-300, det, 1.0)
@@ -169,4 +169,4 @@ def undistort(xy_dist, dist, *, tol: float = 1e-12, max_iterations: int = 50) ->
         cur = distort(xy, dist)
     converged = res <= tol
     valid = converged & distort(xy, dist).valid
-    return UndistortResult(xy=xy, converged=converged, valid=valid, residual=res, iterations=it)
+    return UndistortResult(xy=xy, converged=converged, valid=valid, residual=res, iterations=iterations)

@@ -324,9 +324,11 @@ class PoseMetrics:
             reference pairs (unregistered pairs fail), the DUSt3R/InstantSplat
             "mAA"-style summary.
         median_rotation_deg, median_translation_deg: medians over matched pairs
-            (undefined pairs excluded from the translation median).
+            (undefined pairs excluded from the translation median); ``nan`` when
+            fewer than 2 images are matched.
         ate: `AteResult` after Sim(3) alignment of camera centres, or None when
-            fewer than 3 images are matched (alignment is not determined).
+            fewer than 3 images are matched or all estimated centres coincide
+            (the alignment is not determined).
     """
 
     n_ref: int

@@ -20,7 +20,7 @@ from mvgeo.camera import Camera
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import ShapeError, check_shape
 from mvgeo.ransac import RansacConfig
-from mvgeo.transforms import R_from_axis_angle, Rt_from_matrix, axis_angle_from_R, se3_exp, skew
+from mvgeo.transforms import R_from_axis_angle, se3_exp, skew
 
 __all__ = ["PnPConfig", "AbsolutePoseResult", "estimate_absolute_pose", "refine_pose_lm", "LMResult"]
 
@@ -134,7 +134,8 @@ def refine_pose_lm(
             T_new = (se3_exp(delta) @ np.vstack([T, [0, 0, 0, 1]]))[:3]
             r_new, valid_new, J_new = _residuals(T_new, X, uv, camera, True)
             cost_new = float(r_new @ r_new)
-            if np.isfinite(cost_new) and cost_new < cost and valid_new.all() >= valid.all():
+            # Accept only descent steps that do not push a point behind the camera / out of the lens model.
+            if np.isfinite(cost_new) and cost_new < cost and (valid_new.all() or not valid.all()):
                 rel = (cost - cost_new) / max(cost, 1e-300)
                 T, r, valid, J, cost = T_new, r_new, valid_new, J_new, cost_new
                 lam = max(lam / 10, 1e-12)
@@ -208,9 +209,3 @@ def estimate_absolute_pose(
         reason = f"only {int(inliers.sum())} inliers (< min_inliers={config.min_inliers})"
     return AbsolutePoseResult(success=reason == "", reason=reason, cam_from_world=T, inlier_mask=inliers,
                               n_inliers=int(inliers.sum()), rmse_px=rmse)
-
-
-def _rvec_tvec(cam_from_world) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV ``(rvec, tvec)`` of a ``cam_from_world`` (3, 4) (test/interop helper)."""
-    R, t = Rt_from_matrix(cam_from_world)
-    return axis_angle_from_R(R), t

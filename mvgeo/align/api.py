@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mvgeo.align.bundle import BundleConfig, bundle_adjust
 from mvgeo.align.classical_pairs import ClassicalPairConfig, ClassicalPointmapModel, pointmap_shape
-from mvgeo.align.global_align import GlobalAlignConfig, global_align
+from mvgeo.align.global_align import GlobalAlignConfig, global_align, pixel_rays
 from mvgeo.align.graph import PairGraphSpec, components, make_pairs
 from mvgeo.align.intrinsics import undistort_image
 from mvgeo.align.pairs import PairFailure, PointmapModel
@@ -42,6 +43,10 @@ class AlignConfig:
         min_conf: output points need a confidence above this (1 = no information).
         points_budget: maximum number of output points (confidence-aware voxel thinning).
         covisibility_rel_tol: relative depth tolerance of the co-visibility pruning.
+        bundle_adjust: refine poses and focal(s) by sparse bundle adjustment on
+            the pairs' inlier matches after the global alignment (needs a model
+            that returns `matches_px`; the classical one does).
+        bundle: options of the bundle adjustment.
         seed: RANSAC seed.
     """
 
@@ -52,6 +57,8 @@ class AlignConfig:
     min_conf: float = 2.0
     points_budget: int = 200_000
     covisibility_rel_tol: float = 0.03
+    bundle_adjust: bool = True
+    bundle: BundleConfig = field(default_factory=BundleConfig)
     seed: int = 0
 
 
@@ -165,6 +172,17 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         align_cfg = replace(align_cfg, optimize_focal=False)
     with timer.stage("global_align"):
         res = global_align(preds, sizes, config=align_cfg, focal_init_px=focal_init)
+    ba_stats = None
+    if config.bundle_adjust:
+        matches = [(p.i, p.j, p.matches_px) for p in preds if p.matches_px is not None]
+        if matches:
+            with timer.stage("bundle_adjust"):
+                s_pm = Wa / Wp
+                ba_cfg = replace(config.bundle, shared_focal=config.bundle.shared_focal or align_cfg.shared_focal,
+                                 optimize_focal=intrinsics is None)
+                ba = bundle_adjust(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), matches, config=ba_cfg)
+                res = _reposed(res, ba.cam_from_world, ba.focal_px / s_pm)
+                ba_stats = {k: v for k, v in asdict(ba).items() if k not in ("cam_from_world", "focal_px")}
     with timer.stage("scene"):
         K_pm = [np.array([[f, 0, Wp / 2.0], [0, f, Hp / 2.0], [0, 0, 1]]) for f in res.focal_px]
         keep = covisibility_keep(res.pts_world, res.depth, res.conf, res.cam_from_world, K_pm,
@@ -203,12 +221,23 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         "focal_px": {names[v]: cameras[v + 1].fx for v in range(n)},
         "known_intrinsics": intrinsics is not None,
         "shared_focal": align_cfg.shared_focal,
+        "bundle_adjustment": ba_stats,
         "n_points": int(len(xyz)),
         "mean_confidence": float(conf.mean()) if len(conf) else float("nan"),
         "timings_s": timer.as_dict(),
         "config": _jsonable(asdict(config)),
     }
     return AlignResult(sparse, xyz, rgb, conf, stats)
+
+
+def _reposed(res, cam_from_world: np.ndarray, focal_px: np.ndarray):
+    """The alignment result with new poses/focals; dense points re-projected from the depth maps."""
+    pts = []
+    for v, d in enumerate(res.depth):
+        H, W = d.shape
+        R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
+        pts.append(((pixel_rays(H, W, float(focal_px[v])) * d[..., None]) - t) @ R)
+    return replace(res, cam_from_world=cam_from_world, focal_px=np.asarray(focal_px, float), pts_world=pts)
 
 
 def _check_connected(n: int, names: list[str], preds, fails: list[PairFailure]) -> None:

@@ -49,6 +49,10 @@ class ClassicalPairConfig:
             global alignment optimises). 160 px keeps 12 views at ~20k pixels
             each, which the CPU alignment handles in tens of seconds.
         sift_features: SIFT keypoints per image (at the alignment resolution).
+        sift_blur_sigma_px: Gaussian blur before SIFT (pixels at the alignment
+            resolution); 1 px doubled the matches on the noisy synthetic scenes.
+        focal_prior: without well-determined pair focals, the shared focal is
+            `focal_prior * max(W, H)` (COLMAP's default prior, 1.2).
         ratio: Lowe's ratio test threshold.
         min_matches: fewer putative matches -> the pair fails.
         two_view: options of the relative-pose estimators (RANSAC threshold in
@@ -62,8 +66,10 @@ class ClassicalPairConfig:
 
     pointmap_size_px: int = 160
     sift_features: int = 4000
+    sift_blur_sigma_px: float = 1.0
+    focal_prior: float = 1.2
     ratio: float = 0.8
-    min_matches: int = 30
+    min_matches: int = 20
     two_view: TwoViewConfig = field(default_factory=lambda: TwoViewConfig())
     fb_max_px: float = 1.0
     epipolar_max_px: float = 1.5
@@ -92,10 +98,13 @@ def _gray_u8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(g * 255.0), 0, 255).astype(np.uint8)
 
 
-def extract_features(image: np.ndarray, *, n_features: int) -> ImageFeatures:
+def extract_features(image: np.ndarray, *, n_features: int, blur_sigma_px: float = 0.0) -> ImageFeatures:
     """SIFT keypoints (converted to our pixel convention: OpenCV + 0.5) and descriptors."""
     sift = cv2.SIFT_create(nfeatures=n_features)
-    kps, desc = sift.detectAndCompute(_gray_u8(image), None)
+    gray = _gray_u8(image)
+    if blur_sigma_px > 0:
+        gray = cv2.GaussianBlur(gray, (0, 0), blur_sigma_px)
+    kps, desc = sift.detectAndCompute(gray, None)
     if desc is None or not kps:
         return ImageFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
     uv = np.array([k.pt for k in kps], dtype=np.float64) + 0.5
@@ -171,51 +180,82 @@ class ClassicalPointmapModel:
                       ) -> tuple[list[PairPrediction], list[PairFailure]]:
         """Predict every pair; failures come back with reasons instead of raising.
 
+        Without known intrinsics, the focal is found in two passes (InstantSplat's
+        focal averaging, done before the alignment): every pair's shared-focal
+        relative pose, then the median of the *well-determined* pair focals
+        (`RelativePoseResult.focal_well_determined`; object-centric rings are a
+        critical configuration for two-view focal estimation) becomes one
+        calibration for the calibrated relative pose of every pair.
+
         Args:
             images: N images (H, W, 3) float32 RGB at the alignment resolution.
             pairs: (i, j) index pairs.
         """
         cfg = self.config
-        feats = [extract_features(im, n_features=cfg.sift_features)
+        feats = [extract_features(im, n_features=cfg.sift_features, blur_sigma_px=cfg.sift_blur_sigma_px)
                  for im in progress(images, desc="SIFT", total=len(images))]
         small = []
         for im in images:
             hw = pointmap_shape(im.shape[0], im.shape[1], cfg.pointmap_size_px)
             small.append(_gray_u8(_resize(im, hw)))
-        preds, fails = [], []
-        for i, j in progress(pairs, desc="pairwise pointmaps", total=len(pairs)):
+        matches: dict[tuple[int, int], np.ndarray] = {}
+        fails: list[PairFailure] = []
+        for i, j in pairs:
+            m = match_features(feats[i], feats[j], ratio=cfg.ratio)
+            if len(m) < cfg.min_matches:
+                fails.append(PairFailure(i, j, f"only {len(m)} SIFT matches (need {cfg.min_matches})"))
+            else:
+                matches[(i, j)] = m
+        K_align = self.K_align
+        if K_align is None:
+            f = self.shared_focal(images, feats, matches)
+            Ha, Wa = images[0].shape[:2]
+            K = np.array([[f, 0, Wa / 2.0], [0, f, Ha / 2.0], [0, 0, 1]])
+            K_align = np.repeat(K[None], len(images), axis=0)
+        preds = []
+        for (i, j), m in progress(matches.items(), desc="pairwise pointmaps", total=len(matches)):
             try:
-                preds.append(self._predict_one(images, feats, small, i, j))
+                preds.append(self._predict_one(images, feats, small, K_align, i, j, m))
             except (_PairFailed, DegenerateGeometryError) as exc:
                 fails.append(PairFailure(i, j, str(exc)))
                 _log.debug("pair (%d, %d) failed: %s", i, j, exc)
-        return preds, fails
+        return preds, sorted(fails, key=lambda f: (f.i, f.j))
 
-    def _predict_one(self, images, feats, small, i: int, j: int) -> PairPrediction:
-        cfg = self.config
-        m = match_features(feats[i], feats[j], ratio=cfg.ratio)
-        if len(m) < cfg.min_matches:
-            raise _PairFailed(f"only {len(m)} SIFT matches (need {cfg.min_matches})")
-        u1, u2 = feats[i].uv_px[m[:, 0]], feats[j].uv_px[m[:, 1]]
-        Ha, Wa = images[i].shape[:2]
-        if self.K_align is None:
-            rel = estimate_relative_pose_uncalibrated(u1, u2, (Wa, Ha), config=cfg.two_view, seed=self.seed)
-            f_align_i = f_align_j = float(rel.focal_px)
+    def shared_focal(self, images, feats, matches) -> float:
+        """Median of the well-determined pair focals (alignment pixels), or the prior."""
+        Ha, Wa = images[0].shape[:2]
+        focals = []
+        for (i, j), m in progress(matches.items(), desc="pair focals", total=len(matches)):
+            u1, u2 = feats[i].uv_px[m[:, 0]], feats[j].uv_px[m[:, 1]]
+            rel = estimate_relative_pose_uncalibrated(u1, u2, (Wa, Ha), config=self.config.two_view, seed=self.seed)
+            if rel.success and rel.focal_well_determined:
+                focals.append(float(rel.focal_px))
+        if focals:
+            f = float(np.median(focals))
+            _log.info("shared focal %.1f px (median of %d well-determined pairs of %d)", f, len(focals), len(matches))
         else:
-            rel = estimate_relative_pose(u1, u2, self.K_align[i], self.K_align[j], config=cfg.two_view)
-            f_align_i, f_align_j = float(self.K_align[i][0, 0]), float(self.K_align[j][0, 0])
+            f = self.config.focal_prior * max(Wa, Ha)
+            _log.warning("no pair determines the focal length; using the prior %.2f * max(W, H) = %.1f px",
+                         self.config.focal_prior, f)
+        return f
+
+    def _predict_one(self, images, feats, small, K_align, i: int, j: int, m: np.ndarray) -> PairPrediction:
+        cfg = self.config
+        u1, u2 = feats[i].uv_px[m[:, 0]], feats[j].uv_px[m[:, 1]]
+        rel = estimate_relative_pose(u1, u2, K_align[i], K_align[j], config=cfg.two_view)
         if not rel.success:
             raise _PairFailed(f"relative pose: {rel.reason}")
         # Everything below works on the pointmap grid.
         Hi, Wi = small[i].shape
         Hj, Wj = small[j].shape
-        si, sj = Wi / images[i].shape[1], Wj / images[j].shape[1]
-        Ki = self._K_small(i, f_align_i, si, Hi, Wi)
-        Kj = self._K_small(j, f_align_j, sj, Hj, Wj)
-        inl = rel.inlier_mask
-        a, b = u1[inl] * si, u2[inl] * sj
         if Hi != Hj or Wi != Wj:
             raise _PairFailed("images of different sizes are not supported by the dense matcher")
+        si, sj = Wi / images[i].shape[1], Wj / images[j].shape[1]
+        Ki, Kj = K_align[i].copy(), K_align[j].copy()
+        Ki[:2] *= si
+        Kj[:2] *= sj
+        inl = rel.inlier_mask
+        a, b = u1[inl] * si, u2[inl] * sj
         flow_ij = dense_flow(small[i], small[j], a, b)
         flow_ji = dense_flow(small[j], small[i], b, a)
         R, t = rel.R, rel.t  # cam_j_from_cam_i, |t| = 1
@@ -230,14 +270,8 @@ class ClassicalPointmapModel:
         if n_ok < 0.02 * (conf_i.size + conf_j.size):
             raise _PairFailed(f"only {n_ok} dense pixels passed the consistency checks")
         return PairPrediction(i, j, pts_i.astype(np.float32), pts_j.astype(np.float32), conf_i.astype(np.float32),
-                              conf_j.astype(np.float32), float(Ki[0, 0]), float(Kj[0, 0]))
-
-    def _K_small(self, v: int, f_align: float, s: float, H: int, W: int) -> np.ndarray:
-        if self.K_align is None:
-            return np.array([[f_align * s, 0, W / 2.0], [0, f_align * s, H / 2.0], [0, 0, 1]])
-        K = self.K_align[v].copy()
-        K[:2] *= s
-        return K
+                              conf_j.astype(np.float32), float(Ki[0, 0]), float(Kj[0, 0]),
+                              matches_px=np.concatenate([u1[inl], u2[inl]], axis=1))
 
     def _pointmap(self, flow_ab, flow_ba, Ka, Kb, F_ab, cam_b_from_a) -> tuple[np.ndarray, np.ndarray]:
         """(H, W, 3) points of view a's pixels in frame a, (H, W) confidence."""

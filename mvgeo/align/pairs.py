@@ -38,6 +38,9 @@ class PairPrediction:
         focal_j_px: focal of view j in pixels of its pointmap grid, or None when
             the model does not estimate it (DUSt3R does not; the classical
             estimator assumes one shared focal per pair and sets both).
+        matches_px: optional (M, 4) sparse inlier matches `(u_i, v_i, u_j, v_j)`
+            in pixels of the images the model was given (our convention); the
+            optional bundle adjustment uses them.
     """
 
     i: int
@@ -48,6 +51,7 @@ class PairPrediction:
     conf_j: np.ndarray
     focal_i_px: float
     focal_j_px: float | None = None
+    matches_px: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         check_shape(self.pts_i, ["H", "W", 3], "pts_i")

@@ -43,6 +43,28 @@ void parallel_tiles(int64_t num_tiles, int num_threads, F fn) {
   for (auto& th : pool) th.join();
 }
 
+// Per-Gaussian record gathered per tile: [mx, my, a, b, c, o, skip_sigma].
+// skip_sigma = log(255 o) * (1 + 1e-4) + 1e-6: sigma above it gives alpha < 1/255 for sure, so the
+// exp() is skipped; at or below it the exact alpha test decides (identical results, much less work).
+constexpr int64_t kStride = 7;
+
+template <typename T>
+void gather(int64_t n, int64_t begin, const int64_t* gaussian_ids, const T* means2d, const T* conics,
+            const T* opacities, T* g) {
+  for (int64_t k = 0; k < n; ++k) {
+    const int64_t id = gaussian_ids[begin + k];
+    T* gk = g + kStride * k;
+    gk[0] = means2d[2 * id];
+    gk[1] = means2d[2 * id + 1];
+    gk[2] = conics[3 * id];
+    gk[3] = conics[3 * id + 1];
+    gk[4] = conics[3 * id + 2];
+    gk[5] = opacities[id];
+    const double o = double(opacities[id]);
+    gk[6] = o > 0 ? T(std::log(o / kAlphaMin) * (1.0 + 1e-4) + 1e-6) : T(-1);
+  }
+}
+
 template <typename T>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t width, int64_t height,
                   const int64_t* tile_offsets, const int64_t* gaussian_ids, const T* means2d,
@@ -53,17 +75,8 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t w
     const int64_t ty = tile / tiles_x, tx = tile % tiles_x;
     const int64_t begin = tile_offsets[tile], end = tile_offsets[tile + 1];
     const int64_t n = end - begin;
-    // Gather this tile's Gaussians contiguously: [mx, my, a, b, c, o].
-    std::vector<T> g(6 * n);
-    for (int64_t k = 0; k < n; ++k) {
-      const int64_t id = gaussian_ids[begin + k];
-      g[6 * k + 0] = means2d[2 * id];
-      g[6 * k + 1] = means2d[2 * id + 1];
-      g[6 * k + 2] = conics[3 * id];
-      g[6 * k + 3] = conics[3 * id + 1];
-      g[6 * k + 4] = conics[3 * id + 2];
-      g[6 * k + 5] = opacities[id];
-    }
+        std::vector<T> g(kStride * n);
+    gather(n, begin, gaussian_ids, means2d, conics, opacities, g.data());
     std::vector<T> acc(C);
     for (int64_t row = ty * tile_size; row < std::min(height, (ty + 1) * tile_size); ++row) {
       for (int64_t col = tx * tile_size; col < std::min(width, (tx + 1) * tile_size); ++col) {
@@ -72,10 +85,10 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t w
         int32_t last = 0;
         for (int64_t c = 0; c < C; ++c) acc[c] = T(0);
         for (int64_t k = 0; k < n; ++k) {
-          const T* gk = &g[6 * k];
+          const T* gk = &g[kStride * k];
           const T dx = gk[0] - px, dy = gk[1] - py;
           const T sigma = T(0.5) * (gk[2] * dx * dx + gk[4] * dy * dy) + gk[3] * dx * dy;
-          if (sigma < T(0)) continue;
+          if (sigma < T(0) || sigma > gk[6]) continue;
           const T alpha = std::min(alpha_max, gk[5] * std::exp(-sigma));
           if (alpha < alpha_min) continue;
           const T next_t = trans * (T(1) - alpha);
@@ -108,16 +121,8 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
     const int64_t begin = tile_offsets[tile], end = tile_offsets[tile + 1];
     const int64_t n = end - begin;
     if (n == 0) return;
-    std::vector<T> g(6 * n);
-    for (int64_t k = 0; k < n; ++k) {
-      const int64_t id = gaussian_ids[begin + k];
-      g[6 * k + 0] = means2d[2 * id];
-      g[6 * k + 1] = means2d[2 * id + 1];
-      g[6 * k + 2] = conics[3 * id];
-      g[6 * k + 3] = conics[3 * id + 1];
-      g[6 * k + 4] = conics[3 * id + 2];
-      g[6 * k + 5] = opacities[id];
-    }
+    std::vector<T> g(kStride * n);
+    gather(n, begin, gaussian_ids, means2d, conics, opacities, g.data());
     // Rows [begin, end) of the per-intersection gradients belong to this tile only.
     std::vector<T> s(C), gc(C);
     for (int64_t row = ty * tile_size; row < std::min(height, (ty + 1) * tile_size); ++row) {
@@ -134,10 +139,10 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
         }
         T trans = t_final;  // transmittance after the Gaussian being visited
         for (int64_t k = stop - 1; k >= 0; --k) {
-          const T* gk = &g[6 * k];
+          const T* gk = &g[kStride * k];
           const T dx = gk[0] - px, dy = gk[1] - py;
           const T sigma = T(0.5) * (gk[2] * dx * dx + gk[4] * dy * dy) + gk[3] * dx * dy;
-          if (sigma < T(0)) continue;
+          if (sigma < T(0) || sigma > gk[6]) continue;
           const T e = std::exp(-sigma);
           const T raw = gk[5] * e;
           const T alpha = std::min(alpha_max, raw);

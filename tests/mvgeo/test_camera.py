@@ -127,8 +127,6 @@ def test_scaled_camera_exact_in_pixel_edge_convention(rng):
     P = points_in_view(rng, 50)
     # Resizing maps pixel edges 0..W to 0..W/2, so uv scales exactly by 1/2 in our convention.
     np.testing.assert_allclose(half.project(P).uv_px, cam.project(P).uv_px / 2, atol=1e-10)
-    # OpenCV's cv2.resize uses the same (centre-aligned) mapping: the top-left pixel centre 0.5 -> 0.25
-    # of a new pixel, i.e. new = old / 2 in edge coordinates.
     simple = Camera("SIMPLE_RADIAL", W, H, np.array([500.0, 320.0, 240.0, 0.01]))
     aniso = simple.scaled(320, 480)
     assert aniso.model == "OPENCV" and aniso.fx == 250 and aniso.fy == 500

@@ -8,7 +8,7 @@ from mvgeo import epipolar as ep
 from mvgeo import transforms as tf
 from mvgeo.common.errors import ShapeError
 
-from .conftest import make_two_view
+from ._scenes import make_two_view
 
 
 def _unit_sign(M):

@@ -15,7 +15,7 @@ from mvgeo.pnp import estimate_absolute_pose
 from mvgeo.ransac import RansacConfig
 from mvgeo.triangulate import triangulate_two_view
 
-from .conftest import H, W, make_two_view
+from ._scenes import H, W, make_two_view
 
 FAST = settings(max_examples=40, deadline=None)
 unit_vectors = st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda v: np.linalg.norm(v) > 0.1)

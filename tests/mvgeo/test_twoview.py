@@ -8,7 +8,7 @@ from mvgeo.common.deps import pycolmap
 from mvgeo.metrics import rotation_error_deg, translation_direction_error_deg
 from mvgeo.ransac import RansacConfig, required_iterations
 
-from .conftest import H, W, make_two_view
+from ._scenes import H, W, make_two_view
 
 
 def _errors(R, t, sc):

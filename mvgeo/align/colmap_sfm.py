@@ -1,0 +1,118 @@
+"""pycolmap SfM (the reference the alignment is checked against): `mvgeo colmap`.
+
+CPU SIFT, exhaustive matching, then incremental mapping (default) or global
+mapping (GLOMAP inside pycolmap) into the same output layout as `mvgeo align`:
+`OUT/sparse/0/*.bin` and `OUT/colmap.json` (timings, registered images).
+One shared camera (SIMPLE_RADIAL, COLMAP's default for unknown cameras).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from mvgeo.common.atomic import atomic_output_dir
+from mvgeo.common.deps import pycolmap
+from mvgeo.common.errors import DegenerateGeometryError, InputError
+from mvgeo.common.imageio import list_images, read_image
+from mvgeo.common.timing import StageTimer
+from mvgeo.sparse_model import SparseModel, from_pycolmap, write_sparse_model
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ColmapConfig:
+    """Options of the pycolmap run.
+
+    Attributes:
+        mapper: "incremental" or "global".
+        max_image_size_px: SIFT extraction image size limit (COLMAP's default 3200).
+        num_threads: CPU threads (-1: all).
+        single_camera: one shared camera for all images.
+        camera_model: COLMAP camera model to estimate.
+    """
+
+    mapper: str = "incremental"
+    max_image_size_px: int = 3200
+    num_threads: int = -1
+    single_camera: bool = True
+    camera_model: str = "SIMPLE_RADIAL"
+
+
+@dataclass
+class ColmapResult:
+    """The largest reconstruction and a report."""
+
+    sparse_model: SparseModel
+    stats: dict
+
+
+def run_colmap(images_dir: str | Path, config: ColmapConfig = ColmapConfig(), *,
+               image_names: list[str] | None = None) -> ColmapResult:
+    """Run pycolmap SfM on the images in `images_dir` (or the listed names).
+
+    Raises:
+        InputError: missing/empty folder or unreadable image.
+        DegenerateGeometryError: COLMAP registered no model.
+    """
+    images_dir = Path(images_dir)
+    paths = list_images(images_dir)
+    names = image_names if image_names is not None else [p.name for p in paths]
+    if len(names) < 2:
+        raise InputError(f"need at least 2 images, got {len(names)}", path=images_dir)
+    for n in names:
+        read_image(images_dir / n)  # named InputError for corrupt files (COLMAP would skip them silently)
+    if config.mapper not in ("incremental", "global"):
+        raise InputError(f"unknown mapper {config.mapper!r}", fix="use incremental or global")
+    timer = StageTimer()
+    work = Path(tempfile.mkdtemp(prefix="mvgeo-colmap-"))
+    try:
+        db = work / "database.db"
+        ext = pycolmap.FeatureExtractionOptions()
+        ext.max_image_size = config.max_image_size_px
+        ext.num_threads = config.num_threads
+        ext.use_gpu = False
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = config.camera_model
+        mode = pycolmap.CameraMode.SINGLE if config.single_camera else pycolmap.CameraMode.AUTO
+        with timer.stage("features"):
+            pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                                      extraction_options=ext, device=pycolmap.Device.cpu)
+        with timer.stage("matching"):
+            pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+        with timer.stage("mapping"):
+            if config.mapper == "incremental":
+                opts = pycolmap.IncrementalPipelineOptions()
+                opts.num_threads = config.num_threads
+                recs = pycolmap.incremental_mapping(db, images_dir, work / "sparse", options=opts)
+            else:
+                recs = pycolmap.global_mapping(db, images_dir, work / "sparse")
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    if not recs:
+        raise DegenerateGeometryError("COLMAP could not reconstruct any model from these images")
+    best = max(recs.values(), key=lambda r: r.num_reg_images())
+    model = from_pycolmap(best)
+    stats = {
+        "mapper": config.mapper,
+        "n_images": len(names),
+        "n_registered": len(model.images),
+        "n_models": len(recs),
+        "unregistered": sorted(set(names) - set(model.names)),
+        "n_points": int(len(model.points_xyz)),
+        "timings_s": timer.as_dict(),
+    }
+    return ColmapResult(model, stats)
+
+
+def write_colmap_result(out: str | Path, result: ColmapResult) -> Path:
+    """Write `OUT/sparse/0/*.bin` and `OUT/colmap.json` atomically."""
+    with atomic_output_dir(out) as tmp:
+        write_sparse_model(tmp / "sparse" / "0", result.sparse_model, binary=True)
+        (tmp / "colmap.json").write_text(json.dumps(result.stats, indent=2))
+    return Path(out)

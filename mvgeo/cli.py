@@ -1,0 +1,115 @@
+"""`mvgeo` command line: `align` (pose-free), `colmap` (pycolmap SfM), `compare` (pose metrics)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+from mvgeo.common.cli import add_common_args, run_cli
+from mvgeo.common.errors import ConfigError, InputError
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mvgeo", description=__doc__)
+    add_common_args(p)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    a = sub.add_parser("align", help="pose-free reconstruction: pairwise pointmaps + global alignment")
+    a.add_argument("images_dir", type=Path)
+    a.add_argument("--out", type=Path, required=True)
+    a.add_argument("--max-size", type=int, default=512, help="long side for matching (px); default 512")
+    a.add_argument("--pointmap-size", type=int, default=160, help="long side of the dense pointmaps (px)")
+    a.add_argument("--pairs", default="auto", help="complete | window:K | auto (complete up to 24 images)")
+    a.add_argument("--shared-focal", action="store_true", help="one focal for all views")
+    a.add_argument("--iters", type=int, default=300, help="global alignment iterations")
+    a.add_argument("--ba", action=argparse.BooleanOptionalAction, default=False,
+                   help="sparse bundle adjustment on the feature tracks after the alignment")
+    a.add_argument("--points", type=int, default=200_000, help="point budget of points.ply")
+    a.add_argument("--intrinsics", type=Path, help="COLMAP cameras.txt or mrcal .cameramodel of these images")
+    add_common_args(a)
+
+    c = sub.add_parser("colmap", help="pycolmap SfM (CPU SIFT, exhaustive matching) into the same layout")
+    c.add_argument("images_dir", type=Path)
+    c.add_argument("--out", type=Path, required=True)
+    c.add_argument("--global", dest="global_mapper", action="store_true", help="global instead of incremental")
+    add_common_args(c)
+
+    m = sub.add_parser("compare", help="pose metrics of EST against REF after Sim(3) alignment (by image name)")
+    m.add_argument("est", type=Path, help="estimated sparse model folder (sparse/0)")
+    m.add_argument("ref", type=Path, help="reference sparse model folder")
+    m.add_argument("--json", action="store_true", help="print JSON")
+    add_common_args(m)
+    return p
+
+
+def _align(args: argparse.Namespace) -> int:
+    from mvgeo.align.api import AlignConfig, align_images, write_align_result
+    from mvgeo.align.classical_pairs import ClassicalPairConfig
+    from mvgeo.align.global_align import GlobalAlignConfig
+    from mvgeo.align.graph import PairGraphSpec
+    from mvgeo.align.intrinsics import read_intrinsics
+    from mvgeo.common.imageio import list_images
+
+    for key, val, lo in (("max-size", args.max_size, 16), ("pointmap-size", args.pointmap_size, 8),
+                         ("iters", args.iters, 0), ("points", args.points, 1)):
+        if val < lo:
+            raise ConfigError(f"must be >= {lo}, got {val}", key=f"--{key}")
+    paths = list_images(args.images_dir)
+    if len(paths) < 2:
+        raise InputError(f"need at least 2 images, found {len(paths)}", path=args.images_dir,
+                         fix="add more views of the scene")
+    intr = read_intrinsics(args.intrinsics) if args.intrinsics else None
+    cfg = AlignConfig(max_size_px=args.max_size, pairs=PairGraphSpec.parse(args.pairs),
+                      pairwise=ClassicalPairConfig(pointmap_size_px=args.pointmap_size),
+                      align=GlobalAlignConfig(iters=args.iters, shared_focal=args.shared_focal),
+                      points_budget=args.points, bundle_adjust=args.ba)
+    result = align_images(paths, cfg, intrinsics=intr)
+    write_align_result(args.out, result)
+    s = result.stats
+    print(f"aligned {s['n_images']} images ({s['n_pairs_ok']}/{s['n_pairs']} pairs), {s['n_points']} points, "
+          f"loss {s['init_loss']:.4g} -> {s['final_loss']:.4g}, {s['timings_s']['total']:.1f} s -> {args.out}")
+    return 0
+
+
+def _colmap(args: argparse.Namespace) -> int:
+    from mvgeo.align.colmap_sfm import ColmapConfig, run_colmap, write_colmap_result
+
+    res = run_colmap(args.images_dir, replace(ColmapConfig(), mapper="global" if args.global_mapper else "incremental"))
+    write_colmap_result(args.out, res)
+    s = res.stats
+    print(f"COLMAP ({s['mapper']}): registered {s['n_registered']}/{s['n_images']} images, {s['n_points']} points, "
+          f"{s['timings_s']['total']:.1f} s -> {args.out}")
+    return 0
+
+
+def _compare(args: argparse.Namespace) -> int:
+    from mvgeo.metrics import compare_poses
+    from mvgeo.sparse_model import read_sparse_model
+
+    est = read_sparse_model(args.est)
+    ref = read_sparse_model(args.ref)
+    m = compare_poses(est.cam_from_world_by_name(), ref.cam_from_world_by_name())
+    out = {"n_ref": m.n_ref, "n_registered": m.n_registered, **m.summary()}
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        for k, v in out.items():
+            print(f"{k:>24}: {v:.4g}" if isinstance(v, float) else f"{k:>24}: {v}")
+    return 0
+
+
+def _main(args: argparse.Namespace) -> int:
+    return {"align": _align, "colmap": _colmap, "compare": _compare}[args.command](args)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `mvgeo` console script."""
+    return run_cli(_main, _parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,59 @@
+"""Pair graphs, spanning tree order, co-visibility pruning and confidence-aware downsampling."""
+
+import numpy as np
+import pytest
+
+from mvgeo.align.global_align import pixel_rays
+from mvgeo.align.graph import PairGraphSpec, components, make_pairs, maximum_spanning_tree
+from mvgeo.align.scene import covisibility_keep, voxel_downsample_by_confidence
+from mvgeo.common.errors import ConfigError
+
+
+def test_pair_graphs():
+    assert len(make_pairs(5, PairGraphSpec.parse("complete"))) == 10
+    assert len(make_pairs(30, PairGraphSpec.parse("auto"))) == 30 * 8  # window of 8 beyond 24 images
+    w = make_pairs(6, PairGraphSpec.parse("window:2"))
+    assert (0, 1) in w and (0, 2) in w and (0, 3) not in w and (4, 0) not in w and (0, 4) in w  # wraps around
+    with pytest.raises(ConfigError, match="pairs"):
+        PairGraphSpec.parse("window:x")
+
+
+def test_maximum_spanning_tree_brute_force(rng):
+    n = 5
+    edges = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    scores = rng.random(len(edges)) + 0.1
+    order = maximum_spanning_tree(n, edges, scores)
+    assert len(order) == n - 1
+    reached = set(edges[order[0]])
+    for k in order[1:]:  # chaining order: every edge touches a reached view
+        assert reached & set(edges[k])
+        reached |= set(edges[k])
+    # Brute force over all spanning trees (125 for K5 among C(10,4)=210 subsets).
+    import itertools
+    best = max((sum(scores[list(c)]) for c in itertools.combinations(range(len(edges)), n - 1)
+                if len(components(n, [edges[k] for k in c])) == 1))
+    assert sum(scores[order]) == pytest.approx(best)
+
+
+def test_covisibility_keeps_each_surface_once():
+    # Two identical cameras looking at the same plane: every pixel is seen twice; keep the more confident copy.
+    H, W, f = 6, 8, 8.0
+    cam = np.concatenate([np.eye(3), np.zeros((3, 1))], 1)
+    depth = np.full((H, W), 2.0)
+    pts = pixel_rays(H, W, f) * depth[..., None]
+    conf_a = np.full((H, W), 3.0)
+    conf_b = np.full((H, W), 2.0)
+    conf_b[0, 0] = 5.0
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    keep = covisibility_keep([pts, pts], [depth, depth], [conf_a, conf_b], np.stack([cam, cam]), [K, K])
+    assert keep[0].sum() == H * W - 1 and not keep[0][0, 0]
+    assert keep[1].sum() == 1 and keep[1][0, 0]
+
+
+def test_voxel_downsample_budget_and_confidence(rng):
+    pts = rng.random((5000, 3))
+    conf = rng.random(5000)
+    sel = voxel_downsample_by_confidence(pts, conf, 500)
+    assert 250 < len(sel) <= 500
+    assert conf[sel].mean() > conf.mean()  # the most confident point of each voxel wins
+    assert len(voxel_downsample_by_confidence(pts, conf, 10_000)) == 5000
