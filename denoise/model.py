@@ -31,6 +31,7 @@ class N2VModel:
         mean: per-channel mean of the training images, ``[0, 1]`` units.
         std: per-channel standard deviation (floored at `STD_FLOOR`).
         alpha: residual scale.
+        mask_prob, replacement, radius: the training masking, reused by K-pass inference.
         history: training losses, one per step (round 1, then round 2 appended).
     """
 
@@ -38,6 +39,9 @@ class N2VModel:
     mean: tuple[float, ...]
     std: tuple[float, ...]
     alpha: float = 0.5
+    mask_prob: float = 0.04
+    replacement: str = "permute"
+    radius: int = 5
     history: list[float] = field(default_factory=list)
 
     STD_FLOOR = 1e-2
@@ -71,6 +75,8 @@ def save_checkpoint(path: str | Path, model: N2VModel) -> None:
         "mean": list(model.mean),
         "std": list(model.std),
         "alpha": float(model.alpha),
+        "masking": {"mask_prob": float(model.mask_prob), "replacement": model.replacement,
+                    "radius": int(model.radius)},
         "history": [float(v) for v in model.history],
     }
     buf = io.BytesIO()
@@ -101,5 +107,8 @@ def load_checkpoint(path: str | Path, *, device: torch.device | str = "cpu") -> 
         raise InputError(f"checkpoint does not match this version's UNet: {exc}", path=path,
                          fix="re-create it with `denoise n2v`") from exc
     unet.to(device).eval()
+    masking = state.get("masking", {})
     return N2VModel(unet=unet, mean=tuple(state["mean"]), std=tuple(state["std"]), alpha=float(state["alpha"]),
+                    mask_prob=float(masking.get("mask_prob", 0.04)),
+                    replacement=str(masking.get("replacement", "permute")), radius=int(masking.get("radius", 5)),
                     history=list(state.get("history", [])))

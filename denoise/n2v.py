@@ -80,7 +80,7 @@ class N2VConfig:
 #: Named presets. ``fast``: tests and the demo (seconds); ``default``: a scene in a few
 #: minutes on 2 CPU cores; ``n2v2``: the default with the N2V2 anti-checkerboard options.
 N2V_PRESETS: dict[str, N2VConfig] = {
-    "fast": N2VConfig(unet=UNetConfig(width=8), steps=60, batch_size=4, patch_px=48),
+    "fast": N2VConfig(unet=UNetConfig(width=8), steps=200, batch_size=4, patch_px=48),
     "default": N2VConfig(),
     "n2v2": N2VConfig(unet=UNetConfig(blurpool=True, top_skip=False), replacement="median"),
 }
@@ -122,13 +122,34 @@ def masked_mse(out: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> t
     return (((out - target) ** 2) * m).sum() / denom
 
 
+def init_centre_cancelling(unet: UNet, alpha: float) -> None:
+    """Initialise the head's linear input path to ``-1 / alpha`` times the identity.
+
+    Then ``x + alpha * UNet(x)`` starts as ``alpha * (features part)``: the
+    prediction ignores the centre pixel from step 0, which is what the N2V loss
+    drives it to (a masked pixel's own value is a random replacement). Without
+    this, Adam needs ~``2 / lr`` steps just to grow that weight to -2; with it,
+    training on CPU converges in a few hundred steps. Needs ``input_skip``.
+    """
+    if not unet.config.input_skip:
+        return
+    c_in = unet.config.in_channels
+    with torch.no_grad():
+        w = unet.head.weight  # (C_out, C_feat + C_in, 1, 1)
+        w[:, -c_in:] = 0.0
+        for c in range(min(c_in, unet.config.out_channels)):
+            w[c, w.shape[1] - c_in + c] = -1.0 / alpha
+
+
 def new_model(config: N2VConfig, tensors: Sequence[torch.Tensor], *, seed: int) -> N2VModel:
     """A freshly initialised model (weights from `seed`, global RNG state left untouched)."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         unet = UNet(config.unet)
+    init_centre_cancelling(unet, config.alpha)
     mean, std = channel_stats(tensors)
-    return N2VModel(unet=unet, mean=mean, std=std, alpha=config.alpha)
+    return N2VModel(unet=unet, mean=mean, std=std, alpha=config.alpha, mask_prob=config.mask_prob,
+                    replacement=config.replacement, radius=config.radius)
 
 
 def train_n2v(images: Sequence[np.ndarray], config: N2VConfig | None = None, *, seed: int = 0,

@@ -48,8 +48,8 @@ class Round2Config:
         blur_sigma: Gaussian sigma (px) separating low and high frequencies (2.0).
         charbonnier_eps: Charbonnier epsilon in [0, 1] units (1e-3).
         steps, batch_size, patch_px, lr: fine-tuning schedule (Adam, cosine decay, no warm-up).
-        mask_input: apply N2V masking to the input (keeps the network usable with K-pass inference).
-        mask_prob: masking probability when `mask_input`.
+        mask_input: apply the model's N2V masking to the input (keeps the network usable with
+            K-pass inference).
     """
 
     w_low: float = 1.0
@@ -65,7 +65,6 @@ class Round2Config:
     patch_px: int = 64
     lr: float = 2e-4
     mask_input: bool = True
-    mask_prob: float = 0.04
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -154,7 +153,10 @@ def finetune_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders
         for _ in range(cfg.steps):
             noisy, render = sample_patches(noisy_t, patch_px=patch, batch_size=cfg.batch_size, rng=rng,
                                            paired=render_t)
-            inp = mask_pixels(noisy, p=cfg.mask_prob, generator=gen).masked if cfg.mask_input else noisy
+            inp = noisy
+            if cfg.mask_input:
+                inp = mask_pixels(noisy, p=model.mask_prob, replacement=model.replacement, radius=model.radius,
+                                  generator=gen).masked
             terms = joint_loss(model.apply(inp), noisy, render, cfg)
             opt.zero_grad(set_to_none=True)
             terms.total.backward()

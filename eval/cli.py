@@ -77,7 +77,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if kind != "dataset":
         require("data_synth", "render_scene", needed_for="denoise-gs eval on a scene")
     with output_lock(out):
-        name, folder = scene_dataset(kind, source, out)
+        name, folder = scene_dataset(kind, source, out, size_wh=args.size, views=args.scene_views)
         dataset = validate_dataset_folder(folder)
         rows = evaluate_dataset(dataset, out, config, scene=name)
         _, md = write_results(out, rows, title=f"denoise-gs eval: {name}")
@@ -88,6 +88,16 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _cmd_cost(args: argparse.Namespace) -> int:
     resolve_scene_source(args.scene)
     raise DgsError("denoise-gs cost: the accuracy-time sweep is not implemented yet; the inputs were validated.")
+
+
+def _size_wh(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH such as 256x192, got {text!r}") from None
+    if w < 32 or h < 32:
+        raise argparse.ArgumentTypeError(f"images must be at least 32x32, got {text!r}")
+    return w, h
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -124,6 +134,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--pose-fit-iters", type=int, default=None, help="held-out pose refinement steps")
     ev.add_argument("--splat-iters", type=int, default=None, help="splat training iterations (all methods)")
     ev.add_argument("--device", default="cpu")
+    ev.add_argument("--size", type=_size_wh, default=None, metavar="WxH",
+                    help="image size for a scene rendered on the fly (default: the scene's)")
+    ev.add_argument("--scene-views", type=int, default=None,
+                    help="number of views for a scene rendered on the fly (default: the scene's)")
     ev.set_defaults(func=_cmd_eval)
 
     cost = sub.add_parser("cost", help="accuracy-time trade-off sweep on a scene")

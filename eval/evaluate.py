@@ -267,14 +267,23 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     return rows
 
 
-def scene_dataset(kind: str, source: Path | str, out: Path) -> tuple[str, Path]:
-    """(scene name, dataset folder): dataset folders as they are, scenes rendered into `out/data/<name>`."""
+def scene_dataset(kind: str, source: Path | str, out: Path, *, size_wh: tuple[int, int] | None = None,
+                  views: int | None = None) -> tuple[str, Path]:
+    """(scene name, dataset folder): dataset folders as they are, scenes rendered into `out/data/<name>`.
+
+    Args:
+        kind, source: from `eval.cli.resolve_scene_source`.
+        out: the evaluation folder.
+        size_wh, views: image size and view count overrides for rendered scenes (None: the scene's).
+    """
     if kind == "dataset":
         return Path(source).name, Path(source)
     render_scene = require("data_synth", "render_scene", needed_for="denoise-gs eval on a scene")
     name = Path(source).stem if kind == "scene_file" else str(source)
-    folder = out / "data" / name
+    tag = "" if size_wh is None and views is None else f"_{size_wh[0]}x{size_wh[1]}" if size_wh else ""
+    tag += f"_{views}v" if views is not None else ""
+    folder = out / "data" / f"{name}{tag}"
     if not (folder / "split.json").is_file():
-        render_scene(source, folder)
+        render_scene(source, folder, size_wh=size_wh, views=views)
     return name, folder
 

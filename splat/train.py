@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -153,7 +154,8 @@ def _lr_at(step: int, total: int, lr0: float, lr1: float) -> float:
 
 def train_gaussians(images: list[np.ndarray], cameras: list[Camera], cam_from_world: np.ndarray,
                     init_points_xyz: np.ndarray, init_points_rgb: np.ndarray,
-                    config: TrainConfig | None = None, *, device: str | torch.device = "cpu") -> TrainResult:
+                    config: TrainConfig | None = None, *, device: str | torch.device = "cpu",
+                    on_step: Callable[[int, GaussianModel], None] | None = None) -> TrainResult:
     """Train Gaussians (and optionally pose corrections) on posed images.
 
     Args:
@@ -164,6 +166,8 @@ def train_gaussians(images: list[np.ndarray], cameras: list[Camera], cam_from_wo
         init_points_rgb: (P, 3) uint8 or float colours.
         config: `TrainConfig` (default: InstantSplat's recipe).
         device: torch device.
+        on_step: called as `on_step(completed_steps, model)` after each step (e.g. held-out
+            evaluation in benchmarks); must not modify the model.
 
     Returns:
         `TrainResult`.
@@ -235,6 +239,8 @@ def train_gaussians(images: list[np.ndarray], cameras: list[Camera], cam_from_wo
                 history.num_gaussians.append(model.num_gaussians)
                 bar.set_postfix(loss=f"{loss.item():.4f}", n=model.num_gaussians)
             bar.update(1)
+            if on_step is not None:
+                on_step(step + 1, model)
 
     with torch.no_grad():
         final = se3_exp(deltas.detach().double() * pose_mask.double()) @ homogeneous(torch.as_tensor(poses))

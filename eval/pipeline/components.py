@@ -11,9 +11,8 @@ listed here, in one place:
   `round2.finetune_round2(model, noisy_images, renders, config, *, seed)`, `round2.Round2Config`
   (no preset table: "default" is `Round2Config()`), `view_selection.select_views(cfw, images, k, *, seed)`,
   `model.save_checkpoint(path, model)`, `model.load_checkpoint(path, *, device)`;
-- mvgeo.align (not landed when this was written; names from the API contract):
-  `align_images(image_paths, config) -> AlignResult`, presets `ALIGN_PRESETS` with fields
-  `max_size`, `iters`;
+- mvgeo.align: `align_images(image_paths, config) -> AlignResult`, `write_align_result(out, result)`,
+  `AlignConfig` (preset "default") and `PREVIEW` (preset "preview");
 - splat (by submodule): `train.train_gaussians(images, cameras, cfw, xyz, rgb, config, *, device)`,
   `train.TRAIN_PRESETS`, `render.render_views(model, cameras, cfw)`, `pose_fit.fit_pose(...)`,
   `ply.write_gaussian_ply(path, model)`, `ply.read_gaussian_ply(path, *, device)`;

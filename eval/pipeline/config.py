@@ -46,7 +46,7 @@ class AlignSettings:
     """Pose-free alignment (`mvgeo.align`).
 
     Attributes:
-        preset: name of an `AlignConfig` preset.
+        preset: "default" (`mvgeo.align.AlignConfig()`) or "preview" (`mvgeo.align.PREVIEW`).
         max_size_px: long side the images are downscaled to; None keeps the preset's.
         iters: global-alignment iterations; None keeps the preset's.
     """
@@ -120,13 +120,13 @@ class PipelineConfig:
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40),
-        align=AlignSettings(preset="fast"),
+        align=AlignSettings(preset="preview"),
         splat=SplatSettings(preset="quick"),
     ),
     "default": PipelineConfig(),
     "best": PipelineConfig(
         denoise=DenoiseSettings(n2v_preset="n2v2", n2v_steps=1500, passes=8, round2_steps=400),
-        align=AlignSettings(preset="best"),
+        align=AlignSettings(preset="default"),
         splat=SplatSettings(preset="instantsplat", iters=2000),
     ),
 }

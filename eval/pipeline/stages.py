@@ -9,7 +9,7 @@ Each function has the `StageFn` signature (`fn(ctx) -> summary`), reads
 | stage     | inputs                                   | outputs                                   |
 |-----------|------------------------------------------|-------------------------------------------|
 | denoise   | noisy                                    | denoised/, n2v_model.pt                   |
-| align     | images                                   | align/ (sparse/0/, points.npz)            |
+| align     | images                                   | align/ (sparse/0/, points.ply/.npz, json) |
 | splat     | images, align                            | sparse/0/, point_cloud.ply                |
 | render    | sparse, scene                            | renders/                                  |
 | select    | images, sparse                           | selection.json                            |
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from eval.pipeline.components import component_config, require
+from eval.pipeline.components import MissingComponentError, component_config, require
 from eval.pipeline.config import PipelineConfig
 from eval.pipeline.stage import StageContext, StageFn
 from eval.pipeline.views import read_views, view_files, write_views
@@ -72,6 +72,20 @@ def _round2_config(s: Mapping[str, object], need: str):
                             config_cls="Round2Config")
 
 
+def _align_config(s: Mapping[str, object], seed: int, need: str):
+    # mvgeo.align has no presets table: "default" is AlignConfig(), "preview" its PREVIEW preset.
+    presets = {"default": require("mvgeo.align", "AlignConfig", needed_for=need)(),
+               "preview": require("mvgeo.align", "PREVIEW", needed_for=need)}
+    if s["preset"] not in presets:
+        raise MissingComponentError(f"{need}: mvgeo.align has no preset {s['preset']!r} (has default, preview)")
+    cfg = dataclasses.replace(presets[s["preset"]], seed=seed)
+    if s["max_size_px"] is not None:
+        cfg = dataclasses.replace(cfg, max_size_px=s["max_size_px"])
+    if s["iters"] is not None:
+        cfg = dataclasses.replace(cfg, align=dataclasses.replace(cfg.align, iters=s["iters"]))
+    return cfg
+
+
 def _train_config(s: Mapping[str, object], seed: int, need: str):
     return component_config("splat.train", "TRAIN_PRESETS", s["preset"], {"iters": s["iters"], "seed": seed},
                             needed_for=need)
@@ -94,19 +108,18 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
 
 
 def align(ctx: StageContext) -> Mapping[str, object]:
-    """Pose-free alignment of the denoised images (`mvgeo.align`)."""
+    """Pose-free alignment of the denoised images (`mvgeo.align`), written as `mvgeo align` writes it."""
     need = "align stage"
-    s = ctx.settings
-    cfg = component_config("mvgeo.align", "ALIGN_PRESETS", s["preset"],
-                           {"max_size": s["max_size_px"], "iters": s["iters"]}, needed_for=need)
+    cfg = _align_config(ctx.settings, ctx.seed, need)
     align_images = require("mvgeo.align", "align_images", needed_for=need)
+    write_align_result = require("mvgeo.align", "write_align_result", needed_for=need)
     files = view_files(ctx.inputs["images"])
     res = align_images(list(files.values()), cfg)
     out = ctx.work_dir / "align"
-    write_sparse_model(out / "sparse" / "0", res.sparse_model, binary=True)
+    write_align_result(out, res)  # sparse/0/*.bin, points.ply, align.json
     np.savez(out / "points.npz", xyz=np.asarray(res.points_xyz, np.float64),
              rgb=np.asarray(res.points_rgb, np.uint8), conf=np.asarray(res.points_conf, np.float64))
-    stats = res.stats if isinstance(res.stats, Mapping) else getattr(res.stats, "__dict__", {})
+    stats = res.stats if isinstance(res.stats, Mapping) else {}
     return {"registered": len(res.sparse_model.images), "points": int(len(res.points_xyz)),
             "stats": json.loads(json.dumps(stats, default=str))}
 
@@ -203,9 +216,9 @@ def check_product_components(config: PipelineConfig) -> None:
     for module, name in (("denoise.n2v", "train_n2v"), ("denoise.inference", "denoise_images"),
                          ("denoise.model", "save_checkpoint")):
         require(module, name, needed_for=need)
-    component_config("mvgeo.align", "ALIGN_PRESETS", a.preset, {"max_size": a.max_size_px, "iters": a.iters},
-                     needed_for=need)
-    require("mvgeo.align", "align_images", needed_for=need)
+    _align_config({"preset": a.preset, "max_size_px": a.max_size_px, "iters": a.iters}, config.seed, need)
+    for name in ("align_images", "write_align_result"):
+        require("mvgeo.align", name, needed_for=need)
     _train_config({"preset": sp.preset, "iters": sp.iters}, config.seed, need)
     for module, name in (("splat.train", "train_gaussians"), ("splat.ply", "write_gaussian_ply"),
                          ("splat.ply", "read_gaussian_ply"), ("splat.render", "render_views")):

@@ -21,7 +21,7 @@ from mvgeo.align.scene import covisibility_keep, voxel_downsample_by_confidence
 from mvgeo.camera import Camera
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.deps import cv2
-from mvgeo.common.errors import DegenerateGeometryError, InputError
+from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
@@ -290,4 +290,4 @@ def write_points_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray, conf: np.ndar
     PlyData([PlyElement.describe(arr, "vertex")], text=False).write(str(path))
 
 
-__all__ = ["AlignConfig", "AlignResult", "PREVIEW", "align_images", "write_align_result", "DegenerateGeometryError"]
+__all__ = ["AlignConfig", "AlignResult", "PREVIEW", "align_images", "write_align_result"]

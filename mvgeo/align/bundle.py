@@ -1,11 +1,17 @@
-"""Sparse bundle adjustment on the pairwise feature matches (scipy `least_squares`, sparse Jacobian).
+"""Sparse bundle adjustment on feature tracks (scipy `least_squares`, sparse Jacobian).
 
-Each inlier match of a pair is one two-view point (no track merging), so the
-problem is: per view a pose `cam_from_world` (rotation vector, translation),
-a shared focal or one per view (log, pixels; principal point fixed at the
-centre), and per match a world point. Residuals are reprojection errors in
-pixels at the alignment resolution with a Huber loss. The gauge (7 dof) is
-left free; the trust-region solver copes with the rank deficiency.
+Tracks: the pairs' inlier matches are merged by keypoint (a keypoint is
+identified by its view and its exact pixel coordinates, which come from one
+SIFT run per image); tracks that would hold two keypoints of one view are
+dropped. Unknowns: per view a pose `cam_from_world` (rotation vector,
+translation), a shared focal or one per view (log, pixels; principal point
+fixed at the centre), and per track a world point (multi-view triangulation
+from the aligned poses). Residuals are reprojection errors in pixels at the
+alignment resolution with a Huber loss; after a first solve, observations
+with an error above `max_reproj_px` are removed and the problem is solved
+again (COLMAP's filter-and-repeat). The first view's pose is held fixed
+(6 of the 7 gauge dof; the scale is left free, which the trust-region solver
+tolerates: a free 7-dof gauge made LSMR crawl, ~180 inner solves on 2 views).
 """
 
 from __future__ import annotations
@@ -16,10 +22,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
-from mvgeo.triangulate import TriangulationCriteria, triangulate_two_view
+from mvgeo.triangulate import TriangulationCriteria, triangulate_multiview
 
 _log = logging.getLogger(__name__)
 
@@ -33,7 +39,9 @@ class BundleConfig:
         max_nfev: function evaluations of `least_squares`.
         shared_focal: one focal for all views.
         optimize_focal: False keeps the focals fixed (known intrinsics).
-        max_points: at most this many matches (evenly subsampled) enter the problem.
+        max_points: at most this many tracks (evenly subsampled) enter the problem.
+        max_reproj_px: observations above this after the first solve are removed.
+        min_track_length: tracks need at least this many views.
     """
 
     huber_px: float = 1.0
@@ -41,6 +49,8 @@ class BundleConfig:
     shared_focal: bool = True
     optimize_focal: bool = True
     max_points: int = 20000
+    max_reproj_px: float = 4.0
+    min_track_length: int = 2
 
 
 @dataclass
@@ -57,10 +67,55 @@ class BundleResult:
     reproj_median_after_px: float
 
 
+def build_tracks(matches: Sequence[tuple[int, int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge pairwise matches into tracks (union-find on (view, u, v)).
+
+    Args:
+        matches: (i, j, uv) with uv (M, 4) = (u_i, v_i, u_j, v_j).
+
+    Returns:
+        obs_view (K,), obs_track (K,), obs_uv (K, 2): one row per observation;
+        tracks with two observations in one view are dropped; ids are 0..T-1.
+    """
+    parent: dict[tuple, tuple] = {}
+
+    def find(a):
+        root = a
+        while parent[root] != root:
+            root = parent[root]
+        while parent[a] != root:
+            parent[a], a = root, parent[a]
+        return root
+
+    for i, j, uv in matches:
+        for row in uv:
+            a, b = (i, float(row[0]), float(row[1])), (j, float(row[2]), float(row[3]))
+            parent.setdefault(a, a)
+            parent.setdefault(b, b)
+            ra, rb = find(a), find(b)
+            if ra != rb:
+                parent[ra] = rb
+    groups: dict[tuple, list[tuple]] = {}
+    for key in parent:
+        groups.setdefault(find(key), []).append(key)
+    views, tracks, uvs = [], [], []
+    tid = 0
+    for members in groups.values():
+        vs = [m[0] for m in members]
+        if len(set(vs)) != len(vs):
+            continue
+        for m in members:
+            views.append(m[0])
+            tracks.append(tid)
+            uvs.append(m[1:])
+        tid += 1
+    return np.array(views, np.int64), np.array(tracks, np.int64), np.array(uvs, np.float64).reshape(-1, 2)
+
+
 def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int],
                   matches: Sequence[tuple[int, int, np.ndarray]], *, config: BundleConfig = BundleConfig()
                   ) -> BundleResult:
-    """Refine poses and focals on two-view matches.
+    """Refine poses and focals on feature tracks built from pairwise matches.
 
     Args:
         cam_from_world: (N, 3, 4) initial poses.
@@ -72,82 +127,111 @@ def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tup
     n = len(cam_from_world)
     W, H = size_wh
     c = np.array([W / 2.0, H / 2.0])
-    obs_view, obs_point, obs_uv, points = [], [], [], []
-    crit = TriangulationCriteria(min_angle_deg=1.0, max_angular_error_deg=1.0)
-    total = sum(len(m[2]) for m in matches)
-    stride = max(1, int(np.ceil(total / config.max_points)))
-    for i, j, uv in matches:
-        uv = uv[::stride]
-        Ri, ti = cam_from_world[i][:, :3], cam_from_world[i][:, 3]
-        Rj, tj = cam_from_world[j][:, :3], cam_from_world[j][:, 3]
-        rays_i = np.concatenate([(uv[:, :2] - c) / focal_px[i], np.ones((len(uv), 1))], 1)
-        rays_j = np.concatenate([(uv[:, 2:] - c) / focal_px[j], np.ones((len(uv), 1))], 1)
-        j_from_i = np.concatenate([Rj @ Ri.T, (tj - Rj @ Ri.T @ ti)[:, None]], 1)
-        tri = triangulate_two_view(rays_i, rays_j, j_from_i, criteria=crit)
-        ok = tri.valid
-        X = (tri.points[ok] - ti) @ Ri  # world
-        ids = sum(len(p) for p in points) + np.arange(len(X))
-        points.append(X)
-        obs_view += [np.full(len(X), i), np.full(len(X), j)]
-        obs_point += [ids, ids]
-        obs_uv += [uv[ok, :2], uv[ok, 2:]]
-    X0 = np.concatenate(points) if points else np.zeros((0, 3))
-    ov, op, ouv = np.concatenate(obs_view), np.concatenate(obs_point), np.concatenate(obs_uv)
+    ov, ot, ouv = build_tracks(matches)
+    n_tracks = int(ot.max()) + 1 if len(ot) else 0
+    length = np.bincount(ot, minlength=n_tracks)
+    keep_track = length >= config.min_track_length
+    stride = max(1, int(np.ceil(keep_track.sum() / config.max_points)))
+    keep_track &= (np.cumsum(keep_track) % stride) == 0
+    # Multi-view triangulation of the kept tracks from the aligned poses.
+    ids = np.flatnonzero(keep_track)
+    remap = -np.ones(n_tracks, np.int64)
+    remap[ids] = np.arange(len(ids))
+    sel = keep_track[ot]
+    ov, ot, ouv = ov[sel], remap[ot[sel]], ouv[sel]
+    rays = np.zeros((n, len(ids), 3))
+    observed = np.zeros((n, len(ids)), bool)
+    rays[ov, ot, :2] = (ouv - c) / np.asarray(focal_px)[ov, None]
+    rays[ov, ot, 2] = 1.0
+    observed[ov, ot] = True
+    crit = TriangulationCriteria(min_angle_deg=1.0, max_angular_error_deg=3.0)
+    tri = triangulate_multiview(rays, cam_from_world, observed=observed, criteria=crit)
+    good = tri.valid
+    sel = good[ot]
+    remap = -np.ones(len(ids), np.int64)
+    remap[good] = np.arange(good.sum())
+    ov, op, ouv = ov[sel], remap[ot[sel]], ouv[sel]
+    X0 = tri.points[good]
     P = len(X0)
     nf = 1 if config.shared_focal else n
     f_index = np.zeros(n, np.int64) if config.shared_focal else np.arange(n)
+    logf0 = np.array([np.mean(np.log(focal_px))]) if config.shared_focal else np.log(focal_px)
     rv0 = Rotation.from_matrix(cam_from_world[:, :, :3]).as_rotvec()
-    logf0 = np.log(np.exp(np.mean(np.log(focal_px))) * np.ones(1)) if config.shared_focal else np.log(focal_px)
-
-    def unpack(x):
-        rv = x[:3 * n].reshape(n, 3)
-        t = x[3 * n:6 * n].reshape(n, 3)
-        if config.optimize_focal:
-            lf, rest = x[6 * n:6 * n + nf], x[6 * n + nf:]
-        else:
-            lf, rest = logf0, x[6 * n:]
-        return rv, t, lf, rest.reshape(P, 3)
-
-    def residuals(x):
-        rv, t, lf, Xw = unpack(x)
-        R = Rotation.from_rotvec(rv[ov]).as_matrix()
-        xc = np.einsum("mij,mj->mi", R, Xw[op]) + t[ov]
-        f = np.exp(lf)[f_index[ov]]
-        z = np.where(np.abs(xc[:, 2]) < 1e-9, 1e-9, xc[:, 2])
-        proj = f[:, None] * xc[:, :2] / z[:, None] + c
-        return (proj - ouv).reshape(-1)
-
-    x0 = np.concatenate([rv0.reshape(-1), cam_from_world[:, :, 3].reshape(-1)]
+    fixed = (rv0[0].copy(), cam_from_world[0, :, 3].copy())
+    x0 = np.concatenate([rv0[1:].reshape(-1), cam_from_world[1:, :, 3].reshape(-1)]
                         + ([logf0] if config.optimize_focal else []) + [X0.reshape(-1)])
-    r0 = residuals(x0).reshape(-1, 2)
-    e0 = np.linalg.norm(r0, axis=1)
+    e0 = _errors(x0, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed)
     if P < 10:
-        _log.warning("bundle adjustment skipped: only %d triangulated matches", P)
-        return BundleResult(cam_from_world.copy(), np.asarray(focal_px, float).copy(), P, len(ov),
-                            *(float(np.sqrt(np.mean(e0**2))) if len(e0) else np.nan,) * 2,
-                            *(float(np.median(e0)) if len(e0) else np.nan,) * 2)
-    # Jacobian sparsity: each residual pair depends on its view's pose, its focal, its point.
-    m = len(ov)
-    nx = len(x0)
-    S = lil_matrix((2 * m, nx), dtype=np.int8)
-    rows = np.arange(m)
-    pt0 = 6 * n + (nf if config.optimize_focal else 0)
-    for k in range(2):
-        r = 2 * rows + k
-        for d in range(3):
-            S[r, 3 * ov + d] = 1
-            S[r, 3 * n + 3 * ov + d] = 1
-            S[r, pt0 + 3 * op + d] = 1
-        if config.optimize_focal:
-            S[r, 6 * n + f_index[ov]] = 1
-    sol = least_squares(residuals, x0, jac_sparsity=S.tocsr(), loss="huber", f_scale=config.huber_px,
-                        max_nfev=config.max_nfev, x_scale="jac", method="trf", tr_solver="lsmr", verbose=0)
-    rv, t, lf, _ = unpack(sol.x)
-    e1 = np.linalg.norm(sol.fun.reshape(-1, 2), axis=1)
+        _log.warning("bundle adjustment skipped: only %d triangulated tracks", P)
+        rms = float(np.sqrt(np.mean(e0**2))) if len(e0) else float("nan")
+        med = float(np.median(e0)) if len(e0) else float("nan")
+        return BundleResult(cam_from_world.copy(), np.asarray(focal_px, float).copy(), P, len(ov), rms, rms, med, med)
+    x = x0
+    for _round in range(2):
+        x = _solve(x, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed)
+        e = _errors(x, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed)
+        ok = e < config.max_reproj_px
+        if ok.all() or _round == 1:
+            break
+        ov, op, ouv = ov[ok], op[ok], ouv[ok]
+    e1 = _errors(x, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed)
+    rv, t, lf, _ = _unpack(x, n, nf, P, logf0, config, fixed)
     out = np.concatenate([Rotation.from_rotvec(rv).as_matrix(), t[:, :, None]], axis=2)
-    res = BundleResult(out, np.exp(lf)[f_index], P, m, float(np.sqrt(np.mean(e0**2))), float(np.sqrt(np.mean(e1**2))),
-                       float(np.median(e0)), float(np.median(e1)))
-    _log.info("bundle adjustment: %d points, reprojection RMS %.3g -> %.3g px (median %.3g -> %.3g)", P,
-              res.reproj_rms_before_px, res.reproj_rms_after_px, res.reproj_median_before_px,
-              res.reproj_median_after_px)
+    res = BundleResult(out, np.exp(lf)[f_index], P, len(ov), float(np.sqrt(np.mean(e0**2))),
+                       float(np.sqrt(np.mean(e1**2))), float(np.median(e0)), float(np.median(e1)))
+    _log.info("bundle adjustment: %d tracks, %d observations, reprojection RMS %.3g -> %.3g px "
+              "(median %.3g -> %.3g)", P, len(ov), res.reproj_rms_before_px, res.reproj_rms_after_px,
+              res.reproj_median_before_px, res.reproj_median_after_px)
     return res
+
+
+def _unpack(x, n, nf, P, logf0, config, fixed):
+    k = n - 1  # view 0's pose is fixed
+    rv = np.concatenate([fixed[0][None], x[:3 * k].reshape(k, 3)])
+    t = np.concatenate([fixed[1][None], x[3 * k:6 * k].reshape(k, 3)])
+    if config.optimize_focal:
+        lf, rest = x[6 * k:6 * k + nf], x[6 * k + nf:]
+    else:
+        lf, rest = logf0, x[6 * k:]
+    return rv, t, lf, rest.reshape(P, 3)
+
+
+def _errors(*args) -> np.ndarray:
+    """(K,) reprojection error norms in pixels."""
+    return np.linalg.norm(_residuals(*args).reshape(-1, 2), axis=1)
+
+
+def _residuals(x, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed):
+    rv, t, lf, Xw = _unpack(x, n, nf, P, logf0, config, fixed)
+    R = Rotation.from_rotvec(rv).as_matrix()[ov]
+    xc = np.einsum("mij,mj->mi", R, Xw[op]) + t[ov]
+    f = np.exp(lf)[f_index[ov]]
+    z = np.where(np.abs(xc[:, 2]) < 1e-9, 1e-9, xc[:, 2])
+    proj = f[:, None] * xc[:, :2] / z[:, None] + c
+    return (proj - ouv).reshape(-1)
+
+
+def _solve(x0, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed):
+    # Jacobian sparsity: each residual pair depends on its view's pose (none for view 0), focal and point.
+    m = len(ov)
+    k = n - 1
+    pt0 = 6 * k + (nf if config.optimize_focal else 0)
+    obs_rows, obs_cols = [], []
+    free = ov > 0
+    for d in range(3):
+        obs_rows += [np.flatnonzero(free)] * 2
+        obs_cols += [3 * (ov[free] - 1) + d, 3 * k + 3 * (ov[free] - 1) + d]
+        obs_rows.append(np.arange(m))
+        obs_cols.append(pt0 + 3 * op + d)
+    if config.optimize_focal:
+        obs_rows.append(np.arange(m))
+        obs_cols.append(6 * k + f_index[ov])
+    r = np.concatenate(obs_rows)
+    cidx = np.concatenate(obs_cols)
+    rows = np.concatenate([2 * r, 2 * r + 1])
+    cols = np.concatenate([cidx, cidx])
+    S = coo_matrix((np.ones(len(cols), np.int8), (rows, cols)), shape=(2 * m, len(x0))).tocsr()
+    sol = least_squares(_residuals, x0, jac_sparsity=S, loss="huber", f_scale=config.huber_px,
+                        max_nfev=config.max_nfev, x_scale="jac", method="trf", tr_solver="lsmr",
+                        args=(n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed))
+    return sol.x

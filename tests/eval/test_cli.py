@@ -95,11 +95,11 @@ def test_cost_is_not_implemented(tmp_path, capsys):
     assert "not implemented" in _err(capsys)
 
 
-@pytest.mark.slow  # renders a small llff_like and trains splats: ~1-3 min on 2 cores
+@pytest.mark.slow  # renders a 128x96 llff_like and trains a splat (60 iters)
 def test_eval_gt_poses_end_to_end(tmp_path, capsys):
     out = tmp_path / "out"
     code = main(["eval", "llff_like", "--out", str(out), "--methods", "3dgs_gt_poses", "--seeds", "1",
-                 "--splat-iters", "60"])
+                 "--splat-iters", "60", "--size", "128x96", "--scene-views", "8"])
     assert code == 0, _err(capsys)
     data = json.loads((out / "results.json").read_text())
     run = data["runs"][0]

@@ -165,28 +165,34 @@ def test_live_lock_refuses_second_run(tmp_path, scene):
     run_pipeline(scene, out, _cfg(rounds=1), stages=TinyStages().stages())
 
 
-@pytest.mark.slow  # real N2V training: ~20 s unloaded, minutes on a loaded 2-core machine
-def test_product_denoise_select_refine_stages(tmp_path):
-    """The product's denoise, select and refine stages with the real `denoise` package (fast settings),
-    the geometry stages from the tiny set (alignment/splatting are tested in their packages)."""
+@pytest.mark.slow  # real N2V and splat training (few steps); minutes on a loaded 2-core machine
+def test_product_stages_except_alignment(tmp_path):
+    """The product's denoise, splat, render, select and refine stages with the real `denoise` and
+    `splat` packages (a handful of steps); alignment from the tiny set (a fixed rig and random points),
+    because `mvgeo.align` is tested in its own package."""
     import dataclasses
 
-    from eval.pipeline import DenoiseSettings, product_stages
+    from denoise.model import load_checkpoint
+    from eval.pipeline import DenoiseSettings, SplatSettings, product_stages
+    from splat.ply import read_gaussian_ply
 
     scene = make_scene(tmp_path / "images", n=5, size_wh=(64, 48))
     tiny = TinyStages()
     real = product_stages()
-    stages = dataclasses.replace(tiny.stages(), denoise=real.denoise, select=real.select, refine=real.refine)
+    stages = dataclasses.replace(real, align=tiny.align)
     cfg = dataclasses.replace(preset("fast", views=3),
-                              denoise=DenoiseSettings(n2v_preset="fast", n2v_steps=8, passes=1, round2_steps=3))
+                              denoise=DenoiseSettings(n2v_preset="fast", n2v_steps=8, passes=1, round2_steps=3),
+                              splat=SplatSettings(preset="quick", iters=5))
     res = run_pipeline(scene, tmp_path / "out", cfg, stages=stages)
     r1, r2 = res.rounds
     assert r1.stages["denoise"].summary["train"]["loss"]["count"] == 8
     selected = r2.stages["select"].summary["selected"]
     assert len(selected) == 3 and r2.stages["select"].summary["method"] == "kmeans+laplacian"
     assert sorted(p.stem for p in (r2.dir / "denoised").glob("*.png")) == sorted(selected)
-    # Round-2 history continues round 1's (the same UNet, fine-tuned).
+    # Round 2 fine-tunes the round-1 UNet: its loss history continues round 1's.
     assert r2.stages["refine"].summary["train"]["loss"]["count"] == 11
-    from denoise.model import load_checkpoint
-
     assert len(load_checkpoint(r2.dir / "n2v_model.pt").history) == 11
+    # The splat stage wrote a readable 3DGS PLY and the optimised poses; renders match the views.
+    assert read_gaussian_ply(r2.dir / "point_cloud.ply").means.shape[0] > 0
+    assert read_sparse_model(r2.dir / "sparse" / "0").names == [f"{n}.png" for n in sorted(selected)]
+    assert sorted(p.stem for p in (r2.dir / "renders").glob("*.png")) == sorted(selected)

@@ -51,7 +51,7 @@ def _mse(a, b):
 
 def test_training_reduces_error_and_is_deterministic(scene):
     cams = [scene["camera"]] * 4
-    cfg = TrainConfig(iters=60, sh_degree=1, sh_degree_interval=30, optimize_poses=True, log_every=5)
+    cfg = TrainConfig(iters=40, sh_degree=1, sh_degree_interval=20, optimize_poses=True, log_every=5)
     args = (scene["images"][:4], cams, scene["poses"][:4], scene["xyz"], scene["rgb"], cfg)
     res = train_gaussians(*args)
     before = GaussianModel.from_points(scene["xyz"], scene["rgb"], sh_degree=1)

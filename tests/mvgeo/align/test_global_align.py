@@ -1,5 +1,7 @@
 """Global alignment (DUSt3R objective) on pointmaps built from known geometry."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -42,12 +44,18 @@ def test_exact_pointmaps_mst_init_recovers_poses(rng):
 def test_optimisation_recovers_focal_and_poses_from_noisy_pointmaps(rng):
     poses, depths = make_views(5)
     preds = make_pairs(poses, depths, FOCAL, rng, noise=0.002, focal_err=0.1)
-    res = global_align(preds, [d.shape for d in depths], config=GlobalAlignConfig(iters=600, lr=0.02))
+    sizes = [d.shape for d in depths]
+    init = global_align(preds, sizes, config=GlobalAlignConfig(iters=0))
+    res = global_align(preds, sizes, config=GlobalAlignConfig(iters=300, lr=0.02))
     m = _metrics(res.cam_from_world, poses)
-    assert res.final_loss < 0.5 * res.init_loss
-    # 0.2 % point noise at ~4 m depth, 768 px per view: measured ~0.1 deg / <1 % focal; bounds leave 2x-3x margin.
-    assert m.rotation_deg.max() < 0.5
-    assert np.all(np.abs(res.focal_px / FOCAL - 1) < 0.03)
+    m0 = _metrics(init.cam_from_world, poses)
+    assert res.final_loss < init.final_loss
+    # The optimisation must improve on the MST initialisation (measured 0.088 -> 0.036 deg worst pair).
+    assert m.rotation_deg.max() < m0.rotation_deg.max()
+    # 0.2 % point noise, 768 px per view, 10 % focal error at init: measured 0.036 deg and <0.6 % focal
+    # error after 300 iterations; the bounds leave ~3x margin for platform differences.
+    assert m.rotation_deg.max() < 0.1
+    assert np.all(np.abs(res.focal_px / FOCAL - 1) < 0.02)
     assert all(np.isfinite(d).all() for d in res.depth)
 
 
@@ -112,11 +120,11 @@ def test_loss_gradcheck(rng):
         inputs[1][:, 0] += 1.0  # keep quaternions away from zero
         inputs[4][:, 0] += 1.0
 
+    names = ["log_depth", "q_wfc", "t_wfc", "log_focal", "q_pair", "t_pair", "logs_pair"]
+
     def f(*xs):
-        p = _Params(*[x.detach() for x in xs], optimize_focal=True)
-        for name, x in zip(["log_depth", "q_wfc", "t_wfc", "log_focal", "q_pair", "t_pair", "logs_pair"], xs,
-                           strict=True):
-            setattr(p, name, x)  # plain tensors so gradients flow to the inputs
+        # the loss only reads these attributes; plain tensors let gradients flow to the inputs
+        p = SimpleNamespace(**dict(zip(names, xs, strict=True)))
         return alignment_loss(p, terms, grid, pinned_scale=1.0)
 
     # The Euclidean norm is smooth away from zero residuals, which random states avoid.
@@ -128,3 +136,26 @@ def test_disconnected_views_raise(rng):
     preds = make_pairs(poses, depths, FOCAL, rng, pairs=[(0, 1), (2, 3)])
     with pytest.raises(DegenerateGeometryError, match="disconnected"):
         global_align(preds, [d.shape for d in depths], config=GlobalAlignConfig(iters=0))
+
+
+def test_own_adam_matches_torch_optim(rng):
+    """`_Adam` against `torch.optim.Adam` on a quadratic: identical iterates (float64)."""
+    from mvgeo.align.global_align import _Adam
+
+    target = torch.as_tensor(rng.normal(size=5))
+    a = torch.zeros(5, dtype=torch.float64, requires_grad=True)
+    b = torch.zeros(5, dtype=torch.float64, requires_grad=True)
+    ours = _Adam([a], betas=(0.9, 0.9))
+    ref = torch.optim.Adam([b], lr=0.1, betas=(0.9, 0.9))
+    for k in range(20):
+        lr = 0.1 / (1 + k)
+        for g in ref.param_groups:
+            g["lr"] = lr
+        a.grad = None
+        ((a - target) ** 4).sum().backward()
+        ours.step(lr)
+        ref.zero_grad()
+        ((b - target) ** 4).sum().backward()
+        ref.step()
+    # Same formula, possibly different operation order: agreement to float64 round-off.
+    torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

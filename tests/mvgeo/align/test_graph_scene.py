@@ -30,8 +30,8 @@ def test_maximum_spanning_tree_brute_force(rng):
         reached |= set(edges[k])
     # Brute force over all spanning trees (125 for K5 among C(10,4)=210 subsets).
     import itertools
-    best = max((sum(scores[list(c)]) for c in itertools.combinations(range(len(edges)), n - 1)
-                if len(components(n, [edges[k] for k in c])) == 1))
+    best = max(sum(scores[list(c)]) for c in itertools.combinations(range(len(edges)), n - 1)
+                if len(components(n, [edges[k] for k in c])) == 1)
     assert sum(scores[order]) == pytest.approx(best)
 
 

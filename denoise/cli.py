@@ -1,0 +1,132 @@
+"""`denoise` command line: `denoise n2v IMAGES_DIR --out OUT` and `denoise select SPARSE_DIR --images DIR`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from denoise.inference import denoise_images
+from denoise.model import save_checkpoint
+from denoise.n2v import N2V_PRESETS, n2v_preset, train_n2v
+from denoise.view_selection import select_views
+from mvgeo.common.atomic import atomic_output_dir, atomic_write_text
+from mvgeo.common.cli import add_common_args, run_cli
+from mvgeo.common.deps import cv2
+from mvgeo.common.errors import InputError
+from mvgeo.common.imageio import list_images, read_image, write_image
+from mvgeo.common.timing import StageTimer
+
+_log = logging.getLogger(__name__)
+
+
+def _bit_depth(path: Path) -> int:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return 16 if img is not None and img.dtype == np.uint16 else 8
+
+
+def contact_sheet(noisy: Sequence[np.ndarray], denoised: Sequence[np.ndarray], *, max_rows: int = 6,
+                  height_px: int = 160) -> np.ndarray:
+    """Rows of ``noisy | denoised`` pairs (first `max_rows` images), each row `height_px` high.
+
+    Returns:
+        ``(H, W, 3)`` float32 in [0, 1], white gutters.
+    """
+    rows = []
+    for a, b in list(zip(noisy, denoised, strict=True))[:max_rows]:
+        pair = []
+        for im in (a, b):
+            im = np.asarray(im, np.float32)
+            im = np.repeat(im[..., None], 3, 2) if im.ndim == 2 else (np.repeat(im, 3, 2) if im.shape[2] == 1 else im)
+            w = max(1, round(im.shape[1] * height_px / im.shape[0]))
+            pair.append(cv2.resize(im, (w, height_px), interpolation=cv2.INTER_AREA))
+        gutter = np.ones((height_px, 4, 3), np.float32)
+        rows.append(np.concatenate([pair[0], gutter, pair[1]], axis=1))
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=1.0) for r in rows]
+    return np.concatenate(rows, axis=0)
+
+
+def _cmd_n2v(args: argparse.Namespace) -> int:
+    files = list_images(args.images_dir)
+    images = [read_image(f) for f in files]
+    overrides = {} if args.steps is None else {"steps": args.steps}
+    if args.steps is not None and args.steps < 1:
+        raise InputError(f"--steps must be >= 1, got {args.steps}")
+    if args.passes < 0:
+        raise InputError(f"--passes must be >= 0 (0 = one unmasked pass), got {args.passes}")
+    config = n2v_preset(args.preset, **overrides)
+    timer = StageTimer()
+    with timer.stage("train"):
+        model = train_n2v(images, config, seed=args.seed)
+    with timer.stage("denoise"):
+        out = denoise_images(model, images, passes=args.passes, seed=args.seed)
+    with atomic_output_dir(args.out) as tmp:
+        (tmp / "images").mkdir()
+        for f, img in zip(files, out, strict=True):
+            write_image(tmp / "images" / (f.stem + ".png"), img, bits=_bit_depth(f))
+        save_checkpoint(tmp / "model.pt", model)
+        write_image(tmp / "contact_sheet.png", contact_sheet(images, out))
+        atomic_write_text(tmp / "report.json", json.dumps({
+            "images": [f.name for f in files], "preset": args.preset, "steps": config.steps,
+            "passes": args.passes, "seed": args.seed, "final_loss": float(np.mean(model.history[-20:])),
+            "timing_s": timer.as_dict()}, indent=2))
+    _log.info("wrote %d denoised images, model.pt and contact_sheet.png to %s", len(out), args.out)
+    return 0
+
+
+def _cmd_select(args: argparse.Namespace) -> int:
+    from mvgeo.sparse_model import read_sparse_model
+
+    model = read_sparse_model(args.sparse_dir)
+    images_dir = Path(args.images)
+    poses, paths = {}, {}
+    for im in model.images:
+        path = images_dir / im.name
+        if not path.is_file():
+            raise InputError(f"image {im.name!r} of the sparse model is missing", path=path,
+                             fix="pass the folder holding the model's images with --images")
+        poses[im.name] = im.cam_from_world
+        paths[im.name] = path
+    if args.k < 1:
+        raise InputError(f"--k must be >= 1, got {args.k}")
+    sel = select_views(poses, paths, k=args.k, seed=args.seed)
+    text = json.dumps(sel.to_json_dict(), indent=2)
+    if args.out:
+        atomic_write_text(args.out, text + "\n")
+    print(text)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="denoise", description="Noise2Void denoising and round-2 view selection.")
+    add_common_args(parser)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("n2v", help="train N2V on a folder of noisy images and denoise them")
+    p.add_argument("images_dir", help="folder of noisy images (PNG/JPEG, 8/16-bit, RGB or gray)")
+    p.add_argument("--out", required=True, help="output folder: images/, model.pt, contact_sheet.png, report.json")
+    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--passes", type=int, default=8, help="random maskings averaged; 0 = one unmasked pass")
+    p.add_argument("--preset", choices=sorted(N2V_PRESETS), default="default", help="training preset")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_n2v)
+    s = sub.add_parser("select", help="choose round-2 views by pose clustering and sharpness")
+    s.add_argument("sparse_dir", help="COLMAP model folder (cameras/images/points3D .txt or .bin)")
+    s.add_argument("--images", required=True, help="folder with the model's images")
+    s.add_argument("--k", type=int, default=12, help="number of views to select (k >= N keeps all)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", default=None, help="also write the JSON here")
+    s.set_defaults(func=_cmd_select)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_cli(lambda a: a.func(a), build_parser(), argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,38 @@
+"""Pose-free alignment of a few photos (`mvgeo align`), DUSt3R-style, with a classical pair model.
+
+Python API (what `mvgeo align` runs)::
+
+    from mvgeo.align import AlignConfig, align_images, write_align_result
+    result = align_images(sorted(Path("scene/images").glob("*.png")), AlignConfig())
+    result.sparse_model        # SparseModel: PINHOLE cameras at the input size, cam_from_world per image
+    result.points_xyz, result.points_rgb, result.points_conf   # dense cloud (P, 3), (P, 3) uint8, (P,)
+    result.stats               # timings, losses, focals, failed pairs, bundle-adjustment report
+    write_align_result("out", result)  # out/sparse/0/*.bin, out/points.ply, out/align.json (atomic)
+
+Pipeline and modules:
+
+- `pairs`: `PairPrediction` (DUSt3R's pairwise output format) and the
+  `PointmapModel` protocol: `predict_pairs(images, pairs) -> (predictions, failures)`.
+  A learned DUSt3R/MASt3R wrapper can be passed as `align_images(..., model=...)`.
+- `classical_pairs`: the default, weight-free model (SIFT, shared-focal
+  relative pose from `mvgeo.twoview`, edge-aware + DIS dense flow with a
+  forward-backward check, `mvgeo.triangulate`, confidences >= 1).
+- `graph`: complete / window:K pair graphs, connectivity, maximum spanning tree.
+- `global_align`: DUSt3R's global alignment in torch (per-view log-depth, pose,
+  log-focal; per-pair similarity; sum of log(conf)-weighted Euclidean
+  residuals; pinned geometric-mean pair scale; MST + Procrustes init; Adam + cosine).
+- `bundle`: optional sparse bundle adjustment on the pairs' inlier matches (scipy).
+- `scene`: co-visibility pruning and confidence-aware voxel downsampling.
+- `intrinsics`: known calibration (COLMAP cameras.txt, mrcal .cameramodel) and undistortion.
+- `colmap_sfm`: the pycolmap SfM reference (`mvgeo colmap`).
+
+Resolutions: matching at `max_size_px` (512) on the long side; dense
+pointmaps and the optimised depth maps at `pairwise.pointmap_size_px` (160);
+cameras are written at the input images' resolution (intrinsics scaled).
+"""
+
+from mvgeo.align.api import PREVIEW, AlignConfig, AlignResult, align_images, write_align_result
+from mvgeo.align.pairs import PairFailure, PairPrediction, PointmapModel
+
+__all__ = ["PREVIEW", "AlignConfig", "AlignResult", "PairFailure", "PairPrediction", "PointmapModel",
+           "align_images", "write_align_result"]

@@ -1,0 +1,87 @@
+"""`denoise` CLI: outputs, 16-bit/gray files, selection JSON, and exit code 2 on bad input."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from denoise.cli import main
+from denoise.model import load_checkpoint, save_checkpoint
+from denoise.n2v import N2VConfig, new_model
+from denoise.unet import UNetConfig
+from mvgeo.camera import Camera
+from mvgeo.common.deps import cv2
+from mvgeo.common.errors import InputError
+from mvgeo.common.imageio import read_image, write_image
+from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
+from tests.denoise._synth import add_noise, smooth_scene
+from tests.denoise.test_view_selection import _ring_poses
+
+
+def test_n2v_cli_writes_outputs(tmp_path, rng):
+    src = tmp_path / "noisy"
+    src.mkdir()
+    write_image(src / "a.png", add_noise(rng, smooth_scene(rng, 40, 44), 0.1))
+    write_image(src / "b16.png", add_noise(rng, smooth_scene(rng, 40, 44), 0.1), bits=16)
+    gray = (add_noise(rng, smooth_scene(rng, 36, 30), 0.1)[..., 0] * 255).round().astype(np.uint8)
+    cv2.imwrite(str(src / "c_gray.png"), gray)
+    out = tmp_path / "out"
+    rc = main(["n2v", str(src), "--out", str(out), "--steps", "3", "--passes", "2", "--preset", "fast"])
+    assert rc == 0
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["a.png", "b16.png", "c_gray.png"]
+    assert cv2.imread(str(out / "images" / "b16.png"), cv2.IMREAD_UNCHANGED).dtype == np.uint16
+    assert read_image(out / "images" / "c_gray.png").shape == (36, 30, 3)
+    sheet = read_image(out / "contact_sheet.png")
+    assert sheet.shape[0] == 3 * (160 + 4)
+    model = load_checkpoint(out / "model.pt")
+    assert len(model.history) == 3
+    report = json.loads((out / "report.json").read_text())
+    assert report["steps"] == 3 and report["passes"] == 2
+    assert not list(tmp_path.glob(".out.tmp-*"))
+
+
+def test_n2v_cli_input_errors(tmp_path, capsys):
+    assert main(["n2v", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "x.png").write_bytes(b"not a png")
+    assert main(["n2v", str(tmp_path / "bad"), "--out", str(tmp_path / "o")]) == 2
+    assert "x.png" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # no half-written output
+
+
+def test_checkpoint_roundtrip_and_corrupt(tmp_path):
+    model = new_model(N2VConfig(unet=UNetConfig(width=4, blurpool=True, top_skip=False), replacement="median",
+                                radius=2), [torch.rand(3, 8, 8)], seed=1)
+    save_checkpoint(tmp_path / "m.pt", model)
+    back = load_checkpoint(tmp_path / "m.pt")
+    x = torch.rand(1, 3, 12, 12)
+    with torch.no_grad():
+        torch.testing.assert_close(back.apply(x), model.apply(x), rtol=0, atol=0)
+    assert back.unet_config == model.unet_config and back.mean == model.mean
+    assert (back.replacement, back.radius, back.mask_prob) == (model.replacement, model.radius, model.mask_prob)
+    (tmp_path / "bad.pt").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="bad.pt"):
+        load_checkpoint(tmp_path / "bad.pt")
+    with pytest.raises(InputError):
+        load_checkpoint(tmp_path / "none.pt")
+
+
+def test_select_cli(tmp_path, rng, capsys):
+    poses = _ring_poses(6)
+    cams = {1: Camera("PINHOLE", 32, 32, [30.0, 30.0, 16.0, 16.0])}
+    images = [PosedImage(f"{i:02d}.png", 1, P) for i, P in enumerate(poses)]
+    sparse = tmp_path / "sparse" / "0"
+    write_sparse_model(sparse, SparseModel(cameras=cams, images=images), binary=False)
+    img_dir = tmp_path / "images"
+    for i in range(6):
+        write_image(img_dir / f"{i:02d}.png", rng.random((32, 32, 3)))
+    out_json = tmp_path / "sel.json"
+    assert main(["select", str(sparse), "--images", str(img_dir), "--k", "3", "--out", str(out_json)]) == 0
+    data = json.loads(out_json.read_text())
+    assert len(data["selected"]) == 3 and set(data["views"]) == {f"{i:02d}.png" for i in range(6)}
+    assert json.loads(capsys.readouterr().out) == data
+    # A missing image file is an input error naming it.
+    (img_dir / "03.png").unlink()
+    assert main(["select", str(sparse), "--images", str(img_dir)]) == 2
+    assert "03.png" in capsys.readouterr().err

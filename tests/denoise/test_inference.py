@@ -1,0 +1,141 @@
+"""Inference: tiling without seams, K-pass averaging, and hard inputs."""
+
+import numpy as np
+import pytest
+import torch
+
+from denoise.inference import denoise_images, denoise_tensor, predict_tiled, tile_starts
+from denoise.n2v import N2VConfig, new_model, train_n2v
+from denoise.unet import UNetConfig
+from mvgeo.common.errors import InputError
+from tests.denoise._synth import add_noise, psnr, smooth_scene
+
+TINY = N2VConfig(unet=UNetConfig(width=4, depth=4), steps=30, batch_size=2, patch_px=32)
+
+
+@pytest.fixture(scope="module")
+def trained():
+    rng = np.random.default_rng(0)
+    imgs = [add_noise(rng, smooth_scene(rng, 40, 40), 0.1) for _ in range(2)]
+    with torch.random.fork_rng():
+        torch.set_num_threads(1)
+        return train_n2v(imgs, TINY, seed=0)
+
+
+def test_tile_starts_cover():
+    for n, core in [(10, 4), (8, 4), (3, 4), (101, 32)]:
+        starts = tile_starts(n, core)
+        covered = np.zeros(n, bool)
+        for s in starts:
+            covered[s : s + core] = True
+        assert covered.all() and starts[-1] + min(core, n) == n
+
+
+def test_tiled_equals_whole_image_no_seams(trained, rng):
+    # Whole-image prediction vs 32 px cores with 48 px of context. The 4-level UNet's exact
+    # receptive field is larger than 48 px, but the influence of far pixels decays fast:
+    # differences must be tiny everywhere and, in particular, not concentrated on tile borders.
+    x = torch.from_numpy(add_noise(rng, smooth_scene(rng, 100, 90), 0.1).transpose(2, 0, 1).copy())[None]
+    with torch.no_grad():
+        whole = trained.apply(x)
+        tiled = predict_tiled(trained, x, tile_px=32, margin_px=48)
+    diff = (whole - tiled).abs()
+    assert diff.max().item() < 2e-3  # vs a noise level of 0.1; 8-bit quantisation step is 3.9e-3
+    # Seam check: the output's jump across each tile border is no larger than elsewhere.
+    dx = (tiled[..., :, 1:] - tiled[..., :, :-1]).abs().mean(dim=(0, 1, 2))
+    borders = [s - 1 for s in tile_starts(90, 32)[1:]]
+    others = [i for i in range(89) if i not in borders]
+    assert dx[borders].mean() < 1.5 * dx[others].mean()
+    # With enough context (margin >= image) tiling is exact.
+    with torch.no_grad():
+        exact = predict_tiled(trained, x, tile_px=32, margin_px=100)
+    torch.testing.assert_close(exact, whole, rtol=0, atol=1e-6)  # float32 conv re-ordering only
+
+
+def test_passes_average_and_seed(trained, rng):
+    img = add_noise(rng, smooth_scene(rng, 33, 35), 0.1)
+    a = denoise_images(trained, [img], passes=3, seed=1)[0]
+    b = denoise_images(trained, [img], passes=3, seed=1)[0]
+    np.testing.assert_array_equal(a, b)
+    # The K-pass result is the mean of the individual masked passes drawn from one generator.
+    x = torch.from_numpy(img.transpose(2, 0, 1).copy())[None]
+    gen = torch.Generator().manual_seed(1)
+    singles = [denoise_tensor(trained, x, passes=1, generator=gen) for _ in range(3)]
+    mean = torch.stack(singles).mean(0)[0].clamp(0, 1).numpy().transpose(1, 2, 0)
+    np.testing.assert_allclose(a, mean, atol=1e-6)
+    unmasked = denoise_images(trained, [img], passes=0)[0]
+    assert unmasked.shape == img.shape and unmasked.dtype == np.float32
+
+
+@pytest.mark.parametrize("shape", [(31, 17, 3), (5, 7, 3), (2, 2, 3), (20, 21), (20, 21, 1)])
+def test_odd_small_and_gray_shapes(trained, rng, shape):
+    img = rng.random(shape).astype(np.float32)
+    out = denoise_images(trained, [img], passes=2)[0]
+    assert out.shape == img.shape and np.isfinite(out).all()
+    assert out.min() >= 0 and out.max() <= 1
+
+
+def test_constant_image():
+    # Training on a constant image: std is floored, loss is zero-ish, output stays the constant.
+    const = np.full((40, 40, 3), 0.3, np.float32)
+    model = train_n2v([const], TINY, seed=0)
+    assert all(np.isfinite(model.history))
+    out = denoise_images(model, [const], passes=2, clean_sigma=0.0)[0]  # bypass the clean-image gate
+    # The centre-cancelling init predicts from the neighbours (all 0.3); 30 steps keep it there.
+    np.testing.assert_allclose(out, 0.3, atol=0.02)
+
+
+def test_saturated_regions(rng):
+    # Clipped regions: the right third is over-exposed (1.0 before and after noise + clipping).
+    clean = smooth_scene(rng, 48, 48)
+    clean[:, 32:] = 1.0
+    noisy = add_noise(rng, clean, 0.1)
+    model = train_n2v([noisy], N2VConfig(unet=UNetConfig(width=8), steps=200, batch_size=4, patch_px=32), seed=0)
+    out = denoise_images(model, [noisy], passes=2)[0]
+    assert out.max() <= 1.0 and np.isfinite(out).all()
+    # The clipped noise is one-sided (mean ~0.96 in the white area); stay close to white there.
+    assert out[:, 36:].mean() > 0.93
+    assert psnr(out, clean) > psnr(noisy, clean)
+
+
+def test_no_noise_does_not_damage(rng):
+    # sigma = 0: N2V trained on clean images predicts each pixel from its neighbours and
+    # blurs edges (measured 23 dB vs the input). The noise-level gate must leave such
+    # images untouched (up to clipping), while noisy images of the same scene are denoised.
+    clean = [smooth_scene(rng, 64, 64) for _ in range(2)]
+    model = train_n2v(clean, N2VConfig(unet=UNetConfig(width=4), steps=20, batch_size=2, patch_px=32), seed=0)
+    out = denoise_images(model, clean, passes=2)
+    for o, c in zip(out, clean, strict=True):
+        np.testing.assert_array_equal(o, c)
+    # 8-bit quantised clean images (sigma ~0.3/255) are also below the gate.
+    q = [np.round(c * 255) / 255 for c in clean]
+    assert all(np.array_equal(o, c.astype(np.float32)) for o, c in zip(denoise_images(model, q), q, strict=True))
+    noisy = add_noise(rng, clean[0], 5 / 255)
+    assert not np.array_equal(denoise_images(model, [noisy])[0], noisy)
+    # Without the gate the image is processed.
+    assert not np.array_equal(denoise_images(model, clean[:1], clean_sigma=0.0)[0], clean[0])
+
+
+def test_noise_estimate(rng):
+    # Immerkaer's estimator on a smooth scene: within 10% of the true sigma for white noise
+    # (the scene's curvature adds < 0.1/255); clipping is avoided by the [0.1, 0.9] range.
+    from denoise.noise_level import estimate_noise_sigma
+    img = smooth_scene(rng, 96, 96)
+    assert estimate_noise_sigma(img) < 0.2 / 255
+    for sigma in (2 / 255, 10 / 255):
+        noisy = (img + sigma * rng.standard_normal(img.shape)).astype(np.float32)
+        assert estimate_noise_sigma(noisy) == pytest.approx(sigma, rel=0.1)
+
+
+def test_untrained_model_is_centre_cancelling_and_errors(rng):
+    model = new_model(TINY, [torch.rand(3, 8, 8)], seed=0)
+    x = torch.rand(1, 3, 16, 16)
+    y1 = model.apply(x)
+    x2 = x.clone()
+    x2[0, :, 8, 8] += 0.5
+    y2 = model.apply(x2)
+    # The centre pixel's own value does not reach its output through the linear path; only
+    # through the (randomly initialised, small) convolutional features.
+    assert (y2 - y1)[0, :, 8, 8].abs().max().item() < 0.25
+    with pytest.raises(InputError):
+        denoise_images(model, [np.full((4, 4, 3), np.inf, np.float32)])

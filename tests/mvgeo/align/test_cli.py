@@ -1,0 +1,113 @@
+"""`mvgeo align|colmap|compare` end to end on a small data_synth scene, and bad input (exit 2, no OUT)."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mvgeo.cli import main
+from mvgeo.common.imageio import list_images, read_image, write_image
+from mvgeo.metrics import compare_poses
+from mvgeo.sparse_model import read_sparse_model
+
+FAST = ["--max-size", "160", "--pointmap-size", "64", "--iters", "100", "--points", "5000"]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    from data_synth import render_scene
+
+    out = tmp_path_factory.mktemp("scene") / "llff"
+    return render_scene("llff_like", out, size_wh=(160, 120), views=4)
+
+
+@pytest.fixture(scope="module")
+def aligned(scene, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("align") / "out"
+    assert main(["align", str(scene / "images"), "--out", str(out), *FAST]) == 0
+    return out
+
+
+def test_align_outputs(aligned, scene):
+    import open3d as o3d
+
+    model = read_sparse_model(aligned / "sparse" / "0")
+    names = [p.name for p in list_images(scene / "images")]
+    assert model.names == names
+    for cam in model.cameras.values():  # PINHOLE at the input resolution
+        assert cam.model == "PINHOLE" and (cam.width, cam.height) == (160, 120)
+        assert np.isfinite(cam.params).all() and cam.fx > 0
+    pcd = o3d.io.read_point_cloud(str(aligned / "points.ply"))
+    stats = json.loads((aligned / "align.json").read_text())
+    assert len(pcd.points) == stats["n_points"] > 100
+    assert np.isfinite(np.asarray(pcd.points)).all()
+    for key in ("timings_s", "final_loss", "focal_px", "mean_confidence", "failed_pairs"):
+        assert key in stats
+    assert stats["final_loss"] <= stats["init_loss"]
+
+
+def test_align_poses_against_ground_truth_and_colmap(aligned, scene, tmp_path, capsys):
+    """Small default-suite comparison: ours and COLMAP against the ground truth of 4 views at 160x120."""
+    gt = read_sparse_model(scene / "sparse" / "0").cam_from_world_by_name()
+    ours = compare_poses(read_sparse_model(aligned / "sparse" / "0").cam_from_world_by_name(), gt)
+    assert ours.registered_fraction == 1.0
+    # Measured on this scene (noisy 160x120 images, 4 views, fast settings): median relative rotation
+    # error 6.9 deg. The bound only guards against regressions beyond that (it is NOT as tight as COLMAP,
+    # which is the open accuracy gap reported in docs/bench/align.md).
+    assert ours.median_rotation_deg < 10.0
+    col = tmp_path / "colmap"
+    code = main(["colmap", str(scene / "images"), "--out", str(col)])
+    capsys.readouterr()
+    if code == 0:
+        assert main(["compare", str(col / "sparse" / "0"), str(scene / "sparse" / "0"), "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["n_ref"] == 4 and 0 <= out["registered_fraction"] <= 1
+    else:  # COLMAP may fail to initialise on 4 tiny noisy views; it must say so with exit 1 and no OUT
+        assert code == 1 and not col.exists()
+
+
+def test_compare_cli_json(aligned, scene, capsys):
+    assert main(["compare", str(aligned / "sparse" / "0"), str(scene / "sparse" / "0"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["n_registered"] == 4 and out["median_rotation_deg"] >= 0
+
+
+@pytest.mark.parametrize("case", ["missing", "empty", "one_image", "corrupt", "mixed_sizes", "duplicate"])
+def test_bad_input_exit_2_and_no_output(case, scene, tmp_path, capsys):
+    src = tmp_path / "imgs"
+    src.mkdir()
+    files = list_images(scene / "images")
+    if case == "missing":
+        src = tmp_path / "nope"
+    elif case == "one_image":
+        shutil.copy(files[0], src)
+    else:
+        for f in files[:3]:
+            shutil.copy(f, src)
+        if case == "corrupt":
+            (src / "view_001.png").write_bytes(b"not a png")
+        elif case == "mixed_sizes":
+            write_image(src / "view_001.png", read_image(files[1])[:100])
+        elif case == "duplicate":
+            shutil.copy(files[0], src / "view_009.png")
+        elif case == "empty":
+            for f in src.iterdir():
+                f.unlink()
+    out = tmp_path / "out"
+    assert main(["align", str(src), "--out", str(out), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and "Traceback" not in err
+    if case == "corrupt":
+        assert "view_001.png" in err
+    if case == "duplicate":
+        assert "identical" in err
+    if case == "mixed_sizes":
+        assert "different sizes" in err
+    assert not out.exists()
+    assert not list(tmp_path.glob(".out.tmp-*"))
+
+
+def test_unknown_pairs_spec_is_exit_2(scene, tmp_path):
+    assert main(["align", str(scene / "images"), "--out", str(tmp_path / "o"), "--pairs", "ring"]) == 2

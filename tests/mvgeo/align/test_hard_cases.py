@@ -1,0 +1,62 @@
+"""Hard inputs: a usable result or a specific failure, never NaN."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from mvgeo.align.api import PREVIEW, align_images
+from mvgeo.align.classical_pairs import ClassicalPairConfig
+from mvgeo.common.errors import DegenerateGeometryError, InputError
+from mvgeo.common.imageio import list_images
+
+FAST = replace(PREVIEW, max_size_px=160, pairwise=ClassicalPairConfig(pointmap_size_px=64),
+               align=replace(PREVIEW.align, iters=60))
+
+
+def _usable_or_specific_failure(paths, config=FAST):
+    try:
+        res = align_images(paths, config)
+    except (InputError, DegenerateGeometryError) as exc:
+        assert len(str(exc)) > 20  # a sentence naming the problem, not a bare code
+        return None
+    cams = np.stack([im.cam_from_world for im in res.sparse_model.images])
+    assert np.isfinite(cams).all()
+    assert all(np.isfinite(c.params).all() for c in res.sparse_model.cameras.values())
+    assert np.isfinite(res.points_xyz).all() and np.isfinite(res.points_conf).all()
+    assert np.isfinite(res.stats["final_loss"])
+    return res
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    from data_synth import render_scene
+
+    return render_scene("llff_like", tmp_path_factory.mktemp("s") / "llff", size_wh=(160, 120), views=4)
+
+
+def test_two_views(small_scene):
+    paths = list_images(small_scene / "images")[:2]
+    res = _usable_or_specific_failure(paths)
+    assert res is not None and len(res.sparse_model.images) == 2
+
+
+def test_pure_rotation_is_a_specific_failure(small_scene):
+    # Crops of one image = a camera rotating about its centre (approximately): no baseline.
+    from mvgeo.common.imageio import read_image
+
+    img = read_image(list_images(small_scene / "images")[0])
+    views = [np.ascontiguousarray(img[10:110, dx:dx + 130]) for dx in (0, 10, 20)]
+    with pytest.raises((InputError, DegenerateGeometryError)) as info:
+        align_images(views, FAST)
+    assert "disconnected" in str(info.value) or "rotation" in str(info.value) or "baseline" in str(info.value)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", ["hard_tinybaseline", "hard_lowtexture", "hard_repetitive"])
+@pytest.mark.parametrize("views", [3, 6])
+def test_hard_scenes(scene, views, tmp_path):
+    from data_synth import render_scene
+
+    d = render_scene(scene, tmp_path / scene, size_wh=(256, 192), views=views)
+    _usable_or_specific_failure(list_images(d / "images"))
