@@ -1,5 +1,7 @@
 """mvgeo align vs pycolmap incremental SfM: pose accuracy and time on 12-view scenes.
 
+Usage: `python benchmarks/bench_align.py [--scenes=llff_like,object_ring,temple] [--sweep]`.
+
 Scenes: data_synth `llff_like` and `object_ring` rendered with 12 views (noisy
 images, ground-truth poses), and ../shared/data/temple_sparse_ring (12 of its
 16 real views, calibrated poses) when present. Variants of ours show what
@@ -38,13 +40,17 @@ def temple_ground_truth(folder: Path, names: list[str]) -> dict[str, np.ndarray]
     return out
 
 
-def scenes(work: Path):
+def scenes(work: Path, names: list[str] | None = None):
     from data_synth import render_scene
 
-    for name in ("llff_like", "object_ring"):
+    for name in names or ("llff_like", "object_ring", "temple"):
+        if name == "temple":
+            continue
         d = render_scene(name, work / name, views=12)
         ref = read_sparse_model(d / "sparse" / "0")
         yield name, d / "images", ref.cam_from_world_by_name(), ref.cameras[ref.images[0].camera_id].fx
+    if names and "temple" not in names:
+        return
     if TEMPLE.is_dir():
         imgs = TEMPLE if list(TEMPLE.glob("*.png")) else TEMPLE / "images"
         names = [p.name for p in list_images(imgs)]
@@ -69,11 +75,13 @@ def row(scene, method, est: dict, ref: dict, f_est, f_ref, seconds):
 def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     rows = []
-    variants = [("ours (300 it, 512 px)", AlignConfig()),
-                ("ours (100 it, 512 px)", AlignConfig(align=GlobalAlignConfig(iters=100))),
-                ("ours (300 it, 320 px)", AlignConfig(max_size_px=320))]
+    variants = [("ours (300 it, 512 px)", AlignConfig())]
+    if "--sweep" in sys.argv:  # accuracy vs time: iterations and --max-size (slow: ~3x longer)
+        variants += [("ours (100 it, 512 px)", AlignConfig(align=GlobalAlignConfig(iters=100))),
+                     ("ours (300 it, 320 px)", AlignConfig(max_size_px=320))]
+    only = [a.split("=", 1)[1] for a in sys.argv if a.startswith("--scenes=")]
     with tempfile.TemporaryDirectory() as tmp:
-        for scene, images, ref, f_ref in scenes(Path(tmp)):
+        for scene, images, ref, f_ref in scenes(Path(tmp), only[0].split(",") if only else None):
             paths = [p for p in list_images(images) if p.name in ref]
             for label, cfg in variants:
                 t = time.perf_counter()

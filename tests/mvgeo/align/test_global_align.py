@@ -96,7 +96,7 @@ def test_vectorised_loss_matches_loop_reference(rng):
     du = np.concatenate([pixel_rays(6, 8, 1.0)[..., 0].ravel()] * 3)
     dv = np.concatenate([pixel_rays(6, 8, 1.0)[..., 1].ravel()] * 3)
     grid = _Grid(T(du), T(dv), torch.arange(3).repeat_interleave(48), [0, 48, 96, 144])
-    fast = float(alignment_loss(params, terms, grid, pinned_scale=1.0))
+    fast = float(alignment_loss(params, terms, grid, pinned_scale=1.0).detach())
     # Same float64 arithmetic in a different order: agreement to ~1e-12 relative.
     assert fast == pytest.approx(ref, rel=1e-10)
 
