@@ -26,8 +26,8 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--pairs", default="auto", help="complete | window:K | auto (complete up to 24 images)")
     a.add_argument("--shared-focal", action="store_true", help="one focal for all views")
     a.add_argument("--iters", type=int, default=300, help="global alignment iterations")
-    a.add_argument("--ba", action=argparse.BooleanOptionalAction, default=False,
-                   help="sparse bundle adjustment on the feature tracks after the alignment")
+    a.add_argument("--ba", action=argparse.BooleanOptionalAction, default=True,
+                   help="sparse bundle adjustment on the feature tracks after the alignment (default: on)")
     a.add_argument("--points", type=int, default=200_000, help="point budget of points.ply")
     a.add_argument("--intrinsics", type=Path, help="COLMAP cameras.txt or mrcal .cameramodel of these images")
     add_common_args(a)

@@ -46,7 +46,7 @@ class BundleConfig:
     """
 
     huber_px: float = 1.0
-    max_nfev: int = 100
+    max_nfev: int = 200
     shared_focal: bool = True
     optimize_focal: bool = True
     max_points: int = 20000

@@ -12,7 +12,8 @@ from mvgeo.common.imageio import list_images, read_image, write_image
 from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
 
-FAST = ["--max-size", "160", "--pointmap-size", "64", "--iters", "100", "--points", "5000"]
+# Small and quick; the bundle adjustment is exercised in test_hard_cases (it would double this file's time).
+FAST = ["--max-size", "160", "--pointmap-size", "64", "--iters", "100", "--points", "5000", "--no-ba"]
 
 
 @pytest.fixture(scope="module")

@@ -6,12 +6,13 @@ import numpy as np
 import pytest
 
 from mvgeo.align.api import PREVIEW, align_images
+from mvgeo.align.bundle import BundleConfig
 from mvgeo.align.classical_pairs import ClassicalPairConfig
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.imageio import list_images
 
 FAST = replace(PREVIEW, max_size_px=160, pairwise=ClassicalPairConfig(pointmap_size_px=64),
-               align=replace(PREVIEW.align, iters=60))
+               align=replace(PREVIEW.align, iters=60), bundle=BundleConfig(max_nfev=30))
 
 
 def _usable_or_specific_failure(paths, config=FAST):
@@ -39,6 +40,8 @@ def test_two_views(small_scene):
     paths = list_images(small_scene / "images")[:2]
     res = _usable_or_specific_failure(paths)
     assert res is not None and len(res.sparse_model.images) == 2
+    ba = res.stats["bundle_adjustment"]
+    assert ba is not None and ba["reproj_rms_after_px"] <= ba["reproj_rms_before_px"]
 
 
 def test_pure_rotation_is_a_specific_failure(small_scene):
