@@ -29,6 +29,7 @@ from mvgeo.common.deps import cv2  # noqa: E402
 from mvgeo.common.imageio import list_images, read_image  # noqa: E402
 
 torch.set_num_threads(1)
+PASSES = 8  # the default K of denoise_images
 cv2.setNumThreads(1)
 
 
@@ -98,30 +99,33 @@ def main() -> None:
              for c in clean], float(np.sqrt(a * np.mean(clean) + s * s))),
     }
     rows, sweep_rows, pass_rows = [], [], []
-    steps_main = {"gaussian 25/255": 600, "gaussian 50/255": 300, "poisson-gaussian a=0.01 s=5/255": 300}
+    cfg = n2v_preset("default")
+    steps = cfg.steps
     for level, (noisy, sigma) in levels.items():
         rows.append([level, "noisy input", *scores(noisy, clean), 0.0, ""])
-        steps = steps_main[level]
         t = time.perf_counter()
-        model = train_n2v(noisy, n2v_preset("default", steps=steps), seed=0)
+        model = train_n2v(noisy, cfg, seed=0)
         train_s = time.perf_counter() - t
-        for passes in (0, 1, 8) if level == "gaussian 25/255" else (8,):
-            t = time.perf_counter()
-            outs = denoise_images(model, noisy, passes=passes, seed=0)
-            dt = (time.perf_counter() - t) / len(noisy)
-            p, q = scores(outs, clean)
-            if passes == 8:
-                rows.append([level, f"N2V-UNet (default, {steps} steps, K=8)", p, q, dt,
-                             f"+ training {train_s:.0f} s for {len(noisy)} views"])
-            if level == "gaussian 25/255":
-                pass_rows.append([passes, p, q, dt])
+        note = f"+ training {train_s:.0f} s for {len(noisy)} views"
+        for passes in (0, 1, 8) if level == "gaussian 25/255" else (PASSES,):
+            for fuse in (True, False) if passes == PASSES else (True,):
+                t = time.perf_counter()
+                outs = denoise_images(model, noisy, passes=passes, seed=0, fuse=fuse)
+                dt = (time.perf_counter() - t) / len(noisy)
+                p, q = scores(outs, clean)
+                if passes == PASSES:
+                    label = "N2V-UNet + centre fusion" if fuse else "N2V-UNet, blind-spot output only"
+                    rows.append([level, f"{label} (default, {steps} steps, K={passes})", p, q, dt, note])
+                    if fuse and level == "gaussian 25/255":
+                        sweep_rows.append([steps, p, train_s])
+                if level == "gaussian 25/255" and fuse:
+                    pass_rows.append([passes, p, q, dt])
         if level == "gaussian 25/255":
-            sweep_rows.append([steps, scores(denoise_images(model, noisy, passes=8), clean)[0], train_s])
-            for st in (100, 300):
+            for st in (steps // 4, steps // 2):
                 t = time.perf_counter()
                 m = train_n2v(noisy, n2v_preset("default", steps=st), seed=0)
                 ts = time.perf_counter() - t
-                sweep_rows.append([st, scores(denoise_images(m, noisy, passes=8), clean)[0], ts])
+                sweep_rows.append([st, scores(denoise_images(m, noisy, passes=PASSES), clean)[0], ts])
         for name, fn in classical(sigma).items():
             outs, dt = timed(fn, noisy)
             rows.append([level, name, *scores(outs, clean), dt, "oracle sigma"])

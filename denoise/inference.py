@@ -17,10 +17,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from denoise.fusion import fuse_with_observation
 from denoise.images import image_to_tensor, tensor_to_image
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
-from denoise.noise_level import estimate_noise_sigma
+from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_robust
 from mvgeo.common.errors import check_shape
 from mvgeo.common.progress import progress
 
@@ -94,7 +95,9 @@ def denoise_tensor(model: N2VModel, x: Tensor, *, passes: int = 8, generator: to
 
 
 def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int = 8, seed: int = 0,
-                   tile_px: int = 256, margin_px: int = 48, clean_sigma: float = CLEAN_SIGMA) -> list[np.ndarray]:
+                   tile_px: int = 256, margin_px: int = 48, clean_sigma: float = CLEAN_SIGMA,
+                   fuse: bool | None = None, noise_sigma: float | None = None,
+                   fuse_window_px: float = 2.0) -> list[np.ndarray]:
     """Denoise images with a trained model.
 
     Args:
@@ -105,6 +108,12 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
         tile_px, margin_px: tiling (see `predict_tiled`).
         clean_sigma: images with an estimated noise std below this ([0, 1] units) are
             returned unchanged (clipped to [0, 1]); 0 denoises everything.
+        fuse: blend the blind-spot prediction with the noisy pixel it ignored
+            (`denoise.fusion.fuse_with_observation`); default: when the model is a
+            blind-spot (round-1) model, ``model.blind_spot``.
+        noise_sigma: noise std ([0, 1] units) for the fusion; default: estimated per image
+            (`estimate_noise_sigma_robust`).
+        fuse_window_px: Gaussian window sigma (px) of the fusion's local variance.
 
     Returns:
         Denoised images, float32 in ``[0, 1]``, each in the layout of its input.
@@ -122,5 +131,9 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
             continue
         y = denoise_tensor(model, x, passes=passes, generator=gen,
                            tile_px=tile_px, margin_px=margin_px)
+        if model.blind_spot if fuse is None else fuse:
+            s = estimate_noise_sigma_robust(img) if noise_sigma is None else noise_sigma
+            y = fuse_with_observation(y, x, noise_sigma=s,
+                                      window_sigma_px=fuse_window_px)
         out.append(tensor_to_image(y[0], like=img))
     return out

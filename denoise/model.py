@@ -33,6 +33,9 @@ class N2VModel:
         alpha: residual scale.
         mask_prob, replacement, radius: the training masking, reused by K-pass inference.
         history: training losses, one per step (round 1, then round 2 appended).
+        blind_spot: the network was trained blind-spot only (round 1), so inference may
+            fuse its prediction with the ignored centre pixel (`denoise.fusion`); round 2
+            trains on the full input and clears it.
     """
 
     unet: UNet
@@ -43,6 +46,7 @@ class N2VModel:
     replacement: str = "permute"
     radius: int = 5
     history: list[float] = field(default_factory=list)
+    blind_spot: bool = True
 
     STD_FLOOR = 1e-2
 
@@ -78,6 +82,7 @@ def save_checkpoint(path: str | Path, model: N2VModel) -> None:
         "masking": {"mask_prob": float(model.mask_prob), "replacement": model.replacement,
                     "radius": int(model.radius)},
         "history": [float(v) for v in model.history],
+        "blind_spot": bool(model.blind_spot),
     }
     buf = io.BytesIO()
     torch.save(state, buf)
@@ -111,4 +116,4 @@ def load_checkpoint(path: str | Path, *, device: torch.device | str = "cpu") -> 
     return N2VModel(unet=unet, mean=tuple(state["mean"]), std=tuple(state["std"]), alpha=float(state["alpha"]),
                     mask_prob=float(masking.get("mask_prob", 0.04)),
                     replacement=str(masking.get("replacement", "permute")), radius=int(masking.get("radius", 5)),
-                    history=list(state.get("history", [])))
+                    history=list(state.get("history", [])), blind_spot=bool(state.get("blind_spot", True)))

@@ -165,4 +165,5 @@ def finetune_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders
             model.history.append(terms.total.item())
             bar.update(1)
     unet.eval()
+    model.blind_spot = False  # trained on the full input now: no centre-pixel fusion at inference
     return model

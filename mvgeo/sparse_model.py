@@ -122,7 +122,7 @@ def to_pycolmap(model: SparseModel):
     for image_id, im in enumerate(model.images, start=1):
         pim = pycolmap.Image(name=im.name, camera_id=int(im.camera_id), image_id=image_id)
         rec.add_image_with_trivial_frame(pim, _rigid3d_from_cam_from_world(im.cam_from_world))
-    for xyz, rgb in zip(model.points_xyz, model.points_rgb):
+    for xyz, rgb in zip(model.points_xyz, model.points_rgb, strict=True):
         rec.add_point3D(np.asarray(xyz, np.float64), pycolmap.Track(), np.asarray(rgb, np.uint8))
     return rec
 

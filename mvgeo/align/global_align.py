@@ -270,25 +270,36 @@ def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[
     """
     n = len(sizes_hw)
     edges = [(p.i, p.j) for p in preds]
-    order = maximum_spanning_tree(n, edges, [max(p.score, 1e-6) for p in preds])
+    scores = [max(p.score, 1e-6) for p in preds]
+    order = maximum_spanning_tree(n, edges, scores)
     pts_world: dict[int, np.ndarray] = {}
     conf_world: dict[int, np.ndarray] = {}
-    for k in order:
-        p = preds[k]
-        if not pts_world:
-            pts_world[p.i], conf_world[p.i] = p.pts_i.astype(np.float64), p.conf_i
-            pts_world[p.j], conf_world[p.j] = p.pts_j.astype(np.float64), p.conf_j
-            continue
-        if p.i in pts_world and p.j in pts_world:
-            continue
-        known, P_known, C_known, new, P_new, C_new = (
-            (p.i, p.pts_i, p.conf_i, p.j, p.pts_j, p.conf_j) if p.i in pts_world
-            else (p.j, p.pts_j, p.conf_j, p.i, p.pts_i, p.conf_i))
-        ok = _valid(C_known, P_known) & _valid(conf_world[known], pts_world[known])
-        w = np.log(C_known[ok]) * np.log(conf_world[known][ok])
-        s, R, t = weighted_umeyama(P_known[ok].astype(np.float64), pts_world[known][ok], w)
-        pts_world[new] = s * P_new.astype(np.float64) @ R.T + t
-        conf_world[new] = C_new
+    first = preds[order[0]]
+    pts_world[first.i], conf_world[first.i] = first.pts_i.astype(np.float64), first.conf_i
+    pts_world[first.j], conf_world[first.j] = first.pts_j.astype(np.float64), first.conf_j
+    # Prim's algorithm = the maximum spanning tree grown from its strongest edge; an edge whose
+    # Procrustes is degenerate (too little confident overlap) is skipped for the next best one.
+    bad: set[int] = set()
+    while True:
+        frontier = sorted((k for k, p in enumerate(preds) if k not in bad
+                           and ((p.i in pts_world) != (p.j in pts_world))), key=lambda k: -scores[k])
+        if not frontier:
+            break
+        for k in frontier:
+            p = preds[k]
+            known, P_known, C_known, new, P_new, C_new = (
+                (p.i, p.pts_i, p.conf_i, p.j, p.pts_j, p.conf_j) if p.i in pts_world
+                else (p.j, p.pts_j, p.conf_j, p.i, p.pts_i, p.conf_i))
+            ok = _valid(C_known, P_known) & _valid(conf_world[known], pts_world[known])
+            w = np.log(C_known[ok]) * np.log(conf_world[known][ok])
+            try:
+                s, R, t = weighted_umeyama(P_known[ok].astype(np.float64), pts_world[known][ok], w)
+            except DegenerateGeometryError:
+                bad.add(k)
+                continue
+            pts_world[new] = s * P_new.astype(np.float64) @ R.T + t
+            conf_world[new] = C_new
+            break
     missing = [v for v in range(n) if v not in pts_world]
     if missing:
         raise DegenerateGeometryError(f"views {missing} are not connected to the others by any pair")

@@ -14,6 +14,7 @@ and the principal point is assumed at the image centre `(W / 2, H / 2)`
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -80,28 +81,29 @@ class PairFailure:
 
 @runtime_checkable
 class PointmapModel(Protocol):
-    """Anything that turns an image pair into a `PairPrediction`.
+    """Anything that turns image pairs into `PairPrediction`s.
 
-    Implement `predict_pair(image_i, image_j, *, i, j)` where the images are
-    (H, W, 3) float32 RGB in [0, 1] at the resolution the pointmaps should
-    have (the caller downsizes them; `pointmap_size_px` is the long side the
-    caller should use). Return a `PairPrediction`, or raise
-    `mvgeo.align.pairs.PairFailedError` with a human-readable reason when the
-    pair cannot be related (the pair is then reported and skipped).
+    `predict_pairs(images, pairs)` receives all N images, (H, W, 3) float32 RGB
+    in [0, 1] at the alignment resolution (long side <= `--max-size`), and the
+    (i, j) pairs of the pair graph. It returns the predictions, with pointmaps
+    on a grid whose long side is `pointmap_size_px` (see
+    `mvgeo.align.classical_pairs.pointmap_shape`), and a `PairFailure` with a
+    human-readable reason for every pair it could not relate (reported in
+    align.json, never raised). Batching over pairs lets a model reuse per-image
+    work (features, encoder outputs).
 
-    A learned DUSt3R/MASt3R wrapper fits here: run the network on (i, j),
+    A learned DUSt3R/MASt3R wrapper fits here: run the network on each (i, j),
     return its `pts3d` / `pts3d_in_other_view` / `conf` outputs as
-    `pts_i` / `pts_j` / `conf_i`, `conf_j`, and a focal estimated from `pts_i`
-    with `mvgeo.align.pairs.focal_from_pointmap`.
+    `pts_i` / `pts_j` / `conf_i`, `conf_j` (its confidences are already >= 1),
+    and a focal estimated from `pts_i` with `focal_from_pointmap`; pass it as
+    `mvgeo.align.align_images(..., model=MyModel())`.
     """
 
-    pointmap_size_px: int
+    @property
+    def pointmap_size_px(self) -> int: ...
 
-    def predict_pair(self, image_i: np.ndarray, image_j: np.ndarray, *, i: int, j: int) -> PairPrediction: ...
-
-
-class PairFailedError(Exception):
-    """Raised by a `PointmapModel` when a pair cannot be related (the message is the reason)."""
+    def predict_pairs(self, images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int]]
+                      ) -> tuple[list[PairPrediction], list[PairFailure]]: ...
 
 
 def focal_from_pointmap(pts: np.ndarray, conf: np.ndarray | None = None) -> float:

@@ -93,6 +93,6 @@ def check_shape(x, expected: Sequence[str | int], name: str = "array") -> None:
         if len(shape) != len(pattern):
             raise ShapeError(f"{name}: expected shape ({', '.join(map(str, pattern))}), got {shape}")
         tail = shape
-    for got, want in zip(tail, pattern):
+    for got, want in zip(tail, pattern, strict=True):
         if isinstance(want, int) and got != want:
             raise ShapeError(f"{name}: expected shape {tuple(expected)}, got {shape}")

@@ -63,3 +63,32 @@ def test_hard_scenes(scene, views, tmp_path):
 
     d = render_scene(scene, tmp_path / scene, size_wh=(256, 192), views=views)
     _usable_or_specific_failure(list_images(d / "images"))
+
+
+def test_known_intrinsics_from_colmap_cameras_txt(small_scene, tmp_path):
+    from mvgeo.align.intrinsics import read_intrinsics
+    from mvgeo.sparse_model import read_sparse_model, write_sparse_model
+
+    gt = read_sparse_model(small_scene / "sparse" / "0")
+    write_sparse_model(tmp_path / "m", gt, binary=False)
+    cam = read_intrinsics(tmp_path / "m" / "cameras.txt")
+    known = align_images(list_images(small_scene / "images"), FAST, intrinsics=cam)
+    assert known.stats["known_intrinsics"]
+    for c in known.sparse_model.cameras.values():  # written unchanged at the input resolution
+        np.testing.assert_allclose(c.params, cam.K[[0, 1, 0, 1], [0, 1, 2, 2]])
+    assert np.isfinite(np.stack([im.cam_from_world for im in known.sparse_model.images])).all()
+
+
+def test_classical_model_is_a_pointmap_model():
+    from mvgeo.align.classical_pairs import ClassicalPointmapModel
+    from mvgeo.align.pairs import PointmapModel
+
+    assert isinstance(ClassicalPointmapModel(), PointmapModel)
+
+
+def test_unknown_intrinsics_format_is_input_error(tmp_path):
+    from mvgeo.align.intrinsics import read_intrinsics
+
+    (tmp_path / "cam.yaml").write_text("fx: 1")
+    with pytest.raises(InputError, match="unknown intrinsics format"):
+        read_intrinsics(tmp_path / "cam.yaml")

@@ -30,10 +30,10 @@ def results(llff12):
 def test_ours_registers_all_and_meets_measured_bounds(results):
     ours, _ = results
     assert ours.registered_fraction == 1.0
-    # Measured (benchmarks/bench_align.py, docs/bench/align.md): median rotation 0.073 deg, ATE 0.0023
-    # (scene units, ~m) on llff_like 12 views 504x378. Bounds ~2.5x the measurement.
+    # Measured (benchmarks/bench_align.py, docs/bench/align.md): median rotation 0.077 deg, ATE 0.0030
+    # (scene units) on llff_like 12 views 504x378 (pycolmap: 0.033 deg, 0.0010). Bounds ~2.6x ours.
     assert ours.median_rotation_deg < 0.2
-    assert ours.ate.rmse < 0.006
+    assert ours.ate.rmse < 0.008
 
 
 @pytest.mark.xfail(strict=True, reason="known gap (issue 5): our poses are less accurate than pycolmap's "
