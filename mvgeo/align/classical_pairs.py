@@ -135,6 +135,9 @@ def _resize(image: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
     return cv2.resize(image, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
 
 
+_MIN_INTERPOLATOR_MATCHES = 8
+
+
 def dense_flow(gray_a: np.ndarray, gray_b: np.ndarray, uv_a_px: np.ndarray, uv_b_px: np.ndarray) -> np.ndarray:
     """(H, W, 2) flow a -> b: sparse matches densified (edge-aware), refined by DIS.
 
@@ -148,10 +151,20 @@ def dense_flow(gray_a: np.ndarray, gray_b: np.ndarray, uv_a_px: np.ndarray, uv_b
     dst = (uv_b_px - 0.5).astype(np.float32)
     inside = (src[:, 0] >= 0) & (src[:, 0] <= W - 1) & (src[:, 1] >= 0) & (src[:, 1] <= H - 1)
     src, dst = src[inside], dst[inside]
-    interp = cv2.ximgproc.createEdgeAwareInterpolator()
-    interp.setK(min(32, max(len(src) - 1, 1)))
-    init = interp.interpolate(cv2.cvtColor(gray_a, cv2.COLOR_GRAY2BGR), src.reshape(-1, 1, 2),
-                              cv2.cvtColor(gray_b, cv2.COLOR_GRAY2BGR), dst.reshape(-1, 1, 2))
+    # OpenCV's EdgeAwareInterpolator segfaults (measured: 2 of 3 runs on a real pair) when two
+    # matches fall on the same integer pixel (SIFT returns one keypoint per orientation, so exact
+    # duplicates are common) or when it gets very few matches. Keep one match per pixel, and
+    # below a handful fall back to the median displacement as the initial flow.
+    _, first = np.unique(np.rint(src).astype(np.int64) @ np.array([1, W + 1]), return_index=True)
+    src, dst = src[np.sort(first)], dst[np.sort(first)]
+    if len(src) < _MIN_INTERPOLATOR_MATCHES:
+        shift = np.median(dst - src, axis=0) if len(src) else np.zeros(2, np.float32)
+        init = np.broadcast_to(shift.astype(np.float32), (H, W, 2))
+    else:
+        interp = cv2.ximgproc.createEdgeAwareInterpolator()
+        interp.setK(min(32, len(src) - 1))
+        init = interp.interpolate(cv2.cvtColor(gray_a, cv2.COLOR_GRAY2BGR), src.reshape(-1, 1, 2),
+                                  cv2.cvtColor(gray_b, cv2.COLOR_GRAY2BGR), dst.reshape(-1, 1, 2))
     dis = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     return dis.calc(gray_a, gray_b, np.ascontiguousarray(init, dtype=np.float32))
 

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from denoise.fusion import fuse_with_observation
 from denoise.inference import denoise_images, denoise_tensor, predict_tiled, tile_starts
 from denoise.n2v import N2VConfig, new_model, train_n2v
 from denoise.unet import UNetConfig
@@ -54,8 +55,8 @@ def test_tiled_equals_whole_image_no_seams(trained, rng):
 
 def test_passes_average_and_seed(trained, rng):
     img = add_noise(rng, smooth_scene(rng, 33, 35), 0.1)
-    a = denoise_images(trained, [img], passes=3, seed=1)[0]
-    b = denoise_images(trained, [img], passes=3, seed=1)[0]
+    a = denoise_images(trained, [img], passes=3, seed=1, fuse=False)[0]
+    b = denoise_images(trained, [img], passes=3, seed=1, fuse=False)[0]
     np.testing.assert_array_equal(a, b)
     # The K-pass result is the mean of the individual masked passes drawn from one generator.
     x = torch.from_numpy(img.transpose(2, 0, 1).copy())[None]
@@ -63,6 +64,12 @@ def test_passes_average_and_seed(trained, rng):
     singles = [denoise_tensor(trained, x, passes=1, generator=gen) for _ in range(3)]
     mean = torch.stack(singles).mean(0)[0].clamp(0, 1).numpy().transpose(1, 2, 0)
     np.testing.assert_allclose(a, mean, atol=1e-6)
+    # Default for a round-1 (blind-spot) model: that mean fused with the observation.
+    assert trained.blind_spot
+    fused = denoise_images(trained, [img], passes=3, seed=1, noise_sigma=0.1)[0]
+    ref = fuse_with_observation(torch.stack(singles).mean(0), x, noise_sigma=0.1)[0].clamp(0, 1)
+    np.testing.assert_allclose(fused, ref.numpy().transpose(1, 2, 0), atol=1e-6)  # float32, same ops
+    assert not np.allclose(fused, a, atol=1e-3)  # the fusion did something
     unmasked = denoise_images(trained, [img], passes=0)[0]
     assert unmasked.shape == img.shape and unmasked.dtype == np.float32
 
