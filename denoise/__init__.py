@@ -8,12 +8,13 @@ Python API (what the pipeline calls)::
 
     model = train_n2v(noisy, n2v_preset("default"), seed=0)   # noisy: list of (H, W, 3) float32 [0, 1]
     clean1 = denoise_images(model, noisy, passes=8)           # K maskings averaged; passes=0: one plain pass
+                                                              # (+ fusion with the centre pixel: denoise.fusion)
     sel = select_views(cam_from_world_by_name, images_by_name, k=12, seed=0)
     model = finetune_round2(model, [noisy[i] for i in idx], renders, Round2Config(), seed=0)
     clean2 = denoise_images(model, noisy, passes=8)
     save_checkpoint("model.pt", model); model = load_checkpoint("model.pt")
 
-Layers: `filters` / `losses` / `masking` (torch kernels) -> `unet`, `model` ->
+Layers: `filters` / `losses` / `masking` / `fusion` (torch kernels) -> `unet`, `model` ->
 `n2v` (round-1 training), `inference`, `round2`, `view_selection` (+ `kmeans`) -> `cli`.
 `denoise.losses.ssim` is the project's SSIM (splatting loss and evaluation metric).
 """

@@ -36,10 +36,11 @@ class N2VConfig:
     Defaults were measured on data_synth ``object_ring`` views (256x192, sigma 25/255; not
     the benchmark's scene), torch single-threaded on the shared 2-core machine:
 
-    - ``lr``: 2e-3 (the previous default) *diverges* (loss ~70 in normalised units,
-      output PSNR 5 dB after 600 steps; a supervised run of the same UNet at 2e-3 diverged
-      too). 4e-4 (N2V's) is stable but slower: 22.18 dB blind-spot output after 400 steps;
-      1e-3 reached 22.28 dB with a lower loss. Hence 1e-3.
+    - ``lr``: 2e-3 (the previous default) is at the edge of stability: with 600 steps it
+      diverged (loss ~70 in normalised units, output 5 dB; a supervised run of the same
+      UNet at 2e-3 and 600 steps diverged too), with 400 steps it did not. 4e-4 (N2V's)
+      is stable but slower: 22.18 dB blind-spot output after 400 steps; 1e-3 reached
+      22.28 dB with a lower loss. Hence 1e-3.
     - ``mask_prob`` 0.15 instead of 0.04 (more loss pixels per step) was worse: 21.48 vs
       22.18 dB at 400 steps.
     - the centre-cancelling init (`init_centre_cancelling`, ``UNetConfig.input_skip``)
@@ -47,8 +48,11 @@ class N2VConfig:
       noisy input, 20.34) after the same 400 steps at 4e-4.
     - the blind-spot output then gains ~2 dB from fusion with the centre pixel at
       inference (`denoise.fusion`): 22.28 -> 24.31 dB; NLM (best h) 23.24, TV 23.57.
-    - width 8 (the ``fast`` preset) costs ~0.2 dB (24.13 dB fused) at less than half the
-      time (49 s for 400 steps at load ~5).
+    - the ``n2v2`` preset (blur-pool, no top skip, median replacement) at 400 steps: 21.80 dB
+      blind-spot, 23.98 fused (vs 22.28 / 24.31): no checkerboard gain to pay for at this budget.
+    - width 8 (the ``fast`` preset) costs ~0.2 dB (24.13 dB fused) for 49 s of training
+      against 111 s at width 16 (400 steps each; separate runs, load 2-5: a rough ratio);
+      800 steps at width 8 gave 24.35 dB: the curve flattens after ~400 steps.
 
     Attributes:
         unet: network architecture (width 16, 4 levels).

@@ -62,9 +62,9 @@ class AlignConfig:
     seed: int = 0
 
 
-#: A faster preset for tests and previews (fewer iterations, smaller pointmaps).
+#: A faster preset for tests and previews (fewer iterations, smaller pointmaps, at most 20k points).
 PREVIEW = AlignConfig(max_size_px=320, pairwise=ClassicalPairConfig(pointmap_size_px=96),
-                      align=GlobalAlignConfig(iters=100))
+                      align=GlobalAlignConfig(iters=100), points_budget=20_000)
 
 
 @dataclass

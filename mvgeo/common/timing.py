@@ -25,7 +25,7 @@ class StageTimer:
         finally:
             elapsed = time.perf_counter() - start
             self.seconds[name] = self.seconds.get(name, 0.0) + elapsed
-            _log.info("stage %s: %.2f s", name, elapsed)
+            _log.debug("stage %s: %.2f s", name, elapsed)
 
     def as_dict(self) -> dict[str, float]:
         """Stage name -> seconds, plus `total`."""

@@ -77,11 +77,14 @@ def test_n2v_denoises_smooth_scenes(rng):
     # beat the noisy input by a wide margin on piecewise-smooth scenes at sigma = 25/255.
     clean = [smooth_scene(rng, 64, 64) for _ in range(3)]
     noisy = [add_noise(rng, c, 25 / 255) for c in clean]
-    cfg = n2v_preset("fast")
+    # The fast preset's network at a test-sized schedule (the preset's 400 x 8 patches of 64 px
+    # take minutes on the shared machine).
+    cfg = n2v_preset("fast", steps=200, batch_size=4, patch_px=48)
     model = train_n2v(noisy, cfg, seed=0)
     assert np.mean(model.history[-10:]) < np.mean(model.history[:10])
-    out = denoise_images(model, noisy, passes=2, seed=0)
+    out = denoise_images(model, noisy, passes=2, seed=0, fuse=False)
     gain = np.mean([psnr(o, c) - psnr(n, c) for o, n, c in zip(out, noisy, clean, strict=True)])
-    # Measured +5.3 dB with this seed (fast preset, 200 steps); 3 dB leaves margin for BLAS /
+    # The network alone (fuse=False; the centre-pixel fusion is tested in test_fusion.py).
+    # Measured +4.0 dB with this seed (lr 1e-3, 200 steps); 3 dB leaves margin for BLAS /
     # thread-count differences while failing for an identity or a broken (self-copying) training.
     assert gain > 3.0, gain
