@@ -1,6 +1,7 @@
 """Run benchmarks and assemble docs/benchmarks.md.
 
-Usage: `make bench` (all) or `make bench ONLY="splat denoise"`.
+Usage: `make bench` (all) or `make bench ONLY="splat denoise"`;
+`python benchmarks/run_all.py --assemble` only rebuilds docs/benchmarks.md from the fragments.
 
 Each `benchmarks/bench_<name>.py` is run as its own process (so one's memory
 and threads do not disturb another's) and writes `docs/bench/<name>.md`, which
@@ -37,7 +38,8 @@ def machine_line() -> str:
 
 
 def main(argv: list[str]) -> int:
-    only = set(argv)
+    assemble_only = "--assemble" in argv
+    only = {a for a in argv if a != "--assemble"}
     scripts = sorted((ROOT / "benchmarks").glob("bench_*.py"))
     if only:
         scripts = [s for s in scripts if s.stem.removeprefix("bench_") in only]
@@ -47,6 +49,8 @@ def main(argv: list[str]) -> int:
             return 2
     FRAGMENTS.mkdir(parents=True, exist_ok=True)
     failed = []
+    if assemble_only:
+        scripts = []
     for script in scripts:
         print(f"== {script.name}", flush=True)
         start = time.perf_counter()
