@@ -14,7 +14,6 @@ import numpy as np
 
 from data_synth.spec import CameraSpec
 from mvgeo.camera import Camera
-from mvgeo.distortion import undistort
 
 
 def camera_from_spec(spec: CameraSpec, size_wh: tuple[int, int]) -> Camera:
@@ -29,19 +28,6 @@ def camera_from_spec(spec: CameraSpec, size_wh: tuple[int, int]) -> Camera:
         return Camera("PINHOLE", w, h, np.array([f, f, w / 2.0, h / 2.0]))
     k1, k2, p1, p2 = spec.distortion
     return Camera("OPENCV", w, h, np.array([f, f, w / 2.0, h / 2.0, k1, k2, p1, p2]))
-
-
-def _dist8(camera: Camera) -> np.ndarray | None:
-    if camera.model in ("PINHOLE", "SIMPLE_PINHOLE"):
-        return None
-    dist = np.zeros(8)
-    if camera.model == "SIMPLE_RADIAL":
-        dist[0] = camera.params[3]
-    elif camera.model == "OPENCV":
-        dist[:4] = camera.params[4:8]
-    elif camera.model == "FULL_OPENCV":
-        dist[:] = camera.params[4:12]
-    return dist
 
 
 def sample_positions(size_wh: tuple[int, int], n: int) -> np.ndarray:
@@ -73,11 +59,10 @@ def camera_rays(camera: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]
             the lens model's valid region (those samples are treated as misses).
     """
     uv = np.asarray(uv, dtype=np.float64)
+    if np.any(camera.dist):
+        rays = camera.unproject(uv)
+        return rays.rays_cam, rays.valid
+    # pinhole: closed form, no Newton iterations on the renderer's hot path
     xy = np.stack([(uv[..., 0] - camera.cx) / camera.fx, (uv[..., 1] - camera.cy) / camera.fy], axis=-1)
-    dist = _dist8(camera)
-    valid = np.ones(uv.shape[:-1], dtype=bool)
-    if dist is not None and np.any(dist):
-        res = undistort(xy, dist)
-        xy, valid = res.xy, res.valid
     dirs = np.concatenate([xy, np.ones(uv.shape[:-1] + (1,))], axis=-1)
-    return dirs, valid
+    return dirs, np.ones(uv.shape[:-1], dtype=bool)

@@ -36,9 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
+from denoise.noise_level import estimate_noise_sigma
 from eval.heldout import map_cameras
 from eval.image_metrics import score_images
-from eval.noise_estimate import estimate_noise_sigma
 from eval.pipeline import PipelineConfig, StageContext, preset, product_stages, run_pipeline
 from eval.pipeline.components import require
 from eval.pipeline.stages import check_product_components
