@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from typing import Literal
 
 import numpy as np
 import torch
@@ -21,7 +22,7 @@ from denoise.fusion import fuse_with_observation
 from denoise.images import image_to_tensor, tensor_to_image
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
-from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_robust
+from denoise.noise_level import estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_robust
 from mvgeo.common.errors import check_shape
 from mvgeo.common.progress import progress
 
@@ -31,6 +32,9 @@ _log = logging.getLogger(__name__)
 #: unchanged: N2V predicts each pixel from its neighbours, which on a noise-free image
 #: can only lose detail (measured 23 dB vs the input on a clean synthetic scene).
 CLEAN_SIGMA = 1.0 / 255
+
+NoiseModel = Literal["constant", "curve"]
+NOISE_MODELS: tuple[str, ...] = ("constant", "curve")
 
 
 def tile_starts(n: int, core: int) -> list[int]:
@@ -72,14 +76,30 @@ def predict_tiled(model: N2VModel, x: Tensor, *, tile_px: int = 256, margin_px: 
     return out
 
 
+def dihedral(x: Tensor, k: int, *, inverse: bool = False) -> Tensor:
+    """The `k`-th of the 8 rotations/reflections of the square (``k % 8``) on the last two dims.
+
+    ``k % 4`` quarter turns (``torch.rot90``), preceded by a horizontal flip when
+    ``k % 8 >= 4``; ``inverse=True`` undoes it.
+    """
+    k %= 8
+    if not inverse:
+        x = torch.flip(x, dims=(-1,)) if k >= 4 else x
+        return torch.rot90(x, k % 4, dims=(-2, -1))
+    x = torch.rot90(x, -(k % 4), dims=(-2, -1))
+    return torch.flip(x, dims=(-1,)) if k >= 4 else x
+
+
 @torch.no_grad()
 def denoise_tensor(model: N2VModel, x: Tensor, *, passes: int = 8, generator: torch.Generator | None = None,
-                   tile_px: int = 256, margin_px: int = 48) -> Tensor:
+                   tile_px: int = 256, margin_px: int = 48, dihedral_ensemble: bool = False) -> Tensor:
     """Denoise one ``[1, 3, H, W]`` batch: mean over `passes` random maskings, or one unmasked pass if 0.
 
     Masks use the model's training masking (`N2VModel.mask_prob`, ``replacement``,
     ``radius``) over the whole image (not per tile), so tiling does not change
-    which values are swapped in.
+    which values are swapped in. With `dihedral_ensemble`, pass ``k`` runs on the
+    ``k``-th rotation/reflection of the image (`dihedral`) and is transformed back
+    (a self-ensemble; training sees the same 8 transforms as augmentation).
     """
     if passes < 0:
         raise ValueError(f"passes must be >= 0, got {passes}")
@@ -87,17 +107,20 @@ def denoise_tensor(model: N2VModel, x: Tensor, *, passes: int = 8, generator: to
     if passes == 0:
         return predict_tiled(model, x, tile_px=tile_px, margin_px=margin_px)
     acc = torch.zeros_like(x)
-    for _ in range(passes):
-        masked = mask_pixels(x, p=model.mask_prob, replacement=model.replacement, radius=model.radius,
+    for k in range(passes):
+        xt = dihedral(x, k) if dihedral_ensemble else x
+        masked = mask_pixels(xt, p=model.mask_prob, replacement=model.replacement, radius=model.radius,
                              generator=generator).masked
-        acc += predict_tiled(model, masked, tile_px=tile_px, margin_px=margin_px)
+        pred = predict_tiled(model, masked, tile_px=tile_px, margin_px=margin_px)
+        acc += dihedral(pred, k, inverse=True) if dihedral_ensemble else pred
     return acc / passes
 
 
 def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int = 8, seed: int = 0,
                    tile_px: int = 256, margin_px: int = 48, clean_sigma: float = CLEAN_SIGMA,
                    fuse: bool | None = None, noise_sigma: float | None = None,
-                   fuse_window_px: float = 2.0) -> list[np.ndarray]:
+                   fuse_window_px: float = 2.0, noise_model: NoiseModel = "constant",
+                   dihedral_ensemble: bool = False) -> list[np.ndarray]:
     """Denoise images with a trained model.
 
     Args:
@@ -112,12 +135,19 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
             (`denoise.fusion.fuse_with_observation`); default: when the model is a
             blind-spot (round-1) model, ``model.blind_spot``.
         noise_sigma: noise std ([0, 1] units) for the fusion; default: estimated per image
-            (`estimate_noise_sigma_robust`).
+            (`noise_model`).
         fuse_window_px: Gaussian window sigma (px) of the fusion's local variance.
+        noise_model: how the fusion's noise level is estimated when `noise_sigma` is None:
+            ``"constant"``, one std per image (`estimate_noise_sigma_robust`); ``"curve"``,
+            signal-dependent noise (Poisson-Gaussian): a per-image `NoiseCurve`
+            (`estimate_noise_curve`) evaluated per pixel at the blind-spot prediction.
+        dihedral_ensemble: pass k runs on the k-th rotation/reflection (see `denoise_tensor`).
 
     Returns:
         Denoised images, float32 in ``[0, 1]``, each in the layout of its input.
     """
+    if noise_model not in NOISE_MODELS:
+        raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {noise_model!r}")
     device = next(model.unet.parameters()).device
     gen = torch.Generator(device=device).manual_seed(seed)
     out = []
@@ -129,10 +159,15 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
                       clean_sigma * 255)
             out.append(tensor_to_image(x[0], like=img))
             continue
-        y = denoise_tensor(model, x, passes=passes, generator=gen,
-                           tile_px=tile_px, margin_px=margin_px)
+        y = denoise_tensor(model, x, passes=passes, generator=gen, tile_px=tile_px, margin_px=margin_px,
+                           dihedral_ensemble=dihedral_ensemble)
         if model.blind_spot if fuse is None else fuse:
-            s = estimate_noise_sigma_robust(img) if noise_sigma is None else noise_sigma
+            if noise_sigma is not None:
+                s = noise_sigma
+            elif noise_model == "curve":
+                s = estimate_noise_curve(img).sigma_at(y)
+            else:
+                s = estimate_noise_sigma_robust(img)
             y = fuse_with_observation(y, x, noise_sigma=s,
                                       window_sigma_px=fuse_window_px)
         out.append(tensor_to_image(y[0], like=img))

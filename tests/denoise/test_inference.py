@@ -5,8 +5,10 @@ import pytest
 import torch
 
 from denoise.fusion import fuse_with_observation
-from denoise.inference import denoise_images, denoise_tensor, predict_tiled, tile_starts
+from denoise.inference import denoise_images, denoise_tensor, dihedral, predict_tiled, tile_starts
+from denoise.masking import mask_pixels
 from denoise.n2v import N2VConfig, new_model, train_n2v
+from denoise.noise_level import estimate_noise_curve
 from denoise.unet import UNetConfig
 from mvgeo.common.errors import InputError
 from tests.denoise._synth import add_noise, psnr, smooth_scene
@@ -146,3 +148,54 @@ def test_untrained_model_is_centre_cancelling_and_errors(rng):
     assert (y2 - y1)[0, :, 8, 8].abs().max().item() < 0.25
     with pytest.raises(InputError):
         denoise_images(model, [np.full((4, 4, 3), np.inf, np.float32)])
+
+
+def test_dihedral_transforms():
+    x = torch.arange(12.0).reshape(1, 1, 3, 4)
+    seen = set()
+    for k in range(8):
+        t = dihedral(x, k)
+        torch.testing.assert_close(dihedral(t, k, inverse=True), x, rtol=0, atol=0)
+        seen.add((tuple(t.shape), tuple(t.flatten().tolist())))
+    assert len(seen) == 8  # all 8 symmetries of the square are distinct on a generic image
+    torch.testing.assert_close(dihedral(x, 5), torch.rot90(torch.flip(x, dims=(-1,)), 1, dims=(-2, -1)))
+
+
+def test_dihedral_ensemble_reference(trained, rng):
+    # Slow, obvious version: pass k = transform, mask (same generator order), predict, undo.
+    img = add_noise(rng, smooth_scene(rng, 30, 37), 0.1)  # non-square: rot90 changes the shape
+    x = torch.from_numpy(img.transpose(2, 0, 1).copy())[None]
+    got = denoise_tensor(trained, x, passes=5, generator=torch.Generator().manual_seed(3), dihedral_ensemble=True)
+    gen = torch.Generator().manual_seed(3)
+    ref = torch.zeros_like(x)
+    for k in range(5):
+        xt = torch.rot90(torch.flip(x, dims=(-1,)) if k >= 4 else x, k % 4, dims=(-2, -1))
+        m = mask_pixels(xt, p=trained.mask_prob, replacement=trained.replacement, radius=trained.radius,
+                        generator=gen).masked
+        with torch.no_grad():
+            p = torch.rot90(trained.apply(m), -(k % 4), dims=(-2, -1))
+        ref += torch.flip(p, dims=(-1,)) if k >= 4 else p
+    torch.testing.assert_close(got, ref / 5, rtol=0, atol=1e-6)  # float32, same ops in the same order
+    out = denoise_images(trained, [img], passes=8, dihedral_ensemble=True)[0]
+    assert out.shape == img.shape and np.isfinite(out).all()
+
+
+def test_curve_noise_model_fuses_per_pixel(trained, rng):
+    img = add_noise(rng, smooth_scene(rng, 40, 44), 0.1)
+    x = torch.from_numpy(img.transpose(2, 0, 1).copy())[None]
+    mu = denoise_tensor(trained, x, passes=2, generator=torch.Generator().manual_seed(0))
+    curve = estimate_noise_curve(img)
+    ref = fuse_with_observation(mu, x, noise_sigma=curve.sigma_at(mu))[0].clamp(0, 1).numpy().transpose(1, 2, 0)
+    got = denoise_images(trained, [img], passes=2, seed=0, noise_model="curve")[0]
+    np.testing.assert_allclose(got, ref, atol=1e-6)
+    with pytest.raises(ValueError, match="noise_model"):
+        denoise_images(trained, [img], noise_model="poisson")
+
+
+def test_training_on_images_smaller_than_a_patch(rng):
+    # 64 px patches requested, images of 12x9 and 20x21 px: training uses 9 px patches.
+    imgs = [add_noise(rng, smooth_scene(rng, 12, 9), 0.1), add_noise(rng, smooth_scene(rng, 20, 21), 0.1)]
+    model = train_n2v(imgs, N2VConfig(unet=UNetConfig(width=4), steps=5, batch_size=2, patch_px=64), seed=0)
+    assert all(np.isfinite(model.history))
+    out = denoise_images(model, imgs, passes=2)
+    assert [o.shape for o in out] == [i.shape for i in imgs] and all(np.isfinite(o).all() for o in out)

@@ -1,11 +1,18 @@
 """Noise-level estimates: accuracy on white noise, robustness to edges."""
 
 import numpy as np
+import pytest
+import torch
 
 from denoise.images import images_to_tensors
 from denoise.model import load_checkpoint, save_checkpoint
 from denoise.n2v import N2VConfig, new_model
-from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_robust
+from denoise.noise_level import (
+    NoiseCurve,
+    estimate_noise_curve,
+    estimate_noise_sigma,
+    estimate_noise_sigma_robust,
+)
 from denoise.unet import UNetConfig
 
 
@@ -40,3 +47,35 @@ def test_blind_spot_flag_in_checkpoint(tmp_path, rng):
     model.blind_spot = False
     save_checkpoint(tmp_path / "m.pt", model)
     assert not load_checkpoint(tmp_path / "m.pt").blind_spot
+
+
+def _ramp(h=200, w=200):
+    yy, xx = np.mgrid[:h, :w] / max(h, w)
+    return np.stack([xx, yy, 0.5 * xx + 0.3 * yy], 2) * 0.9 + 0.05  # in [0.05, 0.95]
+
+
+def test_noise_curve_poisson_gaussian(rng):
+    # Poisson-Gaussian noise on smooth ramps (the 3x3 mask cancels them): the fit must find
+    # the gain and the floor. 120k samples over 8 bins: the per-bin median variance has a
+    # ~2 % relative error; 15 % on the gain and a 2x band on the (small, 4e-4) floor hold.
+    a, s = 0.01, 5 / 255
+    img = np.clip(a * rng.poisson(_ramp() / a) + s * rng.standard_normal((200, 200, 3)), 0, 1)
+    curve = estimate_noise_curve(img)
+    assert curve.gain == pytest.approx(a, rel=0.15)
+    assert 0.5 * s**2 < curve.floor < 2 * s**2
+    sig = curve.sigma_at(torch.tensor([0.0, 0.5, 2.0], dtype=torch.float64))
+    torch.testing.assert_close(sig, torch.tensor([curve.floor, 0.5 * curve.gain + curve.floor,
+                                                  curve.gain + curve.floor], dtype=torch.float64).sqrt())
+
+
+def test_noise_curve_gaussian_is_flat(rng):
+    # Additive Gaussian noise: the gain is (near) zero and the floor is sigma^2. Clipped pixels
+    # are dropped, so the clipping at 0 / 1 (ramp ends 0.05 / 0.95 = 1.7 sigma) biases little.
+    img = np.clip(_ramp() + 0.03 * rng.standard_normal((200, 200, 3)), 0, 1)
+    curve = estimate_noise_curve(img)
+    assert curve.gain < 0.05 * 0.03**2 / 0.5  # its contribution at mid-grey: < 5 % of the variance
+    assert curve.floor == pytest.approx(0.03**2, rel=0.1)
+    assert estimate_noise_curve(np.zeros((2, 8))) == NoiseCurve(0.0, 0.0)
+    assert estimate_noise_curve(np.ones((20, 20, 3))) == NoiseCurve(0.0, 0.0)  # all clipped
+    with pytest.raises(ValueError, match="bins"):
+        estimate_noise_curve(img, bins=1)
