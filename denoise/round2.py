@@ -12,23 +12,36 @@ so that K-pass inference stays valid) and produces ``out_i``. The joint loss
   ``out - blur(out)`` vs ``render - blur(render)``, ``1 - SSIM(out, render)``,
   gradient consistency, and chroma consistency (Cb, Cr of YCbCr);
 - optional total variation of ``out``.
+
+The round-1 render is not trusted blindly: a splat trained for a few hundred
+iterations is blurry or misregistered in places, and copying it there makes
+round 2 worse than round 1 (measured on the demo scene before this change).
+`render_trust_target` therefore builds the detail target per pixel as the
+inverse-variance combination of the two estimates of the clean image that
+round 2 has, the render and the round-1 output, with each one's local squared
+error estimated from the noisy photo and the noise level alone (no clean
+image, nothing tuned to a scene); see its docstring.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
+from typing import Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from denoise.filters import gaussian_blur
+from denoise.fusion import fuse_with_observation
 from denoise.images import images_to_tensors
 from denoise.losses import charbonnier, chroma_loss, gradient_loss, ssim, total_variation
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
 from denoise.n2v import lr_factor
+from denoise.noise_level import estimate_noise_sigma_robust
 from denoise.patches import effective_patch_px, sample_patches
 from mvgeo.common.errors import ConfigError, InputError
 from mvgeo.common.progress import progress_bar
@@ -50,6 +63,14 @@ class Round2Config:
         steps, batch_size, patch_px, lr: fine-tuning schedule (Adam, cosine decay, no warm-up).
         mask_input: apply the model's N2V masking to the input (keeps the network usable with
             K-pass inference).
+        loss: "joint" (the terms above) or "charbonnier" (Table 2 ablation: the joint loss
+            replaced by ``Charbonnier(out, target)`` alone).
+        trust_render: build the detail target with `render_trust_target` (True) or use the
+            render as it is (False, the paper's literal recipe).
+        trust_passes: K maskings for the round-1 prediction the trust target needs.
+        guard: keep the round-1 network when fine-tuning raised the blind-spot (J-invariant)
+            loss on the selected views (`blind_spot_loss`), i.e. when round 2 made the
+            self-supervised estimate of the error against the clean images worse.
     """
 
     w_low: float = 1.0
@@ -65,6 +86,10 @@ class Round2Config:
     patch_px: int = 64
     lr: float = 2e-4
     mask_input: bool = True
+    loss: Literal["joint", "charbonnier"] = "joint"
+    trust_render: bool = True
+    trust_passes: int = 4
+    guard: bool = True
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -74,6 +99,10 @@ class Round2Config:
         for key in ("steps", "batch_size", "patch_px"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"must be >= 1, got {getattr(self, key)}", key=key)
+        if self.loss not in ("joint", "charbonnier"):
+            raise ConfigError(f"unknown loss {self.loss!r}", key="loss", expected="'joint' or 'charbonnier'")
+        if self.trust_passes < 1:
+            raise ConfigError(f"must be >= 1, got {self.trust_passes}", key="trust_passes")
         if not (self.lr > 0 and self.blur_sigma > 0 and self.charbonnier_eps > 0):
             raise ConfigError("lr, blur_sigma and charbonnier_eps must be > 0", key="lr")
 
@@ -100,11 +129,18 @@ def joint_loss(out: Tensor, noisy: Tensor, render: Tensor, config: Round2Config 
         render: ``[B, 3, H, W]`` the round-1 render of the same view.
         config: weights (default `Round2Config()`).
 
+    With ``config.loss == "charbonnier"`` the total is ``Charbonnier(out, render)``
+    alone (reported as `detail`; the other terms are 0).
+
     Returns:
         `Round2Terms`. SSIM uses the ``reflect`` border so that small patches count every pixel.
     """
     cfg = config or Round2Config()
     eps, s = cfg.charbonnier_eps, cfg.blur_sigma
+    if cfg.loss == "charbonnier":
+        c = charbonnier(out, render, eps=eps)
+        zero = torch.zeros((), dtype=out.dtype, device=out.device)
+        return Round2Terms(total=c, low=zero, detail=c, ssim=zero, grad=zero, chroma=zero, tv=zero)
     blur_out = gaussian_blur(out, sigma=s)
     low = charbonnier(blur_out, gaussian_blur(noisy, sigma=s), eps=eps)
     detail = charbonnier(out - blur_out, render - gaussian_blur(render, sigma=s), eps=eps)
@@ -117,21 +153,125 @@ def joint_loss(out: Tensor, noisy: Tensor, render: Tensor, config: Round2Config 
     return Round2Terms(total=total, low=low, detail=detail, ssim=ssim_term, grad=grad, chroma=chroma, tv=tv)
 
 
-def finetune_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders: Sequence[np.ndarray],
-                    config: Round2Config | None = None, *, seed: int = 0) -> N2VModel:
-    """Fine-tune `model` in place with the joint loss and return it.
+@torch.no_grad()
+def jinvariant_predict(model: N2VModel, x: Tensor, *, stride: int = 5, generator: torch.Generator | None = None,
+                       tile_px: int = 256, margin_px: int = 48) -> Tensor:
+    """A prediction of every pixel that never saw that pixel's own value (J-invariant, Batson & Royer 2019).
+
+    ``stride**2`` passes; pass ``(a, b)`` replaces the pixels with ``row % stride == a`` and
+    ``col % stride == b`` by values taken from random *unmasked* positions of the same image
+    (N2V's replacement, restricted so that no masked pixel's own value is anywhere in the
+    input) and keeps the prediction at those pixels only. So the output at a pixel never
+    depends on that pixel's value, and for noise independent across pixels
+    ``E (y - f(y))^2 = sigma^2 + E (x - f(y))^2``: the prediction serves both the trust
+    target and the guard. The default stride 5 masks 1/25 = 4% of the pixels per pass, the
+    N2V training rate.
 
     Args:
-        model: the round-1 model (its normalisation is kept).
-        noisy_images: ``(H, W, 3)`` float32 [0, 1], the selected noisy views.
-        renders: the round-1 renders of the same views, same sizes.
-        config: loss weights and schedule.
-        seed: seeds patches and masks.
+        model: any `N2VModel`.
+        x: ``[B, 3, H, W]``.
+        stride: grid period in pixels (>= 2).
+        generator: seeds the replacements.
+    """
+    from denoise.inference import predict_tiled
 
-    Raises:
-        InputError: counts or sizes differ, or an image is unusable.
+    if stride < 2:
+        raise ValueError(f"stride must be >= 2, got {stride}")
+    model.unet.eval()
+    b, c, h, w = x.shape
+    rows = torch.arange(h, device=x.device)[:, None] % stride
+    cols = torch.arange(w, device=x.device)[None, :] % stride
+    out = torch.empty_like(x)
+    flat = x.reshape(b, c, h * w)
+    for a in range(stride):
+        for bb in range(stride):
+            mask = (rows == a) & (cols == bb)
+            if not bool(mask.any()):
+                continue
+            free = torch.nonzero(~mask.reshape(-1)).reshape(-1)
+            pick = free[torch.randint(len(free), (b, h * w), generator=generator, device=x.device)]
+            repl = flat.gather(2, pick[:, None, :].expand(b, c, h * w)).reshape(b, c, h, w)
+            pred = predict_tiled(model, torch.where(mask[None, None], repl, x), tile_px=tile_px, margin_px=margin_px)
+            out = torch.where(mask[None, None], pred, out)
+    return out
+
+
+def blind_spot_loss(model: N2VModel, noisy: Sequence[Tensor], *, seed: int = 0) -> float:
+    """Mean ``(y - f_J(y))^2`` over the views: the self-supervised estimate of ``sigma^2 + MSE`` vs clean.
+
+    `noisy` holds ``[3, H, W]`` tensors; `f_J` is `jinvariant_predict` with a fixed seed, so two
+    models are compared on the same replacements.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    vals = [float(((jinvariant_predict(model, y[None], generator=gen) - y[None]) ** 2).mean()) for y in noisy]
+    return float(np.mean(vals))
+
+
+def trust_targets(model: N2VModel, noisy_t: Sequence[Tensor], render_t: Sequence[Tensor], *,
+                  seed: int = 0, window_sigma_px: float = 2.0) -> tuple[list[Tensor], list[float]]:
+    """`render_trust_target` per view, with the model's J-invariant prediction and a robust noise estimate.
+
+    Returns:
+        (targets ``[3, H, W]``, mean render weight per view).
+    """
+    gen = torch.Generator().manual_seed(seed)
+    targets, weights = [], []
+    for y, r in zip(noisy_t, render_t, strict=True):
+        sigma = estimate_noise_sigma_robust(y.permute(1, 2, 0).numpy())
+        mu = jinvariant_predict(model, y[None], generator=gen)
+        tt = render_trust_target(y[None], mu, r[None], noise_sigma=sigma, window_sigma_px=window_sigma_px)
+        targets.append(tt.target[0].clamp(0.0, 1.0))
+        weights.append(float(tt.render_weight.mean()))
+    return targets, weights
+
+
+@dataclass
+class Round2Report:
+    """Diagnostics of `refine_round2` (JSON-able with `dataclasses.asdict`).
+
+    Attributes:
+        render_weight: mean render weight of the trust target per view (1.0 each without trust).
+        loss_before, loss_after: `blind_spot_loss` of the round-1 and the fine-tuned network.
+        reverted: the guard kept the round-1 network.
+    """
+
+    render_weight: list[float] = field(default_factory=list)
+    loss_before: float = float("nan")
+    loss_after: float = float("nan")
+    reverted: bool = False
+
+
+def refine_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders: Sequence[np.ndarray],
+                  config: Round2Config | None = None, *, seed: int = 0) -> tuple[N2VModel, Round2Report]:
+    """Round 2 with its safeguards: trust target, fine-tuning, and the blind-spot-loss guard.
+
+    Args: as `finetune_round2` (`model` is not modified; a fine-tuned copy is returned).
+
+    Returns:
+        (the model to denoise with: the fine-tuned copy, or `model` itself when the guard
+        reverted; its `blind_spot` tells `denoise_images` how to fuse), `Round2Report`.
     """
     cfg = config or Round2Config()
+    noisy_t, render_t = _check_views(noisy_images, renders)
+    report = Round2Report()
+    if cfg.trust_render:
+        targets, report.render_weight = trust_targets(model, noisy_t, render_t, seed=seed)
+    else:
+        targets, report.render_weight = render_t, [1.0] * len(render_t)
+    tuned = copy.deepcopy(model)
+    tuned.history = list(model.history)
+    _finetune(tuned, noisy_t, targets, cfg, seed=seed)
+    if cfg.guard:
+        report.loss_before = blind_spot_loss(model, noisy_t, seed=seed + 1)
+        report.loss_after = blind_spot_loss(tuned, noisy_t, seed=seed + 1)
+        if report.loss_after > report.loss_before:
+            report.reverted = True
+            return model, report
+    return tuned, report
+
+
+def _check_views(noisy_images: Sequence[np.ndarray], renders: Sequence[np.ndarray]) -> tuple[list[Tensor],
+                                                                                          list[Tensor]]:
     if len(noisy_images) != len(renders):
         raise InputError(f"{len(noisy_images)} noisy images but {len(renders)} renders",
                          fix="pass one render per noisy view, in the same order")
@@ -141,6 +281,32 @@ def finetune_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders
         if a.shape != b.shape:
             raise InputError(f"view {i}: noisy image is {tuple(a.shape[1:])} but render is {tuple(b.shape[1:])}",
                              fix="render at the photo's resolution")
+    return noisy_t, render_t
+
+
+def finetune_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders: Sequence[np.ndarray],
+                    config: Round2Config | None = None, *, seed: int = 0) -> N2VModel:
+    """Fine-tune `model` in place with the joint loss against `renders` as given and return it.
+
+    The bare training loop (no trust target, no guard; `refine_round2` adds them).
+
+    Args:
+        model: the round-1 model (its normalisation is kept).
+        noisy_images: ``(H, W, 3)`` float32 [0, 1], the selected noisy views.
+        renders: the detail targets (round-1 renders) of the same views, same sizes.
+        config: loss weights and schedule.
+        seed: seeds patches and masks.
+
+    Raises:
+        InputError: counts or sizes differ, or an image is unusable.
+    """
+    cfg = config or Round2Config()
+    noisy_t, render_t = _check_views(noisy_images, renders)
+    return _finetune(model, noisy_t, render_t, cfg, seed=seed)
+
+
+def _finetune(model: N2VModel, noisy_t: list[Tensor], render_t: list[Tensor], cfg: Round2Config, *,
+              seed: int) -> N2VModel:
     rng = np.random.default_rng(seed)
     gen = torch.Generator().manual_seed(seed)
     patch = effective_patch_px(noisy_t, cfg.patch_px)
@@ -167,3 +333,65 @@ def finetune_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders
     unet.eval()
     model.blind_spot = False  # trained on the full input now: no centre-pixel fusion at inference
     return model
+
+
+@dataclass(frozen=True)
+class TrustTarget:
+    """Output of `render_trust_target` (``[B, 3, H, W]`` tensors).
+
+    Attributes:
+        target: the detail target ``w * render + (1 - w) * round1``.
+        render_weight: ``w`` in ``[0, 1]``.
+        round1: the round-1 estimate (blind-spot prediction fused with the observation).
+    """
+
+    target: Tensor
+    render_weight: Tensor
+    round1: Tensor
+
+
+def render_trust_target(noisy: Tensor, prior_mean: Tensor, render: Tensor, *, noise_sigma: float | Tensor,
+                        window_sigma_px: float = 2.0) -> TrustTarget:
+    """Per-pixel inverse-variance blend of the round-1 render and the round-1 denoised estimate.
+
+    With the noisy photo ``y = x + n`` (``n`` white, std ``s``), the round-1
+    blind-spot prediction ``mu`` (independent of ``n`` at each pixel) and the
+    render ``r``, local second moments over a Gaussian window ``G`` estimate
+    squared errors without the clean image ``x``:
+
+    - render: ``e_r = max(G (y - r)^2 - s^2, 0)`` (``E (y - r)^2 = s^2 + (x - r)^2``
+      when the render does not copy this view's noise);
+    - round 1: ``mu``'s error ``v = max(G (y - mu)^2 - s^2, 0)``; the round-1 output
+      ``r1 = mu + v / (v + s^2) (y - mu)`` (`denoise.fusion`) has posterior variance
+      ``e_1 = v s^2 / (v + s^2)``.
+
+    Both estimates carry sampling error: a variance estimated from a window of
+    ``n_eff = 4 pi sigma_w^2`` independent pixels has relative std ``sqrt(2 / n_eff)``,
+    so ``f = s^2 sqrt(2 / n_eff)`` is added to each as a floor. The weight of the
+    render is ``w = (e_1 + f) / (e_1 + e_r + 2 f)``: where the render is as good as
+    round 1 (or better) it contributes at least half, where it is off by more than
+    the noise explains, round 1 keeps the pixel (the self-consistency guard: round 2
+    cannot move away from round 1 where the scene gives no evidence).
+
+    Args:
+        noisy: ``[B, 3, H, W]`` photos ``y``.
+        prior_mean: ``[B, 3, H, W]`` round-1 blind-spot prediction ``mu`` (not fused).
+        render: ``[B, 3, H, W]`` round-1 renders.
+        noise_sigma: ``s``, a float or a tensor broadcastable to ``[B, 1, 1, 1]``.
+        window_sigma_px: ``sigma_w``, the window of the local statistics (that of `denoise.fusion`).
+
+    Returns:
+        `TrustTarget`.
+    """
+    if not window_sigma_px > 0:
+        raise ValueError(f"window_sigma_px must be > 0, got {window_sigma_px}")
+    v_noise = torch.as_tensor(noise_sigma, dtype=noisy.dtype, device=noisy.device) ** 2
+    r1 = fuse_with_observation(prior_mean, noisy, noise_sigma=noise_sigma, window_sigma_px=window_sigma_px)
+    v_mu = (gaussian_blur((noisy - prior_mean) ** 2, sigma=window_sigma_px) - v_noise).clamp_min(0.0)
+    err_round1 = v_mu * v_noise / (v_mu + v_noise).clamp_min(torch.finfo(noisy.dtype).tiny)
+    err_render = (gaussian_blur((noisy - render) ** 2, sigma=window_sigma_px) - v_noise).clamp_min(0.0)
+    floor = v_noise * float(np.sqrt(2.0 / (4.0 * np.pi * window_sigma_px**2)))
+    den = err_round1 + err_render + 2.0 * floor
+    w = torch.where(den > 0, (err_round1 + floor) / den.clamp_min(torch.finfo(noisy.dtype).tiny),
+                    torch.full_like(den, 0.5))
+    return TrustTarget(target=w * render + (1.0 - w) * r1, render_weight=w, round1=r1)

@@ -140,6 +140,31 @@ def _nlm_stage(ctx: StageContext) -> Mapping[str, object]:
 
 
 # ----------------------------------------------------------------- helpers
+def share_round1(src_run: Path, dst_run: Path) -> bool:
+    """Seed `dst_run/round1` with hard links to a completed `src_run/round1` (same round-1 settings).
+
+    The Table 2 ablations differ from `denoise_gs` only from round 2 on; linking round 1 lets
+    their stage keys match it and skip it (the stage runner still checks every key, so a
+    mismatch just re-runs). Returns True when something was linked.
+    """
+    src, dst = Path(src_run) / "round1", Path(dst_run) / "round1"
+    if dst.exists() or not (src / "stages").is_dir():
+        return False
+    tmp = dst.with_name(".round1.link-tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+
+    def link(a: str, b: str) -> None:
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    shutil.copytree(src, tmp, copy_function=link,
+                    ignore=lambda d, names: [n for n in names if n.startswith(".")])
+    os.replace(tmp, dst)
+    return True
+
+
 def _stem_poses(model: SparseModel) -> dict[str, np.ndarray]:
     return {Path(n).stem: model.image(n).cam_from_world for n in model.names}
 
@@ -243,7 +268,7 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     inputs = _copy_train_inputs(dataset, out / "inputs" / scene)
     rows: list[RunScores] = []
     for seed in range(config.seeds):
-        for method in config.methods:
+        for method in sorted(config.methods, key=EVAL_METHODS.index):  # ablations after the round 1 they share
             _log.info("eval %s: %s, seed %d", scene, method, seed)
             start = time.perf_counter()
             if method == "3dgs_gt_poses":
@@ -256,7 +281,10 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
                     stages = dataclasses.replace(stages, denoise=_identity_stage)
                 elif method == "nlm_instantsplat":
                     stages = dataclasses.replace(stages, denoise=_nlm_stage)
-                res = run_pipeline(inputs, out / "runs" / scene / f"seed{seed}" / family, cfg, stages=stages)
+                seed_dir = out / "runs" / scene / f"seed{seed}"
+                if method.startswith("ablate_"):
+                    share_round1(seed_dir / "n2v", seed_dir / family)
+                res = run_pipeline(inputs, seed_dir / family, cfg, stages=stages)
                 final = res.rounds[-1].dir
                 read_ply = require("splat.ply", "read_gaussian_ply", needed_for="denoise-gs eval")
                 model = read_ply(final / "point_cloud.ply", device=config.device)

@@ -29,7 +29,7 @@ from eval.pipeline.hashing import hash_files, hash_json
 from eval.pipeline.lock import output_lock
 from eval.pipeline.report import write_report
 from eval.pipeline.stage import StageResult, StageRunner, StageSpec
-from eval.pipeline.stages import PipelineStages, check_product_components, product_stages
+from eval.pipeline.stages import PipelineStages, check_product_components, product_stages, resolved_configs
 from eval.pipeline.validate import validate_run_inputs
 from mvgeo.common.timing import StageTimer
 
@@ -72,15 +72,16 @@ class PipelineResult:
 
 
 def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images: StageResult,
-                  config: PipelineConfig, r: int) -> dict[str, StageResult]:
+                  config: PipelineConfig, r: int, resolved: dict) -> dict[str, StageResult]:
     """align -> splat -> render on the round's denoised images."""
     label = f"round{r}"
     al = runner.run(StageSpec("align", rd, stages.align, ("align",), inputs={"images": rd / "denoised"},
-                              upstream=(images,), settings=asdict(config.align),
+                              upstream=(images,), settings={**asdict(config.align), "resolved": resolved["align"]},
                               seed=stage_seed(config.seed, r, "align")), label=f"{label}/align")
     sp = runner.run(StageSpec("splat", rd, stages.splat, ("sparse", "point_cloud.ply"),
                               inputs={"images": rd / "denoised", "align": rd / "align"}, upstream=(images, al),
-                              settings={**asdict(config.splat), "device": config.device},
+                              settings={**asdict(config.splat), "device": config.device,
+                                        "resolved": resolved["splat"]},
                               seed=stage_seed(config.seed, r, "splat")), label=f"{label}/splat")
     re = runner.run(StageSpec("render", rd, stages.render, ("renders",),
                               inputs={"sparse": rd / "sparse", "scene": rd / "point_cloud.ply"}, upstream=(sp,),
@@ -113,6 +114,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     # The noisy inputs enter the keys by content (only the image files, so an
     # OUT folder inside IMAGES_DIR or unrelated files there change nothing).
     noisy_digest = hash_files(files.values())
+    resolved = resolved_configs(config)  # component configs, so a changed component default re-runs its stage
     d = config.denoise
     rounds: list[RoundResult] = []
     with output_lock(out):
@@ -120,9 +122,9 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         den = runner.run(StageSpec(
             "denoise", rd, stages.denoise, ("denoised", "n2v_model.pt"), inputs={"noisy": images_dir},
             settings={"noisy_digest": noisy_digest, "n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps,
-                      "passes": d.passes, "device": config.device},
+                      "passes": d.passes, "device": config.device, "resolved": resolved["n2v"]},
             seed=stage_seed(config.seed, 1, "denoise")), label="round1/denoise")
-        scene = _scene_stages(runner, stages, rd, den, config, 1)
+        scene = _scene_stages(runner, stages, rd, den, config, 1, resolved)
         rounds.append(RoundResult(1, rd, {"denoise": den, **scene}))
         for r in range(2, config.rounds + 1):
             prev, rd = rounds[-1], out / f"round{r}"
@@ -140,9 +142,9 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
                 upstream=(sel, model_stage, prev.stages["render"]),
                 settings={"noisy_digest": noisy_digest, "round2_preset": d.round2_preset,
                           "round2_steps": d.round2_steps, "round2_loss": d.round2_loss, "passes": d.passes,
-                          "device": config.device},
+                          "device": config.device, "resolved": resolved["round2"]},
                 seed=stage_seed(config.seed, r, "refine")), label=f"round{r}/refine")
-            scene = _scene_stages(runner, stages, rd, ref, config, r)
+            scene = _scene_stages(runner, stages, rd, ref, config, r, resolved)
             rounds.append(RoundResult(r, rd, {"select": sel, "refine": ref, **scene}))
         report_json, report_md = write_report(out, images_dir=images_dir, config=config, rounds=rounds,
                                               timings_s=timer.as_dict())

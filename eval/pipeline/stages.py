@@ -32,7 +32,7 @@ from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
 __all__ = ["PipelineStages", "align", "check_product_components", "denoise", "product_stages", "refine", "render",
-           "select", "splat"]
+           "resolved_configs", "select", "splat"]
 
 
 @dataclass(frozen=True)
@@ -65,8 +65,7 @@ def _n2v_config(s: Mapping[str, object], need: str):
 
 
 def _round2_config(s: Mapping[str, object], need: str):
-    # The joint loss is Round2Config's default; the Charbonnier-only ablation needs a
-    # `loss` field that denoise.round2 does not offer yet (MissingComponentError then).
+    # The joint loss is Round2Config's default; "charbonnier" sets its `loss` field (Table 2 ablation).
     overrides = {"steps": s["round2_steps"], "loss": None if s["round2_loss"] == "joint" else s["round2_loss"]}
     return component_config("denoise.round2", "ROUND2_PRESETS", s["round2_preset"], overrides, needed_for=need,
                             config_cls="Round2Config")
@@ -190,21 +189,53 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     s = ctx.settings
     cfg = _round2_config(s, need)
     load_checkpoint = require("denoise.model", "load_checkpoint", needed_for=need)
-    finetune_round2 = require("denoise.round2", "finetune_round2", needed_for=need)
+    refine_round2 = require("denoise.round2", "refine_round2", needed_for=need)
     denoise_images = require("denoise.inference", "denoise_images", needed_for=need)
     save_checkpoint = require("denoise.model", "save_checkpoint", needed_for=need)
     names = json.loads((ctx.inputs["selection"]).read_text())["names"]
     noisy = read_views(ctx.inputs["noisy"], names)
     renders = read_views(ctx.inputs["renders"], names)
     model = load_checkpoint(ctx.inputs["model"], device=s["device"])
-    model = finetune_round2(model, list(noisy.values()), list(renders.values()), cfg, seed=ctx.seed)
+    # Trust target (the render only where it agrees with the photo within the noise) and the
+    # blind-spot-loss guard: see denoise.round2.refine_round2.
+    model, r2 = refine_round2(model, list(noisy.values()), list(renders.values()), cfg, seed=ctx.seed)
     # Keep the observation blend (denoise.fusion) for the fine-tuned model too: most of round 1's
     # quality comes from it, and without it round 2 fell from 23.97 to 20.92 dB on the demo scene
-    # (8 views, 192x144, sigma 25/255); with it, round 2 measured 23.86 dB.
+    # (8 views, 192x144, sigma 25/255).
     out = denoise_images(model, list(noisy.values()), passes=s["passes"], seed=ctx.seed, fuse=True)
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
     save_checkpoint(ctx.work_dir / "n2v_model.pt", model)
-    return {"views": names, "train": _history_summary(getattr(model, "history", None))}
+    return {"views": names, "train": _history_summary(getattr(model, "history", None)),
+            "round2": json.loads(json.dumps(dataclasses.asdict(r2), default=float))}
+
+
+def resolved_configs(config: PipelineConfig) -> dict[str, object]:
+    """The component configs a run resolves to (JSON-able), per stage; they enter the stage keys.
+
+    Hashing preset *names* alone would reuse a cached stage after a component changed a
+    preset's default; hashing the resolved configs re-runs it. Seeds are left out (they are
+    part of every key already). A component that is missing resolves to None (the run then
+    fails in `check_product_components`).
+    """
+    need = "stage keys"
+    d, a, sp = config.denoise, config.align, config.splat
+
+    def as_json(fn) -> object:
+        try:
+            cfg = fn()
+        except MissingComponentError:
+            return None
+        return json.loads(json.dumps(dataclasses.asdict(cfg), default=str, sort_keys=True))
+
+    out = {
+        "n2v": as_json(lambda: _n2v_config({"n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps}, need)),
+        "align": as_json(lambda: _align_config({"preset": a.preset, "max_size_px": a.max_size_px,
+                                                "iters": a.iters}, 0, need)),
+        "splat": as_json(lambda: _train_config({"preset": sp.preset, "iters": sp.iters}, 0, need)),
+        "round2": as_json(lambda: _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,
+                                                  "round2_loss": d.round2_loss}, need)),
+    }
+    return out
 
 
 def check_product_components(config: PipelineConfig) -> None:
@@ -229,7 +260,7 @@ def check_product_components(config: PipelineConfig) -> None:
     if config.rounds >= 2:
         _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,
                         "round2_loss": d.round2_loss}, need)
-        for module, name in (("denoise.model", "load_checkpoint"), ("denoise.round2", "finetune_round2")):
+        for module, name in (("denoise.model", "load_checkpoint"), ("denoise.round2", "refine_round2")):
             require(module, name, needed_for=need)
         if config.select_views:
             require("denoise.view_selection", "select_views", needed_for=need)

@@ -1,0 +1,127 @@
+"""Round 2's safeguards: the trust target, the J-invariant prediction, the guard, the Charbonnier ablation."""
+
+import numpy as np
+import pytest
+import torch
+
+from denoise.n2v import N2VConfig, train_n2v
+from denoise.round2 import (Round2Config, blind_spot_loss, jinvariant_predict, joint_loss, refine_round2,
+                            render_trust_target)
+from denoise.unet import UNetConfig
+from mvgeo.common.errors import ConfigError
+from tests.denoise._synth import add_noise, psnr, smooth_scene
+
+
+def _t(img: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))[None].double()
+
+
+def _tiny_model(rng, noisy):
+    return train_n2v(noisy, N2VConfig(unet=UNetConfig(width=4), steps=20, batch_size=2, patch_px=32, lr=2e-3),
+                     seed=0)
+
+
+def test_trust_target_follows_the_better_estimate(rng):
+    sigma = 25 / 255
+    clean = smooth_scene(rng, 64, 64)
+    noisy = add_noise(rng, clean, sigma)
+    y, x = _t(noisy), _t(clean)
+    # A mediocre round-1 prediction: the clean image plus a smooth error of 0.1 (larger than the
+    # floor of the local statistics, so the estimates can see it).
+    mu = x + 0.1 * torch.sin(torch.arange(64, dtype=x.dtype) / 4.0)[None, None, None, :]
+    good = render_trust_target(y, mu, x, noise_sigma=sigma)
+    # A correct render is trusted where round 1 is off, and the target beats round 1.
+    assert float(good.render_weight.mean()) > 0.6
+    assert 0.0 <= float(good.render_weight.min()) and float(good.render_weight.max()) <= 1.0
+    err = lambda a: float(((a - x) ** 2).mean())  # noqa: E731
+    assert err(good.target) < 0.7 * err(good.round1)
+    # A render that is wrong by far more than the noise (a 0.3 offset) is ignored: the target
+    # stays within a few percent of round 1's error.
+    bad = render_trust_target(y, mu, x + 0.3, noise_sigma=sigma)
+    assert float(bad.render_weight.mean()) < 0.15
+    assert err(bad.target) < 1.1 * err(bad.round1)
+
+
+def test_trust_target_two_perfect_estimates_average():
+    # Noise-free photo, round 1 and render all equal the truth: both error estimates are at the
+    # floor, so the weight is exactly 1/2 and the target is the truth.
+    x = torch.full((1, 3, 16, 16), 0.5, dtype=torch.float64)
+    tt = render_trust_target(x, x, x, noise_sigma=0.05)
+    assert torch.allclose(tt.render_weight, torch.full_like(x, 0.5))
+    assert torch.allclose(tt.target, x)
+
+
+def test_jinvariant_prediction_ignores_each_pixel_own_value(rng):
+    noisy = [add_noise(rng, smooth_scene(rng, 32, 32), 0.1)]
+    model = _tiny_model(rng, noisy)
+    y = _t(noisy[0]).float()
+    base = jinvariant_predict(model, y, generator=torch.Generator().manual_seed(3))
+    for (i, j) in [(0, 0), (7, 12)]:
+        z = y.clone()
+        z[..., i, j] += 0.7  # the network never sees this value when predicting (i, j)
+        out = jinvariant_predict(model, z, generator=torch.Generator().manual_seed(3))
+        # Exact: the changed value is absent from the input of the pass that predicts (i, j).
+        assert torch.equal(out[..., i, j], base[..., i, j])
+        # Control: the neighbours' predictions do see it (the test could fail).
+        assert not torch.equal(out, base)
+
+
+def test_blind_spot_loss_estimates_noise_plus_error(rng):
+    # J-invariance makes the noise and the prediction error uncorrelated: E (y - f_J)^2 = sigma^2 + MSE.
+    sigma = 0.1
+    clean = smooth_scene(rng, 48, 48)
+    noisy = [add_noise(rng, clean, sigma)]
+    model = _tiny_model(rng, noisy)
+    y = torch.from_numpy(noisy[0].transpose(2, 0, 1).copy())
+    pred = jinvariant_predict(model, y[None], generator=torch.Generator().manual_seed(1))
+    mse = float(((pred[0] - torch.from_numpy(clean.transpose(2, 0, 1).copy())) ** 2).mean())
+    est = blind_spot_loss(model, [y], seed=1)
+    # 48*48*3 = 6912 samples: the noise term's sampling std is sigma^2 sqrt(2/6912) ~ 1.7% of sigma^2,
+    # plus clipping of the noisy image at 0/1 (few pixels in [0.1, 0.9]); 10% of sigma^2 is ~6 std.
+    assert est == pytest.approx(sigma**2 + mse, abs=0.1 * sigma**2)
+
+
+def test_refine_guard_reverts_when_targets_are_wrong(rng):
+    clean = [smooth_scene(rng, 48, 48) for _ in range(2)]
+    noisy = [add_noise(rng, c, 25 / 255) for c in clean]
+    model = _tiny_model(rng, noisy)
+    # Renders that are plainly wrong (inverted images): without trust and guard, fine-tuning
+    # towards them raises the blind-spot loss, and the guard must keep round 1.
+    wrong = [1.0 - c for c in clean]
+    cfg = Round2Config(steps=30, batch_size=4, patch_px=32, lr=1e-3, trust_render=False)
+    out, rep = refine_round2(model, noisy, wrong, cfg, seed=0)
+    assert rep.reverted and out is model and rep.loss_after > rep.loss_before
+    # With correct renders the fine-tuned copy is kept (and the round-1 model is untouched).
+    before = [p.detach().clone() for p in model.unet.parameters()]
+    out2, rep2 = refine_round2(model, noisy, clean, cfg, seed=0)
+    assert not rep2.reverted and out2 is not model and not out2.blind_spot
+    assert all(torch.equal(a, b) for a, b in zip(before, model.unet.parameters(), strict=True))
+    assert rep2.loss_after < rep2.loss_before
+
+
+def test_charbonnier_ablation_is_a_different_loss(rng):
+    x = torch.from_numpy(rng.random((1, 3, 16, 16)))
+    r = torch.from_numpy(rng.random((1, 3, 16, 16)))
+    joint = joint_loss(x, x, r, Round2Config())
+    charb = joint_loss(x, x, r, Round2Config(loss="charbonnier"))
+    expected = torch.sqrt((x - r) ** 2 + 1e-6).mean()
+    assert charb.total.item() == pytest.approx(expected.item(), rel=1e-9)
+    assert joint.total.item() != pytest.approx(charb.total.item(), rel=1e-3)
+    with pytest.raises(ConfigError, match="loss"):
+        Round2Config(loss="l2")
+
+
+def test_refine_round2_helps_with_a_good_render(rng):
+    # Renders carrying the clean signal: the trust target uses them and round 2 beats round 1.
+    from denoise.inference import denoise_images
+
+    clean = [smooth_scene(rng, 48, 48) for _ in range(2)]
+    noisy = [add_noise(rng, c, 25 / 255) for c in clean]
+    model = _tiny_model(rng, noisy)
+    r1 = np.mean([psnr(o, c) for o, c in zip(denoise_images(model, noisy, passes=2), clean, strict=True)])
+    out, rep = refine_round2(model, noisy, clean, Round2Config(steps=60, batch_size=4, patch_px=32, lr=1e-3),
+                             seed=0)
+    r2 = np.mean([psnr(o, c) for o, c in zip(denoise_images(out, noisy, passes=2, fuse=True), clean,
+                                             strict=True)])
+    assert not rep.reverted and np.mean(rep.render_weight) > 0.5
+    assert r2 > r1 + 0.5, (r1, r2)
