@@ -123,8 +123,14 @@ def _suffix(dtype: torch.dtype) -> str:
     raise TypeError(f"the C++ compositor supports float32/float64, got {dtype}")
 
 
-def forward(bins, means2d, conics, colors, opacities, width: int, height: int):
+def _threads(num_threads: int | None) -> int:
+    return max(1, int(num_threads)) if num_threads is not None else torch.get_num_threads()
+
+
+def forward(bins, means2d, conics, colors, opacities, width: int, height: int, *, num_threads: int | None = None):
     """Run the forward kernel. All tensors contiguous, CPU, one float dtype.
+
+    `num_threads`: worker threads (default `torch.get_num_threads()`); results do not depend on it.
 
     Returns:
         accum (H, W, C), transmittance (H, W), last (H, W) int32.
@@ -137,11 +143,12 @@ def forward(bins, means2d, conics, colors, opacities, width: int, height: int):
     fn = getattr(lib, f"splat_composite_forward_{_suffix(colors.dtype)}")
     fn(bins.tiles_x, bins.tiles_y, bins.tile_size, width, height, _p(bins.tile_offsets), _p(bins.gaussian_ids),
        _p(means2d), _p(conics), _p(colors), _p(opacities), C, _p(accum), _p(trans), _p(last),
-       torch.get_num_threads())
+       _threads(num_threads))
     return accum, trans, last
 
 
-def backward(bins, means2d, conics, colors, opacities, width, height, trans, last, grad_accum, grad_trans):
+def backward(bins, means2d, conics, colors, opacities, width, height, trans, last, grad_accum, grad_trans, *,
+             num_threads: int | None = None):
     """Per-intersection gradients (I, 2), (I, 3), (I, C), (I,) of means2d, conics, colors, opacities."""
     lib = load()
     n_isect = bins.gaussian_ids.numel()
@@ -154,5 +161,5 @@ def backward(bins, means2d, conics, colors, opacities, width, height, trans, las
     fn = getattr(lib, f"splat_composite_backward_{_suffix(dt)}")
     fn(bins.tiles_x, bins.tiles_y, bins.tile_size, width, height, _p(bins.tile_offsets), _p(bins.gaussian_ids),
        _p(means2d), _p(conics), _p(colors), _p(opacities), C, _p(trans), _p(last), _p(grad_accum),
-       _p(grad_trans), _p(g_m), _p(g_c), _p(g_col), _p(g_o), torch.get_num_threads())
+       _p(grad_trans), _p(g_m), _p(g_c), _p(g_col), _p(g_o), _threads(num_threads))
     return g_m, g_c, g_col, g_o

@@ -46,6 +46,7 @@ def composite_tiles(
     height: int,
     *,
     backend: Backend = "auto",
+    num_threads: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite features of all Gaussians into an image.
 
@@ -57,6 +58,8 @@ def composite_tiles(
         bins: depth-sorted tile lists from `bin_gaussians`.
         width, height: image size.
         backend: "auto", "torch" or "cpp".
+        num_threads: threads of the C++ kernel (default `torch.get_num_threads()`); the result
+            does not depend on it. Ignored by the torch path.
 
     Returns:
         accum: (H, W, C) `sum_i f_i alpha_i T_i` (no background).
@@ -67,7 +70,7 @@ def composite_tiles(
     if backend == "cpp":
         if means2d.device.type != "cpu":
             raise ValueError("the cpp compositor runs on CPU tensors only; use backend='torch' on CUDA")
-        return _CompositeCpp.apply(means2d, conics, colors, opacities, bins, width, height)
+        return _CompositeCpp.apply(means2d, conics, colors, opacities, bins, width, height, num_threads)
     if backend == "torch":
         return _composite_tiles_torch(means2d, conics, colors, opacities, bins, width, height)
     raise ValueError(f"unknown compositing backend {backend!r} (use 'auto', 'torch' or 'cpp')")
@@ -75,11 +78,11 @@ def composite_tiles(
 
 class _CompositeCpp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, bins, width, height):
+    def forward(ctx, means2d, conics, colors, opacities, bins, width, height, num_threads):
         dt = colors.dtype
         tensors = [t.detach().to(dt).contiguous() for t in (means2d, conics, colors, opacities)]
-        accum, trans, last = _cpu_kernel.forward(bins, *tensors, width, height)
-        ctx.bins, ctx.width, ctx.height = bins, width, height
+        accum, trans, last = _cpu_kernel.forward(bins, *tensors, width, height, num_threads=num_threads)
+        ctx.bins, ctx.width, ctx.height, ctx.num_threads = bins, width, height, num_threads
         ctx.save_for_backward(*tensors, trans, last)
         ctx.mark_non_differentiable(last)
         return accum, trans
@@ -93,13 +96,13 @@ class _CompositeCpp(torch.autograd.Function):
             else grad_accum.to(dt).contiguous()
         grad_trans = torch.zeros_like(trans) if grad_trans is None else grad_trans.to(dt).contiguous()
         g_m, g_c, g_col, g_o = _cpu_kernel.backward(bins, m, c, col, o, ctx.width, ctx.height, trans, last,
-                                                    grad_accum, grad_trans)
+                                                    grad_accum, grad_trans, num_threads=ctx.num_threads)
         ids = bins.gaussian_ids
         out_m = torch.zeros_like(m).index_add_(0, ids, g_m)
         out_c = torch.zeros_like(c).index_add_(0, ids, g_c)
         out_col = torch.zeros_like(col).index_add_(0, ids, g_col)
         out_o = torch.zeros_like(o).index_add_(0, ids, g_o)
-        return out_m, out_c, out_col, out_o, None, None, None
+        return out_m, out_c, out_col, out_o, None, None, None, None
 
 
 class _RecomputedChunk(torch.autograd.Function):

@@ -120,8 +120,11 @@ def project_gaussians(
     v = fy * y / z_safe + cy
     means2d = torch.stack([u, v], -1)
 
-    cov_world = covariance_from_scale_rot(quats, scales)
-    cov_cam = R_cw @ cov_world @ R_cw.T
+    # Sigma2d = J R_cw R S S R^T R_cw^T J^T = T T^T with T = J R_cw R S (2 x 3 per Gaussian). Written
+    # as one (3, 3) x (3, 3N) matmul plus elementwise products: batched 3x3 bmm is slow on CPU.
+    R = R_from_quat(torch.nn.functional.normalize(quats, dim=-1))
+    M = R * scales[..., None, :]  # R S, (N, 3, 3)
+    rows = (R_cw @ M.permute(1, 0, 2).reshape(3, 3 * n)).reshape(3, n, 3)  # rows[i] = row i of R_cw R S
 
     # gsplat's clamping of the Jacobian's evaluation point (not of the mean itself).
     tan_fovx = 0.5 * width / fx
@@ -132,13 +135,11 @@ def project_gaussians(
     lim_y_neg = cy / fy + 0.3 * tan_fovy
     tx = z_safe * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x / z_safe))
     ty = z_safe * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y / z_safe))
-    zero = torch.zeros_like(z)
     inv_z = 1.0 / z_safe
-    J = torch.stack(
-        [fx * inv_z, zero, -fx * tx * inv_z * inv_z, zero, fy * inv_z, -fy * ty * inv_z * inv_z], -1
-    ).reshape(n, 2, 3)
-    cov2d = J @ cov_cam @ J.transpose(-1, -2)
-    a0, b, c0 = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
+    # EWA Jacobian J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]] applied row by row.
+    T0 = (fx * inv_z)[:, None] * rows[0] - (fx * tx * inv_z * inv_z)[:, None] * rows[2]
+    T1 = (fy * inv_z)[:, None] * rows[1] - (fy * ty * inv_z * inv_z)[:, None] * rows[2]
+    a0, b, c0 = (T0 * T0).sum(-1), (T0 * T1).sum(-1), (T1 * T1).sum(-1)
     det_orig = a0 * c0 - b * b
     a = a0 + eps2d
     c = c0 + eps2d

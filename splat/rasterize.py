@@ -29,6 +29,7 @@ class RasterConfig:
         antialiased: Mip-Splatting opacity compensation for the low-pass.
         tile_size: tile edge in pixels.
         backend: compositor: "auto" (C++ on CPU when it builds), "torch" or "cpp".
+        num_threads: threads of the C++ compositor; None: `torch.get_num_threads()` at call time.
     """
 
     near_plane: float = 0.01
@@ -37,6 +38,7 @@ class RasterConfig:
     antialiased: bool = False
     tile_size: int = 16
     backend: Backend = "auto"
+    num_threads: int | None = None
 
 
 @dataclass
@@ -115,7 +117,7 @@ def rasterize(
     bins = bin_gaussians(proj.means2d, proj.extents_px, proj.depths, proj.visible, width, height,
                          tile_size=cfg.tile_size)
     accum, trans = composite_tiles(proj.means2d, proj.conics, features, proj.opacities, bins, width, height,
-                                   backend=cfg.backend)
+                                   backend=cfg.backend, num_threads=cfg.num_threads)
     alpha = 1.0 - trans
     if background is None:
         rgb = accum[..., :3]

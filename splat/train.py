@@ -55,6 +55,11 @@ class TrainConfig:
         seed: seeds the view order (and densification sampling).
         raster: rasterizer options.
         log_every: record history every this many steps.
+        torch_threads: torch's intra-op threads while training (restored afterwards), None = leave
+            as is. 1 by default: the per-Gaussian tensors are too small to gain from more threads,
+            and OpenMP workers that spin on a busy machine made steps up to 6x slower. The C++
+            compositor still uses `raster.num_threads` threads (default: torch's thread count
+            when training starts).
     """
 
     iters: int = 1000
@@ -78,6 +83,7 @@ class TrainConfig:
     seed: int = 0
     raster: RasterConfig = field(default_factory=RasterConfig)
     log_every: int = 10
+    torch_threads: int | None = 1
 
 
 #: Named presets. "instantsplat": the default; "gt_poses": known poses, no pose learning;
@@ -173,6 +179,19 @@ def train_gaussians(images: list[np.ndarray], cameras: list[Camera], cam_from_wo
         `TrainResult`.
     """
     cfg = config or TrainConfig()
+    if cfg.raster.num_threads is None:
+        cfg = replace(cfg, raster=replace(cfg.raster, num_threads=torch.get_num_threads()))
+    saved_threads = torch.get_num_threads()
+    if cfg.torch_threads is not None:
+        torch.set_num_threads(max(1, cfg.torch_threads))
+    try:
+        return _train(images, cameras, cam_from_world, init_points_xyz, init_points_rgb, cfg, device, on_step)
+    finally:
+        torch.set_num_threads(saved_threads)
+
+
+def _train(images, cameras, cam_from_world, init_points_xyz, init_points_rgb, cfg: TrainConfig, device,
+           on_step) -> TrainResult:
     timer = StageTimer()
     with timer.stage("setup"):
         poses = _check_inputs(images, cameras, cam_from_world)
@@ -196,7 +215,9 @@ def train_gaussians(images: list[np.ndarray], cameras: list[Camera], cam_from_wo
         ]
         if cfg.optimize_poses:
             groups.append({"params": [deltas], "lr": cfg.lr_pose, "name": "pose"})
-        optimizer = torch.optim.Adam(groups, eps=1e-15)
+        # The fused kernel (one pass per parameter instead of ~10 elementwise ops) is several times faster
+        # on CPU; same update rule, deterministic.
+        optimizer = torch.optim.Adam(groups, eps=1e-15, fused=torch.device(device).type in ("cpu", "cuda"))
         gen = torch.Generator().manual_seed(cfg.seed)
         dstate = DensifyState.zeros(model.num_gaussians, device) if cfg.densify else None
         pose_mask = torch.ones(n_views, 1, device=device)

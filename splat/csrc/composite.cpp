@@ -16,6 +16,8 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <limits>
+#include <algorithm>
 #include <thread>
 #include <vector>
 
@@ -48,9 +50,44 @@ void parallel_tiles(int64_t num_tiles, int num_threads, F fn) {
 // exp() is skipped; at or below it the exact alpha test decides (identical results, much less work).
 constexpr int64_t kStride = 7;
 
+// Pixel box (tile-local, inclusive) outside which a Gaussian's computed sigma exceeds skip_sigma.
+struct Box {
+  int32_t c0, c1, r0, r1;  // empty when c0 > c1 or r0 > r1
+};
+
+// The ellipse 0.5 d^T Q d <= s (Q = [[a, b], [b, c]]) has half-widths sqrt(2 s Q^-1_xx) and
+// sqrt(2 s Q^-1_yy). The pixel test uses sigma computed in T, whose rounding error is bounded by
+// err = 8 eps_T (|a| dx^2 + |c| dy^2 + 2 |b dx dy|) / 2 over the tile; the box is taken for s + err,
+// so every pixel the per-pixel test could accept lies inside it (the box never changes a result, it
+// only skips pixels that the test would reject). When Q is not positive definite in double, or the
+// bound is not finite, the whole tile is used.
+template <typename T>
+Box pixel_box(const T* gk, int64_t col_lo, int64_t col_hi, int64_t row_lo, int64_t row_hi) {
+  Box full{int32_t(0), int32_t(col_hi - col_lo), int32_t(0), int32_t(row_hi - row_lo)};
+  const double mx = gk[0], my = gk[1], a = gk[2], b = gk[3], c = gk[4], s = gk[6];
+  if (!(s >= 0)) return Box{1, 0, 1, 0};  // opacity <= 0: never visible
+  const double det = a * c - b * b;  // exact-ish: products of floats are exact in double
+  if (!(det > 0) || !(a > 0) || !(c > 0)) return full;
+  const double dx_max = std::max(std::fabs(mx - (col_lo + 0.5)), std::fabs(mx - (col_hi + 0.5)));
+  const double dy_max = std::max(std::fabs(my - (row_lo + 0.5)), std::fabs(my - (row_hi + 0.5)));
+  const double eps = double(std::numeric_limits<T>::epsilon());
+  const double err = 4.0 * eps * (a * dx_max * dx_max + c * dy_max * dy_max + 2.0 * std::fabs(b) * dx_max * dy_max);
+  const double s2 = 2.0 * (s + err) * (1.0 + 1e-6);
+  const double ex = std::sqrt(s2 * c / det) + 1e-3, ey = std::sqrt(s2 * a / det) + 1e-3;
+  if (!std::isfinite(ex) || !std::isfinite(ey)) return full;
+  // Pixel centres col + 0.5 within [mx - ex, mx + ex].
+  const double c0 = std::max(double(col_lo), std::ceil(mx - ex - 0.5));
+  const double c1 = std::min(double(col_hi), std::floor(mx + ex - 0.5));
+  const double r0 = std::max(double(row_lo), std::ceil(my - ey - 0.5));
+  const double r1 = std::min(double(row_hi), std::floor(my + ey - 0.5));
+  if (c0 > c1 || r0 > r1) return Box{1, 0, 1, 0};
+  return Box{int32_t(c0 - col_lo), int32_t(c1 - col_lo), int32_t(r0 - row_lo), int32_t(r1 - row_lo)};
+}
+
 template <typename T>
 void gather(int64_t n, int64_t begin, const int64_t* gaussian_ids, const T* means2d, const T* conics,
-            const T* opacities, T* g) {
+            const T* opacities, int64_t col_lo, int64_t col_hi, int64_t row_lo, int64_t row_hi, T* g,
+            Box* boxes) {
   for (int64_t k = 0; k < n; ++k) {
     const int64_t id = gaussian_ids[begin + k];
     T* gk = g + kStride * k;
@@ -62,9 +99,13 @@ void gather(int64_t n, int64_t begin, const int64_t* gaussian_ids, const T* mean
     gk[5] = opacities[id];
     const double o = double(opacities[id]);
     gk[6] = o > 0 ? T(std::log(o / kAlphaMin) * (1.0 + 1e-4) + 1e-6) : T(-1);
+    boxes[k] = pixel_box(gk, col_lo, col_hi, row_lo, row_hi);
   }
 }
 
+// Each tile is processed Gaussian by Gaussian (front to back), visiting only the pixels of the
+// Gaussian's box; per-pixel state lives in small arrays. For every pixel the sequence of operations
+// is exactly that of a per-pixel loop over the tile's list, so results do not depend on the order.
 template <typename T>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t width, int64_t height,
                   const int64_t* tile_offsets, const int64_t* gaussian_ids, const T* means2d,
@@ -75,39 +116,61 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t w
     const int64_t ty = tile / tiles_x, tx = tile % tiles_x;
     const int64_t begin = tile_offsets[tile], end = tile_offsets[tile + 1];
     const int64_t n = end - begin;
-        std::vector<T> g(kStride * n);
-    gather(n, begin, gaussian_ids, means2d, conics, opacities, g.data());
-    std::vector<T> acc(C);
-    for (int64_t row = ty * tile_size; row < std::min(height, (ty + 1) * tile_size); ++row) {
-      for (int64_t col = tx * tile_size; col < std::min(width, (tx + 1) * tile_size); ++col) {
-        const T px = T(col) + T(0.5), py = T(row) + T(0.5);
-        T trans = T(1);
-        int32_t last = 0;
-        for (int64_t c = 0; c < C; ++c) acc[c] = T(0);
-        for (int64_t k = 0; k < n; ++k) {
-          const T* gk = &g[kStride * k];
-          const T dx = gk[0] - px, dy = gk[1] - py;
+    const int64_t col_lo = tx * tile_size, col_hi = std::min(width, (tx + 1) * tile_size) - 1;
+    const int64_t row_lo = ty * tile_size, row_hi = std::min(height, (ty + 1) * tile_size) - 1;
+    const int64_t tw = col_hi - col_lo + 1, th = row_hi - row_lo + 1, P = tw * th;
+    std::vector<T> g(kStride * n);
+    std::vector<Box> boxes(n);
+    gather(n, begin, gaussian_ids, means2d, conics, opacities, col_lo, col_hi, row_lo, row_hi, g.data(),
+           boxes.data());
+    std::vector<T> trans(P, T(1)), acc(P * C, T(0));
+    std::vector<int32_t> last(P, 0);
+    std::vector<uint8_t> done(P, 0);
+    int64_t active = P;
+    for (int64_t k = 0; k < n && active > 0; ++k) {
+      const Box bx = boxes[k];
+      const T* gk = &g[kStride * k];
+      const T* col_k = colors + C * gaussian_ids[begin + k];
+      for (int32_t r = bx.r0; r <= bx.r1; ++r) {
+        const T py = T(row_lo + r) + T(0.5);
+        const T dy = gk[1] - py;
+        for (int32_t cc = bx.c0; cc <= bx.c1; ++cc) {
+          const int64_t p = int64_t(r) * tw + cc;
+          if (done[p]) continue;
+          const T px = T(col_lo + cc) + T(0.5);
+          const T dx = gk[0] - px;
           const T sigma = T(0.5) * (gk[2] * dx * dx + gk[4] * dy * dy) + gk[3] * dx * dy;
           if (sigma < T(0) || sigma > gk[6]) continue;
           const T alpha = std::min(alpha_max, gk[5] * std::exp(-sigma));
           if (alpha < alpha_min) continue;
-          const T next_t = trans * (T(1) - alpha);
-          if (next_t <= t_min) break;
-          const T w = alpha * trans;
-          const T* col_k = colors + C * gaussian_ids[begin + k];
-          for (int64_t c = 0; c < C; ++c) acc[c] += w * col_k[c];
-          trans = next_t;
-          last = int32_t(k + 1);
+          const T next_t = trans[p] * (T(1) - alpha);
+          if (next_t <= t_min) {
+            done[p] = 1;
+            --active;
+            continue;
+          }
+          const T w = alpha * trans[p];
+          T* a = &acc[p * C];
+          for (int64_t c = 0; c < C; ++c) a[c] += w * col_k[c];
+          trans[p] = next_t;
+          last[p] = int32_t(k + 1);
         }
-        const int64_t pix = row * width + col;
-        for (int64_t c = 0; c < C; ++c) out_accum[pix * C + c] = acc[c];
-        out_transmittance[pix] = trans;
-        out_last[pix] = last;
+      }
+    }
+    for (int64_t r = 0; r < th; ++r) {
+      for (int64_t cc = 0; cc < tw; ++cc) {
+        const int64_t p = r * tw + cc, pix = (row_lo + r) * width + col_lo + cc;
+        for (int64_t c = 0; c < C; ++c) out_accum[pix * C + c] = acc[p * C + c];
+        out_transmittance[pix] = trans[p];
+        out_last[pix] = last[p];
       }
     }
   });
 }
 
+// Back to front over the tile's list, each Gaussian over its box; per pixel the visits are those of
+// the per-pixel reverse loop from last[pix] - 1 down to 0, and gradients of one Gaussian are summed
+// over pixels in row-major order (deterministic, independent of the thread count).
 template <typename T>
 void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t width, int64_t height,
                    const int64_t* tile_offsets, const int64_t* gaussian_ids, const T* means2d,
@@ -121,26 +184,45 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
     const int64_t begin = tile_offsets[tile], end = tile_offsets[tile + 1];
     const int64_t n = end - begin;
     if (n == 0) return;
+    const int64_t col_lo = tx * tile_size, col_hi = std::min(width, (tx + 1) * tile_size) - 1;
+    const int64_t row_lo = ty * tile_size, row_hi = std::min(height, (ty + 1) * tile_size) - 1;
+    const int64_t tw = col_hi - col_lo + 1, th = row_hi - row_lo + 1, P = tw * th;
+    // Per-pixel state: transmittance after the Gaussian being visited, colour behind it, dL/dcolour.
+    std::vector<T> trans(P), t_final(P), g_t(P), s(P * C, T(0)), gc(P * C);
+    std::vector<int32_t> stop(P);
+    int32_t k_end = 0;
+    for (int64_t r = 0; r < th; ++r) {
+      for (int64_t cc = 0; cc < tw; ++cc) {
+        const int64_t p = r * tw + cc, pix = (row_lo + r) * width + col_lo + cc;
+        stop[p] = last[pix];
+        k_end = std::max(k_end, stop[p]);
+        trans[p] = t_final[p] = transmittance[pix];
+        g_t[p] = grad_transmittance[pix];
+        for (int64_t c = 0; c < C; ++c) gc[p * C + c] = grad_accum[pix * C + c];
+      }
+    }
+    if (k_end == 0) return;
     std::vector<T> g(kStride * n);
-    gather(n, begin, gaussian_ids, means2d, conics, opacities, g.data());
+    std::vector<Box> boxes(n);
+    gather(n, begin, gaussian_ids, means2d, conics, opacities, col_lo, col_hi, row_lo, row_hi, g.data(),
+           boxes.data());
     // Rows [begin, end) of the per-intersection gradients belong to this tile only.
-    std::vector<T> s(C), gc(C);
-    for (int64_t row = ty * tile_size; row < std::min(height, (ty + 1) * tile_size); ++row) {
-      for (int64_t col = tx * tile_size; col < std::min(width, (tx + 1) * tile_size); ++col) {
-        const int64_t pix = row * width + col;
-        const int32_t stop = last[pix];
-        if (stop == 0) continue;
-        const T px = T(col) + T(0.5), py = T(row) + T(0.5);
-        const T t_final = transmittance[pix];
-        const T g_t = grad_transmittance[pix];
-        for (int64_t c = 0; c < C; ++c) {
-          s[c] = T(0);
-          gc[c] = grad_accum[pix * C + c];
-        }
-        T trans = t_final;  // transmittance after the Gaussian being visited
-        for (int64_t k = stop - 1; k >= 0; --k) {
-          const T* gk = &g[kStride * k];
-          const T dx = gk[0] - px, dy = gk[1] - py;
+    for (int64_t k = k_end - 1; k >= 0; --k) {
+      const Box bx = boxes[k];
+      const T* gk = &g[kStride * k];
+      const int64_t j = begin + k;
+      const T* col_k = colors + C * gaussian_ids[j];
+      // Sums over the box in registers (row-major pixel order, as a per-pixel loop would add them).
+      T gm0 = T(0), gm1 = T(0), gc0 = T(0), gc1 = T(0), gc2 = T(0), go = T(0);
+      T* gcol = g_colors + j * C;  // this row belongs to this tile only; starts at zero
+      for (int32_t r = bx.r0; r <= bx.r1; ++r) {
+        const T py = T(row_lo + r) + T(0.5);
+        const T dy = gk[1] - py;
+        for (int32_t cc = bx.c0; cc <= bx.c1; ++cc) {
+          const int64_t p = int64_t(r) * tw + cc;
+          if (k >= stop[p]) continue;
+          const T px = T(col_lo + cc) + T(0.5);
+          const T dx = gk[0] - px;
           const T sigma = T(0.5) * (gk[2] * dx * dx + gk[4] * dy * dy) + gk[3] * dx * dy;
           if (sigma < T(0) || sigma > gk[6]) continue;
           const T e = std::exp(-sigma);
@@ -148,28 +230,34 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
           const T alpha = std::min(alpha_max, raw);
           if (alpha < alpha_min) continue;
           const T one_minus = T(1) - alpha;
-          const T t_before = trans / one_minus;
+          const T t_before = trans[p] / one_minus;
           const T w = alpha * t_before;
-          const int64_t j = begin + k;
-          const T* col_k = colors + C * gaussian_ids[j];
+          T* sp = &s[p * C];
+          const T* gcp = &gc[p * C];
           T d_alpha = T(0);
           for (int64_t c = 0; c < C; ++c) {
-            g_colors[j * C + c] += w * gc[c];
-            d_alpha += (col_k[c] - s[c]) * gc[c];
-            s[c] = alpha * col_k[c] + one_minus * s[c];
+            gcol[c] += w * gcp[c];
+            d_alpha += (col_k[c] - sp[c]) * gcp[c];
+            sp[c] = alpha * col_k[c] + one_minus * sp[c];
           }
-          d_alpha = d_alpha * t_before - g_t * t_final / one_minus;
-          trans = t_before;
+          d_alpha = d_alpha * t_before - g_t[p] * t_final[p] / one_minus;
+          trans[p] = t_before;
           if (raw > alpha_max) continue;  // clamped: no gradient to opacity / sigma
-          g_opacities[j] += d_alpha * e;
+          go += d_alpha * e;
           const T d_sigma = -alpha * d_alpha;
-          g_conics[3 * j + 0] += d_sigma * T(0.5) * dx * dx;
-          g_conics[3 * j + 1] += d_sigma * dx * dy;
-          g_conics[3 * j + 2] += d_sigma * T(0.5) * dy * dy;
-          g_means2d[2 * j + 0] += d_sigma * (gk[2] * dx + gk[3] * dy);
-          g_means2d[2 * j + 1] += d_sigma * (gk[3] * dx + gk[4] * dy);
+          gc0 += d_sigma * T(0.5) * dx * dx;
+          gc1 += d_sigma * dx * dy;
+          gc2 += d_sigma * T(0.5) * dy * dy;
+          gm0 += d_sigma * (gk[2] * dx + gk[3] * dy);
+          gm1 += d_sigma * (gk[3] * dx + gk[4] * dy);
         }
       }
+      g_opacities[j] = go;
+      g_conics[3 * j + 0] = gc0;
+      g_conics[3 * j + 1] = gc1;
+      g_conics[3 * j + 2] = gc2;
+      g_means2d[2 * j + 0] = gm0;
+      g_means2d[2 * j + 1] = gm1;
     }
   });
 }
