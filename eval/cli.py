@@ -17,7 +17,7 @@ from eval.pipeline.components import require
 from eval.pipeline.lock import output_lock
 from eval.results import write_results
 from mvgeo.common.cli import add_common_args, run_cli
-from mvgeo.common.errors import DgsError, InputError
+from mvgeo.common.errors import InputError
 
 __all__ = ["build_parser", "main", "resolve_scene_source"]
 
@@ -85,9 +85,59 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_grid(items: Sequence[str] | None, knobs: Sequence[str] | None) -> dict[str, tuple]:
+    """`--knobs` (subset of the default grid) and `--grid KNOB=V1,V2,...` overrides -> grid."""
+    from eval.cost import DEFAULT_GRID, KNOBS
+
+    for k in knobs or ():
+        if k not in DEFAULT_GRID:
+            raise InputError(f"unknown knob {k!r}", fix=f"choose from {', '.join(DEFAULT_GRID)}")
+    grid = {k: DEFAULT_GRID[k] for k in knobs} if knobs else dict(DEFAULT_GRID)
+    for item in items or ():
+        knob, _, values = item.partition("=")
+        if knob not in KNOBS or not values:
+            raise InputError(f"bad --grid {item!r}", fix=f"write KNOB=V1,V2 with KNOB one of {', '.join(KNOBS)}")
+        vals = tuple(v.strip() for v in values.split(",") if v.strip())
+        if knob != "preset":
+            try:
+                vals = tuple(int(v) for v in vals)
+            except ValueError:
+                raise InputError(f"--grid {knob} needs integers, got {values!r}") from None
+            if any(v < 1 for v in vals):
+                raise InputError(f"--grid {knob} values must be >= 1, got {values!r}")
+        else:
+            for v in vals:
+                preset(v)
+        grid[knob] = vals
+    return grid
+
+
 def _cmd_cost(args: argparse.Namespace) -> int:
-    resolve_scene_source(args.scene)
-    raise DgsError("denoise-gs cost: the accuracy-time sweep is not implemented yet; the inputs were validated.")
+    import dataclasses
+
+    from eval.cost import CostConfig, run_cost_sweep, sweep_points, write_cost_results
+
+    kind, source = resolve_scene_source(args.scene)
+    grid = _parse_grid(args.grid, args.knobs)
+    base = preset(args.preset, rounds=args.rounds, views=args.views, seed=args.seed, device=args.device)
+    sweep_points(base, grid)  # bad values fail here, before any compute
+    config = CostConfig(base=base, grid=grid, pose_fit_iters=args.pose_fit_iters)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", path=out, fix="choose another --out")
+    if kind != "dataset":
+        require("data_synth", "render_scene", needed_for="denoise-gs cost on a scene")
+    with output_lock(out):
+        name, folder = scene_dataset(kind, source, out, size_wh=args.size if kind != "dataset" else None,
+                                     views=args.scene_views if kind != "dataset" else None)
+        dataset = validate_dataset_folder(folder)
+        if len(dataset.train) < 2:
+            raise InputError("the cost sweep needs at least 2 training views", path=folder / "split.json")
+        base = dataclasses.replace(base, views=min(base.views, len(dataset.train)))
+        rows = run_cost_sweep(dataset, out, dataclasses.replace(config, base=base))
+        _, md = write_cost_results(out, rows, title=f"denoise-gs cost: {name}")
+    print(f"results: {md}")
+    return 0
 
 
 def _size_wh(text: str) -> tuple[int, int]:
@@ -140,9 +190,26 @@ def build_parser() -> argparse.ArgumentParser:
                     help="number of views for a scene rendered on the fly (default: the scene's)")
     ev.set_defaults(func=_cmd_eval)
 
-    cost = sub.add_parser("cost", help="accuracy-time trade-off sweep on a scene")
-    cost.add_argument("scene")
-    cost.add_argument("--out", type=Path, required=True)
+    cost = sub.add_parser("cost", help="accuracy-time trade-off sweep on a scene",
+                          description="Change one pipeline knob at a time from a base configuration and report "
+                                      "held-out PSNR / pose error against wall time per stage and end to end.")
+    cost.add_argument("scene", help="built-in data_synth scene, scene .toml, or dataset folder")
+    cost.add_argument("--out", type=Path, required=True, help="output folder (resumable: cached stages are reused)")
+    cost.add_argument("--size", type=_size_wh, default=(128, 96), metavar="WxH",
+                      help="image size for a scene rendered on the fly (default 128x96: a sweep in minutes)")
+    cost.add_argument("--scene-views", type=int, default=10,
+                      help="views rendered for a scene (default 10: 8 training + 2 held-out for llff_like)")
+    cost.add_argument("--preset", choices=sorted(PRESETS), default="fast", help="base configuration's preset")
+    cost.add_argument("--rounds", type=int, default=1, help="rounds of the base configuration (default 1)")
+    cost.add_argument("--views", type=int, default=8, help="K for rounds >= 2 (default 8)")
+    cost.add_argument("--seed", type=int, default=0)
+    cost.add_argument("--device", default="cpu")
+    cost.add_argument("--knobs", nargs="+", default=None, metavar="KNOB",
+                      help="sweep only these knobs (default all: n2v_steps passes align_iters align_size "
+                           "splat_iters views train_views preset)")
+    cost.add_argument("--grid", action="append", default=None, metavar="KNOB=V1,V2",
+                      help="values of one knob (repeatable), e.g. --grid splat_iters=100,300")
+    cost.add_argument("--pose-fit-iters", type=int, default=None, help="held-out pose refinement steps")
     cost.set_defaults(func=_cmd_cost)
     return parser
 

@@ -49,7 +49,8 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 
-__all__ = ["EVAL_METHODS", "EvalConfig", "evaluate_dataset", "method_pipeline_config", "scene_dataset"]
+__all__ = ["EVAL_METHODS", "EvalConfig", "evaluate_dataset", "method_pipeline_config", "scene_dataset",
+           "score_reconstruction", "share_round1"]
 
 _log = logging.getLogger(__name__)
 
@@ -217,6 +218,28 @@ def _score_scene(model, gt: SparseModel, est_train: Mapping[str, np.ndarray] | N
     per_view = {n: {"psnr_db": float(scores.psnr_db[i]), "ssim": float(scores.ssim[i]),
                     "lpips": float(scores.lpips[i])} for i, n in enumerate(names)}
     return per_view, pose_stats
+
+
+def score_reconstruction(run_dir: Path, dataset: DatasetFolder, train_names: list[str] | None = None, *,
+                         pose_fit_iters: int | None = None, device: str = "cpu") -> dict[str, float]:
+    """Score a finished pipeline round folder (`point_cloud.ply`, `sparse/0/`) as `evaluate_dataset` does.
+
+    Args:
+        run_dir: e.g. `OUT/round2`.
+        dataset: the dataset it was built from.
+        train_names: the training views it saw (default `dataset.train`).
+
+    Returns:
+        Held-out means ``psnr_db``, ``ssim``, ``lpips`` and pose errors ``rot_err_deg``, ``ate``.
+    """
+    read_ply = require("splat.ply", "read_gaussian_ply", needed_for="scoring")
+    gt = read_sparse_model(dataset.root / "sparse" / "0")
+    model = read_ply(Path(run_dir) / "point_cloud.ply", device=device)
+    est = _stem_poses(read_sparse_model(Path(run_dir) / "sparse" / "0"))
+    ds = dataclasses.replace(dataset, train=list(train_names or dataset.train))
+    per_view, pose_stats = _score_scene(model, gt, est, ds, EvalConfig(pose_fit_iters=pose_fit_iters))
+    means = {m: float(np.mean([v[m] for v in per_view.values()])) for m in ("psnr_db", "ssim", "lpips")}
+    return {**means, **pose_stats}
 
 
 def _run_gt_poses(dataset: DatasetFolder, gt: SparseModel, base: PipelineConfig, seed: int, device: str):

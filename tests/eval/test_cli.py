@@ -89,10 +89,11 @@ def test_eval_dataset_without_cameras(tmp_path, capsys):
     assert "COLMAP" in _err(capsys)
 
 
-def test_cost_is_not_implemented(tmp_path, capsys):
-    # Honest placeholder: inputs validate, then the command says the sweep is missing (exit 1).
-    assert main(["cost", str(_dataset(tmp_path)), "--out", str(tmp_path / "out")]) == 1
-    assert "not implemented" in _err(capsys)
+def test_cost_rejects_a_bad_dataset_before_compute(tmp_path, capsys):
+    root = _dataset(tmp_path)
+    (root / "split.json").unlink()
+    assert main(["cost", str(root), "--out", str(tmp_path / "out")]) == 2
+    assert "split.json" in _err(capsys)
 
 
 @pytest.mark.slow  # renders a 128x96 llff_like and trains a splat (60 iters)

@@ -1,0 +1,380 @@
+"""`denoise-gs cost`: what accuracy costs in time (issue 8, deliver 4).
+
+One knob of the pipeline is changed at a time from a base configuration (the
+`fast` preset, one round, by default); each sweep point is a full
+`run_pipeline` on the scene's noisy training images, scored like
+`denoise-gs eval` (held-out PSNR/SSIM/LPIPS against the clean images after
+Sim(3) registration and photometric pose refinement; training-pose rotation
+error and ATE). Times are the stages' own wall seconds from the stage records
+(so a stage reused from the cache reports the time it took when it ran), per
+stage and summed end to end; scoring time is not included.
+
+Reuse: every point runs in its own folder, first seeded with hard links to the
+base point's completed stages, so the stage keys decide what re-runs (a
+change of splat iterations re-runs splat and render only). Scores are cached
+per point, keyed by the final render stage's key and the pose-fit setting.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import shutil
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from eval.pipeline import PipelineConfig, PipelineStages, preset, run_pipeline
+from eval.pipeline.stages import check_product_components
+from eval.pipeline.validate import DatasetFolder
+from mvgeo.common.atomic import atomic_write_text
+from mvgeo.common.errors import InputError
+
+__all__ = ["DEFAULT_GRID", "KNOBS", "CostConfig", "CostPoint", "SweepPoint", "apply_knob", "run_cost_sweep",
+           "sweep_points", "write_cost_results"]
+
+_log = logging.getLogger(__name__)
+
+
+def _set_denoise(cfg: PipelineConfig, **kw) -> PipelineConfig:
+    return dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, **kw))
+
+
+def _set_align(cfg: PipelineConfig, **kw) -> PipelineConfig:
+    return dataclasses.replace(cfg, align=dataclasses.replace(cfg.align, **kw))
+
+
+def _set_splat(cfg: PipelineConfig, **kw) -> PipelineConfig:
+    return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, **kw))
+
+
+def _set_preset(cfg: PipelineConfig, name: object) -> PipelineConfig:
+    return preset(str(name), views=cfg.views, rounds=2, seed=cfg.seed, device=cfg.device)
+
+
+#: knob -> (what it changes, how). `train_views` is handled by the sweep (a subset of the images).
+KNOBS: dict[str, tuple[str, Callable[[PipelineConfig, object], PipelineConfig]]] = {
+    "n2v_steps": ("N2V training steps (round 1)", lambda c, v: _set_denoise(c, n2v_steps=int(v))),
+    "passes": ("N2V inference passes K", lambda c, v: _set_denoise(c, passes=int(v))),
+    "align_iters": ("global-alignment iterations", lambda c, v: _set_align(c, iters=int(v))),
+    "align_size": ("alignment image size (long side, px)", lambda c, v: _set_align(c, max_size_px=int(v))),
+    "splat_iters": ("splat training iterations", lambda c, v: _set_splat(c, iters=int(v))),
+    "views": ("K views kept for round 2 (2 rounds)",
+              lambda c, v: dataclasses.replace(c, views=int(v), rounds=2)),
+    "train_views": ("number of noisy training images", lambda c, v: c),
+    "preset": ("pipeline preset (2 rounds)", _set_preset),
+}
+
+#: The default sweep (values around the `fast` preset; each point is one pipeline run at the sweep's size).
+DEFAULT_GRID: dict[str, tuple] = {
+    "n2v_steps": (100, 400, 1000),
+    "passes": (1, 2, 8),
+    "align_iters": (25, 100, 300),
+    "align_size": (64, 96, 128),
+    "splat_iters": (100, 300, 1000),
+    "views": (4, 8),
+    "train_views": (4, 6, 8),
+    "preset": ("fast", "default"),
+}
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """One pipeline configuration of the sweep.
+
+    Attributes:
+        knob, value: what was changed from the base ("base", None for the base itself).
+        config: the pipeline configuration.
+        train_views: number of training images used (None: all).
+    """
+
+    knob: str
+    value: object
+    config: PipelineConfig
+    train_views: int | None = None
+
+    @property
+    def name(self) -> str:
+        return "base" if self.knob == "base" else f"{self.knob}={self.value}"
+
+
+def apply_knob(base: PipelineConfig, knob: str, value: object) -> PipelineConfig:
+    """`base` with `knob` set to `value`.
+
+    Raises:
+        InputError: unknown knob or a value the pipeline config rejects.
+    """
+    if knob not in KNOBS:
+        raise InputError(f"unknown knob {knob!r}", fix=f"choose from {', '.join(KNOBS)}")
+    try:
+        return KNOBS[knob][1](base, value)
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"bad value {value!r} for knob {knob}: {exc}") from exc
+
+
+def sweep_points(base: PipelineConfig, grid: Mapping[str, Sequence[object]]) -> list[SweepPoint]:
+    """The base point, then one point per (knob, value), in grid order.
+
+    Raises:
+        InputError: unknown knob, empty value list or a bad value (before any compute).
+    """
+    points = [SweepPoint("base", None, base)]
+    for knob, values in grid.items():
+        if not len(values):
+            raise InputError(f"knob {knob} has no values")
+        for v in values:
+            if knob == "train_views":
+                if int(v) < 2:
+                    raise InputError(f"train_views must be >= 2, got {v}")
+                points.append(SweepPoint(knob, int(v), base, train_views=int(v)))
+            else:
+                points.append(SweepPoint(knob, v, apply_knob(base, knob, v)))
+    return points
+
+
+@dataclass(frozen=True)
+class CostConfig:
+    """Settings of `run_cost_sweep`.
+
+    Attributes:
+        base: the base pipeline configuration (default: `fast`, 1 round, K = 8).
+        grid: knob -> values (default `DEFAULT_GRID`).
+        pose_fit_iters: held-out pose refinement steps (None: `splat`'s default).
+    """
+
+    base: PipelineConfig = field(default_factory=lambda: preset("fast", rounds=1, views=8))
+    grid: Mapping[str, Sequence[object]] = field(default_factory=lambda: dict(DEFAULT_GRID))
+    pose_fit_iters: int | None = None
+
+
+@dataclass(frozen=True)
+class CostPoint:
+    """Measured cost and accuracy of one sweep point.
+
+    Attributes:
+        name, knob, value: identify the point.
+        stage_s: stage label (`roundN/stage`) -> wall seconds when it ran.
+        total_s: sum of `stage_s` (end to end, scoring excluded).
+        psnr_db, ssim, lpips: held-out means against the clean images.
+        rot_err_deg, ate: training-pose errors after Sim(3).
+    """
+
+    name: str
+    knob: str
+    value: object
+    stage_s: dict[str, float]
+    total_s: float
+    psnr_db: float
+    ssim: float
+    lpips: float
+    rot_err_deg: float
+    ate: float
+
+
+def _share_stages(src: Path, dst: Path) -> None:
+    """Seed a new point folder with hard links to `src`'s round folders (keys decide what re-runs)."""
+    if dst.exists() or not src.is_dir():
+        return
+    tmp = dst.with_name(f".{dst.name}.link-tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+
+    def link(a: str, b: str) -> None:
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    for rd in sorted(src.glob("round*")):
+        shutil.copytree(rd, tmp / rd.name, copy_function=link,
+                        ignore=lambda d, names: [n for n in names if n.startswith(".")])
+    os.replace(tmp, dst)
+
+
+def _subset(names: Sequence[str], n: int) -> list[str]:
+    """`n` of `names`, evenly spaced (first and last kept)."""
+    if n >= len(names):
+        return list(names)
+    idx = np.unique(np.round(np.linspace(0, len(names) - 1, n)).astype(int))
+    return [names[i] for i in idx]
+
+
+def _inputs_folder(dataset: DatasetFolder, folder: Path, names: Sequence[str]) -> Path:
+    """`folder` holding hard links to the noisy training images `names` (rebuilt if different)."""
+    if folder.is_dir() and sorted(p.stem for p in folder.iterdir()) == sorted(names):
+        return folder
+    tmp = folder.with_name(folder.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for n in names:
+        src = dataset.images[n]
+        try:
+            os.link(src, tmp / src.name)
+        except OSError:
+            shutil.copy2(src, tmp / src.name)
+    shutil.rmtree(folder, ignore_errors=True)
+    os.replace(tmp, folder)
+    return folder
+
+
+def run_cost_sweep(dataset: DatasetFolder, out: Path, config: CostConfig, *,
+                   score: Callable | None = None, stages: PipelineStages | None = None) -> list[CostPoint]:
+    """Run and score every sweep point on `dataset`.
+
+    Args:
+        dataset: a checked dataset folder (noisy training images, held-out clean images, GT cameras).
+        out: the sweep folder (`out/points/<name>/` per point, `out/inputs*/`).
+        config: base configuration, grid and pose-fit setting.
+        score: ``score(final_round_dir, dataset, train_names) -> dict`` with the keys of
+            `CostPoint`'s metrics; default `eval.evaluate.score_reconstruction` (tests pass a cheap one).
+        stages: pipeline stage functions (default the product's; tests pass small real ones).
+
+    Raises:
+        InputError: bad grid values (before any compute).
+        MissingComponentError: a component is missing (checked before any compute).
+    """
+    from eval.evaluate import score_reconstruction
+
+    out = Path(out)
+    points = sweep_points(config.base, config.grid)
+    if stages is None:
+        for p in points:
+            check_product_components(p.config)
+    if score is None:
+        score = lambda rd, ds, names: score_reconstruction(rd, ds, names, pose_fit_iters=config.pose_fit_iters)  # noqa: E731
+    base_dir = out / "points" / "base"
+    rows: list[CostPoint] = []
+    for p in points:
+        names = _subset(dataset.train, p.train_views) if p.train_views else list(dataset.train)
+        tag = "" if p.train_views is None or len(names) == len(dataset.train) else f"_{len(names)}"
+        inputs = _inputs_folder(dataset, out / f"inputs{tag}", names)
+        run_dir = out / "points" / p.name
+        if p.name != "base" and not tag:
+            _share_stages(base_dir, run_dir)
+        _log.info("cost sweep: %s", p.name)
+        res = run_pipeline(inputs, run_dir, p.config, stages=stages)
+        stage_s = {f"round{r.index}/{n}": float(s.seconds) for r in res.rounds for n, s in r.stages.items()}
+        final = res.rounds[-1]
+        key = {"render": final.stages["render"].key, "pose_fit_iters": config.pose_fit_iters,
+               "test": list(dataset.test)}
+        cache = run_dir / "score.json"
+        metrics = None
+        if cache.is_file():
+            rec = json.loads(cache.read_text())
+            if rec.get("key") == key:
+                metrics = rec["metrics"]
+        if metrics is None:
+            metrics = {k: float(v) for k, v in dict(score(final.dir, dataset, names)).items()}
+            atomic_write_text(cache, json.dumps({"key": key, "metrics": metrics}, indent=2) + "\n")
+        rows.append(CostPoint(p.name, p.knob, p.value, stage_s, float(sum(stage_s.values())),
+                              **{k: metrics.get(k, float("nan"))
+                                 for k in ("psnr_db", "ssim", "lpips", "rot_err_deg", "ate")}))
+    return rows
+
+
+# ----------------------------------------------------------------- reporting
+def _f(x: float, digits: int) -> str:
+    return "–" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
+
+
+def cost_markdown(rows: Sequence[CostPoint], *, title: str) -> str:
+    """One table per knob (base point first), then the figures."""
+    base = next((r for r in rows if r.knob == "base"), None)
+    lines = [f"# {title}", "",
+             "Held-out views against the clean images; times are the stages' wall seconds (end to end = their sum, "
+             "scoring excluded). One knob changes at a time from the base point; one seed, so differences of a "
+             "few tenths of a dB are within run-to-run spread.", ""]
+    stage_names = list(dict.fromkeys(s for r in rows for s in r.stage_s))
+    for knob in dict.fromkeys(r.knob for r in rows):
+        label = "base configuration" if knob == "base" else f"{knob}: {KNOBS[knob][0]}"
+        lines += [f"## {label}", "", "| value | PSNR (dB) | SSIM | LPIPS | rot. err. (deg) | ATE | end to end (s) | "
+                  "slowest stages (s) |", "|---|---|---|---|---|---|---|---|"]
+        knob_rows = [r for r in rows if r.knob == knob]
+        for r in knob_rows:
+            top = sorted(r.stage_s.items(), key=lambda kv: -kv[1])[:3]
+            stages = ", ".join(f"{k} {v:.0f}" for k, v in top)
+            lines.append(f"| {r.value if knob != 'base' else 'base'} | {_f(r.psnr_db, 2)} | {_f(r.ssim, 3)} | "
+                         f"{_f(r.lpips, 3)} | {_f(r.rot_err_deg, 2)} | {_f(r.ate, 3)} | {r.total_s:.0f} | {stages} |")
+        lines.append("")
+    if base is not None:
+        lines += ["## Base point, seconds per stage", "", "| stage | s |", "|---|---|"]
+        lines += [f"| {s} | {base.stage_s.get(s, float('nan')):.1f} |" for s in stage_names if s in base.stage_s]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot_cost(rows: Sequence[CostPoint], folder: Path) -> list[Path]:
+    """`psnr_vs_time.png` and `pose_vs_time.png` (one panel per knob, end-to-end seconds on x) and
+    `stage_times.png` (stacked seconds per stage and point)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    knobs = [k for k in dict.fromkeys(r.knob for r in rows) if k != "base"]
+    base = next((r for r in rows if r.knob == "base"), None)
+    paths = []
+    for metric, label, fname in (("psnr_db", "held-out PSNR (dB)", "psnr_vs_time.png"),
+                                 ("rot_err_deg", "training rotation error (deg)", "pose_vs_time.png")):
+        n = max(1, len(knobs))
+        cols = min(4, n)
+        nrows = (n + cols - 1) // cols
+        fig, axes = plt.subplots(nrows, cols, figsize=(3.2 * cols, 2.6 * nrows), dpi=110, squeeze=False)
+        for ax, knob in zip(axes.flat, knobs, strict=False):
+            pts = [r for r in rows if r.knob == knob]
+            xs = [r.total_s for r in pts]
+            ys = [getattr(r, metric) for r in pts]
+            ax.plot(xs, ys, "o-")
+            for r, x, y in zip(pts, xs, ys, strict=True):
+                ax.annotate(str(r.value), (x, y), fontsize=7, textcoords="offset points", xytext=(3, 3))
+            if base is not None:
+                ax.plot([base.total_s], [getattr(base, metric)], "k*", ms=8)
+            ax.set_title(knob, fontsize=8)
+            ax.set_xlabel("end to end (s)", fontsize=7)
+            ax.set_ylabel(label, fontsize=7)
+            ax.tick_params(labelsize=7)
+        for ax in list(axes.flat)[len(knobs):]:
+            ax.axis("off")
+        fig.tight_layout()
+        fig.savefig(folder / fname)
+        plt.close(fig)
+        paths.append(folder / fname)
+    stages = list(dict.fromkeys(s for r in rows for s in r.stage_s))
+    fig, ax = plt.subplots(figsize=(max(5.0, 0.35 * len(rows) + 2), 3.2), dpi=110)
+    bottom = np.zeros(len(rows))
+    for s in stages:
+        vals = np.array([r.stage_s.get(s, 0.0) for r in rows])
+        ax.bar(np.arange(len(rows)), vals, bottom=bottom, label=s)
+        bottom += vals
+    ax.set_xticks(np.arange(len(rows)), [r.name for r in rows], rotation=70, fontsize=6, ha="right")
+    ax.set_ylabel("seconds")
+    ax.legend(fontsize=6, ncols=2)
+    fig.tight_layout()
+    fig.savefig(folder / "stage_times.png")
+    plt.close(fig)
+    paths.append(folder / "stage_times.png")
+    return paths
+
+
+def write_cost_results(out: Path, rows: Sequence[CostPoint], *, title: str) -> tuple[Path, Path]:
+    """`results.json`, `results.md` and `figures/*.png` (JSON and Markdown written atomically)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def safe(x: object) -> object:
+        return None if isinstance(x, float) and not np.isfinite(x) else x
+
+    data = [{k: (safe(v) if not isinstance(v, dict) else v) for k, v in dataclasses.asdict(r).items()}
+            for r in rows]
+    json_path, md_path = out / "results.json", out / "results.md"
+    atomic_write_text(json_path, json.dumps({"points": data}, indent=2, default=str) + "\n")
+    figs = plot_cost(rows, out / "figures")
+    md = cost_markdown(rows, title=title)
+    md += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figs) + "\n"
+    atomic_write_text(md_path, md)
+    return json_path, md_path
