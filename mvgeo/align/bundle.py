@@ -26,6 +26,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
+from mvgeo.align.bundle_lm import LMProblem, log_focal_std, project, solve_lm
 from mvgeo.triangulate import TriangulationCriteria, triangulate_multiview
 
 _log = logging.getLogger(__name__)
@@ -43,6 +44,10 @@ class BundleConfig:
         max_points: at most this many tracks (evenly subsampled) enter the problem.
         max_reproj_px: observations above this after the first solve are removed.
         min_track_length: tracks need at least this many views.
+        solver: "lm" (`mvgeo.align.bundle_lm`: Levenberg-Marquardt with the
+            Schur complement, analytic Jacobian) or "scipy" (`least_squares`
+            with a sparse finite-difference Jacobian: the slow reference).
+        max_iters: LM iterations per round ("lm" only).
     """
 
     huber_px: float = 1.0
@@ -52,6 +57,8 @@ class BundleConfig:
     max_points: int = 20000
     max_reproj_px: float = 4.0
     min_track_length: int = 2
+    solver: str = "lm"
+    max_iters: int = 50
 
 
 @dataclass
@@ -66,6 +73,8 @@ class BundleResult:
     reproj_rms_after_px: float
     reproj_median_before_px: float
     reproj_median_after_px: float
+    focal_log_std: float = float("nan")
+    solver: str = "lm"
 
 
 def build_tracks(matches: Sequence[tuple[int, int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -167,6 +176,10 @@ def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tup
         rms = float(np.sqrt(np.mean(e0**2))) if len(e0) else float("nan")
         med = float(np.median(e0)) if len(e0) else float("nan")
         return BundleResult(cam_from_world.copy(), np.asarray(focal_px, float).copy(), P, len(ov), rms, rms, med, med)
+    if config.solver == "lm":
+        return _bundle_lm(cam_from_world, rv0, X0, logf0, f_index, ov, op, ouv, c, e0, config)
+    if config.solver != "scipy":
+        raise ValueError(f"unknown bundle solver {config.solver!r} (lm or scipy)")
     x = x0
     for _round in range(2):
         x = _solve(x, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed)
@@ -179,10 +192,34 @@ def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tup
     rv, t, lf, _ = _unpack(x, n, nf, P, logf0, config, fixed)
     out = np.concatenate([Rotation.from_rotvec(rv).as_matrix(), t[:, :, None]], axis=2)
     res = BundleResult(out, np.exp(lf)[f_index], P, len(ov), float(np.sqrt(np.mean(e0**2))),
-                       float(np.sqrt(np.mean(e1**2))), float(np.median(e0)), float(np.median(e1)))
+                       float(np.sqrt(np.mean(e1**2))), float(np.median(e0)), float(np.median(e1)), solver="scipy")
     _log.info("bundle adjustment: %d tracks, %d observations, reprojection RMS %.3g -> %.3g px "
               "(median %.3g -> %.3g)", P, len(ov), res.reproj_rms_before_px, res.reproj_rms_after_px,
               res.reproj_median_before_px, res.reproj_median_after_px)
+    return res
+
+
+def _bundle_lm(cam_from_world, rv0, X0, logf0, f_index, ov, op, ouv, c, e0, config) -> BundleResult:
+    R = Rotation.from_rotvec(rv0).as_matrix()
+    t = cam_from_world[:, :, 3].copy()
+    logf, X = logf0.copy(), X0.copy()
+    pb = LMProblem(ov, op, ouv, f_index, c, config.optimize_focal)
+    for _round in range(2):  # solve, drop observations above max_reproj_px, solve again
+        R, t, logf, X, _ = solve_lm(R, t, logf, X, pb, huber_px=config.huber_px, max_iters=config.max_iters)
+        e = np.linalg.norm(project(R, t, logf, X, pb)[0], axis=1)
+        ok = e < config.max_reproj_px
+        if ok.all() or _round == 1:
+            break
+        pb = LMProblem(pb.ov[ok], pb.op[ok], pb.uv[ok], f_index, c, config.optimize_focal)
+    e1 = np.linalg.norm(project(R, t, logf, X, pb)[0], axis=1)
+    std = log_focal_std(R, t, logf, X, pb, config.huber_px)
+    out = np.concatenate([R, t[:, :, None]], axis=2)
+    res = BundleResult(out, np.exp(logf)[f_index], len(X), len(pb.ov), float(np.sqrt(np.mean(e0**2))),
+                       float(np.sqrt(np.mean(e1**2))), float(np.median(e0)), float(np.median(e1)),
+                       focal_log_std=float(np.max(std)) if len(std) else 0.0, solver="lm")
+    _log.info("bundle adjustment (LM): %d tracks, %d observations, reprojection RMS %.3g -> %.3g px "
+              "(median %.3g -> %.3g), focal log-std %.2g", len(X), len(pb.ov), res.reproj_rms_before_px,
+              res.reproj_rms_after_px, res.reproj_median_before_px, res.reproj_median_after_px, res.focal_log_std)
     return res
 
 

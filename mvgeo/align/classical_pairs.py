@@ -56,7 +56,11 @@ class ClassicalPairConfig:
         ratio: Lowe's ratio test threshold.
         min_matches: fewer putative matches -> the pair fails.
         two_view: options of the relative-pose estimators (RANSAC threshold in
-            pixels at the alignment resolution).
+            pixels at the alignment resolution). Default backend: OpenCV's
+            USAC_MAGSAC (measured ~40x faster than our numpy LO-MSAC, same
+            accuracy; ``backend="own"`` selects ours).
+        focal_pairs: the shared focal is the median over at most this many
+            pairs (those with the most matches).
         fb_max_px: forward-backward consistency limit, pixels at the pointmap resolution.
         epipolar_max_px: Sampson distance limit of a dense match, pointmap pixels.
         angle_ref_deg: triangulation angle at which the angle term saturates to 1.
@@ -70,7 +74,8 @@ class ClassicalPairConfig:
     focal_prior: float = 1.2
     ratio: float = 0.8
     min_matches: int = 20
-    two_view: TwoViewConfig = field(default_factory=lambda: TwoViewConfig())
+    two_view: TwoViewConfig = field(default_factory=lambda: TwoViewConfig(backend="opencv"))
+    focal_pairs: int = 24
     fb_max_px: float = 1.0
     epipolar_max_px: float = 1.5
     angle_ref_deg: float = 5.0
@@ -112,21 +117,59 @@ def extract_features(image: np.ndarray, *, n_features: int, blur_sigma_px: float
 
 
 def match_features(a: ImageFeatures, b: ImageFeatures, *, ratio: float) -> np.ndarray:
-    """(M, 2) index pairs: mutual nearest neighbours passing the ratio test both ways."""
+    """(M, 2) index pairs: mutual nearest neighbours passing the ratio test both ways.
+
+    RootSIFT (Arandjelovic & Zisserman 2012): descriptors are L1-normalised and
+    square-rooted, so the squared Euclidean distance is ``2 - 2 a.b``; all
+    distances come from one BLAS product instead of two k-NN searches
+    (`match_features_reference` is the obvious loop it is tested against).
+    """
     if len(a.desc) < 2 or len(b.desc) < 2:
         return np.zeros((0, 2), np.int64)
-    bf = cv2.BFMatcher(cv2.NORM_L2)
+    da, db = _root_sift(a.desc), _root_sift(b.desc)
+    sim = da @ db.T  # (Ka, Kb); squared distance = 2 - 2 sim
+    r2 = ratio * ratio
 
-    def one_way(x, y):
-        out = {}
-        for m in bf.knnMatch(x, y, k=2):
-            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
-                out[m[0].queryIdx] = m[0].trainIdx
-        return out
+    def one_way(axis):
+        """Best index along `axis` and the ratio test, from the two largest similarities."""
+        best = np.argmax(sim, axis=axis)
+        other = np.arange(len(best))
+        idx = (other, best) if axis == 1 else (best, other)
+        s0 = sim[idx]
+        sim[idx] = -np.inf
+        s1 = np.max(sim, axis=axis)
+        sim[idx] = s0
+        d0, d1 = np.maximum(2.0 - 2.0 * s0, 0.0), np.maximum(2.0 - 2.0 * s1, 0.0)
+        return best, d0 < r2 * d1
 
-    ab, ba = one_way(a.desc, b.desc), one_way(b.desc, a.desc)
-    pairs = [(q, t) for q, t in ab.items() if ba.get(t) == q]
-    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    ab, ok_ab = one_way(1)
+    ba, ok_ba = one_way(0)
+    q = np.flatnonzero(ok_ab & ok_ba[ab] & (ba[ab] == np.arange(len(ab))))
+    return np.stack([q, ab[q]], axis=1).astype(np.int64).reshape(-1, 2)
+
+
+def match_features_reference(a: ImageFeatures, b: ImageFeatures, *, ratio: float) -> np.ndarray:
+    """Slow, obvious version of `match_features` (loops; the tests' reference)."""
+    da, db = _root_sift(a.desc).astype(np.float64), _root_sift(b.desc).astype(np.float64)
+
+    def nn(x, y, k):
+        d = np.sum((y - x[k]) ** 2, axis=1)
+        o = np.argsort(d, kind="stable")
+        return int(o[0]), d[o[0]] < ratio * ratio * d[o[1]]
+
+    out = []
+    for k in range(len(da)):
+        j, ok = nn(da, db, k)
+        if ok:
+            k2, ok2 = nn(db, da, j)
+            if ok2 and k2 == k:
+                out.append((k, j))
+    return np.array(out, np.int64).reshape(-1, 2)
+
+
+def _root_sift(desc: np.ndarray) -> np.ndarray:
+    d = np.abs(np.asarray(desc, np.float32))
+    return np.sqrt(d / np.maximum(d.sum(axis=1, keepdims=True), 1e-12))
 
 
 def _resize(image: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -238,7 +281,8 @@ class ClassicalPointmapModel:
         """Median of the well-determined pair focals (alignment pixels), or the prior."""
         Ha, Wa = images[0].shape[:2]
         focals = []
-        for (i, j), m in progress(matches.items(), desc="pair focals", total=len(matches)):
+        best = sorted(matches.items(), key=lambda kv: -len(kv[1]))[:self.config.focal_pairs]
+        for (i, j), m in progress(best, desc="pair focals", total=len(best)):
             u1, u2 = feats[i].uv_px[m[:, 0]], feats[j].uv_px[m[:, 1]]
             rel = estimate_relative_pose_uncalibrated(u1, u2, (Wa, Ha), config=self.config.two_view, seed=self.seed)
             if rel.success and rel.focal_well_determined:

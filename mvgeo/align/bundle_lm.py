@@ -1,0 +1,197 @@
+"""Levenberg-Marquardt bundle adjustment with the Schur complement (numpy, float64).
+
+Unknowns: per view a pose ``cam_from_world`` (left-multiplicative rotation
+update ``R <- exp([d]x) R``, translation), a log-focal shared by all views or
+one per view (principal point fixed), and per track a world point. View 0's
+pose is fixed; the remaining scale freedom is held by the LM damping (the
+metrics align by Sim(3) anyway). Residuals are reprojection errors in pixels
+with a Huber loss, minimised by iteratively reweighted least squares: each
+iteration solves the weighted normal equations with the point blocks (3x3)
+eliminated, so the dense system has only ``6 (N - 1) + n_focal`` unknowns.
+
+Analytic Jacobian of the projection ``p = f (x / z, y / z) + c`` of
+``x_c = R X + t``:
+
+    dp/dx_c = f / z [[1, 0, -x/z], [0, 1, -y/z]]
+    dx_c/d(rot) = -[R X]x,  dx_c/dt = I,  dx_c/dX = R,  dp/dlog f = p - c.
+
+`mvgeo.align.bundle` keeps the scipy `least_squares` solver as the slow,
+obvious reference (tests compare the two).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mvgeo.transforms import so3_exp
+
+
+@dataclass
+class LMProblem:
+    """A bundle-adjustment problem (observations sorted arbitrarily).
+
+    Attributes:
+        ov: (K,) view of each observation.
+        op: (K,) point of each observation.
+        uv: (K, 2) observed pixels.
+        f_index: (N,) focal unknown of each view (all 0 for a shared focal).
+        c: (2,) principal point.
+        optimize_focal: False keeps the focals fixed.
+    """
+
+    ov: np.ndarray
+    op: np.ndarray
+    uv: np.ndarray
+    f_index: np.ndarray
+    c: np.ndarray
+    optimize_focal: bool = True
+
+
+def _skew_batch(v: np.ndarray) -> np.ndarray:
+    z = np.zeros(len(v))
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
+                     np.stack([-v[:, 1], v[:, 0], z], -1)], axis=1)
+
+
+def project(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.ndarray, pb: LMProblem):
+    """(K, 2) residuals proj - uv and the camera-frame points (K, 3), rotated points (K, 3)."""
+    RX = np.einsum("kij,kj->ki", R[pb.ov], X[pb.op])
+    xc = RX + t[pb.ov]
+    z = np.where(np.abs(xc[:, 2]) < 1e-12, 1e-12, xc[:, 2])
+    f = np.exp(logf)[pb.f_index[pb.ov]]
+    proj = f[:, None] * xc[:, :2] / z[:, None] + pb.c
+    return proj - pb.uv, xc, RX, z, f
+
+
+def _huber_weights(r: np.ndarray, k: float) -> np.ndarray:
+    n = np.linalg.norm(r, axis=1)
+    return np.where(n <= k, 1.0, k / np.maximum(n, 1e-300))
+
+
+def _robust_cost(r: np.ndarray, k: float) -> float:
+    n = np.linalg.norm(r, axis=1)
+    return float(np.sum(np.where(n <= k, 0.5 * n * n, k * (n - 0.5 * k))))
+
+
+def _columns(pb: LMProblem, n: int, nf: int) -> tuple[np.ndarray, int]:
+    """(K, 7) global camera column of each observation's local unknowns (nc = dummy for fixed ones), nc."""
+    nc = 6 * (n - 1) + nf
+    cols = np.full((len(pb.ov), 7), nc, np.int64)
+    free = pb.ov > 0
+    cols[free, :6] = (6 * (pb.ov[free] - 1))[:, None] + np.arange(6)
+    if nf:
+        cols[:, 6] = 6 * (n - 1) + pb.f_index[pb.ov]
+    return cols, nc
+
+
+def normal_equations(R, t, logf, X, pb: LMProblem, huber_px: float):
+    """Blocks of the IRLS-weighted normal equations at the current state.
+
+    Returns:
+        U (nc, nc), gc (nc,), V (P, 3, 3), gp (P, 3), W (P, nc, 3), residuals (K, 2).
+    """
+    n, P, K = len(R), len(X), len(pb.ov)
+    nf = len(logf) if pb.optimize_focal else 0
+    cols, nc = _columns(pb, n, nf)
+    r, xc, RX, z, f = project(R, t, logf, X, pb)
+    w = _huber_weights(r, huber_px)
+    iz = 1.0 / z
+    dp = np.zeros((K, 2, 3))
+    dp[:, 0, 0] = dp[:, 1, 1] = f * iz
+    dp[:, 0, 2] = -f * xc[:, 0] * iz * iz
+    dp[:, 1, 2] = -f * xc[:, 1] * iz * iz
+    Jc = np.zeros((K, 2, 7))
+    Jc[:, :, :3] = -dp @ _skew_batch(RX)
+    Jc[:, :, 3:6] = dp
+    if nf:
+        Jc[:, :, 6] = r + pb.uv - pb.c  # p - c
+    Jc[pb.ov == 0, :, :6] = 0.0
+    Jp = dp @ R[pb.ov]  # (K, 2, 3)
+    Jc_w = Jc * w[:, None, None]
+    Jp_w = Jp * w[:, None, None]
+    Ucc = np.einsum("kai,kaj->kij", Jc_w, Jc)
+    U = np.bincount((cols[:, :, None] * (nc + 1) + cols[:, None, :]).ravel(), Ucc.ravel(),
+                    minlength=(nc + 1) ** 2).reshape(nc + 1, nc + 1)[:nc, :nc]
+    gc = np.bincount(cols.ravel(), np.einsum("kai,ka->ki", Jc_w, r).ravel(), minlength=nc + 1)[:nc]
+    V = np.zeros((P, 3, 3))
+    np.add.at(V, pb.op, np.einsum("kai,kaj->kij", Jp_w, Jp))
+    gp = np.zeros((P, 3))
+    np.add.at(gp, pb.op, np.einsum("kai,ka->ki", Jp_w, r))
+    Wk = np.einsum("kai,kaj->kij", Jc_w, Jp)  # (K, 7, 3)
+    W = np.bincount(((pb.op[:, None] * (nc + 1) + cols)[:, :, None] * 3 + np.arange(3)).ravel(),
+                    Wk.ravel(), minlength=P * (nc + 1) * 3).reshape(P, nc + 1, 3)[:, :nc]
+    return U, gc, V, gp, W, r
+
+
+def reduced_camera_system(U, V, W, lam: float = 0.0):
+    """Schur complement S = U - W V^-1 W^T (Marquardt damping lam on both diagonals) and W V^-1."""
+    Ud = U + lam * np.diag(np.diag(U) + 1e-12)
+    Vd = V + lam * (V * np.eye(3)) + 1e-12 * np.eye(3)
+    Vinv = np.linalg.inv(Vd)
+    Y = np.einsum("pci,pij->pcj", W, Vinv)
+    return Ud - np.einsum("pci,pdi->cd", Y, W), Y, Vinv
+
+
+def solve_lm(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.ndarray, pb: LMProblem, *,
+             huber_px: float, max_iters: int = 50, tol: float = 1e-10
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Minimise the Huber reprojection cost; returns refined (R, t, logf, X, iterations)."""
+    n = len(R)
+    nf = len(logf) if pb.optimize_focal else 0
+    lam = 1e-3
+    cost = _robust_cost(project(R, t, logf, X, pb)[0], huber_px)
+    it = 0
+    for it in range(1, max_iters + 1):  # noqa: B007
+        U, gc, V, gp, W, _ = normal_equations(R, t, logf, X, pb, huber_px)
+        improved, rel = False, 0.0
+        for _ in range(10):
+            S, Y, Vinv = reduced_camera_system(U, V, W, lam)
+            rhs = -gc + np.einsum("pci,pi->c", Y, gp)
+            try:
+                dc = np.linalg.solve(S, rhs) if len(rhs) else np.zeros(0)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            dX = -np.einsum("pij,pj->pi", Vinv, gp + np.einsum("pci,c->pi", W, dc))
+            R1, t1, lf1 = R.copy(), t.copy(), logf.copy()
+            if n > 1:
+                d = dc[:6 * (n - 1)].reshape(n - 1, 6)
+                R1[1:] = np.stack([so3_exp(v) for v in d[:, :3]]) @ R[1:]
+                t1[1:] = t[1:] + d[:, 3:]
+            if nf:
+                lf1 = logf + dc[6 * (n - 1):]
+            X1 = X + dX
+            r1 = project(R1, t1, lf1, X1, pb)[0]
+            cost1 = _robust_cost(r1, huber_px) if np.all(np.isfinite(r1)) else np.inf
+            if cost1 < cost:
+                rel = (cost - cost1) / max(cost, 1e-300)
+                R, t, logf, X, cost = R1, t1, lf1, X1, cost1
+                lam = max(lam / 3.0, 1e-9)
+                improved = True
+                break
+            lam *= 4.0
+        if not improved or rel < tol:
+            break
+    return R, t, logf, X, it
+
+
+def log_focal_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarray:
+    """(n_focal,) standard deviation of each log-focal (Laplace approximation, points marginalised).
+
+    The residual variance is estimated from the residuals; the scale gauge is a
+    null direction of the reduced system that leaves the focals unchanged, so a
+    pseudo-inverse gives their marginal variance.
+    """
+    n = len(R)
+    nf = len(logf)
+    if not pb.optimize_focal or nf == 0:
+        return np.zeros(nf)
+    U, _, V, _, W, r = normal_equations(R, t, logf, X, pb, huber_px)
+    S = reduced_camera_system(U, V, W)[0]
+    dof = max(r.size - len(S) - 3 * len(X), 1)
+    sigma2 = float(np.sum(r * r)) / dof
+    cov = np.linalg.pinv(S, rcond=1e-12, hermitian=True) * sigma2
+    k = 6 * (n - 1)
+    return np.sqrt(np.maximum(np.diag(cov)[k:k + nf], 0.0))
