@@ -50,7 +50,7 @@ from mvgeo.common.imageio import read_image
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 
 __all__ = ["EVAL_METHODS", "EvalConfig", "evaluate_dataset", "method_pipeline_config", "scene_dataset",
-           "score_reconstruction", "share_round1"]
+           "score_reconstruction", "share_round1", "copy_train_inputs"]
 
 _log = logging.getLogger(__name__)
 
@@ -170,7 +170,8 @@ def _stem_poses(model: SparseModel) -> dict[str, np.ndarray]:
     return {Path(n).stem: model.image(n).cam_from_world for n in model.names}
 
 
-def _copy_train_inputs(dataset: DatasetFolder, folder: Path) -> Path:
+def copy_train_inputs(dataset: DatasetFolder, folder: Path) -> Path:
+    """`folder` holding (hard links to) the dataset's noisy training images; where `evaluate_dataset` runs."""
     if folder.is_dir() and sorted(p.stem for p in folder.iterdir()) == sorted(dataset.train):
         return folder
     tmp = folder.with_name(folder.name + ".tmp")
@@ -288,7 +289,7 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
         check_product_components(method_pipeline_config(m, base)[1])
     for name in ("render_views", "fit_pose"):
         require("splat.render" if name == "render_views" else "splat.pose_fit", name, needed_for="denoise-gs eval")
-    inputs = _copy_train_inputs(dataset, out / "inputs" / scene)
+    inputs = copy_train_inputs(dataset, out / "inputs" / scene)
     rows: list[RunScores] = []
     for seed in range(config.seeds):
         for method in sorted(config.methods, key=EVAL_METHODS.index):  # ablations after the round 1 they share
