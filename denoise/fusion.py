@@ -17,9 +17,10 @@ the residual ``r = y - mu`` whose local second moment is ``v_prior + v_noise``:
 network explains the image well (flat areas) ``v_prior ~ 0`` and the output is
 ``mu``; in texture the observation is blended back in.
 
-``v_noise`` is the noise variance in ``[0, 1]`` units; by default it is
-estimated per image (`denoise.noise_level.estimate_noise_sigma`, which can only
-over-estimate it on textured images, i.e. err towards ``mu``).
+``v_noise`` is the noise variance in ``[0, 1]`` units, a scalar or a per-pixel map
+(signal-dependent noise); `denoise.inference.denoise_images` estimates it per image
+(`denoise.noise_level.estimate_noise_sigma_pca`, or a `NoiseCurve` evaluated at ``mu``).
+An over-estimate errs towards ``mu``, an under-estimate towards ``y``.
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ from denoise.fusion import fuse_with_observation
 from denoise.images import image_to_tensor, tensor_to_image
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
-from denoise.noise_level import estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_robust
+from denoise.noise_level import estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_pca
 from mvgeo.common.errors import check_shape
 from mvgeo.common.progress import progress
 
@@ -138,7 +138,7 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
             (`noise_model`).
         fuse_window_px: Gaussian window sigma (px) of the fusion's local variance.
         noise_model: how the fusion's noise level is estimated when `noise_sigma` is None:
-            ``"constant"``, one std per image (`estimate_noise_sigma_robust`); ``"curve"``,
+            ``"constant"``, one std per image (`estimate_noise_sigma_pca`); ``"curve"``,
             signal-dependent noise (Poisson-Gaussian): a per-image `NoiseCurve`
             (`estimate_noise_curve`) evaluated per pixel at the blind-spot prediction.
         dihedral_ensemble: pass k runs on the k-th rotation/reflection (see `denoise_tensor`).
@@ -167,7 +167,7 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
             elif noise_model == "curve":
                 s = estimate_noise_curve(img).sigma_at(y)
             else:
-                s = estimate_noise_sigma_robust(img)
+                s = estimate_noise_sigma_pca(img)
             y = fuse_with_observation(y, x, noise_sigma=s,
                                       window_sigma_px=fuse_window_px)
         out.append(tensor_to_image(y[0], like=img))

@@ -79,51 +79,98 @@ class NoiseCurve:
         return var.clamp_min(0.0).sqrt()
 
 
-def estimate_noise_curve(img: np.ndarray, *, bins: int = 8) -> NoiseCurve:
-    """Fit ``var = gain * intensity + floor`` to robust per-intensity noise estimates.
+def estimate_noise_curve(img: np.ndarray, *, bins: int = 8, patch_px: int = 5) -> NoiseCurve:
+    """Fit ``var = gain * intensity + floor`` to per-intensity noise variances (a noise-level function).
 
-    Per channel, the Laplacian-difference response ``I * M / 6`` (std = the noise std for
-    locally constant noise, as in `estimate_noise_sigma_robust`) is paired with the 3x3
-    local mean (an unbiased estimate of the clean intensity under zero-mean noise); pixels
-    whose 3x3 window touches 0 or 1 are dropped (clipping shrinks the noise there). The
-    pairs of all channels are split into `bins` equal-count intensity bins; each bin gets a
-    median-based variance ``(median |I * M| / (6 * 0.6745))^2`` at its median intensity,
-    and a non-negative least-squares line is fitted through the bins (Foi et al. 2008 fit
-    noise curves the same way, with a different local estimator). Texture that the mask
-    does not cancel inflates the variances, as it does for the scalar estimates.
+    All ``patch_px x patch_px x C`` patches that touch neither 0 nor 1 (clipping shrinks
+    the noise) are split into `bins` equal-count bins by their mean value; each bin's
+    noise variance is the PCA tail estimate of `estimate_noise_sigma_pca` (structure and
+    channel-correlated texture excluded), placed at the bin's median patch mean; a
+    non-negative least-squares line is fitted through the bins (noise-level functions as
+    in Liu et al. 2008 and Foi et al. 2008, with this local estimator). Within a patch the
+    variance is taken as constant: fine for patches much darker or brighter than
+    ``gain / floor`` apart.
 
     Args:
         img: ``(H, W, 3)`` RGB or ``(H, W)`` / ``(H, W, 1)`` gray in ``[0, 1]``.
         bins: number of intensity bins (>= 2).
+        patch_px: patch side (>= 2).
 
     Returns:
-        `NoiseCurve`; ``(0, 0)`` for images under 3x3 or with too few unclipped pixels.
+        `NoiseCurve`; ``(0, 0)`` when there are fewer unclipped patches than
+        ``4 * bins * patch dimension`` (too few for the bins' covariances).
     """
     if bins < 2:
         raise ValueError(f"bins must be >= 2, got {bins}")
-    a = np.asarray(img, dtype=np.float64)
-    if a.ndim == 2:
-        a = a[:, :, None]
-    if a.shape[0] < 3 or a.shape[1] < 3:
+    patches = _patches(img, patch_px)
+    if patches is None:
         return NoiseCurve(0.0, 0.0)
-    resp, level = [], []
-    for c in range(a.shape[2]):
-        ch = a[:, :, c]
-        r = cv2.filter2D(ch, cv2.CV_64F, _MASK)[1:-1, 1:-1]
-        m = cv2.blur(ch, (3, 3))[1:-1, 1:-1]
-        lo = cv2.erode(ch, np.ones((3, 3), np.uint8))[1:-1, 1:-1]
-        hi = cv2.dilate(ch, np.ones((3, 3), np.uint8))[1:-1, 1:-1]
-        ok = (lo > 0.0) & (hi < 1.0)
-        resp.append(np.abs(r[ok]))
-        level.append(m[ok])
-    resp_all, level_all = np.concatenate(resp), np.concatenate(level)
-    if resp_all.size < 16 * bins:
+    patches = patches[(patches.min(axis=1) > 0.0) & (patches.max(axis=1) < 1.0)]
+    if patches.shape[0] < 4 * bins * patches.shape[1]:
         return NoiseCurve(0.0, 0.0)
-    order = np.argsort(level_all, kind="stable")
+    level = patches.mean(axis=1)
+    order = np.argsort(level, kind="stable")
     xs, vs = [], []
     for chunk in np.array_split(order, bins):
-        xs.append(np.median(level_all[chunk]))
-        vs.append((np.median(resp_all[chunk]) / (6.0 * 0.6745)) ** 2)
+        xs.append(np.median(level[chunk]))
+        vs.append(_pca_tail_variance(patches[chunk]))
     design = np.stack([np.asarray(xs), np.ones(bins)], axis=1)
     (gain, floor), _ = nnls(design, np.asarray(vs))
     return NoiseCurve(float(gain), float(floor))
+
+
+def _patches(img: np.ndarray, patch_px: int, max_patches: int = 200000) -> np.ndarray | None:
+    """Patches of `img` as rows ``(N, C * P * P)``, on a regular grid thinned to about `max_patches`.
+
+    None if the image is smaller than a patch.
+    """
+    if patch_px < 2:
+        raise ValueError(f"patch_px must be >= 2, got {patch_px}")
+    a = np.asarray(img, dtype=np.float64)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    h, w, c = a.shape
+    if h < patch_px or w < patch_px:
+        return None
+    windows = np.lib.stride_tricks.sliding_window_view(a, (patch_px, patch_px), axis=(0, 1))
+    n = windows.shape[0] * windows.shape[1]
+    step = max(1, int(np.ceil(np.sqrt(n / max_patches))))  # the same stride along both axes
+    return windows[::step, ::step].reshape(-1, c * patch_px * patch_px)  # copies only the subsample
+
+
+def _pca_tail_variance(patches: np.ndarray) -> float:
+    """Mean of the longest tail of covariance eigenvalues whose mean does not exceed its median."""
+    centred = patches - patches.mean(axis=0)
+    eig = np.linalg.eigvalsh(centred.T @ centred / centred.shape[0])[::-1].clip(min=0.0)
+    for i in range(eig.size):
+        tail = eig[i:]
+        if tail.mean() <= np.median(tail):
+            return float(tail.mean())
+    return float(eig[-1])
+
+
+def estimate_noise_sigma_pca(img: np.ndarray, *, patch_px: int = 5, max_patches: int = 60000) -> float:
+    """White-noise std from the smallest eigenvalues of the patch covariance (Chen et al. 2015).
+
+    Image structure, texture grain included, lives in a few directions of the space of
+    ``patch_px x patch_px x C`` patches; white noise adds ``sigma^2`` to every eigenvalue of
+    their covariance. With eigenvalues sorted in decreasing order ``l_1 >= ... >= l_d``, the
+    estimate is the mean of the longest tail ``l_i..l_d`` whose mean does not exceed its
+    median (the tail left once the structured directions, which pull the mean up, are
+    dropped): ``sigma = sqrt(mean(l_i..l_d))`` (Chen, Zhu & Heng, "An efficient statistical
+    method for image noise level estimation", ICCV 2015, with this simplified stopping
+    rule). Unlike `estimate_noise_sigma_robust` it is not inflated by pixel-scale texture
+    that is correlated across channels (measured on data_synth clean views, sigma 25/255:
+    25.3/255 here vs 28.1/255 robust; noise-free views: 3.4/255 vs 12.4/255). Clipping at 0
+    and 1 removes noise and biases it low (sigma 50/255: 47/255).
+
+    Args:
+        img: ``(H, W, 3)`` RGB or ``(H, W)`` / ``(H, W, 1)`` gray in ``[0, 1]``.
+        patch_px: patch side (>= 2).
+        max_patches: patches used at most (a regular subsample of all positions).
+
+    Returns:
+        The std in ``[0, 1]`` units; 0 for images smaller than a patch.
+    """
+    patches = _patches(img, patch_px, max_patches)
+    return 0.0 if patches is None else float(np.sqrt(_pca_tail_variance(patches)))

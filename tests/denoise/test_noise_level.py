@@ -11,6 +11,7 @@ from denoise.noise_level import (
     NoiseCurve,
     estimate_noise_curve,
     estimate_noise_sigma,
+    estimate_noise_sigma_pca,
     estimate_noise_sigma_robust,
 )
 from denoise.unet import UNetConfig
@@ -79,3 +80,32 @@ def test_noise_curve_gaussian_is_flat(rng):
     assert estimate_noise_curve(np.ones((20, 20, 3))) == NoiseCurve(0.0, 0.0)  # all clipped
     with pytest.raises(ValueError, match="bins"):
         estimate_noise_curve(img, bins=1)
+
+
+def test_patches_match_loops(rng):
+    from denoise.noise_level import _patches
+    img = rng.random((7, 9, 3))
+    got = _patches(img, 3)
+    ref = np.array([[img[y + dy, x + dx, c] for c in range(3) for dy in range(3) for dx in range(3)]
+                    for y in range(5) for x in range(7)])
+    np.testing.assert_array_equal(got, ref)
+    assert _patches(img, 8) is None
+    thinned = _patches(rng.random((100, 100)), 5, max_patches=1000)  # 96^2 positions, stride 4
+    assert thinned.shape == (24 * 24, 25)
+
+
+def test_pca_estimate_ignores_channel_correlated_texture(rng):
+    # Pixel-scale luminance texture (the same in all channels, std 0.05) plus white noise 0.03
+    # per channel. The Laplacian estimators see both; the PCA tail sees the noise only.
+    # 60k 75-D patches: eigenvalue spread ~ sqrt(75/60k) = 4 %, so 8 % bounds the estimate.
+    tex = 0.05 * rng.standard_normal((200, 200, 1))
+    img = 0.5 + tex * np.array([1.0, 0.9, 0.8]) + 0.03 * rng.standard_normal((200, 200, 3))
+    assert abs(estimate_noise_sigma_pca(img) / 0.03 - 1) < 0.08
+    assert estimate_noise_sigma_robust(img) > 1.3 * 0.03  # the bias the PCA estimate removes
+    for sigma in (0.02, 0.1):  # pure white noise
+        assert abs(estimate_noise_sigma_pca(0.5 + sigma * rng.standard_normal((128, 128, 3))) / sigma - 1) < 0.08
+    assert abs(estimate_noise_sigma_pca(0.5 + 0.05 * rng.standard_normal((128, 128))) / 0.05 - 1) < 0.08
+    assert estimate_noise_sigma_pca(np.zeros((4, 40, 3))) == 0.0
+    assert estimate_noise_sigma_pca(np.full((40, 40, 3), 0.3)) == 0.0
+    with pytest.raises(ValueError, match="patch_px"):
+        estimate_noise_sigma_pca(img, patch_px=1)
