@@ -55,8 +55,25 @@ def timed(fn, imgs):
     return outs, (time.perf_counter() - t) / len(imgs)
 
 
-def classical(sigma):
-    from skimage.restoration import denoise_bilateral, denoise_tv_chambolle
+def _bm3d(sigma_fn):
+    import bm3d
+
+    profile = bm3d.BM3DProfile()
+    profile.num_threads = 1  # like every other method here (the library default uses all cores)
+
+    def f(im):
+        return np.clip(bm3d.bm3d_rgb(im, sigma_fn(im), profile=profile), 0, 1).astype(np.float32)
+    return f
+
+
+def _skimage_sigma(im):
+    from skimage.restoration import estimate_sigma
+    return float(estimate_sigma(im, channel_axis=-1, average_sigmas=True))
+
+
+def classical(sigma, *, estimated_bm3d: bool):
+    """Classical denoisers: name -> (function, note). `sigma`: the true noise std (oracle)."""
+    from skimage.restoration import denoise_bilateral, denoise_tv_chambolle, denoise_wavelet
 
     def nlm(h):
         def f(im):
@@ -64,21 +81,30 @@ def classical(sigma):
             return cv2.fastNlMeansDenoisingColored(u8, None, h, h, 7, 21).astype(np.float32) / 255
         return f
 
+    def wavelet(sig):
+        return lambda im: denoise_wavelet(im, sigma=sig, method="BayesShrink", mode="soft", channel_axis=-1,
+                                          convert2ycbcr=True, rescale_sigma=True)
+
     s255 = sigma * 255
     methods = {
-        f"OpenCV NLM h={0.5 * s255:.0f}": nlm(0.5 * s255),
-        f"OpenCV NLM h={0.8 * s255:.0f}": nlm(0.8 * s255),
-        "skimage TV (weight=sigma)": lambda im: denoise_tv_chambolle(im, weight=sigma, channel_axis=-1),
-        "skimage bilateral": lambda im: denoise_bilateral(im, sigma_color=2 * sigma, sigma_spatial=2,
-                                                          channel_axis=-1),
+        f"OpenCV NLM h={0.5 * s255:.0f}": (nlm(0.5 * s255), "oracle sigma"),
+        f"OpenCV NLM h={0.8 * s255:.0f}": (nlm(0.8 * s255), "oracle sigma"),
+        "skimage TV (weight=sigma)": (lambda im: denoise_tv_chambolle(im, weight=sigma, channel_axis=-1),
+                                      "oracle sigma"),
+        "skimage TV (weight=sigma/2)": (lambda im: denoise_tv_chambolle(im, weight=sigma / 2, channel_axis=-1),
+                                        "oracle sigma"),
+        "skimage bilateral": (lambda im: denoise_bilateral(im, sigma_color=2 * sigma, sigma_spatial=2,
+                                                           channel_axis=-1), "oracle sigma"),
+        "skimage wavelet BayesShrink (YCbCr)": (wavelet(sigma), "oracle sigma"),
+        "skimage wavelet BayesShrink (YCbCr), sigma estimated": (wavelet(None), "skimage estimate_sigma"),
     }
     try:
-        import pywt  # noqa: F401
-        from skimage.restoration import denoise_wavelet
-        methods["skimage wavelet (BayesShrink)"] = lambda im: denoise_wavelet(
-            im, sigma=sigma, channel_axis=-1, convert2ycbcr=True, rescale_sigma=True)
+        import bm3d  # noqa: F401
     except ImportError:
-        pass
+        return methods
+    methods["BM3D (bm3d 4.0.3, bm3d_rgb)"] = (_bm3d(lambda im: sigma), "oracle sigma")
+    if estimated_bm3d:
+        methods["BM3D, sigma estimated"] = (_bm3d(_skimage_sigma), "skimage estimate_sigma")
     return methods
 
 
@@ -128,9 +154,9 @@ def main() -> None:
                 m = train_n2v(noisy, n2v_preset("default", steps=st), seed=0)
                 ts = time.perf_counter() - t
                 sweep_rows.append([st, scores(denoise_images(m, noisy, passes=PASSES), clean)[0], ts])
-        for name, fn in classical(sigma).items():
+        for name, (fn, how) in classical(sigma, estimated_bm3d=level == "gaussian 25/255").items():
             outs, dt = timed(fn, noisy)
-            rows.append([level, name, *scores(outs, clean), dt, "oracle sigma"])
+            rows.append([level, name, *scores(outs, clean), dt, how])
         print(level, "done", f"{time.perf_counter() - t_all:.0f} s", flush=True)
     sweep_rows.sort()
     grain = 255 * float(np.mean([estimate_noise_sigma_robust(c) for c in clean]))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from denoise.inference import denoise_images
+from denoise.inference import NOISE_MODELS, denoise_images
 from denoise.model import save_checkpoint
 from denoise.n2v import N2V_PRESETS, n2v_preset, train_n2v
 from denoise.view_selection import select_views
@@ -53,7 +53,7 @@ def contact_sheet(noisy: Sequence[np.ndarray], denoised: Sequence[np.ndarray], *
 
 def _cmd_n2v(args: argparse.Namespace) -> int:
     files = list_images(args.images_dir)
-    images = [read_image(f) for f in files]
+    images = [read_image(f, gray_to_rgb=False) for f in files]  # gray stays (H, W, 1): written back as gray
     overrides = {} if args.steps is None else {"steps": args.steps}
     if args.steps is not None and args.steps < 1:
         raise InputError(f"--steps must be >= 1, got {args.steps}")
@@ -64,7 +64,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
     with timer.stage("train"):
         model = train_n2v(images, config, seed=args.seed)
     with timer.stage("denoise"):
-        out = denoise_images(model, images, passes=args.passes, seed=args.seed)
+        out = denoise_images(model, images, passes=args.passes, seed=args.seed, noise_model=args.noise_model)
     with atomic_output_dir(args.out) as tmp:
         (tmp / "images").mkdir()
         for f, img in zip(files, out, strict=True):
@@ -73,7 +73,8 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
         write_image(tmp / "contact_sheet.png", contact_sheet(images, out))
         atomic_write_text(tmp / "report.json", json.dumps({
             "images": [f.name for f in files], "preset": args.preset, "steps": config.steps,
-            "passes": args.passes, "seed": args.seed, "final_loss": float(np.mean(model.history[-20:])),
+            "passes": args.passes, "noise_model": args.noise_model, "seed": args.seed,
+            "final_loss": float(np.mean(model.history[-20:])),
             "timing_s": timer.as_dict()}, indent=2))
     _log.info("wrote %d denoised images, model.pt and contact_sheet.png to %s", len(out), args.out)
     return 0
@@ -112,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
     p.add_argument("--passes", type=int, default=8, help="random maskings averaged; 0 = one unmasked pass")
     p.add_argument("--preset", choices=sorted(N2V_PRESETS), default="default", help="training preset")
+    p.add_argument("--noise-model", choices=NOISE_MODELS, default="constant",
+                   help="noise level for the centre-pixel fusion: one per image (Gaussian noise) or a "
+                        "per-intensity curve (signal-dependent, Poisson-Gaussian noise)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_n2v)
     s = sub.add_parser("select", help="choose round-2 views by pose clustering and sharpness")

@@ -27,17 +27,18 @@ def test_n2v_cli_writes_outputs(tmp_path, rng):
     gray = (add_noise(rng, smooth_scene(rng, 36, 30), 0.1)[..., 0] * 255).round().astype(np.uint8)
     cv2.imwrite(str(src / "c_gray.png"), gray)
     out = tmp_path / "out"
-    rc = main(["n2v", str(src), "--out", str(out), "--steps", "3", "--passes", "2", "--preset", "fast"])
+    rc = main(["n2v", str(src), "--out", str(out), "--steps", "3", "--passes", "2", "--preset", "fast",
+               "--noise-model", "curve"])
     assert rc == 0
     assert sorted(p.name for p in (out / "images").iterdir()) == ["a.png", "b16.png", "c_gray.png"]
     assert cv2.imread(str(out / "images" / "b16.png"), cv2.IMREAD_UNCHANGED).dtype == np.uint16
-    assert read_image(out / "images" / "c_gray.png").shape == (36, 30, 3)
+    assert cv2.imread(str(out / "images" / "c_gray.png"), cv2.IMREAD_UNCHANGED).shape == (36, 30)  # still gray
     sheet = read_image(out / "contact_sheet.png")
     assert sheet.shape[0] == 3 * (160 + 4)
     model = load_checkpoint(out / "model.pt")
     assert len(model.history) == 3
     report = json.loads((out / "report.json").read_text())
-    assert report["steps"] == 3 and report["passes"] == 2
+    assert report["steps"] == 3 and report["passes"] == 2 and report["noise_model"] == "curve"
     assert not list(tmp_path.glob(".out.tmp-*"))
 
 
