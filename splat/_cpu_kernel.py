@@ -1,6 +1,7 @@
-"""Build (once, cached) and call the C++ CPU compositor in `csrc/composite.cpp`.
+"""Build (once, cached) and call the C++ CPU kernels: the compositor in `csrc/composite.cpp`
+and the spherical-harmonics colour in `csrc/sh.cpp`.
 
-The kernel is plain C++17 without torch headers, compiled with the system
+The kernels are plain C++17 without torch headers, compiled (into one library) with the system
 `g++` (or `$CXX`) into `~/.cache/denoise-gs/splat/<hash>/` (override with
 `DGS_SPLAT_BUILD_DIR`); the hash covers the source, the compiler version and
 the flags, so a changed source or compiler rebuilds. No network is used. The
@@ -25,7 +26,7 @@ import torch
 
 _log = logging.getLogger(__name__)
 
-_SOURCE = Path(__file__).resolve().parent / "csrc" / "composite.cpp"
+_SOURCES = [Path(__file__).resolve().parent / "csrc" / name for name in ("composite.cpp", "sh.cpp")]
 _FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-pthread"]
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
@@ -56,19 +57,20 @@ def _build() -> ctypes.CDLL:
     if cxx is None:
         raise KernelBuildError("no C++ compiler found (install g++ or set CXX)")
     version = subprocess.run([cxx, "--version"], capture_output=True, text=True, check=False).stdout
-    digest = hashlib.sha256(_SOURCE.read_bytes() + version.encode() + " ".join(_FLAGS).encode()).hexdigest()[:16]
+    digest = hashlib.sha256(b"".join(s.read_bytes() for s in _SOURCES) + version.encode()
+                            + " ".join(_FLAGS).encode()).hexdigest()[:16]
     out_dir = _build_dir() / digest
     lib_path = out_dir / "libsplat_composite.so"
     if not lib_path.exists():
         out_dir.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(suffix=".so", dir=out_dir)
         os.close(fd)
-        cmd = [cxx, *_FLAGS, str(_SOURCE), "-o", tmp]
+        cmd = [cxx, *_FLAGS, *map(str, _SOURCES), "-o", tmp]
         _log.info("building the C++ splat compositor: %s", " ".join(cmd))
         proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
         if proc.returncode != 0:
             Path(tmp).unlink(missing_ok=True)
-            raise KernelBuildError(f"compiling {_SOURCE} failed:\n{proc.stderr[-4000:]}")
+            raise KernelBuildError(f"compiling {' '.join(map(str, _SOURCES))} failed:\n{proc.stderr[-4000:]}")
         os.replace(tmp, lib_path)
     lib = ctypes.CDLL(str(lib_path))
     for suffix in ("f32", "f64"):
@@ -78,6 +80,12 @@ def _build() -> ctypes.CDLL:
         bwd = getattr(lib, f"splat_composite_backward_{suffix}")
         bwd.restype = None
         bwd.argtypes = [_i64] * 5 + [_ptr] * 6 + [_i64] + [_ptr] * 8 + [ctypes.c_int]
+        sh_fwd = getattr(lib, f"splat_sh_forward_{suffix}")
+        sh_fwd.restype = None
+        sh_fwd.argtypes = [_i64, _i64, ctypes.c_int] + [_ptr] * 3
+        sh_bwd = getattr(lib, f"splat_sh_backward_{suffix}")
+        sh_bwd.restype = None
+        sh_bwd.argtypes = [_i64, _i64, ctypes.c_int] + [_ptr] * 5
     return lib
 
 
@@ -163,3 +171,22 @@ def backward(bins, means2d, conics, colors, opacities, width, height, trans, las
        _p(means2d), _p(conics), _p(colors), _p(opacities), C, _p(trans), _p(last), _p(grad_accum),
        _p(grad_trans), _p(g_m), _p(g_c), _p(g_col), _p(g_o), _threads(num_threads))
     return g_m, g_c, g_col, g_o
+
+
+def sh_forward(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """SH colour (before the +0.5 offset): sh (N, K, 3), dirs (N, 3), contiguous CPU, one float dtype -> (N, 3)."""
+    lib = load()
+    out = torch.empty(dirs.shape[0], 3, dtype=sh.dtype)
+    getattr(lib, f"splat_sh_forward_{_suffix(sh.dtype)}")(dirs.shape[0], sh.shape[1], degree, _p(sh), _p(dirs),
+                                                         _p(out))
+    return out
+
+
+def sh_backward(degree: int, sh: torch.Tensor, dirs: torch.Tensor, grad_out: torch.Tensor):
+    """Gradients (N, K, 3) of `sh` (zero for bases above `degree`) and (N, 3) of `dirs`."""
+    lib = load()
+    g_sh = torch.empty_like(sh)
+    g_dirs = torch.empty_like(dirs)
+    getattr(lib, f"splat_sh_backward_{_suffix(sh.dtype)}")(dirs.shape[0], sh.shape[1], degree, _p(sh), _p(dirs),
+                                                          _p(grad_out), _p(g_sh), _p(g_dirs))
+    return g_sh, g_dirs

@@ -14,7 +14,7 @@ import torch
 from mvgeo.common.errors import ShapeError, check_shape
 from splat.composite import Backend, composite_tiles
 from splat.projection import ProjectedGaussians, project_gaussians
-from splat.sh import eval_sh
+from splat.sh import eval_sh, eval_sh_fast
 from splat.tiles import bin_gaussians
 
 
@@ -110,7 +110,9 @@ def rasterize(
     if sh_degree is not None:
         R = cam_from_world[:3, :3]
         cam_centre_world = -(R.T @ cam_from_world[:3, 3])
-        rgb_g = torch.clamp_min(eval_sh(sh_degree, colors, means - cam_centre_world) + 0.5, 0.0)
+        # The C++ SH kernel goes with the C++ compositor; backend="torch" stays all-torch (the reference).
+        sh_fn = eval_sh if cfg.backend == "torch" else eval_sh_fast
+        rgb_g = torch.clamp_min(sh_fn(sh_degree, colors, means - cam_centre_world) + 0.5, 0.0)
     else:
         rgb_g = colors
     features = torch.cat([rgb_g, proj.depths[:, None]], dim=-1)

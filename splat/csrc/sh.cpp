@@ -1,0 +1,145 @@
+// Real spherical harmonics colour (degree 0..3, 3DGS / gsplat basis and ordering): forward and backward.
+//
+// Same maths as splat/sh.py::eval_sh (the reference the tests compare against):
+//   u = d / max(|d|, 1e-12);  colour_c = sum_{k < (degree+1)^2} B_k(u) sh[k][c].
+// Backward: d sh[k][c] = B_k(u) g_c (zero for unused bases), and d d = (I - u u^T) / |d| * dL/du
+// (dL/du / 1e-12 when |d| <= 1e-12, as torch's normalize). Plain C++17, no torch headers; called via
+// ctypes (splat/_cpu_kernel.py) with pointers to contiguous arrays.
+
+#include <cmath>
+#include <cstdint>
+
+namespace {
+
+constexpr double kC0 = 0.28209479177387814;
+constexpr double kC1 = 0.4886025119029199;
+constexpr double kC2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+                           0.5462742152960396};
+constexpr double kC3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+                           -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+constexpr double kNormEps = 1e-12;
+
+// Basis values b[0..nb) and, when grad != nullptr, their gradients w.r.t. the unit direction.
+template <typename T>
+void basis(int degree, T x, T y, T z, T* b, T (*grad)[3]) {
+  b[0] = T(kC0);
+  if (grad) grad[0][0] = grad[0][1] = grad[0][2] = T(0);
+  if (degree < 1) return;
+  const T c1 = T(kC1);
+  b[1] = -c1 * y;
+  b[2] = c1 * z;
+  b[3] = -c1 * x;
+  if (grad) {
+    grad[1][0] = 0, grad[1][1] = -c1, grad[1][2] = 0;
+    grad[2][0] = 0, grad[2][1] = 0, grad[2][2] = c1;
+    grad[3][0] = -c1, grad[3][1] = 0, grad[3][2] = 0;
+  }
+  if (degree < 2) return;
+  const T xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+  const T c20 = T(kC2[0]), c21 = T(kC2[1]), c22 = T(kC2[2]), c23 = T(kC2[3]), c24 = T(kC2[4]);
+  b[4] = c20 * xy;
+  b[5] = c21 * yz;
+  b[6] = c22 * (T(2) * zz - xx - yy);
+  b[7] = c23 * xz;
+  b[8] = c24 * (xx - yy);
+  if (grad) {
+    grad[4][0] = c20 * y, grad[4][1] = c20 * x, grad[4][2] = 0;
+    grad[5][0] = 0, grad[5][1] = c21 * z, grad[5][2] = c21 * y;
+    grad[6][0] = T(-2) * c22 * x, grad[6][1] = T(-2) * c22 * y, grad[6][2] = T(4) * c22 * z;
+    grad[7][0] = c23 * z, grad[7][1] = 0, grad[7][2] = c23 * x;
+    grad[8][0] = T(2) * c24 * x, grad[8][1] = T(-2) * c24 * y, grad[8][2] = 0;
+  }
+  if (degree < 3) return;
+  const T c30 = T(kC3[0]), c31 = T(kC3[1]), c32 = T(kC3[2]), c33 = T(kC3[3]), c34 = T(kC3[4]), c35 = T(kC3[5]),
+          c36 = T(kC3[6]);
+  b[9] = c30 * y * (T(3) * xx - yy);
+  b[10] = c31 * xy * z;
+  b[11] = c32 * y * (T(4) * zz - xx - yy);
+  b[12] = c33 * z * (T(2) * zz - T(3) * xx - T(3) * yy);
+  b[13] = c34 * x * (T(4) * zz - xx - yy);
+  b[14] = c35 * z * (xx - yy);
+  b[15] = c36 * x * (xx - T(3) * yy);
+  if (grad) {
+    grad[9][0] = T(6) * c30 * xy, grad[9][1] = T(3) * c30 * (xx - yy), grad[9][2] = 0;
+    grad[10][0] = c31 * yz, grad[10][1] = c31 * xz, grad[10][2] = c31 * xy;
+    grad[11][0] = T(-2) * c32 * xy, grad[11][1] = c32 * (T(4) * zz - xx - T(3) * yy), grad[11][2] = T(8) * c32 * yz;
+    grad[12][0] = T(-6) * c33 * xz, grad[12][1] = T(-6) * c33 * yz,
+    grad[12][2] = c33 * (T(6) * zz - T(3) * xx - T(3) * yy);
+    grad[13][0] = c34 * (T(4) * zz - T(3) * xx - yy), grad[13][1] = T(-2) * c34 * xy, grad[13][2] = T(8) * c34 * xz;
+    grad[14][0] = T(2) * c35 * xz, grad[14][1] = T(-2) * c35 * yz, grad[14][2] = c35 * (xx - yy);
+    grad[15][0] = T(3) * c36 * (xx - yy), grad[15][1] = T(-6) * c36 * xy, grad[15][2] = 0;
+  }
+}
+
+template <typename T>
+void unit(const T* d, T* u, T* norm_out) {
+  const T norm = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+  const T denom = norm > T(kNormEps) ? norm : T(kNormEps);
+  u[0] = d[0] / denom, u[1] = d[1] / denom, u[2] = d[2] / denom;
+  *norm_out = norm;
+}
+
+template <typename T>
+void forward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, T* out) {
+  const int nb = (degree + 1) * (degree + 1);
+  for (int64_t i = 0; i < n; ++i) {
+    T u[3], norm, b[16];
+    unit(dirs + 3 * i, u, &norm);
+    basis<T>(degree, u[0], u[1], u[2], b, nullptr);
+    const T* s = sh + i * K * 3;
+    for (int c = 0; c < 3; ++c) {
+      T acc = T(0);
+      for (int k = 0; k < nb; ++k) acc += b[k] * s[3 * k + c];
+      out[3 * i + c] = acc;
+    }
+  }
+}
+
+template <typename T>
+void backward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, const T* grad_out, T* g_sh,
+                   T* g_dirs) {
+  const int nb = (degree + 1) * (degree + 1);
+  for (int64_t i = 0; i < n; ++i) {
+    T u[3], norm, b[16], gb[16][3];
+    unit(dirs + 3 * i, u, &norm);
+    basis<T>(degree, u[0], u[1], u[2], b, gb);
+    const T* s = sh + i * K * 3;
+    const T* g = grad_out + 3 * i;
+    T* gs = g_sh + i * K * 3;
+    T du[3] = {T(0), T(0), T(0)};
+    for (int k = 0; k < K; ++k) {
+      if (k >= nb) {
+        gs[3 * k] = gs[3 * k + 1] = gs[3 * k + 2] = T(0);
+        continue;
+      }
+      T db = T(0);
+      for (int c = 0; c < 3; ++c) {
+        gs[3 * k + c] = b[k] * g[c];
+        db += s[3 * k + c] * g[c];
+      }
+      for (int a = 0; a < 3; ++a) du[a] += db * gb[k][a];
+    }
+    T* gd = g_dirs + 3 * i;
+    if (norm > T(kNormEps)) {
+      const T dot = u[0] * du[0] + u[1] * du[1] + u[2] * du[2];
+      for (int a = 0; a < 3; ++a) gd[a] = (du[a] - u[a] * dot) / norm;
+    } else {
+      for (int a = 0; a < 3; ++a) gd[a] = du[a] / T(kNormEps);
+    }
+  }
+}
+
+}  // namespace
+
+#define SH_EXPORT(T, SUFFIX)                                                                             \
+  extern "C" void splat_sh_forward_##SUFFIX(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, \
+                                             T* out) {                                                   \
+    forward_impl<T>(n, K, degree, sh, dirs, out);                                                        \
+  }                                                                                                      \
+  extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, \
+                                              const T* grad_out, T* g_sh, T* g_dirs) {                   \
+    backward_impl<T>(n, K, degree, sh, dirs, grad_out, g_sh, g_dirs);                                    \
+  }
+
+SH_EXPORT(float, f32)
+SH_EXPORT(double, f64)
