@@ -2,8 +2,9 @@
 
 Layers (conventions: docs/conventions.md; gsplat is the compatibility target):
 
-- kernels: `splat/csrc/composite.cpp` (CPU tile compositor, forward + backward, built with
-  g++ on first use into ~/.cache/denoise-gs/splat), and the plain-torch reference of every stage;
+- kernels: `splat/csrc/composite.cpp` (CPU tile compositor, forward + backward) and
+  `splat/csrc/sh.cpp` (SH colour, forward + backward), built with g++ on first use into
+  ~/.cache/denoise-gs/splat; the plain-torch reference of every stage (`RasterConfig(backend="torch")`);
 - functional: `splat.projection.project_gaussians`, `splat.tiles.bin_gaussians`,
   `splat.composite.composite_tiles`, and the whole pipeline
   `splat.rasterize.rasterize(means, quats, scales, opacities, colors_or_sh, cam_from_world, K, W, H,
