@@ -97,17 +97,19 @@ def estimate_noise_curve(img: np.ndarray, *, bins: int = 8, patch_px: int = 5) -
         patch_px: patch side (>= 2).
 
     Returns:
-        `NoiseCurve`; ``(0, 0)`` when there are fewer unclipped patches than
-        ``4 * bins * patch dimension`` (too few for the bins' covariances).
+        `NoiseCurve`; a flat one (``gain = 0``, ``floor`` = the PCA variance of all patches)
+        when there are fewer unclipped patches than ``4 * bins * patch dimension`` (too few
+        for the bins' covariances); ``(0, 0)`` for images smaller than a patch.
     """
     if bins < 2:
         raise ValueError(f"bins must be >= 2, got {bins}")
     patches = _patches(img, patch_px)
     if patches is None:
         return NoiseCurve(0.0, 0.0)
-    patches = patches[(patches.min(axis=1) > 0.0) & (patches.max(axis=1) < 1.0)]
-    if patches.shape[0] < 4 * bins * patches.shape[1]:
-        return NoiseCurve(0.0, 0.0)
+    unclipped = patches[(patches.min(axis=1) > 0.0) & (patches.max(axis=1) < 1.0)]
+    if unclipped.shape[0] < 4 * bins * patches.shape[1]:
+        return NoiseCurve(0.0, _pca_tail_variance(patches))  # too small to bin: one level for all
+    patches = unclipped
     level = patches.mean(axis=1)
     order = np.argsort(level, kind="stable")
     xs, vs = [], []

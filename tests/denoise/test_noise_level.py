@@ -77,7 +77,11 @@ def test_noise_curve_gaussian_is_flat(rng):
     assert curve.gain < 0.05 * 0.03**2 / 0.5  # its contribution at mid-grey: < 5 % of the variance
     assert curve.floor == pytest.approx(0.03**2, rel=0.1)
     assert estimate_noise_curve(np.zeros((2, 8))) == NoiseCurve(0.0, 0.0)
-    assert estimate_noise_curve(np.ones((20, 20, 3))) == NoiseCurve(0.0, 0.0)  # all clipped
+    assert estimate_noise_curve(np.ones((20, 20, 3))) == NoiseCurve(0.0, 0.0)  # all clipped, no noise
+    # Too small to bin (30x30 px: 676 patches < 4 * 8 * 75): one flat level, the PCA estimate.
+    small = 0.5 + 0.05 * rng.standard_normal((30, 30, 3))
+    curve = estimate_noise_curve(small)
+    assert curve.gain == 0.0 and curve.floor == pytest.approx(estimate_noise_sigma_pca(small) ** 2, rel=1e-12)
     with pytest.raises(ValueError, match="bins"):
         estimate_noise_curve(img, bins=1)
 
