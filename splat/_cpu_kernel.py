@@ -79,7 +79,7 @@ def _build() -> ctypes.CDLL:
         fwd.argtypes = [_i64] * 5 + [_ptr] * 6 + [_i64] + [_ptr] * 3 + [ctypes.c_int]
         bwd = getattr(lib, f"splat_composite_backward_{suffix}")
         bwd.restype = None
-        bwd.argtypes = [_i64] * 5 + [_ptr] * 6 + [_i64] + [_ptr] * 8 + [ctypes.c_int]
+        bwd.argtypes = [_i64] * 5 + [_ptr] * 6 + [_i64] + [_ptr] * 5 + [ctypes.c_int]
         sh_fwd = getattr(lib, f"splat_sh_forward_{suffix}")
         sh_fwd.restype = None
         sh_fwd.argtypes = [_i64, _i64, ctypes.c_int] + [_ptr] * 3
@@ -157,20 +157,15 @@ def forward(bins, means2d, conics, colors, opacities, width: int, height: int, *
 
 def backward(bins, means2d, conics, colors, opacities, width, height, trans, last, grad_accum, grad_trans, *,
              num_threads: int | None = None):
-    """Per-intersection gradients (I, 2), (I, 3), (I, C), (I,) of means2d, conics, colors, opacities."""
+    """Per-intersection gradient rows (I, 6 + C): [d means2d (2), d conics (3), d opacity, d colors (C)]."""
     lib = load()
-    n_isect = bins.gaussian_ids.numel()
     C = colors.shape[1]
-    dt = colors.dtype
-    g_m = torch.zeros(n_isect, 2, dtype=dt)
-    g_c = torch.zeros(n_isect, 3, dtype=dt)
-    g_col = torch.zeros(n_isect, C, dtype=dt)
-    g_o = torch.zeros(n_isect, dtype=dt)
-    fn = getattr(lib, f"splat_composite_backward_{_suffix(dt)}")
+    g_rows = torch.zeros(bins.gaussian_ids.numel(), 6 + C, dtype=colors.dtype)
+    fn = getattr(lib, f"splat_composite_backward_{_suffix(colors.dtype)}")
     fn(bins.tiles_x, bins.tiles_y, bins.tile_size, width, height, _p(bins.tile_offsets), _p(bins.gaussian_ids),
        _p(means2d), _p(conics), _p(colors), _p(opacities), C, _p(trans), _p(last), _p(grad_accum),
-       _p(grad_trans), _p(g_m), _p(g_c), _p(g_col), _p(g_o), _threads(num_threads))
-    return g_m, g_c, g_col, g_o
+       _p(grad_trans), _p(g_rows), _threads(num_threads))
+    return g_rows
 
 
 def sh_forward(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:

@@ -95,14 +95,12 @@ class _CompositeCpp(torch.autograd.Function):
         grad_accum = torch.zeros_like(trans[..., None].expand(*trans.shape, col.shape[1])) if grad_accum is None \
             else grad_accum.to(dt).contiguous()
         grad_trans = torch.zeros_like(trans) if grad_trans is None else grad_trans.to(dt).contiguous()
-        g_m, g_c, g_col, g_o = _cpu_kernel.backward(bins, m, c, col, o, ctx.width, ctx.height, trans, last,
-                                                    grad_accum, grad_trans, num_threads=ctx.num_threads)
-        ids = bins.gaussian_ids
-        out_m = torch.zeros_like(m).index_add_(0, ids, g_m)
-        out_c = torch.zeros_like(c).index_add_(0, ids, g_c)
-        out_col = torch.zeros_like(col).index_add_(0, ids, g_col)
-        out_o = torch.zeros_like(o).index_add_(0, ids, g_o)
-        return out_m, out_c, out_col, out_o, None, None, None, None
+        rows = _cpu_kernel.backward(bins, m, c, col, o, ctx.width, ctx.height, trans, last, grad_accum, grad_trans,
+                                    num_threads=ctx.num_threads)
+        # One deterministic scatter of all per-intersection rows into per-Gaussian sums.
+        per_gaussian = torch.zeros(m.shape[0], rows.shape[1], dtype=dt).index_add_(0, bins.gaussian_ids, rows)
+        out_m, out_c, out_o, out_col = per_gaussian.split([2, 3, 1, col.shape[1]], dim=1)
+        return out_m, out_c, out_col, out_o.reshape(-1), None, None, None, None
 
 
 class _RecomputedChunk(torch.autograd.Function):

@@ -10,8 +10,9 @@
 //   alpha < 1/255; a pixel stops before the Gaussian that would bring the
 //   transmittance to <= 1e-4.
 // Outputs: accum (H, W, C) = sum_i c_i alpha_i T_i and T_final (H, W).
-// The backward writes one gradient row per tile intersection (each tile is
-// owned by one thread, so no atomics); the caller sums rows per Gaussian.
+// The backward writes one gradient row per tile intersection, [d mean_x, d mean_y, d a, d b, d c,
+// d opacity, d colour_0 .. d colour_{C-1}] (each tile is owned by one thread, so no atomics); the
+// caller sums rows per Gaussian.
 
 #include <atomic>
 #include <cmath>
@@ -176,8 +177,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
                    const int64_t* tile_offsets, const int64_t* gaussian_ids, const T* means2d,
                    const T* conics, const T* colors, const T* opacities, int64_t C,
                    const T* transmittance, const int32_t* last, const T* grad_accum,
-                   const T* grad_transmittance, T* g_means2d, T* g_conics, T* g_colors, T* g_opacities,
-                   int num_threads) {
+                   const T* grad_transmittance, T* g_rows, int num_threads) {
   const T alpha_min = T(kAlphaMin), alpha_max = T(kAlphaMax);
   parallel_tiles(tiles_x * tiles_y, num_threads, [&](int64_t tile) {
     const int64_t ty = tile / tiles_x, tx = tile % tiles_x;
@@ -187,8 +187,9 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
     const int64_t col_lo = tx * tile_size, col_hi = std::min(width, (tx + 1) * tile_size) - 1;
     const int64_t row_lo = ty * tile_size, row_hi = std::min(height, (ty + 1) * tile_size) - 1;
     const int64_t tw = col_hi - col_lo + 1, th = row_hi - row_lo + 1, P = tw * th;
-    // Per-pixel state: transmittance after the Gaussian being visited, colour behind it, dL/dcolour.
-    std::vector<T> trans(P), t_final(P), g_t(P), s(P * C, T(0)), gc(P * C);
+    // Per-pixel state: transmittance after the Gaussian being visited, colour behind it, dL/dcolour,
+    // and dL/dT_final * T_final.
+    std::vector<T> trans(P), gtf(P), s(P * C, T(0)), gc(P * C);
     std::vector<int32_t> stop(P);
     int32_t k_end = 0;
     for (int64_t r = 0; r < th; ++r) {
@@ -196,8 +197,8 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
         const int64_t p = r * tw + cc, pix = (row_lo + r) * width + col_lo + cc;
         stop[p] = last[pix];
         k_end = std::max(k_end, stop[p]);
-        trans[p] = t_final[p] = transmittance[pix];
-        g_t[p] = grad_transmittance[pix];
+        trans[p] = transmittance[pix];
+        gtf[p] = grad_transmittance[pix] * transmittance[pix];
         for (int64_t c = 0; c < C; ++c) gc[p * C + c] = grad_accum[pix * C + c];
       }
     }
@@ -214,7 +215,8 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
       const T* col_k = colors + C * gaussian_ids[j];
       // Sums over the box in registers (row-major pixel order, as a per-pixel loop would add them).
       T gm0 = T(0), gm1 = T(0), gc0 = T(0), gc1 = T(0), gc2 = T(0), go = T(0);
-      T* gcol = g_colors + j * C;  // this row belongs to this tile only; starts at zero
+      T* row = g_rows + j * (6 + C);  // this row belongs to this tile only; starts at zero
+      T* gcol = row + 6;
       for (int32_t r = bx.r0; r <= bx.r1; ++r) {
         const T py = T(row_lo + r) + T(0.5);
         const T dy = gk[1] - py;
@@ -240,7 +242,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
             d_alpha += (col_k[c] - sp[c]) * gcp[c];
             sp[c] = alpha * col_k[c] + one_minus * sp[c];
           }
-          d_alpha = d_alpha * t_before - g_t[p] * t_final[p] / one_minus;
+          d_alpha = d_alpha * t_before - gtf[p] / one_minus;
           trans[p] = t_before;
           if (raw > alpha_max) continue;  // clamped: no gradient to opacity / sigma
           go += d_alpha * e;
@@ -252,12 +254,12 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
           gm1 += d_sigma * (gk[3] * dx + gk[4] * dy);
         }
       }
-      g_opacities[j] = go;
-      g_conics[3 * j + 0] = gc0;
-      g_conics[3 * j + 1] = gc1;
-      g_conics[3 * j + 2] = gc2;
-      g_means2d[2 * j + 0] = gm0;
-      g_means2d[2 * j + 1] = gm1;
+      row[0] = gm0;
+      row[1] = gm1;
+      row[2] = gc0;
+      row[3] = gc1;
+      row[4] = gc2;
+      row[5] = go;
     }
   });
 }
@@ -277,11 +279,10 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
       int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t width, int64_t height,                \
       const int64_t* tile_offsets, const int64_t* gaussian_ids, const T* means2d, const T* conics,       \
       const T* colors, const T* opacities, int64_t C, const T* transmittance, const int32_t* last,       \
-      const T* grad_accum, const T* grad_transmittance, T* g_means2d, T* g_conics, T* g_colors,          \
-      T* g_opacities, int num_threads) {                                                                  \
+      const T* grad_accum, const T* grad_transmittance, T* g_rows, int num_threads) {                     \
     backward_impl<T>(tiles_x, tiles_y, tile_size, width, height, tile_offsets, gaussian_ids, means2d,    \
                      conics, colors, opacities, C, transmittance, last, grad_accum, grad_transmittance,  \
-                     g_means2d, g_conics, g_colors, g_opacities, num_threads);                           \
+                     g_rows, num_threads);                                                               \
   }
 
 SPLAT_EXPORT(float, f32)
