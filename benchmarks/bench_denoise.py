@@ -141,7 +141,7 @@ def main() -> None:
         variants = [("N2V-UNet + centre fusion", {}),
                     ("N2V-UNet, blind-spot output only", {"fuse": False})]
         if level.startswith("poisson"):
-            variants.insert(1, ("N2V-UNet + centre fusion, noise curve", {"noise_model": "curve"}))
+            variants.insert(1, ("N2V-UNet + centre fusion, constant noise std", {"noise_model": "constant"}))
         if gauss25:
             variants += [("N2V-UNet + centre fusion, oracle sigma", {"noise_sigma": sigma}),
                          ("N2V-UNet + centre fusion, dihedral self-ensemble", {"dihedral_ensemble": True})]
@@ -181,9 +181,10 @@ def main() -> None:
         "the end), torch, OpenCV and BM3D single-threaded. Compare times as ratios within this table only. "
         f"N2V-UNet: preset `default` ({cfg.steps} steps, width {cfg.unet.width}, lr {cfg.lr:g}); 'centre "
         "fusion' blends the blind-spot prediction with the noisy pixel it ignores (`denoise.fusion`, the "
-        "default for round-1 models) with the noise std estimated per image from the smallest eigenvalues "
-        "of the patch covariance (`estimate_noise_sigma_pca`); 'noise curve' estimates a per-intensity "
-        "noise variance instead (`estimate_noise_curve`, `--noise-model curve`); 'blind-spot output "
+        "default for round-1 models) with the noise level estimated per image (`noise_model=\"auto\"`: one "
+        "std from the smallest eigenvalues of the patch covariance, `estimate_noise_sigma_pca`, or, when "
+        "the image's fitted noise-level curve is dominated by its signal-dependent term, that per-intensity "
+        "curve, `estimate_noise_curve`); 'constant noise std' forces the former; 'blind-spot output "
         "only' is the network alone; 'dihedral self-ensemble' runs pass k on the k-th rotation/flip. "
         "Classical methods get the TRUE noise std (for Poisson-Gaussian its image-average "
         "sqrt(a * mean + s^2)) unless 'estimated' is noted; NLM is shown at two h. BM3D: the `bm3d` "

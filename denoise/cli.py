@@ -113,9 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
     p.add_argument("--passes", type=int, default=8, help="random maskings averaged; 0 = one unmasked pass")
     p.add_argument("--preset", choices=sorted(N2V_PRESETS), default="default", help="training preset")
-    p.add_argument("--noise-model", choices=NOISE_MODELS, default="constant",
-                   help="noise level for the centre-pixel fusion: one per image (Gaussian noise) or a "
-                        "per-intensity curve (signal-dependent, Poisson-Gaussian noise)")
+    p.add_argument("--noise-model", choices=NOISE_MODELS, default="auto",
+                   help="noise level for the centre-pixel fusion: one per image (constant: Gaussian noise), a "
+                        "per-intensity curve (signal-dependent, Poisson-Gaussian noise), or auto (per image)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_n2v)
     s = sub.add_parser("select", help="choose round-2 views by pose clustering and sharpness")

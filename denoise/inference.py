@@ -33,8 +33,32 @@ _log = logging.getLogger(__name__)
 #: can only lose detail (measured 23 dB vs the input on a clean synthetic scene).
 CLEAN_SIGMA = 1.0 / 255
 
-NoiseModel = Literal["constant", "curve"]
-NOISE_MODELS: tuple[str, ...] = ("constant", "curve")
+NoiseModel = Literal["auto", "constant", "curve"]
+NOISE_MODELS: tuple[str, ...] = ("auto", "constant", "curve")
+
+
+def fusion_noise_sigma(img: np.ndarray, prior_mean: Tensor, *, noise_model: NoiseModel = "auto") -> float | Tensor:
+    """The noise std that `fuse_with_observation` uses for one image.
+
+    Args:
+        img: the noisy image (numpy, as given to `denoise_images`).
+        prior_mean: ``[1, 3, H, W]`` blind-spot prediction (where a curve is evaluated).
+        noise_model: ``"constant"``: one std (`estimate_noise_sigma_pca`); ``"curve"``: a
+            per-pixel std from the image's `NoiseCurve` at `prior_mean`; ``"auto"``: the curve
+            when its signal-dependent term dominates at the image's median intensity
+            (``gain * median > floor``, e.g. shot noise), else the constant.
+
+    Returns:
+        A float, or a ``[1, 3, H, W]`` tensor.
+    """
+    if noise_model not in NOISE_MODELS:
+        raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {noise_model!r}")
+    if noise_model == "constant":
+        return estimate_noise_sigma_pca(img)
+    curve = estimate_noise_curve(img)
+    if noise_model == "curve" or curve.gain * float(np.median(img)) > curve.floor:
+        return curve.sigma_at(prior_mean)
+    return estimate_noise_sigma_pca(img)
 
 
 def tile_starts(n: int, core: int) -> list[int]:
@@ -119,7 +143,7 @@ def denoise_tensor(model: N2VModel, x: Tensor, *, passes: int = 8, generator: to
 def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int = 8, seed: int = 0,
                    tile_px: int = 256, margin_px: int = 48, clean_sigma: float = CLEAN_SIGMA,
                    fuse: bool | None = None, noise_sigma: float | None = None,
-                   fuse_window_px: float = 2.0, noise_model: NoiseModel = "constant",
+                   fuse_window_px: float = 2.0, noise_model: NoiseModel = "auto",
                    dihedral_ensemble: bool = False) -> list[np.ndarray]:
     """Denoise images with a trained model.
 
@@ -137,10 +161,10 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
         noise_sigma: noise std ([0, 1] units) for the fusion; default: estimated per image
             (`noise_model`).
         fuse_window_px: Gaussian window sigma (px) of the fusion's local variance.
-        noise_model: how the fusion's noise level is estimated when `noise_sigma` is None:
-            ``"constant"``, one std per image (`estimate_noise_sigma_pca`); ``"curve"``,
-            signal-dependent noise (Poisson-Gaussian): a per-image `NoiseCurve`
-            (`estimate_noise_curve`) evaluated per pixel at the blind-spot prediction.
+        noise_model: how the fusion's noise level is estimated when `noise_sigma` is None
+            (`fusion_noise_sigma`): ``"constant"``, one std per image; ``"curve"``,
+            signal-dependent (Poisson-Gaussian) noise, a per-image `NoiseCurve` evaluated per
+            pixel at the blind-spot prediction; ``"auto"`` picks one per image.
         dihedral_ensemble: pass k runs on the k-th rotation/reflection (see `denoise_tensor`).
 
     Returns:
@@ -162,13 +186,7 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
         y = denoise_tensor(model, x, passes=passes, generator=gen, tile_px=tile_px, margin_px=margin_px,
                            dihedral_ensemble=dihedral_ensemble)
         if model.blind_spot if fuse is None else fuse:
-            if noise_sigma is not None:
-                s = noise_sigma
-            elif noise_model == "curve":
-                s = estimate_noise_curve(img).sigma_at(y)
-            else:
-                s = estimate_noise_sigma_pca(img)
-            y = fuse_with_observation(y, x, noise_sigma=s,
-                                      window_sigma_px=fuse_window_px)
+            s = fusion_noise_sigma(img, y, noise_model=noise_model) if noise_sigma is None else noise_sigma
+            y = fuse_with_observation(y, x, noise_sigma=s, window_sigma_px=fuse_window_px)
         out.append(tensor_to_image(y[0], like=img))
     return out

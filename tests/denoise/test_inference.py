@@ -5,10 +5,17 @@ import pytest
 import torch
 
 from denoise.fusion import fuse_with_observation
-from denoise.inference import denoise_images, denoise_tensor, dihedral, predict_tiled, tile_starts
+from denoise.inference import (
+    denoise_images,
+    denoise_tensor,
+    dihedral,
+    fusion_noise_sigma,
+    predict_tiled,
+    tile_starts,
+)
 from denoise.masking import mask_pixels
 from denoise.n2v import N2VConfig, new_model, train_n2v
-from denoise.noise_level import estimate_noise_curve
+from denoise.noise_level import estimate_noise_curve, estimate_noise_sigma_pca
 from denoise.unet import UNetConfig
 from mvgeo.common.errors import InputError
 from tests.denoise._synth import add_noise, psnr, smooth_scene
@@ -199,3 +206,18 @@ def test_training_on_images_smaller_than_a_patch(rng):
     assert all(np.isfinite(model.history))
     out = denoise_images(model, imgs, passes=2)
     assert [o.shape for o in out] == [i.shape for i in imgs] and all(np.isfinite(o).all() for o in out)
+
+
+def test_auto_noise_model_picks_per_image(rng):
+    # Smooth ramps (no texture): Gaussian noise -> the constant PCA estimate; Poisson-Gaussian
+    # (a = 0.01, s = 2/255: the shot term a * 0.5 is 30x the read variance) -> the curve.
+    yy, xx = np.mgrid[:96, :96] / 96
+    clean = np.stack([xx, yy, 0.5 * xx + 0.3 * yy], 2) * 0.8 + 0.1
+    mu = torch.from_numpy(clean.transpose(2, 0, 1).copy())[None]
+    gauss = clean + 0.05 * rng.standard_normal(clean.shape)
+    assert fusion_noise_sigma(gauss, mu) == estimate_noise_sigma_pca(gauss)
+    shot = 0.01 * rng.poisson(clean / 0.01) + 2 / 255 * rng.standard_normal(clean.shape)
+    torch.testing.assert_close(fusion_noise_sigma(shot, mu), estimate_noise_curve(shot).sigma_at(mu))
+    assert fusion_noise_sigma(gauss, mu, noise_model="constant") == estimate_noise_sigma_pca(gauss)
+    with pytest.raises(ValueError, match="noise_model"):
+        fusion_noise_sigma(gauss, mu, noise_model="poisson")
