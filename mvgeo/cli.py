@@ -22,10 +22,12 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("images_dir", type=Path)
     a.add_argument("--out", type=Path, required=True)
     a.add_argument("--max-size", type=int, default=512, help="long side for matching (px); default 512")
-    a.add_argument("--pointmap-size", type=int, default=160, help="long side of the dense pointmaps (px)")
+    a.add_argument("--pointmap-size", type=int, default=128, help="long side of the dense pointmaps (px)")
     a.add_argument("--pairs", default="auto", help="complete | window:K | auto (complete up to 24 images)")
     a.add_argument("--shared-focal", action="store_true", help="one focal for all views")
-    a.add_argument("--iters", type=int, default=300, help="global alignment iterations")
+    a.add_argument("--iters", type=int, default=100, help="global alignment iterations (default 100)")
+    a.add_argument("--align-stride", type=int, default=4,
+                   help="global alignment on every K-th pixel row/column (default 4; 1 = all pixels)")
     a.add_argument("--ba", action=argparse.BooleanOptionalAction, default=True,
                    help="sparse bundle adjustment on the feature tracks after the alignment (default: on)")
     a.add_argument("--points", type=int, default=200_000, help="point budget of points.ply")
@@ -55,7 +57,8 @@ def _align(args: argparse.Namespace) -> int:
     from mvgeo.common.imageio import list_images
 
     for key, val, lo in (("max-size", args.max_size, 16), ("pointmap-size", args.pointmap_size, 8),
-                         ("iters", args.iters, 0), ("points", args.points, 1)):
+                         ("iters", args.iters, 0), ("points", args.points, 1),
+                         ("align-stride", args.align_stride, 1)):
         if val < lo:
             raise ConfigError(f"must be >= {lo}, got {val}", key=f"--{key}")
     paths = list_images(args.images_dir)
@@ -65,7 +68,8 @@ def _align(args: argparse.Namespace) -> int:
     intr = read_intrinsics(args.intrinsics) if args.intrinsics else None
     cfg = AlignConfig(max_size_px=args.max_size, pairs=PairGraphSpec.parse(args.pairs),
                       pairwise=ClassicalPairConfig(pointmap_size_px=args.pointmap_size),
-                      align=GlobalAlignConfig(iters=args.iters, shared_focal=args.shared_focal),
+                      align=GlobalAlignConfig(iters=args.iters, shared_focal=args.shared_focal,
+                                              pixel_stride=args.align_stride),
                       points_budget=args.points, bundle_adjust=args.ba)
     result = align_images(paths, cfg, intrinsics=intr)
     write_align_result(args.out, result)

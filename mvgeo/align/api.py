@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from mvgeo.align.bundle import BundleConfig, bundle_adjust
+from mvgeo.align.checks import pair_consistency
 from mvgeo.align.classical_pairs import ClassicalPairConfig, ClassicalPointmapModel, pointmap_shape
 from mvgeo.align.global_align import GlobalAlignConfig, global_align, pixel_rays
 from mvgeo.align.graph import PairGraphSpec, components, make_pairs
@@ -21,7 +22,7 @@ from mvgeo.align.scene import covisibility_keep, voxel_downsample_by_confidence
 from mvgeo.camera import Camera
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.deps import cv2
-from mvgeo.common.errors import InputError
+from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
@@ -40,6 +41,10 @@ class AlignConfig:
         pairwise: options of the classical pair estimator (incl. the pointmap
             resolution `pointmap_size_px`).
         align: options of the global alignment (`shared_focal` lives there).
+            Default: 100 iterations on every 4th pixel row/column: the final
+            poses come from the bundle adjustment, and on llff_like more
+            iterations or all pixels changed the pose error by <1 % while
+            costing 3-10x the time (docs/bench/align.md, sweep).
         min_conf: output points need a confidence above this (1 = no information).
         points_budget: maximum number of output points (confidence-aware voxel thinning).
         covisibility_rel_tol: relative depth tolerance of the co-visibility pruning.
@@ -48,13 +53,28 @@ class AlignConfig:
             that returns `matches_px`; the classical one does).
         bundle: options of the bundle adjustment.
         seed: RANSAC seed.
+        consistency_px: a pair's match is explained by the result when its
+            Sampson distance under the final poses/focals is below this (pixels
+            at `max_size_px`).
+        min_pair_explained: pairs with a smaller explained fraction are
+            inconsistent; they are dropped and the problem solved once more.
+        max_unexplained_fraction: if the inconsistent pairs still hold more than
+            this fraction of all verified matches, `align_images` fails
+            (DegenerateGeometryError) instead of returning a wrong result.
+        max_focal_log_std: without known intrinsics and without any pair that
+            determines the focal, the bundle adjustment must: its log-focal
+            standard deviation above this fails the alignment.
     """
 
     max_size_px: int = 512
     pairs: PairGraphSpec = field(default_factory=PairGraphSpec)
     pairwise: ClassicalPairConfig = field(default_factory=ClassicalPairConfig)
-    align: GlobalAlignConfig = field(default_factory=GlobalAlignConfig)
+    align: GlobalAlignConfig = field(default_factory=lambda: GlobalAlignConfig(iters=100, pixel_stride=4))
     min_conf: float = 2.0
+    consistency_px: float = 2.0
+    min_pair_explained: float = 0.5
+    max_unexplained_fraction: float = 0.1
+    max_focal_log_std: float = 0.05
     points_budget: int = 200_000
     covisibility_rel_tol: float = 0.03
     bundle_adjust: bool = True
@@ -64,7 +84,7 @@ class AlignConfig:
 
 #: A faster preset for tests and previews (fewer iterations, smaller pointmaps, at most 20k points).
 PREVIEW = AlignConfig(max_size_px=320, pairwise=ClassicalPairConfig(pointmap_size_px=96),
-                      align=GlobalAlignConfig(iters=100), points_budget=20_000)
+                      align=GlobalAlignConfig(iters=60, pixel_stride=4), points_budget=20_000)
 
 
 @dataclass
@@ -170,19 +190,45 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         # Known calibration: fx at the pointmap grid (square pixels assumed by the alignment).
         focal_init = np.full(n, 0.5 * (intrinsics.fx * Wp / W0 + intrinsics.fy * Hp / H0))
         align_cfg = replace(align_cfg, optimize_focal=False)
-    with timer.stage("global_align"):
-        res = global_align(preds, sizes, config=align_cfg, focal_init_px=focal_init)
-    ba_stats = None
-    if config.bundle_adjust:
-        matches = [(p.i, p.j, p.matches_px) for p in preds if p.matches_px is not None]
-        if matches:
+    # Every verified pair's matches when the model has them (the classical one computes dense
+    # pointmaps for a subset of the pairs only), else those of the predictions.
+    matches = getattr(model, "sparse_matches", None) or [(p.i, p.j, p.matches_px) for p in preds
+                                                         if p.matches_px is not None]
+    s_pm = Wa / Wp
+    all_matches = matches
+    dropped: list[tuple[int, int]] = []
+    for attempt in range(2):
+        with timer.stage("global_align"):
+            res = global_align(preds, sizes, config=align_cfg, focal_init_px=focal_init)
+        ba, ba_stats = None, None
+        if config.bundle_adjust and matches:
             with timer.stage("bundle_adjust"):
-                s_pm = Wa / Wp
                 ba_cfg = replace(config.bundle, shared_focal=config.bundle.shared_focal or align_cfg.shared_focal,
                                  optimize_focal=intrinsics is None)
                 ba = bundle_adjust(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), matches, config=ba_cfg)
                 res = _reposed(res, ba.cam_from_world, ba.focal_px / s_pm)
                 ba_stats = {k: v for k, v in asdict(ba).items() if k not in ("cam_from_world", "focal_px")}
+        checks = pair_consistency(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), matches,
+                                  threshold_px=config.consistency_px) if matches else []
+        bad = [c for c in checks if c.explained_fraction < config.min_pair_explained]
+        if not bad or attempt == 1:
+            break
+        # Retry once without the pairs the reconstruction does not explain (e.g. symmetric
+        # structure matched across the object): they may have bent the solution.
+        gone = {(c.i, c.j) for c in bad}
+        dropped = sorted(gone)
+        _log.warning("%d verified pairs are inconsistent with the reconstruction %s; solving again without them",
+                     len(gone), dropped)
+        preds = [p for p in preds if (p.i, p.j) not in gone]
+        matches = [m for m in matches if (m[0], m[1]) not in gone]
+        _check_connected(n, names, preds, [PairFailure(i, j, "inconsistent with the reconstruction")
+                                           for i, j in dropped])
+    if dropped:  # judge the final result against all the evidence, the dropped pairs included
+        checks = pair_consistency(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), all_matches,
+                                  threshold_px=config.consistency_px)
+        bad = [c for c in checks if c.explained_fraction < config.min_pair_explained]
+    _check_consistency(checks, bad, names, config, focal_determined=getattr(model, "focal_determined", True)
+                       or intrinsics is not None, ba=ba)
     with timer.stage("scene"):
         K_pm = [np.array([[f, 0, Wp / 2.0], [0, f, Hp / 2.0], [0, 0, 1]]) for f in res.focal_px]
         keep = covisibility_keep(res.pts_world, res.depth, res.conf, res.cam_from_world, K_pm,
@@ -214,6 +260,7 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         "pointmap_size_wh": [Wp, Hp],
         "n_pairs": len(pairs),
         "n_pairs_ok": len(preds),
+        "n_pairs_sparse": len(getattr(model, "sparse_matches", None) or []),
         "failed_pairs": [{"i": names[f.i], "j": names[f.j], "reason": f.reason} for f in fails],
         "iterations": align_cfg.iters,
         "init_loss": res.init_loss,
@@ -222,6 +269,10 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         "known_intrinsics": intrinsics is not None,
         "shared_focal": align_cfg.shared_focal,
         "bundle_adjustment": ba_stats,
+        "focal_determined_by_pairs": bool(getattr(model, "focal_determined", True)),
+        "pairs_dropped_as_inconsistent": [[names[i], names[j]] for i, j in dropped],
+        "pair_consistency_min": min((c.explained_fraction for c in checks), default=float("nan")),
+        "pairs_inconsistent": [[names[c.i], names[c.j], round(c.explained_fraction, 3)] for c in bad],
         "n_points": int(len(xyz)),
         "mean_confidence": float(conf.mean()) if len(conf) else float("nan"),
         "timings_s": timer.as_dict(),
@@ -238,6 +289,26 @@ def _reposed(res, cam_from_world: np.ndarray, focal_px: np.ndarray):
         R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
         pts.append(((pixel_rays(H, W, float(focal_px[v])) * d[..., None]) - t) @ R)
     return replace(res, cam_from_world=cam_from_world, focal_px=np.asarray(focal_px, float), pts_world=pts)
+
+
+def _check_consistency(checks, bad, names, config: AlignConfig, *, focal_determined: bool, ba) -> None:
+    """Fail with a specific message instead of returning a result the evidence contradicts."""
+    total = sum(c.n_matches for c in checks)
+    unexplained = sum(c.n_matches for c in bad)
+    if total and unexplained > config.max_unexplained_fraction * total:
+        listing = ", ".join(f"({names[c.i]}, {names[c.j]}): {c.explained_fraction:.0%}" for c in bad)[:1500]
+        raise DegenerateGeometryError(
+            f"the reconstruction is inconsistent with {len(bad)} of {len(checks)} verified image pairs "
+            f"({unexplained} of {total} matches unexplained; explained fraction per pair: {listing}). "
+            "Likely causes: too little overlap between neighbouring views (e.g. an orbit with large "
+            "steps), repeated or symmetric structure matched across the scene"
+            + ("" if focal_determined else ", and no image pair determines the focal length")
+            + ". Add views between the existing ones, or pass --intrinsics")
+    if not focal_determined and ba is not None and ba.focal_log_std > config.max_focal_log_std:
+        raise DegenerateGeometryError(
+            f"the focal length is not determined by these views (no image pair determines it, and the "
+            f"bundle adjustment leaves a relative uncertainty of {ba.focal_log_std:.0%}; object-centric "
+            "orbits are a critical configuration). Pass the calibration with --intrinsics")
 
 
 def _check_connected(n: int, names: list[str], preds, fails: list[PairFailure]) -> None:

@@ -421,13 +421,27 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
                      T(q_pair), T(t_pair), T(logs_pair), optimize_focal=config.optimize_focal)
     if config.pixel_stride < 1:
         raise InputError(f"pixel_stride must be >= 1, got {config.pixel_stride}")
-    terms = _build_terms(preds, sizes_hw, offsets, dt, dev, stride=config.pixel_stride)
-    log_depth0 = params.log_depth.detach().clone()
-    du = np.concatenate([(pixel_rays(h, w, 1.0)[..., 0]).reshape(-1) for h, w in sizes_hw])
-    dv = np.concatenate([(pixel_rays(h, w, 1.0)[..., 1]).reshape(-1) for h, w in sizes_hw])
-    fpix = np.concatenate([np.full(h * w, focal_index[n]) for n, (h, w) in enumerate(sizes_hw)])
+    stride = config.pixel_stride
+    terms = _build_terms(preds, sizes_hw, offsets, dt, dev, stride=stride)
+    n_full = int(offsets[-1] + sizes_hw[-1][0] * sizes_hw[-1][1])
+    # With a stride, only the sampled pixels are unknowns: every tensor has the samples' size.
+    if stride > 1:
+        sampled = np.concatenate([_sample_mask(h, w, stride) for h, w in sizes_hw])
+    else:
+        sampled = np.ones(n_full, bool)
+    sidx = np.flatnonzero(sampled)
+    to_sample = np.full(n_full, -1, np.int64)
+    to_sample[sidx] = np.arange(len(sidx))
+    terms.flat = torch.as_tensor(to_sample[terms.flat.cpu().numpy()], dtype=torch.long, device=dev)
+    log_depth_full = params.log_depth.detach().clone()
+    params.log_depth = torch.nn.Parameter(log_depth_full[torch.as_tensor(sidx, device=dev)].clone())
+    du = np.concatenate([(pixel_rays(h, w, 1.0)[..., 0]).reshape(-1) for h, w in sizes_hw])[sidx]
+    dv = np.concatenate([(pixel_rays(h, w, 1.0)[..., 1]).reshape(-1) for h, w in sizes_hw])[sidx]
+    fpix = np.concatenate([np.full(h * w, focal_index[n]) for n, (h, w) in enumerate(sizes_hw)])[sidx]
+    view_end = np.cumsum([np.count_nonzero(sampled[o:o + h * w]) for o, (h, w) in zip(offsets, sizes_hw,
+                                                                                        strict=True)])
     grid = _Grid(T(du), T(dv), torch.as_tensor(fpix, dtype=torch.long, device=dev),
-                 [int(x) for x in np.concatenate([offsets, [offsets[-1] + sizes_hw[-1][0] * sizes_hw[-1][1]]])])
+                 [0] + [int(x) for x in view_end])
 
     old_threads = torch.get_num_threads()
     if config.torch_threads > 0:
@@ -437,24 +451,26 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
     finally:
         torch.set_num_threads(old_threads)
     _log.info("global alignment: loss %.5g -> %.5g over %d iterations", history[0], history[-1], config.iters)
-    if config.pixel_stride > 1:
-        _spread_depth_correction(params, log_depth0, sizes_hw, offsets, config.pixel_stride)
+    with torch.no_grad():
+        delta = np.zeros(n_full)
+        delta[sidx] = (params.log_depth - log_depth_full[torch.as_tensor(sidx, device=dev)]).double().cpu().numpy()
+        if stride > 1:
+            delta = _spread(delta, sizes_hw, offsets, stride)
+        params.log_depth = torch.nn.Parameter(log_depth_full + torch.as_tensor(delta, dtype=dt, device=dev))
     return _collect(params, preds, sizes_hw, focal_index, offsets, history[0], history)
 
 
-def _spread_depth_correction(params: _Params, log_depth0: torch.Tensor, sizes_hw, offsets, stride: int) -> None:
+def _spread(delta: np.ndarray, sizes_hw, offsets, stride: int) -> np.ndarray:
     """Give every unsampled pixel the log-depth change of its nearest sampled pixel (block copy)."""
-    with torch.no_grad():
-        delta = (params.log_depth - log_depth0).cpu().numpy()
-        for v, (H, W) in enumerate(sizes_hw):
-            d = delta[offsets[v]:offsets[v] + H * W].reshape(H, W)
-            sub = d[stride // 2::stride, stride // 2::stride]
-            full = np.repeat(np.repeat(sub, stride, axis=0), stride, axis=1)
-            # Blocks are centred on their sample; pad the last ones by edge replication.
-            full = np.pad(full, ((0, max(0, H - full.shape[0])), (0, max(0, W - full.shape[1]))), mode="edge")
-            delta[offsets[v]:offsets[v] + H * W] = full[:H, :W].reshape(-1)
-        params.log_depth.copy_(log_depth0 + torch.as_tensor(delta, dtype=log_depth0.dtype,
-                                                            device=log_depth0.device))
+    delta = delta.copy()
+    for v, (H, W) in enumerate(sizes_hw):
+        d = delta[offsets[v]:offsets[v] + H * W].reshape(H, W)
+        sub = d[stride // 2::stride, stride // 2::stride]
+        full = np.repeat(np.repeat(sub, stride, axis=0), stride, axis=1)
+        # Blocks are centred on their sample; pad the last ones by edge replication.
+        full = np.pad(full, ((0, max(0, H - full.shape[0])), (0, max(0, W - full.shape[1]))), mode="edge")
+        delta[offsets[v]:offsets[v] + H * W] = full[:H, :W].reshape(-1)
+    return delta
 
 
 def _optimise(params: _Params, terms: _Terms, grid: _Grid, config: GlobalAlignConfig) -> list[float]:

@@ -13,7 +13,7 @@ from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
 
 # Small and quick; the bundle adjustment is exercised in test_hard_cases (it would double this file's time).
-FAST = ["--max-size", "160", "--pointmap-size", "64", "--iters", "100", "--points", "5000", "--no-ba"]
+FAST = ["--max-size", "160", "--pointmap-size", "64", "--iters", "100", "--points", "5000"]
 
 
 @pytest.fixture(scope="module")
