@@ -6,8 +6,11 @@ Protocol (issue 8):
   `OUT/inputs/<scene>/`); held-out views and clean images are used for scoring;
 - pose-free methods are registered to ground truth as InstantSplat does: Sim(3)
   from the estimated to the true training cameras (`eval.heldout`), the true
-  held-out cameras mapped in, each refined photometrically with the Gaussians
-  frozen (`splat.pose_fit.fit_pose`, against the *noisy* held-out image: the
+  held-out cameras mapped in (relative to the nearest training camera, with the
+  Sim(3) scale: `map_cameras_local`, because a reconstruction with a wrong focal
+  length is distorted and no single Sim(3) fits it), rendered with the
+  reconstruction's own intrinsics (`heldout_camera`), each refined
+  photometrically with the Gaussians frozen (`splat.pose_fit.fit_pose`, against the *noisy* held-out image: the
   clean images serve scoring only), then rendered;
 - held-out renders are scored against the clean images (PSNR, SSIM, LPIPS),
   training poses against ground truth (`mvgeo.metrics.compare_poses`).
@@ -30,14 +33,14 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from denoise.noise_level import estimate_noise_sigma
-from eval.heldout import map_cameras
+from eval.heldout import map_cameras_local
 from eval.image_metrics import score_images
 from eval.pipeline import PipelineConfig, StageContext, preset, product_stages, run_pipeline
 from eval.pipeline.components import require
@@ -45,6 +48,7 @@ from eval.pipeline.stages import check_product_components
 from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import read_views, write_views
 from eval.results import RunScores
+from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.sparse_model import SparseModel, read_sparse_model
@@ -188,8 +192,32 @@ def copy_train_inputs(dataset: DatasetFolder, folder: Path) -> Path:
     return folder
 
 
+def heldout_camera(est_cameras: Sequence[Camera], gt_camera: Camera) -> Camera:
+    """The reconstruction's own intrinsics for a held-out view of `gt_camera`'s size.
+
+    A pose-free reconstruction is self-consistent with the intrinsics it estimated, not with the
+    true ones (a focal error is absorbed into depths and poses), so its held-out views are rendered
+    with its own camera, as InstantSplat evaluates: the median pinhole parameters of the
+    estimated training cameras, rescaled to the held-out image size.
+    """
+    pars = []
+    for c in est_cameras:
+        fx, fy, cx, cy = _pinhole(c)
+        sx, sy = gt_camera.width / c.width, gt_camera.height / c.height
+        pars.append([fx * sx, fy * sy, cx * sx, cy * sy])
+    return Camera("PINHOLE", gt_camera.width, gt_camera.height, np.median(np.asarray(pars), axis=0))
+
+
+def _pinhole(c: Camera) -> tuple[float, float, float, float]:
+    p = np.asarray(c.params, np.float64)
+    if c.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        return p[0], p[0], p[1], p[2]
+    return p[0], p[1], p[2], p[3]
+
+
 def _score_scene(model, gt: SparseModel, est_train: Mapping[str, np.ndarray] | None, dataset: DatasetFolder,
-                 config: EvalConfig) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
+                 config: EvalConfig, est_cameras: Sequence[Camera] = ()
+                 ) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
     """Held-out renders scored against clean images; training-pose errors (None = GT poses used)."""
     render_views = require("splat.render", "render_views", needed_for="denoise-gs eval")
     fit_pose = require("splat.pose_fit", "fit_pose", needed_for="denoise-gs eval")
@@ -197,11 +225,13 @@ def _score_scene(model, gt: SparseModel, est_train: Mapping[str, np.ndarray] | N
     ref_train = {n: gt_poses[n] for n in dataset.train}
     ref_test = {n: gt_poses[n] for n in dataset.test}
     cams = {Path(n).stem: gt.camera_of(n) for n in gt.names}
+    if est_train is not None and est_cameras:
+        cams = {n: heldout_camera(est_cameras, c) for n, c in cams.items()}
     pose_stats = {"rot_err_deg": float("nan"), "ate": float("nan")}
     if est_train is None:
         test_poses = ref_test
     else:
-        test_poses = map_cameras(est_train, ref_train, ref_test).cam_from_world
+        test_poses = map_cameras_local(est_train, ref_train, ref_test).cam_from_world
         compare_poses = require("mvgeo.metrics", "compare_poses", needed_for="denoise-gs eval")
         pm = compare_poses(est_train, ref_train)
         pose_stats = {"rot_err_deg": float(pm.median_rotation_deg),
@@ -236,9 +266,11 @@ def score_reconstruction(run_dir: Path, dataset: DatasetFolder, train_names: lis
     read_ply = require("splat.ply", "read_gaussian_ply", needed_for="scoring")
     gt = read_sparse_model(dataset.root / "sparse" / "0")
     model = read_ply(Path(run_dir) / "point_cloud.ply", device=device)
-    est = _stem_poses(read_sparse_model(Path(run_dir) / "sparse" / "0"))
+    est_model = read_sparse_model(Path(run_dir) / "sparse" / "0")
+    est = _stem_poses(est_model)
     ds = dataclasses.replace(dataset, train=list(train_names or dataset.train))
-    per_view, pose_stats = _score_scene(model, gt, est, ds, EvalConfig(pose_fit_iters=pose_fit_iters))
+    per_view, pose_stats = _score_scene(model, gt, est, ds, EvalConfig(pose_fit_iters=pose_fit_iters),
+                                        [est_model.camera_of(n) for n in est_model.names])
     means = {m: float(np.mean([v[m] for v in per_view.values()])) for m in ("psnr_db", "ssim", "lpips")}
     return {**means, **pose_stats}
 
@@ -297,7 +329,7 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
             start = time.perf_counter()
             if method == "3dgs_gt_poses":
                 model = _run_gt_poses(dataset, gt, dataclasses.replace(base, seed=seed), seed, config.device)
-                est = None
+                est, est_cams = None, []
             else:
                 family, cfg = method_pipeline_config(method, dataclasses.replace(base, seed=seed))
                 stages = product_stages()
@@ -312,9 +344,11 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
                 final = res.rounds[-1].dir
                 read_ply = require("splat.ply", "read_gaussian_ply", needed_for="denoise-gs eval")
                 model = read_ply(final / "point_cloud.ply", device=config.device)
-                est = _stem_poses(read_sparse_model(final / "sparse" / "0"))
+                est_model = read_sparse_model(final / "sparse" / "0")
+                est = _stem_poses(est_model)
+                est_cams = [est_model.camera_of(n) for n in est_model.names]
             seconds = time.perf_counter() - start
-            per_view, pose_stats = _score_scene(model, gt, est, dataset, config)
+            per_view, pose_stats = _score_scene(model, gt, est, dataset, config, est_cams)
             means = {m: float(np.mean([v[m] for v in per_view.values()])) for m in ("psnr_db", "ssim", "lpips")}
             rows.append(RunScores(scene, method, seed, **means, **pose_stats, seconds=seconds, per_view=per_view))
     return rows

@@ -24,7 +24,7 @@ import numpy as np
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.transforms import Sim3, average_rotations_chordal, umeyama
 
-__all__ = ["HeldoutMapping", "map_cameras", "register_sim3"]
+__all__ = ["HeldoutMapping", "map_cameras", "map_cameras_local", "register_sim3"]
 
 
 @dataclass(frozen=True)
@@ -122,3 +122,39 @@ def map_cameras(est_train: Mapping[str, np.ndarray], ref_train: Mapping[str, np.
         R_new = Rc @ sim.R.T
         out[name] = np.hstack([R_new, (sim.scale * tc - R_new @ sim.t)[:, None]])
     return HeldoutMapping(sim, out, rmse_ref, used_orient)
+
+
+def map_cameras_local(est_train: Mapping[str, np.ndarray], ref_train: Mapping[str, np.ndarray],
+                      ref_heldout: Mapping[str, np.ndarray]) -> HeldoutMapping:
+    """Map held-out cameras through their nearest training camera (robust to global distortion).
+
+    A pose-free reconstruction with a wrong focal length is a *distorted* copy of the scene: no
+    single Sim(3) fits all its cameras (measured on llff_like at 160x120: a 54% focal error, the
+    globally mapped held-out cameras rendered at 8 dB, below the noisy photos). Locally it is
+    consistent, so each held-out camera is placed relative to the training camera nearest to it
+    (reference centres): ``cam_from_world_est = heldout_from_near (translation x s) @
+    near_from_world_est``, with the scale ``s`` of the global Sim(3). The photometric refinement
+    then starts close. `est_from_ref` and the RMSE are the global fit's (for reporting).
+
+    Args / Returns / Raises: as `map_cameras`.
+    """
+    overlap = sorted(set(ref_heldout) & set(ref_train))
+    if overlap:
+        raise InputError(f"views {overlap} are both training and held-out")
+    glob = map_cameras(est_train, ref_train, {})
+    s = glob.est_from_ref.scale
+    names = [n for n in ref_train if n in est_train]
+
+    def h(m: np.ndarray) -> np.ndarray:
+        out = np.eye(4)
+        out[:3] = np.asarray(m, np.float64)[:3]
+        return out
+
+    out = {}
+    for name, cfw in ref_heldout.items():
+        c = _centre(np.asarray(cfw, np.float64)[:3])
+        near = min(names, key=lambda n: float(np.linalg.norm(_centre(np.asarray(ref_train[n], np.float64)[:3]) - c)))
+        rel = h(cfw) @ np.linalg.inv(h(ref_train[near]))
+        rel[:3, 3] *= s
+        out[name] = (rel @ h(est_train[near]))[:3]
+    return HeldoutMapping(glob.est_from_ref, out, glob.registration_rmse, glob.used_orientations)
