@@ -1,19 +1,24 @@
-"""mvgeo align vs pycolmap incremental SfM: pose accuracy and time on 12-view scenes.
+"""mvgeo align vs pycolmap incremental SfM: pose accuracy and time.
 
-Usage: `python benchmarks/bench_align.py [--scenes=llff_like,object_ring,temple] [--sweep]`.
+Usage: `python benchmarks/bench_align.py [--scenes=llff_like,object_ring,temple,subsets] [--sweep] [--out=NAME]`.
 
-Scenes: data_synth `llff_like` and `object_ring` rendered with 12 views (noisy
-images, ground-truth poses), and ../shared/data/temple_sparse_ring (12 of its
-16 real views, calibrated poses) when present. Variants of ours show what
-accuracy costs: alignment iterations and --max-size.
+Scenes: data_synth `llff_like` and `object_ring` rendered with 12 views
+(noisy images, ground-truth poses); 3- and 6-view subsets of llff_like
+(evenly spaced views); ../shared/data/temple_sparse_ring (12 of its 16 real
+views, calibrated poses) when present. `--sweep` adds variants of ours on
+llff_like that show what accuracy costs: global-alignment iterations, its
+pixel stride, --max-size, and the bundle adjustment on/off. Both methods run
+in this one process, one after the other, so their time ratio is comparable.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -21,12 +26,12 @@ from _common import ROOT, md_table, write_fragment
 
 from mvgeo.align.api import AlignConfig, align_images
 from mvgeo.align.colmap_sfm import ColmapConfig, run_colmap
-from mvgeo.align.global_align import GlobalAlignConfig
 from mvgeo.common.imageio import list_images
 from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
 
 TEMPLE = ROOT.parent / "shared" / "data" / "temple_sparse_ring"
+DEFAULT = AlignConfig()
 
 
 def temple_ground_truth(folder: Path, names: list[str]) -> dict[str, np.ndarray]:
@@ -40,80 +45,124 @@ def temple_ground_truth(folder: Path, names: list[str]) -> dict[str, np.ndarray]
     return out
 
 
-def scenes(work: Path, names: list[str] | None = None):
+def _subset_dir(work: Path, name: str, src: Path, names: list[str]) -> Path:
+    sub = work / name
+    sub.mkdir()
+    for n in names:
+        (sub / n).symlink_to(src / n)
+    return sub
+
+
+def scenes(work: Path, which: list[str]):
     from data_synth import render_scene
 
-    for name in names or ("llff_like", "object_ring", "temple"):
-        if name == "temple":
-            continue
-        d = render_scene(name, work / name, views=12)
-        ref = read_sparse_model(d / "sparse" / "0")
-        yield name, d / "images", ref.cam_from_world_by_name(), ref.cameras[ref.images[0].camera_id].fx
-    if names and "temple" not in names:
-        return
-    if TEMPLE.is_dir():
+    for name in ("llff_like", "object_ring"):
+        if name in which or (name == "llff_like" and "subsets" in which):
+            d = render_scene(name, work / name, views=12)
+            ref = read_sparse_model(d / "sparse" / "0")
+            gt, f = ref.cam_from_world_by_name(), ref.cameras[ref.images[0].camera_id].fx
+            if name in which:
+                yield name, d / "images", gt, f
+            if name == "llff_like" and "subsets" in which:
+                all_names = sorted(gt)
+                for k in (3, 6):
+                    pick = [all_names[i] for i in np.linspace(0, 11, k).round().astype(int)]
+                    sub = _subset_dir(work, f"llff{k}", d / "images", pick)
+                    yield f"llff_like ({k} views)", sub, {n: gt[n] for n in pick}, f
+    if "temple" in which:
+        if not TEMPLE.is_dir():
+            print(f"note: {TEMPLE} missing, temple scene skipped", file=sys.stderr)
+            return
         imgs = TEMPLE if list(TEMPLE.glob("*.png")) else TEMPLE / "images"
         names = [p.name for p in list_images(imgs)]
         names = [names[k] for k in np.linspace(0, len(names) - 1, 12).round().astype(int)]
-        sub = work / "temple12"
-        sub.mkdir()
-        for n in names:
-            (sub / n).symlink_to(imgs / n)
+        sub = _subset_dir(work, "temple12", imgs, names)
         lines = (TEMPLE / "templeSR_par.txt").read_text().split("\n")[1:]
         f = float([ln.split() for ln in lines if ln.split() and ln.split()[0] == names[0]][0][1])
         yield "temple_sparse_ring (12)", sub, temple_ground_truth(TEMPLE, names), f
-    else:
-        print(f"note: {TEMPLE} missing, temple scene skipped", file=sys.stderr)
 
 
-def row(scene, method, est: dict, ref: dict, f_est, f_ref, seconds):
+def row(scene, method, est: dict, ref: dict, f_est, f_ref, seconds, extra=""):
     m = compare_poses(est, ref)
     return [scene, method, f"{m.n_registered}/{m.n_ref}", m.median_rotation_deg, m.median_translation_deg,
-            m.ate.rmse if m.ate is not None else float("nan"), abs(f_est / f_ref - 1) * 100, seconds]
+            m.ate.rmse if m.ate is not None else float("nan"), abs(f_est / f_ref - 1) * 100, seconds, extra]
+
+
+def _ours(scene, label, cfg, paths, ref, f_ref):
+    t = time.perf_counter()
+    try:
+        res = align_images(paths, cfg)
+    except Exception as exc:  # report, keep benchmarking
+        return [scene, label, f"failed: {type(exc).__name__}: {exc}"[:160], "", "", "", "", time.perf_counter() - t,
+                ""]
+    sec = time.perf_counter() - t
+    f = float(np.median([c.fx for c in res.sparse_model.cameras.values()]))
+    ba = res.stats["bundle_adjustment"]
+    extra = (f"reproj RMS {ba['reproj_rms_before_px']:.3g} -> {ba['reproj_rms_after_px']:.3g} px" if ba else "no BA")
+    return row(scene, label, res.sparse_model.cam_from_world_by_name(), ref, f, f_ref, sec, extra)
+
+
+def _colmap(scene, images, paths, ref, f_ref):
+    t = time.perf_counter()
+    try:
+        col = run_colmap(images, ColmapConfig(), image_names=[p.name for p in paths])
+    except Exception as exc:
+        return [scene, "pycolmap incremental", f"failed: {exc}"[:100], "", "", "", "", time.perf_counter() - t, ""]
+    sec = time.perf_counter() - t
+    f = float(np.median([c.fx for c in col.sparse_model.cameras.values()]))
+    return row(scene, "pycolmap incremental", col.sparse_model.cam_from_world_by_name(), ref, f, f_ref, sec)
+
+
+def sweep_variants() -> list[tuple[str, AlignConfig]]:
+    a = DEFAULT.align
+    return [
+        ("ours, GA 0 it (MST init) + BA", replace(DEFAULT, align=replace(a, iters=0))),
+        ("ours, GA 300 it + BA", replace(DEFAULT, align=replace(a, iters=300))),
+        ("ours, GA 300 it stride 1 + BA", replace(DEFAULT, align=replace(a, iters=300, pixel_stride=1))),
+        ("ours, GA 100 it, no BA", replace(DEFAULT, bundle_adjust=False)),
+        ("ours, GA 300 it stride 1, no BA", replace(DEFAULT, bundle_adjust=False,
+                                                   align=replace(a, iters=300, pixel_stride=1))),
+        ("ours, --max-size 256", replace(DEFAULT, max_size_px=256)),
+        ("ours, --max-size 384", replace(DEFAULT, max_size_px=384)),
+    ]
 
 
 def main() -> None:
     logging.basicConfig(level=logging.WARNING)
-    rows = []
-    variants = [("ours (300 it, 512 px)", AlignConfig())]
-    if "--sweep" in sys.argv:  # accuracy vs time: iterations and --max-size (slow: ~3x longer)
-        variants += [("ours (100 it, 512 px)", AlignConfig(align=GlobalAlignConfig(iters=100))),
-                     ("ours (300 it, 320 px)", AlignConfig(max_size_px=320))]
     only = [a.split("=", 1)[1] for a in sys.argv if a.startswith("--scenes=")]
+    which = only[0].split(",") if only else ["llff_like", "object_ring", "temple", "subsets"]
+    out_name = ([a.split("=", 1)[1] for a in sys.argv if a.startswith("--out=")] or ["align"])[0]
+    sweep = "--sweep" in sys.argv
+    load0 = os.getloadavg()
+    rows, ratios = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        for scene, images, ref, f_ref in scenes(Path(tmp), only[0].split(",") if only else None):
+        for scene, images, ref, f_ref in scenes(Path(tmp), which):
             paths = [p for p in list_images(images) if p.name in ref]
-            for label, cfg in variants:
-                t = time.perf_counter()
-                try:
-                    res = align_images(paths, cfg)
-                    sec = time.perf_counter() - t
-                    f = float(np.median([c.fx for c in res.sparse_model.cameras.values()]))
-                    rows.append(row(scene, label, res.sparse_model.cam_from_world_by_name(), ref, f, f_ref, sec))
-                except Exception as exc:  # report, keep benchmarking
-                    rows.append([scene, label, f"failed: {exc}"[:60], "", "", "", "", time.perf_counter() - t])
-                print(rows[-1], file=sys.stderr)
-            t = time.perf_counter()
-            try:
-                col = run_colmap(images, ColmapConfig(), image_names=[p.name for p in paths])
-                sec = time.perf_counter() - t
-                f = float(np.median([c.fx for c in col.sparse_model.cameras.values()]))
-                rows.append(row(scene, "pycolmap incremental", col.sparse_model.cam_from_world_by_name(), ref, f,
-                                f_ref, sec))
-            except Exception as exc:
-                rows.append([scene, "pycolmap incremental", f"failed: {exc}"[:60], "", "", "", "",
-                             time.perf_counter() - t])
+            ours = _ours(scene, "ours (defaults)", DEFAULT, paths, ref, f_ref)
+            rows.append(ours)
             print(rows[-1], file=sys.stderr)
+            col = _colmap(scene, images, paths, ref, f_ref)
+            rows.append(col)
+            print(rows[-1], file=sys.stderr)
+            ratios.append((scene, ours[7] / col[7]))
+            if sweep and scene == "llff_like":
+                for label, cfg in sweep_variants():
+                    rows.append(_ours(scene, label, cfg, paths, ref, f_ref))
+                    print(rows[-1], file=sys.stderr)
+    load1 = os.getloadavg()
     body = ("Median relative rotation / translation-direction error over all image pairs (deg), ATE RMSE of "
-            "camera centres after Sim(3) alignment (scene units), focal error (%), wall time (s). "
-            "Measured on a shared 2-core CPU machine (other jobs running): compare times only within this "
-            "table. `ours` = classical pairwise pointmaps + DUSt3R global alignment + sparse BA (defaults: "
-            "pointmaps 160 px long side).\n\n")
+            "camera centres after Sim(3) alignment (scene units), focal error (%), wall time (s), both methods "
+            "in one process one after the other. `ours (defaults)` = classical pairwise pointmaps (SIFT + "
+            "OpenCV USAC + DIS flow, 128 px) + DUSt3R global alignment (100 it, every 4th pixel) + "
+            "Schur-complement LM bundle adjustment on the feature tracks, matching at 512 px. "
+            f"Load average (1/5/15 min) at start {load0[0]:.2f}/{load0[1]:.2f}/{load0[2]:.2f}, at end "
+            f"{load1[0]:.2f}/{load1[1]:.2f}/{load1[2]:.2f} on {os.cpu_count()} cores.\n\n")
     body += md_table(["scene", "method", "registered", "rot err (deg)", "transl err (deg)", "ATE", "focal err %",
-                      "time (s)"], rows)
-    if not TEMPLE.is_dir():
+                      "time (s)", "note"], rows)
+    body += "\nTime ratio ours / pycolmap (same run): " + ", ".join(f"{s}: {r:.2f}" for s, r in ratios) + "\n"
+    if "temple" in which and not TEMPLE.is_dir():
         body += f"\n{TEMPLE} was missing: the real-data row is absent.\n"
-    print(write_fragment("align", "mvgeo align vs pycolmap (pose accuracy, time)", body))
+    print(write_fragment(out_name, "mvgeo align vs pycolmap (pose accuracy, time)", body))
 
 
 if __name__ == "__main__":

@@ -14,21 +14,32 @@ Pipeline and modules:
 - `pairs`: `PairPrediction` (DUSt3R's pairwise output format) and the
   `PointmapModel` protocol: `predict_pairs(images, pairs) -> (predictions, failures)`.
   A learned DUSt3R/MASt3R wrapper can be passed as `align_images(..., model=...)`.
-- `classical_pairs`: the default, weight-free model (SIFT, shared-focal
-  relative pose from `mvgeo.twoview`, edge-aware + DIS dense flow with a
-  forward-backward check, `mvgeo.triangulate`, confidences >= 1).
+- `classical_pairs`: the default, weight-free model (SIFT with RootSIFT
+  mutual-ratio matching in one BLAS product, shared-focal relative pose from
+  `mvgeo.twoview` with OpenCV's USAC_MAGSAC, edge-aware + DIS dense flow with a
+  forward-backward check, `mvgeo.triangulate`, confidences >= 1). Dense
+  pointmaps for each view's 4 strongest pairs (+ a spanning tree); the sparse
+  matches of every verified pair go to the bundle adjustment.
 - `graph`: complete / window:K pair graphs, connectivity, maximum spanning tree.
 - `global_align`: DUSt3R's global alignment in torch (per-view log-depth, pose,
   log-focal; per-pair similarity; sum of log(conf)-weighted Euclidean
   residuals; pinned geometric-mean pair scale; MST + Procrustes init; Adam + cosine).
-- `bundle`: optional sparse bundle adjustment on the pairs' inlier matches (scipy).
+- `bundle`, `bundle_lm`: sparse bundle adjustment on multi-view feature tracks
+  (Levenberg-Marquardt with the Schur complement, analytic Jacobian, Huber
+  loss, shared or per-view focal; scipy `least_squares` kept as the reference).
+  This step sets the final pose accuracy.
+- `checks`: every verified pair's matches must be explained by the final
+  geometry; otherwise the inconsistent pairs are dropped and the problem
+  solved once more, and a result that still contradicts the evidence (or whose
+  focal length nothing determines) fails with a specific message.
 - `scene`: co-visibility pruning and confidence-aware voxel downsampling.
 - `intrinsics`: known calibration (COLMAP cameras.txt, mrcal .cameramodel) and undistortion.
 - `colmap_sfm`: the pycolmap SfM reference (`mvgeo colmap`).
 
 Resolutions: matching at `max_size_px` (512) on the long side; dense
-pointmaps and the optimised depth maps at `pairwise.pointmap_size_px` (160);
-cameras are written at the input images' resolution (intrinsics scaled).
+pointmaps and the optimised depth maps at `pairwise.pointmap_size_px` (128),
+the global alignment on every 4th pixel row/column (100 iterations); cameras
+are written at the input images' resolution (intrinsics scaled).
 """
 
 from mvgeo.align.api import PREVIEW, AlignConfig, AlignResult, align_images, write_align_result

@@ -1,4 +1,4 @@
-"""Sparse bundle adjustment on feature tracks (scipy `least_squares`, sparse Jacobian).
+"""Sparse bundle adjustment on feature tracks (own LM with the Schur complement; scipy reference).
 
 Tracks: the pairs' inlier matches are merged by keypoint (a keypoint is
 identified by its view and its exact pixel coordinates, which come from one
@@ -9,10 +9,14 @@ fixed at the centre), and per track a world point (multi-view triangulation
 from the aligned poses). Residuals are reprojection errors in pixels at the
 alignment resolution with a Huber loss; after a first solve, observations
 with an error above `max_reproj_px` are removed and the problem is solved
-again (COLMAP's filter-and-repeat). The first view's pose is held fixed
-and one extra residual holds the distance between the first two camera
-centres at its initial value (the scale): with a free gauge the solver hit
-its evaluation limit without converging (measured on 2 views).
+again (COLMAP's filter-and-repeat). The first view's pose is held fixed.
+The default solver is `mvgeo.align.bundle_lm` (the LM damping holds the scale
+gauge). The scipy `least_squares` path (sparse finite-difference Jacobian,
+LSMR steps) is the slow reference; it holds the scale with one extra residual
+(distance between the first two camera centres): with a free gauge it hit its
+evaluation limit without converging (measured on 2 views). On llff_like 12
+views it reached 0.077 deg median rotation error where LM reaches ~0.015 deg
+(inexact LSMR steps stop short of the optimum).
 """
 
 from __future__ import annotations

@@ -12,8 +12,8 @@ from mvgeo.common.imageio import list_images, read_image, write_image
 from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
 
-# Small and quick; the bundle adjustment is exercised in test_hard_cases (it would double this file's time).
-FAST = ["--max-size", "160", "--pointmap-size", "64", "--iters", "100", "--points", "5000"]
+# Default settings (bundle adjustment included) on a small scene; only the point budget is reduced.
+FAST = ["--points", "5000"]
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +21,7 @@ def scene(tmp_path_factory) -> Path:
     from data_synth import render_scene
 
     out = tmp_path_factory.mktemp("scene") / "llff"
-    return render_scene("llff_like", out, size_wh=(160, 120), views=4)
+    return render_scene("llff_like", out, size_wh=(256, 192), views=6)
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +38,7 @@ def test_align_outputs(aligned, scene):
     names = [p.name for p in list_images(scene / "images")]
     assert model.names == names
     for cam in model.cameras.values():  # PINHOLE at the input resolution
-        assert cam.model == "PINHOLE" and (cam.width, cam.height) == (160, 120)
+        assert cam.model == "PINHOLE" and (cam.width, cam.height) == (256, 192)
         assert np.isfinite(cam.params).all() and cam.fx > 0
     pcd = o3d.io.read_point_cloud(str(aligned / "points.ply"))
     stats = json.loads((aligned / "align.json").read_text())
@@ -50,21 +50,22 @@ def test_align_outputs(aligned, scene):
 
 
 def test_align_poses_against_ground_truth_and_colmap(aligned, scene, tmp_path, capsys):
-    """Small default-suite comparison: ours and COLMAP against the ground truth of 4 views at 160x120."""
+    """Small default-suite comparison: ours and COLMAP against the ground truth of 6 views at 256x192."""
     gt = read_sparse_model(scene / "sparse" / "0").cam_from_world_by_name()
     ours = compare_poses(read_sparse_model(aligned / "sparse" / "0").cam_from_world_by_name(), gt)
     assert ours.registered_fraction == 1.0
-    # Measured on this scene (noisy 160x120 images, 4 views, fast settings): median relative rotation
-    # error 6.9 deg. The bound only guards against regressions beyond that (it is NOT as tight as COLMAP,
-    # which is the open accuracy gap reported in docs/bench/align.md).
-    assert ours.median_rotation_deg < 10.0
+    # Measured on this scene (noisy 256x192 images, 6 views, defaults): ours median relative rotation
+    # error 0.085 deg, ATE 0.0029; pycolmap incremental 0.166 deg, ATE 0.0067. The bounds sit at
+    # COLMAP's figures (slightly below), ~2x above ours.
+    assert ours.median_rotation_deg < 0.16
+    assert ours.ate.rmse < 0.0065
     col = tmp_path / "colmap"
     code = main(["colmap", str(scene / "images"), "--out", str(col)])
     capsys.readouterr()
     if code == 0:
         assert main(["compare", str(col / "sparse" / "0"), str(scene / "sparse" / "0"), "--json"]) == 0
         out = json.loads(capsys.readouterr().out)
-        assert out["n_ref"] == 4 and 0 <= out["registered_fraction"] <= 1
+        assert out["n_ref"] == 6 and 0 <= out["registered_fraction"] <= 1
     else:  # COLMAP may fail to initialise on 4 tiny noisy views; it must say so with exit 1 and no OUT
         assert code == 1 and not col.exists()
 
@@ -72,7 +73,7 @@ def test_align_poses_against_ground_truth_and_colmap(aligned, scene, tmp_path, c
 def test_compare_cli_json(aligned, scene, capsys):
     assert main(["compare", str(aligned / "sparse" / "0"), str(scene / "sparse" / "0"), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["n_registered"] == 4 and out["median_rotation_deg"] >= 0
+    assert out["n_registered"] == 6 and out["median_rotation_deg"] >= 0
 
 
 @pytest.mark.parametrize("case", ["missing", "empty", "one_image", "corrupt", "mixed_sizes", "duplicate"])
