@@ -34,7 +34,8 @@ class RunScores:
         psnr_db, ssim, lpips: held-out views against the clean images.
         rot_err_deg: mean relative rotation error of the training poses (NaN when poses are given).
         ate: absolute trajectory error of the training camera centres after Sim(3), GT units (NaN when given).
-        seconds: end-to-end wall time of the method.
+        seconds: end-to-end wall time of the method (pipeline methods: the sum of their stages' recorded
+            times, stages reused from the cache included).
         per_view: held-out view -> {"psnr_db", "ssim", "lpips"}.
     """
 

@@ -196,3 +196,20 @@ def test_product_stages_except_alignment(tmp_path):
     assert read_gaussian_ply(r2.dir / "point_cloud.ply").means.shape[0] > 0
     assert read_sparse_model(r2.dir / "sparse" / "0").names == [f"{n}.png" for n in sorted(selected)]
     assert sorted(p.stem for p in (r2.dir / "renders").glob("*.png")) == sorted(selected)
+
+
+def test_changed_component_default_reruns_its_stage(tmp_path, scene, monkeypatch):
+    # Stage keys hash the *resolved* component configs: a changed preset default (same preset name)
+    # must re-run the stage that uses it, and only from there on.
+    import dataclasses
+
+    import splat.train
+
+    tiny = TinyStages()
+    out = tmp_path / "out"
+    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny.stages())
+    quick = splat.train.TRAIN_PRESETS["quick"]
+    monkeypatch.setitem(splat.train.TRAIN_PRESETS, "quick", dataclasses.replace(quick, iters=quick.iters + 1))
+    tiny2 = TinyStages()
+    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny2.stages())
+    assert dict(tiny2.calls) == {"splat": 1, "render": 1}
