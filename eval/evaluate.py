@@ -49,7 +49,8 @@ from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import read_views, write_views
 from eval.results import RunScores
 from mvgeo.camera import Camera
-from mvgeo.common.errors import InputError
+from mvgeo.common.deps import cv2
+from mvgeo.common.errors import DgsError, InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 
@@ -300,6 +301,39 @@ def _run_gt_poses(dataset: DatasetFolder, gt: SparseModel, base: PipelineConfig,
     return train_gaussians(images, cams, cfw, xyz, rgb, cfg, device=device).model
 
 
+def _run_method(method: str, seed: int, dataset: DatasetFolder, gt: SparseModel, base: PipelineConfig,
+                inputs: Path, out: Path, config: EvalConfig, *, scene: str) -> RunScores:
+    """Run (or reuse) one method with one seed and score it."""
+    start = time.perf_counter()
+    if method == "3dgs_gt_poses":
+        model = _run_gt_poses(dataset, gt, dataclasses.replace(base, seed=seed), seed, config.device)
+        est, est_cams = None, []
+        seconds = time.perf_counter() - start
+    else:
+        family, cfg = method_pipeline_config(method, dataclasses.replace(base, seed=seed))
+        stages = product_stages()
+        if method == "instantsplat":
+            stages = dataclasses.replace(stages, denoise=_identity_stage)
+        elif method == "nlm_instantsplat":
+            stages = dataclasses.replace(stages, denoise=_nlm_stage)
+        seed_dir = out / "runs" / scene / f"seed{seed}"
+        if method.startswith("ablate_"):
+            share_round1(seed_dir / "n2v", seed_dir / family)
+        res = run_pipeline(inputs, seed_dir / family, cfg, stages=stages)
+        final = res.rounds[-1].dir
+        read_ply = require("splat.ply", "read_gaussian_ply", needed_for="denoise-gs eval")
+        model = read_ply(final / "point_cloud.ply", device=config.device)
+        est_model = read_sparse_model(final / "sparse" / "0")
+        est = _stem_poses(est_model)
+        est_cams = [est_model.camera_of(n) for n in est_model.names]
+        # The stages' own recorded wall time (a stage reused from the cache, e.g. round 1 shared by
+        # n2v_round1 / denoise_gs / rounds_N, reports the time it took when it ran).
+        seconds = float(sum(st.seconds for rd in res.rounds for st in rd.stages.values()))
+    per_view, pose_stats = _score_scene(model, gt, est, dataset, config, est_cams)
+    means = {m: float(np.mean([v[m] for v in per_view.values()])) for m in ("psnr_db", "ssim", "lpips")}
+    return RunScores(scene, method, seed, **means, **pose_stats, seconds=seconds, per_view=per_view)
+
+
 def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, scene: str) -> list[RunScores]:
     """Run and score every method x seed on one dataset; returns one `RunScores` per run.
 
@@ -326,35 +360,14 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     for seed in range(config.seeds):
         for method in sorted(config.methods, key=EVAL_METHODS.index):  # ablations after the round 1 they share
             _log.info("eval %s: %s, seed %d", scene, method, seed)
-            start = time.perf_counter()
-            if method == "3dgs_gt_poses":
-                model = _run_gt_poses(dataset, gt, dataclasses.replace(base, seed=seed), seed, config.device)
-                est, est_cams = None, []
-            else:
-                family, cfg = method_pipeline_config(method, dataclasses.replace(base, seed=seed))
-                stages = product_stages()
-                if method == "instantsplat":
-                    stages = dataclasses.replace(stages, denoise=_identity_stage)
-                elif method == "nlm_instantsplat":
-                    stages = dataclasses.replace(stages, denoise=_nlm_stage)
-                seed_dir = out / "runs" / scene / f"seed{seed}"
-                if method.startswith("ablate_"):
-                    share_round1(seed_dir / "n2v", seed_dir / family)
-                res = run_pipeline(inputs, seed_dir / family, cfg, stages=stages)
-                final = res.rounds[-1].dir
-                read_ply = require("splat.ply", "read_gaussian_ply", needed_for="denoise-gs eval")
-                model = read_ply(final / "point_cloud.ply", device=config.device)
-                est_model = read_sparse_model(final / "sparse" / "0")
-                est = _stem_poses(est_model)
-                est_cams = [est_model.camera_of(n) for n in est_model.names]
-            seconds = time.perf_counter() - start
-            if method != "3dgs_gt_poses":
-                # The stages' own recorded wall time (a stage reused from the cache, e.g. round 1
-                # shared by n2v_round1 / denoise_gs / rounds_N, reports the time it took when it ran).
-                seconds = float(sum(st.seconds for rd in res.rounds for st in rd.stages.values()))
-            per_view, pose_stats = _score_scene(model, gt, est, dataset, config, est_cams)
-            means = {m: float(np.mean([v[m] for v in per_view.values()])) for m in ("psnr_db", "ssim", "lpips")}
-            rows.append(RunScores(scene, method, seed, **means, **pose_stats, seconds=seconds, per_view=per_view))
+            try:
+                rows.append(_run_method(method, seed, dataset, gt, base, inputs, out, config, scene=scene))
+            except (DgsError, RuntimeError, ValueError, ArithmeticError, OSError, cv2.error) as exc:
+                # One method failing (e.g. alignment on a hard input) must not lose the others: the
+                # row is kept with NaN metrics and the error, and the table shows it as failed.
+                _log.error("eval %s: %s, seed %d failed: %s: %s", scene, method, seed, type(exc).__name__, exc)
+                nan = float("nan")
+                rows.append(RunScores(scene, method, seed, nan, nan, nan, error=f"{type(exc).__name__}: {exc}"))
     return rows
 
 

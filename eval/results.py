@@ -37,6 +37,7 @@ class RunScores:
         seconds: end-to-end wall time of the method (pipeline methods: the sum of their stages' recorded
             times, stages reused from the cache included).
         per_view: held-out view -> {"psnr_db", "ssim", "lpips"}.
+        error: why the run failed ("" when it did not); its metrics are then NaN.
     """
 
     scene: str
@@ -49,6 +50,7 @@ class RunScores:
     ate: float = float("nan")
     seconds: float = float("nan")
     per_view: dict[str, dict[str, float]] = field(default_factory=dict)
+    error: str = ""
 
 
 @dataclass(frozen=True)
@@ -112,6 +114,11 @@ def results_markdown(rows: Sequence[RunScores], *, title: str = "Evaluation") ->
                 row.append(text)
             lines.append(f"| {method} | " + " | ".join(row) + " |")
         lines.append("")
+        failed = [r for r in rows if r.scene == scene and r.error]
+        if failed:
+            lines += ["Failed runs (left out of the means above):", ""]
+            lines += [f"- {r.method}, seed {r.seed}: {r.error[:300]}" for r in failed]
+            lines.append("")
     return "\n".join(lines)
 
 
