@@ -61,8 +61,9 @@ def test_subsets_register_all_views(llff12, k, tmp_path):
     assert m.median_rotation_deg < SUBSET_ROT_BOUND_DEG[k]
 
 
-#: Measured (docs/bench/align.md, subsets rows), bound ~2x ours.
-SUBSET_ROT_BOUND_DEG = {3: 0.1, 6: 0.1}
+#: Measured on these subsets: ours 0.052 deg (3 views) / 0.019 deg (6 views); pycolmap incremental
+#: 0.195 / 0.042 deg (it registers all views here too). Bounds ~2x ours, below COLMAP's figures.
+SUBSET_ROT_BOUND_DEG = {3: 0.1, 6: 0.04}
 
 
 def test_object_ring_is_usable_or_a_specific_failure(tmp_path):
