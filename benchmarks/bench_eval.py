@@ -119,5 +119,46 @@ def main() -> None:
     print(path.read_text())
 
 
+def round2_check(run_dir: Path, data_dir: Path, *, steps: int = 40, passes: int = 2, views: int = 8) -> None:
+    """Round 2 on a finished round 1 (`denoise-gs run ... --rounds 1`), against the clean images.
+
+    Fine-tunes the round-1 network on the first `views` views exactly as the refine stage does
+    (`denoise.round2.refine_round2`, trust target and guard) and once without the guard, then
+    prints mean PSNR against `data_dir/clean/` of: noisy input, round-1 denoised, round-1 render,
+    round 2 (guarded; a reverted round keeps the round-1 images, as the stage does) and round 2
+    without the guard. Usage: ``bench_eval.py --round2 RUN_DIR DATA_DIR``.
+    """
+    import dataclasses
+
+    from denoise.inference import denoise_images
+    from denoise.model import load_checkpoint
+    from denoise.round2 import Round2Config, refine_round2
+    from mvgeo.common.imageio import read_image
+
+    torch.set_num_threads(1)
+    names = sorted(p.stem for p in (run_dir / "round1" / "renders").glob("*.png"))[:views]
+    ld = lambda folder: [read_image(folder / f"{n}.png") for n in names]  # noqa: E731
+    noisy, clean = ld(data_dir / "images"), ld(data_dir / "clean")
+    r1, rend = ld(run_dir / "round1" / "denoised"), ld(run_dir / "round1" / "renders")
+    def ps(imgs: list[np.ndarray]) -> float:
+        return float(np.mean([10 * np.log10(1.0 / np.mean((np.float64(a) - b) ** 2))
+                              for a, b in zip(imgs, clean, strict=True)]))
+
+    row = {"noisy": ps(noisy), "round-1 denoised": ps(r1), "round-1 render": ps(rend)}
+    cfg = Round2Config(steps=steps)
+    for label, c in (("round 2", cfg), ("round 2 without guard", dataclasses.replace(cfg, guard=False))):
+        model, rep = refine_round2(load_checkpoint(run_dir / "round1" / "n2v_model.pt", device="cpu"), noisy,
+                                   rend, c, seed=0)
+        out = r1 if rep.reverted else denoise_images(model, noisy, passes=passes, seed=0, fuse=True)
+        row[label] = ps(out)
+        row[f"{label}: render weight"] = float(np.mean(rep.render_weight))
+        row[f"{label}: reverted"] = rep.reverted
+    for k, v in row.items():
+        print(f"{k}: {v:.3f}" if isinstance(v, float) else f"{k}: {v}")
+
+
 if __name__ == "__main__":
-    main()
+    if len(sys.argv) == 4 and sys.argv[1] == "--round2":
+        round2_check(Path(sys.argv[2]), Path(sys.argv[3]))
+    else:
+        main()

@@ -61,16 +61,26 @@ def resolve_scene_source(scene: str) -> tuple[str, Path | str]:
 def _cmd_run(args: argparse.Namespace) -> int:
     config = preset(args.preset, views=args.views, rounds=args.rounds, seed=args.seed,
                     select_views=False if args.no_select else None, device=args.device)
+    if args.allow_focal_prior:
+        config = _allow_focal_prior(config)
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
+
+
+def _allow_focal_prior(config):
+    import dataclasses
+
+    from eval.evaluate import FOCAL_PRIOR_OK
+
+    return dataclasses.replace(config, align=dataclasses.replace(config.align, max_focal_log_std=FOCAL_PRIOR_OK))
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     kind, source = resolve_scene_source(args.scene)
     config = EvalConfig(methods=tuple(dict.fromkeys(args.methods)), seeds=args.seeds, preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
-                        device=args.device)
+                        device=args.device, allow_focal_prior=not args.strict_focal)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError("output path exists and is not a folder", path=out, fix="choose another --out")
@@ -120,6 +130,8 @@ def _cmd_cost(args: argparse.Namespace) -> int:
     kind, source = resolve_scene_source(args.scene)
     grid = _parse_grid(args.grid, args.knobs)
     base = preset(args.preset, rounds=args.rounds, views=args.views, seed=args.seed, device=args.device)
+    if not args.strict_focal:
+        base = _allow_focal_prior(base)
     sweep_points(base, grid)  # bad values fail here, before any compute
     config = CostConfig(base=base, grid=grid, pose_fit_iters=args.pose_fit_iters)
     out = Path(args.out)
@@ -169,6 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--device", default=None, help="torch device, e.g. cpu or cuda (default cpu)")
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
+    run.add_argument("--allow-focal-prior", action="store_true",
+                     help="when the views do not determine the focal length, go on with the prior instead of "
+                          "stopping (as `denoise-gs eval` does; check the result's poses)")
     run.set_defaults(func=_cmd_run)
 
     ev = sub.add_parser("eval", help="score methods on a scene with ground truth")
@@ -188,6 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="image size for a scene rendered on the fly (default: the scene's)")
     ev.add_argument("--scene-views", type=int, default=None,
                     help="number of views for a scene rendered on the fly (default: the scene's)")
+    ev.add_argument("--strict-focal", action="store_true",
+                    help="alignment refuses an undetermined focal length (default: keep the prior, as "
+                         "InstantSplat does, and let the scores show the cost)")
     ev.set_defaults(func=_cmd_eval)
 
     cost = sub.add_parser("cost", help="accuracy-time trade-off sweep on a scene",
@@ -210,6 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     cost.add_argument("--grid", action="append", default=None, metavar="KNOB=V1,V2",
                       help="values of one knob (repeatable), e.g. --grid splat_iters=100,300")
     cost.add_argument("--pose-fit-iters", type=int, default=None, help="held-out pose refinement steps")
+    cost.add_argument("--strict-focal", action="store_true", help="as for eval")
     cost.set_defaults(func=_cmd_cost)
     return parser
 

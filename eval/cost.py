@@ -53,7 +53,8 @@ def _set_splat(cfg: PipelineConfig, **kw) -> PipelineConfig:
 
 
 def _set_preset(cfg: PipelineConfig, name: object) -> PipelineConfig:
-    return preset(str(name), views=cfg.views, rounds=2, seed=cfg.seed, device=cfg.device)
+    new = preset(str(name), views=cfg.views, rounds=2, seed=cfg.seed, device=cfg.device)
+    return _set_align(new, max_focal_log_std=cfg.align.max_focal_log_std)  # keep the sweep's focal policy
 
 
 #: knob -> (what it changes, how). `train_views` is handled by the sweep (a subset of the images).

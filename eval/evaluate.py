@@ -59,6 +59,9 @@ __all__ = ["EVAL_METHODS", "EvalConfig", "evaluate_dataset", "method_pipeline_co
 
 _log = logging.getLogger(__name__)
 
+#: `AlignSettings.max_focal_log_std` that never refuses (finite so that it stays plain JSON).
+FOCAL_PRIOR_OK = 1e9
+
 #: Methods: baselines (a)-(e), the Table 2 ablations and the Table 3 round counts.
 EVAL_METHODS = (
     "3dgs_gt_poses",        # (a) 3DGS on the noisy images with ground-truth poses
@@ -84,6 +87,9 @@ class EvalConfig:
         pose_fit_iters: held-out pose refinement steps; None = `splat`'s default.
         splat_iters: splat training iterations for every method; None = the preset's.
         device: torch device.
+        allow_focal_prior: let alignment keep an undetermined focal length (the prior or its
+            estimate) instead of refusing (`AlignSettings.max_focal_log_std`), as InstantSplat does;
+            the held-out scores and pose errors then show the cost.
     """
 
     methods: tuple[str, ...] = ("instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs")
@@ -93,6 +99,7 @@ class EvalConfig:
     pose_fit_iters: int | None = None
     splat_iters: int | None = None
     device: str = "cpu"
+    allow_focal_prior: bool = True
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.methods if m not in EVAL_METHODS]
@@ -350,6 +357,8 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     base = preset(config.preset, views=k, device=config.device)
     if config.splat_iters is not None:
         base = dataclasses.replace(base, splat=dataclasses.replace(base.splat, iters=config.splat_iters))
+    if config.allow_focal_prior:
+        base = dataclasses.replace(base, align=dataclasses.replace(base.align, max_focal_log_std=FOCAL_PRIOR_OK))
     pipeline_methods = [m for m in config.methods if m != "3dgs_gt_poses"]
     for m in pipeline_methods:  # fail before any compute if a component is missing
         check_product_components(method_pipeline_config(m, base)[1])

@@ -49,11 +49,17 @@ class AlignSettings:
         preset: "default" (`mvgeo.align.AlignConfig()`) or "preview" (`mvgeo.align.PREVIEW`).
         max_size_px: long side the images are downscaled to; None keeps the preset's.
         iters: global-alignment iterations; None keeps the preset's.
+        max_focal_log_std: `mvgeo.align.AlignConfig.max_focal_log_std` (alignment refuses when no
+            pair determines the focal length and the bundle adjustment leaves a larger relative
+            uncertainty); None keeps the preset's (strict). The evaluation sets it very large:
+            InstantSplat-style methods then keep the focal they estimate (or the prior), and the
+            held-out scores and pose errors measure what that costs.
     """
 
     preset: str = "default"
     max_size_px: int | None = None
     iters: int | None = None
+    max_focal_log_std: float | None = None
 
 
 @dataclass(frozen=True)

@@ -138,7 +138,8 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
             ref = runner.run(StageSpec(
                 "refine", rd, stages.refine, ("denoised", "n2v_model.pt"),
                 inputs={"noisy": images_dir, "selection": rd / "selection.json",
-                        "model": prev.dir / "n2v_model.pt", "renders": prev.dir / "renders"},
+                        "model": prev.dir / "n2v_model.pt", "renders": prev.dir / "renders",
+                        "previous": prev.dir / "denoised"},
                 upstream=(sel, model_stage, prev.stages["render"]),
                 settings={"noisy_digest": noisy_digest, "round2_preset": d.round2_preset,
                           "round2_steps": d.round2_steps, "round2_loss": d.round2_loss, "passes": d.passes,

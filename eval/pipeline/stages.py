@@ -13,7 +13,7 @@ Each function has the `StageFn` signature (`fn(ctx) -> summary`), reads
 | splat     | images, align                            | sparse/0/, point_cloud.ply                |
 | render    | sparse, scene                            | renders/                                  |
 | select    | images, sparse                           | selection.json                            |
-| refine    | noisy, selection, model, renders         | denoised/, n2v_model.pt                   |
+| refine    | noisy, selection, model, renders, previous | denoised/, n2v_model.pt                 |
 """
 
 from __future__ import annotations
@@ -82,6 +82,8 @@ def _align_config(s: Mapping[str, object], seed: int, need: str):
         cfg = dataclasses.replace(cfg, max_size_px=s["max_size_px"])
     if s["iters"] is not None:
         cfg = dataclasses.replace(cfg, align=dataclasses.replace(cfg.align, iters=s["iters"]))
+    if s.get("max_focal_log_std") is not None:
+        cfg = dataclasses.replace(cfg, max_focal_log_std=float(s["max_focal_log_std"]))
     return cfg
 
 
@@ -202,7 +204,12 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     # Keep the observation blend (denoise.fusion) for the fine-tuned model too: most of round 1's
     # quality comes from it, and without it round 2 fell from 23.97 to 20.92 dB on the demo scene
     # (8 views, 192x144, sigma 25/255).
-    out = denoise_images(model, list(noisy.values()), passes=s["passes"], seed=ctx.seed, fuse=True)
+    if r2.reverted and "previous" in ctx.inputs:
+        # The guard kept the previous network: keep the previous round's images too (identical
+        # up to the random maskings of inference), so a reverted round changes nothing.
+        out = list(read_views(ctx.inputs["previous"], names).values())
+    else:
+        out = denoise_images(model, list(noisy.values()), passes=s["passes"], seed=ctx.seed, fuse=True)
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
     save_checkpoint(ctx.work_dir / "n2v_model.pt", model)
     return {"views": names, "train": _history_summary(getattr(model, "history", None)),
@@ -229,8 +236,7 @@ def resolved_configs(config: PipelineConfig) -> dict[str, object]:
 
     out = {
         "n2v": as_json(lambda: _n2v_config({"n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps}, need)),
-        "align": as_json(lambda: _align_config({"preset": a.preset, "max_size_px": a.max_size_px,
-                                                "iters": a.iters}, 0, need)),
+        "align": as_json(lambda: _align_config(dataclasses.asdict(a), 0, need)),
         "splat": as_json(lambda: _train_config({"preset": sp.preset, "iters": sp.iters}, 0, need)),
         "round2": as_json(lambda: _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,
                                                   "round2_loss": d.round2_loss}, need)),
@@ -250,7 +256,7 @@ def check_product_components(config: PipelineConfig) -> None:
     for module, name in (("denoise.n2v", "train_n2v"), ("denoise.inference", "denoise_images"),
                          ("denoise.model", "save_checkpoint")):
         require(module, name, needed_for=need)
-    _align_config({"preset": a.preset, "max_size_px": a.max_size_px, "iters": a.iters}, config.seed, need)
+    _align_config(dataclasses.asdict(a), config.seed, need)
     for name in ("align_images", "write_align_result"):
         require("mvgeo.align", name, needed_for=need)
     _train_config({"preset": sp.preset, "iters": sp.iters}, config.seed, need)
