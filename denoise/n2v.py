@@ -50,6 +50,12 @@ class N2VConfig:
       inference (`denoise.fusion`): 22.28 -> 24.31 dB; NLM (best h) 23.24, TV 23.57.
     - the ``n2v2`` preset (blur-pool, no top skip, median replacement) at 400 steps: 21.80 dB
       blind-spot, 23.98 fused (vs 22.28 / 24.31): no checkerboard gain to pay for at this budget.
+    - ``replacement="uniform_withCP"`` (a value from the 11x11 window, N2V's reference code)
+      instead of ``permute`` (from anywhere in the patch, the issue's reading of the paper):
+      blind-spot output 22.89 vs 22.21 dB, fused (PCA noise estimate) 24.69 dB vs 24.48 dB for
+      permute fused with the *true* sigma (400 steps). Not yet the default: measured after the
+      benchmark run had started; a candidate. 800 steps (permute): 22.54 / 24.70 dB at twice
+      the training time.
     - width 8 (the ``fast`` preset) costs ~0.2 dB (24.13 dB fused) for 49 s of training
       against 111 s at width 16 (400 steps each; separate runs, load 2-5: a rough ratio);
       800 steps at width 8 gave 24.35 dB: the curve flattens after ~400 steps.
