@@ -5,8 +5,14 @@ import pytest
 import torch
 
 from denoise.n2v import N2VConfig, train_n2v
-from denoise.round2 import (Round2Config, blind_spot_loss, jinvariant_predict, joint_loss, refine_round2,
-                            render_trust_target)
+from denoise.round2 import (
+    Round2Config,
+    blind_spot_loss,
+    jinvariant_predict,
+    joint_loss,
+    refine_round2,
+    render_trust_target,
+)
 from denoise.unet import UNetConfig
 from mvgeo.common.errors import ConfigError
 from tests.denoise._synth import add_noise, psnr, smooth_scene
