@@ -31,7 +31,9 @@ test: $(STAMP)
 test-all: $(STAMP)
 	$(PY) -m pytest
 
+# The benchmarks also need the `bench` dependency group (PyWavelets, bm3d: classical baselines).
 bench: $(STAMP)
+	bash tools/setup_env.sh --group bench
 	$(PY) benchmarks/run_all.py $(ONLY)
 
 # The main job on the built-in `llff_like` scene (forward-facing, Gaussian noise sigma 25/255),

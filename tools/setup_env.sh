@@ -47,4 +47,4 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
 fi
 
 # 4. The environment, exactly as locked (uv.lock is committed; --frozen never re-resolves).
-"$TOOLS/bin/uv" sync --frozen --compile-bytecode --python "$PY" --quiet
+"$TOOLS/bin/uv" sync --frozen --compile-bytecode --python "$PY" --quiet "$@"
