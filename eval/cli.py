@@ -89,8 +89,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     with output_lock(out):
         name, folder = scene_dataset(kind, source, out, size_wh=args.size, views=args.scene_views)
         dataset = validate_dataset_folder(folder)
-        rows = evaluate_dataset(dataset, out, config, scene=name)
-        _, md = write_results(out, rows, title=f"denoise-gs eval: {name}")
+        title = f"denoise-gs eval: {name}"
+        rows = evaluate_dataset(dataset, out, config, scene=name,
+                                on_row=lambda rs: write_results(out, rs, title=title + " (in progress)"))
+        _, md = write_results(out, rows, title=title)
     print(f"results: {md}")
     return 0
 

@@ -33,7 +33,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -341,8 +341,12 @@ def _run_method(method: str, seed: int, dataset: DatasetFolder, gt: SparseModel,
     return RunScores(scene, method, seed, **means, **pose_stats, seconds=seconds, per_view=per_view)
 
 
-def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, scene: str) -> list[RunScores]:
+def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, scene: str,
+                     on_row: Callable[[list[RunScores]], None] | None = None) -> list[RunScores]:
     """Run and score every method x seed on one dataset; returns one `RunScores` per run.
+
+    `on_row(rows_so_far)` is called after each run (the CLI rewrites results.md, so an interrupted
+    evaluation keeps what it measured).
 
     Raises:
         InputError: dataset problems (found before any compute).
@@ -377,6 +381,8 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
                 _log.error("eval %s: %s, seed %d failed: %s: %s", scene, method, seed, type(exc).__name__, exc)
                 nan = float("nan")
                 rows.append(RunScores(scene, method, seed, nan, nan, nan, error=f"{type(exc).__name__}: {exc}"))
+            if on_row is not None:
+                on_row(list(rows))
     return rows
 
 
