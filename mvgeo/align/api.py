@@ -55,7 +55,8 @@ class AlignConfig:
         seed: RANSAC seed.
         consistency_px: a pair's match is explained by the result when its
             Sampson distance under the final poses/focals is below this (pixels
-            at `max_size_px`).
+            at `max_size_px`; without the bundle adjustment, pixels of the
+            pointmap grid, whose resolution bounds the alignment's accuracy).
         min_pair_explained: pairs with a smaller explained fraction are
             inconsistent; they are dropped and the problem solved once more.
         max_unexplained_fraction: if the inconsistent pairs still hold more than
@@ -208,24 +209,28 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
                 ba = bundle_adjust(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), matches, config=ba_cfg)
                 res = _reposed(res, ba.cam_from_world, ba.focal_px / s_pm)
                 ba_stats = {k: v for k, v in asdict(ba).items() if k not in ("cam_from_world", "focal_px")}
+        # Without the bundle adjustment the poses come from pointmaps s_pm times coarser than the
+        # matches: judge them at that resolution.
+        thr = config.consistency_px * (1.0 if ba is not None else max(s_pm, 1.0))
         checks = pair_consistency(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), matches,
-                                  threshold_px=config.consistency_px) if matches else []
+                                  threshold_px=thr) if matches else []
         bad = [c for c in checks if c.explained_fraction < config.min_pair_explained]
         if not bad or attempt == 1:
             break
         # Retry once without the pairs the reconstruction does not explain (e.g. symmetric
         # structure matched across the object): they may have bent the solution.
         gone = {(c.i, c.j) for c in bad}
+        kept = [p for p in preds if (p.i, p.j) not in gone]
+        if len(components(n, [(p.i, p.j) for p in kept])) > 1:
+            break  # dropping them would cut views off: judge (and fail) this result as it is
         dropped = sorted(gone)
         _log.warning("%d verified pairs are inconsistent with the reconstruction %s; solving again without them",
                      len(gone), dropped)
-        preds = [p for p in preds if (p.i, p.j) not in gone]
+        preds = kept
         matches = [m for m in matches if (m[0], m[1]) not in gone]
-        _check_connected(n, names, preds, [PairFailure(i, j, "inconsistent with the reconstruction")
-                                           for i, j in dropped])
     if dropped:  # judge the final result against all the evidence, the dropped pairs included
         checks = pair_consistency(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), all_matches,
-                                  threshold_px=config.consistency_px)
+                                  threshold_px=thr)
         bad = [c for c in checks if c.explained_fraction < config.min_pair_explained]
     _check_consistency(checks, bad, names, config, focal_determined=getattr(model, "focal_determined", True)
                        or intrinsics is not None, ba=ba)
@@ -303,7 +308,8 @@ def _check_consistency(checks, bad, names, config: AlignConfig, *, focal_determi
             "Likely causes: too little overlap between neighbouring views (e.g. an orbit with large "
             "steps), repeated or symmetric structure matched across the scene"
             + ("" if focal_determined else ", and no image pair determines the focal length")
-            + ". Add views between the existing ones, or pass --intrinsics")
+            + (". The bundle adjustment is off: the dense alignment alone is this coarse; enable it (--ba)"
+               if ba is None else ". Add views between the existing ones, or pass --intrinsics"))
     if not focal_determined and ba is not None and ba.focal_log_std > config.max_focal_log_std:
         raise DegenerateGeometryError(
             f"the focal length is not determined by these views (no image pair determines it, and the "

@@ -320,10 +320,15 @@ class ClassicalPointmapModel:
         def relative(item):
             (i, j), m = item
             u1, u2 = feats[i].uv_px[m[:, 0]], feats[j].uv_px[m[:, 1]]
-            return estimate_relative_pose(u1, u2, K_align[i], K_align[j], config=cfg.two_view), u1, u2
+            try:
+                return estimate_relative_pose(u1, u2, K_align[i], K_align[j], config=cfg.two_view), u1, u2
+            except cv2.error as exc:  # USAC asserts on some degenerate inputs (measured at 256 px)
+                return f"OpenCV robust estimation failed: {str(exc).strip().splitlines()[-1][:200]}", u1, u2
 
         for ((i, j), _), (rel, u1, u2) in zip(matches.items(), pool.map(relative, matches.items()), strict=True):
-            if rel.success:
+            if isinstance(rel, str):
+                fails.append(PairFailure(i, j, rel))
+            elif rel.success:
                 rels[(i, j)] = (rel, u1, u2)
             else:
                 fails.append(PairFailure(i, j, f"relative pose: {rel.reason}"))
@@ -365,11 +370,14 @@ class ClassicalPointmapModel:
         def one(item):
             (i, j), m = item
             u1, u2 = feats[i].uv_px[m[:, 0]], feats[j].uv_px[m[:, 1]]
-            return estimate_relative_pose_uncalibrated(u1, u2, (Wa, Ha), config=self.config.two_view,
-                                                       seed=self.seed)
+            try:
+                return estimate_relative_pose_uncalibrated(u1, u2, (Wa, Ha), config=self.config.two_view,
+                                                           seed=self.seed)
+            except cv2.error:  # USAC assertion on a degenerate sample set: this pair gives no focal
+                return None
 
         for rel in progress((pool.map if pool else map)(one, best), desc="pair focals", total=len(best)):
-            if rel.success and rel.focal_well_determined:
+            if rel is not None and rel.success and rel.focal_well_determined:
                 focals.append(float(rel.focal_px))
         self.focal_determined = bool(focals)
         if focals:
