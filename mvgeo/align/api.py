@@ -19,6 +19,7 @@ from mvgeo.align.graph import PairGraphSpec, components, make_pairs
 from mvgeo.align.intrinsics import undistort_image
 from mvgeo.align.pairs import PairFailure, PointmapModel
 from mvgeo.align.scene import covisibility_keep, voxel_downsample_by_confidence
+from mvgeo.align.threads import native_threads
 from mvgeo.camera import Camera
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.deps import cv2
@@ -65,12 +66,17 @@ class AlignConfig:
         max_focal_log_std: without known intrinsics and without any pair that
             determines the focal, the bundle adjustment must: its log-focal
             standard deviation above this fails the alignment.
+        native_threads: OpenBLAS and OpenCV threads while aligning (restored
+            afterwards; 0 keeps the settings). 1: the pairwise stage is already
+            parallel over pairs (`pairwise.workers`), and the bundle adjustment's many
+            small BLAS calls were 2-6x slower with one BLAS thread per core on 2
+            shared cores (`mvgeo.align.threads`).
     """
 
     max_size_px: int = 512
     pairs: PairGraphSpec = field(default_factory=PairGraphSpec)
     pairwise: ClassicalPairConfig = field(default_factory=ClassicalPairConfig)
-    align: GlobalAlignConfig = field(default_factory=lambda: GlobalAlignConfig(iters=100, pixel_stride=4))
+    align: GlobalAlignConfig = field(default_factory=lambda: GlobalAlignConfig(iters=50, pixel_stride=4))
     min_conf: float = 2.0
     consistency_px: float = 2.0
     min_pair_explained: float = 0.5
@@ -81,6 +87,7 @@ class AlignConfig:
     bundle_adjust: bool = True
     bundle: BundleConfig = field(default_factory=BundleConfig)
     seed: int = 0
+    native_threads: int = 1
 
 
 #: A faster preset for tests and previews (fewer iterations, smaller pointmaps, at most 20k points).
@@ -158,6 +165,11 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
             pair graph (names the images that could not be connected).
         DegenerateGeometryError: the alignment failed numerically.
     """
+    with native_threads(config.native_threads):
+        return _align_images(images, config, names=names, intrinsics=intrinsics, model=model)
+
+
+def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> AlignResult:
     timer = StageTimer()
     with timer.stage("load"):
         arrays, names = _load(images, names)
@@ -275,6 +287,7 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         "shared_focal": align_cfg.shared_focal,
         "bundle_adjustment": ba_stats,
         "focal_determined_by_pairs": bool(getattr(model, "focal_determined", True)),
+        "sift_fallback_used": bool(getattr(model, "sift_fallback_used", False)),
         "pairs_dropped_as_inconsistent": [[names[i], names[j]] for i, j in dropped],
         "pair_consistency_min": min((c.explained_fraction for c in checks), default=float("nan")),
         "pairs_inconsistent": [[names[c.i], names[c.j], round(c.explained_fraction, 3)] for c in bad],
