@@ -206,20 +206,9 @@ def _subset(names: Sequence[str], n: int) -> list[str]:
 
 def _inputs_folder(dataset: DatasetFolder, folder: Path, names: Sequence[str]) -> Path:
     """`folder` holding hard links to the noisy training images `names` (rebuilt if different)."""
-    if folder.is_dir() and sorted(p.stem for p in folder.iterdir()) == sorted(names):
-        return folder
-    tmp = folder.with_name(folder.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    for n in names:
-        src = dataset.images[n]
-        try:
-            os.link(src, tmp / src.name)
-        except OSError:
-            shutil.copy2(src, tmp / src.name)
-    shutil.rmtree(folder, ignore_errors=True)
-    os.replace(tmp, folder)
-    return folder
+    from eval.evaluate import copy_train_inputs
+
+    return copy_train_inputs(dataset, folder, names)
 
 
 def run_cost_sweep(dataset: DatasetFolder, out: Path, config: CostConfig, *,

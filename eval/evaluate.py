@@ -182,14 +182,16 @@ def _stem_poses(model: SparseModel) -> dict[str, np.ndarray]:
     return {Path(n).stem: model.image(n).cam_from_world for n in model.names}
 
 
-def copy_train_inputs(dataset: DatasetFolder, folder: Path) -> Path:
-    """`folder` holding (hard links to) the dataset's noisy training images; where `evaluate_dataset` runs."""
-    if folder.is_dir() and sorted(p.stem for p in folder.iterdir()) == sorted(dataset.train):
+def copy_train_inputs(dataset: DatasetFolder, folder: Path, names: Sequence[str] | None = None) -> Path:
+    """`folder` holding (hard links to) the dataset's noisy training images `names` (default: all of
+    `dataset.train`), rebuilt atomically when it holds a different set; where `evaluate_dataset` runs."""
+    names = list(dataset.train if names is None else names)
+    if folder.is_dir() and sorted(p.stem for p in folder.iterdir()) == sorted(names):
         return folder
     tmp = folder.with_name(folder.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    for name in dataset.train:
+    for name in names:
         src = dataset.images[name]
         try:
             os.link(src, tmp / src.name)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -25,12 +25,17 @@ class PoseFitConfig:
         lr: initial learning rate (radians / scene units per step scale).
         lr_final: learning rate at the last step (exponential decay).
         ssim_weight: weight of (1 - SSIM) in the loss.
+        torch_threads: torch's intra-op threads while fitting (restored afterwards; the C++
+            compositor keeps the caller's thread count), None = leave as is. 1 by default, as in
+            `splat.train.TrainConfig` (small torch ops with 2 spinning threads were ~20x slower on a
+            loaded 2-core machine; docs/benchmarks.md, splat section).
     """
 
     iters: int = 200
     lr: float = 2e-3
     lr_final: float = 1e-5
     ssim_weight: float = 0.2
+    torch_threads: int | None = 1
 
 
 def fit_pose(model: GaussianModel, image: np.ndarray, camera: Camera, cam_from_world_init: np.ndarray, *,
@@ -51,6 +56,19 @@ def fit_pose(model: GaussianModel, image: np.ndarray, camera: Camera, cam_from_w
         (3, 4) float64 refined `cam_from_world = exp(delta) @ cam_from_world_init`.
     """
     cfg = config or PoseFitConfig()
+    raster = raster or RasterConfig()
+    if raster.num_threads is None:
+        raster = replace(raster, num_threads=torch.get_num_threads())
+    saved_threads = torch.get_num_threads()
+    if cfg.torch_threads is not None:
+        torch.set_num_threads(max(1, cfg.torch_threads))
+    try:
+        return _fit_pose(model, image, camera, cam_from_world_init, iters, cfg, background, raster)
+    finally:
+        torch.set_num_threads(saved_threads)
+
+
+def _fit_pose(model, image, camera, cam_from_world_init, iters, cfg: PoseFitConfig, background, raster):
     n_iters = cfg.iters if iters is None else int(iters)
     img = np.asarray(image, dtype=np.float32)
     if img.shape != (camera.height, camera.width, 3):
