@@ -76,7 +76,7 @@ class AlignConfig:
     max_size_px: int = 512
     pairs: PairGraphSpec = field(default_factory=PairGraphSpec)
     pairwise: ClassicalPairConfig = field(default_factory=ClassicalPairConfig)
-    align: GlobalAlignConfig = field(default_factory=lambda: GlobalAlignConfig(iters=50, pixel_stride=4))
+    align: GlobalAlignConfig = field(default_factory=lambda: GlobalAlignConfig(iters=100, pixel_stride=4))
     min_conf: float = 2.0
     consistency_px: float = 2.0
     min_pair_explained: float = 0.5
