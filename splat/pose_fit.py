@@ -9,6 +9,7 @@ import torch
 
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
+from mvgeo.common.threads import torch_threads
 from mvgeo.transforms_torch import se3_exp
 from splat.cameras_torch import as_cam_from_world, homogeneous, pinhole_K
 from splat.gaussian_model import GaussianModel
@@ -59,13 +60,8 @@ def fit_pose(model: GaussianModel, image: np.ndarray, camera: Camera, cam_from_w
     raster = raster or RasterConfig()
     if raster.num_threads is None:
         raster = replace(raster, num_threads=torch.get_num_threads())
-    saved_threads = torch.get_num_threads()
-    if cfg.torch_threads is not None:
-        torch.set_num_threads(max(1, cfg.torch_threads))
-    try:
+    with torch_threads(cfg.torch_threads):
         return _fit_pose(model, image, camera, cam_from_world_init, iters, cfg, background, raster)
-    finally:
-        torch.set_num_threads(saved_threads)
 
 
 def _fit_pose(model, image, camera, cam_from_world_init, iters, cfg: PoseFitConfig, background, raster):

@@ -23,6 +23,7 @@ import torch
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.common.progress import progress_bar
+from mvgeo.common.threads import torch_threads
 from mvgeo.common.timing import StageTimer
 from mvgeo.transforms_torch import se3_exp
 from splat.cameras_torch import as_cam_from_world, homogeneous, pinhole_K
@@ -182,18 +183,15 @@ def train_gaussians(images: list[np.ndarray], cameras: list[Camera], cam_from_wo
     cfg = config or TrainConfig()
     if cfg.raster.num_threads is None:
         cfg = replace(cfg, raster=replace(cfg.raster, num_threads=torch.get_num_threads()))
-    saved_threads = torch.get_num_threads()
-    if cfg.torch_threads is not None:
-        torch.set_num_threads(max(1, cfg.torch_threads))
     # Objects alive before training (modules, tensors of the caller) are moved out of the cyclic
     # collector's reach while training: its full passes over them took ~5% of each step (perf).
     freeze = gc.get_freeze_count() == 0
     if freeze:
         gc.freeze()
     try:
-        return _train(images, cameras, cam_from_world, init_points_xyz, init_points_rgb, cfg, device, on_step)
+        with torch_threads(cfg.torch_threads):
+            return _train(images, cameras, cam_from_world, init_points_xyz, init_points_rgb, cfg, device, on_step)
     finally:
-        torch.set_num_threads(saved_threads)
         if freeze:
             gc.unfreeze()
 

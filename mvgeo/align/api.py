@@ -19,12 +19,12 @@ from mvgeo.align.graph import PairGraphSpec, components, make_pairs
 from mvgeo.align.intrinsics import undistort_image
 from mvgeo.align.pairs import PairFailure, PointmapModel
 from mvgeo.align.scene import covisibility_keep, voxel_downsample_by_confidence
-from mvgeo.align.threads import native_threads
 from mvgeo.camera import Camera
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.imageio import read_image
+from mvgeo.common.threads import native_threads
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
 
@@ -70,7 +70,7 @@ class AlignConfig:
             afterwards; 0 keeps the settings). 1: the pairwise stage is already
             parallel over pairs (`pairwise.workers`), and the bundle adjustment's many
             small BLAS calls were 2-6x slower with one BLAS thread per core on 2
-            shared cores (`mvgeo.align.threads`).
+            shared cores (`mvgeo.common.threads`).
     """
 
     max_size_px: int = 512

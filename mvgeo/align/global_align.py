@@ -40,6 +40,7 @@ from mvgeo.align.pairs import PairPrediction
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.progress import progress_bar
+from mvgeo.common.threads import torch_threads
 from mvgeo.transforms import quat_from_R, umeyama
 from mvgeo.transforms_torch import R_from_quat
 
@@ -443,13 +444,8 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
     grid = _Grid(T(du), T(dv), torch.as_tensor(fpix, dtype=torch.long, device=dev),
                  [0] + [int(x) for x in view_end])
 
-    old_threads = torch.get_num_threads()
-    if config.torch_threads > 0:
-        torch.set_num_threads(config.torch_threads)
-    try:
+    with torch_threads(config.torch_threads if config.torch_threads > 0 else None):
         history = _optimise(params, terms, grid, config)
-    finally:
-        torch.set_num_threads(old_threads)
     _log.info("global alignment: loss %.5g -> %.5g over %d iterations", history[0], history[-1], config.iters)
     with torch.no_grad():
         delta = np.zeros(n_full)

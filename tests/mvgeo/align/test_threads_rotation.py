@@ -3,8 +3,8 @@
 import numpy as np
 
 from mvgeo.align.classical_pairs import _flow_rotated_180, dense_flow
-from mvgeo.align.threads import blas_thread_counts, native_threads
 from mvgeo.common.deps import cv2
+from mvgeo.common.threads import blas_thread_counts, native_threads
 
 
 def test_native_threads_limits_and_restores():
