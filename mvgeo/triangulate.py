@@ -157,6 +157,88 @@ def _finalise(points, finite, centres, rays_world, criteria, cam_R, cam_t):
     )
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (N, 3) arrays (np.cross's products, without its axis handling)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
+def _rownorm(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm of each row of (N, 3) (same summation order as np.linalg.norm(axis=-1))."""
+    return np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
+
+
+def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def _angle_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """`_angle_between` for (N, 3) rows."""
+    return np.arctan2(_rownorm(_cross(a, b)), _rowdot(a, b))
+
+
+def _finalise_two_view(points, finite, c2, r1, r2w, criteria, R, t) -> Triangulation:
+    """`_finalise` for two cameras (camera 1 at the origin), without the V-generic einsums.
+
+    The hot path of `triangulate_two_view` (RANSAC cheirality and the dense pointmaps call it
+    hundreds of times on 10^3-10^4 rays). ``r2w``: camera 2's rays in camera 1's frame.
+    `_finalise` is the reference it is tested against.
+    """
+    baseline = max(float(np.linalg.norm(c2)), 1e-300)
+    max_range = criteria.max_range * baseline
+    finite = finite & np.isfinite(points).all(axis=-1)
+    if not finite.all():
+        n1 = _rownorm(r1)[:, None]
+        points = np.where(finite[:, None], points, max_range * (r1 / np.where(n1 > 0, n1, 1.0)))
+    rng = _rownorm(points)
+    far = rng > max_range
+    if far.any():
+        n = rng[:, None]
+        points = np.where(far[:, None], max_range * (points / np.where(n > 0, n, 1.0)), points)
+        rng = np.minimum(rng, max_range)
+    obs1 = (r1 != 0).any(axis=-1)
+    obs2 = (r2w != 0).any(axis=-1)
+    depth2 = points @ R[2] + t[2]
+    in_front = ((points[:, 2] > 0) | ~obs1) & ((depth2 > 0) | ~obs2)
+    to2 = points - c2
+    err1 = np.where(obs1, _angle_rows(points, r1), 0.0)
+    err2 = np.where(obs2, _angle_rows(to2, r2w), 0.0)
+    ang_err_deg = np.degrees(np.maximum(err1, err2))
+    angle_deg = np.degrees(np.where(obs1 & obs2, np.maximum(0.0, _angle_rows(points, to2)), 0.0))
+    valid = (finite & ~far & in_front & (angle_deg >= criteria.min_angle_deg)
+             & (ang_err_deg <= criteria.max_angular_error_deg))
+    return Triangulation(points=points, valid=valid, in_front=in_front, angle_deg=angle_deg, range=rng,
+                         angular_error_deg=ang_err_deg, finite=finite)
+
+
+def _mid2_or_midpoint(f1, f2, c2, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) and finite mask from unit rays f1 (camera 1) and f2 (camera 2, in camera 1's frame)."""
+    cross = _cross(f1, f2)
+    s2 = _rowdot(cross, cross)  # sin^2 of the angle between rays
+    # Rays closer to parallel than ~1e-15 rad have no usable intersection in float64.
+    finite = s2 > 1e-30
+    s2_safe = np.where(finite, s2, 1.0)
+    d = _rowdot(f1, f2)
+    b1 = f1 @ c2
+    b2 = f2 @ c2
+    if method == "midpoint":
+        # Closest points l1 f1 and c2 + l2 f2: the 2x2 normal equations in closed form.
+        l1 = (b1 - d * b2) / s2_safe
+        l2 = (d * b1 - b2) / s2_safe
+    else:
+        s = np.sqrt(s2_safe)
+        # mid2's sine-rule depths are unsigned: divergent rays must be caught by cheirality.
+        # Sign them by the midpoint solution so that rays meeting behind a camera stay behind.
+        l1 = _rownorm(_cross(f2, c2[None])) / s * np.sign(np.where(finite, (b1 - d * b2), 1.0))
+        l2 = _rownorm(_cross(f1, c2[None])) / s * np.sign(np.where(finite, (d * b1 - b2), 1.0))
+    return 0.5 * (l1[:, None] * f1 + c2 + l2[:, None] * f2), finite
+
+
 def triangulate_two_view(
     rays1,
     rays2,
@@ -181,6 +263,29 @@ def triangulate_two_view(
         DegenerateGeometryError: zero baseline (the cameras coincide); no
             point can be triangulated at all.
     """
+    r1 = _check_rays(rays1, "rays1")
+    r2 = _check_rays(rays2, "rays2")
+    if r2.shape != r1.shape:
+        raise ShapeError(f"rays2: expected shape {r1.shape}, got {r2.shape}")
+    R, t = Rt_from_matrix(cam2_from_cam1)
+    c2 = -R.T @ t  # camera 2 centre in camera 1's frame
+    if not np.linalg.norm(c2) > 0:
+        raise DegenerateGeometryError("triangulate_two_view: zero baseline (the camera centres coincide)")
+    r2w = r2 @ R  # R^T r2: camera-2 rays in camera 1's frame
+    if method in ("mid2", "midpoint"):
+        points, finite = _mid2_or_midpoint(_unit(r1), _unit(r2w), c2, method)
+    elif method == "dlt":
+        P1 = np.hstack([np.eye(3), np.zeros((3, 1))])
+        P2 = np.hstack([R, t[:, None]])
+        points, finite = _dlt(np.stack([r1, r2]), np.stack([P1, P2]), np.ones((2, r1.shape[0]), bool))
+    else:
+        raise ShapeError(f"method: expected 'mid2', 'midpoint' or 'dlt', got {method!r}")
+    return _finalise_two_view(points, finite, c2, r1, r2w, criteria, R, t)
+
+
+def _triangulate_two_view_reference(rays1, rays2, cam2_from_cam1, *, method: Method = "mid2",
+                                    criteria: TriangulationCriteria = DEFAULT_CRITERIA) -> Triangulation:
+    """Slow, obvious `triangulate_two_view` (np.cross and the V-generic `_finalise`): the tests' reference."""
     r1 = _check_rays(rays1, "rays1")
     r2 = _check_rays(rays2, "rays2")
     if r2.shape != r1.shape:
