@@ -27,6 +27,16 @@ def test_blas_matching_equals_loop_reference(rng):
         ref = match_features_reference(a, b, ratio=ratio)
         np.testing.assert_array_equal(fast, ref)
     assert 150 < len(match_features(a, b, ratio=0.8)) <= 200
+    # Row blocks of any size (incl. one row, and blocks that do not divide the rows) give the same matches.
+    for block in (1, 7, 64, 1000):
+        np.testing.assert_array_equal(match_features(a, b, ratio=0.8, block_rows=block),
+                                      match_features_reference(a, b, ratio=0.8))
+    # Exact ties: two identical rows in a both best match one column; the column's ratio test must
+    # reject both (as the loop does), not match that column twice.
+    a_tie = ImageFeatures(np.zeros((301, 2)), np.concatenate([base, base[:1]]))
+    fast = match_features(a_tie, b, ratio=0.95, block_rows=7)
+    np.testing.assert_array_equal(fast, match_features_reference(a_tie, b, ratio=0.95))
+    assert 0 not in fast[:, 0] and 300 not in fast[:, 0] and 0 in match_features(a, b, ratio=0.95)[:, 0]
     assert len(match_features(a, ImageFeatures(np.zeros((1, 2)), b_desc[:1]), ratio=0.8)) == 0
 
 
