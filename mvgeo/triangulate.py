@@ -239,6 +239,31 @@ def _mid2_or_midpoint(f1, f2, c2, method: str) -> tuple[np.ndarray, np.ndarray]:
     return 0.5 * (l1[:, None] * f1 + c2 + l2[:, None] * f2), finite
 
 
+def _two_view_in_front_pm(r1, r2, R, t, max_range: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cheirality masks (`finite & in_front` of `triangulate_two_view`, mid2) for ``[R | t]`` and ``[R | -t]``.
+
+    Flipping t negates c2, the signed mid2 depths and so every point and both camera depths exactly
+    (IEEE negation commutes with rounding), so one triangulation decides both candidates; no angles
+    are computed. The cheap part of choosing among an essential matrix's four decompositions.
+    """
+    c2 = -R.T @ t
+    r2w = r2 @ R
+    points, finite = _mid2_or_midpoint(_unit(r1), _unit(r2w), c2, "mid2")
+    finite = finite & np.isfinite(points).all(axis=-1)
+    points = np.where(finite[:, None], points, 0.0)
+    rng = _rownorm(points)
+    limit = max_range * max(float(np.linalg.norm(c2)), 1e-300)
+    far = rng > limit
+    if far.any():
+        n = rng[:, None]
+        points = np.where(far[:, None], limit * (points / np.where(n > 0, n, 1.0)), points)
+    d1, d2 = points[:, 2], points @ R[2] + t[2]
+    un1, un2 = ~(r1 != 0).any(axis=-1), ~(r2w != 0).any(axis=-1)
+    plus = finite & ((d1 > 0) | un1) & ((d2 > 0) | un2)
+    minus = finite & ((d1 < 0) | un1) & ((d2 < 0) | un2)
+    return plus, minus
+
+
 def triangulate_two_view(
     rays1,
     rays2,

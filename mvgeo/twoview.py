@@ -57,7 +57,7 @@ from mvgeo.epipolar import (
 )
 from mvgeo.ransac import RansacConfig, ransac
 from mvgeo.transforms import so3_exp
-from mvgeo.triangulate import TriangulationCriteria, triangulate_two_view
+from mvgeo.triangulate import TriangulationCriteria, _two_view_in_front_pm, triangulate_two_view
 
 __all__ = [
     "TwoViewConfig",
@@ -201,6 +201,23 @@ def pose_from_essential(E, x1, x2) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     Returns:
         ``R (3, 3)``, ``t (3,)`` unit, ``in_front (N,)`` bool, ``angle_deg (N,)``.
     """
+    Rs, ts = decompose_essential(E)
+    r1 = np.c_[x1, np.ones(len(x1))]
+    r2 = np.c_[x2, np.ones(len(x2))]
+    # Candidates (R1, t), (R1, -t), (R2, t), (R2, -t): one triangulation per rotation decides both signs
+    # of t; the winner (first with the most points in front) is triangulated in full for its angles.
+    # `_pose_from_essential_reference` (four full triangulations) is the tests' reference.
+    fronts = []
+    for k in (0, 2):
+        fronts.extend(_two_view_in_front_pm(r1, r2, Rs[k], ts[k], _CHEIRALITY.max_range))
+    counts = [int(f.sum()) for f in fronts]
+    k = counts.index(max(counts))
+    tri = triangulate_two_view(r1, r2, np.c_[Rs[k], ts[k]], method="mid2", criteria=_CHEIRALITY)
+    return Rs[k], ts[k], tri.in_front & tri.finite, tri.angle_deg
+
+
+def _pose_from_essential_reference(E, x1, x2):
+    """Slow, obvious `pose_from_essential`: a full triangulation of each of the four candidates."""
     Rs, ts = decompose_essential(E)
     r1 = np.c_[x1, np.ones(len(x1))]
     r2 = np.c_[x2, np.ones(len(x2))]

@@ -98,3 +98,27 @@ def test_focal_from_exact_fundamental(rng):
         est = tv.focal_from_fundamental(F, (W, H))
         # Exact F: the singular-value gap vanishes only at f (bounded Brent to 1e-10 in log f).
         assert abs(est.focal_px / f - 1) < 1e-6 and est.cost < 1e-8 and not est.at_bound
+
+
+def test_pose_from_essential_equals_four_full_triangulations(rng):
+    """The +-t shortcut picks the same candidate, mask and angles as triangulating all four."""
+    from mvgeo.epipolar import essential_from_pose
+    from mvgeo.transforms import so3_exp
+
+    for trial in range(20):
+        R = so3_exp(rng.normal(scale=0.3, size=3))
+        t = rng.normal(size=3)
+        t /= np.linalg.norm(t)
+        X = rng.normal(size=(300, 3)) + [0, 0, 4 + 4 * rng.random()]
+        X2 = X @ R.T + t
+        x1 = X[:, :2] / X[:, 2:]
+        x2 = X2[:, :2] / X2[:, 2:] + rng.normal(scale=1e-3 * (trial % 3), size=(300, 2))
+        x2[:30] = rng.normal(size=(30, 2))  # outliers, some triangulating behind
+        E = essential_from_pose(R, t)
+        if trial % 4 == 3:
+            E = -E  # same candidates, other SVD signs
+        got = tv.pose_from_essential(E, x1, x2)
+        ref = tv._pose_from_essential_reference(E, x1, x2)
+        for a, b in zip(got, ref, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert rotation_error_deg(got[0], R) < 1.0
