@@ -32,6 +32,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="sparse bundle adjustment on the feature tracks after the alignment (default: on)")
     a.add_argument("--points", type=int, default=200_000, help="point budget of points.ply")
     a.add_argument("--intrinsics", type=Path, help="COLMAP cameras.txt or mrcal .cameramodel of these images")
+    a.add_argument("--allow-partial", action="store_true",
+                   help="if some images cannot be connected, register the largest connected group and list "
+                        "the others in align.json 'unregistered' (default: fail naming them)")
     add_common_args(a)
 
     c = sub.add_parser("colmap", help="pycolmap SfM (CPU SIFT, exhaustive matching) into the same layout")
@@ -70,11 +73,15 @@ def _align(args: argparse.Namespace) -> int:
                       pairwise=ClassicalPairConfig(pointmap_size_px=args.pointmap_size),
                       align=GlobalAlignConfig(iters=args.iters, shared_focal=args.shared_focal,
                                               pixel_stride=args.align_stride),
-                      points_budget=args.points, bundle_adjust=args.ba)
+                      points_budget=args.points, bundle_adjust=args.ba, allow_partial=args.allow_partial)
     result = align_images(paths, cfg, intrinsics=intr)
     write_align_result(args.out, result)
     s = result.stats
-    print(f"aligned {s['n_images']} images ({s['n_pairs_ok']}/{s['n_pairs']} pairs), {s['n_points']} points, "
+    if s["unregistered"]:
+        print(f"warning: {len(s['unregistered'])} images not registered: "
+              f"{[u['name'] for u in s['unregistered']]}", file=sys.stderr)
+    print(f"aligned {s['n_registered']}/{s['n_images']} images ({s['n_pairs_ok']}/{s['n_pairs']} pairs), "
+          f"{s['n_points']} points, "
           f"loss {s['init_loss']:.4g} -> {s['final_loss']:.4g}, {s['timings_s']['total']:.1f} s -> {args.out}")
     return 0
 

@@ -14,9 +14,10 @@ import numpy as np
 from mvgeo.align.bundle import BundleConfig, bundle_adjust
 from mvgeo.align.checks import pair_consistency
 from mvgeo.align.classical_pairs import ClassicalPairConfig, ClassicalPointmapModel, pointmap_shape
-from mvgeo.align.global_align import GlobalAlignConfig, global_align, pixel_rays
+from mvgeo.align.global_align import GlobalAlignConfig, focal_estimates, global_align, pixel_rays
 from mvgeo.align.graph import PairGraphSpec, components, make_pairs
 from mvgeo.align.intrinsics import undistort_image
+from mvgeo.align.loops import DEFAULT_MAX_LOOP_DEG, pair_rotations, reject_by_loops
 from mvgeo.align.pairs import PairFailure, PointmapModel
 from mvgeo.align.scene import covisibility_keep, voxel_downsample_by_confidence
 from mvgeo.camera import Camera
@@ -66,6 +67,16 @@ class AlignConfig:
         max_focal_log_std: without known intrinsics and without any pair that
             determines the focal, the bundle adjustment must: its log-focal
             standard deviation above this fails the alignment.
+        loop_check: reject verified pairs whose relative rotation contradicts
+            most of the loops of three pairs they take part in
+            (`mvgeo.align.loops`; false pairs from repeated structure), before
+            the alignment; reported in align.json `pairs_rejected_by_loops`.
+        max_loop_deg: a loop of three pairs is consistent below this rotation error.
+        allow_partial: when the pair graph (after the loop check) is
+            disconnected, register only the largest connected group of images
+            (at least 2) and list the others in align.json `unregistered`,
+            instead of failing (the default, as the images that could not be
+            connected are then named in the error).
         native_threads: OpenBLAS and OpenCV threads while aligning (restored
             afterwards; 0 keeps the settings). 1: the pairwise stage is already
             parallel over pairs (`pairwise.workers`), and the bundle adjustment's many
@@ -87,6 +98,9 @@ class AlignConfig:
     bundle_adjust: bool = True
     bundle: BundleConfig = field(default_factory=BundleConfig)
     seed: int = 0
+    loop_check: bool = True
+    max_loop_deg: float = DEFAULT_MAX_LOOP_DEG
+    allow_partial: bool = False
     native_threads: int = 1
 
 
@@ -173,6 +187,7 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
     timer = StageTimer()
     with timer.stage("load"):
         arrays, names = _load(images, names)
+        all_names = list(names)
         H0, W0 = arrays[0].shape[:2]
         if intrinsics is not None:
             if (intrinsics.width, intrinsics.height) != (W0, H0):
@@ -194,8 +209,35 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
     pairs = make_pairs(n, config.pairs)
     with timer.stage("pairwise"):
         preds, fails = model.predict_pairs(small, pairs)
-    _check_connected(n, names, preds, fails)
     Hp, Wp = pointmap_shape(Ha, Wa, model.pointmap_size_px)
+    s_pm = Wa / Wp
+    # Every verified pair's matches when the model has them (the classical one computes dense
+    # pointmaps for a subset of the pairs only), else those of the predictions.
+    matches = getattr(model, "sparse_matches", None) or [(p.i, p.j, p.matches_px) for p in preds
+                                                         if p.matches_px is not None]
+    failed_pairs = [{"i": names[f.i], "j": names[f.j], "reason": f.reason} for f in fails]
+    rejected = []
+    if config.loop_check and preds:
+        with timer.stage("loop_check"):
+            preds, matches, rejected = _loop_check(preds, matches, K_align, s_pm, n, config)
+        failed_pairs += [{"i": names[i], "j": names[j], "reason": (
+            f"rejected: its relative rotation contradicts {bad} of the {bad + good} loops of three pairs it is in")}
+            for (i, j), bad, good in rejected]
+        fails = fails + [PairFailure(i, j, "rejected by the loop check") for (i, j), _, _ in rejected]
+    unregistered = []
+    keep = _connected_views(n, names, preds, fails, allow_partial=config.allow_partial)
+    if len(keep) < n:
+        unregistered = [{"name": names[v], "reason": "not connected to the registered images by any usable pair"}
+                        for v in range(n) if v not in keep]
+        _log.warning("registering %d of %d images (--allow-partial); not connected: %s", len(keep), n,
+                     [u["name"] for u in unregistered])
+        new = {v: k for k, v in enumerate(keep)}
+        arrays, small, names = [arrays[v] for v in keep], [small[v] for v in keep], [names[v] for v in keep]
+        preds = [replace(p, i=new[p.i], j=new[p.j]) for p in preds if p.i in new and p.j in new]
+        matches = [(new[i], new[j], uv) for i, j, uv in matches if i in new and j in new]
+        if K_align is not None:
+            K_align = K_align[keep]
+        n = len(keep)
     sizes = [(Hp, Wp)] * n
     align_cfg = config.align
     focal_init = None
@@ -203,11 +245,6 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         # Known calibration: fx at the pointmap grid (square pixels assumed by the alignment).
         focal_init = np.full(n, 0.5 * (intrinsics.fx * Wp / W0 + intrinsics.fy * Hp / H0))
         align_cfg = replace(align_cfg, optimize_focal=False)
-    # Every verified pair's matches when the model has them (the classical one computes dense
-    # pointmaps for a subset of the pairs only), else those of the predictions.
-    matches = getattr(model, "sparse_matches", None) or [(p.i, p.j, p.matches_px) for p in preds
-                                                         if p.matches_px is not None]
-    s_pm = Wa / Wp
     all_matches = matches
     dropped: list[tuple[int, int]] = []
     for attempt in range(2):
@@ -270,15 +307,20 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         cameras[v + 1] = cam
         posed.append(PosedImage(names[v], v + 1, res.cam_from_world[v]))
     sparse = SparseModel(cameras, posed, xyz, rgb)
+    rejected_names = [(all_names[i], all_names[j], b, g) for (i, j), b, g in rejected]
     stats = {
-        "n_images": n,
+        "n_images": len(all_names),
+        "n_registered": n,
         "input_size_wh": [W0, H0],
         "align_size_wh": [Wa, Ha],
         "pointmap_size_wh": [Wp, Hp],
         "n_pairs": len(pairs),
         "n_pairs_ok": len(preds),
         "n_pairs_sparse": len(getattr(model, "sparse_matches", None) or []),
-        "failed_pairs": [{"i": names[f.i], "j": names[f.j], "reason": f.reason} for f in fails],
+        "failed_pairs": failed_pairs,
+        "pairs_rejected_by_loops": [{"i": u, "j": v, "inconsistent_loops": b, "consistent_loops": g}
+                                    for u, v, b, g in rejected_names],
+        "unregistered": unregistered,
         "iterations": align_cfg.iters,
         "init_loss": res.init_loss,
         "final_loss": res.final_loss,
@@ -330,18 +372,43 @@ def _check_consistency(checks, bad, names, config: AlignConfig, *, focal_determi
             "orbits are a critical configuration). Pass the calibration with --intrinsics")
 
 
-def _check_connected(n: int, names: list[str], preds, fails: list[PairFailure]) -> None:
+def _loop_check(preds, matches, K_align, s_pm: float, n: int, config: AlignConfig):
+    """Drop the pairs `reject_by_loops` finds; returns (preds, matches, [((i, j), n_bad, n_good)])."""
+    if K_align is None:  # the pairs' focal estimates, pointmap pixels -> alignment pixels
+        H2, W2 = preds[0].pts_i.shape[:2]
+        f = focal_estimates(preds, n) * s_pm
+        c = np.array([W2 * s_pm / 2.0, H2 * s_pm / 2.0])
+        K_align = np.array([[[fv, 0, c[0]], [0, fv, c[1]], [0, 0, 1]] for fv in f])
+    rel, weight = pair_rotations(matches, K_align, preds)
+    loop = reject_by_loops(rel, weight, max_loop_deg=config.max_loop_deg)
+    if not loop.removed:
+        return preds, matches, []
+    gone = set(loop.removed)
+    _log.warning("loop check: %d of %d loops of three pairs are inconsistent; rejected pairs %s",
+                 loop.n_inconsistent, loop.n_triangles, sorted(gone))
+    key = lambda i, j: (min(i, j), max(i, j))  # noqa: E731
+    preds = [p for p in preds if key(p.i, p.j) not in gone]
+    matches = [m for m in matches if key(m[0], m[1]) not in gone]
+    return preds, matches, [(e, b, g) for e, (b, g) in zip(loop.removed, loop.votes, strict=True)]
+
+
+def _connected_views(n: int, names: list[str], preds, fails: list[PairFailure], *, allow_partial: bool) -> list[int]:
+    """The views to register: all (connected graph), the largest group (`allow_partial`), or an InputError."""
     comps = components(n, [(p.i, p.j) for p in preds])
     if len(comps) == 1:
-        return
+        return comps[0]
     main = comps[0]
+    if allow_partial and len(main) >= 2:
+        return main
     lost = [names[v] for c in comps[1:] for v in c]
     reasons = "; ".join(f"({names[f.i]}, {names[f.j]}): {f.reason}" for f in fails
                         if (f.i in main) != (f.j in main))[:2000]
     raise InputError(
         f"the pair graph is disconnected: images {lost} could not be related to {[names[v] for v in main]}"
         + (f". Failed pairs: {reasons}" if reasons else ""),
-        fix="add views that overlap the disconnected ones, or remove them; try --pairs complete")
+        fix="add views that overlap the disconnected ones, or remove them; try --pairs complete; "
+            + ("no two images could be related at all" if len(main) < 2 else
+               "or pass --allow-partial to register only the largest connected group"))
 
 
 def _jsonable(x):
