@@ -255,10 +255,11 @@ def _refine(u1, u2, K1_fn, K2_fn, R0, t0, log_f0: float | None, noise_floor_px: 
         K1, K2 = K1_fn(lf), K2_fn(lf)
         return np.linalg.inv(K2).T @ essential_from_pose(R, t) @ np.linalg.inv(K1)
 
+    h1 = np.c_[u1, np.ones(len(u1))]  # built once: resid runs ~30x per pair (numerical Jacobian)
+    h2 = np.c_[u2, np.ones(len(u2))]
+
     def resid(p):
         F = F_of(p)
-        h1 = np.c_[u1, np.ones(len(u1))]
-        h2 = np.c_[u2, np.ones(len(u2))]
         Fx1 = h1 @ F.T
         Ftx2 = h2 @ F
         num = np.sum(h2 * Fx1, axis=1)

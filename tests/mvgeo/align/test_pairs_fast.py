@@ -69,3 +69,42 @@ def test_pair_consistency_exact_and_wrong_geometry(rng):
     wrong[2, :, :3] = so3_exp(np.array([0.0, 0.0, 0.3])) @ wrong[2, :, :3]  # view 2 rolled by 17 deg
     bad = {(c.i, c.j): c.explained_fraction for c in pair_consistency(wrong, np.full(3, f), (W, H), matches)}
     assert bad[(0, 1)] == 1.0 and bad[(0, 2)] < 0.5 and bad[(1, 2)] < 0.5
+
+
+def test_pointmap_triangulates_only_checked_pixels_same_result(rng):
+    """`_pointmap` (triangulates the pixels that pass the flow/epipolar checks) vs triangulating all."""
+    from mvgeo.align.classical_pairs import ClassicalPointmapModel
+    from mvgeo.transforms import skew
+
+    from .synthetic import look_at, render_depth
+
+    H, W, f = 48, 64, 60.0
+    Ta = look_at(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 4.0]))
+    Tb = look_at(np.array([0.6, 0.1, 0.0]), np.array([0.0, 0.0, 4.0]))
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    Tba = np.c_[Tb[:, :3] @ Ta[:, :3].T, Tb[:, 3] - Tb[:, :3] @ Ta[:, :3].T @ Ta[:, 3]]
+
+    def flow(Tsrc, Tdst):
+        d = render_depth(Tsrc, H, W, f)
+        v, u = np.mgrid[0:H, 0:W] + 0.5
+        X = np.stack([(u - W / 2) / f * d, (v - H / 2) / f * d, d], -1) @ Tsrc[:, :3]  # R^T x
+        X = X - Tsrc[:, :3].T @ Tsrc[:, 3]
+        Y = X @ Tdst[:, :3].T + Tdst[:, 3]
+        uv = Y[..., :2] / Y[..., 2:] * f + [W / 2, H / 2]
+        return (uv - np.stack([u, v], -1)).astype(np.float32)
+
+    fab, fba = flow(Ta, Tb), flow(Tb, Ta)
+    fab += rng.normal(scale=0.4, size=fab.shape).astype(np.float32)  # some pixels fail the checks
+    R, t = Tba[:, :3], Tba[:, 3]
+    F = np.linalg.inv(K).T @ skew(t) @ R @ np.linalg.inv(K)
+    model = ClassicalPointmapModel()
+    pts, conf = model._pointmap(fab, fba, K, K, F, Tba)
+    pts_ref, conf_ref = model._pointmap_reference(fab, fba, K, K, F, Tba)
+    assert 0.2 < np.mean(conf > 1) < 0.95  # both kept and rejected pixels are exercised
+    np.testing.assert_array_equal(conf > 1, conf_ref > 1)
+    # Row-wise identical arithmetic; only BLAS's blocking of the (N, 3) products may differ: 1e-12.
+    np.testing.assert_allclose(conf, conf_ref, rtol=1e-12)
+    np.testing.assert_allclose(pts, pts_ref, rtol=1e-12, atol=1e-12)
+    none = model._pointmap(fab + 50.0, fba, K, K, F, Tba)  # every target outside: placeholder rays only
+    np.testing.assert_allclose(none[0], model._pointmap_reference(fab + 50.0, fba, K, K, F, Tba)[0])
+    assert np.all(none[1] == 1)
