@@ -256,8 +256,10 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
                 ba_cfg = replace(config.bundle, shared_focal=config.bundle.shared_focal or align_cfg.shared_focal,
                                  optimize_focal=intrinsics is None)
                 ba = bundle_adjust(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), matches, config=ba_cfg)
-                res = _reposed(res, ba.cam_from_world, ba.focal_px / s_pm)
-                ba_stats = {k: v for k, v in asdict(ba).items() if k not in ("cam_from_world", "focal_px")}
+                res, depth_scales = _reposed(res, ba.cam_from_world, ba.focal_px / s_pm, ba, s_pm)
+                ba_stats = {k: v for k, v in asdict(ba).items()
+                            if k not in ("cam_from_world", "focal_px", "track_xyz", "obs_view", "obs_point", "obs_uv")}
+                ba_stats["dense_depth_rescale"] = depth_scales
         # Without the bundle adjustment the poses come from pointmaps s_pm times coarser than the
         # matches: judge them at that resolution.
         thr = config.consistency_px * (1.0 if ba is not None else max(s_pm, 1.0))
@@ -341,14 +343,70 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
     return AlignResult(sparse, xyz, rgb, conf, stats)
 
 
-def _reposed(res, cam_from_world: np.ndarray, focal_px: np.ndarray):
-    """The alignment result with new poses/focals; dense points re-projected from the depth maps."""
+def _reposed(res, cam_from_world: np.ndarray, focal_px: np.ndarray, ba=None, s_pm: float = 1.0):
+    """The alignment result with new poses/focals; dense points re-projected from the depth maps.
+
+    The bundle adjustment fixes only view 0's pose, so its scene can come out at another scale than the
+    global alignment's (and each view's focal can change): depth maps kept as they were would no longer
+    agree with the new cameras, and the dense cloud would be smeared across views. With `ba`'s tracks,
+    each view's depth map is rescaled by the median ratio of the refined track depths to the map's
+    depths at the same pixels (`s_pm` = alignment pixels per pointmap pixel).
+
+    Returns:
+        (result, per-view depth scales with their robust spread, or None without tracks).
+    """
+    depths = [np.asarray(d, float) for d in res.depth]
+    report = None
+    if ba is not None and ba.track_xyz is not None and len(ba.obs_view):
+        scales, spreads = depth_rescale(depths, cam_from_world, ba.track_xyz, ba.obs_view, ba.obs_point,
+                                        ba.obs_uv / s_pm)
+        depths = [d * k for d, k in zip(depths, scales, strict=True)]
+        report = {"scale": [round(float(k), 4) for k in scales],
+                  "log_mad": [None if np.isnan(m) else round(float(m), 4) for m in spreads]}
     pts = []
-    for v, d in enumerate(res.depth):
+    for v, d in enumerate(depths):
         H, W = d.shape
         R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
         pts.append(((pixel_rays(H, W, float(focal_px[v])) * d[..., None]) - t) @ R)
-    return replace(res, cam_from_world=cam_from_world, focal_px=np.asarray(focal_px, float), pts_world=pts)
+    out = replace(res, cam_from_world=cam_from_world, focal_px=np.asarray(focal_px, float), pts_world=pts,
+                  depth=depths)
+    return out, report
+
+
+def depth_rescale(depths: Sequence[np.ndarray], cam_from_world: np.ndarray, track_xyz: np.ndarray,
+                  obs_view: np.ndarray, obs_point: np.ndarray, obs_uv_px: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-view scale that brings each depth map onto triangulated tracks.
+
+    Args:
+        depths: N (H, W) z-depth maps.
+        cam_from_world: (N, 3, 4) the cameras the tracks were triangulated with.
+        track_xyz: (P, 3) world points; obs_view, obs_point: (K,) observation -> view, point.
+        obs_uv_px: (K, 2) observed pixels in the depth maps' own pixel grid (corner origin).
+
+    Returns:
+        scales (N,): median over the view's observations of track depth / map depth (1 where a view has
+        fewer than 5 usable observations); log_mad (N,): median absolute deviation of the log ratios
+        (how well one scale explains the view; nan where unused).
+    """
+    n = len(depths)
+    scales, spreads = np.ones(n), np.full(n, np.nan)
+    for v in range(n):
+        sel = np.flatnonzero(obs_view == v)
+        if len(sel) == 0:
+            continue
+        H, W = depths[v].shape
+        z_track = track_xyz[obs_point[sel]] @ cam_from_world[v][2, :3] + cam_from_world[v][2, 3]
+        col = np.clip(np.floor(obs_uv_px[sel, 0]).astype(int), 0, W - 1)
+        row = np.clip(np.floor(obs_uv_px[sel, 1]).astype(int), 0, H - 1)
+        z_map = depths[v][row, col]
+        ok = (z_track > 0) & (z_map > 0) & np.isfinite(z_map)
+        if ok.sum() < 5:
+            continue
+        log_ratio = np.log(z_track[ok] / z_map[ok])
+        med = float(np.median(log_ratio))
+        scales[v], spreads[v] = np.exp(med), float(np.median(np.abs(log_ratio - med)))
+    return scales, spreads
 
 
 def _check_consistency(checks, bad, names, config: AlignConfig, *, focal_determined: bool, ba) -> None:

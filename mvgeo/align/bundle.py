@@ -83,6 +83,12 @@ class BundleResult:
     reproj_median_after_px: float
     focal_log_std: float = float("nan")
     solver: str = "lm"
+    #: The refined tracks, for what has to agree with the new poses (e.g. the dense depth maps):
+    #: (P, 3) world points and per observation its view, point index and (u, v) pixel.
+    track_xyz: np.ndarray | None = None
+    obs_view: np.ndarray | None = None
+    obs_point: np.ndarray | None = None
+    obs_uv: np.ndarray | None = None
 
 
 def build_tracks(matches: Sequence[tuple[int, int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -197,10 +203,11 @@ def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tup
             break
         ov, op, ouv = ov[ok], op[ok], ouv[ok]
     e1 = _errors(x, n, nf, P, ov, op, ouv, f_index, logf0, c, config, fixed)
-    rv, t, lf, _ = _unpack(x, n, nf, P, logf0, config, fixed)
+    rv, t, lf, Xw = _unpack(x, n, nf, P, logf0, config, fixed)
     out = np.concatenate([Rotation.from_rotvec(rv).as_matrix(), t[:, :, None]], axis=2)
     res = BundleResult(out, np.exp(lf)[f_index], P, len(ov), float(np.sqrt(np.mean(e0**2))),
-                       float(np.sqrt(np.mean(e1**2))), float(np.median(e0)), float(np.median(e1)), solver="scipy")
+                       float(np.sqrt(np.mean(e1**2))), float(np.median(e0)), float(np.median(e1)), solver="scipy",
+                       track_xyz=np.asarray(Xw).reshape(-1, 3), obs_view=ov, obs_point=op, obs_uv=ouv)
     _log.info("bundle adjustment: %d tracks, %d observations, reprojection RMS %.3g -> %.3g px "
               "(median %.3g -> %.3g)", P, len(ov), res.reproj_rms_before_px, res.reproj_rms_after_px,
               res.reproj_median_before_px, res.reproj_median_after_px)
@@ -231,7 +238,8 @@ def _bundle_lm(cam_from_world, rv0, X0, logf0, f_index, ov, op, ouv, c, e0, conf
     out = np.concatenate([R, t[:, :, None]], axis=2)
     res = BundleResult(out, np.exp(logf)[f_index], len(X), len(pb.ov), float(np.sqrt(np.mean(e0**2))),
                        float(np.sqrt(np.mean(e1**2))), float(np.median(e0)), float(np.median(e1)),
-                       focal_log_std=float(np.max(std)) if len(std) else 0.0, solver="lm")
+                       focal_log_std=float(np.max(std)) if len(std) else 0.0, solver="lm",
+                       track_xyz=X, obs_view=pb.ov, obs_point=pb.op, obs_uv=pb.uv)
     _log.info("bundle adjustment (LM): %d tracks, %d observations, reprojection RMS %.3g -> %.3g px "
               "(median %.3g -> %.3g), focal log-std %.2g", len(X), len(pb.ov), res.reproj_rms_before_px,
               res.reproj_rms_after_px, res.reproj_median_before_px, res.reproj_median_after_px, res.focal_log_std)
