@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from mvgeo.align.bundle import BundleConfig, bundle_adjust
-from mvgeo.align.checks import pair_consistency
+from mvgeo.align.checks import pair_consistency, pair_rotation_deviation
 from mvgeo.align.classical_pairs import ClassicalPairConfig, ClassicalPointmapModel, pointmap_shape
 from mvgeo.align.global_align import GlobalAlignConfig, focal_estimates, global_align, pixel_rays
 from mvgeo.align.graph import PairGraphSpec, components, make_pairs
@@ -64,6 +64,12 @@ class AlignConfig:
         max_unexplained_fraction: if the inconsistent pairs still hold more than
             this fraction of all verified matches, `align_images` fails
             (DegenerateGeometryError) instead of returning a wrong result.
+        max_pair_rotation_deg: a pair whose relative rotation in the result is
+            more than this off the one its inlier matches imply (linear essential
+            matrix under the final focal) is inconsistent too (0: off). The
+            Sampson check alone misses wrong rotations of pairs whose epipolar
+            geometry is nearly ambiguous (narrow field of view, few matches);
+            same threshold as the loop check.
         max_focal_log_std: without known intrinsics and without any pair that
             determines the focal, the bundle adjustment must: its log-focal
             standard deviation above this fails the alignment.
@@ -92,6 +98,7 @@ class AlignConfig:
     consistency_px: float = 2.0
     min_pair_explained: float = 0.5
     max_unexplained_fraction: float = 0.1
+    max_pair_rotation_deg: float = DEFAULT_MAX_LOOP_DEG
     max_focal_log_std: float = 0.05
     points_budget: int = 200_000
     covisibility_rel_tol: float = 0.03
@@ -263,9 +270,7 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         # Without the bundle adjustment the poses come from pointmaps s_pm times coarser than the
         # matches: judge them at that resolution.
         thr = config.consistency_px * (1.0 if ba is not None else max(s_pm, 1.0))
-        checks = pair_consistency(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), matches,
-                                  threshold_px=thr) if matches else []
-        bad = [c for c in checks if c.explained_fraction < config.min_pair_explained]
+        checks, bad = _judge(res, s_pm, (Wa, Ha), matches, thr, config)
         if not bad or attempt == 1:
             break
         # Retry once without the pairs the reconstruction does not explain (e.g. symmetric
@@ -280,9 +285,7 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         preds = kept
         matches = [m for m in matches if (m[0], m[1]) not in gone]
     if dropped:  # judge the final result against all the evidence, the dropped pairs included
-        checks = pair_consistency(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), all_matches,
-                                  threshold_px=thr)
-        bad = [c for c in checks if c.explained_fraction < config.min_pair_explained]
+        checks, bad = _judge(res, s_pm, (Wa, Ha), all_matches, thr, config)
     _check_consistency(checks, bad, names, config, focal_determined=getattr(model, "focal_determined", True)
                        or intrinsics is not None, ba=ba)
     with timer.stage("scene"):
@@ -334,7 +337,8 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         "sift_fallback_used": bool(getattr(model, "sift_fallback_used", False)),
         "pairs_dropped_as_inconsistent": [[names[i], names[j]] for i, j in dropped],
         "pair_consistency_min": min((c.explained_fraction for c in checks), default=float("nan")),
-        "pairs_inconsistent": [[names[c.i], names[c.j], round(c.explained_fraction, 3)] for c in bad],
+        "pairs_inconsistent": [[names[c.i], names[c.j], round(c.explained_fraction, 3),
+                                round(c.rotation_deviation_deg, 2)] for c in bad],
         "n_points": int(len(xyz)),
         "mean_confidence": float(conf.mean()) if len(conf) else float("nan"),
         "timings_s": timer.as_dict(),
@@ -409,15 +413,38 @@ def depth_rescale(depths: Sequence[np.ndarray], cam_from_world: np.ndarray, trac
     return scales, spreads
 
 
+def _judge(res, s_pm: float, size_wh, matches, thr: float, config: AlignConfig):
+    """Per pair: Sampson check, and the rotation check (`pair_rotation_deviation`); the failing pairs.
+
+    A pair fails when it explains too few of its matches, or when the result's relative rotation is more
+    than `max_pair_rotation_deg` off the one its matches imply under the final focal.
+    """
+    if not matches:
+        return [], []
+    f = res.focal_px * s_pm
+    checks = pair_consistency(res.cam_from_world, f, size_wh, matches, threshold_px=thr)
+    if config.max_pair_rotation_deg > 0:
+        dev = pair_rotation_deviation(res.cam_from_world, f, size_wh, matches)
+        checks = [replace(c, rotation_deviation_deg=d) for c, d in zip(checks, dev, strict=True)]
+    bad = [c for c in checks if c.explained_fraction < config.min_pair_explained
+           or (config.max_pair_rotation_deg > 0 and c.rotation_deviation_deg > config.max_pair_rotation_deg)]
+    return checks, bad
+
+
 def _check_consistency(checks, bad, names, config: AlignConfig, *, focal_determined: bool, ba) -> None:
     """Fail with a specific message instead of returning a result the evidence contradicts."""
     total = sum(c.n_matches for c in checks)
     unexplained = sum(c.n_matches for c in bad)
     if total and unexplained > config.max_unexplained_fraction * total:
-        listing = ", ".join(f"({names[c.i]}, {names[c.j]}): {c.explained_fraction:.0%}" for c in bad)[:1500]
+        listing = ", ".join(f"({names[c.i]}, {names[c.j]}): {c.explained_fraction:.0%}"
+                            + (f" rotation {c.rotation_deviation_deg:.0f} deg off its matches"
+                               if c.rotation_deviation_deg > config.max_pair_rotation_deg else "")
+                            for c in bad)[:1500]
         raise DegenerateGeometryError(
             f"the reconstruction is inconsistent with {len(bad)} of {len(checks)} verified image pairs "
-            f"({unexplained} of {total} matches unexplained; explained fraction per pair: {listing}). "
+            f"({unexplained} of {total} matches unexplained; explained fraction per pair, and the rotation "
+            f"where the result turns the pair more than {config.max_pair_rotation_deg:g} deg away from the one "
+            f"its matches imply: {listing}). "
             "Likely causes: too little overlap between neighbouring views (e.g. an orbit with large "
             "steps), repeated or symmetric structure matched across the scene"
             + ("" if focal_determined else ", and no image pair determines the focal length")

@@ -27,6 +27,7 @@ class PairCheck:
     j: int
     n_matches: int
     explained_fraction: float
+    rotation_deviation_deg: float = float("nan")
 
 
 def pair_consistency(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int],
@@ -56,4 +57,28 @@ def pair_consistency(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: 
         F = fundamental_from_essential(essential_from_pose(R, t / np.linalg.norm(t)), Ki, Kj)
         d = sampson_distance(F, uv[:, :2], uv[:, 2:])
         out.append(PairCheck(i, j, len(uv), float(np.mean(d < threshold_px)) if len(uv) else 0.0))
+    return out
+
+
+def pair_rotation_deviation(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int],
+                            matches: Sequence[tuple[int, int, np.ndarray]]) -> list[float]:
+    """Per pair, the angle (deg) between the result's relative rotation and the one its matches imply.
+
+    The Sampson check above cannot see a wrong relative rotation when the pair's
+    epipolar geometry is nearly ambiguous (narrow field of view, few matches:
+    rotation and depth relief trade off, the bas-relief ambiguity); the
+    rotation the matches imply under the *final* focal (linear essential
+    matrix, `mvgeo.align.loops.pose_from_matches`) can. nan where the matches
+    determine no rotation (fewer than 8).
+    """
+    from mvgeo.align.loops import rotation_angle_deg, rotation_from_matches
+
+    W, H = size_wh
+    out = []
+    for i, j, uv in matches:
+        Ki = np.array([[focal_px[i], 0, W / 2.0], [0, focal_px[i], H / 2.0], [0, 0, 1]])
+        Kj = np.array([[focal_px[j], 0, W / 2.0], [0, focal_px[j], H / 2.0], [0, 0, 1]])
+        R_pair = rotation_from_matches(np.asarray(uv, np.float64), Ki, Kj)
+        R_res = cam_from_world[j][:, :3] @ cam_from_world[i][:, :3].T
+        out.append(float("nan") if R_pair is None else rotation_angle_deg(R_res @ R_pair.T))
     return out

@@ -70,6 +70,10 @@ class GlobalAlignConfig:
             enter the objective (cost / stride^2); after the optimisation the
             other pixels' log-depth receives the correction of their nearest
             sampled pixel (the poses and focals only see the samples).
+        init: "procrustes" (DUSt3R: chain the pairs' pointmaps along the maximum
+            spanning tree with weighted Procrustes, then PnP per view) or
+            "pair_poses" (`mvgeo.align.pose_chain`: chain each tree pair's own
+            relative pose, scale from the shared view's depth ratio).
     """
 
     iters: int = 300
@@ -82,6 +86,7 @@ class GlobalAlignConfig:
     device: str = "cpu"
     torch_threads: int = 1
     pixel_stride: int = 1
+    init: str = "procrustes"
 
 
 @dataclass
@@ -345,6 +350,13 @@ def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[
             raise DegenerateGeometryError(f"view {v}: its chained points lie behind the camera")
         z = np.where(ok & (z > 1e-3 * med), z, med)
         depth.append(z)
+    return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth,
+                     pair_similarities(preds, sizes_hw, cam_from_world, depth, focal_init_px))
+
+
+def pair_similarities(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], cam_from_world: np.ndarray,
+                      depth: Sequence[np.ndarray], focal_px: np.ndarray) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """Each pair's similarity (s, R, t): pair frame -> world, by weighted Procrustes against the posed depth maps."""
     pair_sim = []
     for p in preds:
         src, dst, w = [], [], []
@@ -352,12 +364,12 @@ def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[
             ok = _valid(C, P)
             H, W = sizes_hw[v]
             R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
-            x_cam = pixel_rays(H, W, float(focal_init_px[v])) * depth[v][..., None]
+            x_cam = pixel_rays(H, W, float(focal_px[v])) * depth[v][..., None]
             src.append(P[ok].astype(np.float64))
             dst.append((x_cam[ok] - t) @ R)  # R^T (x - t)
             w.append(np.log(C[ok]))
         pair_sim.append(weighted_umeyama(np.concatenate(src), np.concatenate(dst), np.concatenate(w)))
-    return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth, pair_sim)
+    return pair_sim
 
 
 # --------------------------------------------------------------------------- driver
@@ -397,7 +409,13 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
         if config.shared_focal:
             focal_init_px = np.full(n, float(np.exp(np.mean(np.log(focal_init_px)))))
     focal_init_px = np.asarray(focal_init_px, np.float64)
-    if init is None:
+    if init is None and config.init == "pair_poses":
+        from mvgeo.align.pose_chain import init_from_pair_poses
+
+        init = init_from_pair_poses(preds, sizes_hw, focal_init_px=focal_init_px)
+    elif init is None:
+        if config.init != "procrustes":
+            raise InputError(f"unknown initialisation {config.init!r}", fix="use 'procrustes' or 'pair_poses'")
         init = init_from_spanning_tree(preds, sizes_hw, focal_init_px=focal_init_px)
 
     dev, dt = torch.device(config.device), config.dtype

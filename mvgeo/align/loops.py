@@ -130,6 +130,12 @@ def reject_by_loops(rel: Mapping[tuple[int, int], np.ndarray], weights: Mapping[
 
 def rotation_from_matches(uv: np.ndarray, K_i: np.ndarray, K_j: np.ndarray) -> np.ndarray | None:
     """cam_j_from_cam_i rotation that a pair's inlier matches (M, 4) imply, or None (< 8 matches)."""
+    pose = pose_from_matches(uv, K_i, K_j)
+    return None if pose is None else pose[0]
+
+
+def pose_from_matches(uv: np.ndarray, K_i: np.ndarray, K_j: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """cam_j_from_cam_i (R, unit t) from a pair's inlier matches (M, 4): linear essential matrix + cheirality."""
     if len(uv) < 8:
         return None
     h = np.concatenate([uv[:, :2], np.ones((len(uv), 1))], axis=1)
@@ -139,8 +145,8 @@ def rotation_from_matches(uv: np.ndarray, K_i: np.ndarray, K_j: np.ndarray) -> n
     E = essential_from_linear(x1, x2)
     if not np.all(np.isfinite(E)):
         return None
-    R, _, front, _ = pose_from_essential(E, x1, x2)
-    return R if front.any() else None
+    R, t, front, _ = pose_from_essential(E, x1, x2)
+    return (R, t) if front.any() else None
 
 
 def rotation_from_pointmap(pts_j_in_i: np.ndarray, conf_j: np.ndarray, focal_j_px: float) -> np.ndarray | None:

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from mvgeo.align.api import AlignConfig, align_images
-from mvgeo.align.global_align import GlobalAlignConfig
+from mvgeo.align.checks import pair_rotation_deviation
+from mvgeo.align.global_align import GlobalAlignConfig, global_align
 from mvgeo.align.loops import (
     all_triangles,
     pair_rotations,
@@ -14,6 +15,7 @@ from mvgeo.align.loops import (
     rotation_from_pointmap,
     triangle_loops,
 )
+from mvgeo.align.pose_chain import init_from_pair_poses
 from mvgeo.common.errors import InputError
 from mvgeo.metrics import compare_poses, relative_pose_errors
 from mvgeo.transforms import so3_exp
@@ -168,3 +170,36 @@ def test_allow_partial_registers_the_largest_group_and_lists_the_others(rng):
     m = compare_poses(est, dict(zip(names, poses, strict=True)))
     assert m.median_rotation_deg < 0.5  # exact pointmaps
     assert all(np.isfinite(res.points_xyz).all(axis=1))
+
+
+def test_pair_pose_chaining_init_is_exact_on_exact_pointmaps(rng):
+    poses, depths = make_views(5)
+    preds = make_pairs(poses, depths, FOCAL, rng)
+    init = init_from_pair_poses(preds, [d.shape for d in depths], focal_init_px=np.full(5, FOCAL))
+    names = [str(k) for k in range(5)]
+    m = compare_poses(dict(zip(names, init.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
+    # Exact float32 pointmaps and the true focal: PnP + depth-ratio chaining, ~1e-4 deg / 1e-5 units.
+    assert m.median_rotation_deg < 0.01 and m.ate.rmse < 1e-3
+    res = global_align(preds, [d.shape for d in depths], config=GlobalAlignConfig(iters=0, init="pair_poses"),
+                       focal_init_px=np.full(5, FOCAL))
+    # The alignment rescales the world (pinned pair scales): same rotations (float32 round-off).
+    assert np.allclose(res.cam_from_world[:, :, :3], init.cam_from_world[:, :, :3], atol=1e-5)
+
+
+def test_rotation_check_flags_a_pair_the_result_turns_away(rng):
+    poses, _ = make_views(3)
+    W, H = 32, 24
+    X = rng.uniform([-1, -1, 3.5], [1, 1, 5.5], size=(40, 3))
+
+    def project(T):
+        x = X @ T[:, :3].T + T[:, 3]
+        return x[:, :2] / x[:, 2:] * FOCAL + np.array([W / 2, H / 2])
+
+    matches = [(0, 1, np.concatenate([project(poses[0]), project(poses[1])], axis=1)),
+               (1, 2, np.concatenate([project(poses[1]), project(poses[2])], axis=1))]
+    f = np.full(3, FOCAL)
+    assert max(pair_rotation_deviation(poses, f, (W, H), matches)) < 1e-4  # exact data, float64
+    turned = poses.copy()
+    turned[2, :, :3] = so3_exp(np.radians([0.0, 20.0, 0.0])) @ poses[2][:, :3]
+    dev = pair_rotation_deviation(turned, f, (W, H), matches)
+    assert dev[0] < 1e-4 and abs(dev[1] - 20.0) < 1e-3
