@@ -238,12 +238,7 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
                         for v in range(n) if v not in keep]
         _log.warning("registering %d of %d images (--allow-partial); not connected: %s", len(keep), n,
                      [u["name"] for u in unregistered])
-        new = {v: k for k, v in enumerate(keep)}
-        arrays, small, names = [arrays[v] for v in keep], [small[v] for v in keep], [names[v] for v in keep]
-        preds = [replace(p, i=new[p.i], j=new[p.j]) for p in preds if p.i in new and p.j in new]
-        matches = [(new[i], new[j], uv) for i, j, uv in matches if i in new and j in new]
-        if K_align is not None:
-            K_align = K_align[keep]
+        arrays, small, names, preds, matches, K_align = _restrict(keep, arrays, small, names, preds, matches, K_align)
         n = len(keep)
     sizes = [(Hp, Wp)] * n
     align_cfg = config.align
@@ -253,8 +248,14 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         focal_init = np.full(n, 0.5 * (intrinsics.fx * Wp / W0 + intrinsics.fy * Hp / H0))
         align_cfg = replace(align_cfg, optimize_focal=False)
     all_matches = matches
-    dropped: list[tuple[int, int]] = []
-    for attempt in range(2):
+    dropped: list[tuple[str, str]] = []
+    # One retry without the inconsistent pairs; with allow_partial, up to two more, each time keeping
+    # the largest group of images the remaining pairs connect.
+    attempts = 4 if config.allow_partial else 2
+    for attempt in range(attempts):
+        sizes = [(Hp, Wp)] * n
+        if intrinsics is not None:
+            focal_init = np.full(n, 0.5 * (intrinsics.fx * Wp / W0 + intrinsics.fy * Hp / H0))
         with timer.stage("global_align"):
             res = global_align(preds, sizes, config=align_cfg, focal_init_px=focal_init)
         ba, ba_stats = None, None
@@ -271,19 +272,31 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         # matches: judge them at that resolution.
         thr = config.consistency_px * (1.0 if ba is not None else max(s_pm, 1.0))
         checks, bad = _judge(res, s_pm, (Wa, Ha), matches, thr, config)
-        if not bad or attempt == 1:
+        if not bad or attempt == attempts - 1:
             break
-        # Retry once without the pairs the reconstruction does not explain (e.g. symmetric
+        # Retry without the pairs the reconstruction does not explain (e.g. symmetric
         # structure matched across the object): they may have bent the solution.
         gone = {(c.i, c.j) for c in bad}
         kept = [p for p in preds if (p.i, p.j) not in gone]
-        if len(components(n, [(p.i, p.j) for p in kept])) > 1:
+        comps = components(n, [(p.i, p.j) for p in kept])
+        if len(comps) > 1 and not (config.allow_partial and len(comps[0]) >= 2):
             break  # dropping them would cut views off: judge (and fail) this result as it is
-        dropped = sorted(gone)
+        dropped += sorted((names[i], names[j]) for i, j in gone)
         _log.warning("%d verified pairs are inconsistent with the reconstruction %s; solving again without them",
-                     len(gone), dropped)
+                     len(gone), sorted(gone))
         preds = kept
         matches = [m for m in matches if (m[0], m[1]) not in gone]
+        if len(comps) > 1:
+            keep = comps[0]
+            lost = [names[v] for v in range(n) if v not in keep]
+            _log.warning("allow_partial: keeping %d of %d images; %s lost their consistent pairs", len(keep), n, lost)
+            unregistered += [{"name": m, "reason": "its pairs are inconsistent with the reconstruction of the others"}
+                             for m in lost]
+            new = {v: k for k, v in enumerate(keep)}
+            all_matches = [(new[i], new[j], uv) for i, j, uv in all_matches if i in new and j in new]
+            arrays, small, names, preds, matches, K_align = _restrict(keep, arrays, small, names, preds, matches,
+                                                                      K_align)
+            n = len(keep)
     if dropped:  # judge the final result against all the evidence, the dropped pairs included
         checks, bad = _judge(res, s_pm, (Wa, Ha), all_matches, thr, config)
     _check_consistency(checks, bad, names, config, focal_determined=getattr(model, "focal_determined", True)
@@ -335,7 +348,7 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         "bundle_adjustment": ba_stats,
         "focal_determined_by_pairs": bool(getattr(model, "focal_determined", True)),
         "sift_fallback_used": bool(getattr(model, "sift_fallback_used", False)),
-        "pairs_dropped_as_inconsistent": [[names[i], names[j]] for i, j in dropped],
+        "pairs_dropped_as_inconsistent": [list(d) for d in dropped],
         "pair_consistency_min": min((c.explained_fraction for c in checks), default=float("nan")),
         "pairs_inconsistent": [[names[c.i], names[c.j], round(c.explained_fraction, 3),
                                 round(c.rotation_deviation_deg, 2)] for c in bad],
@@ -455,6 +468,15 @@ def _check_consistency(checks, bad, names, config: AlignConfig, *, focal_determi
             f"the focal length is not determined by these views (no image pair determines it, and the "
             f"bundle adjustment leaves a relative uncertainty of {ba.focal_log_std:.0%}; object-centric "
             "orbits are a critical configuration). Pass the calibration with --intrinsics")
+
+
+def _restrict(keep: list[int], arrays, small, names, preds, matches, K_align):
+    """Keep only the views `keep` (renumbered in that order) in every per-view and per-pair list."""
+    new = {v: k for k, v in enumerate(keep)}
+    preds = [replace(p, i=new[p.i], j=new[p.j]) for p in preds if p.i in new and p.j in new]
+    matches = [(new[i], new[j], uv) for i, j, uv in matches if i in new and j in new]
+    return ([arrays[v] for v in keep], [small[v] for v in keep], [names[v] for v in keep], preds, matches,
+            None if K_align is None else K_align[keep])
 
 
 def _loop_check(preds, matches, K_align, s_pm: float, n: int, config: AlignConfig):

@@ -1,5 +1,7 @@
 """Loop-consistency rejection of false pairs, disconnected graphs and partial registration."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -203,3 +205,37 @@ def test_rotation_check_flags_a_pair_the_result_turns_away(rng):
     turned[2, :, :3] = so3_exp(np.radians([0.0, 20.0, 0.0])) @ poses[2][:, :3]
     dev = pair_rotation_deviation(turned, f, (W, H), matches)
     assert dev[0] < 1e-4 and abs(dev[1] - 20.0) < 1e-3
+
+
+def test_allow_partial_drops_views_whose_pairs_the_result_contradicts(rng, monkeypatch):
+    """Control flow: a pair judged inconsistent whose removal cuts a view off -> that view is unregistered
+    (with allow_partial) and the rest is solved again; without allow_partial the result fails."""
+    import mvgeo.align.api as api
+    from mvgeo.align.checks import PairCheck
+    from mvgeo.common.errors import DegenerateGeometryError
+
+    poses, depths = make_views(5)
+    pairs = [(0, 1), (1, 2), (0, 2), (2, 3), (1, 3), (3, 4)]
+    preds = make_pairs(poses, depths, FOCAL, rng, pairs=pairs)
+    for p in preds:  # one dummy match row per pair so that the judgement runs
+        p.matches_px = np.zeros((1, 4))
+    names = [f"v{k}.png" for k in range(5)]
+    calls = []
+
+    def judge(res, s_pm, size_wh, matches, thr, config):
+        calls.append(len(res.cam_from_world))
+        checks = [PairCheck(i, j, 10, 1.0, 0.0) for i, j, _ in matches]
+        bad = [c for c in checks if len(calls) == 1 and (c.i, c.j) == (3, 4)]
+        return checks, bad
+
+    monkeypatch.setattr(api, "_judge", judge)
+    cfg = AlignConfig(align=FAST.align, max_size_px=32, points_budget=2000, bundle_adjust=False, loop_check=False)
+    with pytest.raises(DegenerateGeometryError, match="v3.png, v4.png"):
+        align_images(_images(rng, 5), cfg, names=names, model=_FakeModel(preds))
+    calls.clear()
+    res = align_images(_images(rng, 5), replace(cfg, allow_partial=True), names=names, model=_FakeModel(preds))
+    assert calls == [5, 4, 4]  # first solve, solve of the 4 kept views, final judgement with every pair
+    assert sorted(res.sparse_model.cam_from_world_by_name()) == names[:4]
+    assert res.stats["unregistered"] == [{"name": "v4.png", "reason":
+                                          "its pairs are inconsistent with the reconstruction of the others"}]
+    assert res.stats["pairs_dropped_as_inconsistent"] == [["v3.png", "v4.png"]]
