@@ -113,3 +113,25 @@ def test_bad_input_exit_2_and_no_output(case, scene, tmp_path, capsys):
 
 def test_unknown_pairs_spec_is_exit_2(scene, tmp_path):
     assert main(["align", str(scene / "images"), "--out", str(tmp_path / "o"), "--pairs", "ring"]) == 2
+
+
+def test_disconnected_images_exit_2_or_partial_registration(scene, tmp_path, capsys):
+    src = tmp_path / "imgs"
+    src.mkdir()
+    for f in list_images(scene / "images")[:3]:
+        shutil.copy(f, src)
+    rng = np.random.default_rng(0)
+    for k in (1, 2):  # unrelated images (noise): nothing to match them with
+        write_image(src / f"noise_{k}.png", rng.random((192, 256, 3)).astype(np.float32))
+    out = tmp_path / "out"
+    assert main(["align", str(src), "--out", str(out), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert "disconnected" in err and "noise_1.png" in err and "noise_2.png" in err and "--allow-partial" in err
+    assert not out.exists()
+    assert main(["align", str(src), "--out", str(out), "--allow-partial", *FAST]) == 0
+    stats = json.loads((out / "align.json").read_text())
+    assert sorted(u["name"] for u in stats["unregistered"]) == ["noise_1.png", "noise_2.png"]
+    assert stats["n_registered"] == 3 and stats["n_images"] == 5
+    model = read_sparse_model(out / "sparse" / "0")
+    assert sorted(im.name for im in model.images) == sorted(p.name for p in list_images(scene / "images")[:3])
+    assert "2 images not registered" in capsys.readouterr().err
