@@ -239,3 +239,13 @@ def test_allow_partial_drops_views_whose_pairs_the_result_contradicts(rng, monke
     assert res.stats["unregistered"] == [{"name": "v4.png", "reason":
                                           "its pairs are inconsistent with the reconstruction of the others"}]
     assert res.stats["pairs_dropped_as_inconsistent"] == [["v3.png", "v4.png"]]
+
+
+def test_thin_svd_essential_equals_the_reference(rng):
+    from mvgeo.align.loops import essential_linear
+    from mvgeo.epipolar import essential_from_linear
+
+    x1 = rng.normal(size=(300, 2))
+    x2 = x1 + 0.1 * rng.normal(size=(300, 2))  # noisy, not an exact essential configuration
+    E, E_ref = essential_linear(x1, x2), essential_from_linear(x1, x2)
+    assert min(np.abs(E - E_ref).max(), np.abs(E + E_ref).max()) < 1e-9  # same null vector up to sign
