@@ -130,12 +130,19 @@ class ImageFeatures:
     uv_px: np.ndarray
     desc: np.ndarray
     _root: np.ndarray | None = field(default=None, repr=False)
+    _root_t: np.ndarray | None = field(default=None, repr=False)
 
     def root(self) -> np.ndarray:
         """RootSIFT descriptors (computed once; every pair of this image reuses them)."""
         if self._root is None:
             self._root = _root_sift(self.desc)
         return self._root
+
+    def root_t(self) -> np.ndarray:
+        """(128, K) contiguous transpose of `root` (the right operand of the matching products)."""
+        if self._root_t is None:
+            self._root_t = np.ascontiguousarray(self.root().T)
+        return self._root_t
 
 
 def pointmap_shape(height: int, width: int, long_side_px: int) -> tuple[int, int]:
@@ -182,9 +189,8 @@ def match_features(a: ImageFeatures, b: ImageFeatures, *, ratio: float, block_ro
     """
     if len(a.desc) < 2 or len(b.desc) < 2:
         return np.zeros((0, 2), np.int64)
-    da, db = a.root(), b.root()
-    Ka, Kb = len(da), len(db)
-    dbT = np.ascontiguousarray(db.T)
+    da, dbT = a.root(), b.root_t()
+    Ka, Kb = len(da), dbT.shape[1]
     ab = np.empty(Ka, np.int64)  # row's best column
     s0 = np.empty(Ka, np.float32)  # row's best similarity (squared distance = 2 - 2 s)
     row_second = np.empty(Ka, np.float32)
@@ -444,9 +450,12 @@ class ClassicalPointmapModel:
     def _features_and_matches(self, images, pairs, pool: ThreadPoolExecutor, contrast: float, blur: float):
         """SIFT of every image and putative matches of every pair (fewer than `min_matches`: a failure)."""
         cfg = self.config
-        feats = list(progress(pool.map(lambda im: extract_features(
-            im, n_features=cfg.sift_features, blur_sigma_px=blur, contrast_threshold=contrast), images),
-            desc="SIFT", total=len(images)))
+        def sift(im):
+            f = extract_features(im, n_features=cfg.sift_features, blur_sigma_px=blur, contrast_threshold=contrast)
+            f.root_t()  # RootSIFT once per image, here in parallel (not raced for by the matching threads)
+            return f
+
+        feats = list(progress(pool.map(sift, images), desc="SIFT", total=len(images)))
         matches: dict[tuple[int, int], np.ndarray] = {}
         fails: list[PairFailure] = []
         all_m = pool.map(lambda ij: match_features(feats[ij[0]], feats[ij[1]], ratio=cfg.ratio), pairs)
