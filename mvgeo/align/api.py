@@ -513,9 +513,9 @@ def _connected_views(n: int, names: list[str], preds, fails: list[PairFailure], 
     raise InputError(
         f"the pair graph is disconnected: images {lost} could not be related to {[names[v] for v in main]}"
         + (f". Failed pairs: {reasons}" if reasons else ""),
-        fix="add views that overlap the disconnected ones, or remove them; try --pairs complete; "
-            + ("no two images could be related at all" if len(main) < 2 else
-               "or pass --allow-partial to register only the largest connected group"))
+        fix=("no two images could be related: check that they show one scene with enough overlap and texture"
+             if len(main) < 2 else "add views that overlap the disconnected ones, or remove them; try --pairs "
+             "complete; or pass --allow-partial to register only the largest connected group"))
 
 
 def _jsonable(x):
