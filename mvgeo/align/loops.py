@@ -44,7 +44,7 @@ from mvgeo.twoview import pose_from_essential
 #: Three pair rotations with independent errors of sigma each give a loop error of about sqrt(3) sigma.
 #: Measured with the focal the pipeline had before the bundle adjustment (on two scenes a prior 25 % and
 #: 50 % off, as no pair determined it): true triangles 0.2 deg median / 0.8 deg max on llff_like (220
-#: triangles), 1.2-7.5 deg on temple_sparse_ring and 5.7-7.4 deg on object_ring; triangles holding a false
+#: triangles), up to 5.2 deg on temple_sparse_ring and 5.7-7.4 deg on object_ring; triangles holding a false
 #: pair 25-35 deg (temple) and 20-133 deg (object_ring). The one true triangle above 10 deg (temple,
 #: 11.5 deg) holds a pair 14 deg off the calibrated poses, which the vote then removes.
 DEFAULT_MAX_LOOP_DEG = 10.0
