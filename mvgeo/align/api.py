@@ -351,7 +351,8 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         "pairs_dropped_as_inconsistent": [list(d) for d in dropped],
         "pair_consistency_min": min((c.explained_fraction for c in checks), default=float("nan")),
         "pairs_inconsistent": [[names[c.i], names[c.j], round(c.explained_fraction, 3),
-                                round(c.rotation_deviation_deg, 2)] for c in bad],
+                                None if np.isnan(c.rotation_deviation_deg) else round(c.rotation_deviation_deg, 2)]
+                               for c in bad],
         "n_points": int(len(xyz)),
         "mean_confidence": float(conf.mean()) if len(conf) else float("nan"),
         "timings_s": timer.as_dict(),
