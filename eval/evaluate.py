@@ -226,9 +226,13 @@ def _pinhole(c: Camera) -> tuple[float, float, float, float]:
 
 
 def _score_scene(model, gt: SparseModel, est_train: Mapping[str, np.ndarray] | None, dataset: DatasetFolder,
-                 config: EvalConfig, est_cameras: Sequence[Camera] = ()
+                 config: EvalConfig, est_cameras: Sequence[Camera] = (),
+                 renders_out: dict[str, np.ndarray] | None = None
                  ) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
-    """Held-out renders scored against clean images; training-pose errors (None = GT poses used)."""
+    """Held-out renders scored against clean images; training-pose errors (None = GT poses used).
+
+    `renders_out`, when given, receives the held-out renders (stem -> (H, W, 3) float image).
+    """
     render_views = require("splat.render", "render_views", needed_for="denoise-gs eval")
     fit_pose = require("splat.pose_fit", "fit_pose", needed_for="denoise-gs eval")
     gt_poses = _stem_poses(gt)
@@ -256,6 +260,8 @@ def _score_scene(model, gt: SparseModel, est_train: Mapping[str, np.ndarray] | N
         targets.append(read_image(dataset.clean[n]))
         names.append(n)
     scores = score_images(renders, targets)
+    if renders_out is not None:
+        renders_out.update(zip(names, renders, strict=True))
     per_view = {n: {"psnr_db": float(scores.psnr_db[i]), "ssim": float(scores.ssim[i]),
                     "lpips": float(scores.lpips[i])} for i, n in enumerate(names)}
     return per_view, pose_stats
@@ -338,9 +344,21 @@ def _run_method(method: str, seed: int, dataset: DatasetFolder, gt: SparseModel,
         # The stages' own recorded wall time (a stage reused from the cache, e.g. round 1 shared by
         # n2v_round1 / denoise_gs / rounds_N, reports the time it took when it ran).
         seconds = float(sum(st.seconds for rd in res.rounds for st in rd.stages.values()))
-    per_view, pose_stats = _score_scene(model, gt, est, dataset, config, est_cams)
+    held_out: dict[str, np.ndarray] = {}
+    per_view, pose_stats = _score_scene(model, gt, est, dataset, config, est_cams, renders_out=held_out)
+    save_heldout_renders(out / "heldout" / scene, method, seed, held_out, dataset)
     means = {m: float(np.mean([v[m] for v in per_view.values()])) for m in ("psnr_db", "ssim", "lpips")}
     return RunScores(scene, method, seed, **means, **pose_stats, seconds=seconds, per_view=per_view)
+
+
+def save_heldout_renders(folder: Path, method: str, seed: int, renders: Mapping[str, np.ndarray],
+                         dataset: DatasetFolder) -> None:
+    """Keep a run's held-out renders for the figures: `folder/<method>/seed<k>/<view>.png`, and once
+    per scene the clean and noisy held-out images (`folder/_clean/`, `folder/_noisy/`)."""
+    write_views(folder / method / f"seed{seed}", dict(renders))
+    for part, files in (("_clean", dataset.clean), ("_noisy", dataset.images)):
+        if not (folder / part).is_dir():
+            write_views(folder / part, {n: read_image(files[n]) for n in dataset.test if n in files})
 
 
 def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, scene: str,

@@ -149,6 +149,55 @@ def plot_bars(rows: Sequence[RunScores], path: Path, *, metric: str = "psnr_db")
     return path
 
 
+def plot_heldout_grid(folder: Path, path: Path, *, seed: int = 0, max_views: int = 3) -> Path | None:
+    """Grid of held-out views (rows) x clean | noisy | each method's render (columns), one seed; PNG.
+
+    Reads what `eval.evaluate.save_heldout_renders` kept under `folder` (one scene); None when
+    nothing is there. Each method cell is titled with its PSNR against the clean image.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mvgeo.common.imageio import read_image
+
+    folder = Path(folder)
+    clean_dir = folder / "_clean"
+    if not clean_dir.is_dir():
+        return None
+    views = sorted(p.stem for p in clean_dir.glob("*.png"))[:max_views]
+    methods = sorted(p.name for p in folder.iterdir() if p.is_dir() and not p.name.startswith("_")
+                     and (p / f"seed{seed}").is_dir())
+    order = {m: i for i, m in enumerate(("3dgs_gt_poses", "instantsplat", "nlm_instantsplat", "n2v_round1",
+                                         "denoise_gs"))}
+    methods.sort(key=lambda m: (order.get(m, len(order)), m))
+    cols = ["_clean", "_noisy", *methods]
+    if not views or not methods:
+        return None
+    fig, axes = plt.subplots(len(views), len(cols), figsize=(2.2 * len(cols), 1.8 * len(views)), dpi=120,
+                             squeeze=False)
+    for r, v in enumerate(views):
+        clean = read_image(clean_dir / f"{v}.png")
+        for c, col in enumerate(cols):
+            ax = axes[r][c]
+            ax.axis("off")
+            f = folder / col / f"{v}.png" if col.startswith("_") else folder / col / f"seed{seed}" / f"{v}.png"
+            if not f.is_file():
+                continue
+            img = read_image(f)
+            ax.imshow(np.clip(img, 0.0, 1.0))
+            title = col.strip("_") if col.startswith("_") else col
+            if col != "_clean" and img.shape == clean.shape:
+                title += f"\n{10 * np.log10(1.0 / max(float(np.mean((img - clean) ** 2)), 1e-12)):.2f} dB"
+            ax.set_title(f"{v}: {title}" if c == 0 else title, fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def _json_safe(x: object) -> object:
     if isinstance(x, float) and not math.isfinite(x):
         return None
@@ -171,6 +220,10 @@ def write_results(out: Path, rows: Sequence[RunScores], *, title: str = "Evaluat
     figs = []
     for metric in ("psnr_db", "ssim", "lpips"):
         figs.append(plot_bars(rows, out / "figures" / f"{metric}.png", metric=metric))
+    for scene in dict.fromkeys(r.scene for r in rows):
+        grid = plot_heldout_grid(out / "heldout" / scene, out / "figures" / f"heldout_{scene}.png")
+        if grid is not None:
+            figs.append(grid)
     md += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figs) + "\n"
     atomic_write_text(md_path, md)
     return json_path, md_path

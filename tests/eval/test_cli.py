@@ -108,3 +108,6 @@ def test_eval_gt_poses_end_to_end(tmp_path, capsys):
     # A 60-iteration splat of a noisy scene: far from perfect but clearly an image of the scene.
     assert 10.0 < run["psnr_db"] < 40.0 and 0.0 < run["lpips"] < 1.0
     assert (out / "results.md").read_text().count("3dgs_gt_poses") >= 1
+    # held-out renders kept and shown next to the clean and noisy views
+    assert sorted(p.name for p in (out / "heldout" / "llff_like").iterdir()) == ["3dgs_gt_poses", "_clean", "_noisy"]
+    assert (out / "figures" / "heldout_llff_like.png").is_file()
