@@ -50,6 +50,8 @@ class AlignConfig:
         min_conf: output points need a confidence above this (1 = no information).
         points_budget: maximum number of output points (confidence-aware voxel thinning).
         covisibility_rel_tol: relative depth tolerance of the co-visibility pruning.
+        consistency_rel_tol: a dense point that other views see but none confirms within this
+            relative depth is dropped (`mvgeo.align.scene.covisibility_keep`; 0: off).
         bundle_adjust: refine poses and focal(s) by sparse bundle adjustment on
             the pairs' inlier matches after the global alignment (needs a model
             that returns `matches_px`; the classical one does).
@@ -102,6 +104,7 @@ class AlignConfig:
     max_focal_log_std: float = 0.05
     points_budget: int = 200_000
     covisibility_rel_tol: float = 0.03
+    consistency_rel_tol: float = 0.05
     bundle_adjust: bool = True
     bundle: BundleConfig = field(default_factory=BundleConfig)
     seed: int = 0
@@ -304,7 +307,8 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
     with timer.stage("scene"):
         K_pm = [np.array([[f, 0, Wp / 2.0], [0, f, Hp / 2.0], [0, 0, 1]]) for f in res.focal_px]
         keep = covisibility_keep(res.pts_world, res.depth, res.conf, res.cam_from_world, K_pm,
-                                 rel_depth_tol=config.covisibility_rel_tol)
+                                 rel_depth_tol=config.covisibility_rel_tol,
+                                 consistency_rel_tol=config.consistency_rel_tol)
         xyz, rgb, conf = [], [], []
         for v in range(n):
             col = cv2.resize(arrays[v], (Wp, Hp), interpolation=cv2.INTER_AREA)

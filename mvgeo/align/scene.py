@@ -14,13 +14,22 @@ import numpy as np
 
 
 def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarray], conf: Sequence[np.ndarray],
-                      cam_from_world: np.ndarray, K: Sequence[np.ndarray], *, rel_depth_tol: float = 0.03
-                      ) -> list[np.ndarray]:
+                      cam_from_world: np.ndarray, K: Sequence[np.ndarray], *, rel_depth_tol: float = 0.03,
+                      consistency_rel_tol: float = 0.0) -> list[np.ndarray]:
     """Per view, a (H, W) bool mask of the pixels to keep.
 
     A pixel p of view n is dropped when it projects inside view m (m != n) to
     the nearest pixel q with |z_m(p) - depth_m[q]| < rel_depth_tol * depth_m[q]
     and conf_m[q] > conf_n[p] (ties: the lower view index wins).
+
+    With `consistency_rel_tol > 0` (the geometric consistency check of multi-view
+    stereo fusion, as COLMAP's fusion with one consistent view) p is also dropped
+    when other views see its direction but none confirms it
+    (|z_m(p) - depth_m[q]| < consistency_rel_tol * depth_m[q] in no view m). A
+    point no other view sees is kept. A surface that every other view has occluded
+    is dropped too: measured on a forward-facing scene, such unconfirmed points were
+    mostly depth errors (keeping the ones behind the other views' surfaces gained
+    half as much held-out PSNR downstream).
 
     Args:
         pts_world: N arrays (H_n, W_n, 3).
@@ -29,6 +38,7 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
         cam_from_world: (N, 3, 4).
         K: N (3, 3) intrinsics of the pointmap grids (our pixel convention).
         rel_depth_tol: relative depth agreement for "same surface".
+        consistency_rel_tol: relative depth tolerance of the consistency check (0: off).
     """
     n = len(pts_world)
     keep = [np.ones(d.shape, bool) for d in depth]
@@ -36,6 +46,8 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
         P = pts_world[a].reshape(-1, 3)
         ca = conf[a].reshape(-1)
         drop = np.zeros(len(P), bool)
+        confirmed = np.zeros(len(P), bool)
+        seen = np.zeros(len(P), bool)
         for b in range(n):
             if b == a:
                 continue
@@ -55,6 +67,10 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
             same = np.abs(z[idx] - db) < rel_depth_tol * db
             better = (cb > ca[idx]) | ((cb == ca[idx]) & (b < a))
             drop[idx[same & better]] = True
+            if consistency_rel_tol > 0:
+                confirmed[idx[np.abs(z[idx] - db) < consistency_rel_tol * db]] = True
+                seen[idx[np.isfinite(db) & (db > 0)]] = True
+        drop |= seen & ~confirmed
         keep[a] = ~drop.reshape(depth[a].shape)
     return keep
 

@@ -50,6 +50,27 @@ def test_covisibility_keeps_each_surface_once():
     assert keep[1].sum() == 1 and keep[1][0, 0]
 
 
+def test_consistency_check_drops_only_contradicted_unconfirmed_points():
+    """Multi-view fusion's geometric check: view 1 sees a plane at depth 2 where view 0 looks; view 0
+    claims one pixel at 1.5 and one at 3.0 (no view confirms them: dropped), the rest at 2.02 (confirmed
+    within 5 %, kept); a view-0 pixel that view 1 does not see (view 1's depth there is missing) is kept."""
+    H, W, f = 6, 8, 8.0
+    cam = np.concatenate([np.eye(3), np.zeros((3, 1))], 1)
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    d0 = np.full((H, W), 2.02)
+    d0[1, 1], d0[2, 2] = 1.5, 3.0
+    d0[4, 6] = 1.0  # unconfirmed, but view 1 has no depth there: nothing contradicts it
+    d1 = np.full((H, W), 2.0)
+    d1[4, 6] = np.nan
+    pts0, pts1 = pixel_rays(H, W, f) * d0[..., None], pixel_rays(H, W, f) * d1[..., None]
+    conf0, conf1 = np.full((H, W), 3.0), np.full((H, W), 2.0)  # view 0 wins the co-visibility pruning
+    args = ([pts0, pts1], [d0, d1], [conf0, conf1], np.stack([cam, cam]), [K, K])
+    keep = covisibility_keep(*args, consistency_rel_tol=0.05)
+    assert not keep[0][1, 1] and not keep[0][2, 2] and keep[0][4, 6] and keep[0].sum() == H * W - 2
+    off = covisibility_keep(*args)  # the check off: every view-0 point stays (the old behaviour)
+    assert off[0].sum() == H * W
+
+
 def test_voxel_downsample_budget_and_confidence(rng):
     pts = rng.random((5000, 3))
     conf = rng.random(5000)
