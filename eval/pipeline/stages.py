@@ -19,14 +19,18 @@ Each function has the `StageFn` signature (`fn(ctx) -> summary`), reads
 from __future__ import annotations
 
 import dataclasses
+import functools
+import importlib.util
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from eval.pipeline.components import MissingComponentError, component_config, require
 from eval.pipeline.config import PipelineConfig
+from eval.pipeline.hashing import hash_files
 from eval.pipeline.stage import StageContext, StageFn
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
@@ -216,13 +220,35 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
             "round2": json.loads(json.dumps(dataclasses.asdict(r2), default=float))}
 
 
+#: Source suffixes whose bytes make up a component's code digest (the C++ kernels included).
+_CODE_SUFFIXES = (".py", ".cpp", ".h")
+
+
+@functools.cache
+def component_code_digest(package: str) -> str | None:
+    """sha256 of a component package's source files (names and bytes), or None when it is not installed.
+
+    It enters the stage keys, so that a run resumed after the component's code changed (a fixed bug, a
+    new default inside a function) re-runs the stages that use it instead of reusing stale outputs.
+    """
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    root = Path(next(iter(spec.submodule_search_locations)))
+    files = [f for f in root.rglob("*") if f.is_file() and f.suffix in _CODE_SUFFIXES
+             and "__pycache__" not in f.parts and not any(part.startswith(".") for part in f.relative_to(root).parts)]
+    return hash_files(files, root=root)
+
+
 def resolved_configs(config: PipelineConfig) -> dict[str, object]:
-    """The component configs a run resolves to (JSON-able), per stage; they enter the stage keys.
+    """The component configs a run resolves to (JSON-able), per stage, with the code digest of the
+    component that runs them; they enter the stage keys.
 
     Hashing preset *names* alone would reuse a cached stage after a component changed a
-    preset's default; hashing the resolved configs re-runs it. Seeds are left out (they are
-    part of every key already). A component that is missing resolves to None (the run then
-    fails in `check_product_components`).
+    preset's default; hashing the resolved configs re-runs it, and the code digest
+    (`component_code_digest`) re-runs it after the component's code changed. Seeds are left out
+    (they are part of every key already). A component that is missing resolves to None (the run
+    then fails in `check_product_components`).
     """
     need = "stage keys"
     d, a, sp = config.denoise, config.align, config.splat
@@ -241,7 +267,8 @@ def resolved_configs(config: PipelineConfig) -> dict[str, object]:
         "round2": as_json(lambda: _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,
                                                   "round2_loss": d.round2_loss}, need)),
     }
-    return out
+    packages = {"n2v": "denoise", "align": "mvgeo", "splat": "splat", "round2": "denoise"}
+    return {k: {"config": v, "code": component_code_digest(packages[k])} for k, v in out.items()}
 
 
 def check_product_components(config: PipelineConfig) -> None:

@@ -213,3 +213,29 @@ def test_changed_component_default_reruns_its_stage(tmp_path, scene, monkeypatch
     tiny2 = TinyStages()
     run_pipeline(scene, out, _cfg(rounds=1), stages=tiny2.stages())
     assert dict(tiny2.calls) == {"splat": 1, "render": 1}
+
+
+def test_changed_component_code_reruns_its_stage(tmp_path, scene, monkeypatch):
+    # A fixed bug inside a component (same configs) must not be hidden by the stage cache: the stage
+    # keys carry a digest of the component's sources, and a change re-runs its stages and what follows.
+    from eval.pipeline import stages as stage_mod
+
+    tiny = TinyStages()
+    out = tmp_path / "out"
+    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny.stages())
+    real = stage_mod.component_code_digest
+    monkeypatch.setattr(stage_mod, "component_code_digest", lambda pkg: "edited" if pkg == "mvgeo" else real(pkg))
+    tiny2 = TinyStages()
+    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny2.stages())
+    assert dict(tiny2.calls) == {"align": 1, "splat": 1, "render": 1}
+    tiny3 = TinyStages()  # unchanged code: everything is reused
+    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny3.stages())
+    assert dict(tiny3.calls) == {}
+
+
+def test_component_code_digest_covers_the_sources():
+    from eval.pipeline.stages import component_code_digest
+
+    d = component_code_digest("splat")
+    assert d is not None and len(d) == 64 and d != component_code_digest("mvgeo")
+    assert component_code_digest("no_such_package_here") is None
