@@ -149,11 +149,13 @@ def plot_bars(rows: Sequence[RunScores], path: Path, *, metric: str = "psnr_db")
     return path
 
 
-def plot_heldout_grid(folder: Path, path: Path, *, seed: int = 0, max_views: int = 3) -> Path | None:
+def plot_heldout_grid(folder: Path, path: Path, *, seed: int = 0, max_views: int = 3,
+                      methods: Sequence[str] | None = None) -> Path | None:
     """Grid of held-out views (rows) x clean | noisy | each method's render (columns), one seed; PNG.
 
     Reads what `eval.evaluate.save_heldout_renders` kept under `folder` (one scene); None when
-    nothing is there. Each method cell is titled with its PSNR against the clean image.
+    nothing is there. `methods` orders the columns (default: the saved methods by name); methods
+    without saved renders are left out. Each method cell is titled with its PSNR against the clean image.
     """
     import matplotlib
 
@@ -167,11 +169,9 @@ def plot_heldout_grid(folder: Path, path: Path, *, seed: int = 0, max_views: int
     if not clean_dir.is_dir():
         return None
     views = sorted(p.stem for p in clean_dir.glob("*.png"))[:max_views]
-    methods = sorted(p.name for p in folder.iterdir() if p.is_dir() and not p.name.startswith("_")
-                     and (p / f"seed{seed}").is_dir())
-    order = {m: i for i, m in enumerate(("3dgs_gt_poses", "instantsplat", "nlm_instantsplat", "n2v_round1",
-                                         "denoise_gs"))}
-    methods.sort(key=lambda m: (order.get(m, len(order)), m))
+    saved = sorted(p.name for p in folder.iterdir() if p.is_dir() and not p.name.startswith("_")
+                   and (p / f"seed{seed}").is_dir())
+    methods = saved if methods is None else [m for m in methods if m in saved]
     cols = ["_clean", "_noisy", *methods]
     if not views or not methods:
         return None
@@ -221,7 +221,8 @@ def write_results(out: Path, rows: Sequence[RunScores], *, title: str = "Evaluat
     for metric in ("psnr_db", "ssim", "lpips"):
         figs.append(plot_bars(rows, out / "figures" / f"{metric}.png", metric=metric))
     for scene in dict.fromkeys(r.scene for r in rows):
-        grid = plot_heldout_grid(out / "heldout" / scene, out / "figures" / f"heldout_{scene}.png")
+        grid = plot_heldout_grid(out / "heldout" / scene, out / "figures" / f"heldout_{scene}.png",
+                                 methods=list(dict.fromkeys(r.method for r in rows if r.scene == scene)))
         if grid is not None:
             figs.append(grid)
     md += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figs) + "\n"

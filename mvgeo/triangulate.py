@@ -288,14 +288,7 @@ def triangulate_two_view(
         DegenerateGeometryError: zero baseline (the cameras coincide); no
             point can be triangulated at all.
     """
-    r1 = _check_rays(rays1, "rays1")
-    r2 = _check_rays(rays2, "rays2")
-    if r2.shape != r1.shape:
-        raise ShapeError(f"rays2: expected shape {r1.shape}, got {r2.shape}")
-    R, t = Rt_from_matrix(cam2_from_cam1)
-    c2 = -R.T @ t  # camera 2 centre in camera 1's frame
-    if not np.linalg.norm(c2) > 0:
-        raise DegenerateGeometryError("triangulate_two_view: zero baseline (the camera centres coincide)")
+    r1, r2, R, t, c2 = _two_view_setup(rays1, rays2, cam2_from_cam1)
     r2w = r2 @ R  # R^T r2: camera-2 rays in camera 1's frame
     if method in ("mid2", "midpoint"):
         points, finite = _mid2_or_midpoint(_unit(r1), _unit(r2w), c2, method)
@@ -308,9 +301,8 @@ def triangulate_two_view(
     return _finalise_two_view(points, finite, c2, r1, r2w, criteria, R, t)
 
 
-def _triangulate_two_view_reference(rays1, rays2, cam2_from_cam1, *, method: Method = "mid2",
-                                    criteria: TriangulationCriteria = DEFAULT_CRITERIA) -> Triangulation:
-    """Slow, obvious `triangulate_two_view` (np.cross and the V-generic `_finalise`): the tests' reference."""
+def _two_view_setup(rays1, rays2, cam2_from_cam1):
+    """Checked rays, the relative pose and camera 2's centre in camera 1's frame (nonzero baseline)."""
     r1 = _check_rays(rays1, "rays1")
     r2 = _check_rays(rays2, "rays2")
     if r2.shape != r1.shape:
@@ -319,6 +311,13 @@ def _triangulate_two_view_reference(rays1, rays2, cam2_from_cam1, *, method: Met
     c2 = -R.T @ t  # camera 2 centre in camera 1's frame
     if not np.linalg.norm(c2) > 0:
         raise DegenerateGeometryError("triangulate_two_view: zero baseline (the camera centres coincide)")
+    return r1, r2, R, t, c2
+
+
+def _triangulate_two_view_reference(rays1, rays2, cam2_from_cam1, *, method: Method = "mid2",
+                                    criteria: TriangulationCriteria = DEFAULT_CRITERIA) -> Triangulation:
+    """Slow, obvious `triangulate_two_view` (np.cross and the V-generic `_finalise`): the tests' reference."""
+    r1, r2, R, t, c2 = _two_view_setup(rays1, rays2, cam2_from_cam1)
     f1 = _unit(r1)
     f2 = _unit(r2 @ R)  # R^T r2: camera-2 rays in camera 1's frame
     if method in ("mid2", "midpoint"):

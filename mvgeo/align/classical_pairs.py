@@ -530,33 +530,22 @@ class ClassicalPointmapModel:
         """(H, W, 3) points of view a's pixels in frame a, (H, W) confidence."""
         cfg = self.config
         H, W = flow_ab.shape[:2]
-        v, u = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
-        ua = np.stack([u, v], -1).reshape(-1, 2)
-        ub = ua + flow_ab.reshape(-1, 2)
-        # Backward flow sampled at the forward target (bilinear; OpenCV centres at integers).
-        back = cv2.remap(flow_ba, (ub[:, 0] - 0.5).astype(np.float32).reshape(H, W),
-                         (ub[:, 1] - 0.5).astype(np.float32).reshape(H, W), cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=(1e6, 1e6))
-        fb = np.linalg.norm(flow_ab.reshape(-1, 2) + back.reshape(-1, 2), axis=1)
-        inside = (ub[:, 0] > 0) & (ub[:, 0] < W) & (ub[:, 1] > 0) & (ub[:, 1] < H)
-        sampson = sampson_distance(F_ab, ua, ub)
-        rays_a = np.concatenate([ua, np.ones((len(ua), 1))], 1) @ np.linalg.inv(Ka).T
-        rays_b = np.concatenate([ub, np.ones((len(ub), 1))], 1) @ np.linalg.inv(Kb).T
+        fb, inside, sampson, rays_a, rays_b = _flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab)
         # Triangulate only the pixels that pass the cheap checks: the others get confidence 1 and the
         # placeholder depth whatever their triangulation (rows are independent: same values).
         pre = np.flatnonzero(inside & (fb < cfg.fb_max_px) & (sampson < cfg.epipolar_max_px))
         tri = triangulate_two_view(rays_a[pre], rays_b[pre], cam_b_from_a, criteria=cfg.triangulation)
         ok_pre = tri.valid
-        ok = np.zeros(len(ua), bool)
+        ok = np.zeros(len(rays_a), bool)
         ok[pre[ok_pre]] = True
         sel = pre[ok_pre]
         q = (np.exp(-0.5 * (fb[sel] / (0.5 * cfg.fb_max_px)) ** 2)
              * np.minimum(tri.angle_deg[ok_pre] / cfg.angle_ref_deg, 1.0)
              * np.exp(-0.5 * (sampson[sel] / (0.5 * cfg.epipolar_max_px)) ** 2))
-        conf = np.ones(len(ua))
+        conf = np.ones(len(rays_a))
         conf[sel] = 1.0 + cfg.conf_max * q
         if len(sel):
-            pts = np.empty((len(ua), 3))
+            pts = np.empty((len(rays_a), 3))
             pts[sel] = tri.points[ok_pre]
             med = float(np.median(pts[sel, 2]))
             pts[~ok] = rays_a[~ok] / rays_a[~ok, 2:3] * med
@@ -564,22 +553,11 @@ class ClassicalPointmapModel:
             pts = rays_a / rays_a[:, 2:3]
         return pts.reshape(H, W, 3), conf.reshape(H, W)
 
-
     def _pointmap_reference(self, flow_ab, flow_ba, Ka, Kb, F_ab, cam_b_from_a) -> tuple[np.ndarray, np.ndarray]:
         """Slow, obvious `_pointmap` (triangulates every pixel, then masks): the tests' reference."""
         cfg = self.config
         H, W = flow_ab.shape[:2]
-        v, u = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
-        ua = np.stack([u, v], -1).reshape(-1, 2)
-        ub = ua + flow_ab.reshape(-1, 2)
-        back = cv2.remap(flow_ba, (ub[:, 0] - 0.5).astype(np.float32).reshape(H, W),
-                         (ub[:, 1] - 0.5).astype(np.float32).reshape(H, W), cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=(1e6, 1e6))
-        fb = np.linalg.norm(flow_ab.reshape(-1, 2) + back.reshape(-1, 2), axis=1)
-        inside = (ub[:, 0] > 0) & (ub[:, 0] < W) & (ub[:, 1] > 0) & (ub[:, 1] < H)
-        sampson = sampson_distance(F_ab, ua, ub)
-        rays_a = np.concatenate([ua, np.ones((len(ua), 1))], 1) @ np.linalg.inv(Ka).T
-        rays_b = np.concatenate([ub, np.ones((len(ub), 1))], 1) @ np.linalg.inv(Kb).T
+        fb, inside, sampson, rays_a, rays_b = _flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab)
         tri = triangulate_two_view(rays_a, rays_b, cam_b_from_a, criteria=cfg.triangulation)
         ok = inside & (fb < cfg.fb_max_px) & (sampson < cfg.epipolar_max_px) & tri.valid
         q = (np.exp(-0.5 * (fb / (0.5 * cfg.fb_max_px)) ** 2)
@@ -593,6 +571,26 @@ class ClassicalPointmapModel:
         else:
             pts = rays_a / rays_a[:, 2:3]
         return pts.reshape(H, W, 3), conf.reshape(H, W)
+
+
+def _flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab):
+    """Per pixel of view a (row-major): forward-backward flow error, target inside view b, Sampson
+    distance to F_ab, and the rays of the pixel and of its flow target (camera frames)."""
+    H, W = flow_ab.shape[:2]
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
+    ua = np.stack([u, v], -1).reshape(-1, 2)
+    ub = ua + flow_ab.reshape(-1, 2)
+    # Backward flow sampled at the forward target (bilinear; OpenCV centres at integers).
+    back = cv2.remap(flow_ba, (ub[:, 0] - 0.5).astype(np.float32).reshape(H, W),
+                     (ub[:, 1] - 0.5).astype(np.float32).reshape(H, W), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=(1e6, 1e6))
+    fb = np.linalg.norm(flow_ab.reshape(-1, 2) + back.reshape(-1, 2), axis=1)
+    inside = (ub[:, 0] > 0) & (ub[:, 0] < W) & (ub[:, 1] > 0) & (ub[:, 1] < H)
+    sampson = sampson_distance(F_ab, ua, ub)
+    rays_a = np.concatenate([ua, np.ones((len(ua), 1))], 1) @ np.linalg.inv(Ka).T
+    rays_b = np.concatenate([ub, np.ones((len(ub), 1))], 1) @ np.linalg.inv(Kb).T
+    return fb, inside, sampson, rays_a, rays_b
+
 
 class _PairFailed(Exception):
     pass
