@@ -9,12 +9,14 @@ Given a finished pipeline round folder (`ROUND/denoised/`, `ROUND/align/`) and t
   `splat.TRAIN_PRESETS["instantsplat"]` with `--iters`), score the held-out views as `denoise-gs eval`
   does, and the training views against `clean/` and against the images trained on;
   `--lr-means-x K` multiplies the position learning rates; `--oracle` trains with the ground-truth
-  poses and a cloud back-projected from the ground-truth depth (the ceiling for these images).
+  poses and a cloud back-projected from the ground-truth depth (the ceiling for these images); `--mix
+  true-cloud` / `--mix true-poses` swap in only one of the two (which half limits the result).
 
 Run: `.venv/bin/python benchmarks/diag_splat_init.py ROUND DATA [--iters 300] [--oracle] [--lr-means-x K]`
 (e.g. ROUND = `runs/demo/eval/runs/llff_like/seed0/n2v/round1`, DATA = `runs/demo/llff_like`).
 `--realign` first re-runs `mvgeo align` (the round's preset is not known here: `preview` with the
-focal-prior fallback, as `make demo`) on the round's denoised images into `ROUND.realign/`.
+focal-prior fallback, as `make demo`) on the round's denoised images into `ROUND.realign*/`;
+`--no-dense-stereo` and `--downsample voxel` select the older cloud construction.
 """
 
 from __future__ import annotations
@@ -65,7 +67,8 @@ def depth_check(round_dir: Path, data: Path) -> dict:
             "median_of_views": float(np.median([r["median_abs"] for r in rows.values()]))}
 
 
-def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_x: float) -> dict:
+def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_x: float,
+                mix: str | None = None) -> dict:
     from splat.train import TRAIN_PRESETS, train_gaussians
 
     dataset = validate_dataset_folder(data)
@@ -89,20 +92,33 @@ def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_
         cfw = np.stack([np.asarray(sparse.image(n).cam_from_world)[:3] for n in names])
         pts = np.load(round_dir / "align" / "points.npz")
         xyz, rgb = pts["xyz"], pts["rgb"]
+        sim, _ = register_sim3(_poses(sparse), _poses(gt))  # x_est = s R x_ref + t
+        if mix == "true-cloud":  # our cameras, the cloud back-projected from the true depth (mapped in)
+            from splat.dataset import load_views, points_from_depth
+
+            xyz, rgb = points_from_depth(data, load_views(data, split="train"))
+            xyz = sim.scale * xyz @ sim.R.T + sim.t
+        elif mix == "true-poses":  # the true cameras (fixed), our cloud mapped into their frame
+            cams = [gt.camera_of(n) for n in names]
+            cfw = np.stack([np.asarray(gt.image(n).cam_from_world)[:3] for n in names])
+            xyz = ((xyz - sim.t) @ sim.R) / sim.scale
+            cfg = dataclasses.replace(cfg, optimize_poses=False)
     start = time.perf_counter()
     res = train_gaussians(images, cams, cfw, xyz, rgb, cfg)
     seconds = time.perf_counter() - start
     from splat.render import render_views
 
     est = {s: np.asarray(res.cam_from_world_optimized[i])[:3] for i, s in enumerate(stems)}
-    per_view, pose = _score_scene(res.model, gt, None if oracle else est, dataset, EvalConfig(), cams)
+    per_view, pose = _score_scene(res.model, gt, None if oracle or mix == "true-poses" else est, dataset,
+                                  EvalConfig(), cams)
     renders = render_views(res.model, cams, np.stack([est[s] for s in stems]))
     clean = [read_image(data / "clean" / f"{s}.png") for s in stems]
 
     def psnr(a, b):
         return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
 
-    return {"check": "splat", "round": str(round_dir), "iters": iters, "oracle": oracle, "lr_means_x": lr_means_x,
+    return {"check": "splat", "round": str(round_dir), "iters": iters, "oracle": oracle, "mix": mix,
+            "lr_means_x": lr_means_x,
             "seconds": round(seconds, 1), "gaussians": int(len(xyz)),
             "heldout_psnr_db": float(np.mean([v["psnr_db"] for v in per_view.values()])),
             "heldout_lpips": float(np.mean([v["lpips"] for v in per_view.values()])),
@@ -111,12 +127,15 @@ def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_
             **pose}
 
 
-def realign(round_dir: Path) -> Path:
+def realign(round_dir: Path, *, dense_stereo: bool = True, downsample: str = "pixel") -> Path:
     from mvgeo.align import PREVIEW, align_images, write_align_result
+    from mvgeo.align.dense_stereo import DenseStereoConfig
 
-    out = round_dir.parent / (round_dir.name + ".realign")
+    tag = ("" if dense_stereo else ".nostereo") + ("" if downsample == "pixel" else f".{downsample}")
+    out = round_dir.parent / (round_dir.name + ".realign" + tag)
     res = align_images(sorted((round_dir / "denoised").glob("*.png")),
-                       dataclasses.replace(PREVIEW, max_focal_log_std=1e9))
+                       dataclasses.replace(PREVIEW, max_focal_log_std=1e9, downsample=downsample,
+                                           dense_stereo=DenseStereoConfig(enabled=dense_stereo)))
     write_align_result(out / "align", res)
     np.savez(out / "align" / "points.npz", xyz=res.points_xyz, rgb=res.points_rgb, conf=res.points_conf)
     link = out / "denoised"
@@ -133,12 +152,18 @@ def main() -> int:
     ap.add_argument("--oracle", action="store_true")
     ap.add_argument("--lr-means-x", type=float, default=1.0)
     ap.add_argument("--realign", action="store_true")
+    ap.add_argument("--no-dense-stereo", action="store_true", help="with --realign: the alignment's depth maps")
+    ap.add_argument("--downsample", choices=["pixel", "voxel"], default="pixel", help="with --realign")
+    ap.add_argument("--mix", choices=["true-cloud", "true-poses"],
+                    help="swap in one ground-truth half: the cloud from the true depth (with our cameras) or "
+                         "the true cameras (with our cloud)")
     ap.add_argument("--no-splat", action="store_true")
     a = ap.parse_args()
-    rnd = realign(a.round_dir) if a.realign else a.round_dir
+    rnd = (realign(a.round_dir, dense_stereo=not a.no_dense_stereo, downsample=a.downsample) if a.realign
+           else a.round_dir)
     print(json.dumps(depth_check(rnd, a.data)))
     if not a.no_splat:
-        print(json.dumps(splat_check(rnd, a.data, a.iters, a.oracle, a.lr_means_x)))
+        print(json.dumps(splat_check(rnd, a.data, a.iters, a.oracle, a.lr_means_x, a.mix)))
     return 0
 
 

@@ -30,7 +30,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="global alignment on every K-th pixel row/column (default 4; 1 = all pixels)")
     a.add_argument("--ba", action=argparse.BooleanOptionalAction, default=True,
                    help="sparse bundle adjustment on the feature tracks after the alignment (default: on)")
+    a.add_argument("--dense-stereo", action=argparse.BooleanOptionalAction, default=True,
+                   help="recompute the cloud's depth maps by flow stereo with the final cameras at --max-size "
+                        "(default: on; off: the global alignment's depth maps)")
     a.add_argument("--points", type=int, default=200_000, help="point budget of points.ply")
+    a.add_argument("--downsample", choices=["pixel", "voxel"], default="pixel",
+                   help="thinning to --points: most confident point per pixel cell of each view (default) "
+                        "or per voxel")
     a.add_argument("--intrinsics", type=Path, help="COLMAP cameras.txt or mrcal .cameramodel of these images")
     a.add_argument("--allow-partial", action="store_true",
                    help="if some images cannot be connected, register the largest connected group and list "
@@ -54,6 +60,7 @@ def _parser() -> argparse.ArgumentParser:
 def _align(args: argparse.Namespace) -> int:
     from mvgeo.align.api import AlignConfig, align_images, write_align_result
     from mvgeo.align.classical_pairs import ClassicalPairConfig
+    from mvgeo.align.dense_stereo import DenseStereoConfig
     from mvgeo.align.global_align import GlobalAlignConfig
     from mvgeo.align.graph import PairGraphSpec
     from mvgeo.align.intrinsics import read_intrinsics
@@ -73,7 +80,8 @@ def _align(args: argparse.Namespace) -> int:
                       pairwise=ClassicalPairConfig(pointmap_size_px=args.pointmap_size),
                       align=GlobalAlignConfig(iters=args.iters, shared_focal=args.shared_focal,
                                               pixel_stride=args.align_stride),
-                      points_budget=args.points, bundle_adjust=args.ba, allow_partial=args.allow_partial)
+                      points_budget=args.points, bundle_adjust=args.ba, allow_partial=args.allow_partial,
+                      downsample=args.downsample, dense_stereo=DenseStereoConfig(enabled=args.dense_stereo))
     result = align_images(paths, cfg, intrinsics=intr)
     write_align_result(args.out, result)
     s = result.stats

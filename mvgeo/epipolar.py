@@ -213,7 +213,8 @@ def fundamental_8point(u1, u2, *, weights=None) -> np.ndarray:
     Q = np.einsum("ni,nj->nij", _hom(n2), _hom(n1)).reshape(-1, 9)
     if weights is not None:
         Q = Q * np.sqrt(np.asarray(weights, dtype=np.float64))[:, None]
-    _, _, Vt = np.linalg.svd(Q)
+    # Only the right singular vectors are needed: no N x N U (N >= 9 keeps all 9 rows of Vt).
+    _, _, Vt = np.linalg.svd(Q, full_matrices=Q.shape[0] < 9)
     Fn = Vt[-1].reshape(3, 3)
     U, S, Vt2 = np.linalg.svd(Fn)
     Fn = U @ np.diag([S[0], S[1], 0.0]) @ Vt2

@@ -32,14 +32,20 @@ Pipeline and modules:
   geometry; otherwise the inconsistent pairs are dropped and the problem
   solved once more, and a result that still contradicts the evidence (or whose
   focal length nothing determines) fails with a specific message.
-- `scene`: co-visibility pruning and confidence-aware voxel downsampling.
+- `dense_stereo`: once the cameras are final, the output cloud's depth maps are
+  recomputed by flow stereo per pair with those cameras at `max_size_px`, fused
+  per view (the pairwise pointmaps carry their own pair poses' errors).
+- `scene`: co-visibility pruning, the multi-view consistency check, and
+  confidence-aware thinning to the point budget (per pixel cell of each view by
+  default, or per voxel).
 - `intrinsics`: known calibration (COLMAP cameras.txt, mrcal .cameramodel) and undistortion.
 - `colmap_sfm`: the pycolmap SfM reference (`mvgeo colmap`).
 
-Resolutions: matching at `max_size_px` (512) on the long side; dense
-pointmaps and the optimised depth maps at `pairwise.pointmap_size_px` (128),
-the global alignment on every 4th pixel row/column (100 iterations); cameras
-are written at the input images' resolution (intrinsics scaled).
+Resolutions: matching and the final dense stereo at `max_size_px` (512) on the
+long side; pairwise pointmaps and the optimised depth maps at
+`pairwise.pointmap_size_px` (128), the global alignment on every 4th pixel
+row/column (100 iterations); cameras are written at the input images'
+resolution (intrinsics scaled).
 """
 
 from mvgeo.align.api import PREVIEW, AlignConfig, AlignResult, align_images, write_align_result

@@ -311,6 +311,15 @@ def _flow_rotated_180(gray_a, gray_b, uv_a_px, uv_b_px) -> tuple[np.ndarray, np.
     return np.ascontiguousarray(flow_ab, np.float32), np.ascontiguousarray(flow_ba, np.float32)
 
 
+def pair_flows(gray_a: np.ndarray, gray_b: np.ndarray, uv_a_px: np.ndarray, uv_b_px: np.ndarray,
+               R_b_from_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flows a -> b and b -> a ((H, W, 2) each) seeded by the matches; against b turned by 180 deg
+    when the relative rotation `R_b_from_a` turns the image plane by more than 135 deg."""
+    if abs(np.degrees(np.arctan2(R_b_from_a[1, 0], R_b_from_a[0, 0]))) > 135.0:
+        return _flow_rotated_180(gray_a, gray_b, uv_a_px, uv_b_px)
+    return dense_flow(gray_a, gray_b, uv_a_px, uv_b_px), dense_flow(gray_b, gray_a, uv_b_px, uv_a_px)
+
+
 def select_dense_pairs(n: int, inliers: dict[tuple[int, int], int], top_k: int) -> list[tuple[int, int]]:
     """Pairs that get dense pointmaps: each view's `top_k` pairs with most inliers, plus a maximum
     spanning tree of the inlier counts (connectivity); `top_k <= 0` takes every pair. Strongest first."""
@@ -507,11 +516,7 @@ class ClassicalPointmapModel:
         inl = rel.inlier_mask
         a, b = u1[inl] * si, u2[inl] * sj
         R, t = rel.R, rel.t  # cam_j_from_cam_i, |t| = 1
-        if abs(np.degrees(np.arctan2(R[1, 0], R[0, 0]))) > 135.0:
-            flow_ij, flow_ji = _flow_rotated_180(small[i], small[j], a, b)
-        else:
-            flow_ij = dense_flow(small[i], small[j], a, b)
-            flow_ji = dense_flow(small[j], small[i], b, a)
+        flow_ij, flow_ji = pair_flows(small[i], small[j], a, b, R)
         F = np.linalg.inv(Kj).T @ skew(t) @ R @ np.linalg.inv(Ki)
         cam_j_from_i = np.concatenate([R, t.reshape(3, 1)], axis=1)
         cam_i_from_j = np.concatenate([R.T, (-R.T @ t).reshape(3, 1)], axis=1)
@@ -530,7 +535,7 @@ class ClassicalPointmapModel:
         """(H, W, 3) points of view a's pixels in frame a, (H, W) confidence."""
         cfg = self.config
         H, W = flow_ab.shape[:2]
-        fb, inside, sampson, rays_a, rays_b = _flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab)
+        fb, inside, sampson, rays_a, rays_b = flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab)
         # Triangulate only the pixels that pass the cheap checks: the others get confidence 1 and the
         # placeholder depth whatever their triangulation (rows are independent: same values).
         pre = np.flatnonzero(inside & (fb < cfg.fb_max_px) & (sampson < cfg.epipolar_max_px))
@@ -557,7 +562,7 @@ class ClassicalPointmapModel:
         """Slow, obvious `_pointmap` (triangulates every pixel, then masks): the tests' reference."""
         cfg = self.config
         H, W = flow_ab.shape[:2]
-        fb, inside, sampson, rays_a, rays_b = _flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab)
+        fb, inside, sampson, rays_a, rays_b = flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab)
         tri = triangulate_two_view(rays_a, rays_b, cam_b_from_a, criteria=cfg.triangulation)
         ok = inside & (fb < cfg.fb_max_px) & (sampson < cfg.epipolar_max_px) & tri.valid
         q = (np.exp(-0.5 * (fb / (0.5 * cfg.fb_max_px)) ** 2)
@@ -573,7 +578,7 @@ class ClassicalPointmapModel:
         return pts.reshape(H, W, 3), conf.reshape(H, W)
 
 
-def _flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab):
+def flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab):
     """Per pixel of view a (row-major): forward-backward flow error, target inside view b, Sampson
     distance to F_ab, and the rays of the pixel and of its flow target (camera frames)."""
     H, W = flow_ab.shape[:2]

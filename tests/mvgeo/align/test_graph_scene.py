@@ -78,3 +78,23 @@ def test_voxel_downsample_budget_and_confidence(rng):
     assert 250 < len(sel) <= 500
     assert conf[sel].mean() > conf.mean()  # the most confident point of each voxel wins
     assert len(voxel_downsample_by_confidence(pts, conf, 10_000)) == 5000
+
+
+def test_pixel_downsample_keeps_the_best_point_per_cell_and_meets_the_budget():
+    from mvgeo.align.scene import best_per_pixel_cell, best_per_pixel_cell_reference, pixel_downsample_by_confidence
+
+    rng = np.random.default_rng(3)
+    P = 5000
+    view, row, col = rng.integers(0, 3, P), rng.integers(0, 48, P), rng.integers(0, 64, P)
+    conf = np.round(rng.uniform(1.0, 11.0, P), 1)  # rounded: ties occur and must go to the lower index
+    for size in (1.0, 2.5, 7.0, 64.0):
+        np.testing.assert_array_equal(best_per_pixel_cell(view, row, col, conf, size),
+                                      best_per_pixel_cell_reference(view, row, col, conf, size))
+    n_pixels = len(np.unique(np.stack([view, row, col], 1), axis=0))
+    for budget in (1, 2, 3, 50, 700, 4999, 5000):
+        sel = pixel_downsample_by_confidence(view, row, col, conf, budget)
+        assert len(sel) <= budget and len(np.unique(sel)) == len(sel)
+        if 3 <= budget < P:  # a cell partition: near the budget (bisection to 1 % in size), never over
+            assert len(sel) >= 0.9 * min(budget, n_pixels), (budget, len(sel))
+    top = pixel_downsample_by_confidence(view, row, col, conf, 2)  # fewer points than views
+    assert set(conf[top]) <= set(np.sort(conf)[-50:])  # each is its view's best: among the top scores
