@@ -324,12 +324,24 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
             K_a = np.stack([np.array([[f, 0, Wa / 2.0], [0, f, Ha / 2.0], [0, 0, 1]]) for f in res.focal_px * s_pm])
             stereo = stereo_depths(small, K_a, res.cam_from_world, [(p.i, p.j) for p in preds],
                                    {(i, j): uv for i, j, uv in matches}, config.dense_stereo)
-        depth_maps, conf_maps, K_grid = stereo.depth, stereo.conf, list(stereo.K)
+        depth_maps, conf_maps, K_grid = list(stereo.depth), list(stereo.conf), list(stereo.K)
+        # A view the stereo leaves (almost) empty (e.g. no baseline to any partner) keeps the global
+        # alignment's depth map, resampled onto the stereo grid (same field of view).
+        from_alignment = []
+        for v, d in enumerate(depth_maps):
+            if np.isfinite(d).mean() < config.dense_stereo.min_coverage:
+                Hg, Wg = d.shape
+                depth_maps[v] = cv2.resize(np.asarray(res.depth[v], np.float64), (Wg, Hg),
+                                           interpolation=cv2.INTER_NEAREST)
+                conf_maps[v] = cv2.resize(np.asarray(res.conf[v], np.float64), (Wg, Hg),
+                                          interpolation=cv2.INTER_NEAREST)
+                from_alignment.append(names[v])
         pts_maps = [backproject_depth(d, k, T) for d, k, T in zip(depth_maps, K_grid, res.cam_from_world,
                                                                     strict=True)]
         stereo_stats = {"size_wh": [int(depth_maps[0].shape[1]), int(depth_maps[0].shape[0])],
                         "n_pairs": len(preds),
-                        "fraction_with_depth": [round(float(np.isfinite(d).mean()), 4) for d in depth_maps]}
+                        "fraction_with_depth": [round(float(np.isfinite(d).mean()), 4) for d in stereo.depth],
+                        "views_with_alignment_depth": from_alignment}
         if ba is not None and ba.track_xyz is not None and len(ba.obs_view):
             # Agreement with the bundle-adjusted tracks (same cameras): median track / stereo depth per view.
             grid = np.array([depth_maps[0].shape[1] / Wa, depth_maps[0].shape[0] / Ha])

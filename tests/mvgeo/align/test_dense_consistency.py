@@ -126,3 +126,27 @@ def test_dense_cloud_lies_on_the_true_surface(llff6):
     # measured within 0.5 % of 1).
     ratio = np.array(res.stats["dense_stereo"]["track_depth_ratio"])
     assert np.all(np.abs(ratio - 1.0) < 0.02), ratio
+
+
+def test_a_view_the_stereo_leaves_empty_keeps_the_alignment_depth(llff6, monkeypatch):
+    import mvgeo.align.api as api
+
+    real = api.stereo_depths
+
+    def first_view_empty(*args, **kwargs):
+        out = real(*args, **kwargs)
+        out.depth[0] = np.full_like(out.depth[0], np.nan)
+        out.conf[0] = np.ones_like(out.conf[0])
+        return out
+
+    monkeypatch.setattr(api, "stereo_depths", first_view_empty)
+    res = align_images(list_images(llff6 / "images"), dataclasses.replace(PREVIEW, seed=0))
+    first = res.sparse_model.images[0].name
+    assert res.stats["dense_stereo"]["views_with_alignment_depth"] == [first]
+    assert res.stats["dense_stereo"]["fraction_with_depth"][0] == 0.0
+    # The view still contributes points: project the cloud into it and count those in front and inside.
+    T = np.asarray(res.sparse_model.images[0].cam_from_world)[:3]
+    cam = res.sparse_model.camera_of(first)
+    x = res.points_xyz @ T[:, :3].T + T[:, 3]
+    u = cam.params[0] * x[:, 0] / x[:, 2] + cam.params[2]
+    assert np.count_nonzero((x[:, 2] > 0) & (u >= 0) & (u < cam.width)) > 100

@@ -73,3 +73,12 @@ def test_stereo_with_true_cameras_recovers_the_true_depth(clean4):
     # pointmaps were 6-40 % off; 0.02 fails anything that brings the pair poses' error back.
     assert med < 0.02, f"median relative depth error {med:.4f}"
     assert min(covered) > 0.45, f"fraction of pixels with a depth per view {np.round(covered, 3)}"
+
+
+def test_a_pair_without_baseline_gives_no_depth_instead_of_failing():
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 1, size=(48, 64, 3))
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    cfw = np.stack([np.hstack([np.eye(3), np.zeros((3, 1))])] * 2)  # same centre: pure rotation (here none)
+    out = stereo_depths([img, img], np.stack([K, K]), cfw, [(0, 1)], {}, DenseStereoConfig(workers=1))
+    assert all(np.isnan(d).all() for d in out.depth) and all((c == 1.0).all() for c in out.conf)
