@@ -16,7 +16,7 @@ Run: `.venv/bin/python benchmarks/diag_splat_init.py ROUND DATA [--iters 300] [-
 (e.g. ROUND = `runs/demo/eval/runs/llff_like/seed0/n2v/round1`, DATA = `runs/demo/llff_like`).
 `--realign` first re-runs `mvgeo align` (the round's preset is not known here: `preview` with the
 focal-prior fallback, as `make demo`) on the round's denoised images into `ROUND.realign*/`;
-`--no-dense-stereo` and `--downsample voxel` select the older cloud construction.
+`--no-dense-stereo`, `--downsample voxel` and `--no-free-space` select the older cloud constructions.
 """
 
 from __future__ import annotations
@@ -127,15 +127,17 @@ def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_
             **pose}
 
 
-def realign(round_dir: Path, *, dense_stereo: bool = True, downsample: str = "pixel") -> Path:
+def realign(round_dir: Path, *, dense_stereo: bool = True, downsample: str = "pixel", free_space: bool = True) -> Path:
     from mvgeo.align import PREVIEW, align_images, write_align_result
     from mvgeo.align.dense_stereo import DenseStereoConfig
 
-    tag = ("" if dense_stereo else ".nostereo") + ("" if downsample == "pixel" else f".{downsample}")
+    tag = (("" if dense_stereo else ".nostereo") + ("" if downsample == "pixel" else f".{downsample}")
+           + ("" if free_space else ".nofreespace"))
     out = round_dir.parent / (round_dir.name + ".realign" + tag)
     res = align_images(sorted((round_dir / "denoised").glob("*.png")),
                        dataclasses.replace(PREVIEW, max_focal_log_std=1e9, downsample=downsample,
-                                           dense_stereo=DenseStereoConfig(enabled=dense_stereo)))
+                                           dense_stereo=DenseStereoConfig(enabled=dense_stereo),
+                                           **({} if free_space else {"free_space_rel_tol": 0.0})))
     write_align_result(out / "align", res)
     np.savez(out / "align" / "points.npz", xyz=res.points_xyz, rgb=res.points_rgb, conf=res.points_conf)
     link = out / "denoised"
@@ -154,13 +156,14 @@ def main() -> int:
     ap.add_argument("--realign", action="store_true")
     ap.add_argument("--no-dense-stereo", action="store_true", help="with --realign: the alignment's depth maps")
     ap.add_argument("--downsample", choices=["pixel", "voxel"], default="pixel", help="with --realign")
+    ap.add_argument("--no-free-space", action="store_true", help="with --realign: without the free-space check")
     ap.add_argument("--mix", choices=["true-cloud", "true-poses"],
                     help="swap in one ground-truth half: the cloud from the true depth (with our cameras) or "
                          "the true cameras (with our cloud)")
     ap.add_argument("--no-splat", action="store_true")
     a = ap.parse_args()
-    rnd = (realign(a.round_dir, dense_stereo=not a.no_dense_stereo, downsample=a.downsample) if a.realign
-           else a.round_dir)
+    rnd = (realign(a.round_dir, dense_stereo=not a.no_dense_stereo, downsample=a.downsample,
+                   free_space=not a.no_free_space) if a.realign else a.round_dir)
     print(json.dumps(depth_check(rnd, a.data)))
     if not a.no_splat:
         print(json.dumps(splat_check(rnd, a.data, a.iters, a.oracle, a.lr_means_x, a.mix)))

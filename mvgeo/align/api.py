@@ -59,6 +59,10 @@ class AlignConfig:
         covisibility_rel_tol: relative depth tolerance of the co-visibility pruning.
         consistency_rel_tol: a dense point that other views see but none confirms within this
             relative depth is dropped (`mvgeo.align.scene.covisibility_keep`; 0: off).
+        free_space_rel_tol: a dense point another view sees through (its depth there is more than
+            this fraction farther) is dropped (`covisibility_keep`; 0: off). On one noisy llff_like
+            round it removed a third of the points more than 5 % in front of the true surface (the
+            flow's halos next to depth edges: 31 % -> 22 % of the points) for +0.08 dB held out.
         bundle_adjust: refine poses and focal(s) by sparse bundle adjustment on
             the pairs' inlier matches after the global alignment (needs a model
             that returns `matches_px`; the classical one does).
@@ -116,6 +120,7 @@ class AlignConfig:
     downsample: str = "pixel"
     covisibility_rel_tol: float = 0.03
     consistency_rel_tol: float = 0.05
+    free_space_rel_tol: float = 0.05
     bundle_adjust: bool = True
     bundle: BundleConfig = field(default_factory=BundleConfig)
     seed: int = 0
@@ -355,7 +360,8 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
     with timer.stage("scene"):
         keep = covisibility_keep(pts_maps, depth_maps, conf_maps, res.cam_from_world, K_grid,
                                  rel_depth_tol=config.covisibility_rel_tol,
-                                 consistency_rel_tol=config.consistency_rel_tol)
+                                 consistency_rel_tol=config.consistency_rel_tol,
+                                 free_space_rel_tol=config.free_space_rel_tol)
         xyz, rgb, conf, pix = [], [], [], []
         for v in range(n):
             Hg, Wg = depth_maps[v].shape

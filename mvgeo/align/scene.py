@@ -15,7 +15,7 @@ import numpy as np
 
 def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarray], conf: Sequence[np.ndarray],
                       cam_from_world: np.ndarray, K: Sequence[np.ndarray], *, rel_depth_tol: float = 0.03,
-                      consistency_rel_tol: float = 0.0) -> list[np.ndarray]:
+                      consistency_rel_tol: float = 0.0, free_space_rel_tol: float = 0.0) -> list[np.ndarray]:
     """Per view, a (H, W) bool mask of the pixels to keep.
 
     A pixel p of view n is dropped when it projects inside view m (m != n) to
@@ -39,6 +39,9 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
         K: N (3, 3) intrinsics of the pointmap grids (our pixel convention).
         rel_depth_tol: relative depth agreement for "same surface".
         consistency_rel_tol: relative depth tolerance of the consistency check (0: off).
+        free_space_rel_tol: with > 0, p is also dropped when some other view sees *through* it:
+            z_m(p) < (1 - free_space_rel_tol) * depth_m[q] (a free-space violation, as in
+            visibility-based depth-map fusion; 0: off).
     """
     n = len(pts_world)
     keep = [np.ones(d.shape, bool) for d in depth]
@@ -70,6 +73,8 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
             if consistency_rel_tol > 0:
                 confirmed[idx[np.abs(z[idx] - db) < consistency_rel_tol * db]] = True
                 seen[idx[np.isfinite(db) & (db > 0)]] = True
+            if free_space_rel_tol > 0:
+                drop[idx[z[idx] < (1.0 - free_space_rel_tol) * db]] = True
         drop |= seen & ~confirmed
         keep[a] = ~drop.reshape(depth[a].shape)
     return keep

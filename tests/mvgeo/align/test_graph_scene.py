@@ -71,6 +71,29 @@ def test_consistency_check_drops_only_contradicted_unconfirmed_points():
     assert off[0].sum() == H * W
 
 
+def test_free_space_check_drops_points_another_view_sees_through():
+    """View 1 sees a plane at depth 2 everywhere; view 0 claims one pixel at 1.5 (view 1 sees through it:
+    dropped) and one at 3.0 (behind what view 1 sees: occluded there, not a violation, kept); the rest
+    agree. Only the free-space check is on."""
+    H, W, f = 6, 8, 8.0
+    cam = np.concatenate([np.eye(3), np.zeros((3, 1))], 1)
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    d0 = np.full((H, W), 2.0)
+    d0[1, 1], d0[2, 2] = 1.5, 3.0
+    d1 = np.full((H, W), 2.0)
+    pts0, pts1 = pixel_rays(H, W, f) * d0[..., None], pixel_rays(H, W, f) * d1[..., None]
+    conf0, conf1 = np.full((H, W), 3.0), np.full((H, W), 2.0)
+    args = ([pts0, pts1], [d0, d1], [conf0, conf1], np.stack([cam, cam]), [K, K])
+    keep = covisibility_keep(*args, rel_depth_tol=0.03, free_space_rel_tol=0.05)
+    assert not keep[0][1, 1] and keep[0][2, 2] and keep[0].sum() == H * W - 1
+    # Within the tolerance (1.95 vs 2.0: 2.5 % nearer) nothing is dropped.
+    d0[1, 1] = 1.95
+    pts0 = pixel_rays(H, W, f) * d0[..., None]
+    keep = covisibility_keep([pts0, pts1], [d0, d1], [conf0, conf1], np.stack([cam, cam]), [K, K],
+                             rel_depth_tol=0.0, free_space_rel_tol=0.05)
+    assert keep[0].all()
+
+
 def test_voxel_downsample_budget_and_confidence(rng):
     pts = rng.random((5000, 3))
     conf = rng.random(5000)
