@@ -16,7 +16,8 @@ Run: `.venv/bin/python benchmarks/diag_splat_init.py ROUND DATA [--iters 300] [-
 (e.g. ROUND = `runs/demo/eval/runs/llff_like/seed0/n2v/round1`, DATA = `runs/demo/llff_like`).
 `--realign` first re-runs `mvgeo align` (the round's preset is not known here: `preview` with the
 focal-prior fallback, as `make demo`) on the round's denoised images into `ROUND.realign*/`;
-`--no-dense-stereo`, `--downsample voxel` and `--no-free-space` select the older cloud constructions.
+`--no-dense-stereo`, `--downsample voxel` and `--no-free-space` select the older cloud constructions,
+`--points N` another point budget; `--train-images DIR` trains on other images than `ROUND/denoised`.
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ def depth_check(round_dir: Path, data: Path) -> dict:
 
 
 def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_x: float,
-                mix: str | None = None) -> dict:
+                mix: str | None = None, train_images: Path | None = None) -> dict:
     from splat.train import TRAIN_PRESETS, train_gaussians
 
     dataset = validate_dataset_folder(data)
@@ -76,7 +77,7 @@ def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_
     sparse = read_sparse_model(round_dir / "align" / "sparse" / "0")
     names = sparse.names
     stems = [Path(n).stem for n in names]
-    images = [read_image(round_dir / "denoised" / f"{s}.png") for s in stems]
+    images = [read_image((train_images or round_dir / "denoised") / f"{s}.png") for s in stems]
     cfg = dataclasses.replace(TRAIN_PRESETS["instantsplat"], iters=iters, seed=0,
                               lr_means=TRAIN_PRESETS["instantsplat"].lr_means * lr_means_x,
                               lr_means_final=TRAIN_PRESETS["instantsplat"].lr_means_final * lr_means_x)
@@ -118,6 +119,7 @@ def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_
         return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
 
     return {"check": "splat", "round": str(round_dir), "iters": iters, "oracle": oracle, "mix": mix,
+            "train_images": str(train_images or round_dir / "denoised"),
             "lr_means_x": lr_means_x,
             "seconds": round(seconds, 1), "gaussians": int(len(xyz)),
             "heldout_psnr_db": float(np.mean([v["psnr_db"] for v in per_view.values()])),
@@ -127,17 +129,19 @@ def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_
             **pose}
 
 
-def realign(round_dir: Path, *, dense_stereo: bool = True, downsample: str = "pixel", free_space: bool = True) -> Path:
+def realign(round_dir: Path, *, dense_stereo: bool = True, downsample: str = "pixel", free_space: bool = True,
+            points: int | None = None) -> Path:
     from mvgeo.align import PREVIEW, align_images, write_align_result
     from mvgeo.align.dense_stereo import DenseStereoConfig
 
     tag = (("" if dense_stereo else ".nostereo") + ("" if downsample == "pixel" else f".{downsample}")
-           + ("" if free_space else ".nofreespace"))
+           + ("" if free_space else ".nofreespace") + (f".p{points}" if points else ""))
     out = round_dir.parent / (round_dir.name + ".realign" + tag)
     res = align_images(sorted((round_dir / "denoised").glob("*.png")),
                        dataclasses.replace(PREVIEW, max_focal_log_std=1e9, downsample=downsample,
                                            dense_stereo=DenseStereoConfig(enabled=dense_stereo),
-                                           **({} if free_space else {"free_space_rel_tol": 0.0})))
+                                           **({} if free_space else {"free_space_rel_tol": 0.0}),
+                                           **({"points_budget": points} if points else {})))
     write_align_result(out / "align", res)
     np.savez(out / "align" / "points.npz", xyz=res.points_xyz, rgb=res.points_rgb, conf=res.points_conf)
     link = out / "denoised"
@@ -160,13 +164,17 @@ def main() -> int:
     ap.add_argument("--mix", choices=["true-cloud", "true-poses"],
                     help="swap in one ground-truth half: the cloud from the true depth (with our cameras) or "
                          "the true cameras (with our cloud)")
+    ap.add_argument("--points", type=int, help="with --realign: output point budget (PREVIEW's is 20000)")
+    ap.add_argument("--train-images", type=Path,
+                    help="train the splat on these images (same names) instead of ROUND/denoised, e.g. the "
+                         "noisy inputs with the cameras and cloud of the denoised round")
     ap.add_argument("--no-splat", action="store_true")
     a = ap.parse_args()
     rnd = (realign(a.round_dir, dense_stereo=not a.no_dense_stereo, downsample=a.downsample,
-                   free_space=not a.no_free_space) if a.realign else a.round_dir)
+                   free_space=not a.no_free_space, points=a.points) if a.realign else a.round_dir)
     print(json.dumps(depth_check(rnd, a.data)))
     if not a.no_splat:
-        print(json.dumps(splat_check(rnd, a.data, a.iters, a.oracle, a.lr_means_x, a.mix)))
+        print(json.dumps(splat_check(rnd, a.data, a.iters, a.oracle, a.lr_means_x, a.mix, a.train_images)))
     return 0
 
 
