@@ -49,7 +49,7 @@ def depth_check(round_dir: Path, data: Path) -> dict:
     est, gt = read_sparse_model(round_dir / "align" / "sparse" / "0"), read_sparse_model(data / "sparse" / "0")
     sim, _ = register_sim3(_poses(est), _poses(gt))  # est_from_ref: x_est = s R x_ref + t
     xyz = ((np.load(round_dir / "align" / "points.npz")["xyz"] - sim.t) @ sim.R) / sim.scale
-    rows = {}
+    rows, ratios = {}, []
     for stem in _poses(est):
         n = next(m for m in gt.names if Path(m).stem == stem)
         T, cam = np.asarray(gt.image(n).cam_from_world)[:3], gt.camera_of(n)
@@ -61,11 +61,21 @@ def depth_check(round_dir: Path, data: Path) -> dict:
         z_true = np.load(data / "depth" / f"{stem}.npy")[v[ok].astype(int), u[ok].astype(int)]
         fin = np.isfinite(z_true)
         rel = xc[ok][fin, 2] / z_true[fin] - 1.0
+        ratios.append(rel + 1.0)
         rows[stem] = {"median_abs": round(float(np.median(np.abs(rel))), 4),
+                      "median_signed": round(float(np.median(rel)), 4),
                       "p90_abs": round(float(np.percentile(np.abs(rel), 90)), 4),
                       "in_front_5pct": round(float(np.mean(rel < -0.05)), 3)}
+    # The Sim(3) fitted to the camera centres fixes the scale only as well as the centres do (a
+    # forward-facing rig with a small spread): the scale-free error divides out one global scale
+    # (the median depth ratio over all views) and measures the cloud's shape alone.
+    all_ratios = np.concatenate(ratios)
+    scale = float(np.median(all_ratios))
     return {"check": "depth", "round": str(round_dir), "per_view": rows,
-            "median_of_views": float(np.median([r["median_abs"] for r in rows.values()]))}
+            "median_of_views": float(np.median([r["median_abs"] for r in rows.values()])),
+            "global_depth_scale": round(scale, 4),
+            "median_abs_scale_free": round(float(np.median(np.abs(all_ratios / scale - 1.0))), 4),
+            "in_front_5pct_scale_free": round(float(np.mean(all_ratios / scale < 0.95)), 3)}
 
 
 def splat_check(round_dir: Path, data: Path, iters: int, oracle: bool, lr_means_x: float,

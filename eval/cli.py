@@ -225,7 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
     cost.add_argument("--seed", type=int, default=0)
     cost.add_argument("--device", default="cpu")
     cost.add_argument("--knobs", nargs="+", default=None, metavar="KNOB",
-                      help="sweep only these knobs (default all: n2v_steps passes align_iters align_size "
+                      help="sweep only these knobs (default all: n2v_steps passes align_iters align_size align_points "
                            "splat_iters views train_views preset)")
     cost.add_argument("--grid", action="append", default=None, metavar="KNOB=V1,V2",
                       help="values of one knob (repeatable), e.g. --grid splat_iters=100,300")

@@ -86,6 +86,8 @@ def _align_config(s: Mapping[str, object], seed: int, need: str):
         cfg = dataclasses.replace(cfg, max_size_px=s["max_size_px"])
     if s["iters"] is not None:
         cfg = dataclasses.replace(cfg, align=dataclasses.replace(cfg.align, iters=s["iters"]))
+    if s.get("points") is not None:
+        cfg = dataclasses.replace(cfg, points_budget=int(s["points"]))
     if s.get("max_focal_log_std") is not None:
         cfg = dataclasses.replace(cfg, max_focal_log_std=float(s["max_focal_log_std"]))
     return cfg

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
 
 from eval.pipeline import PRESETS, MissingComponentError, StageRunner, StageSpec, preset
 from eval.pipeline.components import component_config, require
+from eval.pipeline.stages import _align_config
 from mvgeo.common.errors import ConfigError, DgsError
 
 
@@ -107,6 +109,22 @@ def test_presets_and_validation():
         preset("fast", views=1)
     with pytest.raises(ConfigError, match="rounds"):
         preset("fast", rounds=0)
+    with pytest.raises(ConfigError, match="align.points"):
+        dataclasses.replace(PRESETS["fast"], align=dataclasses.replace(PRESETS["fast"].align, points=0))
+
+
+def test_align_settings_reach_the_align_config():
+    """The pipeline's align settings (preset + overrides) become the AlignConfig the stage runs."""
+    from mvgeo.align import PREVIEW, AlignConfig
+
+    fast = dataclasses.asdict(PRESETS["fast"].align)
+    cfg = _align_config(fast, seed=3, need="test")
+    assert cfg.points_budget == PRESETS["fast"].align.points != PREVIEW.points_budget
+    assert cfg.max_size_px == PREVIEW.max_size_px and cfg.seed == 3
+    default = _align_config(dataclasses.asdict(PRESETS["default"].align), seed=0, need="test")
+    assert default.points_budget == AlignConfig().points_budget  # None keeps the preset's
+    over = _align_config({**fast, "points": 1234, "iters": 7, "max_size_px": 99}, seed=0, need="test")
+    assert (over.points_budget, over.align.iters, over.max_size_px) == (1234, 7, 99)
 
 
 def test_missing_components_are_named():
