@@ -131,7 +131,7 @@ PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40),
         # PREVIEW thins its cloud to 20k points; at 256x192 and 12 views the splat started from
-        # every point (~60k) scored +0.5 dB / LPIPS -0.17 held out for +15 % splat time
+        # every point (~60k) scored +0.5 dB / LPIPS -0.09..-0.17 held out for 15-40 % more splat time
         # (docs/bench/pipeline.md, "the splat's point budget").
         align=AlignSettings(preset="preview", points=100_000),
         splat=SplatSettings(preset="quick"),
