@@ -108,8 +108,13 @@ def voxel_downsample_by_confidence(points: np.ndarray, conf: np.ndarray, budget:
         return np.sort(order[first])
 
     lo, hi = extent * 1e-6, extent  # hi gives ~1 voxel
-    best = pick(hi)
-    for _ in range(30):
+    return _finest_within_budget(pick, lo, hi, pick(hi), budget, iters=30)
+
+
+def _finest_within_budget(pick, lo: float, hi: float, best: np.ndarray, budget: int, *, iters: int) -> np.ndarray:
+    """Geometric bisection of the cell size in [lo, hi] for the finest `pick(size)` (more cells, more
+    points) with at most `budget` points; `best` = pick(hi), which must fit."""
+    for _ in range(iters):
         mid = np.sqrt(lo * hi)
         sel = pick(mid)
         if len(sel) <= budget:
@@ -150,16 +155,7 @@ def pixel_downsample_by_confidence(view: np.ndarray, row: np.ndarray, col: np.nd
     best = pick(hi)
     if len(best) > budget:  # more views than the budget: the most confident point of each view, best first
         return np.sort(best[np.argsort(-conf[best], kind="stable")[:budget]])
-    for _ in range(40):
-        mid = np.sqrt(lo * hi)
-        sel = pick(mid)
-        if len(sel) <= budget:
-            hi, best = mid, sel
-        else:
-            lo = mid
-        if hi / lo < 1.01:
-            break
-    return best
+    return _finest_within_budget(pick, lo, hi, best, budget, iters=40)
 
 
 def best_per_pixel_cell(view: np.ndarray, row: np.ndarray, col: np.ndarray, conf: np.ndarray,
