@@ -63,6 +63,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
                     select_views=False if args.no_select else None, device=args.device)
     if args.allow_focal_prior:
         config = _allow_focal_prior(config)
+    if args.reuse_intrinsics is not None:
+        import dataclasses
+
+        config = dataclasses.replace(config, align=dataclasses.replace(config.align,
+                                                                       reuse_intrinsics=args.reuse_intrinsics))
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
@@ -186,6 +191,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--allow-focal-prior", action="store_true",
                      help="when the views do not determine the focal length, go on with the prior instead of "
                           "stopping (as `denoise-gs eval` does; check the result's poses)")
+    run.add_argument("--reuse-intrinsics", choices=("auto", "always", "never"), default=None,
+                     help="rounds >= 2: auto (default) keeps the better-determined of the round's own focal "
+                          "estimate and the previous round's; always takes the previous round's; never "
+                          "estimates anew each round (the paper's loop)")
     run.set_defaults(func=_cmd_run)
 
     ev = sub.add_parser("eval", help="score methods on a scene with ground truth")

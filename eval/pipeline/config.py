@@ -18,6 +18,7 @@ from mvgeo.common.errors import ConfigError
 __all__ = ["PRESETS", "AlignSettings", "DenoiseSettings", "PipelineConfig", "SplatSettings", "preset"]
 
 Round2Loss = Literal["joint", "charbonnier"]
+ReuseIntrinsics = Literal["auto", "always", "never"]
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,12 @@ class AlignSettings:
             uncertainty); None keeps the preset's (strict). The evaluation sets it very large:
             InstantSplat-style methods then keep the focal they estimate (or the prior), and the
             held-out scores and pose errors measure what that costs.
+        reuse_intrinsics: rounds >= 2 only (round 1's stage keys ignore it): "auto" keeps the
+            better-determined of this round's focal estimate and the previous round's (the
+            bundle adjustment's `focal_log_std`), re-aligning with the previous calibration fixed
+            when that one wins or when this round's views do not determine the focal; "always"
+            uses the previous round's calibration; "never" estimates anew every round (the
+            paper's loop). See `eval.pipeline.calibration`.
     """
 
     preset: str = "default"
@@ -63,6 +70,7 @@ class AlignSettings:
     iters: int | None = None
     points: int | None = None
     max_focal_log_std: float | None = None
+    reuse_intrinsics: ReuseIntrinsics = "auto"
 
 
 @dataclass(frozen=True)
@@ -111,6 +119,9 @@ class PipelineConfig:
         if self.denoise.round2_loss not in ("joint", "charbonnier"):
             raise ConfigError(f"unknown loss {self.denoise.round2_loss!r}", key="denoise.round2_loss",
                               expected="'joint' or 'charbonnier'")
+        if self.align.reuse_intrinsics not in ("auto", "always", "never"):
+            raise ConfigError(f"unknown value {self.align.reuse_intrinsics!r}", key="align.reuse_intrinsics",
+                              expected="'auto', 'always' or 'never'")
         for key, value in (("denoise.n2v_steps", self.denoise.n2v_steps),
                            ("denoise.round2_steps", self.denoise.round2_steps),
                            ("align.max_size_px", self.align.max_size_px), ("align.iters", self.align.iters),

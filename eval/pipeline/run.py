@@ -4,8 +4,9 @@ Round 1: denoise (train N2V on every noisy image, denoise all) -> align ->
 splat (training with pose optimisation) -> render at every input pose.
 Round r >= 2: select views from round r-1 (pose k-means, K = `views`, sharpest
 per cluster) -> refine (fine-tune the round r-1 UNet with the joint loss
-against round r-1's renders of the selected views, denoise them) -> align ->
-splat -> render.
+against round r-1's renders of the selected views, denoise them) -> align
+(keeping the better-determined of its own and round r-1's focal length,
+`eval.pipeline.calibration`) -> splat -> render.
 
 Layout (each stage commits its outputs atomically; `roundN/stages/*.json`
 hold the keys; see `eval.pipeline.stage`):
@@ -72,12 +73,20 @@ class PipelineResult:
 
 
 def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images: StageResult,
-                  config: PipelineConfig, r: int, resolved: dict) -> dict[str, StageResult]:
-    """align -> splat -> render on the round's denoised images."""
+                  config: PipelineConfig, r: int, resolved: dict,
+                  previous: RoundResult | None = None) -> dict[str, StageResult]:
+    """align -> splat -> render on the round's denoised images (`previous`: round r-1, for r >= 2)."""
     label = f"round{r}"
-    al = runner.run(StageSpec("align", rd, stages.align, ("align",), inputs={"images": rd / "denoised"},
-                              upstream=(images,), settings={**asdict(config.align), "resolved": resolved["align"]},
-                              seed=stage_seed(config.seed, r, "align")), label=f"{label}/align")
+    align_settings = {**asdict(config.align), "resolved": resolved["align"]}
+    inputs, upstream = {"images": rd / "denoised"}, (images,)
+    if previous is None:
+        del align_settings["reuse_intrinsics"]  # a rounds >= 2 setting: round 1's key stays as it was
+    else:  # the previous round's calibration (eval.pipeline.calibration)
+        inputs["previous_align"] = previous.dir / "align"
+        upstream = (images, previous.stages["align"])
+    al = runner.run(StageSpec("align", rd, stages.align, ("align",), inputs=inputs, upstream=upstream,
+                              settings=align_settings, seed=stage_seed(config.seed, r, "align")),
+                    label=f"{label}/align")
     sp = runner.run(StageSpec("splat", rd, stages.splat, ("sparse", "point_cloud.ply"),
                               inputs={"images": rd / "denoised", "align": rd / "align"}, upstream=(images, al),
                               settings={**asdict(config.splat), "device": config.device,
@@ -145,7 +154,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
                           "round2_steps": d.round2_steps, "round2_loss": d.round2_loss, "passes": d.passes,
                           "device": config.device, "resolved": resolved["round2"]},
                 seed=stage_seed(config.seed, r, "refine")), label=f"round{r}/refine")
-            scene = _scene_stages(runner, stages, rd, ref, config, r, resolved)
+            scene = _scene_stages(runner, stages, rd, ref, config, r, resolved, previous=prev)
             rounds.append(RoundResult(r, rd, {"select": sel, "refine": ref, **scene}))
         report_json, report_md = write_report(out, images_dir=images_dir, config=config, rounds=rounds,
                                               timings_s=timer.as_dict())

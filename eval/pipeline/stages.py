@@ -9,7 +9,7 @@ Each function has the `StageFn` signature (`fn(ctx) -> summary`), reads
 | stage     | inputs                                   | outputs                                   |
 |-----------|------------------------------------------|-------------------------------------------|
 | denoise   | noisy                                    | denoised/, n2v_model.pt                   |
-| align     | images                                   | align/ (sparse/0/, points.ply/.npz, json) |
+| align     | images [, previous_align (rounds >= 2)]  | align/ (sparse/0/, points.ply/.npz, json) |
 | splat     | images, align                            | sparse/0/, point_cloud.ply                |
 | render    | sparse, scene                            | renders/                                  |
 | select    | images, sparse                           | selection.json                            |
@@ -28,11 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
+from eval.pipeline.calibration import INHERITED_KEY, focal_log_std, prefer_previous, previous_calibration
 from eval.pipeline.components import MissingComponentError, component_config, require
 from eval.pipeline.config import PipelineConfig
 from eval.pipeline.hashing import hash_files
 from eval.pipeline.stage import StageContext, StageFn
 from eval.pipeline.views import read_views, view_files, write_views
+from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
 __all__ = ["PipelineStages", "align", "check_product_components", "denoise", "product_stages", "refine", "render",
@@ -120,8 +122,13 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     cfg = _align_config(ctx.settings, ctx.seed, need)
     align_images = require("mvgeo.align", "align_images", needed_for=need)
     write_align_result = require("mvgeo.align", "write_align_result", needed_for=need)
-    files = view_files(ctx.inputs["images"])
-    res = align_images(list(files.values()), cfg)
+    files = list(view_files(ctx.inputs["images"]).values())
+    mode = ctx.settings.get("reuse_intrinsics", "never")
+    previous = ctx.inputs.get("previous_align")
+    if previous is None or mode == "never":
+        res = align_images(files, cfg)
+    else:
+        res = _align_with_previous_calibration(align_images, files, cfg, Path(previous), mode)
     out = ctx.work_dir / "align"
     write_align_result(out, res)  # sparse/0/*.bin, points.ply, align.json
     np.savez(out / "points.npz", xyz=np.asarray(res.points_xyz, np.float64),
@@ -129,6 +136,30 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     stats = res.stats if isinstance(res.stats, Mapping) else {}
     return {"registered": len(res.sparse_model.images), "points": int(len(res.points_xyz)),
             "stats": json.loads(json.dumps(stats, default=str))}
+
+
+def _align_with_previous_calibration(align_images, files: list[Path], cfg, previous: Path, mode: str):
+    """Rounds >= 2: align, keeping the better-determined of this round's and the previous round's
+    focal (`eval.pipeline.calibration`); the choice and both estimates go into align.json."""
+    camera, previous_std = previous_calibration(previous)
+    inherited = {"focal_px": 0.5 * (camera.fx + camera.fy), "focal_log_std": previous_std, "mode": mode}
+    if mode == "auto":
+        try:
+            res = align_images(files, cfg)
+        except DegenerateGeometryError as exc:  # e.g. no pair of this round determines the focal length
+            inherited["estimate_refused"] = str(exc)[:500]
+        else:
+            current_std = focal_log_std(res.stats)
+            if not prefer_previous("auto", previous_std, current_std):
+                res.stats[INHERITED_KEY] = {**inherited, "used": False, "estimate_focal_log_std": current_std}
+                return res
+            focals = res.stats.get("focal_px") or {}
+            inherited["estimate_discarded"] = {
+                "focal_px": float(np.median(list(focals.values()))) if focals else None,
+                "focal_log_std": current_std}
+    res = align_images(files, cfg, intrinsics=camera)
+    res.stats[INHERITED_KEY] = {**inherited, "used": True}
+    return res
 
 
 def splat(ctx: StageContext) -> Mapping[str, object]:

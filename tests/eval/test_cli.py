@@ -43,6 +43,23 @@ def test_run_bad_values(tmp_path, capsys):
     assert "not a folder" in _err(capsys)
 
 
+@pytest.mark.parametrize(("flag", "expected"), [([], "auto"), (["--reuse-intrinsics", "never"], "never")])
+def test_run_reuse_intrinsics_flag(tmp_path, monkeypatch, flag, expected):
+    import eval.cli
+
+    seen = {}
+
+    def fake_run(images_dir, out, config, force=False):  # stands in for the hours of compute
+        seen["config"] = config
+        raise SystemExit(0)
+
+    monkeypatch.setattr(eval.cli, "run_pipeline", fake_run)
+    with pytest.raises(SystemExit):
+        main(["run", str(make_scene(tmp_path / "images", n=4)), "--out", str(tmp_path / "out"), "--views", "4",
+              *flag])
+    assert seen["config"].align.reuse_intrinsics == expected
+
+
 def test_run_corrupt_image(tmp_path, capsys):
     scene = make_scene(tmp_path / "images", n=4)
     (scene / "view_002.png").write_bytes(b"\x89PNG broken")

@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
-from eval.evaluate import EVAL_METHODS, EvalConfig, _identity_stage, _nlm_stage, method_pipeline_config
+from eval.evaluate import (
+    EVAL_METHODS,
+    EvalConfig,
+    _identity_stage,
+    _nlm_stage,
+    _oracle_clean_stage,
+    method_pipeline_config,
+)
 from eval.pipeline import StageRunner, StageSpec, preset
 from eval.pipeline.views import read_views, write_views
 from eval.psnr import psnr
@@ -23,6 +32,7 @@ def test_method_settings():
     assert fam["ablate_no_selection"][1].select_views is False
     assert fam["ablate_charbonnier"][1].denoise.round2_loss == "charbonnier"
     assert fam["instantsplat"][1].rounds == 1
+    assert fam["oracle_clean"] == ("oracle_clean", fam["instantsplat"][1])  # (b)'s settings, own folder
     with pytest.raises(InputError, match="magic"):
         EvalConfig(methods=("magic",))
     with pytest.raises(InputError, match="seeds"):
@@ -57,6 +67,20 @@ def test_classical_denoise_stages(tmp_path, fn):
         # that a broken h/sigma (no-op or over-smoothing to grey) would miss.
         assert gain > 3.0
         assert 0.05 < res.summary["sigma_est"]["a"] < 0.15  # estimate of 25/255 = 0.098
+
+
+def test_oracle_clean_stage(tmp_path):
+    clean, folder = _noisy_folder(tmp_path)
+    write_views(tmp_path / "clean", {"a": clean})
+    files = {"a": next((tmp_path / "clean").iterdir())}
+    stage = functools.partial(_oracle_clean_stage, files)
+    res = StageRunner().run(StageSpec("denoise", tmp_path / "r", stage, ("denoised", "n2v_model.pt"),
+                                      inputs={"noisy": folder}))
+    # The clean photo replaces the noisy one (16-bit PNG round trip: error < 1e-4).
+    np.testing.assert_allclose(read_views(res.outputs["denoised"])["a"], clean, atol=1e-4)
+    with pytest.raises(InputError, match="no clean image"):
+        StageRunner().run(StageSpec("denoise", tmp_path / "r2", functools.partial(_oracle_clean_stage, {}),
+                                    ("denoised", "n2v_model.pt"), inputs={"noisy": folder}))
 
 
 @pytest.mark.parametrize("sigma", [0.02, 0.05, 0.1])
