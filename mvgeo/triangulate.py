@@ -97,7 +97,8 @@ class Triangulation:
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    # (N, 3) rows: `_rownorm` (same value; np.linalg.norm reduces over the 3-long axis slowly).
+    n = _rownorm(v)[:, None] if v.ndim == 2 and v.shape[1] == 3 else np.linalg.norm(v, axis=-1, keepdims=True)
     return v / np.where(n > 0, n, 1.0)
 
 
@@ -173,6 +174,16 @@ def _rownorm(v: np.ndarray) -> np.ndarray:
     return np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
 
 
+def _any_row(a: np.ndarray) -> np.ndarray:
+    """`(a != 0).any(axis=-1)` for (N, 3) rows (column by column: reductions over a 3-long axis are slow)."""
+    return (a[:, 0] != 0) | (a[:, 1] != 0) | (a[:, 2] != 0)
+
+
+def _finite_rows(a: np.ndarray) -> np.ndarray:
+    """`np.isfinite(a).all(axis=-1)` for (N, 3) rows."""
+    return np.isfinite(a[:, 0]) & np.isfinite(a[:, 1]) & np.isfinite(a[:, 2])
+
+
 def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
@@ -191,7 +202,7 @@ def _finalise_two_view(points, finite, c2, r1, r2w, criteria, R, t) -> Triangula
     """
     baseline = max(float(np.linalg.norm(c2)), 1e-300)
     max_range = criteria.max_range * baseline
-    finite = finite & np.isfinite(points).all(axis=-1)
+    finite = finite & _finite_rows(points)
     if not finite.all():
         n1 = _rownorm(r1)[:, None]
         points = np.where(finite[:, None], points, max_range * (r1 / np.where(n1 > 0, n1, 1.0)))
@@ -201,8 +212,8 @@ def _finalise_two_view(points, finite, c2, r1, r2w, criteria, R, t) -> Triangula
         n = rng[:, None]
         points = np.where(far[:, None], max_range * (points / np.where(n > 0, n, 1.0)), points)
         rng = np.minimum(rng, max_range)
-    obs1 = (r1 != 0).any(axis=-1)
-    obs2 = (r2w != 0).any(axis=-1)
+    obs1 = _any_row(r1)
+    obs2 = _any_row(r2w)
     depth2 = points @ R[2] + t[2]
     in_front = ((points[:, 2] > 0) | ~obs1) & ((depth2 > 0) | ~obs2)
     to2 = points - c2
@@ -249,7 +260,7 @@ def _two_view_in_front_pm(r1, r2, R, t, max_range: float) -> tuple[np.ndarray, n
     c2 = -R.T @ t
     r2w = r2 @ R
     points, finite = _mid2_or_midpoint(_unit(r1), _unit(r2w), c2, "mid2")
-    finite = finite & np.isfinite(points).all(axis=-1)
+    finite = finite & _finite_rows(points)
     points = np.where(finite[:, None], points, 0.0)
     rng = _rownorm(points)
     limit = max_range * max(float(np.linalg.norm(c2)), 1e-300)
@@ -258,7 +269,7 @@ def _two_view_in_front_pm(r1, r2, R, t, max_range: float) -> tuple[np.ndarray, n
         n = rng[:, None]
         points = np.where(far[:, None], limit * (points / np.where(n > 0, n, 1.0)), points)
     d1, d2 = points[:, 2], points @ R[2] + t[2]
-    un1, un2 = ~(r1 != 0).any(axis=-1), ~(r2w != 0).any(axis=-1)
+    un1, un2 = ~_any_row(r1), ~_any_row(r2w)
     plus = finite & ((d1 > 0) | un1) & ((d2 > 0) | un2)
     minus = finite & ((d1 < 0) | un1) & ((d2 < 0) | un2)
     return plus, minus

@@ -122,8 +122,10 @@ def normal_equations(R, t, logf, X, pb: LMProblem, huber_px: float):
     gp = np.bincount((pb.op[:, None] * 3 + np.arange(3)).ravel(), (JpT_w @ r[:, :, None]).reshape(K, 3).ravel(),
                      minlength=P * 3).reshape(P, 3)
     Wk = JcT_w @ Jp  # (K, 7, 3)
-    W = np.bincount(((pb.op[:, None] * (nc + 1) + cols)[:, :, None] * 3 + np.arange(3)).ravel(),
-                    Wk.ravel(), minlength=P * (nc + 1) * 3).reshape(P, nc + 1, 3)[:, :nc]
+    # Stored camera-column-major, (nc, P, 3), and returned as its (P, nc, 3) view: the Schur
+    # complement's products take the (nc, 3 P) matrix without copying it (`reduced_camera_system`).
+    W = np.bincount(((cols * P + pb.op[:, None])[:, :, None] * 3 + np.arange(3)).ravel(),
+                    Wk.ravel(), minlength=P * (nc + 1) * 3).reshape(nc + 1, P, 3)[:nc].transpose(1, 0, 2)
     return U, gc, V, gp, W, r
 
 
@@ -134,8 +136,11 @@ def reduced_camera_system(U, V, W, lam: float = 0.0):
     tr = np.trace(V, axis1=1, axis2=2)[:, None, None]
     Vd = V + lam * (V * np.eye(3)) + (1e-10 * tr + 1e-12) * np.eye(3)
     Vinv = np.linalg.inv(Vd)
-    Y = np.matmul(W, Vinv)  # (P, nc, 3)
-    nc = W.shape[1]
+    P, nc = W.shape[:2]
+    # Y (P, nc, 3) as a view of a (nc, P, 3) array, like `normal_equations`' W: the transposes
+    # below are then free (same values as contiguous copies).
+    Yt = np.empty((nc, P, 3))
+    Y = np.matmul(W, Vinv, out=Yt.transpose(1, 0, 2))
     # sum_p Y_p W_p^T as one BLAS product over the (point, axis) index.
     S = Ud - np.transpose(Y, (1, 0, 2)).reshape(nc, -1) @ np.transpose(W, (1, 0, 2)).reshape(nc, -1).T
     return S, Y, Vinv

@@ -589,7 +589,8 @@ def flow_checks(flow_ab, flow_ba, Ka, Kb, F_ab):
     back = cv2.remap(flow_ba, (ub[:, 0] - 0.5).astype(np.float32).reshape(H, W),
                      (ub[:, 1] - 0.5).astype(np.float32).reshape(H, W), cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_CONSTANT, borderValue=(1e6, 1e6))
-    fb = np.linalg.norm(flow_ab.reshape(-1, 2) + back.reshape(-1, 2), axis=1)
+    d = flow_ab.reshape(-1, 2) + back.reshape(-1, 2)
+    fb = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])  # = np.linalg.norm(d, axis=1), faster on 2-long rows
     inside = (ub[:, 0] > 0) & (ub[:, 0] < W) & (ub[:, 1] > 0) & (ub[:, 1] < H)
     sampson = sampson_distance(F_ab, ua, ub)
     rays_a = np.concatenate([ua, np.ones((len(ua), 1))], 1) @ np.linalg.inv(Ka).T

@@ -11,7 +11,9 @@ from mvgeo.align.global_align import (
     _build_terms,
     _Grid,
     _Params,
+    _term_index,
     alignment_loss,
+    alignment_loss_and_grads,
     alignment_loss_reference,
     global_align,
     init_from_spanning_tree,
@@ -129,6 +131,38 @@ def test_loss_gradcheck(rng):
 
     # The Euclidean norm is smooth away from zero residuals, which random states avoid.
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+@pytest.mark.parametrize("shared_focal, optimize_focal", [(False, True), (True, True), (False, False)])
+def test_chain_rule_gradient_matches_autograd(rng, shared_focal, optimize_focal):
+    """`alignment_loss_and_grads` (numpy chain rule, the optimiser's path) against autograd of the
+    loss, float64, at a random state with unnormalised quaternions and a pixel stride's gaps."""
+    poses, depths = make_views(3, H=6, W=8, focal=8.0)
+    preds = make_pairs(poses, depths, 8.0, rng, noise=0.01)
+    sizes = [d.shape for d in depths]
+    dt = torch.float64
+    terms = _build_terms(preds, sizes, np.array([0, 48, 96]), dt, torch.device("cpu"), stride=2)
+    du = torch.as_tensor(np.concatenate([pixel_rays(6, 8, 1.0)[..., 0].ravel()] * 3), dtype=dt)
+    dv = torch.as_tensor(np.concatenate([pixel_rays(6, 8, 1.0)[..., 1].ravel()] * 3), dtype=dt)
+    fpix = torch.zeros(144, dtype=torch.long) if shared_focal else torch.arange(3).repeat_interleave(48)
+    grid = _Grid(du, dv, fpix, [0, 48, 96, 144])
+    g = torch.Generator().manual_seed(1)
+    E = len(preds)
+    q_wfc, q_pair = torch.randn(3, 4, generator=g, dtype=dt), torch.randn(E, 4, generator=g, dtype=dt)
+    q_wfc[:, 0] += 2.0
+    log_depth = torch.randn(144, generator=g, dtype=dt) * 0.3 + 1.0
+    params = _Params(log_depth, q_wfc, torch.randn(3, 3, generator=g, dtype=dt),
+                     torch.log(torch.full((1 if shared_focal else 3,), 8.0, dtype=dt)), q_pair,
+                     torch.randn(E, 3, generator=g, dtype=dt), torch.randn(E, generator=g, dtype=dt) * 0.3,
+                     optimize_focal=optimize_focal)
+    loss = alignment_loss(params, terms, grid, pinned_scale=1.5)
+    loss.backward()
+    value, grads = alignment_loss_and_grads(params, _term_index(terms, grid), pinned_scale=1.5)
+    assert value == pytest.approx(float(loss.detach()), rel=1e-12)
+    named = {k: p for k, p in params.named_parameters() if p.requires_grad}
+    assert set(grads) == set(named)
+    for k, p in named.items():
+        np.testing.assert_allclose(grads[k].reshape(p.shape), p.grad.numpy(), rtol=1e-9, atol=1e-12, err_msg=k)
 
 
 def test_disconnected_views_raise(rng):
