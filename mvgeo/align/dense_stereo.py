@@ -161,7 +161,13 @@ def fuse_depth_candidates(depth: np.ndarray, quality: np.ndarray, *, agree_rel_t
     has = n_valid > 0
     med = np.full(depth.shape[1:], np.nan)
     if len(depth):
-        med[has] = np.nanmedian(depth[:, has], axis=0)
+        # np.nanmedian(depth[:, has], axis=0) at half the cost: NaNs sort last, and the median is the mean
+        # of the two middle valid candidates (the same one twice for an odd count), as numpy computes it.
+        srt = np.sort(depth[:, has], axis=0)
+        k = n_valid[has]
+        lo = np.take_along_axis(srt, ((k - 1) // 2)[None], axis=0)[0]
+        hi = np.take_along_axis(srt, (k // 2)[None], axis=0)[0]
+        med[has] = (lo + hi) / 2.0
     with np.errstate(invalid="ignore"):
         agree = valid & (np.abs(depth - med[None]) <= agree_rel_tol * med[None])
     n_agree = agree.sum(axis=0)

@@ -82,3 +82,16 @@ def test_a_pair_without_baseline_gives_no_depth_instead_of_failing():
     cfw = np.stack([np.hstack([np.eye(3), np.zeros((3, 1))])] * 2)  # same centre: pure rotation (here none)
     out = stereo_depths([img, img], np.stack([K, K]), cfw, [(0, 1)], {}, DenseStereoConfig(workers=1))
     assert all(np.isnan(d).all() for d in out.depth) and all((c == 1.0).all() for c in out.conf)
+
+
+@pytest.mark.parametrize("C", [1, 2, 5, 7])
+def test_fusion_median_matches_nanmedian(C):
+    """The sort-based median of `fuse_depth_candidates` against np.nanmedian (odd and even counts)."""
+    rng = np.random.default_rng(C)
+    depth = rng.uniform(1.0, 1.04, size=(C, 13, 17))
+    depth[rng.random(depth.shape) < 0.3] = np.nan
+    fused, _ = fuse_depth_candidates(depth, np.ones_like(depth), agree_rel_tol=1.0, conf_max=10.0)
+    has = np.isfinite(depth).any(axis=0)
+    np.testing.assert_array_equal(fused[has], np.nanmedian(depth[:, has], axis=0))
+    assert np.isnan(fused[~has]).all()
+
