@@ -77,6 +77,8 @@ EVAL_METHODS = (
     "ablate_no_selection",  # Table 2: round 2 on every view
     "ablate_charbonnier",   # Table 2: joint loss replaced by Charbonnier alone
     "rounds_1", "rounds_2", "rounds_3", "rounds_4",  # Table 3
+    "n2v_fused_round1",     # extension: (d) with fuse_noisy_splat (see PipelineConfig)
+    "denoise_gs_fused",     # extension: (e) with fuse_noisy_splat
     "oracle_clean",         # reference, not a competitor: (b) on the *clean* training photos
 )
 
@@ -125,6 +127,9 @@ def method_pipeline_config(method: str, base: PipelineConfig) -> tuple[str, Pipe
         return "n2v", dataclasses.replace(base, rounds=int(method.split("_")[1]))
     if method in ("n2v_round1", "denoise_gs"):
         return "n2v", dataclasses.replace(base, rounds=1 if method == "n2v_round1" else 2)
+    if method in ("n2v_fused_round1", "denoise_gs_fused"):
+        return "n2v_fused", dataclasses.replace(base, rounds=1 if method == "n2v_fused_round1" else 2,
+                                                fuse_noisy_splat=True)
     if method in ("instantsplat", "nlm_instantsplat", "oracle_clean"):
         return method, dataclasses.replace(base, rounds=1)
     if method == "ablate_no_selection":

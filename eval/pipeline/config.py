@@ -96,6 +96,12 @@ class PipelineConfig:
         rounds: 1 = round 1 only; N > 1 repeats the second round N - 1 times.
         seed: master seed; each stage derives its own from (seed, round, stage).
         select_views: False = rounds >= 2 use every view (Table 2 ablation).
+        fuse_noisy_splat: extension, not in the paper (off in every preset): each round's splat
+            trains on the average of the denoised photo and the render, at its view, of a splat
+            trained on the *noisy* photos with the same alignment (`eval.pipeline.stages.fuse`). The
+            two estimates of the clean image err differently (the denoiser removes fine texture; the
+            splat of the noisy photos keeps it and averages the noise across views), so their mean is
+            better than either. Costs one more splat training per round.
         device: torch device for the networks and the splatting ("cpu", "cuda").
         denoise, align, splat: component settings.
     """
@@ -104,6 +110,7 @@ class PipelineConfig:
     rounds: int = 2
     seed: int = 0
     select_views: bool = True
+    fuse_noisy_splat: bool = False
     device: str = "cpu"
     denoise: DenoiseSettings = field(default_factory=DenoiseSettings)
     align: AlignSettings = field(default_factory=AlignSettings)

@@ -1,7 +1,10 @@
 """`run_pipeline`: Denoise-GS's rounds as resumable stages.
 
 Round 1: denoise (train N2V on every noisy image, denoise all) -> align ->
-splat (training with pose optimisation) -> render at every input pose.
+splat (training with pose optimisation) -> render at every input pose. With
+`fuse_noisy_splat` (an extension), a fuse stage between align and splat
+averages each denoised photo with a render of a splat of the noisy photos, and
+the splat trains on those.
 Round r >= 2: select views from round r-1 (pose k-means, K = `views`, sharpest
 per cluster) -> refine (fine-tune the round r-1 UNet with the joint loss
 against round r-1's renders of the selected views, denoise them) -> align
@@ -13,6 +16,7 @@ hold the keys; see `eval.pipeline.stage`):
 
     OUT/roundN/denoised/*.png, n2v_model.pt      (denoise / refine)
     OUT/roundN/align/sparse/0/, points.npz        (align: initial poses and points)
+    OUT/roundN/fused/, noisy_renders/             (fuse, with fuse_noisy_splat)
     OUT/roundN/sparse/0/, point_cloud.ply         (splat: optimised poses, Gaussians)
     OUT/roundN/renders/*.png                      (render)
     OUT/roundN/selection.json                     (select, rounds >= 2)
@@ -73,9 +77,10 @@ class PipelineResult:
 
 
 def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images: StageResult,
-                  config: PipelineConfig, r: int, resolved: dict,
+                  config: PipelineConfig, r: int, resolved: dict, *, noisy: tuple[Path, str],
                   previous: RoundResult | None = None) -> dict[str, StageResult]:
-    """align -> splat -> render on the round's denoised images (`previous`: round r-1, for r >= 2)."""
+    """align -> [fuse ->] splat -> render on the round's denoised images (`previous`: round r-1, for
+    r >= 2; `noisy`: the input folder and its content digest, for the fuse stage)."""
     label = f"round{r}"
     align_settings = {**asdict(config.align), "resolved": resolved["align"]}
     inputs, upstream = {"images": rd / "denoised"}, (images,)
@@ -87,15 +92,26 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
     al = runner.run(StageSpec("align", rd, stages.align, ("align",), inputs=inputs, upstream=upstream,
                               settings=align_settings, seed=stage_seed(config.seed, r, "align")),
                     label=f"{label}/align")
+    splat_settings = {**asdict(config.splat), "device": config.device, "resolved": resolved["splat"]}
+    out: dict[str, StageResult] = {"align": al}
+    splat_images, splat_upstream = rd / "denoised", (images, al)
+    if config.fuse_noisy_splat:
+        if stages.fuse is None:
+            raise ValueError("fuse_noisy_splat is on but the stages have no fuse function")
+        fu = runner.run(StageSpec("fuse", rd, stages.fuse, ("fused", "noisy_renders"),
+                                  inputs={"noisy": noisy[0], "images": rd / "denoised", "align": rd / "align"},
+                                  upstream=(images, al), settings={**splat_settings, "noisy_digest": noisy[1]},
+                                  seed=stage_seed(config.seed, r, "fuse")), label=f"{label}/fuse")
+        out["fuse"] = fu
+        splat_images, splat_upstream = rd / "fused", (images, al, fu)
     sp = runner.run(StageSpec("splat", rd, stages.splat, ("sparse", "point_cloud.ply"),
-                              inputs={"images": rd / "denoised", "align": rd / "align"}, upstream=(images, al),
-                              settings={**asdict(config.splat), "device": config.device,
-                                        "resolved": resolved["splat"]},
-                              seed=stage_seed(config.seed, r, "splat")), label=f"{label}/splat")
+                              inputs={"images": splat_images, "align": rd / "align"}, upstream=splat_upstream,
+                              settings=splat_settings, seed=stage_seed(config.seed, r, "splat")),
+                    label=f"{label}/splat")
     re = runner.run(StageSpec("render", rd, stages.render, ("renders",),
                               inputs={"sparse": rd / "sparse", "scene": rd / "point_cloud.ply"}, upstream=(sp,),
                               settings={"device": config.device}, seed=0), label=f"{label}/render")
-    return {"align": al, "splat": sp, "render": re}
+    return {**out, "splat": sp, "render": re}
 
 
 def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig, *,
@@ -133,7 +149,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
             settings={"noisy_digest": noisy_digest, "n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps,
                       "passes": d.passes, "device": config.device, "resolved": resolved["n2v"]},
             seed=stage_seed(config.seed, 1, "denoise")), label="round1/denoise")
-        scene = _scene_stages(runner, stages, rd, den, config, 1, resolved)
+        scene = _scene_stages(runner, stages, rd, den, config, 1, resolved, noisy=(images_dir, noisy_digest))
         rounds.append(RoundResult(1, rd, {"denoise": den, **scene}))
         for r in range(2, config.rounds + 1):
             prev, rd = rounds[-1], out / f"round{r}"
@@ -154,7 +170,8 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
                           "round2_steps": d.round2_steps, "round2_loss": d.round2_loss, "passes": d.passes,
                           "device": config.device, "resolved": resolved["round2"]},
                 seed=stage_seed(config.seed, r, "refine")), label=f"round{r}/refine")
-            scene = _scene_stages(runner, stages, rd, ref, config, r, resolved, previous=prev)
+            scene = _scene_stages(runner, stages, rd, ref, config, r, resolved, noisy=(images_dir, noisy_digest),
+                                  previous=prev)
             rounds.append(RoundResult(r, rd, {"select": sel, "refine": ref, **scene}))
         report_json, report_md = write_report(out, images_dir=images_dir, config=config, rounds=rounds,
                                               timings_s=timer.as_dict())

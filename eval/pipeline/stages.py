@@ -10,7 +10,8 @@ Each function has the `StageFn` signature (`fn(ctx) -> summary`), reads
 |-----------|------------------------------------------|-------------------------------------------|
 | denoise   | noisy                                    | denoised/, n2v_model.pt                   |
 | align     | images [, previous_align (rounds >= 2)]  | align/ (sparse/0/, points.ply/.npz, json) |
-| splat     | images, align                            | sparse/0/, point_cloud.ply                |
+| fuse      | noisy, images, align (option)            | fused/, noisy_renders/                    |
+| splat     | images (or fused), align                 | sparse/0/, point_cloud.ply                |
 | render    | sparse, scene                            | renders/                                  |
 | select    | images, sparse                           | selection.json                            |
 | refine    | noisy, selection, model, renders, previous | denoised/, n2v_model.pt                 |
@@ -37,8 +38,8 @@ from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
-__all__ = ["PipelineStages", "align", "check_product_components", "denoise", "product_stages", "refine", "render",
-           "resolved_configs", "select", "splat"]
+__all__ = ["FUSE_WEIGHT", "PipelineStages", "align", "check_product_components", "denoise", "fuse", "fuse_images",
+           "product_stages", "refine", "render", "resolved_configs", "select", "splat"]
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,7 @@ class PipelineStages:
     render: StageFn
     select: StageFn
     refine: StageFn
+    fuse: StageFn | None = None  # `PipelineConfig.fuse_noisy_splat`; required only when that is on
 
 
 def _history_summary(history: object) -> dict[str, object]:
@@ -162,21 +164,28 @@ def _align_with_previous_calibration(align_images, files: list[Path], cfg, previ
     return res
 
 
-def splat(ctx: StageContext) -> Mapping[str, object]:
-    """Gaussian splatting with pose optimisation, initialised from the alignment."""
-    need = "splat stage"
-    s = ctx.settings
-    cfg = _train_config(s, ctx.seed, need)
+def _train_splat(images_dir: Path, align_dir: Path, s: Mapping[str, object], seed: int, need: str):
+    """(training result, alignment's sparse model, view stems): a splat on `images_dir`'s views,
+    initialised from the alignment in `align_dir`."""
+    cfg = _train_config(s, seed, need)
     train_gaussians = require("splat.train", "train_gaussians", needed_for=need)
-    save_ply = require("splat.ply", "write_gaussian_ply", needed_for=need)
-    sparse = read_sparse_model(ctx.inputs["align"] / "sparse" / "0")
-    pts = np.load(ctx.inputs["align"] / "points.npz")
+    sparse = read_sparse_model(align_dir / "sparse" / "0")
+    pts = np.load(align_dir / "points.npz")
     stems = [n.rsplit(".", 1)[0] for n in sparse.names]
-    images = read_views(ctx.inputs["images"], stems)
+    images = read_views(images_dir, stems)
     cameras = [sparse.camera_of(n) for n in sparse.names]
     cam_from_world = np.stack([sparse.image(n).cam_from_world for n in sparse.names])
     res = train_gaussians(list(images.values()), cameras, cam_from_world, pts["xyz"], pts["rgb"], cfg,
                           device=s["device"])
+    return res, sparse, stems
+
+
+def splat(ctx: StageContext) -> Mapping[str, object]:
+    """Gaussian splatting with pose optimisation, initialised from the alignment."""
+    need = "splat stage"
+    s = ctx.settings
+    save_ply = require("splat.ply", "write_gaussian_ply", needed_for=need)
+    res, sparse, stems = _train_splat(ctx.inputs["images"], ctx.inputs["align"], s, ctx.seed, need)
     save_ply(ctx.work_dir / "point_cloud.ply", res.model)
     optimised = [PosedImage(im.name, im.camera_id, np.asarray(res.cam_from_world_optimized[i])[:3])
                  for i, im in enumerate(sparse.images)]
@@ -185,6 +194,39 @@ def splat(ctx: StageContext) -> Mapping[str, object]:
     history = dataclasses.asdict(res.history) if dataclasses.is_dataclass(res.history) else res.history
     return {"views": stems, "train": _history_summary(history),
             "timings_s": dict(getattr(res, "timings_s", {}) or {})}
+
+
+#: Weight of the noisy photos' render in `fuse` (the denoised photo gets 1 - FUSE_WEIGHT): the plain mean
+#: of two estimates of comparable quality (on `llff_like` 24.1 and 24.3 dB against the clean training
+#: views), fixed a priori, not fitted to a scene.
+FUSE_WEIGHT = 0.5
+
+
+def fuse_images(denoised: np.ndarray, render: np.ndarray, weight: float = FUSE_WEIGHT) -> np.ndarray:
+    """(1 - weight) * denoised + weight * render, both (H, W, 3) float in [0, 1]."""
+    if denoised.shape != render.shape:
+        raise ValueError(f"fuse: denoised {denoised.shape} and render {render.shape} differ in shape")
+    return ((1.0 - weight) * denoised + weight * render).astype(np.float32)
+
+
+def fuse(ctx: StageContext) -> Mapping[str, object]:
+    """Extension (`PipelineConfig.fuse_noisy_splat`): the round's denoised photos averaged with renders,
+    at their own (optimised) poses, of a splat trained on the *noisy* photos with the round's alignment.
+
+    The splat of 12 noisy views keeps the scene's fine texture (the same in every view) and averages
+    the noise (different in every view); the denoiser removes noise and texture alike. Their errors
+    differ, so the mean is better than either (`docs/bench/pipeline.md`, sixth session).
+    """
+    need = "fuse stage"
+    render_views = require("splat.render", "render_views", needed_for=need)
+    res, sparse, stems = _train_splat(ctx.inputs["noisy"], ctx.inputs["align"], ctx.settings, ctx.seed, need)
+    cameras = [sparse.camera_of(n) for n in sparse.names]
+    cam_from_world = np.stack([np.asarray(m)[:3] for m in res.cam_from_world_optimized])
+    renders = dict(zip(stems, render_views(res.model, cameras, cam_from_world), strict=True))
+    denoised = read_views(ctx.inputs["images"], stems)
+    write_views(ctx.work_dir / "noisy_renders", renders)
+    write_views(ctx.work_dir / "fused", {k: fuse_images(denoised[k], renders[k]) for k in stems})
+    return {"views": stems, "weight": FUSE_WEIGHT}
 
 
 def render(ctx: StageContext) -> Mapping[str, object]:
@@ -334,4 +376,5 @@ def check_product_components(config: PipelineConfig) -> None:
 
 def product_stages() -> PipelineStages:
     """The real Denoise-GS stages."""
-    return PipelineStages(denoise=denoise, align=align, splat=splat, render=render, select=select, refine=refine)
+    return PipelineStages(denoise=denoise, align=align, splat=splat, render=render, select=select, refine=refine,
+                          fuse=fuse)

@@ -135,6 +135,14 @@ class TinyStages:
         (ctx.work_dir / "n2v_model.pt").write_text(json.dumps({"refined_from": ctx.inputs["model"].name}))
         return {"views": names}
 
+    def fuse(self, ctx: StageContext):
+        self._enter("fuse")
+        denoised = read_views(ctx.inputs["images"])
+        noisy = read_views(ctx.inputs["noisy"], list(denoised))
+        write_views(ctx.work_dir / "noisy_renders", noisy)
+        write_views(ctx.work_dir / "fused", {k: 0.5 * (denoised[k] + noisy[k]) for k in denoised})
+        return {"views": list(denoised)}
+
     def stages(self) -> PipelineStages:
         return PipelineStages(denoise=self.denoise, align=self.align, splat=self.splat, render=self.render,
-                              select=self.select, refine=self.refine)
+                              select=self.select, refine=self.refine, fuse=self.fuse)

@@ -43,8 +43,12 @@ def test_run_bad_values(tmp_path, capsys):
     assert "not a folder" in _err(capsys)
 
 
-@pytest.mark.parametrize(("flag", "expected"), [([], "auto"), (["--reuse-intrinsics", "never"], "never")])
-def test_run_reuse_intrinsics_flag(tmp_path, monkeypatch, flag, expected):
+@pytest.mark.parametrize(("flag", "expected"), [
+    ([], ("auto", False)),
+    (["--reuse-intrinsics", "never"], ("never", False)),
+    (["--fuse-noisy-splat"], ("auto", True)),
+])
+def test_run_pipeline_flags(tmp_path, monkeypatch, flag, expected):
     import eval.cli
 
     seen = {}
@@ -57,7 +61,7 @@ def test_run_reuse_intrinsics_flag(tmp_path, monkeypatch, flag, expected):
     with pytest.raises(SystemExit):
         main(["run", str(make_scene(tmp_path / "images", n=4)), "--out", str(tmp_path / "out"), "--views", "4",
               *flag])
-    assert seen["config"].align.reuse_intrinsics == expected
+    assert (seen["config"].align.reuse_intrinsics, seen["config"].fuse_noisy_splat) == expected
 
 
 def test_run_corrupt_image(tmp_path, capsys):

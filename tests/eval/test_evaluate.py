@@ -33,6 +33,7 @@ def test_method_settings():
     assert fam["ablate_charbonnier"][1].denoise.round2_loss == "charbonnier"
     assert fam["instantsplat"][1].rounds == 1
     assert fam["oracle_clean"] == ("oracle_clean", fam["instantsplat"][1])  # (b)'s settings, own folder
+    assert {m for m, (f, _) in fam.items() if f == "n2v_fused"} == {"n2v_fused_round1", "denoise_gs_fused"}
     with pytest.raises(InputError, match="magic"):
         EvalConfig(methods=("magic",))
     with pytest.raises(InputError, match="seeds"):
