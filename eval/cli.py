@@ -6,6 +6,7 @@ Every input problem is reported before any compute, with exit code 2.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import logging
 from collections.abc import Sequence
@@ -64,12 +65,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.allow_focal_prior:
         config = _allow_focal_prior(config)
     if args.fuse_noisy_splat:
-        import dataclasses
-
         config = dataclasses.replace(config, fuse_noisy_splat=True)
     if args.reuse_intrinsics is not None:
-        import dataclasses
-
         config = dataclasses.replace(config, align=dataclasses.replace(config.align,
                                                                        reuse_intrinsics=args.reuse_intrinsics))
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
@@ -78,8 +75,6 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _allow_focal_prior(config):
-    import dataclasses
-
     from eval.evaluate import FOCAL_PRIOR_OK
 
     return dataclasses.replace(config, align=dataclasses.replace(config.align, max_focal_log_std=FOCAL_PRIOR_OK))
@@ -134,8 +129,6 @@ def _parse_grid(items: Sequence[str] | None, knobs: Sequence[str] | None) -> dic
 
 
 def _cmd_cost(args: argparse.Namespace) -> int:
-    import dataclasses
-
     from eval.cost import CostConfig, run_cost_sweep, sweep_points, write_cost_results
 
     kind, source = resolve_scene_source(args.scene)
