@@ -15,7 +15,12 @@ documented; held-out poses are refined photometrically in the evaluation
 anyway. The ground-truth model has no points, so `3dgs_gt_poses` (which
 needs initial points) does not run on it.
 
-Run: ``python -m eval.datasets dtu ../shared/data/dtu_scan24 --out DIR [--sigma 25] [--size 192]``.
+Splits: ``spread`` takes the views evenly over DTU's index range (20-40 deg between neighbours: neither
+COLMAP nor our classical matcher connects 12 of them); ``cluster`` takes the most alike views (about
+11 deg apart) with interior held-out views.
+
+Run: ``python -m eval.datasets dtu ../shared/data/dtu_scan24 --out DIR [--sigma 25] [--size 192]
+[--layout spread|cluster]``.
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image, write_image
 from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
 
-__all__ = ["dtu_cameras", "dtu_dataset", "spread_split"]
+__all__ = ["cluster_split", "dtu_cameras", "dtu_dataset", "spread_split"]
 
 _CROP = np.array([[0.32, 0.0, -0.32 * 200.0], [0.0, 0.32, 0.0], [0.0, 0.0, 1.0]])
 
@@ -76,8 +81,75 @@ def spread_split(n: int, train: int, test: int) -> tuple[list[int], list[int]]:
     return tr, te
 
 
+def cluster_split(view_dirs_world: np.ndarray, train: int, test: int) -> tuple[list[int], list[int]]:
+    """The ``train + test`` views that look most alike, with interior held-out views.
+
+    The cluster is the ``train + test`` views whose viewing directions are closest (in angle) to the
+    mean viewing direction of all views. Held-out views are taken greedily from the cluster's centre
+    outwards. A view is held out when its training neighbours (within 1.5 times the cluster's median
+    nearest-neighbour angle; views already held out do not count) surround it: no gap of 150 deg or more
+    between their bearings around it, so that it lies inside the training views. Views with no held-out
+    neighbour are taken first, then any that are still surrounded.
+
+    Args:
+        view_dirs_world: (N, 3) unit viewing directions (camera +z axes in the world frame).
+        train, test: split sizes.
+
+    Returns:
+        (training indices, held-out indices), each sorted.
+
+    Raises:
+        InputError: the split does not fit, or the interior has too few views for `test`.
+    """
+    d = np.asarray(view_dirs_world, dtype=np.float64)
+    n = len(d)
+    if train + test > n or train < 2 or test < 1:
+        raise InputError(f"cannot split {n} views into {train} training and {test} held-out views")
+    mean = d.mean(axis=0)
+    mean /= np.linalg.norm(mean)
+    cluster = np.argsort(-(d @ mean), kind="stable")[: train + test]
+    dc = d[cluster]
+    centre = dc.mean(axis=0)
+    angle = np.arccos(np.clip(dc @ dc.T, -1.0, 1.0))
+    np.fill_diagonal(angle, np.inf)
+    neighbour = angle <= 1.5 * np.median(angle.min(axis=1))
+    order = np.argsort(-(dc @ centre), kind="stable")
+    held: list[int] = []
+    for apart in (True, False):  # first views with no held-out neighbour, then any that are still inside
+        for k in order:
+            if len(held) == test:
+                break
+            if k in held or (apart and neighbour[k, held].any()):
+                continue
+            train_near = [m for m in np.flatnonzero(neighbour[k]) if m not in held]
+            if _surrounded(dc[k], dc[train_near]):
+                held.append(int(k))
+    if len(held) < test:
+        raise InputError(f"a cluster of {train + test} views has room for only {len(held)} interior held-out "
+                         f"views (asked {test})", fix="hold out fewer views or train on more")
+    te = sorted(int(cluster[k]) for k in held)
+    tr = sorted(int(i) for i in cluster if int(i) not in te)
+    return tr, te
+
+
+def _surrounded(direction: np.ndarray, others: np.ndarray) -> bool:
+    """Whether the directions `others` (K, 3) surround `direction` (3,): all bearing gaps < 150 deg.
+
+    (< 180 deg would admit a view on the segment between two others, on the edge of their hull.)
+    """
+    if len(others) < 3:
+        return False
+    helper = np.eye(3)[int(np.argmin(np.abs(direction)))]
+    e1 = np.cross(direction, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(direction, e1)
+    bearing = np.sort(np.arctan2(others @ e2, others @ e1))
+    gaps = np.diff(np.concatenate([bearing, bearing[:1] + 2.0 * np.pi]))
+    return bool(gaps.max() < np.radians(150.0))
+
+
 def dtu_dataset(src: str | Path, out: str | Path, *, sigma_8bit: float = 25.0, size_px: int | None = None,
-                train_views: int = 12, test_views: int = 4, seed: int = 0) -> Path:
+                train_views: int = 12, test_views: int = 4, seed: int = 0, layout: str = "spread") -> Path:
     """Write a noisy evaluation dataset from a DTU scan folder (see the module docstring).
 
     Args:
@@ -85,8 +157,10 @@ def dtu_dataset(src: str | Path, out: str | Path, *, sigma_8bit: float = 25.0, s
         out: dataset folder to write (replaced atomically).
         sigma_8bit: Gaussian noise std on the 0..255 scale, added to the clean images (clipped, 8-bit).
         size_px: output side (square crops); None keeps 384.
-        train_views, test_views: split sizes, spread over the views.
+        train_views, test_views: split sizes.
         seed: noise seed.
+        layout: "spread" (`spread_split`: views spread evenly over the index range, 20-40 deg apart on
+            DTU's 49) or "cluster" (`cluster_split`: the most alike views, about 11 deg apart on DTU).
 
     Raises:
         InputError: missing files or a bad split.
@@ -96,7 +170,13 @@ def dtu_dataset(src: str | Path, out: str | Path, *, sigma_8bit: float = 25.0, s
     if not files or not (src / "cameras.npz").is_file():
         raise InputError("not a DTU scan folder (needs images/*.png and cameras.npz)", path=src)
     cams = dtu_cameras(src / "cameras.npz", len(files))
-    tr, te = spread_split(len(files), train_views, test_views)
+    if layout == "spread":
+        tr, te = spread_split(len(files), train_views, test_views)
+    elif layout == "cluster":
+        tr, te = cluster_split(np.array([cam_from_world[2, :3] for _, cam_from_world in cams]), train_views,
+                               test_views)
+    else:
+        raise InputError(f"unknown split layout {layout!r}", fix='use "spread" or "cluster"')
     rng = np.random.default_rng(seed)
     tmp = out.with_name(f".{out.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -122,8 +202,9 @@ def dtu_dataset(src: str | Path, out: str | Path, *, sigma_8bit: float = 25.0, s
     write_sparse_model(tmp / "sparse" / "0", SparseModel(cameras, images), binary=False)
     split = {"train": [f"view_{i:03d}.png" for i in tr], "test": [f"view_{i:03d}.png" for i in te]}
     atomic_write_text(tmp / "split.json", json.dumps(split, indent=2) + "\n")
-    atomic_write_text(tmp / "meta.json", json.dumps({"source": str(src), "noise": {"type": "gaussian",
-                                                     "sigma_8bit": sigma_8bit, "seed": seed}}, indent=2) + "\n")
+    atomic_write_text(tmp / "meta.json", json.dumps({"source": str(src), "layout": layout,
+                                                     "noise": {"type": "gaussian", "sigma_8bit": sigma_8bit,
+                                                               "seed": seed}}, indent=2) + "\n")
     if out.exists():
         old = out.with_name(f".{out.name}.old")
         shutil.rmtree(old, ignore_errors=True)
@@ -145,10 +226,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     d.add_argument("--train", type=int, default=12)
     d.add_argument("--test", type=int, default=4)
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--layout", choices=("spread", "cluster"), default="spread",
+                   help="spread: views spread over the index range; cluster: the most alike views")
 
     def run(args: argparse.Namespace) -> int:
         path = dtu_dataset(args.src, args.out, sigma_8bit=args.sigma, size_px=args.size, train_views=args.train,
-                           test_views=args.test, seed=args.seed)
+                           test_views=args.test, seed=args.seed, layout=args.layout)
         print(f"dataset: {path}")
         return 0
 

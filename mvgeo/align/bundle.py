@@ -241,8 +241,10 @@ def _bundle_lm(cam_from_world, rv0, X0, logf0, f_index, ov, op, ouv, c, e0, conf
                        focal_log_std=float(np.max(std)) if len(std) else 0.0, solver="lm",
                        track_xyz=X, obs_view=pb.ov, obs_point=pb.op, obs_uv=pb.uv)
     _log.info("bundle adjustment (LM): %d tracks, %d observations, reprojection RMS %.3g -> %.3g px "
-              "(median %.3g -> %.3g), focal log-std %.2g", len(X), len(pb.ov), res.reproj_rms_before_px,
-              res.reproj_rms_after_px, res.reproj_median_before_px, res.reproj_median_after_px, res.focal_log_std)
+              "(median %.3g -> %.3g), focal %.1f -> %.1f px (log-std %.2g)", len(X), len(pb.ov),
+              res.reproj_rms_before_px, res.reproj_rms_after_px, res.reproj_median_before_px,
+              res.reproj_median_after_px, float(np.exp(np.median(logf0))), float(np.median(res.focal_px)),
+              res.focal_log_std)
     return res
 
 

@@ -353,6 +353,33 @@ class ClassicalPointmapModel:
         self.sift_fallback_used = False  # set by `predict_pairs`
         self.sparse_matches: list[tuple[int, int, np.ndarray]] = []  # set by `predict_pairs`
         self.seed = seed
+        self.focal_px_used: float | None = None  # the shared focal of the last `predict_pairs` (alignment px)
+        self._image_hw: tuple[int, int] = (0, 0)
+        self._matched = None  # (key, features, matches, failures, fallback used) of the last `predict_pairs`
+
+    def refocused(self, focal_px: float, n_images: int) -> ClassicalPointmapModel:
+        """A model for the same images and pairs whose relative poses and pointmaps use `focal_px`.
+
+        The SIFT features and matches of the last `predict_pairs` are reused. `focal_determined` carries
+        over, so that an alignment whose focal no pair determined still checks the bundle adjustment's
+        uncertainty.
+
+        Args:
+            focal_px: shared focal length in alignment pixels (principal point at the image centre).
+            n_images: number of images of the last `predict_pairs`.
+
+        Raises:
+            ValueError: this model has not predicted pairs yet, or for another number of images.
+        """
+        if self._matched is None or self._matched[0][0] != n_images:
+            raise ValueError("refocused() needs a predict_pairs() call on the same images first")
+        H, W = self._image_hw
+        K = np.array([[focal_px, 0.0, W / 2.0], [0.0, focal_px, H / 2.0], [0.0, 0.0, 1.0]])
+        out = ClassicalPointmapModel(self.config, K_align=np.repeat(K[None], n_images, axis=0), seed=self.seed)
+        out._matched, out._image_hw = self._matched, self._image_hw
+        out.focal_determined = self.focal_determined
+        out.focal_px_used = float(focal_px)
+        return out
 
     @property
     def pointmap_size_px(self) -> int:
@@ -384,20 +411,27 @@ class ClassicalPointmapModel:
         # Threads: OpenCV and BLAS release the GIL; every task is independent and deterministic,
         # and results are collected in submission order.
         cfg = self.config
-        feats, matches, fails = self._features_and_matches(images, pairs, pool, cfg.sift_contrast_threshold,
-                                                           cfg.sift_blur_sigma_px)
-        n_comp = len(components(len(images), list(matches)))
-        self.sift_fallback_used = False
-        if cfg.fallback_sift and n_comp > 1:
-            alt = self._features_and_matches(images, pairs, pool, cfg.fallback_contrast_threshold,
-                                             cfg.fallback_blur_sigma_px)
-            n_alt = len(components(len(images), list(alt[1])))
-            _log.warning("SIFT match graph has %d components; COLMAP-like sensitive SIFT (contrast %.3g, "
-                         "blur %.2g px) gives %d", n_comp, cfg.fallback_contrast_threshold,
-                         cfg.fallback_blur_sigma_px, n_alt)
-            if n_alt < n_comp or (n_alt == n_comp and len(alt[1]) > len(matches)):
-                feats, matches, fails = alt
-                self.sift_fallback_used = True
+        key = (len(images), tuple(pairs))
+        if self._matched is not None and self._matched[0] == key:  # `refocused`: same images and pairs
+            _, feats, matches, fails, self.sift_fallback_used = self._matched
+            fails = list(fails)
+        else:
+            feats, matches, fails = self._features_and_matches(images, pairs, pool, cfg.sift_contrast_threshold,
+                                                               cfg.sift_blur_sigma_px)
+            n_comp = len(components(len(images), list(matches)))
+            self.sift_fallback_used = False
+            if cfg.fallback_sift and n_comp > 1:
+                alt = self._features_and_matches(images, pairs, pool, cfg.fallback_contrast_threshold,
+                                                 cfg.fallback_blur_sigma_px)
+                n_alt = len(components(len(images), list(alt[1])))
+                _log.warning("SIFT match graph has %d components; COLMAP-like sensitive SIFT (contrast %.3g, "
+                             "blur %.2g px) gives %d", n_comp, cfg.fallback_contrast_threshold,
+                             cfg.fallback_blur_sigma_px, n_alt)
+                if n_alt < n_comp or (n_alt == n_comp and len(alt[1]) > len(matches)):
+                    feats, matches, fails = alt
+                    self.sift_fallback_used = True
+            self._matched = (key, feats, matches, list(fails), self.sift_fallback_used)
+            self._image_hw = images[0].shape[:2]
         two_view = cfg.two_view
         if self.sift_fallback_used:
             two_view = replace(two_view, min_inliers=max(two_view.min_inliers, cfg.fallback_min_inliers))
@@ -411,6 +445,7 @@ class ClassicalPointmapModel:
             Ha, Wa = images[0].shape[:2]
             K = np.array([[f, 0, Wa / 2.0], [0, f, Ha / 2.0], [0, 0, 1]])
             K_align = np.repeat(K[None], len(images), axis=0)
+        self.focal_px_used = float(np.median(K_align[:, 0, 0]))
         rels = {}
         def relative(item):
             (i, j), m = item

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from eval.datasets import dtu_dataset, spread_split
+from eval.datasets import cluster_split, dtu_dataset, spread_split
 from eval.pipeline import validate_dataset_folder
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image, write_image
@@ -18,7 +18,7 @@ def _rot(axis_angle):
     return Rotation.from_rotvec(axis_angle).as_matrix()
 
 
-def _fake_dtu(folder, n=8, seed=0):
+def _fake_dtu(folder, n=8, seed=0, grid=False):
     rng = np.random.default_rng(seed)
     (folder / "images").mkdir(parents=True)
     K = np.array([[2892.3, 0.0, 823.2], [0.0, 2883.2, 619.1], [0.0, 0.0, 1.0]])
@@ -26,7 +26,8 @@ def _fake_dtu(folder, n=8, seed=0):
     scale[:3, 3] = [10.0, -5.0, 600.0]
     mats, truth = {}, []
     for i in range(n):
-        R = _rot(rng.normal(0, 0.2, 3))
+        # grid: 3x3 viewing directions 0.15 rad apart (the cluster layout needs an interior view)
+        R = _rot([0.15 * (i // 3 - 1), 0.15 * (i % 3 - 1), 0.0]) if grid else _rot(rng.normal(0, 0.2, 3))
         C = scale[:3, :3] @ rng.normal(0, 0.1, 3) + scale[:3, 3] - R.T @ np.array([0, 0, 550.0])
         P = K @ np.hstack([R, (-R @ C)[:, None]])
         mats[f"world_mat_{i}"] = np.vstack([P, [0, 0, 0, 1]])
@@ -70,3 +71,40 @@ def test_spread_split_and_errors(tmp_path):
         spread_split(5, 4, 2)
     with pytest.raises(InputError, match="DTU"):
         dtu_dataset(tmp_path, tmp_path / "out")
+
+
+def test_cluster_split_takes_the_most_alike_views_and_holds_out_interior_ones():
+    # A 7x7 grid of viewing directions, 10 deg apart, around +z; a cluster of 25 around the centre.
+    a = np.radians(10.0) * np.arange(-3, 4)
+    ax, ay = np.meshgrid(a, a)
+    d = np.stack([np.tan(ax.ravel()), np.tan(ay.ravel()), np.ones(49)], axis=1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    tr, te = cluster_split(d, 21, 4)
+    chosen = np.array(tr + te)
+    # The 25 views closest to +z: the 21 within two steps (corners excluded) and the 4 three steps out.
+    assert len(chosen) == 25 and len(set(chosen.tolist())) == 25 and len(te) == 4
+    assert np.all(np.degrees(np.arccos(d[chosen] @ np.array([0.0, 0.0, 1.0]))) < 30.5)
+    assert 24 in te  # the centre view is held out first
+    # Reference: in the tangent plane at the cluster's centre, every held-out view lies inside the convex
+    # hull of the training views next to it (within 15 deg).
+    from scipy.spatial import Delaunay
+
+    plane = lambda v: v[..., :2] / v[..., 2:]  # noqa: E731  (gnomonic projection around +z)
+    for t in te:
+        near = [i for i in tr if np.degrees(np.arccos(np.clip(d[i] @ d[t], -1, 1))) < 15.0]
+        assert len(near) >= 3 and Delaunay(plane(d[near])).find_simplex(plane(d[t])) >= 0, (t, near)
+    with pytest.raises(InputError, match="room for only"):
+        cluster_split(d, 4, 9)
+    with pytest.raises(InputError, match="cannot split"):
+        cluster_split(d, 40, 10)
+
+
+def test_dtu_dataset_cluster_layout_and_unknown_layout(tmp_path):
+    _fake_dtu(tmp_path / "dtu", n=9, grid=True)
+    out = dtu_dataset(tmp_path / "dtu", tmp_path / "ds", size_px=64, train_views=5, test_views=1, layout="cluster")
+    split = json.loads((out / "split.json").read_text())
+    assert len(split["train"]) == 5 and split["test"] == ["view_004.png"]  # the grid's centre
+    assert json.loads((out / "meta.json").read_text())["layout"] == "cluster"
+    with pytest.raises(InputError, match="layout"):
+        dtu_dataset(tmp_path / "dtu", tmp_path / "ds2", layout="ring")
+    assert not (tmp_path / "ds2").exists()
