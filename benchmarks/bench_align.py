@@ -1,12 +1,15 @@
 """mvgeo align vs pycolmap incremental SfM: pose accuracy and time.
 
-Usage: `python benchmarks/bench_align.py [--scenes=llff_like,object_ring,temple,subsets] [--sweep] [--out=NAME]`
+Usage: `python benchmarks/bench_align.py [--scenes=llff_like,object_ring,temple,dtu,subsets] [--sweep] [--out=NAME]`
 (writes docs/bench/NAME.md, default `align`; only the table and its header: the reading text is added by hand).
 
 Scenes: data_synth `llff_like` and `object_ring` rendered with 12 views
 (noisy images, ground-truth poses); 3- and 6-view subsets of llff_like
 (evenly spaced views); ../shared/data/temple_sparse_ring (12 of its 16 real
-views, calibrated poses) when present. `--sweep` adds variants of ours on
+views, calibrated poses) and ../shared/data/dtu_scan24 (the 12 training views
+of `python -m eval.datasets dtu --layout cluster`: about 11 deg apart, Gaussian
+noise sigma 25/255 added with seed 0, 384x384, narrow field of view) when
+present. `--sweep` adds variants of ours on
 llff_like that show what accuracy costs: global-alignment iterations, its
 pixel stride, --max-size, and the bundle adjustment on/off. Both methods run
 in this one process, one after the other, so their time ratio is comparable.
@@ -33,6 +36,7 @@ from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
 
 TEMPLE = ROOT.parent / "shared" / "data" / "temple_sparse_ring"
+DTU = ROOT.parent / "shared" / "data" / "dtu_scan24"
 DEFAULT = AlignConfig()
 
 
@@ -82,6 +86,20 @@ def scenes(work: Path, which: list[str]):
         lines = (TEMPLE / "templeSR_par.txt").read_text().split("\n")[1:]
         f = float([ln.split() for ln in lines if ln.split() and ln.split()[0] == names[0]][0][1])
         yield "temple_sparse_ring (12)", sub, temple_ground_truth(TEMPLE, names), f
+    if "dtu" in which:
+        if not DTU.is_dir():
+            print(f"note: {DTU} missing, DTU scene skipped", file=sys.stderr)
+            return
+        import json
+
+        from eval.datasets import dtu_dataset
+
+        ds = dtu_dataset(DTU, work / "dtu", sigma_8bit=25.0, train_views=12, test_views=4, layout="cluster")
+        train = json.loads((ds / "split.json").read_text())["train"]
+        ref = read_sparse_model(ds / "sparse" / "0")
+        gt = {n: g for n, g in ref.cam_from_world_by_name().items() if n in train}
+        yield "dtu_scan24 + noise (12, cluster)", _subset_dir(work, "dtu12", ds / "images", train), gt, \
+            ref.camera_of(train[0]).fx
 
 
 def row(scene, method, est: dict, ref: dict, f_est, f_ref, seconds, extra=""):
@@ -144,7 +162,7 @@ def main() -> None:
         return
     logging.basicConfig(level=logging.WARNING)
     only = [a.split("=", 1)[1] for a in sys.argv if a.startswith("--scenes=")]
-    which = only[0].split(",") if only else ["llff_like", "object_ring", "temple", "subsets"]
+    which = only[0].split(",") if only else ["llff_like", "object_ring", "temple", "dtu", "subsets"]
     out_name = ([a.split("=", 1)[1] for a in sys.argv if a.startswith("--out=")] or ["align"])[0]
     sweep = "--sweep" in sys.argv
     load0 = os.getloadavg()
@@ -197,6 +215,8 @@ def main() -> None:
                  + ", ".join(f"{s}: {r:.2f}" for s, r in ratios_sparse) + "\n")
     if "temple" in which and not TEMPLE.is_dir():
         body += f"\n{TEMPLE} was missing: the real-data row is absent.\n"
+    if "dtu" in which and not DTU.is_dir():
+        body += f"\n{DTU} was missing: the DTU row is absent.\n"
     print(write_fragment(out_name, "mvgeo align vs pycolmap (pose accuracy, time)", body))
 
 
