@@ -80,3 +80,24 @@ def test_refocused_model_reuses_the_matches(llff6, monkeypatch):
     assert again.focal_px_used == 200.0 and not again.focal_determined
     assert len(preds) >= 2
     np.testing.assert_allclose(again.K_align[:, 0, 0], 200.0)
+
+
+def test_the_first_pass_is_kept_when_the_second_fails(llff6, monkeypatch):
+    import mvgeo.align.api as api
+
+    real, calls = api._solve, []
+
+    def second_fails(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise DegenerateGeometryError("stand-in failure of the second pass")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(api, "_solve", second_fails)
+    # 2.0 * 256 = 512 px, 2.5x the truth: the first pass still passes its checks (measured: 194 px), and the
+    # adjustment's move triggers the second pass.
+    res = align_images(list_images(llff6 / "images"), _config(2.0, 0.1))
+    info = res.stats["focal_reestimation"]
+    assert len(calls) == 2 and info["refocused"]
+    assert info["kept"].startswith("first pass (the second failed: stand-in failure")
+    assert res.stats["n_registered"] == 6
