@@ -27,7 +27,10 @@ Pipeline and modules:
 - `bundle`, `bundle_lm`: sparse bundle adjustment on multi-view feature tracks
   (Levenberg-Marquardt with the Schur complement, analytic Jacobian, Huber
   loss, shared or per-view focal; scipy `least_squares` kept as the reference).
-  This step sets the final pose accuracy.
+  This step sets the final pose accuracy. When it moves the shared focal by more
+  than 10 % from the one the pairs were computed with, the pairs are computed
+  again with its focal (same matches) and the alignment runs once more
+  (`AlignConfig.refocus_min_change`; two-view focals fail for narrow fields of view).
 - `checks`: every verified pair's matches must be explained by the final
   geometry; otherwise the inconsistent pairs are dropped and the problem
   solved once more, and a result that still contradicts the evidence (or whose

@@ -11,15 +11,15 @@ from pathlib import Path
 
 import numpy as np
 
-from mvgeo.align.bundle import BundleConfig, bundle_adjust
-from mvgeo.align.checks import pair_consistency, pair_rotation_deviation
+from mvgeo.align.bundle import BundleConfig, BundleResult, bundle_adjust
+from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation
 from mvgeo.align.classical_pairs import ClassicalPairConfig, ClassicalPointmapModel, pointmap_shape
 from mvgeo.align.dense_stereo import DenseStereoConfig, stereo_depths
-from mvgeo.align.global_align import GlobalAlignConfig, focal_estimates, global_align, pixel_rays
+from mvgeo.align.global_align import GlobalAlignConfig, GlobalAlignResult, focal_estimates, global_align, pixel_rays
 from mvgeo.align.graph import PairGraphSpec, components, make_pairs
 from mvgeo.align.intrinsics import undistort_image
 from mvgeo.align.loops import DEFAULT_MAX_LOOP_DEG, pair_rotations, reject_by_loops
-from mvgeo.align.pairs import PairFailure, PointmapModel
+from mvgeo.align.pairs import PairFailure, PairPrediction, PointmapModel
 from mvgeo.align.scene import covisibility_keep, pixel_downsample_by_confidence, voxel_downsample_by_confidence
 from mvgeo.camera import Camera
 from mvgeo.common.atomic import atomic_output_dir
@@ -385,19 +385,22 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
 
 @dataclass
 class _Solution:
-    """One pass of the pairs, the global alignment and the bundle adjustment (see `_solve`)."""
+    """One pass of the pairs, the global alignment and the bundle adjustment (see `_solve`).
+
+    The per-view lists hold the registered views only (`allow_partial` may drop some).
+    """
 
     model: PointmapModel
-    arrays: list
-    small: list
+    arrays: list[np.ndarray]
+    small: list[np.ndarray]
     names: list[str]
-    preds: list
-    matches: list
-    res: object
-    ba: object
+    preds: list[PairPrediction]
+    matches: list[tuple[int, int, np.ndarray]]
+    res: GlobalAlignResult
+    ba: BundleResult | None
     ba_stats: dict | None
-    checks: list
-    bad: list
+    checks: list[PairCheck]
+    bad: list[PairCheck]
     align_cfg: GlobalAlignConfig
     s_pm: float
     Hp: int
