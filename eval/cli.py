@@ -64,8 +64,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
                     select_views=False if args.no_select else None, device=args.device)
     if args.allow_focal_prior:
         config = _allow_focal_prior(config)
-    if args.fuse_noisy_splat:
-        config = dataclasses.replace(config, fuse_noisy_splat=True)
+    if args.fuse_noisy_splat is not None:
+        config = dataclasses.replace(config, fuse_noisy_splat=args.fuse_noisy_splat)
     if args.reuse_intrinsics is not None:
         config = dataclasses.replace(config, align=dataclasses.replace(config.align,
                                                                        reuse_intrinsics=args.reuse_intrinsics))
@@ -188,9 +188,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--allow-focal-prior", action="store_true",
                      help="when the views do not determine the focal length, go on with the prior instead of "
                           "stopping (as `denoise-gs eval` does; check the result's poses)")
-    run.add_argument("--fuse-noisy-splat", action="store_true",
+    run.add_argument("--fuse-noisy-splat", action=argparse.BooleanOptionalAction, default=None,
                      help="extension, not in the paper: each round's splat trains on the mean of the denoised "
-                          "photo and the render of a splat of the noisy photos (one more splat per round)")
+                          "photo and the render of a splat of the noisy photos (one more splat per round). "
+                          "Default: on with --preset default and best, off with fast; "
+                          "--no-fuse-noisy-splat runs the paper's loop")
     run.add_argument("--reuse-intrinsics", choices=("auto", "always", "never"), default=None,
                      help="rounds >= 2: auto (default) keeps the better-determined of the round's own focal "
                           "estimate and the previous round's; always takes the previous round's; never "

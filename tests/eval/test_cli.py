@@ -44,9 +44,11 @@ def test_run_bad_values(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("flag", "expected"), [
-    ([], ("auto", False)),
-    (["--reuse-intrinsics", "never"], ("never", False)),
-    (["--fuse-noisy-splat"], ("auto", True)),
+    ([], ("auto", True)),  # the default preset fuses
+    (["--reuse-intrinsics", "never"], ("never", True)),
+    (["--no-fuse-noisy-splat"], ("auto", False)),
+    (["--preset", "fast"], ("auto", False)),
+    (["--preset", "fast", "--fuse-noisy-splat"], ("auto", True)),
 ])
 def test_run_pipeline_flags(tmp_path, monkeypatch, flag, expected):
     import eval.cli

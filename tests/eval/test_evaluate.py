@@ -34,6 +34,11 @@ def test_method_settings():
     assert fam["instantsplat"][1].rounds == 1
     assert fam["oracle_clean"] == ("oracle_clean", fam["instantsplat"][1])  # (b)'s settings, own folder
     assert {m for m, (f, _) in fam.items() if f == "n2v_fused"} == {"n2v_fused_round1", "denoise_gs_fused"}
+    # Only the *_fused methods fuse, whatever the preset says (`default` fuses, `fast` does not).
+    for name in ("fast", "default"):
+        for m in EVAL_METHODS:
+            if m != "3dgs_gt_poses":
+                assert method_pipeline_config(m, preset(name))[1].fuse_noisy_splat == ("_fused" in m), (name, m)
     with pytest.raises(InputError, match="magic"):
         EvalConfig(methods=("magic",))
     with pytest.raises(InputError, match="seeds"):
