@@ -106,9 +106,9 @@ class AlignConfig:
             second pass is kept unless it fails or only it contradicts its pairs; align.json
             `focal_reestimation` says what happened. The pairs' two-view focal estimates are poor for
             narrow fields of view: on 12 noisy DTU scan24 views (true focal 925 px at 384 px) the
-            prior of 461 px went to 834 px in the adjustment, the checks refused that first result,
-            and the second pass came out at 932 px and 0.50 deg median rotation error (COLMAP registered
-            2 of the 12). 0: off.
+            pairs' 338 px went to 852 px in the adjustment, the checks refused that first result,
+            and the second pass came out at 924 px and 0.37 deg median rotation error (COLMAP registered
+            2 of the 12; `benchmarks/bench_align.py --scenes=dtu`). 0: off.
         native_threads: OpenBLAS and OpenCV threads while aligning (restored
             afterwards; 0 keeps the settings). 1: the pairwise stage is already
             parallel over pairs (`pairwise.workers`), and the bundle adjustment's many
