@@ -17,6 +17,7 @@ in this one process, one after the other, so their time ratio is comparable.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -90,8 +91,6 @@ def scenes(work: Path, which: list[str]):
         if not DTU.is_dir():
             print(f"note: {DTU} missing, DTU scene skipped", file=sys.stderr)
             return
-        import json
-
         from eval.datasets import dtu_dataset
 
         ds = dtu_dataset(DTU, work / "dtu", sigma_8bit=25.0, train_views=12, test_views=4, layout="cluster")

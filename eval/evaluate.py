@@ -132,7 +132,7 @@ def method_pipeline_config(method: str, base: PipelineConfig) -> tuple[str, Pipe
         return "n2v", dataclasses.replace(base, rounds=int(method.split("_")[1]))
     if method in ("n2v_round1", "denoise_gs"):
         return "n2v", dataclasses.replace(base, rounds=1 if method == "n2v_round1" else 2)
-    if method in ("n2v_fused_round1", "denoise_gs_fused"):
+    if fused:
         return "n2v_fused", dataclasses.replace(base, rounds=1 if method == "n2v_fused_round1" else 2)
     if method in ("instantsplat", "nlm_instantsplat", "oracle_clean"):
         return method, dataclasses.replace(base, rounds=1)

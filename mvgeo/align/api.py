@@ -249,6 +249,7 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         model = ClassicalPointmapModel(config.pairwise, K_align=K_align, seed=config.seed)
     pairs = make_pairs(n, config.pairs)
     sol = _solve(arrays, small, names, K_align, intrinsics, model, pairs, config, timer, (W0, H0))
+    err = _consistency_error(sol, config)
     refocus = None
     f_pairs = getattr(model, "focal_px_used", None)
     if (intrinsics is None and default_model and config.refocus_min_change > 0 and sol.ba is not None
@@ -267,12 +268,12 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
             except (InputError, DegenerateGeometryError) as exc:
                 refocus["kept"] = f"first pass (the second failed: {str(exc)[:300]})"
             else:
-                if _consistency_error(sol, config) is None and _consistency_error(again, config) is not None:
+                err_again = _consistency_error(again, config)
+                if err is None and err_again is not None:
                     refocus["kept"] = "first pass (the second is inconsistent with its pairs)"
                 else:
-                    sol, refocus["kept"] = again, "second pass"
+                    sol, err, refocus["kept"] = again, err_again, "second pass"
             _log.info("focal re-estimation: kept the %s", refocus["kept"])
-    err = _consistency_error(sol, config)
     if err is not None:
         raise err
     model, arrays, small, names, n = sol.model, sol.arrays, sol.small, sol.names, len(sol.names)

@@ -378,7 +378,6 @@ class ClassicalPointmapModel:
         out = ClassicalPointmapModel(self.config, K_align=np.repeat(K[None], n_images, axis=0), seed=self.seed)
         out._matched, out._image_hw = self._matched, self._image_hw
         out.focal_determined = self.focal_determined
-        out.focal_px_used = float(focal_px)
         return out
 
     @property
