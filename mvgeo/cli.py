@@ -33,6 +33,9 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--dense-stereo", action=argparse.BooleanOptionalAction, default=True,
                    help="recompute the cloud's depth maps by flow stereo with the final cameras at --max-size "
                         "(default: on; off: the global alignment's depth maps)")
+    a.add_argument("--hole-fill", action=argparse.BooleanOptionalAction, default=True,
+                   help="with the dense stereo, fill the holes of its depth maps (textureless surfaces) by "
+                        "harmonic interpolation of the inverse depth, at low confidence (default: on)")
     a.add_argument("--points", type=int, default=200_000, help="point budget of points.ply")
     a.add_argument("--downsample", choices=["pixel", "voxel"], default="pixel",
                    help="thinning to --points: most confident point per pixel cell of each view (default) "
@@ -63,6 +66,7 @@ def _align(args: argparse.Namespace) -> int:
     from mvgeo.align.dense_stereo import DenseStereoConfig
     from mvgeo.align.global_align import GlobalAlignConfig
     from mvgeo.align.graph import PairGraphSpec
+    from mvgeo.align.hole_fill import HoleFillConfig
     from mvgeo.align.intrinsics import read_intrinsics
     from mvgeo.common.imageio import list_images
 
@@ -81,7 +85,8 @@ def _align(args: argparse.Namespace) -> int:
                       align=GlobalAlignConfig(iters=args.iters, shared_focal=args.shared_focal,
                                               pixel_stride=args.align_stride),
                       points_budget=args.points, bundle_adjust=args.ba, allow_partial=args.allow_partial,
-                      downsample=args.downsample, dense_stereo=DenseStereoConfig(enabled=args.dense_stereo))
+                      downsample=args.downsample, dense_stereo=DenseStereoConfig(enabled=args.dense_stereo),
+                      hole_fill=HoleFillConfig(enabled=args.hole_fill))
     result = align_images(paths, cfg, intrinsics=intr)
     write_align_result(args.out, result)
     s = result.stats

@@ -17,6 +17,7 @@ from mvgeo.align.classical_pairs import ClassicalPairConfig, ClassicalPointmapMo
 from mvgeo.align.dense_stereo import DenseStereoConfig, stereo_depths
 from mvgeo.align.global_align import GlobalAlignConfig, GlobalAlignResult, focal_estimates, global_align, pixel_rays
 from mvgeo.align.graph import PairGraphSpec, components, make_pairs
+from mvgeo.align.hole_fill import HoleFillConfig, fill_depth_holes
 from mvgeo.align.intrinsics import undistort_image
 from mvgeo.align.loops import DEFAULT_MAX_LOOP_DEG, pair_rotations, reject_by_loops
 from mvgeo.align.pairs import PairFailure, PairPrediction, PointmapModel
@@ -109,6 +110,10 @@ class AlignConfig:
             pairs' 338 px went to 852 px in the adjustment, the checks refused that first result,
             and the second pass came out at 924 px and 0.37 deg median rotation error (COLMAP registered
             2 of the 12; `benchmarks/bench_align.py --scenes=dtu`). 0: off.
+        hole_fill: with the dense stereo, the holes of a view's depth map (textureless surfaces, but
+            also stereo failures elsewhere) are filled by harmonic interpolation of the inverse depth
+            around them, at low confidence (`mvgeo.align.hole_fill`); align.json
+            `dense_stereo.fraction_filled`.
         native_threads: OpenBLAS and OpenCV threads while aligning (restored
             afterwards; 0 keeps the settings). 1: the pairwise stage is already
             parallel over pairs (`pairwise.workers`), and the bundle adjustment's many
@@ -140,6 +145,7 @@ class AlignConfig:
     native_threads: int = 1
     dense_stereo: DenseStereoConfig = field(default_factory=DenseStereoConfig)
     refocus_min_change: float = 0.1
+    hole_fill: HoleFillConfig = field(default_factory=HoleFillConfig)
 
 
 #: A faster preset for tests and previews (fewer iterations, smaller pointmaps, at most 20k points).
@@ -298,11 +304,14 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
                 conf_maps[v] = cv2.resize(np.asarray(res.conf[v], np.float64), (Wg, Hg),
                                           interpolation=cv2.INTER_NEAREST)
                 from_alignment.append(names[v])
+        with timer.stage("hole_fill"):
+            depth_maps, conf_maps, filled = fill_depth_holes(depth_maps, conf_maps, config.hole_fill)
         pts_maps = [backproject_depth(d, k, T) for d, k, T in zip(depth_maps, K_grid, res.cam_from_world,
                                                                     strict=True)]
         stereo_stats = {"size_wh": [int(depth_maps[0].shape[1]), int(depth_maps[0].shape[0])],
                         "n_pairs": len(preds),
                         "fraction_with_depth": [round(float(np.isfinite(d).mean()), 4) for d in stereo.depth],
+                        "fraction_filled": [round(float(m.mean()), 4) for m in filled],
                         "views_with_alignment_depth": from_alignment}
         if ba is not None and ba.track_xyz is not None and len(ba.obs_view):
             # Agreement with the bundle-adjusted tracks (same cameras): median track / stereo depth per view.

@@ -47,6 +47,17 @@ def test_align_outputs(aligned, scene):
     for key in ("timings_s", "final_loss", "focal_px", "mean_confidence", "failed_pairs"):
         assert key in stats
     assert stats["final_loss"] <= stats["init_loss"]
+    # The stereo leaves holes on these noisy views (measured 15-30 % of each view's pixels); the fill
+    # gives them depth.
+    filled = np.array(stats["dense_stereo"]["fraction_filled"])
+    assert filled.shape == (6,) and np.all((filled >= 0) & (filled <= 1)) and filled.max() > 0.01
+
+
+def test_no_hole_fill_flag(scene, tmp_path):
+    out = tmp_path / "out"
+    assert main(["align", str(scene / "images"), "--out", str(out), *FAST, "--no-hole-fill"]) == 0
+    stats = json.loads((out / "align.json").read_text())
+    assert stats["dense_stereo"]["fraction_filled"] == [0.0] * 6
 
 
 def test_align_poses_against_ground_truth_and_colmap(aligned, scene, tmp_path, capsys):
