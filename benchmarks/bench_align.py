@@ -202,8 +202,9 @@ def main() -> None:
             "whose relative rotations contradict a pair's matches fails. `ours (--allow-partial)` registers the "
             "largest group of images that can be connected and verified (rows: registered/all). "
             "`ours (defaults)` ends with the dense stereo on the final cameras (the output cloud, "
-            f"{DEFAULT.dense_stereo.size_px} px); `ours (--no-dense-stereo)` skips it, so its cloud is the global "
-            "alignment's: the product comparable to pycolmap's mapper (poses + sparse points). "
+            f"{DEFAULT.dense_stereo.size_px} px, its wide holes filled); `ours (--no-dense-stereo)` skips it, "
+            "so its cloud is the global alignment's: the product comparable to pycolmap's mapper "
+            "(poses + sparse points). "
             f"Load average (1/5/15 min) at start {load0[0]:.2f}/{load0[1]:.2f}/{load0[2]:.2f}, at end "
             f"{load1[0]:.2f}/{load1[1]:.2f}/{load1[2]:.2f} on {os.cpu_count()} cores.\n\n")
     body += md_table(["scene", "method", "registered", "rot err (deg)", "transl err (deg)", "ATE", "focal err %",

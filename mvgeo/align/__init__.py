@@ -38,6 +38,9 @@ Pipeline and modules:
 - `dense_stereo`: once the cameras are final, the output cloud's depth maps are
   recomputed by flow stereo per pair with those cameras at `max_size_px`, fused
   per view (the pairwise pointmaps carry their own pair poses' errors).
+- `hole_fill`: the wide holes of those depth maps (textureless surfaces, where
+  flow stereo finds nothing) get the harmonic interpolation of the inverse depth
+  around them, at low confidence.
 - `scene`: co-visibility pruning, the multi-view consistency check, and
   confidence-aware thinning to the point budget (per pixel cell of each view by
   default, or per voxel).
