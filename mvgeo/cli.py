@@ -34,7 +34,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="recompute the cloud's depth maps by flow stereo with the final cameras at --max-size "
                         "(default: on; off: the global alignment's depth maps)")
     a.add_argument("--hole-fill", action=argparse.BooleanOptionalAction, default=True,
-                   help="with the dense stereo, fill the holes of its depth maps (textureless surfaces) by "
+                   help="with the dense stereo, fill the wide holes of its depth maps (textureless surfaces) by "
                         "harmonic interpolation of the inverse depth, at low confidence (default: on)")
     a.add_argument("--points", type=int, default=200_000, help="point budget of points.ply")
     a.add_argument("--downsample", choices=["pixel", "voxel"], default="pixel",

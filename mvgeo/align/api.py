@@ -110,10 +110,9 @@ class AlignConfig:
             pairs' 338 px went to 852 px in the adjustment, the checks refused that first result,
             and the second pass came out at 924 px and 0.37 deg median rotation error (COLMAP registered
             2 of the 12; `benchmarks/bench_align.py --scenes=dtu`). 0: off.
-        hole_fill: with the dense stereo, the holes of a view's depth map (textureless surfaces, but
-            also stereo failures elsewhere) are filled by harmonic interpolation of the inverse depth
-            around them, at low confidence (`mvgeo.align.hole_fill`); align.json
-            `dense_stereo.fraction_filled`.
+        hole_fill: with the dense stereo, the wide holes of a view's depth map (textureless surfaces)
+            are filled by harmonic interpolation of the inverse depth around them, at low confidence
+            (`mvgeo.align.hole_fill`); align.json `dense_stereo.fraction_filled`.
         native_threads: OpenBLAS and OpenCV threads while aligning (restored
             afterwards; 0 keeps the settings). 1: the pairwise stage is already
             parallel over pairs (`pairwise.workers`), and the bundle adjustment's many

@@ -132,12 +132,18 @@ def fill_depth_holes(depth: Sequence[np.ndarray], conf: Sequence[np.ndarray],
         valid = np.isfinite(D) & (D > 0)
         mask = np.zeros(D.shape, bool)
         if config.enabled and not valid.all() and valid.mean() >= config.min_valid_fraction:
-            inv = np.where(valid, 1.0 / np.where(valid, D, 1.0), 0.0)
-            inv = harmonic_fill(inv, valid)
-            # A harmonic function stays within its boundary values (maximum principle): positive here.
-            mask = wide_holes(~valid, config.min_width) & np.isfinite(inv) & (inv > 0)
-            D[mask] = 1.0 / inv[mask]
-            C[mask] = config.fill_conf
+            wide = wide_holes(~valid, config.min_width)
+            if wide.any():
+                # Solve only on the 4-connected hole regions that contain wide pixels: the others are
+                # separate blocks of the Laplace system (no 4-neighbour in common) and would be discarded.
+                _, label = cv2.connectedComponents((~valid).astype(np.uint8), connectivity=4)
+                region = np.isin(label, np.unique(label[wide]))
+                inv = np.where(valid, 1.0 / np.where(valid, D, 1.0), 0.0)
+                inv = harmonic_fill(inv, ~region)
+                # A harmonic function stays within its boundary values (maximum principle): positive here.
+                mask = wide & np.isfinite(inv) & (inv > 0)
+                D[mask] = 1.0 / inv[mask]
+                C[mask] = config.fill_conf
         out_d.append(D)
         out_c.append(C)
         filled.append(mask)
