@@ -515,7 +515,12 @@ def estimate_relative_pose_uncalibrated(
     if F is None or mask.sum() < 8:
         return _failure(n, "no fundamental matrix with >= 8 inliers", iters)
     h_ratio = 0.0
-    Hm, hmask = cv2.findHomography(u1, u2, cv2.RANSAC, thr, maxIters=2000, confidence=0.999)
+    # USAC_ACCURATE (local optimisation): on llff_like's ten focal pairs it found about as many or more
+    # homography inliers than plain RANSAC with 2000 iterations, in 6 ms instead of 32 ms per pair.
+    try:
+        Hm, hmask = cv2.findHomography(u1, u2, cv2.USAC_ACCURATE, thr, maxIters=2000, confidence=0.999)
+    except cv2.error:  # USAC asserts on some degenerate sample sets: plain RANSAC then
+        Hm, hmask = cv2.findHomography(u1, u2, cv2.RANSAC, thr, maxIters=2000, confidence=0.999)
     if Hm is not None and hmask is not None:
         h_ratio = float(hmask.sum()) / float(mask.sum())
     focal = focal_from_fundamental(F, (W, H), search_range=config.focal_search_range)

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
 from mvgeo.align.bundle_lm import LMProblem, log_focal_std, project, solve_lm
@@ -92,7 +93,13 @@ class BundleResult:
 
 
 def build_tracks(matches: Sequence[tuple[int, int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Merge pairwise matches into tracks (union-find on (view, u, v)).
+    """Merge pairwise matches into tracks (connected components of the keypoint graph).
+
+    A keypoint is a distinct (view, u, v); every match is an edge. The keypoints
+    are numbered in order of first appearance, and the components are found by
+    `scipy.sparse.csgraph.connected_components`; tracks are ordered by their
+    first-seen keypoint and their observations by first appearance, exactly as
+    the union-find reference `build_tracks_reference` orders them.
 
     Args:
         matches: (i, j, uv) with uv (M, 4) = (u_i, v_i, u_j, v_j).
@@ -101,6 +108,51 @@ def build_tracks(matches: Sequence[tuple[int, int, np.ndarray]]) -> tuple[np.nda
         obs_view (K,), obs_track (K,), obs_uv (K, 2): one row per observation;
         tracks with two observations in one view are dropped; ids are 0..T-1.
     """
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+    rows = [np.asarray(uv, np.float64).reshape(-1, 4) for _, _, uv in matches]
+    if not rows or sum(len(r) for r in rows) == 0:
+        return empty
+    # Endpoints in the reference's visiting order: per match row, first the i side, then the j side.
+    ends = np.concatenate([np.stack([np.stack([np.full(len(r), i, np.float64), r[:, 0], r[:, 1]], 1),
+                                     np.stack([np.full(len(r), j, np.float64), r[:, 2], r[:, 3]], 1)], 1)
+                           for (i, j, _), r in zip(matches, rows, strict=True)]).reshape(-1, 3)
+    # Distinct keypoints (a stable lexicographic sort: each run of equal rows starts at its first appearance).
+    srt = np.lexsort((ends[:, 2], ends[:, 1], ends[:, 0]))
+    e = ends[srt]
+    starts = np.r_[True, np.any(e[1:] != e[:-1], axis=1)]
+    group = np.cumsum(starts) - 1  # sorted-distinct index of every sorted endpoint
+    first = srt[starts]  # first appearance of each distinct keypoint
+    rank = np.empty(len(first), np.int64)
+    rank[np.argsort(first)] = np.arange(len(first))
+    node = np.empty(len(ends), np.int64)
+    node[srt] = rank[group]  # keypoint ids in order of first appearance
+    keys = ends[np.sort(first)]  # (V, 3) view, u, v by id
+    edges = node.reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(edges), np.int8), (edges[:, 0], edges[:, 1])), shape=(len(keys), len(keys)))
+    _, comp = connected_components(graph, directed=False)
+    # Component order: by its first keypoint; members by id.
+    comp_first = np.full(comp.max() + 1, len(keys), np.int64)
+    np.minimum.at(comp_first, comp, np.arange(len(keys)))
+    order = np.lexsort((np.arange(len(keys)), comp_first[comp]))
+    view = keys[:, 0].astype(np.int64)
+    track_of = comp[order]
+    # Drop tracks with two keypoints in one view.
+    n_view = int(view.max()) + 1
+    comp_view = np.unique(comp * n_view + view)
+    n_views_per = np.bincount(comp_view // n_view, minlength=len(comp_first))
+    size = np.bincount(comp, minlength=len(comp_first))
+    ok_comp = n_views_per == size
+    keep = ok_comp[track_of]
+    order, track_of = order[keep], track_of[keep]
+    ids = -np.ones(len(comp_first), np.int64)
+    kept_in_order = track_of[np.r_[True, track_of[1:] != track_of[:-1]]] if len(track_of) else track_of
+    ids[kept_in_order] = np.arange(len(kept_in_order))
+    return view[order], ids[track_of], keys[order, 1:].copy()
+
+
+def build_tracks_reference(matches: Sequence[tuple[int, int, np.ndarray]]
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Union-find on (view, u, v) keys, one match at a time: the slow, obvious reference of `build_tracks`."""
     parent: dict[tuple, tuple] = {}
 
     def find(a):
