@@ -84,6 +84,18 @@ class AlignConfig:
             Sampson check alone misses wrong rotations of pairs whose epipolar
             geometry is nearly ambiguous (narrow field of view, few matches);
             same threshold as the loop check.
+        max_centre_std_ratio: a view whose camera centre the bundle adjustment leaves uncertain, with the
+            other cameras held, by more than this fraction of the median distance between neighbouring
+            cameras (largest standard deviation, `mvgeo.align.bundle_lm.camera_centre_std`) fails the
+            alignment, or with `allow_partial` is left unregistered: its position is not determined by the
+            feature tracks (e.g. a view tied by two-view tracks to two neighbours on nearly one line with
+            it: each pair fixes a direction but not a distance). 0 turns the check off. align.json
+            `bundle_adjustment.centre_std_ratio`. Measured (largest ratio of a
+            result): 0.006-0.08 on llff_like (3-12 views), poisson, hard_highnoise,
+            DTU scan24 with noise and temple (--allow-partial); 0.03-0.26 on their
+            N2V-denoised photos; on object_ring's 21 training views at 256x192
+            (15 deg steps, three 30 deg gaps) one view at 19 (the others <= 0.024),
+            4 m off on a 3 m radius while the pair checks passed.
         max_focal_log_std: without known intrinsics and without any pair that
             determines the focal, the bundle adjustment must: its log-focal
             standard deviation above this fails the alignment.
@@ -130,6 +142,7 @@ class AlignConfig:
     max_unexplained_fraction: float = 0.1
     max_pair_rotation_deg: float = DEFAULT_MAX_LOOP_DEG
     max_focal_log_std: float = 0.05
+    max_centre_std_ratio: float = 1.0
     points_budget: int = 200_000
     downsample: str = "pixel"
     covisibility_rel_tol: float = 0.03
@@ -483,12 +496,35 @@ def _solve(arrays, small, names, K_align, intrinsics, model, pairs, config: Alig
                 ba = bundle_adjust(res.cam_from_world, res.focal_px * s_pm, (Wa, Ha), matches, config=ba_cfg)
                 res, depth_scales = _reposed(res, ba.cam_from_world, ba.focal_px / s_pm, ba, s_pm)
                 ba_stats = {k: v for k, v in asdict(ba).items()
-                            if k not in ("cam_from_world", "focal_px", "track_xyz", "obs_view", "obs_point", "obs_uv")}
+                            if k not in ("cam_from_world", "focal_px", "track_xyz", "obs_view", "obs_point", "obs_uv",
+                                         "centre_std")}
+                ba_stats["centre_std_ratio"] = _centre_std_ratio(ba)
                 ba_stats["dense_depth_rescale"] = depth_scales
         # Without the bundle adjustment the poses come from pointmaps s_pm times coarser than the
         # matches: judge them at that resolution.
         thr = config.consistency_px * (1.0 if ba is not None else max(s_pm, 1.0))
         checks, bad = _judge(res, s_pm, (Wa, Ha), matches, thr, config)
+        loose = _loose_views(ba, config)
+        if config.allow_partial and loose and attempt < attempts - 1:
+            # Views the tracks do not pin (see `max_centre_std_ratio`): register the others, solve again.
+            keep = [v for v in range(n) if v not in loose]
+            comps = components(len(keep), [(keep.index(p.i), keep.index(p.j)) for p in preds
+                                           if p.i in keep and p.j in keep])
+            keep = [keep[v] for v in comps[0]] if comps else []
+            if len(keep) >= 2:
+                lost = [names[v] for v in range(n) if v not in keep]
+                _log.warning("allow_partial: keeping %d of %d images; the positions of %s are not determined by "
+                             "the feature tracks", len(keep), n, lost)
+                unregistered += [{"name": m, "reason": (
+                    "its position is not determined by the feature tracks" if names.index(m) in loose
+                    else "not connected to the others once the views with undetermined positions are removed")}
+                    for m in lost]
+                new = {v: k for k, v in enumerate(keep)}
+                all_matches = [(new[i], new[j], uv) for i, j, uv in all_matches if i in new and j in new]
+                arrays, small, names, preds, matches, K_align = _restrict(keep, arrays, small, names, preds,
+                                                                          matches, K_align)
+                n = len(keep)
+                continue
         if not bad or attempt == attempts - 1:
             break
         # Retry without the pairs the reconstruction does not explain (e.g. symmetric
@@ -633,12 +669,47 @@ def _consistency_error(sol: _Solution, config: AlignConfig) -> DegenerateGeometr
             + ("" if focal_determined else ", and no image pair determines the focal length")
             + (". The bundle adjustment is off: the dense alignment alone is this coarse; enable it (--ba)"
                if ba is None else ". Add views between the existing ones, or pass --intrinsics"))
+    loose = _loose_views(ba, config)
+    if loose:
+        ratio = _centre_std_ratio(ba)
+        listing = ", ".join(f"{names[v]} ({ratio[v]:.2g})" for v in loose)[:1500]
+        return DegenerateGeometryError(
+            f"the positions of {len(loose)} of {len(ratio)} views are not determined by the feature tracks: "
+            f"their camera centres are uncertain by more than {config.max_centre_std_ratio:g} times the "
+            f"median distance between neighbouring cameras (standard deviation / that distance: {listing}). "
+            "Likely cause: these views are linked to the others by tracks seen in two views only, so each "
+            "pair fixes a direction but not a distance (e.g. an orbit with large steps). Add views between "
+            "the existing ones, or pass --allow-partial to register the others")
     if not focal_determined and ba is not None and ba.focal_log_std > config.max_focal_log_std:
         return DegenerateGeometryError(
             f"the focal length is not determined by these views (no image pair determines it, and the "
             f"bundle adjustment leaves a relative uncertainty of {ba.focal_log_std:.0%}; object-centric "
             "orbits are a critical configuration). Pass the calibration with --intrinsics")
     return None
+
+
+def _loose_views(ba: BundleResult | None, config: AlignConfig) -> list[int]:
+    """Views whose centre uncertainty ratio (`_centre_std_ratio`) exceeds `max_centre_std_ratio`."""
+    ratio = _centre_std_ratio(ba) if ba is not None else None
+    if ratio is None or config.max_centre_std_ratio <= 0:
+        return []
+    return [v for v, q in enumerate(ratio) if q > config.max_centre_std_ratio]
+
+
+def _centre_std_ratio(ba: BundleResult) -> list[float] | None:
+    """Per view, the largest standard deviation of its camera centre over the median distance from each
+    camera to its nearest neighbour; None without the estimate (scipy solver) or with fewer than 3 views
+    (with two, holding one camera leaves the other's distance free: that is the scale gauge, not a defect)."""
+    if ba.centre_std is None or len(ba.centre_std) < 3:
+        return None
+    R, t = ba.cam_from_world[:, :, :3], ba.cam_from_world[:, :, 3]
+    C = -np.einsum("nji,nj->ni", R, t)
+    d = np.linalg.norm(C[:, None] - C[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    scale = float(np.median(d.min(axis=1)))
+    if not scale > 0:
+        return [float("inf")] * len(C)
+    return [round(float(s) / scale, 4) for s in ba.centre_std]
 
 
 def _restrict(keep: list[int], arrays, small, names, preds, matches, K_align):

@@ -31,7 +31,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial.transform import Rotation
 
-from mvgeo.align.bundle_lm import LMProblem, log_focal_std, project, solve_lm
+from mvgeo.align.bundle_lm import LMProblem, camera_centre_std, log_focal_std, project, solve_lm
 from mvgeo.triangulate import TriangulationCriteria, triangulate_multiview
 
 _log = logging.getLogger(__name__)
@@ -83,6 +83,9 @@ class BundleResult:
     reproj_median_before_px: float
     reproj_median_after_px: float
     focal_log_std: float = float("nan")
+    #: (N,) largest standard deviation of each camera centre, world units (`bundle_lm.camera_centre_std`;
+    #: LM solver only).
+    centre_std: np.ndarray | None = None
     solver: str = "lm"
     #: The refined tracks, for what has to agree with the new poses (e.g. the dense depth maps):
     #: (P, 3) world points and per observation its view, point index and (u, v) pixel.
@@ -287,10 +290,11 @@ def _bundle_lm(cam_from_world, rv0, X0, logf0, f_index, ov, op, ouv, c, e0, conf
         pb = LMProblem(pb.ov[ok], new_id[pb.op[ok]], pb.uv[ok], f_index, c, config.optimize_focal)
     e1 = np.linalg.norm(project(R, t, logf, X, pb)[0], axis=1)
     std = log_focal_std(R, t, logf, X, pb, config.huber_px)
+    centre_std = camera_centre_std(R, t, logf, X, pb, config.huber_px)
     out = np.concatenate([R, t[:, :, None]], axis=2)
     res = BundleResult(out, np.exp(logf)[f_index], len(X), len(pb.ov), float(np.sqrt(np.mean(e0**2))),
                        float(np.sqrt(np.mean(e1**2))), float(np.median(e0)), float(np.median(e1)),
-                       focal_log_std=float(np.max(std)) if len(std) else 0.0, solver="lm",
+                       focal_log_std=float(np.max(std)) if len(std) else 0.0, centre_std=centre_std, solver="lm",
                        track_xyz=X, obs_view=pb.ov, obs_point=pb.op, obs_uv=pb.uv)
     _log.info("bundle adjustment (LM): %d tracks, %d observations, reprojection RMS %.3g -> %.3g px "
               "(median %.3g -> %.3g), focal %.1f -> %.1f px (log-std %.2g)", len(X), len(pb.ov),

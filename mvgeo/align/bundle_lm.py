@@ -207,3 +207,54 @@ def log_focal_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarray:
     cov = np.linalg.pinv(S, rcond=1e-12, hermitian=True) * sigma2
     k = 6 * (n - 1)
     return np.sqrt(np.maximum(np.diag(cov)[k:k + nf], 0.0))
+
+
+
+def _view_blocks(R, t, logf, X, pb: LMProblem, huber_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 6, 6) reduced-system block of every view's pose (points marginalised, the other views and the
+    focals held), and the residuals. View 0 is fixed in `normal_equations`: its block comes from a second
+    call with views 0 and 1 swapped."""
+    n = len(R)
+    blocks = np.zeros((n, 6, 6))
+    U, _, V, _, W, r = normal_equations(R, t, logf, X, pb, huber_px)
+    S = reduced_camera_system(U, V, W)[0]
+    for v in range(1, n):
+        blocks[v] = S[6 * (v - 1):6 * v, 6 * (v - 1):6 * v]
+    swap = np.arange(n)
+    swap[[0, 1]] = [1, 0]
+    pb1 = LMProblem(swap[pb.ov], pb.op, pb.uv, pb.f_index[swap], pb.c, pb.optimize_focal)
+    U1, _, V1, _, W1, _ = normal_equations(R[swap], t[swap], logf, X, pb1, huber_px)
+    blocks[0] = reduced_camera_system(U1, V1, W1)[0][:6, :6]  # old view 0 is now view 1
+    return blocks, r
+
+
+def camera_centre_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarray:
+    """(N,) largest standard deviation of each camera centre (world units) when the other cameras are held.
+
+    How well the tracks pin each camera: the Laplace approximation of its pose
+    given every other pose and the focals, with the points marginalised (the
+    view's 6x6 block of the reduced camera system), the residual variance
+    estimated from the residuals. Holding the others removes the gauge (the
+    similarity of the whole scene) without choosing one, and charges a loose
+    camera to itself: a view tied to the rest by two-view tracks only gets a
+    direction from each pair but no distance, so its block is (near) singular
+    along that direction. A centre c = -R^T t moves by ``-R^T dt - R^T [t]x d``
+    under the update (d, dt) of its rotation and translation.
+    """
+    n = len(R)
+    if n < 2:
+        return np.zeros(n)
+    blocks, r = _view_blocks(R, t, logf, X, pb, huber_px)
+    dof = max(r.size - 6 * (n - 1) - len(logf) - 3 * len(X), 1)
+    sigma2 = float(np.sum(r * r)) / dof
+    out = np.empty(n)
+    for v in range(n):
+        tx = np.array([[0.0, -t[v][2], t[v][1]], [t[v][2], 0.0, -t[v][0]], [-t[v][1], t[v][0], 0.0]])
+        J = np.concatenate([-R[v].T @ tx, -R[v].T], axis=1)
+        try:
+            cc = J @ np.linalg.inv(blocks[v]) @ J.T * sigma2
+        except np.linalg.LinAlgError:
+            out[v] = np.inf
+            continue
+        out[v] = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cc + cc.T))[-1], 0.0)))
+    return out

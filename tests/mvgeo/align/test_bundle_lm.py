@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mvgeo.align.bundle import BundleConfig, bundle_adjust
-from mvgeo.align.bundle_lm import LMProblem, log_focal_std, normal_equations, project, solve_lm
+from mvgeo.align.bundle_lm import LMProblem, camera_centre_std, log_focal_std, normal_equations, project, solve_lm
 from mvgeo.metrics import compare_poses
 from mvgeo.transforms import so3_exp
 
@@ -123,3 +123,74 @@ def test_solve_lm_converges_from_perturbed_state_and_reports_focal_uncertainty(r
     assert np.sqrt(np.mean(r**2)) < 1e-4  # exact data: the minimum is zero
     assert np.exp(lf1[0]) == pytest.approx(f, rel=1e-4)
     assert log_focal_std(R1, t1, lf1, X1, pb, 1.0)[0] >= 0.0
+
+
+
+def _dense_centre_std_reference(R, t, logf, X, pb, sigma2):
+    """Slow, obvious `camera_centre_std`: per view, the central-difference Jacobian of every residual with
+    respect to that view's pose and every point (the other poses and the focal held), the pose block of
+    (J^T J)^-1, and the centre's covariance by finite differences of c = -R^T t."""
+    n, P = len(R), len(X)
+    eps = 1e-6
+    out = []
+    for v in range(n):
+        def res(x, v=v):
+            R_, t_ = R.copy(), t.copy()
+            R_[v] = so3_exp(x[:3]) @ R[v]
+            t_[v] = t[v] + x[3:6]
+            return project(R_, t_, logf, X + x[6:].reshape(P, 3), pb)[0].ravel()
+
+        m = 6 + 3 * P
+        J = np.stack([(res(eps * e) - res(-eps * e)) / (2 * eps) for e in np.eye(m)], axis=1)
+        cov = np.linalg.inv(J.T @ J)[:6, :6] * sigma2
+
+        def centre(d, v=v):
+            return -(so3_exp(d[:3]) @ R[v]).T @ (t[v] + d[3:])
+
+        Jc = np.stack([(centre(eps * e) - centre(-eps * e)) / (2 * eps) for e in np.eye(6)], axis=1)
+        out.append(float(np.sqrt(np.linalg.eigvalsh(Jc @ cov @ Jc.T)[-1])))
+    return np.array(out)
+
+
+def test_camera_centre_std_matches_dense_reference(rng):
+    """The reduced-system blocks against dense, finite-difference Jacobians (Huber scale huge, so the IRLS
+    weights are all 1 and both see the same least-squares problem); view 0 included."""
+    X, poses, uv, f = _scene(rng, n_views=4, n_pts=15, noise_px=0.5)
+    n, P = 4, 15
+    ov = np.repeat(np.arange(n), P)
+    op = np.tile(np.arange(P), n)
+    pb = LMProblem(ov, op, uv.reshape(-1, 2), np.zeros(n, np.int64), np.array([W / 2, H / 2]))
+    R, t, logf, Xs, _ = solve_lm(poses[:, :, :3].copy(), poses[:, :, 3].copy(), np.array([np.log(f)]), X.copy(),
+                                 pb, huber_px=1e12)
+    fast = camera_centre_std(R, t, logf, Xs, pb, huber_px=1e12)
+    r = project(R, t, logf, Xs, pb)[0]
+    sigma2 = float(np.sum(r * r)) / (r.size - (6 * (n - 1) + 1) - 3 * P)
+    ref = _dense_centre_std_reference(R, t, logf, Xs, pb, sigma2)
+    assert np.all(fast > 0)
+    # Finite differences of the residuals (eps 1e-6, well conditioned here): ~1e-6 relative.
+    np.testing.assert_allclose(fast, ref, rtol=1e-4)
+
+def test_camera_centre_std_flags_a_view_tied_by_two_view_tracks_only(rng):
+    """Views 0-2 share every point; view 3 shares its own points with view 2 only. Two-view tracks fix
+    view 3's direction from view 2 but not its distance: held against the others, its centre is loose and
+    theirs are not. With three-view tracks every view is pinned."""
+    X, poses, uv, f = _scene(rng, n_views=4, n_pts=80)
+    c = np.array([W / 2, H / 2])
+    shared, own = np.arange(60), np.arange(60, 80)
+    ov = np.concatenate([np.repeat([0, 1, 2], 60), np.full(20, 2), np.full(20, 3)])
+    op = np.concatenate([np.tile(shared, 3), own, own])
+    uvs = np.concatenate([uv[0, shared], uv[1, shared], uv[2, shared], uv[2, own], uv[3, own]])
+    pb = LMProblem(ov, op, uvs, np.zeros(4, np.int64), c)
+    R, t, logf, Xs, _ = solve_lm(poses[:, :, :3].copy(), poses[:, :, 3].copy(), np.array([np.log(f)]), X.copy(),
+                                 pb, huber_px=1.0)
+    std = camera_centre_std(R, t, logf, Xs, pb, huber_px=1.0)
+    C = -np.einsum("nji,nj->ni", R, t)
+    spacing = np.median([np.linalg.norm(C[k + 1] - C[k]) for k in range(3)])
+    assert std[3] / spacing > 1.0
+    assert np.all(std[:3] / spacing < 0.05)
+    # With the same points also seen from view 1 (three-view tracks), view 3 is pinned.
+    ov2 = np.concatenate([ov, np.full(20, 1)])
+    op2 = np.concatenate([op, own])
+    pb2 = LMProblem(ov2, op2, np.concatenate([uvs, uv[1, own]]), np.zeros(4, np.int64), c)
+    R2, t2, lf2, X2, _ = solve_lm(R, t, logf, Xs, pb2, huber_px=1.0)
+    assert np.all(camera_centre_std(R2, t2, lf2, X2, pb2, huber_px=1.0) / spacing < 0.05)
