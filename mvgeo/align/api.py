@@ -507,22 +507,18 @@ def _solve(arrays, small, names, K_align, intrinsics, model, pairs, config: Alig
         loose = _loose_views(ba, config)
         if config.allow_partial and loose and attempt < attempts - 1:
             # Views the tracks do not pin (see `max_centre_std_ratio`): register the others, solve again.
-            keep = [v for v in range(n) if v not in loose]
-            comps = components(len(keep), [(keep.index(p.i), keep.index(p.j)) for p in preds
-                                           if p.i in keep and p.j in keep])
-            keep = [keep[v] for v in comps[0]] if comps else []
+            # The largest group the other views' pairs connect (the loose views are singletons here).
+            keep = components(n, [(p.i, p.j) for p in preds if p.i not in loose and p.j not in loose])[0]
             if len(keep) >= 2:
-                lost = [names[v] for v in range(n) if v not in keep]
+                why = {v: "its position is not determined by the feature tracks" for v in loose}
                 _log.warning("allow_partial: keeping %d of %d images; the positions of %s are not determined by "
-                             "the feature tracks", len(keep), n, lost)
-                unregistered += [{"name": m, "reason": (
-                    "its position is not determined by the feature tracks" if names.index(m) in loose
-                    else "not connected to the others once the views with undetermined positions are removed")}
-                    for m in lost]
-                new = {v: k for k, v in enumerate(keep)}
-                all_matches = [(new[i], new[j], uv) for i, j, uv in all_matches if i in new and j in new]
-                arrays, small, names, preds, matches, K_align = _restrict(keep, arrays, small, names, preds,
-                                                                          matches, K_align)
+                             "the feature tracks", len(keep), n, [names[v] for v in loose])
+                *lists, all_matches, lost = _drop_views(
+                    keep, lambda v, why=why: why.get(v, "not connected to the others once the views with "
+                                                        "undetermined positions are removed"),
+                    arrays, small, names, preds, matches, K_align, all_matches)
+                arrays, small, names, preds, matches, K_align = lists
+                unregistered += lost
                 n = len(keep)
                 continue
         if not bad or attempt == attempts - 1:
@@ -541,14 +537,13 @@ def _solve(arrays, small, names, K_align, intrinsics, model, pairs, config: Alig
         matches = [m for m in matches if (m[0], m[1]) not in gone]
         if len(comps) > 1:
             keep = comps[0]
-            lost = [names[v] for v in range(n) if v not in keep]
-            _log.warning("allow_partial: keeping %d of %d images; %s lost their consistent pairs", len(keep), n, lost)
-            unregistered += [{"name": m, "reason": "its pairs are inconsistent with the reconstruction of the others"}
-                             for m in lost]
-            new = {v: k for k, v in enumerate(keep)}
-            all_matches = [(new[i], new[j], uv) for i, j, uv in all_matches if i in new and j in new]
-            arrays, small, names, preds, matches, K_align = _restrict(keep, arrays, small, names, preds, matches,
-                                                                      K_align)
+            *lists, all_matches, lost = _drop_views(
+                keep, lambda v: "its pairs are inconsistent with the reconstruction of the others",
+                arrays, small, names, preds, matches, K_align, all_matches)
+            arrays, small, names, preds, matches, K_align = lists
+            _log.warning("allow_partial: keeping %d of %d images; %s lost their consistent pairs", len(keep), n,
+                         [u["name"] for u in lost])
+            unregistered += lost
             n = len(keep)
     if dropped:  # judge the final result against all the evidence, the dropped pairs included
         checks, bad = _judge(res, s_pm, (Wa, Ha), all_matches, thr, config)
@@ -710,6 +705,15 @@ def _centre_std_ratio(ba: BundleResult) -> list[float] | None:
     if not scale > 0:
         return [float("inf")] * len(C)
     return [round(float(s) / scale, 4) for s in ba.centre_std]
+
+
+def _drop_views(keep: list[int], reason, arrays, small, names, preds, matches, K_align, all_matches):
+    """`_restrict` to `keep`, with `all_matches` renumbered too; returns the six restricted lists, then
+    `all_matches`, then the align.json `unregistered` entries of the other views (`reason(view) -> str`)."""
+    lost = [{"name": names[v], "reason": reason(v)} for v in range(len(names)) if v not in keep]
+    new = {v: k for k, v in enumerate(keep)}
+    all_matches = [(new[i], new[j], uv) for i, j, uv in all_matches if i in new and j in new]
+    return (*_restrict(keep, arrays, small, names, preds, matches, K_align), all_matches, lost)
 
 
 def _restrict(keep: list[int], arrays, small, names, preds, matches, K_align):
