@@ -432,6 +432,7 @@ class _Solution:
     unregistered: list
     dropped: list
     focal_determined: bool
+    focal_undetermined_why: str = ""
 
 
 def _solve(arrays, small, names, K_align, intrinsics, model, pairs, config: AlignConfig, timer: StageTimer,
@@ -549,7 +550,8 @@ def _solve(arrays, small, names, K_align, intrinsics, model, pairs, config: Alig
         checks, bad = _judge(res, s_pm, (Wa, Ha), all_matches, thr, config)
     return _Solution(model, arrays, small, names, preds, matches, res, ba, ba_stats, checks, bad, align_cfg, s_pm,
                      Hp, Wp, failed_pairs, rejected, unregistered, dropped,
-                     focal_determined=getattr(model, "focal_determined", True) or intrinsics is not None)
+                     focal_determined=getattr(model, "focal_determined", True) or intrinsics is not None,
+                     focal_undetermined_why=getattr(model, "focal_undetermined_why", ""))
 
 
 def _reposed(res, cam_from_world: np.ndarray, focal_px: np.ndarray, ba=None, s_pm: float = 1.0):
@@ -676,10 +678,11 @@ def _consistency_error(sol: _Solution, config: AlignConfig) -> DegenerateGeometr
             "pair fixes a direction but not a distance (e.g. an orbit with large steps). Add views between "
             "the existing ones, or pass --allow-partial to register the others")
     if not focal_determined and ba is not None and ba.focal_log_std > config.max_focal_log_std:
+        why = f": {sol.focal_undetermined_why}" if sol.focal_undetermined_why else ""
         return DegenerateGeometryError(
-            f"the focal length is not determined by these views (no image pair determines it, and the "
-            f"bundle adjustment leaves a relative uncertainty of {ba.focal_log_std:.0%}; object-centric "
-            "orbits are a critical configuration). Pass the calibration with --intrinsics")
+            f"the focal length is not determined by these views (no image pair determines it{why}; and the "
+            f"bundle adjustment leaves a relative uncertainty of {ba.focal_log_std:.0%}). Pass the calibration "
+            "with --intrinsics, or add views with more parallax")
     return None
 
 

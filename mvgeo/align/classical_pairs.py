@@ -320,6 +320,28 @@ def pair_flows(gray_a: np.ndarray, gray_b: np.ndarray, uv_a_px: np.ndarray, uv_b
     return dense_flow(gray_a, gray_b, uv_a_px, uv_b_px), dense_flow(gray_b, gray_a, uv_b_px, uv_a_px)
 
 
+def _why_no_focal(rels: Sequence, two_view: TwoViewConfig) -> str:
+    """Why none of the pairs tried determined the focal: counts of the causes, most specific first.
+
+    `rels` are the pairs' uncalibrated relative poses (None: OpenCV's estimator failed on the pair).
+    """
+    if not rels:
+        return "no pair has enough matches to try"
+    planar = sum(r is not None and (r.homography_ratio or 0.0) >= two_view.max_homography_ratio for r in rels)
+    failed = sum(r is None or (not r.success and (r.homography_ratio or 0.0) < two_view.max_homography_ratio)
+                 for r in rels)
+    loose = len(rels) - planar - failed
+    parts = []
+    if planar:
+        parts.append(f"in {planar} a homography explains at least {two_view.max_homography_ratio:.0%} of the "
+                     "matches (a planar scene, or a camera rotating about its centre: no baseline)")
+    if loose:
+        parts.append(f"in {loose} the focal is too uncertain (e.g. an object-centric orbit)")
+    if failed:
+        parts.append(f"{failed} gave no relative pose")
+    return f"of the {len(rels)} pairs tried, " + "; ".join(parts)
+
+
 def select_dense_pairs(n: int, inliers: dict[tuple[int, int], int], top_k: int) -> list[tuple[int, int]]:
     """Pairs that get dense pointmaps: each view's `top_k` pairs with most inliers, plus a maximum
     spanning tree of the inlier counts (connectivity); `top_k <= 0` takes every pair. Strongest first."""
@@ -350,6 +372,8 @@ class ClassicalPointmapModel:
         self.config = config
         self.K_align = None if K_align is None else np.asarray(K_align, np.float64)
         self.focal_determined = True  # until `shared_focal` finds otherwise
+        #: Why the pairs tried by `shared_focal` did not determine the focal (a short phrase, "" if they did).
+        self.focal_undetermined_why = ""
         self.sift_fallback_used = False  # set by `predict_pairs`
         self.sparse_matches: list[tuple[int, int, np.ndarray]] = []  # set by `predict_pairs`
         self.seed = seed
@@ -378,6 +402,7 @@ class ClassicalPointmapModel:
         out = ClassicalPointmapModel(self.config, K_align=np.repeat(K[None], n_images, axis=0), seed=self.seed)
         out._matched, out._image_hw = self._matched, self._image_hw
         out.focal_determined = self.focal_determined
+        out.focal_undetermined_why = self.focal_undetermined_why
         return out
 
     @property
@@ -512,7 +537,6 @@ class ClassicalPointmapModel:
     def shared_focal(self, images, feats, matches, pool: ThreadPoolExecutor | None = None) -> float:
         """Median of the well-determined pair focals (alignment pixels), or the prior."""
         Ha, Wa = images[0].shape[:2]
-        focals = []
         best = sorted(matches.items(), key=lambda kv: -len(kv[1]))[:self.config.focal_pairs]
 
         def one(item):
@@ -524,10 +548,10 @@ class ClassicalPointmapModel:
             except cv2.error:  # USAC assertion on a degenerate sample set: this pair gives no focal
                 return None
 
-        for rel in progress((pool.map if pool else map)(one, best), desc="pair focals", total=len(best)):
-            if rel is not None and rel.success and rel.focal_well_determined:
-                focals.append(float(rel.focal_px))
+        rels = list(progress((pool.map if pool else map)(one, best), desc="pair focals", total=len(best)))
+        focals = [float(r.focal_px) for r in rels if r is not None and r.success and r.focal_well_determined]
         self.focal_determined = bool(focals)
+        self.focal_undetermined_why = "" if focals else _why_no_focal(rels, self.config.two_view)
         if focals:
             f = float(np.median(focals))
             _log.info("shared focal %.1f px (median of %d well-determined pairs of %d)", f, len(focals), len(matches))
