@@ -1,7 +1,8 @@
 """mvgeo align vs pycolmap incremental SfM: pose accuracy and time.
 
-Usage: `python benchmarks/bench_align.py [--scenes=llff_like,object_ring,temple,dtu,subsets] [--sweep] [--out=NAME]`
-(writes docs/bench/NAME.md, default `align`; only the table and its header: the reading text is added by hand).
+Usage: `python benchmarks/bench_align.py [--scenes=llff_like,object_ring,temple,dtu,subsets] [--sweep] [--repeat=N]
+[--out=NAME]` (writes docs/bench/NAME.md, default `align`; only the table and its header: the reading text is
+added by hand).
 
 Scenes: data_synth `llff_like` and `object_ring` rendered with 12 views
 (noisy images, ground-truth poses); 3- and 6-view subsets of llff_like
@@ -13,6 +14,8 @@ present. `--sweep` adds variants of ours on
 llff_like that show what accuracy costs: global-alignment iterations, its
 pixel stride, --max-size, and the bundle adjustment on/off. Both methods run
 in this one process, one after the other, so their time ratio is comparable.
+`--repeat=N` times the llff_like poses-only comparison (ours with `--no-dense-stereo`, then pycolmap) N more
+times, alternating, and lists each run's ratio: one run's ratio moves with the machine's load.
 """
 
 from __future__ import annotations
@@ -164,6 +167,8 @@ def main() -> None:
     which = only[0].split(",") if only else ["llff_like", "object_ring", "temple", "dtu", "subsets"]
     out_name = ([a.split("=", 1)[1] for a in sys.argv if a.startswith("--out=")] or ["align"])[0]
     sweep = "--sweep" in sys.argv
+    repeat = int(([a.split("=", 1)[1] for a in sys.argv if a.startswith("--repeat=")] or ["0"])[0])
+    repeats: list[tuple[float, float]] = []
     load0 = os.getloadavg()
     rows, ratios, ratios_sparse = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -186,6 +191,13 @@ def main() -> None:
                 rows.append(_ours(scene, "ours (--allow-partial)", replace(DEFAULT, allow_partial=True), paths, ref,
                                   f_ref))
                 print(rows[-1], file=sys.stderr)
+            if repeat and scene == "llff_like":
+                no_stereo = replace(DEFAULT, dense_stereo=DenseStereoConfig(enabled=False))
+                for _ in range(repeat):
+                    t_ours = _ours(scene, "", no_stereo, paths, ref, f_ref)[7]
+                    t_col = _colmap(scene, images, paths, ref, f_ref)[7]
+                    repeats.append((t_ours, t_col))
+                    print(f"repeat: ours {t_ours:.2f} s, pycolmap {t_col:.2f} s", file=sys.stderr)
             if sweep and scene == "llff_like":
                 for label, cfg in sweep_variants():
                     rows.append(_ours(scene, label, cfg, paths, ref, f_ref))
@@ -213,6 +225,9 @@ def main() -> None:
     if ratios_sparse:
         body += ("\nTime ratio ours (--no-dense-stereo) / pycolmap (same run): "
                  + ", ".join(f"{s}: {r:.2f}" for s, r in ratios_sparse) + "\n")
+    if repeats:
+        body += (f"\nllff_like poses only, {len(repeats)} more runs alternating ours (--no-dense-stereo) and "
+                 "pycolmap: " + ", ".join(f"{a:.2f} s / {b:.2f} s = {a / b:.3f}" for a, b in repeats) + "\n")
     if "temple" in which and not TEMPLE.is_dir():
         body += f"\n{TEMPLE} was missing: the real-data row is absent.\n"
     if "dtu" in which and not DTU.is_dir():
