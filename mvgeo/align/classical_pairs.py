@@ -339,7 +339,7 @@ def _why_no_focal(rels: Sequence, two_view: TwoViewConfig) -> str:
         parts.append(f"in {loose} the focal is too uncertain (e.g. an object-centric orbit)")
     if failed:
         parts.append(f"{failed} gave no relative pose")
-    return f"of the {len(rels)} pairs tried, " + "; ".join(parts)
+    return f"of the {len(rels)} pair{'s' if len(rels) != 1 else ''} tried, " + "; ".join(parts)
 
 
 def select_dense_pairs(n: int, inliers: dict[tuple[int, int], int], top_k: int) -> list[tuple[int, int]]:
