@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from mvgeo.align.bundle import BundleConfig, BundleResult, bundle_adjust
-from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation
+from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_without_consistent_pair
 from mvgeo.align.classical_pairs import ClassicalPairConfig, ClassicalPointmapModel, pointmap_shape
 from mvgeo.align.dense_stereo import DenseStereoConfig, stereo_depths
 from mvgeo.align.global_align import GlobalAlignConfig, GlobalAlignResult, focal_estimates, global_align, pixel_rays
@@ -78,6 +78,8 @@ class AlignConfig:
         max_unexplained_fraction: if the inconsistent pairs still hold more than
             this fraction of all verified matches, `align_images` fails
             (DegenerateGeometryError) instead of returning a wrong result.
+            Whatever that fraction, a view all of whose verified pairs are
+            inconsistent fails it too (`reject_unsupported_views`).
         max_pair_rotation_deg: a pair whose relative rotation in the result is
             more than this off the one its inlier matches imply (linear essential
             matrix under the final focal) is inconsistent too (0: off). The
@@ -96,6 +98,12 @@ class AlignConfig:
             N2V-denoised photos; on object_ring's 21 training views at 256x192
             (15 deg steps, three 30 deg gaps) one view at 19 (the others <= 0.024),
             4 m off on a 3 m radius while the pair checks passed.
+        reject_unsupported_views: a view all of whose verified pairs are inconsistent with the result
+            (`mvgeo.align.checks.views_without_consistent_pair`) fails the alignment, or with `allow_partial`
+            is left out, whatever share of the matches its pairs hold: one wrong view with few matches hides
+            in `max_unexplained_fraction`'s total (measured: object_ring rendered with 32 views, 28 for
+            training: view_001 6.3 m off on a 3 m ring, its four pairs 69-72 deg off their matches, and the
+            result was returned). False turns the check off.
         max_focal_log_std: without known intrinsics and without any pair that
             determines the focal, the bundle adjustment must: its log-focal
             standard deviation above this fails the alignment.
@@ -122,6 +130,15 @@ class AlignConfig:
             pairs' 338 px went to 852 px in the adjustment, the checks refused that first result,
             and the second pass came out at 924 px and 0.37 deg median rotation error (COLMAP registered
             2 of the 12; `benchmarks/bench_align.py --scenes=dtu`). 0: off.
+        init_fallback: when the result from the global alignment's default initialisation ("procrustes":
+            DUSt3R's chaining of the pointmaps) contradicts its pairs as a whole (`max_unexplained_fraction`;
+            not for one unsupported or loose view: weak data another start does not fix), solve once more from the
+            pairs' own relative poses (`GlobalAlignConfig.init="pair_poses"`) and keep that if it passes;
+            align.json `init_fallback` says what happened (null: not needed). Measured: 12 N2V-denoised
+            llff_like photos where the chaining put one view 117 deg off (every pair's own rotation was
+            within 3 deg of the truth) and the checks refused it; from the pairs' poses 12/12 at 0.15 deg.
+            Not the default initialisation: it was worse where the chaining succeeds on DTU scan24 (4.6 vs
+            0.37 deg) and temple_sparse_ring (docs/bench/align.md, eleventh session).
         hole_fill: with the dense stereo, the wide holes of a view's depth map (textureless surfaces)
             are filled by harmonic interpolation of the inverse depth around them, at low confidence
             (`mvgeo.align.hole_fill`); align.json `dense_stereo.fraction_filled`.
@@ -143,6 +160,7 @@ class AlignConfig:
     max_pair_rotation_deg: float = DEFAULT_MAX_LOOP_DEG
     max_focal_log_std: float = 0.05
     max_centre_std_ratio: float = 1.0
+    reject_unsupported_views: bool = True
     points_budget: int = 200_000
     downsample: str = "pixel"
     covisibility_rel_tol: float = 0.03
@@ -157,6 +175,7 @@ class AlignConfig:
     native_threads: int = 1
     dense_stereo: DenseStereoConfig = field(default_factory=DenseStereoConfig)
     refocus_min_change: float = 0.1
+    init_fallback: bool = True
     hole_fill: HoleFillConfig = field(default_factory=HoleFillConfig)
 
 
@@ -266,32 +285,33 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
     if model is None:
         model = ClassicalPointmapModel(config.pairwise, K_align=K_align, seed=config.seed)
     pairs = make_pairs(n, config.pairs)
-    sol = _solve(arrays, small, names, K_align, intrinsics, model, pairs, config, timer, (W0, H0))
-    err = _consistency_error(sol, config)
-    refocus = None
-    f_pairs = getattr(model, "focal_px_used", None)
-    if (intrinsics is None and default_model and config.refocus_min_change > 0 and sol.ba is not None
-            and f_pairs is not None):
-        f_ba = float(np.median(sol.res.focal_px)) * sol.s_pm
-        refocus = {"pairs_focal_px": round(f_pairs, 2), "bundle_focal_px": round(f_ba, 2), "refocused": False}
-        if abs(np.log(f_ba / f_pairs)) > config.refocus_min_change:
-            # The pairs' relative poses and pointmaps were computed with a focal the bundle adjustment
-            # moved far: compute them again with its estimate (same features and matches).
-            _log.warning("the bundle adjustment moved the focal from %.1f to %.1f px: computing the pairs again "
-                         "with it", f_pairs, f_ba)
-            refocus["refocused"] = True
-            try:
-                again = _solve(arrays, small, names, None, None, model.refocused(f_ba, len(arrays)), pairs, config,
-                               timer, (W0, H0))
-            except (InputError, DegenerateGeometryError) as exc:
-                refocus["kept"] = f"first pass (the second failed: {str(exc)[:300]})"
+    solve = dict(arrays=arrays, small=small, names=names, K_align=K_align, intrinsics=intrinsics, model=model,
+                 pairs=pairs, timer=timer, size0_wh=(W0, H0), refocus=default_model)
+    sol, err, refocus = _solve_and_refocus(config=config, **solve)
+    init_fallback = None
+    if (err is not None and config.init_fallback and config.align.init == "procrustes"
+            and _mostly_unexplained(sol, config)):
+        # DUSt3R's Procrustes chaining can turn a view far from every one of its pairs (measured: one view of
+        # N2V-denoised llff_like photos 117 deg off although each pair's own rotation was within 3 deg); the
+        # pairs' own relative poses do not compound that way. Tried only when the result as a whole contradicts
+        # its pairs: a wrong minimum that another start may avoid. One view its pairs do not support, or do not
+        # pin, is weak data that another start does not fix (measured on a 28-view orbit: from the pair poses
+        # it passed the checks bent by 8 deg).
+        _log.warning("the alignment from the chained pointmaps is inconsistent with its pairs; trying again from "
+                     "the pairs' own relative poses")
+        init_fallback = {"tried": "pair_poses", "first_error": str(err)[:300]}
+        alt_config = replace(config, align=replace(config.align, init="pair_poses"))
+        try:
+            alt = _solve_and_refocus(config=alt_config, **solve)
+        except (InputError, DegenerateGeometryError) as exc:
+            init_fallback["kept"] = f"procrustes (pair_poses failed: {str(exc)[:300]})"
+        else:
+            if alt[1] is None:
+                sol, err, refocus = alt
+                init_fallback["kept"] = "pair_poses"
             else:
-                err_again = _consistency_error(again, config)
-                if err is None and err_again is not None:
-                    refocus["kept"] = "first pass (the second is inconsistent with its pairs)"
-                else:
-                    sol, err, refocus["kept"] = again, err_again, "second pass"
-            _log.info("focal re-estimation: kept the %s", refocus["kept"])
+                init_fallback["kept"] = "procrustes (pair_poses is inconsistent with its pairs too)"
+        _log.info("initialisation fallback: kept %s", init_fallback["kept"])
     if err is not None:
         raise err
     model, arrays, small, names, n = sol.model, sol.arrays, sol.small, sol.names, len(sol.names)
@@ -391,6 +411,7 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         "dense_stereo": stereo_stats,
         "focal_determined_by_pairs": bool(getattr(model, "focal_determined", True)),
         "focal_reestimation": refocus,
+        "init_fallback": init_fallback,
         "sift_fallback_used": bool(getattr(model, "sift_fallback_used", False)),
         "pairs_dropped_as_inconsistent": [list(d) for d in dropped],
         "pair_consistency_min": min((c.explained_fraction for c in checks), default=float("nan")),
@@ -403,6 +424,40 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         "config": _jsonable(asdict(config)),
     }
     return AlignResult(sparse, xyz, rgb, conf, stats)
+
+
+def _solve_and_refocus(*, arrays, small, names, K_align, intrinsics, model, pairs, config: AlignConfig,
+                       timer: StageTimer, size0_wh, refocus: bool):
+    """`_solve`, then (see `AlignConfig.refocus_min_change`) once more with the bundle adjustment's focal when
+    it moved far from the pairs'; returns (solution, its consistency error or None, align.json
+    `focal_reestimation` or None). `refocus` False: the model is not the classical one (no second pass)."""
+    sol = _solve(arrays, small, names, K_align, intrinsics, model, pairs, config, timer, size0_wh)
+    err = _consistency_error(sol, config)
+    refocus_report = None
+    f_pairs = getattr(model, "focal_px_used", None)
+    if (intrinsics is None and refocus and config.refocus_min_change > 0 and sol.ba is not None
+            and f_pairs is not None):
+        f_ba = float(np.median(sol.res.focal_px)) * sol.s_pm
+        refocus_report = {"pairs_focal_px": round(f_pairs, 2), "bundle_focal_px": round(f_ba, 2), "refocused": False}
+        if abs(np.log(f_ba / f_pairs)) > config.refocus_min_change:
+            # The pairs' relative poses and pointmaps were computed with a focal the bundle adjustment
+            # moved far: compute them again with its estimate (same features and matches).
+            _log.warning("the bundle adjustment moved the focal from %.1f to %.1f px: computing the pairs again "
+                         "with it", f_pairs, f_ba)
+            refocus_report["refocused"] = True
+            try:
+                again = _solve(arrays, small, names, None, None, model.refocused(f_ba, len(arrays)), pairs, config,
+                               timer, size0_wh)
+            except (InputError, DegenerateGeometryError) as exc:
+                refocus_report["kept"] = f"first pass (the second failed: {str(exc)[:300]})"
+            else:
+                err_again = _consistency_error(again, config)
+                if err is None and err_again is not None:
+                    refocus_report["kept"] = "first pass (the second is inconsistent with its pairs)"
+                else:
+                    sol, err, refocus_report["kept"] = again, err_again, "second pass"
+            _log.info("focal re-estimation: kept the %s", refocus_report["kept"])
+    return sol, err, refocus_report
 
 
 @dataclass
@@ -646,12 +701,19 @@ def _judge(res, s_pm: float, size_wh, matches, thr: float, config: AlignConfig):
     return checks, bad
 
 
+def _mostly_unexplained(sol: _Solution, config: AlignConfig) -> bool:
+    """The inconsistent pairs hold more than `max_unexplained_fraction` of all verified matches: the result as
+    a whole is wrong (not one weakly linked view)."""
+    total = sum(c.n_matches for c in sol.checks)
+    return bool(total) and sum(c.n_matches for c in sol.bad) > config.max_unexplained_fraction * total
+
+
 def _consistency_error(sol: _Solution, config: AlignConfig) -> DegenerateGeometryError | None:
     """The specific error of a result the evidence contradicts, or None."""
     checks, bad, names, focal_determined, ba = sol.checks, sol.bad, sol.names, sol.focal_determined, sol.ba
     total = sum(c.n_matches for c in checks)
     unexplained = sum(c.n_matches for c in bad)
-    if total and unexplained > config.max_unexplained_fraction * total:
+    if _mostly_unexplained(sol, config):
         listing = ", ".join(f"({names[c.i]}, {names[c.j]}): {c.explained_fraction:.0%}"
                             + (f" rotation {c.rotation_deviation_deg:.0f} deg off its matches"
                                if c.rotation_deviation_deg > config.max_pair_rotation_deg else "")
@@ -666,6 +728,20 @@ def _consistency_error(sol: _Solution, config: AlignConfig) -> DegenerateGeometr
             + ("" if focal_determined else ", and no image pair determines the focal length")
             + (". The bundle adjustment is off: the dense alignment alone is this coarse; enable it (--ba)"
                if ba is None else ". Add views between the existing ones, or pass --intrinsics"))
+    orphans = views_without_consistent_pair(checks, bad, len(names)) if config.reject_unsupported_views else []
+    if orphans:
+        def pairs_of(v):
+            return "; ".join(f"with {names[c.j if c.i == v else c.i]}: {c.explained_fraction:.0%} explained"
+                             + (f", rotation {c.rotation_deviation_deg:.0f} deg off"
+                                if c.rotation_deviation_deg > config.max_pair_rotation_deg else "")
+                             for c in bad if v in (c.i, c.j))
+        listing = ", ".join(f"{names[v]} ({pairs_of(v)})" for v in orphans)[:1500]
+        return DegenerateGeometryError(
+            f"the reconstruction contradicts every verified image pair of {len(orphans)} of {len(names)} views, "
+            f"so their poses are not supported by their matches: {listing}. Likely causes: too little overlap "
+            "between these views and their neighbours (e.g. an orbit with large steps), or repeated or symmetric "
+            "structure matched across the scene. Add views between the existing ones, or pass --allow-partial "
+            "to register the others")
     loose = _loose_views(ba, config)
     if loose:
         ratio = _centre_std_ratio(ba)

@@ -82,3 +82,28 @@ def pair_rotation_deviation(cam_from_world: np.ndarray, focal_px: np.ndarray, si
         R_res = cam_from_world[j][:, :3] @ cam_from_world[i][:, :3].T
         out.append(float("nan") if R_pair is None else rotation_angle_deg(R_res @ R_pair.T))
     return out
+
+
+def views_without_consistent_pair(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int) -> list[int]:
+    """Views that are in at least one checked pair and whose every checked pair is in `bad`.
+
+    The result contradicts all the pairwise evidence such a view has, so its pose is not supported by
+    anything: however small the share of all matches its pairs hold (`AlignConfig.max_unexplained_fraction`
+    judges the reconstruction as a whole), it is not registered. Views in no checked pair are not judged
+    here (the pair graph's connectivity is checked elsewhere).
+
+    Args:
+        checks: every checked pair (`pair_consistency`).
+        bad: the checks that failed (a subset of `checks`).
+        n_views: number of views; pair indices are below it.
+
+    Returns:
+        Sorted view indices.
+    """
+    n_pairs = np.zeros(n_views, dtype=int)
+    n_bad = np.zeros(n_views, dtype=int)
+    for c in checks:
+        n_pairs[[c.i, c.j]] += 1
+    for c in bad:
+        n_bad[[c.i, c.j]] += 1
+    return [int(v) for v in np.flatnonzero((n_pairs > 0) & (n_bad == n_pairs))]

@@ -113,8 +113,8 @@ def test_unknown_intrinsics_format_is_input_error(tmp_path):
 def test_orbit_view_with_undetermined_position_is_a_specific_failure(tmp_path):
     """object_ring's 21 training views at 256x192 (24-view ring, every 8th view held out: 15 deg steps with
     three 30 deg gaps). View 15 is tied to the rest by two-view tracks with views 14 and 17, which lie on
-    nearly one line with it; the pair checks passed a result that put it 4 m off on a 3 m ring (measured).
-    The position check names it instead."""
+    nearly one line with it; the whole-result check passed a result that put it 4 m off on a 3 m ring
+    (measured). The view-support check and the position check each name it."""
     import json
 
     from data_synth import render_scene
@@ -125,10 +125,17 @@ def test_orbit_view_with_undetermined_position_is_a_specific_failure(tmp_path):
     train = json.loads((d / "split.json").read_text())["train"]
     paths = [p for p in list_images(d / "images") if p.name in train]
     cfg = replace(AlignConfig(), dense_stereo=DenseStereoConfig(enabled=False))
-    with pytest.raises(DegenerateGeometryError, match="not determined by the feature tracks") as info:
+    # Which check names it depends on the machine (SIFT's floating point differs between CPUs): on the ninth
+    # session's machine the position check (view 15's ratio 19, the others <= 0.024); on the eleventh's the
+    # view-support check (ratio 0.14, but both of its pairs inconsistent: 70 % explained and 24 deg off, 30 %).
+    with pytest.raises(DegenerateGeometryError,
+                       match="contradicts every verified image pair|not determined by the feature tracks") as info:
         align_images(paths, cfg)
     assert "view_015.png" in str(info.value)
-    # With the check off the same result is returned: one view far looser than all the others.
-    res = align_images(paths, replace(cfg, max_centre_std_ratio=0.0))
+    # With both checks off a result is returned, and view 15 is the view it does not pin or support.
+    res = align_images(paths, replace(cfg, max_centre_std_ratio=0.0, reject_unsupported_views=False))
     ratio = res.stats["bundle_adjustment"]["centre_std_ratio"]
-    assert max(ratio) > 5.0 and sorted(ratio)[-2] < 0.1
+    pairs_15 = [(i, j) for i, j, *_ in res.stats["pairs_inconsistent"] if "view_015.png" in (i, j)]
+    loose = max(ratio) > 5.0 and sorted(ratio)[-2] < 0.1
+    unsupported = len(pairs_15) >= 2  # both of its pairs (with views 14 and 17)
+    assert loose or unsupported, (ratio, res.stats["pairs_inconsistent"])
