@@ -303,7 +303,7 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         init_fallback = {"tried": "pair_poses", "first_error": str(err)[:300]}
         alt_config = replace(config, align=replace(config.align, init="pair_poses"))
         try:
-            alt = _solve_and_refocus(config=alt_config, **solve)
+            alt_sol, alt_err, alt_refocus = _solve_and_refocus(config=alt_config, **solve)
         except (InputError, DegenerateGeometryError) as exc:
             init_fallback["kept"] = f"procrustes (pair_poses failed: {str(exc)[:300]})"
         else:
@@ -311,8 +311,8 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
             # explained, none dropped (measured: from the pair poses temple_sparse_ring --allow-partial passed
             # the threshold at 7.8 deg after dropping one pair; the denoised llff_like photos: 0 of 30 pairs
             # inconsistent, none dropped).
-            if alt[1] is None and not alt[0].bad and not alt[0].dropped:
-                sol, err, refocus = alt
+            if alt_err is None and not alt_sol.bad and not alt_sol.dropped:
+                sol, err, refocus = alt_sol, None, alt_refocus
                 init_fallback["kept"] = "pair_poses"
             else:
                 init_fallback["kept"] = ("procrustes (from pair_poses the result does not explain every verified "
