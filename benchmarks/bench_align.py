@@ -208,7 +208,7 @@ def main() -> None:
             "in one process one after the other. `ours (defaults)` = classical pairwise pointmaps (SIFT + "
             f"OpenCV USAC + DIS flow, 128 px) + DUSt3R global alignment ({DEFAULT.align.iters} it, every "
             f"{DEFAULT.align.pixel_stride}th pixel) + Schur-complement LM bundle adjustment on the feature tracks, "
-            "matching at 512 px, one BLAS/OpenCV thread per pool worker (2 workers); a COLMAP-like SIFT "
+            "matching at 640 px, one BLAS/OpenCV thread per pool worker (2 workers); a COLMAP-like SIFT "
             "(lower contrast threshold, no blur) is tried when the match graph is disconnected; pairs whose "
             "relative rotation contradicts most of their loops of three pairs are rejected first, and a result "
             "whose relative rotations contradict a pair's matches fails. `ours (--allow-partial)` registers the "

@@ -30,9 +30,9 @@ import torch  # noqa: E402
 
 from eval.lpips import lpips  # noqa: E402
 from eval.pipeline import preset, run_pipeline  # noqa: E402
-from eval.psnr import psnr  # noqa: E402
-from eval.ssim import ssim  # noqa: E402
 from mvgeo.common.deps import cv2  # noqa: E402
+from mvgeo.image_metrics import psnr  # noqa: E402
+from mvgeo.image_metrics import ssim_per_image as ssim  # noqa: E402
 from tests.eval._tiny_stages import TinyStages, make_scene  # noqa: E402
 
 W, H = 504, 378
@@ -70,7 +70,7 @@ def bench_metrics() -> tuple[str, dict[str, float]]:
     rows.append(["PSNR (ours, torch float64)", t_psnr * 1e3, f"{float(psnr(tn, tc)[0]):.4f} dB"])
     rows.append(["PSNR (skimage)", t_psnr_sk * 1e3,
                  f"{skimage.metrics.peak_signal_noise_ratio(clean, noisy, data_range=1.0):.4f} dB"])
-    rows.append(["SSIM (ours = denoise.losses.ssim, float64)", t_ssim * 1e3, f"{v_ssim:.6f}"])
+    rows.append(["SSIM (ours = mvgeo.image_metrics.ssim_per_image, float64)", t_ssim * 1e3, f"{v_ssim:.6f}"])
     rows.append(["SSIM (skimage, same settings)", t_ssim_sk * 1e3, f"{v_ssim_sk:.6f}"])
     rows.append(["LPIPS-AlexNet v0.1, 1 image (float32)", t_lpips * 1e3, f"{float(lpips(tn, tc)[0]):.4f}"])
     rows.append([f"LPIPS-AlexNet v0.1, batch of {batch}, per image", t_lpips_b / batch * 1e3, ""])

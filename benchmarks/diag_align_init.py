@@ -9,7 +9,7 @@ its `sparse/0`), e.g. an N2V round's photos copied into a dataset layout.
 
 Run: `.venv/bin/python benchmarks/diag_align_init.py SCENES` with SCENES =
 `llff_like,subsets,dtu,temple,object_ring,hard_highnoise,poisson,hard_tinybaseline,hard_repetitive` (prints a
-markdown table; the eleventh session's is in docs/bench/align.md).
+markdown table; the current one is in docs/bench/align.md).
 """
 
 from __future__ import annotations

@@ -152,7 +152,7 @@ def realign(round_dir: Path, *, dense_stereo: bool = True, downsample: str = "pi
                                            dense_stereo=DenseStereoConfig(enabled=dense_stereo),
                                            **({} if free_space else {"free_space_rel_tol": 0.0}),
                                            **({"points_budget": points} if points else {})))
-    write_align_result(out / "align", res)
+    write_align_result(out / "align", res, overwrite=True)
     np.savez(out / "align" / "points.npz", xyz=res.points_xyz, rgb=res.points_rgb, conf=res.points_conf)
     link = out / "denoised"
     if not link.exists():

@@ -7,7 +7,7 @@ them (`eval.pipeline.stages.fuse_images`), and `--write-mean DIR` writes that me
 dataset whose training images are replaced by it (held-out images untouched), for `denoise-gs eval`.
 
 Run: `.venv/bin/python benchmarks/diag_train_estimates.py DATA NAME=FOLDER ... [--mean NAME NAME]
-[--write-mean OUT_DATASET]`; the sixth session's table (docs/bench/pipeline.md) used
+[--write-mean OUT_DATASET]`; the 2026-11-22 table (CHANGELOG.md) used
 DATA = `runs/eval7/llff_like/data/llff_like_256x192_14v`, `b=.../seed0/instantsplat/round1/renders`,
 `d=.../seed0/n2v/round1/denoised`, `d_render=.../seed0/n2v/round1/renders`, `--mean b d`.
 """

@@ -38,6 +38,9 @@ def machine_line() -> str:
 
 
 def main(argv: list[str]) -> int:
+    from mvgeo.common.threads import apply_thread_policy
+
+    apply_thread_policy()  # the benchmark processes inherit OMP_WAIT_POLICY, as under the command lines
     assemble_only = "--assemble" in argv
     only = {a for a in argv if a != "--assemble"}
     scripts = sorted((ROOT / "benchmarks").glob("bench_*.py"))

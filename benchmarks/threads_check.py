@@ -3,13 +3,16 @@
 Run each setting in its own process (the policy is read when torch's OpenMP runtime starts):
     for t in 1 2; do .venv/bin/python benchmarks/threads_check.py $t; done
     OMP_WAIT_POLICY=ACTIVE .venv/bin/python benchmarks/threads_check.py 2
-`import denoise` comes first so that `mvgeo.common.deps` sets OMP_WAIT_POLICY=PASSIVE (unless the
-environment already sets it) before torch starts its thread pool. Not part of `make bench`: its
+`apply_thread_policy()` runs first, as in the command lines, so that OMP_WAIT_POLICY=PASSIVE is set
+(unless the environment already sets it) before torch starts its thread pool. Not part of `make bench`: its
 point only shows on a loaded machine, so report the load average with the figures.
 """
 
 # isort: skip_file
-import denoise  # noqa: F401  (first: sets the OpenMP wait policy before torch's pool starts)
+# ruff: noqa: E402  (the thread policy must be applied before torch is imported)
+from mvgeo.common.threads import apply_thread_policy
+
+apply_thread_policy()  # first: before torch's OpenMP pool starts
 
 import dataclasses
 import os

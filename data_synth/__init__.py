@@ -6,7 +6,6 @@ Layers: `noise` (kernel) -> `textures`, `geometry`, `intrinsics`, `rigs`,
 Scene files are TOML, validated by `scene_file` against `spec`.
 """
 
-import mvgeo.common.deps  # noqa: F401  (cv2 before pycolmap: docs/conventions.md)
 from data_synth.api import render_scene
 from data_synth.dataset import write_dataset
 from data_synth.effects import EFFECTS

@@ -8,16 +8,27 @@
 
 from __future__ import annotations
 
+from mvgeo.common.threads import apply_thread_policy
+
+# Before the imports below load torch: OpenMP reads OMP_WAIT_POLICY once, when it loads
+# (mvgeo.common.threads.apply_thread_policy; docs/conventions.md, "Threads").
+apply_thread_policy()
+
 import argparse
+import dataclasses
 import re
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
-from data_synth.dataset import write_dataset
+from data_synth.dataset import DATASET_COMMAND, write_dataset
 from data_synth.effects import EFFECTS
 from data_synth.scene_file import builtin_scenes, load_scene, scene_to_toml
+from data_synth.spec import RenderSpec
+from mvgeo.common.argtypes import positive_int, seed, size_wh
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.errors import InputError
+from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -32,11 +43,17 @@ def parse_size(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
+#: (smallest, largest) image side in pixels, as `[render] size` accepts it.
+_SIZE_RANGE_PX = {f.name: f for f in dataclasses.fields(RenderSpec)}["size"].metadata["range"]
+
+
 def _add_overrides(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", help="built-in scene name (see `data-synth list`) or a .toml file")
-    p.add_argument("--seed", type=int, default=None, help="seed of the effects' random streams")
-    p.add_argument("--size", default=None, help="image size WxH (field of view kept), e.g. 504x378")
-    p.add_argument("--views", type=int, default=None, help="number of views")
+    p.add_argument("--seed", type=seed, default=None, help="seed of the effects' random streams")
+    p.add_argument("--size", type=size_wh(*_SIZE_RANGE_PX), default=None, metavar="WxH",
+                   help="image size WxH (field of view kept), e.g. 504x378; each side "
+                        f"{_SIZE_RANGE_PX[0]}..{_SIZE_RANGE_PX[1]} px")
+    p.add_argument("--views", type=positive_int, default=None, help="number of views")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -49,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_overrides(show)
     render = sub.add_parser("render", help="render a scene into a dataset folder")
     _add_overrides(render)
-    render.add_argument("--out", required=True, help="output dataset folder (replaced when complete)")
+    render.add_argument("--out", required=True, help="output dataset folder; " + OUT_HELP)
+    render.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     return parser
 
 
@@ -65,16 +83,15 @@ def _main(args: argparse.Namespace) -> int:
         for name, d in sorted(EFFECTS.items()):
             print(f"{name:18s} {d.summary}")
         return 0
-    if args.views is not None and args.views < 1:
-        raise InputError(f"--views must be >= 1, got {args.views}")
-    if args.seed is not None and not 0 <= args.seed < 2**32:
-        raise InputError(f"--seed must be in [0, 2^32), got {args.seed}")
-    size = parse_size(args.size) if args.size is not None else None
-    spec = load_scene(args.scene, seed=args.seed, size_wh=size, views=args.views)
+    plan = None
+    if args.command == "render":
+        scene_file = args.scene if Path(args.scene).suffix == ".toml" or Path(args.scene).exists() else None
+        plan = prepare_output(args.out, command=DATASET_COMMAND, inputs=[scene_file], overwrite=args.overwrite)
+    spec = load_scene(args.scene, seed=args.seed, size_wh=args.size, views=args.views)
     if args.command == "show":
         sys.stdout.write(scene_to_toml(spec))
         return 0
-    out = write_dataset(spec, args.out)
+    out = write_dataset(spec, plan)
     print(out)
     return 0
 

@@ -11,8 +11,10 @@
       split.json        {"train": [...], "test": [...]} of image file names
       scene.toml        the resolved scene, seed included (re-renders this dataset)
       meta.json         version, sizes, per-stage timings
+      .denoise-gs-output.json  the output manifest (command, version, time: `mvgeo.common.output`)
 
-The folder is written atomically (a temporary sibling renamed at the end).
+The folder is written atomically (a temporary sibling renamed at the end); an existing
+folder is replaced only when it is a dataset written before and `overwrite` is set.
 With no effects, `images/` files are byte-identical to `clean/` files.
 """
 
@@ -28,20 +30,22 @@ import numpy as np
 
 from data_synth.effects import EffectContext, apply_effects, effects_need
 from data_synth.intrinsics import camera_from_spec
-from data_synth.render import SceneRenderer
+from data_synth.render import SceneRenderer, check_render_memory
 from data_synth.rigs import View, rig_views, split_views
 from data_synth.scene_file import scene_to_toml
 from data_synth.spec import SceneSpec
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.deps import cv2
-from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import to_uint
+from mvgeo.common.output import OutputPlan, as_output_plan
 from mvgeo.common.progress import progress
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
 
 _log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
+#: The command named in the output manifest of a dataset folder.
+DATASET_COMMAND = "data-synth render"
 CAMERA_ID = 1
 
 
@@ -75,33 +79,33 @@ def sparse_model_of(spec: SceneSpec, views: list[View], *, suffix: str = ".png")
     return SparseModel(cameras={CAMERA_ID: camera}, images=images)
 
 
-def write_dataset(spec: SceneSpec, out: str | Path, *, overwrite: bool = True) -> Path:
+def write_dataset(spec: SceneSpec, out: str | Path | OutputPlan, *, overwrite: bool = False) -> Path:
     """Render every view of `spec` into the dataset folder `out` (see module docstring).
 
     Args:
         spec: a resolved scene (`data_synth.load_scene`).
-        out: output folder; replaced atomically when complete.
-        overwrite: when False, refuse an existing `out`.
+        out: output folder (written atomically when complete), or the plan
+            `prepare_output(..., command="data-synth render")` made for it.
+        overwrite: a previous dataset written here (by `data-synth render` / `write_dataset`) may be
+            replaced; anything else at `out` is refused (`mvgeo.common.output`).
 
     Returns:
-        `out`.
+        The output folder.
 
     Raises:
-        InputError: `out` exists and overwrite is False, or it is a file.
+        InputError: `out` is refused by the output policy.
     """
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", path=out, fix="choose another --out")
-    if out.exists() and not overwrite:
-        raise InputError("output folder already exists", path=out, fix="remove it or choose another --out")
+    plan = as_output_plan(out, command=DATASET_COMMAND, overwrite=overwrite)
+    out = plan.out
     timer = StageTimer()
     needs = render_needs(spec)
+    check_render_memory(spec)  # before any work: one view's rays must fit in memory
     bits = spec.render.bit_depth
     with timer.stage("setup"):
         renderer = SceneRenderer.from_spec(spec)
         views = rig_views(spec.rig)
         camera = camera_from_spec(spec.camera, tuple(spec.render.size))
-    with atomic_output_dir(out) as tmp:
+    with atomic_output_dir(plan) as tmp:
         folders = ["images", "clean"] + [n for n, on in (("depth", needs.depth and "depth" in spec.render.outputs),
                                                          ("alpha", needs.alpha), ("normals", needs.normals)) if on]
         for f in folders:

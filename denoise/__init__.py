@@ -16,22 +16,34 @@ Python API (what the pipeline calls)::
 
 Layers: `filters` / `losses` / `masking` / `fusion` (torch kernels) -> `unet`, `model` ->
 `n2v` (round-1 training), `inference`, `round2`, `view_selection` (+ `kmeans`) -> `cli`.
-`denoise.losses.ssim` is the project's SSIM (splatting loss and evaluation metric).
+SSIM comes from `mvgeo.image_metrics`, shared with the splatting loss and the evaluation.
 """
 
-import mvgeo.common.deps  # noqa: F401  (cv2 before pycolmap: docs/conventions.md)
+import importlib
 
-# isort: split
+#: Public name -> the module defining it. Loaded on first access (PEP 562), so `import denoise`
+#: (and the `denoise` command line, which sets the OpenMP policy before torch loads) stays light.
+_EXPORTS = {
+    "denoise_images": "denoise.inference",
+    "N2VModel": "denoise.model", "load_checkpoint": "denoise.model", "save_checkpoint": "denoise.model",
+    "N2V_PRESETS": "denoise.n2v", "N2VConfig": "denoise.n2v", "n2v_preset": "denoise.n2v",
+    "train_n2v": "denoise.n2v",
+    "Round2Config": "denoise.round2", "finetune_round2": "denoise.round2", "joint_loss": "denoise.round2",
+    "UNet": "denoise.unet", "UNetConfig": "denoise.unet",
+    "Selection": "denoise.view_selection", "select_views": "denoise.view_selection",
+}
 
-from denoise.inference import denoise_images
-from denoise.model import N2VModel, load_checkpoint, save_checkpoint
-from denoise.n2v import N2V_PRESETS, N2VConfig, n2v_preset, train_n2v
-from denoise.round2 import Round2Config, finetune_round2, joint_loss
-from denoise.unet import UNet, UNetConfig
-from denoise.view_selection import Selection, select_views
+__all__ = sorted(_EXPORTS)
 
-__all__ = [
-    "N2VConfig", "N2VModel", "N2V_PRESETS", "Round2Config", "Selection", "UNet", "UNetConfig",
-    "denoise_images", "finetune_round2", "joint_loss", "load_checkpoint", "n2v_preset",
-    "save_checkpoint", "select_views", "train_n2v",
-]
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])

@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+from mvgeo.common.threads import apply_thread_policy
+
+# Before the imports below load torch: OpenMP reads OMP_WAIT_POLICY once, when it loads
+# (mvgeo.common.threads.apply_thread_policy; docs/conventions.md, "Threads").
+apply_thread_policy()
+
 import argparse
 import json
 import logging
@@ -10,15 +16,19 @@ from pathlib import Path
 
 import numpy as np
 
-from denoise.inference import NOISE_MODELS, denoise_images
+from denoise.inference import NOISE_MODELS
 from denoise.model import save_checkpoint
-from denoise.n2v import N2V_PRESETS, n2v_preset, train_n2v
+from denoise.n2v import METHODS, N2V_PRESETS, n2v_preset
+from denoise.self_supervised import denoise_with_method, train_with_method
 from denoise.view_selection import select_views
+from mvgeo.common.argtypes import nonneg_int, positive_int, seed
 from mvgeo.common.atomic import atomic_output_dir, atomic_write_text
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.deps import cv2
+from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import list_images, read_image, write_image
+from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file
 from mvgeo.common.timing import StageTimer
 
 _log = logging.getLogger(__name__)
@@ -52,27 +62,33 @@ def contact_sheet(noisy: Sequence[np.ndarray], denoised: Sequence[np.ndarray], *
 
 
 def _cmd_n2v(args: argparse.Namespace) -> int:
+    from denoise.images import MIN_SIDE_PX
+
+    device = resolve_device(args.device)
+    plan = prepare_output(args.out, command="denoise n2v", inputs=[args.images_dir], overwrite=args.overwrite)
     files = list_images(args.images_dir)
     images = [read_image(f, gray_to_rgb=False) for f in files]  # gray stays (H, W, 1): written back as gray
+    for f, img in zip(files, images, strict=True):
+        if min(img.shape[:2]) < MIN_SIDE_PX:
+            raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px; N2V needs at least "
+                             f"{MIN_SIDE_PX}x{MIN_SIDE_PX}", path=f, fix="remove it from the folder")
     overrides = {} if args.steps is None else {"steps": args.steps}
-    if args.steps is not None and args.steps < 1:
-        raise InputError(f"--steps must be >= 1, got {args.steps}")
-    if args.passes < 0:
-        raise InputError(f"--passes must be >= 0 (0 = one unmasked pass), got {args.passes}")
-    config = n2v_preset(args.preset, **overrides)
+    config = n2v_preset(args.preset, **overrides, method=args.method)
     timer = StageTimer()
     with timer.stage("train"):
-        model = train_n2v(images, config, seed=args.seed)
+        model = train_with_method(images, config, seed=args.seed, device=device)
     with timer.stage("denoise"):
-        out = denoise_images(model, images, passes=args.passes, seed=args.seed, noise_model=args.noise_model)
-    with atomic_output_dir(args.out) as tmp:
+        out = denoise_with_method(model, images, config, passes=args.passes, seed=args.seed,
+                                  noise_model=args.noise_model)
+    with atomic_output_dir(plan) as tmp:
         (tmp / "images").mkdir()
         for f, img in zip(files, out, strict=True):
             write_image(tmp / "images" / (f.stem + ".png"), img, bits=_bit_depth(f))
         save_checkpoint(tmp / "model.pt", model)
         write_image(tmp / "contact_sheet.png", contact_sheet(images, out))
         atomic_write_text(tmp / "report.json", json.dumps({
-            "images": [f.name for f in files], "preset": args.preset, "steps": config.steps,
+            "images": [f.name for f in files], "preset": args.preset, "method": config.method,
+            "steps": config.steps,
             "passes": args.passes, "noise_model": args.noise_model, "seed": args.seed,
             "final_loss": float(np.mean(model.history[-20:])),
             "timing_s": timer.as_dict()}, indent=2))
@@ -83,6 +99,8 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
 def _cmd_select(args: argparse.Namespace) -> int:
     from mvgeo.sparse_model import read_sparse_model
 
+    if args.out:
+        prepare_output_file(args.out, inputs=[args.sparse_dir, args.images], overwrite=args.overwrite)
     model = read_sparse_model(args.sparse_dir)
     images_dir = Path(args.images)
     poses, paths = {}, {}
@@ -93,8 +111,6 @@ def _cmd_select(args: argparse.Namespace) -> int:
                              fix="pass the folder holding the model's images with --images")
         poses[im.name] = im.cam_from_world
         paths[im.name] = path
-    if args.k < 1:
-        raise InputError(f"--k must be >= 1, got {args.k}")
     sel = select_views(poses, paths, k=args.k, seed=args.seed)
     text = json.dumps(sel.to_json_dict(), indent=2)
     if args.out:
@@ -109,21 +125,28 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("n2v", help="train N2V on a folder of noisy images and denoise them")
     p.add_argument("images_dir", help="folder of noisy images (PNG/JPEG, 8/16-bit, RGB or gray)")
-    p.add_argument("--out", required=True, help="output folder: images/, model.pt, contact_sheet.png, report.json")
-    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
-    p.add_argument("--passes", type=int, default=8, help="random maskings averaged; 0 = one unmasked pass")
+    p.add_argument("--out", required=True,
+                   help="output folder: images/, model.pt, contact_sheet.png, report.json; " + OUT_HELP)
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--passes", type=nonneg_int, default=8, help="random maskings averaged; 0 = one unmasked pass")
     p.add_argument("--preset", choices=sorted(N2V_PRESETS), default="default", help="training preset")
+    p.add_argument("--method", choices=METHODS, default="n2v",
+                   help="self-supervised objective on the same UNet: n2v (blind spot), neighbor2neighbor, "
+                        "or r2r (recorrupted-to-recorrupted, noise level estimated per image)")
     p.add_argument("--noise-model", choices=NOISE_MODELS, default="auto",
                    help="noise level for the centre-pixel fusion: one per image (constant: Gaussian noise), a "
                         "per-intensity curve (signal-dependent, Poisson-Gaussian noise), or auto (per image)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
+    p.add_argument("--device", default="cpu", help=DEVICE_HELP + " (training and inference); default cpu")
     p.set_defaults(func=_cmd_n2v)
     s = sub.add_parser("select", help="choose round-2 views by pose clustering and sharpness")
     s.add_argument("sparse_dir", help="COLMAP model folder (cameras/images/points3D .txt or .bin)")
     s.add_argument("--images", required=True, help="folder with the model's images")
-    s.add_argument("--k", type=int, default=12, help="number of views to select (k >= N keeps all)")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--out", default=None, help="also write the JSON here")
+    s.add_argument("--k", type=positive_int, default=12, help="number of views to select (k >= N keeps all)")
+    s.add_argument("--seed", type=seed, default=0)
+    s.add_argument("--out", default=None, help="also write the JSON to this file (a new file; not a folder)")
+    s.add_argument("--overwrite", action="store_true", help="replace the --out file when it exists")
     s.set_defaults(func=_cmd_select)
     return parser
 

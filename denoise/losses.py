@@ -1,14 +1,11 @@
-"""Differentiable image losses (torch): Charbonnier, SSIM, gradient, chroma, total variation.
+"""Differentiable image losses (torch): Charbonnier, gradient, chroma, total variation.
 
 All functions take image batches ``[B, C, H, W]`` (float32 or float64, values
 nominally in ``[0, 1]``), work on any device, and return a scalar tensor of the
 input's dtype unless ``reduction="none"`` is asked for.
 
-`ssim` is the project's single SSIM implementation: the splatting loss
-(``0.8 L1 + 0.2 (1 - SSIM)``) and the evaluation metric both use it. With the
-defaults it equals ``skimage.metrics.structural_similarity(a, b,
-gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-data_range=1.0, channel_axis=-1)`` (tested to 1e-4 in float32 and float64).
+SSIM is `mvgeo.image_metrics.ssim`, the project's one SSIM (shared with the
+splatting loss and the evaluation).
 """
 
 from __future__ import annotations
@@ -18,13 +15,11 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from denoise.filters import Border, gaussian_blur, gaussian_kernel1d, separable_filter
+from denoise.filters import gaussian_blur
 from mvgeo.common.errors import ShapeError, check_shape
 
 __all__ = [
     "charbonnier",
-    "ssim",
-    "ssim_map",
     "gaussian_blur",
     "gradient_loss",
     "image_gradients",
@@ -32,6 +27,7 @@ __all__ = [
     "chroma_loss",
     "total_variation",
     "low_frequency_loss",
+    "neighbor2neighbor_loss",
 ]
 
 Reduction = Literal["mean", "none"]
@@ -65,68 +61,6 @@ def charbonnier(x: Tensor, y: Tensor, *, eps: float = 1e-3, reduction: Reduction
     """
     _check_pair(x, y)
     return _reduce(torch.sqrt((x - y) ** 2 + eps * eps), reduction)
-
-
-def ssim_map(x: Tensor, y: Tensor, *, data_range: float = 1.0, window_size: int = 11, sigma: float = 1.5,
-             border: Border = "valid", k1: float = 0.01, k2: float = 0.03) -> Tensor:
-    """Per-pixel SSIM (Wang et al. 2004) with a Gaussian window, per channel.
-
-    Local statistics use population (not sample) covariance, as the paper.
-
-    Args:
-        x, y: ``[B, C, H, W]``.
-        data_range: intensity range `L` in ``C1 = (k1 L)^2``, ``C2 = (k2 L)^2``.
-        window_size: odd tap count of the Gaussian window (11 for sigma 1.5,
-            which is what scikit-image's ``truncate=3.5`` gives).
-        sigma: Gaussian standard deviation in pixels.
-        border: ``"valid"``: only pixels whose whole window lies inside the
-            image, ``[B, C, H - w + 1, W - w + 1]`` (scikit-image's average
-            region); ``"reflect"``: every pixel, ``[B, C, H, W]``, statistics
-            near the border from a half-sample mirrored image (scipy's
-            ``reflect``, the map scikit-image returns with ``full=True``).
-
-    Raises:
-        ShapeError: shapes differ or the image is smaller than the window
-            with ``border="valid"``.
-    """
-    _check_pair(x, y)
-    c = x.shape[1]
-    kernel = gaussian_kernel1d(window_size, sigma, dtype=x.dtype, device=x.device)
-    # One filtering pass over the five moment images.
-    stats = separable_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), kernel, border=border)
-    mx, my, mxx, myy, mxy = stats.split(c, dim=1)
-    vx = mxx - mx * mx
-    vy = myy - my * my
-    cxy = mxy - mx * my
-    c1 = (k1 * data_range) ** 2
-    c2 = (k2 * data_range) ** 2
-    num = (2 * mx * my + c1) * (2 * cxy + c2)
-    den = (mx * mx + my * my + c1) * (vx + vy + c2)
-    return num / den
-
-
-def ssim(x: Tensor, y: Tensor, *, data_range: float = 1.0, window_size: int = 11, sigma: float = 1.5,
-         border: Border = "valid", reduction: Reduction = "mean") -> Tensor:
-    """Mean SSIM of two image batches (differentiable; 1 for identical images).
-
-    The mean runs over channels and the pixels kept by `border` (see
-    `ssim_map`); ``"valid"`` (default) reproduces scikit-image, which averages
-    only away from the border. Use ``border="reflect"`` to weigh every pixel
-    (e.g. a training loss on small crops).
-
-    Args:
-        x, y: ``[B, C, H, W]``, same shape, dtype and device.
-        data_range: ``max - min`` of the intensity scale (1.0 for ``[0, 1]``).
-        window_size: odd Gaussian window size in pixels.
-        sigma: Gaussian standard deviation in pixels.
-        border: ``"valid"`` or ``"reflect"``.
-        reduction: ``"mean"``: scalar over the batch; ``"none"``: ``[B]``.
-
-    Returns:
-        Scalar (or ``[B]``) tensor of `x`'s dtype.
-    """
-    return _reduce(ssim_map(x, y, data_range=data_range, window_size=window_size, sigma=sigma, border=border),
-                   reduction)
 
 
 def image_gradients(x: Tensor) -> tuple[Tensor, Tensor]:
@@ -221,3 +155,27 @@ def low_frequency_loss(x: Tensor, y: Tensor, *, sigma: float = 2.0, eps: float =
     """
     _check_pair(x, y)
     return charbonnier(gaussian_blur(x, sigma=sigma), gaussian_blur(y, sigma=sigma), eps=eps, reduction=reduction)
+
+
+def neighbor2neighbor_loss(pred1: Tensor, target2: Tensor, full1: Tensor, full2: Tensor, *, gamma: float = 2.0,
+                           reduction: Reduction = "mean") -> Tensor:
+    """Neighbor2Neighbor loss (Huang et al. 2021, eq. 8), mean over pixels and channels.
+
+    ``|pred1 - target2|^2 + gamma * |pred1 - target2 - (full1 - full2)|^2`` with
+    ``pred1 = f(g1(y))``, ``target2 = g2(y)`` and ``full1, full2 = g1(f(y)), g2(f(y))``:
+    the network's output on the whole image, sub-sampled with the same pixel choice and
+    detached here (the paper's stop-gradient). Zero when the prediction equals the target
+    and ``full1 == full2``.
+
+    Args:
+        pred1, target2, full1, full2: ``[B, C, h, w]`` (see `denoise.neighbor2neighbor`).
+        gamma: weight of the regulariser (>= 0).
+        reduction: ``"mean"`` (scalar) or ``"none"`` (``[B]``).
+    """
+    for t in (target2, full1, full2):
+        _check_pair(pred1, t)
+    if gamma < 0:
+        raise ValueError(f"gamma must be >= 0, got {gamma}")
+    diff = pred1 - target2
+    reg = diff - (full1 - full2).detach()
+    return _reduce(diff * diff + gamma * reg * reg, reduction)

@@ -14,6 +14,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 import torch
@@ -27,6 +28,13 @@ from mvgeo.common.errors import ConfigError
 from mvgeo.common.progress import progress_bar
 
 _log = logging.getLogger(__name__)
+
+#: Self-supervised training methods on the same UNet (`N2VConfig.method`): ``"n2v"`` here;
+#: ``"neighbor2neighbor"`` (`denoise.neighbor2neighbor`) and ``"r2r"`` (`denoise.r2r`) train a
+#: non-blind network. `denoise.self_supervised.train_with_method` / `denoise_with_method` train and
+#: apply any of them.
+Method = Literal["n2v", "neighbor2neighbor", "r2r"]
+METHODS: tuple[str, ...] = ("n2v", "neighbor2neighbor", "r2r")
 
 
 @dataclass(frozen=True)
@@ -73,6 +81,12 @@ class N2VConfig:
         radius: window radius for ``uniform_withCP`` / ``median`` (N2V: 5).
         alpha: residual scale in ``out = masked + alpha * UNet(masked)``.
         augment: random rot90/flip of patches.
+        method: training objective (`METHODS`); the fields above that name the N2V masking
+            apply to ``"n2v"`` only.
+        nb2nb_gamma: Neighbor2Neighbor regulariser weight at the last step (it ramps up
+            linearly from 0, as in the paper's code; paper: 2).
+        r2r_alpha: Recorrupted-to-Recorrupted scale: input ``y + alpha z``, target ``y - z / alpha``
+            (paper: 0.5).
     """
 
     unet: UNetConfig = field(default_factory=UNetConfig)
@@ -87,6 +101,9 @@ class N2VConfig:
     radius: int = 5
     alpha: float = 0.5
     augment: bool = True
+    method: Method = "n2v"
+    nb2nb_gamma: float = 2.0
+    r2r_alpha: float = 0.5
 
     def __post_init__(self) -> None:
         positive = ("steps", "batch_size", "patch_px", "radius")
@@ -102,6 +119,12 @@ class N2VConfig:
         if self.replacement not in REPLACEMENTS:
             raise ConfigError(f"unknown replacement {self.replacement!r}", key="replacement",
                               expected=" or ".join(REPLACEMENTS))
+        if self.method not in METHODS:
+            raise ConfigError(f"unknown method {self.method!r}", key="method", expected=" or ".join(METHODS))
+        if not self.nb2nb_gamma >= 0:
+            raise ConfigError(f"must be >= 0, got {self.nb2nb_gamma}", key="nb2nb_gamma")
+        if not self.r2r_alpha > 0:
+            raise ConfigError(f"must be > 0, got {self.r2r_alpha}", key="r2r_alpha")
 
 
 #: Named presets. ``fast``: the demo (about a minute of training on one core, width 8);
@@ -181,7 +204,7 @@ def new_model(config: N2VConfig, tensors: Sequence[torch.Tensor], *, seed: int) 
 
 
 def train_n2v(images: Sequence[np.ndarray], config: N2VConfig | None = None, *, seed: int = 0,
-              model: N2VModel | None = None) -> N2VModel:
+              model: N2VModel | None = None, device: str | torch.device = "cpu") -> N2VModel:
     """Train a UNet with Noise2Void on the noisy `images` themselves.
 
     Args:
@@ -189,25 +212,32 @@ def train_n2v(images: Sequence[np.ndarray], config: N2VConfig | None = None, *, 
         config: training options (default: the ``default`` preset).
         seed: seeds the weights, the patches and the masks.
         model: continue training this model instead of a new one (its normalisation is kept).
+        device: torch device of the training (the model is moved there and returned there;
+            patches are cut on it). On CPU the result does not depend on this argument.
 
     Returns:
-        The trained `N2VModel` (in eval mode), with the per-step losses in ``history``.
+        The trained `N2VModel` (in eval mode, on `device`), with the per-step losses in ``history``.
 
     Raises:
         InputError: empty list, non-finite values, images below 2x2 px.
     """
     config = config or N2VConfig()
+    if config.method != "n2v":
+        raise ConfigError(f"train_n2v trains method 'n2v', got {config.method!r}", key="method",
+                          expected="denoise.self_supervised.train_with_method for every method")
     tensors = images_to_tensors(images)
+    device = torch.device(device)
     rng = np.random.default_rng(seed)
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator(device=device).manual_seed(seed)
     model = model or new_model(config, tensors, seed=seed)
+    model.unet.to(device)
     patch = effective_patch_px(tensors, config.patch_px)
     if patch < config.patch_px:
         _log.warning("images are smaller than the %d px patch; training on %d px patches", config.patch_px, patch)
     # Normalise once; the network's residual lives in normalised units (see N2VModel.apply).
     mean = torch.tensor(model.mean).reshape(3, 1, 1)
     std = torch.tensor(model.std).reshape(3, 1, 1)
-    normed = [(t - mean) / std for t in tensors]
+    normed = [((t - mean) / std).to(device) for t in tensors]
     unet = model.unet
     unet.train()
     opt = torch.optim.Adam(unet.parameters(), lr=config.lr)

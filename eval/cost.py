@@ -238,7 +238,8 @@ def run_cost_sweep(dataset: DatasetFolder, out: Path, config: CostConfig, *,
         for p in points:
             check_product_components(p.config)
     if score is None:
-        score = lambda rd, ds, names: score_reconstruction(rd, ds, names, pose_fit_iters=config.pose_fit_iters)  # noqa: E731
+        score = lambda rd, ds, names: score_reconstruction(  # noqa: E731
+            rd, ds, names, pose_fit_iters=config.pose_fit_iters, device=config.base.device)
     base_dir = out / "points" / "base"
     rows: list[CostPoint] = []
     for p in points:

@@ -357,7 +357,7 @@ def _run_method(method: str, seed: int, dataset: DatasetFolder, gt: SparseModel,
         seconds = time.perf_counter() - start
     else:
         family, cfg = method_pipeline_config(method, dataclasses.replace(base, seed=seed))
-        stages = product_stages()
+        stages = dataclasses.replace(product_stages(), export=None)  # the scores need no viewer files
         if method == "instantsplat":
             stages = dataclasses.replace(stages, denoise=_identity_stage)
         elif method == "nlm_instantsplat":
@@ -411,7 +411,9 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     if missing:
         raise InputError(f"views {missing} have no ground-truth camera", path=dataset.root / "sparse" / "0")
     k = config.views or min(12, len(dataset.train))
-    base = preset(config.preset, views=k, device=config.device)
+    # The dataset is at its working size already (`denoise-gs eval --max-size`, eval.pipeline.inputs):
+    # the runs keep it, so renders and the clean images stay pixel-aligned.
+    base = dataclasses.replace(preset(config.preset, views=k, device=config.device), max_size=None)
     if config.splat_iters is not None:
         base = dataclasses.replace(base, splat=dataclasses.replace(base.splat, iters=config.splat_iters))
     if config.allow_focal_prior:

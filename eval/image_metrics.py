@@ -1,8 +1,9 @@
 """PSNR, SSIM and LPIPS of rendered or denoised images against references.
 
 Works on the project's numpy images (H x W x 3 float32 RGB in [0, 1], see
-docs/conventions.md); the per-metric functions in `eval.psnr`, `eval.ssim`
-and `eval.lpips` take torch batches.
+docs/conventions.md); the per-metric functions take torch batches: PSNR and
+SSIM from `mvgeo.image_metrics` (the project's one implementation, shared with
+the splatting and denoising losses), LPIPS from `eval.lpips`.
 """
 
 from __future__ import annotations
@@ -14,9 +15,8 @@ import numpy as np
 import torch
 
 from eval.lpips import lpips
-from eval.psnr import psnr
-from eval.ssim import ssim
 from mvgeo.common.errors import ShapeError
+from mvgeo.image_metrics import psnr, ssim_per_image
 
 __all__ = ["ImageScores", "score_images"]
 
@@ -77,6 +77,6 @@ def score_images(preds: Sequence[np.ndarray], targets: Sequence[np.ndarray], *,
             if pb.shape != tb.shape:
                 raise ShapeError(f"preds[{i}] {tuple(p.shape)} and targets[{i}] {tuple(t.shape)} differ in size")
             p_db.append(float(psnr(pb, tb)[0]))
-            s.append(float(ssim(pb, tb)[0]))
+            s.append(float(ssim_per_image(pb, tb)[0]))
             lp.append(float(lpips(pb, tb)[0]) if with_lpips else float("nan"))
     return ImageScores(np.asarray(p_db), np.asarray(s), np.asarray(lp))

@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+from mvgeo.common.threads import apply_thread_policy
+
+# Before the imports below load torch: OpenMP reads OMP_WAIT_POLICY once, when it loads
+# (mvgeo.common.threads.apply_thread_policy; docs/conventions.md, "Threads").
+apply_thread_policy()
+
 import argparse
 import json
 import sys
@@ -9,8 +15,10 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
+from mvgeo.common.argtypes import int_range, nonneg_int, positive_int
 from mvgeo.common.cli import add_common_args, run_cli
-from mvgeo.common.errors import ConfigError, InputError
+from mvgeo.common.errors import InputError
+from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -20,13 +28,14 @@ def _parser() -> argparse.ArgumentParser:
 
     a = sub.add_parser("align", help="pose-free reconstruction: pairwise pointmaps + global alignment")
     a.add_argument("images_dir", type=Path)
-    a.add_argument("--out", type=Path, required=True)
-    a.add_argument("--max-size", type=int, default=512, help="long side for matching (px); default 512")
-    a.add_argument("--pointmap-size", type=int, default=128, help="long side of the dense pointmaps (px)")
+    a.add_argument("--out", type=Path, required=True, help=OUT_HELP)
+    a.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    a.add_argument("--max-size", type=int_range(16), default=640, help="long side for matching (px); default 640")
+    a.add_argument("--pointmap-size", type=int_range(8), default=128, help="long side of the dense pointmaps (px)")
     a.add_argument("--pairs", default="auto", help="complete | window:K | auto (complete up to 24 images)")
     a.add_argument("--shared-focal", action="store_true", help="one focal for all views")
-    a.add_argument("--iters", type=int, default=100, help="global alignment iterations (default 100)")
-    a.add_argument("--align-stride", type=int, default=4,
+    a.add_argument("--iters", type=nonneg_int, default=100, help="global alignment iterations (default 100)")
+    a.add_argument("--align-stride", type=positive_int, default=4,
                    help="global alignment on every K-th pixel row/column (default 4; 1 = all pixels)")
     a.add_argument("--ba", action=argparse.BooleanOptionalAction, default=True,
                    help="sparse bundle adjustment on the feature tracks after the alignment (default: on)")
@@ -36,7 +45,7 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--hole-fill", action=argparse.BooleanOptionalAction, default=True,
                    help="with the dense stereo, fill the wide holes of its depth maps (textureless surfaces) by "
                         "harmonic interpolation of the inverse depth, at low confidence (default: on)")
-    a.add_argument("--points", type=int, default=200_000, help="point budget of points.ply")
+    a.add_argument("--points", type=positive_int, default=200_000, help="point budget of points.ply")
     a.add_argument("--downsample", choices=["pixel", "voxel"], default="pixel",
                    help="thinning to --points: most confident point per pixel cell of each view (default) "
                         "or per voxel")
@@ -48,7 +57,8 @@ def _parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("colmap", help="pycolmap SfM (CPU SIFT, exhaustive matching) into the same layout")
     c.add_argument("images_dir", type=Path)
-    c.add_argument("--out", type=Path, required=True)
+    c.add_argument("--out", type=Path, required=True, help=OUT_HELP)
+    c.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     c.add_argument("--global", dest="global_mapper", action="store_true", help="global instead of incremental")
     add_common_args(c)
 
@@ -61,6 +71,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _align(args: argparse.Namespace) -> int:
+    plan = prepare_output(args.out, command="mvgeo align", inputs=[args.images_dir, args.intrinsics],
+                          overwrite=args.overwrite)
     from mvgeo.align.api import AlignConfig, align_images, write_align_result
     from mvgeo.align.classical_pairs import ClassicalPairConfig
     from mvgeo.align.dense_stereo import DenseStereoConfig
@@ -70,11 +82,6 @@ def _align(args: argparse.Namespace) -> int:
     from mvgeo.align.intrinsics import read_intrinsics
     from mvgeo.common.imageio import list_images
 
-    for key, val, lo in (("max-size", args.max_size, 16), ("pointmap-size", args.pointmap_size, 8),
-                         ("iters", args.iters, 0), ("points", args.points, 1),
-                         ("align-stride", args.align_stride, 1)):
-        if val < lo:
-            raise ConfigError(f"must be >= {lo}, got {val}", key=f"--{key}")
     paths = list_images(args.images_dir)
     if len(paths) < 2:
         raise InputError(f"need at least 2 images, found {len(paths)}", path=args.images_dir,
@@ -88,7 +95,7 @@ def _align(args: argparse.Namespace) -> int:
                       downsample=args.downsample, dense_stereo=DenseStereoConfig(enabled=args.dense_stereo),
                       hole_fill=HoleFillConfig(enabled=args.hole_fill))
     result = align_images(paths, cfg, intrinsics=intr)
-    write_align_result(args.out, result)
+    write_align_result(plan, result)
     s = result.stats
     if s["unregistered"]:
         print(f"warning: {len(s['unregistered'])} images not registered: "
@@ -100,10 +107,11 @@ def _align(args: argparse.Namespace) -> int:
 
 
 def _colmap(args: argparse.Namespace) -> int:
+    plan = prepare_output(args.out, command="mvgeo colmap", inputs=[args.images_dir], overwrite=args.overwrite)
     from mvgeo.align.colmap_sfm import ColmapConfig, run_colmap, write_colmap_result
 
     res = run_colmap(args.images_dir, replace(ColmapConfig(), mapper="global" if args.global_mapper else "incremental"))
-    write_colmap_result(args.out, res)
+    write_colmap_result(plan, res)
     s = res.stats
     print(f"COLMAP ({s['mapper']}): registered {s['n_registered']}/{s['n_images']} images, {s['n_points']} points, "
           f"{s['timings_s']['total']:.1f} s -> {args.out}")
@@ -116,6 +124,12 @@ def _compare(args: argparse.Namespace) -> int:
 
     est = read_sparse_model(args.est)
     ref = read_sparse_model(args.ref)
+    common = set(est.names) & set(ref.names)
+    if not common:
+        raise InputError(f"no image names in common between the two models (EST has {len(est.names)} "
+                         f"images, e.g. {est.names[:2]}; REF has {len(ref.names)}, e.g. {ref.names[:2]}): "
+                         "there is nothing to compare", path=args.est,
+                         fix="compare models of the same images; the poses are matched by image file name")
     m = compare_poses(est.cam_from_world_by_name(), ref.cam_from_world_by_name())
     out = {"n_ref": m.n_ref, "n_registered": m.n_registered, **m.summary()}
     if args.json:

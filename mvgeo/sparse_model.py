@@ -163,11 +163,58 @@ def read_sparse_model(path: str | Path) -> SparseModel:
     if not (has_bin or has_txt):
         raise InputError("no complete COLMAP model (cameras, images, points3D as .bin or .txt)", path=path,
                          fix="point at the sparse/0 folder of a COLMAP or mvgeo/data-synth output")
+    fix = ("re-create the model (rerun the command that wrote it, or convert it again with "
+           "`colmap model_converter`), or restore the file from a copy")
+    if has_bin:  # pycolmap reads a truncated cameras.bin without complaint (garbage parameters)
+        problem = cameras_bin_problem(path / "cameras.bin")
+        if problem is not None:
+            raise InputError(f"corrupt COLMAP cameras file: {problem}", path=path / "cameras.bin", fix=fix)
     try:
         rec = pycolmap.Reconstruction(str(path))
-    except Exception as exc:  # pycolmap raises plain exceptions on corrupt files
-        raise InputError(f"cannot read COLMAP model: {exc}", path=path) from exc
+    except Exception as exc:  # pycolmap raises plain exceptions (internal check text) on corrupt files
+        files = ", ".join(f"{n}.{'bin' if has_bin else 'txt'}" for n in ("cameras", "images", "points3D"))
+        raise InputError(f"cannot read the COLMAP model ({files}): a file is corrupt or inconsistent "
+                         f"(pycolmap: {str(exc).strip()})", path=path, fix=fix) from exc
     return from_pycolmap(rec)
+
+
+def cameras_bin_problem(path: str | Path) -> str | None:
+    """What is wrong with a COLMAP binary `cameras.bin`, or None when its structure is sound.
+
+    Layout (COLMAP `WriteCamerasBinary`, little endian): ``uint64`` camera count, then per camera
+    ``uint32`` id, ``int32`` model id, ``uint64`` width, ``uint64`` height and the model's
+    ``float64`` parameters; nothing after the last camera.
+    """
+    data = Path(path).read_bytes()
+    if len(data) < 8:
+        return f"{len(data)} bytes, shorter than the 8-byte camera count"
+    count = int.from_bytes(data[:8], "little")
+    offset = 8
+    for i in range(count):
+        if len(data) < offset + 24:
+            return f"truncated: the header says {count} camera(s), the data ends inside camera {i}"
+        model_id = int.from_bytes(data[offset + 4:offset + 8], "little", signed=True)
+        width = int.from_bytes(data[offset + 8:offset + 16], "little")
+        height = int.from_bytes(data[offset + 16:offset + 24], "little")
+        n_params = _camera_model_num_params(model_id)
+        if n_params is None:
+            return f"camera {i}: unknown camera model id {model_id}"
+        if width == 0 or height == 0:
+            return f"camera {i}: image size {width}x{height}"
+        offset += 24 + 8 * n_params
+        if len(data) < offset:
+            return f"truncated: the header says {count} camera(s), the data ends inside camera {i}"
+    if len(data) != offset:
+        return f"{len(data) - offset} unexpected bytes after the {count} camera(s) the header announces"
+    return None
+
+
+def _camera_model_num_params(model_id: int) -> int | None:
+    """Number of parameters of a COLMAP camera model id (None: not a model pycolmap knows)."""
+    known = {int(v): v for k, v in pycolmap.CameraModelId.__members__.items() if int(v) >= 0}
+    if model_id not in known:
+        return None
+    return int(pycolmap.Camera.create_from_model_id(0, known[model_id], 1.0, 1, 1).params.size)
 
 
 def write_sparse_model(path: str | Path, model: SparseModel, *, binary: bool) -> None:

@@ -22,5 +22,3 @@ Layers (conventions: docs/conventions.md; gsplat is the compatibility target):
 - CLI: `splat train DATA_DIR --out OUT [--iters N] [--optimize-poses] [--init POINTS.ply|depth]`,
   `splat render MODEL_DIR --cameras SPARSE_DIR --out DIR` (`splat.cli`).
 """
-
-import mvgeo.common.deps  # noqa: F401  (cv2 before pycolmap: docs/conventions.md)

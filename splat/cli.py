@@ -1,5 +1,8 @@
 """`splat train DATA_DIR --out OUT` and `splat render MODEL_DIR --cameras SPARSE_DIR --out DIR`.
 
+`splat export MODEL --format ply|splat|spz|html --out PATH` (web formats, offline viewer; `splat.export`,
+`splat.viewer`) and `splat view MODEL` (a viser server on 127.0.0.1).
+
 Thin: parse, call `splat.train` / `splat.render`, write files, report.
 Output of `train` (written atomically):
 
@@ -11,6 +14,12 @@ Output of `train` (written atomically):
 
 from __future__ import annotations
 
+from mvgeo.common.threads import apply_thread_policy
+
+# Before the imports below load torch: OpenMP reads OMP_WAIT_POLICY once, when it loads
+# (mvgeo.common.threads.apply_thread_policy; docs/conventions.md, "Threads").
+apply_thread_policy()
+
 import argparse
 import dataclasses
 import json
@@ -19,10 +28,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mvgeo.common.argtypes import positive_int, seed
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.cli import add_common_args, run_cli
+from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import write_image
+from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 from splat.dataset import load_views, points_from_depth, read_point_cloud_ply
@@ -61,20 +73,21 @@ def _init_points(args, data_dir: Path, views):
 
 def _train(args) -> int:
     data_dir = Path(args.data_dir)
+    device = resolve_device(args.device)
+    init_file = None if args.init in (None, "depth") else args.init
+    plan = prepare_output(args.out, command="splat train", inputs=[data_dir, init_file], overwrite=args.overwrite)
     timer = StageTimer()
     overrides = {"optimize_poses": args.optimize_poses, "seed": args.seed}
     if args.iters is not None:
-        if args.iters < 1:
-            raise InputError(f"--iters must be >= 1, got {args.iters}")
         overrides["iters"] = args.iters
     config = preset(args.preset, **overrides)
     with timer.stage("load"):
         views = load_views(data_dir, split="train")
         xyz, rgb = _init_points(args, data_dir, views)
     result = train_gaussians(views.images, views.cameras, views.cam_from_world, xyz, rgb, config,
-                             device=args.device)
+                             device=device)
     timer.seconds.update({f"train.{k}": v for k, v in result.timings_s.items() if k != "total"})
-    with timer.stage("write"), atomic_output_dir(args.out) as tmp:
+    with timer.stage("write"), atomic_output_dir(plan) as tmp:
         write_gaussian_ply(tmp / "point_cloud.ply", result.model)
         ids = {name: views.sparse.image(name).camera_id for name in views.names}
         images = [PosedImage(n, ids[n], p) for n, p in zip(views.names, result.cam_from_world_optimized, strict=True)]
@@ -95,8 +108,11 @@ def _train(args) -> int:
 
 def _render(args) -> int:
     model_dir = Path(args.model_dir)
+    device = resolve_device(args.device)
+    plan = prepare_output(args.out, command="splat render", inputs=[model_dir, args.cameras],
+                          overwrite=args.overwrite)
     ply = model_dir / "point_cloud.ply" if model_dir.is_dir() else model_dir
-    model = read_gaussian_ply(ply, device=args.device)
+    model = read_gaussian_ply(ply, device=device)
     sparse = read_sparse_model(Path(args.cameras))
     if not sparse.images:
         raise InputError("the camera model has no images to render", path=args.cameras)
@@ -104,10 +120,52 @@ def _render(args) -> int:
     poses = np.stack([im.cam_from_world for im in sparse.images])
     with torch.no_grad():
         imgs = render_views(model, cams, poses)
-    with atomic_output_dir(args.out) as tmp:
+    with atomic_output_dir(plan) as tmp:
         for name, img in zip(sparse.names, imgs, strict=True):
             write_image(tmp / (Path(name).stem + ".png"), img)
     print(f"rendered {len(imgs)} views -> {args.out}")
+    return 0
+
+
+def _model_and_cameras(args):
+    """(model, sparse model or None) for `export`/`view`: MODEL is a folder with point_cloud.ply (and
+    sparse/0/, used as the cameras unless --cameras is given) or a 3DGS PLY file."""
+    model_path = Path(args.model)
+    ply = model_path / "point_cloud.ply" if model_path.is_dir() else model_path
+    cameras = args.cameras
+    if cameras is None and model_path.is_dir() and (model_path / "sparse" / "0").is_dir():
+        cameras = model_path / "sparse" / "0"
+    sparse = read_sparse_model(Path(cameras)) if cameras is not None else None
+    return read_gaussian_ply(ply), sparse
+
+
+def _export(args) -> int:
+    from splat.export import EXPORT_FORMATS, export_model
+    from splat.viewer import export_html
+
+    fmt = args.format or Path(args.out).suffix.lstrip(".").lower()
+    if fmt not in EXPORT_FORMATS:
+        raise InputError(f"cannot tell the format from --out {args.out!r}",
+                         fix=f"pass --format ({' | '.join(EXPORT_FORMATS)})")
+    inputs = [args.model, args.cameras]
+    if fmt == "html":
+        plan = prepare_output(args.out, command="splat export", inputs=inputs, overwrite=args.overwrite)
+        model, sparse = _model_and_cameras(args)
+        index = export_html(model, plan, sparse=sparse)
+        print(f"viewer of {model.num_gaussians} Gaussians -> {index} (open it in a browser; no network needed)")
+        return 0
+    out = prepare_output_file(args.out, inputs=inputs, overwrite=args.overwrite)
+    model, _ = _model_and_cameras(args)
+    export_model(model, fmt, out)
+    print(f"{model.num_gaussians} Gaussians -> {args.out} ({fmt}, {out.stat().st_size} bytes)")
+    return 0
+
+
+def _view(args) -> int:
+    from splat.viewer import serve
+
+    model, sparse = _model_and_cameras(args)
+    serve(model, sparse, host=args.host, port=args.port)
     return 0
 
 
@@ -117,24 +175,41 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     tr = sub.add_parser("train", help="train Gaussians on DATA_DIR (images/ + sparse/0/, split.json train views)")
     tr.add_argument("data_dir", help="folder with images/ and sparse/0/ (and optionally split.json, depth/)")
-    tr.add_argument("--out", required=True, help="output folder (replaced atomically)")
-    tr.add_argument("--iters", type=int, default=None, help="iterations (default: the preset's, 1000)")
+    tr.add_argument("--out", required=True, help=OUT_HELP)
+    tr.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    tr.add_argument("--iters", type=positive_int, default=None, help="iterations (default: the preset's, 1000)")
     tr.add_argument("--optimize-poses", action=argparse.BooleanOptionalAction, default=False,
                     help="learn per-view pose corrections (InstantSplat); off for ground-truth poses")
     tr.add_argument("--init", default=None,
                     help="initial points: a point-cloud PLY, or 'depth' to back-project DATA_DIR/depth/*.npy; "
                          "default: the sparse model's points")
-    tr.add_argument("--depth-stride", type=int, default=4, help="pixel stride for --init depth")
+    tr.add_argument("--depth-stride", type=positive_int, default=4, help="pixel stride for --init depth")
     tr.add_argument("--preset", default="instantsplat", choices=sorted(TRAIN_PRESETS))
-    tr.add_argument("--seed", type=int, default=0)
-    tr.add_argument("--device", default="cpu")
+    tr.add_argument("--seed", type=seed, default=0)
+    tr.add_argument("--device", default="cpu", help=DEVICE_HELP)
     tr.set_defaults(func=_train)
     rd = sub.add_parser("render", help="render a trained model at the cameras of a COLMAP model")
     rd.add_argument("model_dir", help="`splat train` output folder (or a 3DGS point_cloud.ply)")
     rd.add_argument("--cameras", required=True, help="COLMAP model folder (cameras + images)")
-    rd.add_argument("--out", required=True, help="output folder of PNGs (replaced atomically)")
-    rd.add_argument("--device", default="cpu")
+    rd.add_argument("--out", required=True, help="folder of PNGs; " + OUT_HELP)
+    rd.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    rd.add_argument("--device", default="cpu", help=DEVICE_HELP)
     rd.set_defaults(func=_render)
+    ex = sub.add_parser("export", help="write a model as .ply, .splat, .spz, or an offline browser viewer (html)")
+    ex.add_argument("model", help="`splat train` output folder (or a 3DGS point_cloud.ply)")
+    ex.add_argument("--format", choices=("ply", "splat", "spz", "html"), default=None,
+                    help="default: from --out's suffix; html writes a folder with index.html")
+    ex.add_argument("--out", required=True, help="output file (a folder for html)")
+    ex.add_argument("--overwrite", action="store_true", help="replace an existing --out written by this command")
+    ex.add_argument("--cameras", default=None,
+                    help="html only: COLMAP model whose cameras are drawn (default: MODEL/sparse/0 if present)")
+    ex.set_defaults(func=_export)
+    vw = sub.add_parser("view", help="serve a model in the browser with viser (http://127.0.0.1:PORT)")
+    vw.add_argument("model", help="`splat train` output folder (or a 3DGS point_cloud.ply)")
+    vw.add_argument("--cameras", default=None, help="COLMAP model whose cameras are drawn (default: MODEL/sparse/0)")
+    vw.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this machine only)")
+    vw.add_argument("--port", type=int, default=8080)
+    vw.set_defaults(func=_view)
     return parser
 
 

@@ -11,10 +11,12 @@ Two implementations of one function, `composite_tiles`:
 - `"cpp"`: the C++ kernel (`csrc/composite.cpp`) with a hand-written
   backward, CPU only, float32/float64.
 
-`"auto"` picks `"cpp"` for CPU tensors when the kernel builds, else `"torch"`.
-Rules (3DGS / gsplat): alpha = min(0.99, o exp(-sigma)); contributions with
-alpha < 1/255 (or sigma < 0) are skipped; a pixel stops before the Gaussian
-that would take its transmittance to <= 1e-4.
+`"auto"` picks `"cpp"` for CPU tensors when the kernel builds, else `"torch"`
+(one warning per process says why the kernel is unavailable).
+Rules (3DGS / gsplat): alpha = min(ALPHA_MAX, o exp(-sigma)); contributions with
+alpha < ALPHA_MIN (or sigma < 0) are skipped; a pixel stops before the Gaussian
+that would take its transmittance to <= TRANSMITTANCE_MIN. Both paths use these
+constants: the C++ kernel receives them as arguments.
 """
 
 from __future__ import annotations
@@ -27,7 +29,9 @@ from splat import _cpu_kernel
 from splat.projection import ALPHA_MIN
 from splat.tiles import TileBins
 
+#: Upper bound of one Gaussian's alpha (3DGS), so that no layer is fully opaque.
 ALPHA_MAX = 0.99
+#: A pixel stops before the Gaussian that would bring its transmittance to or below this.
 TRANSMITTANCE_MIN = 1e-4
 
 Backend = Literal["auto", "torch", "cpp"]
@@ -81,7 +85,9 @@ class _CompositeCpp(torch.autograd.Function):
     def forward(ctx, means2d, conics, colors, opacities, bins, width, height, num_threads):
         dt = colors.dtype
         tensors = [t.detach().to(dt).contiguous() for t in (means2d, conics, colors, opacities)]
-        accum, trans, last = _cpu_kernel.forward(bins, *tensors, width, height, num_threads=num_threads)
+        accum, trans, last = _cpu_kernel.forward(bins, *tensors, width, height, alpha_min=ALPHA_MIN,
+                                                 alpha_max=ALPHA_MAX, transmittance_min=TRANSMITTANCE_MIN,
+                                                 num_threads=num_threads)
         ctx.bins, ctx.width, ctx.height, ctx.num_threads = bins, width, height, num_threads
         ctx.save_for_backward(*tensors, trans, last)
         ctx.mark_non_differentiable(last)
@@ -96,7 +102,7 @@ class _CompositeCpp(torch.autograd.Function):
             else grad_accum.to(dt).contiguous()
         grad_trans = torch.zeros_like(trans) if grad_trans is None else grad_trans.to(dt).contiguous()
         rows = _cpu_kernel.backward(bins, m, c, col, o, ctx.width, ctx.height, trans, last, grad_accum, grad_trans,
-                                    num_threads=ctx.num_threads)
+                                    alpha_min=ALPHA_MIN, alpha_max=ALPHA_MAX, num_threads=ctx.num_threads)
         # One deterministic scatter of all per-intersection rows into per-Gaussian sums.
         per_gaussian = torch.zeros(m.shape[0], rows.shape[1], dtype=dt).index_add_(0, bins.gaussian_ids, rows)
         out_m, out_c, out_o, out_col = per_gaussian.split([2, 3, 1, col.shape[1]], dim=1)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from denoise.losses import ssim
+from mvgeo.image_metrics import psnr as _psnr_db
+from mvgeo.image_metrics import ssim
 
 
 def photometric_loss(rendered: torch.Tensor, target: torch.Tensor, *, ssim_weight: float = 0.2) -> torch.Tensor:
@@ -26,6 +27,5 @@ def photometric_loss(rendered: torch.Tensor, target: torch.Tensor, *, ssim_weigh
 
 
 def psnr(rendered: torch.Tensor, target: torch.Tensor) -> float:
-    """PSNR in dB for images in [0, 1] (rendered clipped to [0, 1])."""
-    mse = torch.mean((rendered.detach().clamp(0, 1) - target) ** 2).item()
-    return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()
+    """PSNR in dB of one [3, H, W] image in [0, 1] (rendered clipped to [0, 1]; `inf` if identical)."""
+    return float(_psnr_db(rendered.detach().clamp(0, 1)[None], target.detach()[None])[0])

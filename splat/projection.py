@@ -2,9 +2,17 @@
 
 Follows 3DGS / gsplat (docs/conventions.md): OpenCV pinhole `K` with the
 top-left pixel centre at (0.5, 0.5), `cam_from_world` world-to-camera, wxyz
-quaternions. Plain torch, differentiable with respect to every input
-(means, quaternions, scales, opacities, the pose and `K`) by autograd; cost
-and memory are O(N).
+quaternions. Differentiable with respect to every input (means, quaternions,
+scales, opacities, the pose and `K`); cost and memory are O(N).
+
+Two implementations of `project_gaussians`:
+
+- `"torch"`: plain torch, autograd for the backward; any device. The reference.
+- `"cpp"`: the C++ kernel `csrc/projection.cpp` with a hand-written backward (the
+  chain rule of the same expressions), CPU, float32/float64.
+
+`"auto"` picks `"cpp"` for CPU tensors when the kernels build, else `"torch"`
+(one warning per process says why, `splat._cpu_kernel.available`).
 """
 
 from __future__ import annotations
@@ -15,6 +23,7 @@ import torch
 
 from mvgeo.common.errors import check_shape
 from mvgeo.transforms_torch import R_from_quat
+from splat import _cpu_kernel
 
 #: Contributions with alpha below this are skipped by the compositor (3DGS/gsplat).
 ALPHA_MIN = 1.0 / 255.0
@@ -42,6 +51,23 @@ class ProjectedGaussians:
     opacities: torch.Tensor
     extents_px: torch.Tensor
     visible: torch.Tensor
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """"auto" -> "cpp" on CPU when the C++ kernels load (else "torch"); "torch"/"cpp" as given.
+
+    Raises:
+        ValueError: an unknown name, or "cpp" for tensors that are not on the CPU.
+    """
+    if backend == "auto":
+        return "cpp" if (device.type == "cpu" and _cpu_kernel.available()) else "torch"
+    if backend == "cpp":
+        if device.type != "cpu":
+            raise ValueError("the cpp kernels run on CPU tensors only; use backend='torch' on CUDA")
+        return backend
+    if backend == "torch":
+        return backend
+    raise ValueError(f"unknown splat backend {backend!r} (use 'auto', 'torch' or 'cpp')")
 
 
 def covariance_from_scale_rot(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
@@ -73,6 +99,8 @@ def project_gaussians(
     far_plane: float = 1e10,
     eps2d: float = 0.3,
     antialiased: bool = False,
+    backend: str = "torch",
+    num_threads: int | None = None,
 ) -> ProjectedGaussians:
     """Project Gaussians into one pinhole view.
 
@@ -94,6 +122,9 @@ def project_gaussians(
         near_plane, far_plane: z range kept (camera frame units).
         eps2d: screen-space dilation in px^2.
         antialiased: opacity compensation for the dilation.
+        backend: "torch" (the reference), "cpp" or "auto" (see the module docstring).
+        num_threads: threads of the C++ kernel (default `torch.get_num_threads()`); the
+            result does not depend on it. Ignored by the torch path.
 
     Returns:
         `ProjectedGaussians`; culled Gaussians have `visible = False` and are
@@ -107,6 +138,9 @@ def project_gaussians(
     check_shape(K, [3, 3], "K")
     if tuple(cam_from_world.shape) not in ((3, 4), (4, 4)):
         check_shape(cam_from_world, [3, 4], "cam_from_world")
+    if resolve_backend(backend, means.device) == "cpp":
+        return _project_cpp(means, quats, scales, opacities, cam_from_world, K, width, height, near_plane=near_plane,
+                            far_plane=far_plane, eps2d=eps2d, antialiased=antialiased, num_threads=num_threads)
     R_cw = cam_from_world[:3, :3]
     t_cw = cam_from_world[:3, 3]
     p_cam = means @ R_cw.T + t_cw
@@ -171,3 +205,64 @@ def project_gaussians(
         means2d=means2d, conics=conics, depths=z, opacities=opac, extents_px=extents, visible=visible
     )
 
+
+def _project_cpp(means, quats, scales, opacities, cam_from_world, K, width, height, *, near_plane, far_plane, eps2d,
+                 antialiased, num_threads) -> ProjectedGaussians:
+    options = {"width": int(width), "height": int(height), "near_plane": float(near_plane),
+               "far_plane": float(far_plane), "eps2d": float(eps2d), "antialiased": bool(antialiased),
+               "num_threads": num_threads}
+    means2d, conics, depths, opac, extents, visible = _ProjectCpp.apply(
+        means, quats, scales, opacities, cam_from_world, K, options)
+    return ProjectedGaussians(means2d=means2d, conics=conics, depths=depths, opacities=opac, extents_px=extents,
+                              visible=visible.bool())
+
+
+class _ProjectCpp(torch.autograd.Function):
+    """`csrc/projection.cpp` forward and backward; the computation runs in `means.dtype`."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, cam_from_world, K, options):
+        dt = means.dtype
+        tensors = [t.detach().to(dt).contiguous() for t in (means, quats, scales, opacities)]
+        cam = cam_from_world.detach()[:3].to(dt).contiguous()
+        K_c = K.detach().to(dt).contiguous()
+        out = _cpu_kernel.project_forward(
+            *tensors, cam, K_c, options["width"], options["height"], near_plane=options["near_plane"],
+            far_plane=options["far_plane"], eps2d=options["eps2d"], antialiased=options["antialiased"],
+            alpha_min=ALPHA_MIN, num_threads=options["num_threads"])
+        ctx.save_for_backward(*tensors, cam, K_c)
+        ctx.options = options
+        ctx.in_dtypes = [t.dtype for t in (means, quats, scales, opacities, cam_from_world, K)]
+        ctx.cam_rows = cam_from_world.shape[0]
+        ctx.mark_non_differentiable(out[4], out[5])
+        return out
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, g_opac, _g_extents, _g_visible):
+        means, quats, scales, opacities, cam, K = ctx.saved_tensors
+        dt = means.dtype
+        n = means.shape[0]
+
+        def grad_or_zeros(g, shape):
+            return torch.zeros(shape, dtype=dt) if g is None else g.to(dt).contiguous()
+
+        opt = ctx.options
+        need_cam, need_K = ctx.needs_input_grad[4], ctx.needs_input_grad[5]
+        g_m, g_q, g_s, g_o, g_cam_rows, g_K_rows = _cpu_kernel.project_backward(
+            means, quats, scales, opacities, cam, K, opt["width"], opt["height"],
+            grad_or_zeros(g_means2d, (n, 2)), grad_or_zeros(g_conics, (n, 3)), grad_or_zeros(g_depths, (n,)),
+            grad_or_zeros(g_opac, (n,)), near_plane=opt["near_plane"], far_plane=opt["far_plane"],
+            eps2d=opt["eps2d"], antialiased=opt["antialiased"], need_camera=need_cam, need_K=need_K,
+            num_threads=opt["num_threads"])
+        g_cam = g_K = None
+        if need_cam:
+            g_cam = torch.zeros(ctx.cam_rows, 4, dtype=dt)
+            g_cam[:3] = g_cam_rows.sum(0).reshape(3, 4)
+            g_cam = g_cam.to(ctx.in_dtypes[4])
+        if need_K:
+            fx, fy, cx, cy = g_K_rows.sum(0)
+            g_K = torch.zeros(3, 3, dtype=dt)
+            g_K[0, 0], g_K[1, 1], g_K[0, 2], g_K[1, 2] = fx, fy, cx, cy
+            g_K = g_K.to(ctx.in_dtypes[5])
+        grads = [g.to(d) for g, d in zip((g_m, g_q, g_s, g_o), ctx.in_dtypes[:4], strict=True)]
+        return (*grads, g_cam, g_K, None)

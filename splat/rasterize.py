@@ -28,8 +28,9 @@ class RasterConfig:
         eps2d: screen-space low-pass added to the 2D covariance, px^2 (0.3 in 3DGS).
         antialiased: Mip-Splatting opacity compensation for the low-pass.
         tile_size: tile edge in pixels.
-        backend: compositor: "auto" (C++ on CPU when it builds), "torch" or "cpp".
-        num_threads: threads of the C++ compositor; None: `torch.get_num_threads()` at call time.
+        backend: projection, tile binning, SH colour and compositor: "auto" (the C++ kernels on CPU
+            when they build, else torch with one warning per process), "torch" (the reference) or "cpp".
+        num_threads: threads of the C++ kernels; None: `torch.get_num_threads()` at call time.
     """
 
     near_plane: float = 0.01
@@ -106,6 +107,7 @@ def rasterize(
     proj = project_gaussians(
         means, quats, scales, opacities, cam_from_world, K, width, height,
         near_plane=cfg.near_plane, far_plane=cfg.far_plane, eps2d=cfg.eps2d, antialiased=cfg.antialiased,
+        backend=cfg.backend, num_threads=cfg.num_threads,
     )
     if sh_degree is not None:
         R = cam_from_world[:3, :3]
@@ -117,7 +119,7 @@ def rasterize(
         rgb_g = colors
     features = torch.cat([rgb_g, proj.depths[:, None]], dim=-1)
     bins = bin_gaussians(proj.means2d, proj.extents_px, proj.depths, proj.visible, width, height,
-                         tile_size=cfg.tile_size)
+                         tile_size=cfg.tile_size, backend=cfg.backend)
     accum, trans = composite_tiles(proj.means2d, proj.conics, features, proj.opacities, bins, width, height,
                                    backend=cfg.backend, num_threads=cfg.num_threads)
     alpha = 1.0 - trans

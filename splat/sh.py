@@ -29,6 +29,10 @@ _C3 = (
     0.25 * math.sqrt(105.0 / math.pi),
     -0.25 * math.sqrt(35.0 / (2.0 * math.pi)),
 )
+#: Epsilon of the direction normalisation, `u = d / max(|d|, eps)` (torch's `normalize` default).
+NORMALIZE_EPS = 1e-12
+#: The basis constants in the order the C++ kernel reads them: C0, C1, C2[5], C3[7].
+_BASIS_CONSTANTS = torch.tensor([SH_C0, _C1, *_C2, *_C3], dtype=torch.float64)
 
 
 def num_sh_bases(degree: int) -> int:
@@ -99,7 +103,7 @@ def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     k = num_sh_bases(degree)
     if sh.shape[-2] < k:
         raise ValueError(f"sh has {sh.shape[-2]} bases, degree {degree} needs {k}")
-    dirs = torch.nn.functional.normalize(dirs, dim=-1)
+    dirs = torch.nn.functional.normalize(dirs, dim=-1, eps=NORMALIZE_EPS)
     basis = sh_basis(degree, dirs)
     return (basis[..., :, None] * sh[..., :k, :]).sum(-2)
 
@@ -128,12 +132,13 @@ class _ShCpp(torch.autograd.Function):
         sh_c, dirs_c = sh.detach().contiguous(), dirs.detach().contiguous()
         ctx.degree = degree
         ctx.save_for_backward(sh_c, dirs_c)
-        return _cpu_kernel.sh_forward(degree, sh_c, dirs_c)
+        return _cpu_kernel.sh_forward(degree, sh_c, dirs_c, basis_constants=_BASIS_CONSTANTS, norm_eps=NORMALIZE_EPS)
 
     @staticmethod
     def backward(ctx, grad_out):
         from splat import _cpu_kernel
 
         sh_c, dirs_c = ctx.saved_tensors
-        g_sh, g_dirs = _cpu_kernel.sh_backward(ctx.degree, sh_c, dirs_c, grad_out.contiguous())
+        g_sh, g_dirs = _cpu_kernel.sh_backward(ctx.degree, sh_c, dirs_c, grad_out.contiguous(),
+                                               basis_constants=_BASIS_CONSTANTS, norm_eps=NORMALIZE_EPS)
         return None, g_sh, g_dirs

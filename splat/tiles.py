@@ -1,6 +1,12 @@
 """Tile binning: which Gaussians touch which 16x16 tile, sorted front to back.
 
 Integer bookkeeping only (no gradients). Memory is O(intersections).
+
+Two implementations of `bin_gaussians` giving identical lists: `"torch"` (the
+reference: one integer sort of all intersections keyed by (tile, depth rank)) and
+`"cpp"` (`csrc/tiles.cpp`: per-tile counts, prefix sum, and one pass over the
+Gaussians in depth order appending to each tile). `"auto"` picks `"cpp"` for CPU
+tensors when the kernels build.
 """
 
 from __future__ import annotations
@@ -8,6 +14,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+
+from splat import _cpu_kernel
+from splat.projection import resolve_backend
 
 
 @dataclass
@@ -45,6 +54,7 @@ def bin_gaussians(
     height: int,
     *,
     tile_size: int = 16,
+    backend: str = "torch",
 ) -> TileBins:
     """Assign each visible Gaussian to every tile its alpha >= 1/255 box overlaps.
 
@@ -59,6 +69,7 @@ def bin_gaussians(
         visible: (N,) bool.
         width, height: image size.
         tile_size: tile edge in pixels.
+        backend: "torch" (the reference), "cpp" or "auto" (see the module docstring).
 
     Returns:
         `TileBins` on the inputs' device.
@@ -67,6 +78,14 @@ def bin_gaussians(
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     num_tiles = tiles_x * tiles_y
+    if resolve_backend(backend, device) == "cpp":
+        dt = means2d.dtype if means2d.dtype in (torch.float32, torch.float64) else torch.float32
+        gaussian_ids, tile_offsets = _cpu_kernel.tiles_bin(
+            means2d.detach().to(dt).contiguous(), extents_px.detach().to(dt).contiguous(),
+            depths.detach().to(dt).contiguous(), visible.to(torch.int32).contiguous(), width, height, tile_size,
+            tiles_x, tiles_y)
+        return TileBins(gaussian_ids=gaussian_ids, tile_offsets=tile_offsets,
+                        tiles_x=tiles_x, tiles_y=tiles_y, tile_size=tile_size)
     ids = torch.nonzero(visible, as_tuple=False).reshape(-1)
     if ids.numel() == 0:
         return TileBins(
@@ -77,16 +96,18 @@ def bin_gaussians(
     m = means2d.detach()[ids].double()
     e = extents_px.detach()[ids].double()
     # Pixel centres c = col + 0.5 inside [u - e, u + e]  <=>  col in [ceil(u - e - 0.5), floor(u + e - 0.5)].
-    col0 = torch.ceil(m[:, 0] - e[:, 0] - 0.5).clamp(0, width - 1)
-    col1 = torch.floor(m[:, 0] + e[:, 0] - 0.5).clamp(-1, width - 1)
-    row0 = torch.ceil(m[:, 1] - e[:, 1] - 0.5).clamp(0, height - 1)
-    row1 = torch.floor(m[:, 1] + e[:, 1] - 0.5).clamp(-1, height - 1)
+    # Clamped to the image; an empty range (col1 < col0: no pixel centre in the box) lists no tile.
+    col0 = torch.ceil(m[:, 0] - e[:, 0] - 0.5).clamp(min=0)
+    col1 = torch.floor(m[:, 0] + e[:, 0] - 0.5).clamp(max=width - 1)
+    row0 = torch.ceil(m[:, 1] - e[:, 1] - 0.5).clamp(min=0)
+    row1 = torch.floor(m[:, 1] + e[:, 1] - 0.5).clamp(max=height - 1)
+    has_pixel = (col1 >= col0) & (row1 >= row0)
     tx0 = torch.div(col0, tile_size, rounding_mode="floor").long()
     tx1 = torch.div(col1, tile_size, rounding_mode="floor").long() + 1
     ty0 = torch.div(row0, tile_size, rounding_mode="floor").long()
     ty1 = torch.div(row1, tile_size, rounding_mode="floor").long() + 1
-    nx = (tx1 - tx0).clamp(min=0)
-    ny = (ty1 - ty0).clamp(min=0)
+    nx = torch.where(has_pixel, tx1 - tx0, torch.zeros_like(tx0))
+    ny = torch.where(has_pixel, ty1 - ty0, torch.zeros_like(ty0))
     counts = nx * ny
     keep = counts > 0
     ids, tx0, ty0, nx, counts = ids[keep], tx0[keep], ty0[keep], nx[keep], counts[keep]

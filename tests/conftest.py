@@ -5,7 +5,11 @@ import os
 import numpy as np
 import pytest
 
+from mvgeo.common.threads import apply_thread_policy
+
 os.environ.setdefault("DGS_NO_PROGRESS", "1")
+# The command lines' OpenMP policy for the test process, before any test module loads torch.
+apply_thread_policy()
 
 
 @pytest.fixture

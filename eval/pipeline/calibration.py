@@ -1,4 +1,4 @@
-"""Rounds >= 2 keep the better-determined of two focal-length estimates of the same camera.
+"""Rounds >= 2 keep the better-determined of two estimates of the same cameras: focal length and poses.
 
 Every round aligns photos of the same camera, but each alignment estimates the
 focal length anew from the pairs it verifies. Round 2 sees other images (the
@@ -18,25 +18,55 @@ modes (`eval.pipeline.AlignSettings`):
 
 The uncertainty travels with a reused calibration (`INHERITED_KEY` in
 align.json), so round 3 compares against what round 1 measured.
+
+Poses (`reuse_geometry`, `choose_geometry`): round r re-aligns from its K
+selected views only, and fewer views pin each camera less; on a real
+forward-facing scene round 2's poses came out 0.84 deg off where round 1's were
+0.16 deg. "auto" keeps round r's own alignment unless round r-1's determines
+the same views better, and then hands round r-1's poses, intrinsics and points
+(restricted to the selected views) to round r's splat. "Better determined" is
+measured without ground truth, from each alignment's bundle adjustment:
+
+- a view's camera-centre standard deviation with the other cameras held
+  (`mvgeo.align.bundle_lm.camera_centre_std`; align.json
+  `bundle_adjustment.centre_std_ratio` gives it over the median nearest-neighbour
+  distance of that alignment's cameras), re-expressed in units of the median
+  nearest-neighbour distance among the selected views in the same alignment,
+  so both rounds are measured against the same cameras' spacing;
+- the median of that over the selected views: the smaller wins, a tie keeps
+  round r's own (`mvgeo.align` writes the ratios to 4 decimals, so figures
+  closer than about 1e-4 are ties in effect, decided either way).
+
+Before the figures: round r-1 must hold every selected view (else round r's
+own is kept); round r registering fewer of them than round r-1, or its
+alignment failing on a degenerate geometry, hands over round r-1's; an unknown
+figure (no bundle adjustment, fewer than 3 views) loses to a known one, and
+two unknown keep round r's own. The decision and its numbers go into align.json
+under `GEOMETRY_KEY` (`GeometryChoice`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from eval.pipeline.config import ReuseIntrinsics
+from eval.pipeline.config import ReuseGeometry, ReuseIntrinsics
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
-from mvgeo.sparse_model import read_sparse_model
+from mvgeo.sparse_model import SparseModel, read_sparse_model
 
-__all__ = ["INHERITED_KEY", "focal_log_std", "previous_calibration", "prefer_previous"]
+__all__ = ["GEOMETRY_KEY", "INHERITED_KEY", "GeometryChoice", "centre_std_over_spacing", "choose_geometry",
+           "focal_log_std", "previous_calibration", "prefer_previous", "restricted_ratios"]
 
 #: align.json key of a round whose calibration came from the previous round.
 INHERITED_KEY = "intrinsics_from_previous_round"
+#: align.json key of the rounds >= 2 decision between this round's poses and the previous round's.
+GEOMETRY_KEY = "geometry_from_previous_round"
 
 
 def focal_log_std(stats: Mapping[str, object]) -> float | None:
@@ -92,3 +122,137 @@ def prefer_previous(mode: ReuseIntrinsics, previous_std: float | None, current_s
     if mode == "never" or previous_std is None:
         return False
     return current_std is None or previous_std < current_std
+
+
+def _nearest_neighbour_spacing(centres: np.ndarray) -> float:
+    """Median over cameras of the distance to the nearest other camera; (N, 3) centres, N >= 2."""
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(axis=1)))
+
+
+def _centres(model: SparseModel, names: Sequence[str]) -> np.ndarray:
+    """(N, 3) camera centres, world frame, of `names` in `model`."""
+    out = []
+    for n in names:
+        cfw = np.asarray(model.image(n).cam_from_world, np.float64)
+        out.append(-cfw[:, :3].T @ cfw[:, 3])
+    return np.array(out).reshape(-1, 3)
+
+
+def _ratios(stats: Mapping[str, object]) -> list[float] | None:
+    """align.json `bundle_adjustment.centre_std_ratio` (one per registered view, in the sparse model's
+    order), or None when absent."""
+    ba = stats.get("bundle_adjustment")
+    ratios = ba.get("centre_std_ratio") if isinstance(ba, Mapping) else None
+    if not isinstance(ratios, list | tuple):
+        return None
+    return [float(r) for r in ratios]
+
+
+def centre_std_over_spacing(model: SparseModel, stats: Mapping[str, object],
+                            views: Sequence[str]) -> dict[str, float] | None:
+    """Per view of `views`: its camera-centre standard deviation over the median nearest-neighbour
+    distance among the `views` cameras, both in `model`'s frame; None when unknown.
+
+    `stats` is the alignment's align.json; its `bundle_adjustment.centre_std_ratio` lists, in
+    `model.names` order, each centre's std over the median nearest-neighbour distance among all of
+    `model`'s cameras (`mvgeo.align`). Unknown: the list is absent or does not match the model, a
+    view is not in the model, fewer than 3 views, or the spacing is zero.
+    """
+    ratios, names = _ratios(stats), list(model.names)
+    if ratios is None or len(ratios) != len(names) or len(views) < 3 or not set(views) <= set(names):
+        return None
+    spacing_all = _nearest_neighbour_spacing(_centres(model, names))
+    spacing_views = _nearest_neighbour_spacing(_centres(model, views))
+    if not (spacing_all > 0 and spacing_views > 0):
+        return None
+    by_name = dict(zip(names, ratios, strict=True))
+    return {v: by_name[v] * spacing_all / spacing_views for v in views}
+
+
+def restricted_ratios(model: SparseModel, stats: Mapping[str, object], views: Sequence[str]) -> list[float] | None:
+    """`bundle_adjustment.centre_std_ratio` of `model` restricted to `views` (in that order): the same
+    stds over the restricted cameras' spacing, so that a later round compares against them."""
+    per_view = centre_std_over_spacing(model, stats, views)
+    return None if per_view is None else [per_view[v] for v in views]
+
+
+@dataclass(frozen=True)
+class GeometryChoice:
+    """A round's choice between its own alignment and the previous round's, for the same views.
+
+    Attributes:
+        used_previous: True: the round's splat starts from the previous round's poses, intrinsics and points.
+        reason: the rule that decided, in words.
+        views: the round's (selected) view names.
+        previous_registered, current_registered: how many of `views` each alignment registered
+            (current: 0 when this round's alignment failed).
+        previous_centre_std, current_centre_std: median over `views` of the camera-centre std in units of
+            their median nearest-neighbour spacing (`centre_std_over_spacing`); None when unknown.
+        current_error: this round's alignment error message, when it failed.
+    """
+
+    used_previous: bool
+    reason: str
+    views: tuple[str, ...]
+    previous_registered: int
+    current_registered: int
+    previous_centre_std: float | None
+    current_centre_std: float | None
+    current_error: str | None = None
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-able dict (align.json `GEOMETRY_KEY`)."""
+        d = dataclasses.asdict(self)
+        d["views"] = list(self.views)
+        return d
+
+
+def _median(per_view: Mapping[str, float] | None) -> float | None:
+    if per_view is None:
+        return None
+    value = float(np.median(list(per_view.values())))
+    return value if np.isfinite(value) else None
+
+
+def choose_geometry(mode: ReuseGeometry, views: Sequence[str], previous: tuple[SparseModel, Mapping[str, object]],
+                    current: tuple[SparseModel, Mapping[str, object]] | None, *,
+                    current_error: str | None = None) -> GeometryChoice:
+    """Whether a round's splat should start from the previous round's alignment (module docstring's rule).
+
+    Args:
+        mode: "auto" applies the rule; "never" always keeps this round's own (the paper's loop).
+        views: the round's view names.
+        previous: (sparse model, align.json stats) of the previous round's alignment.
+        current: the same for this round's alignment; None when it failed (`current_error` says why;
+            the caller re-raises that failure when the choice is not the previous round's).
+    """
+    views = tuple(views)
+    prev_model, prev_stats = previous
+    prev_names = set(prev_model.names)
+    prev_registered = sum(v in prev_names for v in views)
+    cur_registered = 0 if current is None else sum(v in set(current[0].names) for v in views)
+    prev_std = _median(centre_std_over_spacing(prev_model, prev_stats, views))
+    cur_std = None if current is None else _median(centre_std_over_spacing(current[0], current[1], views))
+
+    def decide(used: bool, reason: str) -> GeometryChoice:
+        return GeometryChoice(used, reason, views, prev_registered, cur_registered, prev_std, cur_std, current_error)
+
+    if mode == "never":
+        return decide(False, "reuse_geometry='never': every round aligns anew (the paper's loop)")
+    if current is None:
+        if prev_registered < len(views):
+            return decide(False, "this round's alignment failed and the previous round's does not hold every view")
+        return decide(True, "this round's alignment failed; the previous round's holds every view")
+    if prev_registered < len(views):
+        return decide(False, "the previous round did not register every selected view")
+    if cur_registered < prev_registered:
+        return decide(True, "this round registered fewer of the views than the previous round")
+    if prev_std is None:
+        return decide(False, "the previous round's camera-centre uncertainty is unknown")
+    if cur_std is None:
+        return decide(True, "this round's camera-centre uncertainty is unknown, the previous round's is known")
+    if prev_std < cur_std:
+        return decide(True, "the previous round's alignment determines the views' camera centres better")
+    return decide(False, "this round's alignment determines the views' camera centres at least as well")

@@ -6,7 +6,7 @@ being written; a stage that needs a missing piece raises
 `MissingComponentError` naming it. The names the pipeline relies on are
 listed here, in one place:
 
-- denoise (by submodule): `n2v.train_n2v(images, config, *, seed)`, `n2v.N2V_PRESETS`,
+- denoise (by submodule): `n2v.train_n2v(images, config, *, seed, device)`, `n2v.N2V_PRESETS`,
   `inference.denoise_images(model, images, *, passes, seed)`,
   `round2.finetune_round2(model, noisy_images, renders, config, *, seed)`, `round2.Round2Config`
   (no preset table: "default" is `Round2Config()`), `view_selection.select_views(cfw, images, k, *, seed)`,

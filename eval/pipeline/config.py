@@ -19,6 +19,7 @@ __all__ = ["PRESETS", "AlignSettings", "DenoiseSettings", "PipelineConfig", "Spl
 
 Round2Loss = Literal["joint", "charbonnier"]
 ReuseIntrinsics = Literal["auto", "always", "never"]
+ReuseGeometry = Literal["auto", "never"]
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,12 @@ class AlignSettings:
             when that one wins or when this round's views do not determine the focal; "always"
             uses the previous round's calibration; "never" estimates anew every round (the
             paper's loop). See `eval.pipeline.calibration`.
+        reuse_geometry: rounds >= 2 only (round 1's stage keys ignore it): "auto" hands the previous
+            round's poses, intrinsics and points (for this round's views) to this round's splat when the
+            previous alignment determines those views' camera centres better (bundle-adjustment
+            uncertainty, no ground truth), when this round registers fewer of them, or when this
+            round's alignment fails; "never" uses this round's own alignment (the paper's loop). See
+            `eval.pipeline.calibration.choose_geometry`.
     """
 
     preset: str = "default"
@@ -71,6 +78,7 @@ class AlignSettings:
     points: int | None = None
     max_focal_log_std: float | None = None
     reuse_intrinsics: ReuseIntrinsics = "auto"
+    reuse_geometry: ReuseGeometry = "auto"
 
 
 @dataclass(frozen=True)
@@ -101,12 +109,14 @@ class PipelineConfig:
             the same alignment (`eval.pipeline.stages.fuse`). The two estimates of the clean image err
             differently (the denoiser removes fine texture; the splat of the noisy photos keeps it and
             averages the noise across views), so their mean is better than either. Costs one more
-            splat training per round. On in the `default` and `best` presets, off in `fast` (the demo's
-            time budget): on all four scenes measured (`llff_like`, `hard_highnoise`, `poisson`,
-            `dtu_scan24` + noise) it raised the held-out PSNR and lowered the LPIPS of the paper's loop
-            (docs/bench/pipeline.md, seventh session). `denoise-gs eval`'s `n2v_round1` and
-            `denoise_gs` keep the paper's loop (off); `n2v_fused_round1` and `denoise_gs_fused` turn it on.
+            splat training per round. On in every preset: on the scenes measured it raised the held-out
+            PSNR and lowered the LPIPS of the paper's loop (docs/bench/pipeline.md,
+            docs/bench/pipeline_demo.md). `denoise-gs eval`'s `n2v_round1` and `denoise_gs` keep the
+            paper's loop (off); `n2v_fused_round1` and `denoise_gs_fused` turn it on.
         device: torch device for the networks and the splatting ("cpu", "cuda").
+        max_size: long side in pixels of the working images (`--max-size`): larger inputs are
+            downscaled once, with the area filter, before any stage (`eval.pipeline.inputs`);
+            None works at the input size. 512 is InstantSplat's working size.
         denoise, align, splat: component settings.
     """
 
@@ -116,6 +126,7 @@ class PipelineConfig:
     select_views: bool = True
     fuse_noisy_splat: bool = False
     device: str = "cpu"
+    max_size: int | None = 512
     denoise: DenoiseSettings = field(default_factory=DenoiseSettings)
     align: AlignSettings = field(default_factory=AlignSettings)
     splat: SplatSettings = field(default_factory=SplatSettings)
@@ -133,6 +144,12 @@ class PipelineConfig:
         if self.align.reuse_intrinsics not in ("auto", "always", "never"):
             raise ConfigError(f"unknown value {self.align.reuse_intrinsics!r}", key="align.reuse_intrinsics",
                               expected="'auto', 'always' or 'never'")
+        if self.align.reuse_geometry not in ("auto", "never"):
+            raise ConfigError(f"unknown value {self.align.reuse_geometry!r}", key="align.reuse_geometry",
+                              expected="'auto' or 'never'")
+        if self.max_size is not None and self.max_size < 32:  # validate.MIN_IMAGE_SIZE_PX
+            raise ConfigError(f"must be at least 32 px, got {self.max_size}", key="max_size",
+                              expected="an integer >= 32, or None for the input size")
         for key, value in (("denoise.n2v_steps", self.denoise.n2v_steps),
                            ("denoise.round2_steps", self.denoise.round2_steps),
                            ("align.max_size_px", self.align.max_size_px), ("align.iters", self.align.iters),
@@ -146,11 +163,23 @@ class PipelineConfig:
         return dataclasses.asdict(self)
 
 
-#: Named presets. `fast`: the demo and tests (minutes on 2 CPU cores);
-#: `default`: the components' default presets; `best`: N2V2 with longer
-#: training (not yet measured against `default`; see `denoise-gs cost`).
+#: Named presets; held-out figures and end-to-end times are in docs/bench/pipeline.md (`default`,
+#: `best`, three seeds) and docs/bench/pipeline_demo.md (`fast`, `make demo`).
+#:
+#: - `fast`: what `make demo` and the tests run, minutes on 2 CPU cores: N2V's short preset with 2
+#:   inference passes, 40 round-2 fine-tuning steps, the preview alignment with every point kept
+#:   (up to 100k), the `quick` splat; with the noisy-photo fusion (`fuse_noisy_splat`), without
+#:   which its novel views are blurrier than those of a splat of the noisy photos (lower SSIM,
+#:   higher LPIPS).
+#: - `default`: every component's default preset, with the fusion.
+#: - `best`: N2V2 with 1500 steps, 8 passes, 400 round-2 steps, the default alignment and a
+#:   2000-iteration splat, with the fusion.
+#:
+#: All three keep the better-determined focal length and poses across rounds
+#: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`).
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
+        fuse_noisy_splat=True,
         denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40),
         # PREVIEW thins its cloud to 20k points; at 256x192 and 12 views the splat started from
         # every point (~60k) scored +0.5 dB / LPIPS -0.09..-0.17 held out for 15-40 % more splat time

@@ -1,57 +1,73 @@
-"""One run per output folder at a time: `OUT/.denoise-gs.lock` holds the owner's pid."""
+"""One run per output folder at a time: an `fcntl.flock` on `OUT/.denoise-gs.lock`.
+
+The kernel holds the lock for as long as the owner keeps the file open and
+drops it when the owner exits, however it exits; so a lock is never "stale"
+and nothing has to guess from the file's content whether its owner is alive.
+The file carries the owner's pid only for the error message.
+
+The file is removed on release while the lock is still held. A process that
+opened the old file just before sees, after taking the lock, that the path no
+longer names the file it locked, and starts again on the new one.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 from collections.abc import Iterator
 from pathlib import Path
 
 from mvgeo.common.errors import InputError
+from mvgeo.common.output import LOCK_NAME
 
-__all__ = ["output_lock"]
-
-LOCK_NAME = ".denoise-gs.lock"
+__all__ = ["LOCK_NAME", "output_lock"]
 
 
-def _alive(pid: int) -> bool:
+def _owner_pid(fd: int) -> int | None:
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+        text = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
 
 
 @contextlib.contextmanager
-def output_lock(out: Path) -> Iterator[None]:
-    """Hold the lock of folder `out` (created if needed); a lock left by a dead process is taken over.
+def output_lock(out: str | Path) -> Iterator[None]:
+    """Hold the lock of folder `out` (created if needed) for the block's lifetime.
 
     Raises:
-        InputError: a live process holds it.
+        InputError: another process (or another holder in this process) has it.
     """
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     lock = out / LOCK_NAME
-    for _ in range(2):
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            try:
-                pid = int(lock.read_text().strip() or "0")
-            except (OSError, ValueError):
-                pid = 0
-            if pid and pid != os.getpid() and _alive(pid):
-                raise InputError(f"another run (pid {pid}) is writing this folder", path=out,
-                                 fix="wait for it to finish, or use another --out") from None
-            lock.unlink(missing_ok=True)
-            continue
-        with os.fdopen(fd, "w") as f:
-            f.write(str(os.getpid()))
-        break
-    else:
-        raise InputError("cannot take the output lock", path=lock, fix="remove the lock file if no run is active")
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = _owner_pid(fd)  # None while the owner has not written it yet: still a live owner
+            os.close(fd)
+            who = "another run" if pid is None else f"another run (pid {pid})"
+            raise InputError(f"{who} is writing this folder", path=out,
+                             fix="wait for it to finish, or use another --out") from None
+        except BaseException:
+            os.close(fd)
+            raise
+        try:
+            same = os.path.samestat(os.stat(lock), os.fstat(fd))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # the previous owner removed this file after we opened it: lock the new one
     try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
         yield
     finally:
-        lock.unlink(missing_ok=True)
+        try:
+            lock.unlink(missing_ok=True)  # still holding the lock: nobody else can have replaced the file
+        finally:
+            os.close(fd)

@@ -6,19 +6,17 @@ import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from eval.contact_sheet import contact_sheet
 from eval.pipeline.config import PipelineConfig
+from eval.pipeline.rounds import RoundResult
+from eval.pipeline.stage import StageResult
 from eval.pipeline.views import view_files
 from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image, write_image
-
-if TYPE_CHECKING:
-    from eval.pipeline.run import RoundResult
 
 __all__ = ["CONTACT_ROWS", "write_report"]
 
@@ -61,8 +59,20 @@ def _contact_sheet_png(out: Path, images_dir: Path, rd: Path, r: int) -> Path | 
     return path
 
 
+def _size_lines(config: PipelineConfig, sizes: dict) -> list[str]:
+    """The report's line on the working resolution: `WxH (from W0xH0)` per distinct pair."""
+    if not sizes:
+        return []
+    pairs = sorted({(tuple(v["working"]), tuple(v["input"])) for v in sizes.values()})
+    shown = ", ".join(f"{w[0]}x{w[1]}" + (f" (from {i[0]}x{i[1]})" if i != w else " (input size)")
+                      for w, i in pairs)
+    limit = "none (input size)" if config.max_size is None else f"long side <= {config.max_size} px"
+    return [f"- working size: {shown}; --max-size: {limit}"]
+
+
 def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds: Sequence[RoundResult],
-                 timings_s: dict[str, float]) -> tuple[Path, Path]:
+                 timings_s: dict[str, float], working: StageResult | None = None,
+                 exported: StageResult | None = None) -> tuple[Path, Path]:
     """Write `report.json`, `report.md` and `report_files/contact_round<N>.png`.
 
     Args:
@@ -71,6 +81,8 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
         config: the run's settings.
         rounds: per-round stage results.
         timings_s: this invocation's seconds per stage (skipped stages absent) and `total`.
+        working: the `inputs` stage (working images and their sizes), if it ran.
+        exported: the `export` stage (scene.splat, view/, cameras/), if it ran.
 
     Returns:
         (report.json, report.md) paths.
@@ -83,7 +95,9 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
                            "seconds": round(res.seconds, 4), "summary": res.summary})
             if name == "select":
                 selected[f"round{rnd.index}"] = list(res.summary.get("selected", []))
-    sheets = {rnd.index: _contact_sheet_png(out, images_dir, rnd.dir, rnd.index) for rnd in rounds}
+    noisy_dir = out / "inputs" if working is not None else images_dir  # same size as the renders
+    sheets = {rnd.index: _contact_sheet_png(out, noisy_dir, rnd.dir, rnd.index) for rnd in rounds}
+    sizes = dict(working.summary.get("sizes", {})) if working is not None else {}
     report = {
         "images_dir": str(images_dir),
         "settings": config.to_dict(),
@@ -93,13 +107,23 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
         "selected_views": selected,
         "rounds": [{"index": rnd.index, "dir": rnd.dir.name} for rnd in rounds],
         "contact_sheets": {f"round{k}": str(v.relative_to(out)) for k, v in sheets.items() if v is not None},
+        "max_size": config.max_size,
+        "image_sizes": sizes,
+        "export": dict(exported.summary) if exported is not None else None,
     }
     json_path, md_path = out / "report.json", out / "report.md"
     atomic_write_text(json_path, json.dumps(_json_safe(report), indent=2) + "\n")
 
     lines = ["# Denoise-GS run", "", f"- inputs: `{images_dir}`",
              f"- rounds: {config.rounds}, views kept for rounds >= 2: {config.views}, seed: {config.seed}, "
-             f"device: {config.device}", ""]
+             f"device: {config.device}"]
+    lines += _size_lines(config, sizes)
+    if exported is not None:
+        lines += ["- scene: [`scene.splat`](scene.splat) (antimatter15 .splat, "
+                  f"{exported.summary.get('num_gaussians', '?')} Gaussians) and an offline viewer "
+                  "[`view/index.html`](view/index.html) (opens from disk, no network); cameras: "
+                  "`cameras/working/` (working size), `cameras/input/` (intrinsics scaled to the input photos)"]
+    lines.append("")
     lines += ["## Stages", "", "| round | stage | status | seconds | key |", "|---|---|---|---|---|"]
     for s in stages:
         status = "skipped (complete)" if s["skipped"] else "ran"

@@ -8,34 +8,47 @@ the splat trains on those.
 Round r >= 2: select views from round r-1 (pose k-means, K = `views`, sharpest
 per cluster) -> refine (fine-tune the round r-1 UNet with the joint loss
 against round r-1's renders of the selected views, denoise them) -> align
-(keeping the better-determined of its own and round r-1's focal length,
+(keeping the better-determined of its own and round r-1's focal length, and
+round r-1's poses when they determine the selected views better,
 `eval.pipeline.calibration`) -> splat -> render.
 
-Layout (each stage commits its outputs atomically; `roundN/stages/*.json`
-hold the keys; see `eval.pipeline.stage`):
+Before round 1 the inputs are made upright (EXIF) and downscaled once to the
+working size (`PipelineConfig.max_size`, `eval.pipeline.inputs`); after the last
+round the export stage writes the scene for viewers (`eval.pipeline.publish`).
 
+Layout (each stage commits its outputs atomically; `roundN/stages/*.json`
+(and `OUT/stages/*.json` for inputs and export) hold the keys and each output
+file's size and sha256, checked before a resumed run reuses them; see
+`eval.pipeline.stage`):
+
+    OUT/inputs/*.png, inputs/sizes.json            (inputs: the working images, input and working sizes)
     OUT/roundN/denoised/*.png, n2v_model.pt      (denoise / refine)
     OUT/roundN/align/sparse/0/, points.npz        (align: initial poses and points)
     OUT/roundN/fused/, noisy_renders/             (fuse, with fuse_noisy_splat)
     OUT/roundN/sparse/0/, point_cloud.ply         (splat: optimised poses, Gaussians)
     OUT/roundN/renders/*.png                      (render)
     OUT/roundN/selection.json                     (select, rounds >= 2)
+    OUT/scene.splat, OUT/view/index.html           (export: .splat and offline viewer of the last round)
+    OUT/cameras/working/, OUT/cameras/input/      (export: final cameras at working and input size)
     OUT/report.json, OUT/report.md, OUT/report_files/*.png
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 from eval.pipeline.config import PipelineConfig
 from eval.pipeline.hashing import hash_files, hash_json
+from eval.pipeline.inputs import SIZES_FILE, WORKING_DIR, prepare_inputs
 from eval.pipeline.lock import output_lock
 from eval.pipeline.report import write_report
-from eval.pipeline.stage import StageResult, StageRunner, StageSpec
+from eval.pipeline.rounds import RoundResult
+from eval.pipeline.stage import StageResult, StageRunner, StageSpec, code_digests
 from eval.pipeline.stages import PipelineStages, check_product_components, product_stages, resolved_configs
 from eval.pipeline.validate import validate_run_inputs
+from mvgeo.common.output import prepare_output, resumable_output_dir
 from mvgeo.common.timing import StageTimer
 
 __all__ = ["PipelineResult", "RoundResult", "run_pipeline", "stage_seed"]
@@ -43,18 +56,17 @@ __all__ = ["PipelineResult", "RoundResult", "run_pipeline", "stage_seed"]
 _log = logging.getLogger(__name__)
 
 
+#: The command named in a run folder's manifest (`mvgeo.common.output`).
+RUN_COMMAND = "denoise-gs run"
+#: Top-level entries a run writes: a folder holding only these (e.g. a run written before manifests
+#: existed, or one whose round 1 `eval.evaluate.share_round1` linked in) is resumed.
+RUN_LAYOUT = ("round[0-9]*", "report.json", "report.md", "report_files", "stages", "inputs", "scene.splat", "view",
+              "cameras")
+
+
 def stage_seed(seed: int, round_index: int, stage: str) -> int:
     """A stage's seed, derived from the master seed, the round and the stage name (31 bits)."""
     return int(hash_json([seed, round_index, stage])[:8], 16) & 0x7FFFFFFF
-
-
-@dataclass(frozen=True)
-class RoundResult:
-    """One round's stages, by stage name (`denoise` or `select`+`refine`, `align`, `splat`, `render`)."""
-
-    index: int
-    dir: Path
-    stages: dict[str, StageResult]
 
 
 @dataclass(frozen=True)
@@ -76,6 +88,16 @@ class PipelineResult:
     report_md: Path
 
 
+def _hash_stage_code(stages: PipelineStages) -> None:
+    """Take the source digests of every stage's code now, before any stage runs: they are cached for
+    the process (`eval.pipeline.hashing.source_digest`), so an edit made while the run is in progress
+    is not recorded against results of the code loaded before it."""
+    for f in fields(stages):
+        fn = getattr(stages, f.name)
+        if callable(fn):
+            code_digests(fn, stages.code.get(f.name, ()))
+
+
 def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images: StageResult,
                   config: PipelineConfig, r: int, resolved: dict, *, noisy: tuple[Path, str],
                   previous: RoundResult | None = None) -> dict[str, StageResult]:
@@ -86,11 +108,13 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
     inputs, upstream = {"images": rd / "denoised"}, (images,)
     if previous is None:
         del align_settings["reuse_intrinsics"]  # a rounds >= 2 setting: round 1's key stays as it was
+        del align_settings["reuse_geometry"]  # likewise
     else:  # the previous round's calibration (eval.pipeline.calibration)
         inputs["previous_align"] = previous.dir / "align"
         upstream = (images, previous.stages["align"])
     al = runner.run(StageSpec("align", rd, stages.align, ("align",), inputs=inputs, upstream=upstream,
-                              settings=align_settings, seed=stage_seed(config.seed, r, "align")),
+                              settings=align_settings, seed=stage_seed(config.seed, r, "align"),
+                              code=stages.code.get("align", ())),
                     label=f"{label}/align")
     splat_settings = {**asdict(config.splat), "device": config.device, "resolved": resolved["splat"]}
     out: dict[str, StageResult] = {"align": al}
@@ -101,16 +125,19 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
         fu = runner.run(StageSpec("fuse", rd, stages.fuse, ("fused", "noisy_renders"),
                                   inputs={"noisy": noisy[0], "images": rd / "denoised", "align": rd / "align"},
                                   upstream=(images, al), settings={**splat_settings, "noisy_digest": noisy[1]},
-                                  seed=stage_seed(config.seed, r, "fuse")), label=f"{label}/fuse")
+                                  seed=stage_seed(config.seed, r, "fuse"), code=stages.code.get("fuse", ())),
+                        label=f"{label}/fuse")
         out["fuse"] = fu
         splat_images, splat_upstream = rd / "fused", (images, al, fu)
     sp = runner.run(StageSpec("splat", rd, stages.splat, ("sparse", "point_cloud.ply"),
                               inputs={"images": splat_images, "align": rd / "align"}, upstream=splat_upstream,
-                              settings=splat_settings, seed=stage_seed(config.seed, r, "splat")),
+                              settings=splat_settings, seed=stage_seed(config.seed, r, "splat"),
+                              code=stages.code.get("splat", ())),
                     label=f"{label}/splat")
     re = runner.run(StageSpec("render", rd, stages.render, ("renders",),
                               inputs={"sparse": rd / "sparse", "scene": rd / "point_cloud.ply"}, upstream=(sp,),
-                              settings={"device": config.device}, seed=0), label=f"{label}/render")
+                              settings={"device": config.device}, seed=0, code=stages.code.get("render", ())),
+                    label=f"{label}/render")
     return {**out, "splat": sp, "render": re}
 
 
@@ -120,7 +147,9 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
 
     Args:
         images_dir: folder of noisy images (PNG/JPEG/TIFF, 8 or 16 bit).
-        out: output folder (created; one run at a time, enforced by a lock file).
+        out: output folder (created; one run at a time, enforced by a lock file). A new or empty
+            folder, or a previous run's (resumed); anything else, or one that is, holds or lies
+            inside `images_dir`, is refused before any work (`mvgeo.common.output`).
         config: settings (see `eval.pipeline.config.PRESETS`).
         stages: the stage functions; default the product's (`product_stages()`).
         force: re-run every stage even when complete outputs exist.
@@ -130,26 +159,34 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         MissingComponentError: a stage needs a component that is not available.
     """
     images_dir, out = Path(images_dir), Path(out)
+    plan = prepare_output(out, command=RUN_COMMAND, inputs=[images_dir], resume=True, layout=RUN_LAYOUT)
     files = validate_run_inputs(images_dir, out, config)
     if stages is None:
         check_product_components(config)  # fail now, not after an hour of round 1
         stages = product_stages()
     timer = StageTimer()
     runner = StageRunner(timer=timer, force=force)
-    # The noisy inputs enter the keys by content (only the image files, so an
-    # OUT folder inside IMAGES_DIR or unrelated files there change nothing).
+    # The noisy inputs enter the keys by content (only the image files, so
+    # unrelated files in IMAGES_DIR change nothing).
     noisy_digest = hash_files(files.values())
     resolved = resolved_configs(config)  # component configs, so a changed component default re-runs its stage
+    _hash_stage_code(stages)
     d = config.denoise
     rounds: list[RoundResult] = []
-    with output_lock(out):
+    with resumable_output_dir(plan), output_lock(out):
+        # The working images (upright, long side <= max_size): every stage reads these, not the inputs.
+        prep = runner.run(StageSpec(WORKING_DIR, out, prepare_inputs, (WORKING_DIR,), inputs={"noisy": images_dir},
+                                    settings={"noisy_digest": noisy_digest, "max_size": config.max_size},
+                                    code=("eval.pipeline", "mvgeo")), label=WORKING_DIR)
+        working = out / WORKING_DIR
         rd = out / "round1"
         den = runner.run(StageSpec(
-            "denoise", rd, stages.denoise, ("denoised", "n2v_model.pt"), inputs={"noisy": images_dir},
+            "denoise", rd, stages.denoise, ("denoised", "n2v_model.pt"), inputs={"noisy": working}, upstream=(prep,),
             settings={"noisy_digest": noisy_digest, "n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps,
                       "passes": d.passes, "device": config.device, "resolved": resolved["n2v"]},
-            seed=stage_seed(config.seed, 1, "denoise")), label="round1/denoise")
-        scene = _scene_stages(runner, stages, rd, den, config, 1, resolved, noisy=(images_dir, noisy_digest))
+            seed=stage_seed(config.seed, 1, "denoise"), code=stages.code.get("denoise", ())),
+            label="round1/denoise")
+        scene = _scene_stages(runner, stages, rd, den, config, 1, resolved, noisy=(working, noisy_digest))
         rounds.append(RoundResult(1, rd, {"denoise": den, **scene}))
         for r in range(2, config.rounds + 1):
             prev, rd = rounds[-1], out / f"round{r}"
@@ -158,22 +195,32 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
                 inputs={"sparse": prev.dir / "sparse", "images": prev.dir / "denoised"},
                 upstream=(prev.stages["splat"], prev.stages.get("denoise") or prev.stages["refine"]),
                 settings={"views": config.views, "select_views": config.select_views},
-                seed=stage_seed(config.seed, r, "select")), label=f"round{r}/select")
+                seed=stage_seed(config.seed, r, "select"), code=stages.code.get("select", ())),
+                label=f"round{r}/select")
             model_stage = prev.stages.get("denoise") or prev.stages["refine"]
             ref = runner.run(StageSpec(
                 "refine", rd, stages.refine, ("denoised", "n2v_model.pt"),
-                inputs={"noisy": images_dir, "selection": rd / "selection.json",
+                inputs={"noisy": working, "selection": rd / "selection.json",
                         "model": prev.dir / "n2v_model.pt", "renders": prev.dir / "renders",
                         "previous": prev.dir / "denoised"},
                 upstream=(sel, model_stage, prev.stages["render"]),
                 settings={"noisy_digest": noisy_digest, "round2_preset": d.round2_preset,
                           "round2_steps": d.round2_steps, "round2_loss": d.round2_loss, "passes": d.passes,
                           "device": config.device, "resolved": resolved["round2"]},
-                seed=stage_seed(config.seed, r, "refine")), label=f"round{r}/refine")
-            scene = _scene_stages(runner, stages, rd, ref, config, r, resolved, noisy=(images_dir, noisy_digest),
+                seed=stage_seed(config.seed, r, "refine"), code=stages.code.get("refine", ())),
+                label=f"round{r}/refine")
+            scene = _scene_stages(runner, stages, rd, ref, config, r, resolved, noisy=(working, noisy_digest),
                                   previous=prev)
             rounds.append(RoundResult(r, rd, {"select": sel, "refine": ref, **scene}))
+        exported = None
+        if stages.export is not None:
+            last = rounds[-1]
+            exported = runner.run(StageSpec(
+                "export", out, stages.export, ("scene.splat", "view", "cameras"),
+                inputs={"scene": last.dir / "point_cloud.ply", "sparse": last.dir / "sparse",
+                        "sizes": working / SIZES_FILE},
+                upstream=(prep, last.stages["splat"]), code=stages.code.get("export", ())), label="export")
         report_json, report_md = write_report(out, images_dir=images_dir, config=config, rounds=rounds,
-                                              timings_s=timer.as_dict())
+                                              timings_s=timer.as_dict(), working=prep, exported=exported)
     _log.info("report: %s", report_md)
     return PipelineResult(out, rounds, timer.as_dict(), report_json, report_md)

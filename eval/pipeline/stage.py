@@ -1,26 +1,49 @@
-"""Resumable pipeline stages: keyed by a hash of inputs and settings, committed atomically.
+"""Resumable pipeline stages: keyed by a hash of inputs, settings and code, committed atomically,
+checked before reuse.
 
 A stage is a function `fn(ctx) -> summary` that reads its inputs from disk
 (`ctx.inputs`) and writes its declared outputs (files or folders, paths
 relative to the stage's folder) into a private work folder `ctx.work_dir`.
 `StageRunner.run` then commits them:
 
-1. the stage's key is the sha256 of its name, settings, external inputs'
-   contents and its upstream stages' keys;
-2. if `stages/<name>.json` exists with that key and every declared output
-   exists, the stage is skipped (its recorded summary is returned);
+1. the stage's key is the sha256 of its name, settings, seed, external
+   inputs' contents, its code (below) and, for each upstream stage, that
+   stage's key and the digest of the outputs it recorded;
+2. if `stages/<name>.json` holds that key and every declared output still
+   matches the record (same files, sizes and sha256), the stage is skipped
+   (its recorded summary is returned);
 3. otherwise the record is deleted first, `fn` runs in a temporary sibling
-   folder (removed if `fn` raises), each output replaces the old one with an
-   atomic rename, and the record is written last (atomically).
+   folder (removed if `fn` raises), the size and sha256 of every output file
+   (every non-hidden file inside an output folder) are taken there, each output
+   replaces the old one with an atomic rename, and the record is written last
+   (atomically).
 
 So a stage's outputs are complete exactly when its record holds the current
-key: a crash at any point leaves either no record (the stage re-runs) or the
-new one. Code changes are not part of the key; re-run with `force=True`
-after changing a stage's code.
+key and they hash as recorded: a crash at any point leaves either no record
+(the stage re-runs) or the new one, and a missing, truncated or edited output
+makes its stage run again.
+
+Downstream stages follow through their keys, not through a flag held by the
+runner: a stage's key contains the recorded output digest of each upstream
+stage, so when a re-run upstream stage writes outputs that differ from before
+(different bytes), every stage after it gets a new key and runs again, also in
+a later process after an interruption. When the re-run writes the very bytes
+the damaged files had before, the stages after it read exactly what they read
+the first time and their checked outputs are reused.
+
+Code: one rule. The key includes `source_digest` of the module that defines
+`fn` (its file) and of each module or package named in `StageSpec.code` (a
+package counts with every source file in it), so a change anywhere in that
+code re-runs the stage and, through the keys, the stages after it. The
+product's stages name `eval.pipeline` and the component packages each calls
+(`eval.pipeline.stages.STAGE_CODE`). The rule is coarse on purpose: an edit
+that changes nothing a stage computes still re-runs it; an edit missed would
+silently reuse stale results.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -32,17 +55,18 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from eval.pipeline.hashing import hash_json, hash_path
+from eval.pipeline.hashing import file_sha256, hash_json, hash_path, source_digest, tree_files
 from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import DgsError
 from mvgeo.common.timing import StageTimer
 
-__all__ = ["RECORD_DIR", "StageContext", "StageFn", "StageResult", "StageRunner", "StageSpec"]
+__all__ = ["RECORD_DIR", "StageContext", "StageFn", "StageResult", "StageRunner", "StageSpec", "code_digests",
+           "output_manifest", "verify_outputs"]
 
 _log = logging.getLogger(__name__)
 
 #: Bump when the record format or the meaning of a key changes.
-STAGE_FORMAT_VERSION = 1
+STAGE_FORMAT_VERSION = 2
 #: Records live in `<stage folder>/stages/<stage name>.json`.
 RECORD_DIR = "stages"
 
@@ -69,6 +93,18 @@ class StageContext:
 StageFn = Callable[[StageContext], Mapping[str, object]]
 
 
+def _module_of(fn: StageFn) -> str:
+    """Name of the module that defines `fn` (through `functools.partial`)."""
+    while isinstance(fn, functools.partial):
+        fn = fn.func
+    return getattr(fn, "__module__", None) or type(fn).__module__
+
+
+def code_digests(fn: StageFn, code: Sequence[str] = ()) -> dict[str, str]:
+    """The code a stage runs, as module/package name -> `source_digest`: `fn`'s own module and `code`."""
+    return {name: source_digest(name) for name in sorted({_module_of(fn), *code})}
+
+
 @dataclass(frozen=True)
 class StageSpec:
     """One stage to run.
@@ -81,9 +117,12 @@ class StageSpec:
         inputs: input name -> path handed to `fn`.
         hashed_inputs: names in `inputs` whose *contents* enter the key
             (external inputs); the others are upstream outputs, covered by `upstream`.
-        upstream: results of the stages whose outputs this one reads; their keys enter this key.
+        upstream: results of the stages whose outputs this one reads; their keys and
+            recorded output digests enter this key.
         settings: JSON-able settings that enter the key.
         seed: enters the key and is handed to `fn`.
+        code: modules or packages the stage runs besides `fn`'s own module (e.g. `"splat"`);
+            their source digests enter the key (the module docstring's rule).
     """
 
     name: str
@@ -95,9 +134,10 @@ class StageSpec:
     upstream: Sequence[StageResult] = ()
     settings: Mapping[str, object] = field(default_factory=dict)
     seed: int = 0
+    code: tuple[str, ...] = ()
 
     def key(self) -> str:
-        """sha256 of name, settings, seed, hashed inputs' contents and upstream keys."""
+        """sha256 of name, settings, seed, hashed inputs' contents, code, and upstream keys and outputs."""
         return hash_json({
             "format": STAGE_FORMAT_VERSION,
             "name": self.name,
@@ -105,7 +145,8 @@ class StageSpec:
             "settings": dict(self.settings),
             "seed": self.seed,
             "inputs": {k: hash_path(self.inputs[k]) for k in sorted(self.hashed_inputs)},
-            "upstream": {u.name: u.key for u in self.upstream},
+            "upstream": {u.name: {"key": u.key, "outputs": u.outputs_digest} for u in self.upstream},
+            "code": code_digests(self.fn, self.code),
         })
 
 
@@ -120,6 +161,8 @@ class StageResult:
         summary: what the stage function returned (JSON-able), as recorded.
         skipped: True when complete outputs with this key were found.
         seconds: wall time of the function when it ran (from the record when skipped).
+        outputs_digest: `hash_json` of the outputs' manifest (`output_manifest`); it enters the
+            keys of the stages that read these outputs.
     """
 
     name: str
@@ -128,6 +171,50 @@ class StageResult:
     summary: Mapping[str, object]
     skipped: bool
     seconds: float
+    outputs_digest: str
+
+
+def output_manifest(root: Path, outputs: Sequence[str]) -> dict[str, dict]:
+    """What a stage wrote under `root`: `{"outputs": {output: "file" | "dir"},
+    "files": {path relative to root: {"size": bytes, "sha256": hex}}}`, every file of an output
+    folder included (hidden entries left out, as in `tree_files`)."""
+    kinds: dict[str, str] = {}
+    files: dict[str, dict[str, object]] = {}
+    for o in outputs:
+        path = root / o
+        kinds[o] = "dir" if path.is_dir() else "file"
+        for f in tree_files(path) if path.is_dir() else [path]:
+            files[f.relative_to(root).as_posix()] = {"size": f.stat().st_size, "sha256": file_sha256(f)}
+    return {"outputs": kinds, "files": files}
+
+
+def verify_outputs(root: Path, manifest: Mapping[str, Mapping]) -> str | None:
+    """None when the outputs under `root` are those `manifest` (`output_manifest`) records, else the
+    first difference, in words. Sizes are compared before any file is hashed."""
+    try:
+        kinds, files = dict(manifest["outputs"]), dict(manifest["files"])
+        found: dict[str, int] = {}
+        for o, kind in kinds.items():
+            path = root / o
+            if not (path.is_dir() if kind == "dir" else path.is_file()):
+                return f"{o} is missing" if not path.exists() else f"{o} is not a {kind}"
+            for f in tree_files(path) if kind == "dir" else [path]:
+                found[f.relative_to(root).as_posix()] = f.stat().st_size
+        for name in sorted(files.keys() | found.keys()):
+            if name not in found:
+                return f"{name} is missing"
+            if name not in files:
+                return f"{name} was not written by the stage"
+            if found[name] != files[name]["size"]:
+                return f"{name} has {found[name]} bytes, {files[name]['size']} recorded"
+        for name in sorted(files):
+            if file_sha256(root / name) != files[name]["sha256"]:
+                return f"{name} changed (sha256 differs from the record)"
+    except (KeyError, TypeError, AttributeError):
+        return "the record's output list is malformed"
+    except OSError as exc:
+        return f"an output cannot be read ({exc})"
+    return None
 
 
 def _record_path(spec: StageSpec) -> Path:
@@ -153,6 +240,25 @@ def _replace(src: Path, dst: Path) -> None:
         _remove(old)
 
 
+def _reusable(spec: StageSpec, key: str, record: Path) -> tuple[dict | None, str]:
+    """(the record, "") when the stage's committed outputs can be reused for `key`, else (None, why not)."""
+    if not record.is_file():
+        return None, "no record"
+    try:
+        rec = json.loads(record.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None, "unreadable record"
+    if not isinstance(rec, dict) or rec.get("key") != key:
+        return None, "settings, inputs, code or upstream outputs changed"
+    manifest = rec.get("manifest")
+    if not isinstance(manifest, Mapping) or set(manifest.get("outputs", {})) != set(spec.outputs):
+        return None, "the record does not list the declared outputs"
+    problem = verify_outputs(spec.stage_dir, manifest)
+    if problem is not None:
+        return None, f"output check: {problem}"
+    return rec, ""
+
+
 class StageRunner:
     """Runs `StageSpec`s, skipping complete ones, timing each with a `StageTimer`.
 
@@ -167,7 +273,7 @@ class StageRunner:
         self.results: list[StageResult] = []
 
     def run(self, spec: StageSpec, *, label: str | None = None) -> StageResult:
-        """Run `spec` unless its outputs are complete for its key; see the module docstring.
+        """Run `spec` unless its outputs are complete and unchanged for its key; see the module docstring.
 
         Args:
             spec: the stage.
@@ -181,17 +287,18 @@ class StageRunner:
         key = spec.key()
         record = _record_path(spec)
         outputs = {o: spec.stage_dir / o for o in spec.outputs}
-        if not self.force and record.is_file():
-            try:
-                rec = json.loads(record.read_text())
-            except (OSError, json.JSONDecodeError):
-                rec = None
-            if rec and rec.get("key") == key and all(p.exists() for p in outputs.values()):
-                _log.info("stage %s: complete, skipped", label)
+        if not self.force:
+            rec, why = _reusable(spec, key, record)
+            if rec is not None:
+                _log.info("stage %s: complete (outputs checked), skipped", label)
                 result = StageResult(spec.name, key, outputs, rec.get("summary", {}), True,
-                                     float(rec.get("seconds", 0.0)))
+                                     float(rec.get("seconds", 0.0)), hash_json(rec["manifest"]))
                 self.results.append(result)
                 return result
+            if why.startswith("output check"):
+                _log.warning("stage %s: %s; running it again", label, why)
+            elif record.is_file():
+                _log.info("stage %s: %s; running it again", label, why)
         spec.stage_dir.mkdir(parents=True, exist_ok=True)
         _remove(record)
         for stale in spec.stage_dir.glob(f".{spec.name}.work-*"):  # left by a killed run
@@ -207,8 +314,10 @@ class StageRunner:
             if missing:
                 raise DgsError(f"stage {label} did not write its declared outputs {missing} "
                                f"(a bug in the stage function)")
+            manifest = output_manifest(work, spec.outputs)
             try:
-                record_text = json.dumps({"key": key, "name": spec.name, "outputs": list(spec.outputs),
+                record_text = json.dumps({"key": key, "name": spec.name, "manifest": manifest,
+                                          "code": code_digests(spec.fn, spec.code),
                                           "seconds": round(seconds, 4), "seed": spec.seed,
                                           "settings": dict(spec.settings), "summary": summary},
                                          indent=2, sort_keys=True)
@@ -219,6 +328,6 @@ class StageRunner:
             atomic_write_text(record, record_text + "\n")
         finally:
             _remove(work)
-        result = StageResult(spec.name, key, outputs, summary, False, seconds)
+        result = StageResult(spec.name, key, outputs, summary, False, seconds, hash_json(manifest))
         self.results.append(result)
         return result

@@ -20,8 +20,6 @@ Each function has the `StageFn` signature (`fn(ctx) -> summary`), reads
 from __future__ import annotations
 
 import dataclasses
-import functools
-import importlib.util
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -29,17 +27,25 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.pipeline.calibration import INHERITED_KEY, focal_log_std, prefer_previous, previous_calibration
+from eval.pipeline.calibration import (
+    GEOMETRY_KEY,
+    INHERITED_KEY,
+    GeometryChoice,
+    choose_geometry,
+    focal_log_std,
+    prefer_previous,
+    previous_calibration,
+    restricted_ratios,
+)
 from eval.pipeline.components import MissingComponentError, component_config, require
 from eval.pipeline.config import PipelineConfig
-from eval.pipeline.hashing import hash_files
 from eval.pipeline.stage import StageContext, StageFn
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
-__all__ = ["FUSE_WEIGHT", "PipelineStages", "align", "check_product_components", "denoise", "fuse", "fuse_images",
-           "product_stages", "refine", "render", "resolved_configs", "select", "splat"]
+__all__ = ["FUSE_WEIGHT", "STAGE_CODE", "PipelineStages", "align", "check_product_components", "denoise", "fuse",
+           "fuse_images", "product_stages", "refine", "render", "resolved_configs", "select", "splat"]
 
 
 @dataclass(frozen=True)
@@ -53,6 +59,10 @@ class PipelineStages:
     select: StageFn
     refine: StageFn
     fuse: StageFn | None = None  # `PipelineConfig.fuse_noisy_splat`; required only when that is on
+    #: OUT/scene.splat, view/, cameras/ from the last round (`eval.pipeline.publish`); None skips it.
+    export: StageFn | None = None
+    #: stage name -> modules/packages it runs besides its function's own module (`StageSpec.code`).
+    code: Mapping[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
 
 
 def _history_summary(history: object) -> dict[str, object]:
@@ -111,7 +121,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     denoise_images = require("denoise.inference", "denoise_images", needed_for=need)
     save_checkpoint = require("denoise.model", "save_checkpoint", needed_for=need)
     noisy = read_views(ctx.inputs["noisy"])
-    model = train_n2v(list(noisy.values()), cfg, seed=ctx.seed)
+    model = train_n2v(list(noisy.values()), cfg, seed=ctx.seed, device=s["device"])
     out = denoise_images(model, list(noisy.values()), passes=s["passes"], seed=ctx.seed)
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / "n2v_model.pt", model)
@@ -127,17 +137,66 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     files = list(view_files(ctx.inputs["images"]).values())
     mode = ctx.settings.get("reuse_intrinsics", "never")
     previous = ctx.inputs.get("previous_align")
-    if previous is None or mode == "never":
+    if previous is None:
         res = align_images(files, cfg)
     else:
-        res = _align_with_previous_calibration(align_images, files, cfg, Path(previous), mode)
+        res = _align_keeping_better_geometry(align_images, files, cfg, Path(previous), mode,
+                                             ctx.settings.get("reuse_geometry", "never"))
     out = ctx.work_dir / "align"
     write_align_result(out, res)  # sparse/0/*.bin, points.ply, align.json
     np.savez(out / "points.npz", xyz=np.asarray(res.points_xyz, np.float64),
              rgb=np.asarray(res.points_rgb, np.uint8), conf=np.asarray(res.points_conf, np.float64))
     stats = res.stats if isinstance(res.stats, Mapping) else {}
-    return {"registered": len(res.sparse_model.images), "points": int(len(res.points_xyz)),
-            "stats": json.loads(json.dumps(stats, default=str))}
+    summary = {"registered": len(res.sparse_model.images), "points": int(len(res.points_xyz)),
+               "stats": json.loads(json.dumps(stats, default=str))}
+    if GEOMETRY_KEY in stats:
+        summary["geometry"] = stats[GEOMETRY_KEY]
+    return summary
+
+
+def _align_keeping_better_geometry(align_images, files: list[Path], cfg, previous: Path, intrinsics_mode: str,
+                                   geometry_mode: str):
+    """Rounds >= 2: this round's alignment (with `reuse_intrinsics`), or the previous round's restricted to
+    this round's views when `choose_geometry` prefers it; the `GeometryChoice` goes into align.json."""
+    error: DegenerateGeometryError | None = None
+    try:
+        if intrinsics_mode == "never":
+            res = align_images(files, cfg)
+        else:
+            res = _align_with_previous_calibration(align_images, files, cfg, previous, intrinsics_mode)
+    except DegenerateGeometryError as exc:  # e.g. the K views alone do not pin the cameras
+        res, error = None, exc
+    prev_model = read_sparse_model(previous / "sparse" / "0")
+    prev_stats = json.loads((previous / "align.json").read_text())
+    views = [Path(f).name for f in files]
+    choice = choose_geometry(geometry_mode, views, (prev_model, prev_stats),
+                             None if res is None else (res.sparse_model, res.stats),
+                             current_error=None if error is None else str(error)[:500])
+    if not choice.used_previous:
+        if error is not None:
+            raise error
+        res.stats[GEOMETRY_KEY] = choice.to_dict()
+        return res
+    return _previous_geometry(previous, prev_model, prev_stats, choice)
+
+
+def _previous_geometry(previous: Path, model: SparseModel, stats: Mapping[str, object], choice: GeometryChoice):
+    """The previous round's alignment as this round's: its cameras and poses of `choice.views`, its
+    points, and its align.json with the uncertainty figures restricted to those views (what the next
+    round compares against) and the choice."""
+    align_result = require("mvgeo.align", "AlignResult", needed_for="align stage")
+    views = list(choice.views)
+    images = [model.image(v) for v in views]
+    sub = SparseModel({im.camera_id: model.cameras[im.camera_id] for im in images}, images,
+                      model.points_xyz, model.points_rgb)
+    out_stats = json.loads(json.dumps(stats))
+    ba = out_stats.get("bundle_adjustment")
+    if isinstance(ba, dict) and "centre_std_ratio" in ba:
+        ba["centre_std_ratio"] = restricted_ratios(model, stats, views)
+    out_stats.update({"n_images": len(views), "n_registered": len(views), GEOMETRY_KEY: choice.to_dict()})
+    pts = np.load(previous / "points.npz")
+    return align_result(sub, np.asarray(pts["xyz"], np.float64), np.asarray(pts["rgb"], np.uint8),
+                        np.asarray(pts["conf"], np.float64), out_stats)
 
 
 def _align_with_previous_calibration(align_images, files: list[Path], cfg, previous: Path, mode: str):
@@ -295,35 +354,29 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
             "round2": json.loads(json.dumps(dataclasses.asdict(r2), default=float))}
 
 
-#: Source suffixes whose bytes make up a component's code digest (the C++ kernels included).
-_CODE_SUFFIXES = (".py", ".cpp", ".h")
-
-
-@functools.cache
-def component_code_digest(package: str) -> str | None:
-    """sha256 of a component package's source files (names and bytes), or None when it is not installed.
-
-    It enters the stage keys, so that a run resumed after the component's code changed (a fixed bug, a
-    new default inside a function) re-runs the stages that use it instead of reusing stale outputs.
-    """
-    spec = importlib.util.find_spec(package)
-    if spec is None or not spec.submodule_search_locations:
-        return None
-    root = Path(next(iter(spec.submodule_search_locations)))
-    files = [f for f in root.rglob("*") if f.is_file() and f.suffix in _CODE_SUFFIXES
-             and "__pycache__" not in f.parts and not any(part.startswith(".") for part in f.relative_to(root).parts)]
-    return hash_files(files, root=root)
+#: The code each product stage runs besides `eval/pipeline/stages.py`: all of `eval.pipeline` (views'
+#: PNG writing, calibration, components) and the component packages it calls, each with the project
+#: packages those import (`splat` imports `denoise.losses`; `denoise` and `splat` import `mvgeo`).
+#: Their source digests enter the stage keys (`eval.pipeline.stage`'s rule), so a changed constant or
+#: function in any of them re-runs the stage and the stages after it.
+STAGE_CODE: dict[str, tuple[str, ...]] = {
+    "denoise": ("eval.pipeline", "denoise", "mvgeo"),
+    "align": ("eval.pipeline", "mvgeo"),
+    "fuse": ("eval.pipeline", "splat", "denoise", "mvgeo"),
+    "splat": ("eval.pipeline", "splat", "denoise", "mvgeo"),
+    "render": ("eval.pipeline", "splat", "denoise", "mvgeo"),
+    "select": ("eval.pipeline", "denoise", "mvgeo"),
+    "refine": ("eval.pipeline", "denoise", "mvgeo"),
+}
 
 
 def resolved_configs(config: PipelineConfig) -> dict[str, object]:
-    """The component configs a run resolves to (JSON-able), per stage, with the code digest of the
-    component that runs them; they enter the stage keys.
+    """The component configs a run resolves to (JSON-able), per stage; they enter the stage keys.
 
     Hashing preset *names* alone would reuse a cached stage after a component changed a
-    preset's default; hashing the resolved configs re-runs it, and the code digest
-    (`component_code_digest`) re-runs it after the component's code changed. Seeds are left out
-    (they are part of every key already). A component that is missing resolves to None (the run
-    then fails in `check_product_components`).
+    preset's default; hashing the resolved configs re-runs it (the code itself enters the keys
+    through `STAGE_CODE`). Seeds are left out (they are part of every key already). A component
+    that is missing resolves to None (the run then fails in `check_product_components`).
     """
     need = "stage keys"
     d, a, sp = config.denoise, config.align, config.splat
@@ -342,8 +395,7 @@ def resolved_configs(config: PipelineConfig) -> dict[str, object]:
         "round2": as_json(lambda: _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,
                                                   "round2_loss": d.round2_loss}, need)),
     }
-    packages = {"n2v": "denoise", "align": "mvgeo", "splat": "splat", "round2": "denoise"}
-    return {k: {"config": v, "code": component_code_digest(packages[k])} for k, v in out.items()}
+    return out
 
 
 def check_product_components(config: PipelineConfig) -> None:
@@ -376,5 +428,7 @@ def check_product_components(config: PipelineConfig) -> None:
 
 def product_stages() -> PipelineStages:
     """The real Denoise-GS stages."""
+    from eval.pipeline.publish import EXPORT_CODE, export
+
     return PipelineStages(denoise=denoise, align=align, splat=splat, render=render, select=select, refine=refine,
-                          fuse=fuse)
+                          fuse=fuse, export=export, code={**STAGE_CODE, "export": EXPORT_CODE})

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from eval.pipeline.config import PipelineConfig
+from eval.pipeline.inputs import working_size
 from eval.pipeline.views import view_files
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
@@ -44,6 +45,11 @@ def validate_run_inputs(images_dir: Path, out: Path, config: PipelineConfig) -> 
         if min(img.shape[:2]) < MIN_IMAGE_SIZE_PX:
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px; at least {MIN_IMAGE_SIZE_PX} px per "
                              "side is needed", path=path, fix="use larger images")
+        w, h = working_size(img.shape[1], img.shape[0], config.max_size)
+        if min(w, h) < MIN_IMAGE_SIZE_PX:
+            raise InputError(f"--max-size {config.max_size} makes this {img.shape[1]}x{img.shape[0]} image {w}x{h} "
+                             f"px; at least {MIN_IMAGE_SIZE_PX} px per side is needed", path=path,
+                             fix="pass a larger --max-size")
     n = len(files)
     if n < MIN_VIEWS:
         raise InputError(f"only {n} image(s); pose-free reconstruction needs at least {MIN_VIEWS}",

@@ -21,12 +21,14 @@ from mvgeo.align.hole_fill import HoleFillConfig, fill_depth_holes
 from mvgeo.align.intrinsics import undistort_image
 from mvgeo.align.loops import DEFAULT_MAX_LOOP_DEG, pair_rotations, reject_by_loops
 from mvgeo.align.pairs import PairFailure, PairPrediction, PointmapModel
+from mvgeo.align.rotation_averaging import init_from_averaged_rotations
 from mvgeo.align.scene import covisibility_keep, pixel_downsample_by_confidence, voxel_downsample_by_confidence
 from mvgeo.camera import Camera
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import ConfigError, DegenerateGeometryError, InputError
 from mvgeo.common.imageio import read_image
+from mvgeo.common.output import OutputPlan, as_output_plan
 from mvgeo.common.threads import native_threads
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
@@ -36,121 +38,82 @@ _log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class AlignConfig:
-    """Options of `align_images` (defaults: the `mvgeo align` CLI's).
+    """Options of `align_images` (defaults: the `mvgeo align` CLI's). Measured effects of the options:
+    docs/bench/align.md (synthetic scenes, sweeps) and docs/bench/real.md (real photos).
 
     Attributes:
-        max_size_px: images are downscaled so that their long side is at most
-            this for feature matching; cameras are written at the input size.
+        max_size_px: long side of the images used for matching (640; larger images are downscaled once,
+            and cameras are written at the input size).
         pairs: pair graph (`PairGraphSpec`).
-        pairwise: options of the classical pair estimator (incl. the pointmap
-            resolution `pointmap_size_px`).
-        align: options of the global alignment (`shared_focal` lives there).
-            Default: 100 iterations on every 4th pixel row/column: the final
-            poses come from the bundle adjustment, and on llff_like more
-            iterations or all pixels changed the pose error by <1 % while
-            costing 3-10x the time (docs/bench/align.md, sweep).
-        min_conf: output points need a confidence above this (1 = no information).
-        points_budget: maximum number of output points (confidence-aware thinning, see `downsample`).
-        downsample: how the cloud is thinned to `points_budget`: "pixel", the most confident point
-            per s x s pixel cell of each view (`scene.pixel_downsample_by_confidence`: the density the
-            views see), or "voxel", the most confident point per voxel (uniform in space). On a noisy
-            8-view llff_like round, "pixel" gave +1.0 dB held-out PSNR after 300 splat steps (23.30
-            vs 22.27; LPIPS 0.533 vs 0.601): voxels thin the near objects and keep the far
-            background dense (docs/benchmarks.md, "point cloud thinning").
-        covisibility_rel_tol: relative depth tolerance of the co-visibility pruning.
-        consistency_rel_tol: a dense point that other views see but none confirms within this
-            relative depth is dropped (`mvgeo.align.scene.covisibility_keep`; 0: off).
-        free_space_rel_tol: a dense point another view sees through (its depth there is more than
-            this fraction farther) is dropped (`covisibility_keep`; 0: off). On one noisy llff_like
-            round it removed a third of the points more than 5 % in front of the true surface (the
-            flow's halos next to depth edges: 31 % -> 22 % of the points) for +0.08 dB held out.
-        bundle_adjust: refine poses and focal(s) by sparse bundle adjustment on
-            the pairs' inlier matches after the global alignment (needs a model
-            that returns `matches_px`; the classical one does).
+        pairwise: options of the classical pair estimator (incl. the pointmap resolution
+            `pointmap_size_px`).
+        align: options of the global alignment (`shared_focal` lives there); default 100 iterations on
+            every 4th pixel row/column, since the final poses come from the bundle adjustment.
+        min_conf: output points need a confidence above this (2.0; 1 means no information).
+        consistency_px: a pair's match is explained by the result when its Sampson distance under the
+            final poses and focals is below this (2.0 px at `max_size_px`; without the bundle
+            adjustment, pixels of the pointmap grid).
+        min_pair_explained: pairs with a smaller explained fraction (0.5) are inconsistent; they are
+            dropped and the problem solved once more.
+        max_unexplained_fraction: if the inconsistent pairs still hold more than this fraction (0.1) of
+            all verified matches, `align_images` raises `DegenerateGeometryError` instead of returning a
+            wrong result.
+        max_pair_rotation_deg: a pair whose relative rotation in the result is more than this off the
+            one its inlier matches imply is inconsistent too (0: off). Catches wrong rotations of pairs
+            whose epipolar geometry is nearly ambiguous (narrow field of view, few matches).
+        max_focal_log_std: without known intrinsics and without any pair that determines the focal, the
+            bundle adjustment must: a log-focal standard deviation above this (0.05) fails the alignment.
+        max_centre_std_ratio: a view whose camera centre the bundle adjustment leaves uncertain (largest
+            standard deviation with the other cameras held, `mvgeo.align.bundle_lm.camera_centre_std`) by
+            more than this fraction (1.0) of the median distance between neighbouring cameras fails the
+            alignment, or with `allow_partial` is left out: the feature tracks do not determine its
+            position. 0: off. Reported in align.json `bundle_adjustment.centre_std_ratio`.
+        reject_unsupported_views: a view all of whose verified pairs are inconsistent with the result
+            (`mvgeo.align.checks.views_without_consistent_pair`) fails the alignment, or with
+            `allow_partial` is left out, whatever share of the matches its pairs hold (True).
+        points_budget: maximum number of output points (200 000; confidence-aware thinning).
+        downsample: how the cloud is thinned to `points_budget`: "pixel" (default), the most confident
+            point per pixel cell of each view (the density the views see), or "voxel", the most
+            confident point per voxel (uniform in space).
+        covisibility_rel_tol: relative depth tolerance of the co-visibility pruning (0.03).
+        consistency_rel_tol: a dense point that other views see but none confirms within this relative
+            depth (0.05) is dropped (`mvgeo.align.scene.covisibility_keep`; 0: off).
+        free_space_rel_tol: a dense point another view sees through (its depth there more than this
+            fraction (0.05) farther) is dropped (0: off).
+        bundle_adjust: refine poses and focal(s) by sparse bundle adjustment on the pairs' inlier
+            matches after the global alignment (True; needs a model that returns matches).
         bundle: options of the bundle adjustment.
         seed: RANSAC seed.
-        consistency_px: a pair's match is explained by the result when its
-            Sampson distance under the final poses/focals is below this (pixels
-            at `max_size_px`; without the bundle adjustment, pixels of the
-            pointmap grid, whose resolution bounds the alignment's accuracy).
-        min_pair_explained: pairs with a smaller explained fraction are
-            inconsistent; they are dropped and the problem solved once more.
-        max_unexplained_fraction: if the inconsistent pairs still hold more than
-            this fraction of all verified matches, `align_images` fails
-            (DegenerateGeometryError) instead of returning a wrong result.
-            Whatever that fraction, a view all of whose verified pairs are
-            inconsistent fails it too (`reject_unsupported_views`).
-        max_pair_rotation_deg: a pair whose relative rotation in the result is
-            more than this off the one its inlier matches imply (linear essential
-            matrix under the final focal) is inconsistent too (0: off). The
-            Sampson check alone misses wrong rotations of pairs whose epipolar
-            geometry is nearly ambiguous (narrow field of view, few matches);
-            same threshold as the loop check.
-        max_centre_std_ratio: a view whose camera centre the bundle adjustment leaves uncertain, with the
-            other cameras held, by more than this fraction of the median distance between neighbouring
-            cameras (largest standard deviation, `mvgeo.align.bundle_lm.camera_centre_std`) fails the
-            alignment, or with `allow_partial` is left unregistered: its position is not determined by the
-            feature tracks (e.g. a view tied by two-view tracks to two neighbours on nearly one line with
-            it: each pair fixes a direction but not a distance). 0 turns the check off. align.json
-            `bundle_adjustment.centre_std_ratio`. Measured (largest ratio of a
-            result): 0.006-0.08 on llff_like (3-12 views), poisson, hard_highnoise,
-            DTU scan24 with noise and temple (--allow-partial); 0.03-0.26 on their
-            N2V-denoised photos; on object_ring's 21 training views at 256x192
-            (15 deg steps, three 30 deg gaps) one view at 19 (the others <= 0.024),
-            4 m off on a 3 m radius while the pair checks passed.
-        reject_unsupported_views: a view all of whose verified pairs are inconsistent with the result
-            (`mvgeo.align.checks.views_without_consistent_pair`) fails the alignment, or with `allow_partial`
-            is left out, whatever share of the matches its pairs hold: one wrong view with few matches hides
-            in `max_unexplained_fraction`'s total (measured: object_ring rendered with 32 views, 28 for
-            training: view_001 6.3 m off on a 3 m ring, its four pairs 69-72 deg off their matches, and the
-            result was returned). False turns the check off.
-        max_focal_log_std: without known intrinsics and without any pair that
-            determines the focal, the bundle adjustment must: its log-focal
-            standard deviation above this fails the alignment.
-        loop_check: reject verified pairs whose relative rotation contradicts
-            most of the loops of three pairs they take part in
-            (`mvgeo.align.loops`; false pairs from repeated structure), before
-            the alignment; reported in align.json `pairs_rejected_by_loops`.
+        loop_check: reject verified pairs whose relative rotation contradicts most of the loops of
+            three pairs they take part in (`mvgeo.align.loops`: false pairs from repeated structure),
+            before the alignment; align.json `pairs_rejected_by_loops`.
         max_loop_deg: a loop of three pairs is consistent below this rotation error.
-        allow_partial: when the pair graph (after the loop check) is
-            disconnected, register only the largest connected group of images
-            (at least 2) and list the others in align.json `unregistered`,
-            instead of failing (the default, as the images that could not be
-            connected are then named in the error).
+        allow_partial: when the pair graph is disconnected, or views fail the checks above, register
+            the largest group that passes (at least 2 views) and list the others in align.json
+            `unregistered`, instead of failing with an error that names them (False).
+        native_threads: OpenBLAS and OpenCV threads while aligning (1; restored afterwards; 0 keeps the
+            settings): the pairwise stage is already parallel over pairs (`pairwise.workers`).
         dense_stereo: the output cloud's depth maps are recomputed with the final cameras
-            (`mvgeo.align.dense_stereo`: flow stereo per pair at the alignment resolution, fused per
-            view); off, they are the global alignment's, rescaled onto the bundle-adjusted tracks.
+            (`mvgeo.align.dense_stereo`); off, they are the global alignment's, rescaled onto the
+            bundle-adjusted tracks.
         refocus_min_change: without known intrinsics, when the bundle adjustment moves the shared focal
-            by more than this (absolute log change; 0.1 is about 10 %) from the one the pairs' relative
-            poses and pointmaps were computed with, they are computed again with the adjusted focal
-            (same features and matches), and the alignment and bundle adjustment run once more. The
-            second pass is kept unless it fails or only it contradicts its pairs; align.json
-            `focal_reestimation` says what happened. The pairs' two-view focal estimates are poor for
-            narrow fields of view: on 12 noisy DTU scan24 views (true focal 925 px at 384 px) the
-            pairs' 338 px went to 852 px in the adjustment, the checks refused that first result,
-            and the second pass came out at 924 px and 0.37 deg median rotation error (COLMAP registered
-            2 of the 12; `benchmarks/bench_align.py --scenes=dtu`). 0: off.
-        init_fallback: when the result from the global alignment's default initialisation ("procrustes":
-            DUSt3R's chaining of the pointmaps) contradicts its pairs as a whole (`max_unexplained_fraction`;
-            not for one unsupported or loose view: weak data another start does not fix), solve once more from the
-            pairs' own relative poses (`GlobalAlignConfig.init="pair_poses"`) and keep that if it explains
-            every verified pair (none inconsistent, none dropped; stricter than the default's checks);
-            align.json `init_fallback` says what happened (null: not needed). Measured: 12 N2V-denoised
-            llff_like photos where the chaining put one view 117 deg off (every pair's own rotation was
-            within 3 deg of the truth) and the checks refused it; from the pairs' poses 12/12 at 0.15 deg.
-            Not the default initialisation: it was worse where the chaining succeeds on DTU scan24 (4.6 vs
-            0.37 deg) and temple_sparse_ring (docs/bench/align.md, eleventh session).
-        hole_fill: with the dense stereo, the wide holes of a view's depth map (textureless surfaces)
-            are filled by harmonic interpolation of the inverse depth around them, at low confidence
+            by more than this absolute log change (0.1, about 10 %) from the one the pairs were computed
+            with, the pairs' poses and pointmaps are computed again with the adjusted focal (same
+            features and matches) and the alignment runs once more; align.json `focal_reestimation`.
+            Two-view focal estimates are poor for narrow fields of view (DTU). 0: off.
+        init_fallback: when the result from the default initialisation (DUSt3R's chaining of the
+            pointmaps) contradicts its pairs as a whole (`max_unexplained_fraction`), solve once more
+            from the pairs' own relative poses (`GlobalAlignConfig.init="pair_poses"`) and keep that
+            only if it explains every verified pair with none dropped; align.json `init_fallback`.
+        average_rotations: that second start takes its rotations from robust rotation averaging over
+            every verified pair (`mvgeo.align.rotation_averaging`) instead of the spanning tree's, so a
+            ring's drift is spread over all pairs (True).
+        hole_fill: with the dense stereo, wide holes of a view's depth map (textureless surfaces) are
+            filled by harmonic interpolation of the inverse depth, at low confidence
             (`mvgeo.align.hole_fill`); align.json `dense_stereo.fraction_filled`.
-        native_threads: OpenBLAS and OpenCV threads while aligning (restored
-            afterwards; 0 keeps the settings). 1: the pairwise stage is already
-            parallel over pairs (`pairwise.workers`), and the bundle adjustment's many
-            small BLAS calls were 2-6x slower with one BLAS thread per core on 2
-            shared cores (`mvgeo.common.threads`).
     """
 
-    max_size_px: int = 512
+    max_size_px: int = 640
     pairs: PairGraphSpec = field(default_factory=PairGraphSpec)
     pairwise: ClassicalPairConfig = field(default_factory=ClassicalPairConfig)
     align: GlobalAlignConfig = field(default_factory=lambda: GlobalAlignConfig(iters=100, pixel_stride=4))
@@ -177,6 +140,7 @@ class AlignConfig:
     dense_stereo: DenseStereoConfig = field(default_factory=DenseStereoConfig)
     refocus_min_change: float = 0.1
     init_fallback: bool = True
+    average_rotations: bool = True
     hole_fill: HoleFillConfig = field(default_factory=HoleFillConfig)
 
 
@@ -303,7 +267,9 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         init_fallback = {"tried": "pair_poses", "first_error": str(err)[:300]}
         alt_config = replace(config, align=replace(config.align, init="pair_poses"))
         try:
-            alt_sol, alt_err, alt_refocus = _solve_and_refocus(config=alt_config, **solve)
+            # From the pairs as the first start left them: with the focal re-estimation's focal when it ran
+            # (the second start then does not re-estimate from the prior again).
+            alt_sol, alt_err, alt_refocus = _solve_and_refocus(config=alt_config, **{**solve, "model": sol.model})
         except (InputError, DegenerateGeometryError) as exc:
             init_fallback["kept"] = f"procrustes (pair_poses failed: {str(exc)[:300]})"
         else:
@@ -384,14 +350,18 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
             sel = voxel_downsample_by_confidence(xyz, conf, config.points_budget)
         xyz, rgb, conf = xyz[sel], rgb[sel], conf[sel]
     cameras, posed = {}, []
+    # One camera for all views when their intrinsics are one (known, or one shared focal), as COLMAP's
+    # single-camera mode writes them; else one camera per view.
+    one_camera = intrinsics is not None or bool(np.all(res.focal_px == res.focal_px[0]))
     for v in range(n):
         if intrinsics is not None:
             cam = Camera.pinhole(intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, W0, H0)
         else:
             f = float(res.focal_px[v])
             cam = Camera.pinhole(f * W0 / Wp, f * H0 / Hp, W0 / 2.0, H0 / 2.0, W0, H0)
-        cameras[v + 1] = cam
-        posed.append(PosedImage(names[v], v + 1, res.cam_from_world[v]))
+        cam_id = 1 if one_camera else v + 1
+        cameras.setdefault(cam_id, cam)
+        posed.append(PosedImage(names[v], cam_id, res.cam_from_world[v]))
     sparse = SparseModel(cameras, posed, xyz, rgb)
     rejected_names = [(all_names[i], all_names[j], b, g) for (i, j), b, g in rejected]
     stats = {
@@ -410,7 +380,7 @@ def _align_images(images, config: AlignConfig, *, names, intrinsics, model) -> A
         "iterations": align_cfg.iters,
         "init_loss": res.init_loss,
         "final_loss": res.final_loss,
-        "focal_px": {names[v]: cameras[v + 1].fx for v in range(n)},
+        "focal_px": {im.name: cameras[im.camera_id].fx for im in posed},
         "known_intrinsics": intrinsics is not None,
         "shared_focal": align_cfg.shared_focal,
         "bundle_adjustment": ba_stats,
@@ -549,7 +519,9 @@ def _solve(arrays, small, names, K_align, intrinsics, model, pairs, config: Alig
         if intrinsics is not None:
             focal_init = np.full(n, 0.5 * (intrinsics.fx * Wp / W0 + intrinsics.fy * Hp / H0))
         with timer.stage("global_align"):
-            res = global_align(preds, sizes, config=align_cfg, focal_init_px=focal_init)
+            init = (_averaged_rotation_init(preds, matches, sizes, focal_init, align_cfg, s_pm, (Wa, Ha))
+                    if config.average_rotations and align_cfg.init == "pair_poses" else None)
+            res = global_align(preds, sizes, config=align_cfg, focal_init_px=focal_init, init=init)
         ba, ba_stats = None, None
         if config.bundle_adjust and matches:
             with timer.stage("bundle_adjust"):
@@ -613,6 +585,19 @@ def _solve(arrays, small, names, K_align, intrinsics, model, pairs, config: Alig
                      Hp, Wp, failed_pairs, rejected, unregistered, dropped,
                      focal_determined=getattr(model, "focal_determined", True) or intrinsics is not None,
                      focal_undetermined_why=getattr(model, "focal_undetermined_why", ""))
+
+
+def _averaged_rotation_init(preds, matches, sizes, focal_init, align_cfg: GlobalAlignConfig, s_pm: float, size_wh):
+    """`init_from_averaged_rotations` at the alignment's initial focals; None (the plain pair-pose chaining)
+    where the pairs with a rotation do not connect the views or the chaining fails."""
+    f = focal_init if focal_init is not None else focal_estimates(preds, len(sizes))
+    if focal_init is None and align_cfg.shared_focal:
+        f = np.full(len(sizes), float(np.exp(np.mean(np.log(f)))))
+    try:
+        return init_from_averaged_rotations(preds, matches, sizes, np.asarray(f, float), s_pm, size_wh)
+    except DegenerateGeometryError as exc:
+        _log.warning("rotation averaging gave no initialisation (%s); chaining the pairs' own poses", exc)
+        return None
 
 
 def _reposed(res, cam_from_world: np.ndarray, focal_px: np.ndarray, ba=None, s_pm: float = 1.0):
@@ -859,18 +844,27 @@ def _jsonable(x):
     return str(x)
 
 
-def write_align_result(out: str | Path, result: AlignResult) -> Path:
+def write_align_result(out: str | Path | OutputPlan, result: AlignResult, *, overwrite: bool = False) -> Path:
     """Write `OUT/sparse/0/*.bin`, `OUT/points.ply` and `OUT/align.json` atomically.
 
+    Args:
+        out: the folder, or the plan `prepare_output(..., command="mvgeo align")` made for it.
+        result: from `align_images`.
+        overwrite: a previous `mvgeo align` output at `out` may be replaced (anything else is refused,
+            see `mvgeo.common.output`).
+
     Returns:
-        `out`.
+        The folder written.
+
+    Raises:
+        InputError: `out` is refused by the output policy.
     """
-    out = Path(out)
-    with atomic_output_dir(out) as tmp:
+    plan = as_output_plan(out, command="mvgeo align", overwrite=overwrite)
+    with atomic_output_dir(plan) as tmp:
         write_sparse_model(tmp / "sparse" / "0", result.sparse_model, binary=True)
         write_points_ply(tmp / "points.ply", result.points_xyz, result.points_rgb, result.points_conf)
         (tmp / "align.json").write_text(json.dumps(result.stats, indent=2, allow_nan=True))
-    return out
+    return plan.out
 
 
 def write_points_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray, conf: np.ndarray) -> None:

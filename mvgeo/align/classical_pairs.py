@@ -60,18 +60,28 @@ class ClassicalPairConfig:
             `peak_threshold` 0.0067 x 3 x 2: OpenCV's default keeps half the contrast range).
         fallback_sift: when the putative-match graph is disconnected, detect and
             match once more with COLMAP-like sensitivity (`fallback_contrast_threshold`,
-            COLMAP's default peak threshold in OpenCV units, and no pre-blur) and keep
-            the matches of whichever run connects more images. On the dark,
-            low-texture temple_sparse_ring (12 views at 512 px) this took the mean
-            keypoint count from ~410 to ~1070 per image and connected the graph; it
-            is not the default because the blur helps on noisy images and more
-            keypoints cost quadratic matching time.
+            no pre-blur) and keep the matches of whichever run connects more images.
+            On the dark, low-texture temple_sparse_ring (12 of its views at 512 px) the
+            default SIFT finds ~420 keypoints per image and its correct pairs leave the ring
+            in 5 pieces; contrast 0.02 without blur ~1060 keypoints, 2 pieces; contrast 0.01
+            ~1300 keypoints (~1750 at 640 px), one piece (docs/bench/real.md). It is
+            not the default because the blur helps on noisy images and more keypoints
+            cost quadratic matching time.
         fallback_contrast_threshold: see `fallback_sift`.
-        fallback_min_inliers: the relative-pose inlier minimum in the fallback
-            run (its weaker keypoints admit more false matches: on temple_sparse_ring
-            the two wrong pairs, 46 and 74 deg off, had 25 and 16 inliers, and their
-            matches bent six views 50-95 deg off in the bundle adjustment while every
-            pair still looked consistent; the correct weak pairs lose nothing they need).
+        fallback_min_inliers: the relative-pose inlier minimum in the fallback run.
+            15, as in the default run (COLMAP's `min_num_inliers`): the weak pairs that
+            close temple_sparse_ring's ring have 21-24 inliers. The wrong pairs the weaker
+            keypoints admit (on temple, one of 17 inliers, 51 deg off) are left to the loop
+            check and the per-pair checks after the alignment, which need accurate pair
+            poses: hence `fallback_refine`.
+        fallback_refine: the fallback run refines each pair's relative pose on its inliers
+            (`TwoViewConfig.refine`). On temple_sparse_ring (known intrinsics, 640 px,
+            contrast 0.01) the correct pairs' unrefined USAC_MAGSAC rotations were 0.2-7.2 deg
+            off (median 2.6 deg; the pairs within 5 deg of the truth formed two pieces); refined,
+            0.06-1.9 deg (median 0.42 deg, one piece). Not in the default run: on object_ring rendered with 32
+            views (28 training views at 256x192) the refined pairs led to a bent result the
+            checks passed (28/28, median relative rotation error 2.6 deg, max 26 deg, ATE
+            0.34 m on the 3 m ring), where the unrefined ones are refused naming view_001.
         fallback_blur_sigma_px: see `fallback_sift`.
         focal_prior: without well-determined pair focals, the shared focal is
             `focal_prior * max(W, H)` (COLMAP's default prior, 1.2).
@@ -81,8 +91,8 @@ class ClassicalPairConfig:
             pixels at the alignment resolution). Default backend: OpenCV's
             USAC_MAGSAC (measured ~40x faster than our numpy LO-MSAC, same
             accuracy; ``backend="own"`` selects ours), without the per-pair LM
-            refinement (the bundle adjustment refines all poses jointly; the
-            refinement was ~20 % of the pairwise time).
+            refinement in the default run (the bundle adjustment refines all poses
+            jointly; see `fallback_refine` for the fallback run).
         focal_pairs: the shared focal is the median over at most this many
             pairs (those with the most matches).
         workers: threads for SIFT, matching, relative poses and dense
@@ -105,9 +115,10 @@ class ClassicalPairConfig:
     sift_blur_sigma_px: float = 1.0
     sift_contrast_threshold: float = 0.04
     fallback_sift: bool = True
-    fallback_contrast_threshold: float = 0.02
+    fallback_contrast_threshold: float = 0.01
     fallback_blur_sigma_px: float = 0.0
-    fallback_min_inliers: int = 30
+    fallback_min_inliers: int = 15
+    fallback_refine: bool = True
     focal_prior: float = 1.2
     ratio: float = 0.8
     min_matches: int = 20
@@ -380,6 +391,7 @@ class ClassicalPointmapModel:
         self.focal_px_used: float | None = None  # the shared focal of the last `predict_pairs` (alignment px)
         self._image_hw: tuple[int, int] = (0, 0)
         self._matched = None  # (key, features, matches, failures, fallback used) of the last `predict_pairs`
+        self._predicted = None  # (key, predictions, failures, sparse matches, focal) of the last `predict_pairs`
 
     def refocused(self, focal_px: float, n_images: int) -> ClassicalPointmapModel:
         """A model for the same images and pairs whose relative poses and pointmaps use `focal_px`.
@@ -425,11 +437,19 @@ class ClassicalPointmapModel:
             pairs: (i, j) index pairs.
         """
         cfg = self.config
+        key = (len(images), tuple(pairs))
+        if self._predicted is not None and self._predicted[0] == key:
+            # A second start of the alignment on the same images and pairs (`AlignConfig.init_fallback`):
+            # every step below is deterministic, so the pair stage is reused as it is.
+            _, preds, fails, self.sparse_matches, self.focal_px_used = self._predicted
+            return list(preds), list(fails)
         pool = ThreadPoolExecutor(max_workers=cfg.workers or os.cpu_count() or 1)
         try:
-            return self._predict_pairs(images, pairs, pool)
+            preds, fails = self._predict_pairs(images, pairs, pool)
         finally:
             pool.shutdown()
+        self._predicted = (key, list(preds), list(fails), self.sparse_matches, self.focal_px_used)
+        return preds, fails
 
     def _predict_pairs(self, images, pairs, pool: ThreadPoolExecutor):
         # Threads: OpenCV and BLAS release the GIL; every task is independent and deterministic,
@@ -458,7 +478,8 @@ class ClassicalPointmapModel:
             self._image_hw = images[0].shape[:2]
         two_view = cfg.two_view
         if self.sift_fallback_used:
-            two_view = replace(two_view, min_inliers=max(two_view.min_inliers, cfg.fallback_min_inliers))
+            two_view = replace(two_view, min_inliers=max(two_view.min_inliers, cfg.fallback_min_inliers),
+                               refine=two_view.refine or cfg.fallback_refine)
         small = []
         for im in images:
             hw = pointmap_shape(im.shape[0], im.shape[1], cfg.pointmap_size_px)

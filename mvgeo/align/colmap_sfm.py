@@ -19,6 +19,7 @@ from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.deps import pycolmap
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.imageio import list_images, read_image
+from mvgeo.common.output import OutputPlan, as_output_plan
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import SparseModel, from_pycolmap, write_sparse_model
 
@@ -110,9 +111,14 @@ def run_colmap(images_dir: str | Path, config: ColmapConfig = ColmapConfig(), *,
     return ColmapResult(model, stats)
 
 
-def write_colmap_result(out: str | Path, result: ColmapResult) -> Path:
-    """Write `OUT/sparse/0/*.bin` and `OUT/colmap.json` atomically."""
-    with atomic_output_dir(out) as tmp:
+def write_colmap_result(out: str | Path | OutputPlan, result: ColmapResult, *, overwrite: bool = False) -> Path:
+    """Write `OUT/sparse/0/*.bin` and `OUT/colmap.json` atomically.
+
+    `out` is a folder or the plan `prepare_output(..., command="mvgeo colmap")` made for it; a
+    previous `mvgeo colmap` output there is replaced only with `overwrite` (see `mvgeo.common.output`).
+    """
+    plan = as_output_plan(out, command="mvgeo colmap", overwrite=overwrite)
+    with atomic_output_dir(plan) as tmp:
         write_sparse_model(tmp / "sparse" / "0", result.sparse_model, binary=True)
         (tmp / "colmap.json").write_text(json.dumps(result.stats, indent=2))
-    return Path(out)
+    return plan.out

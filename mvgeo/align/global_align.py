@@ -37,11 +37,18 @@ import torch
 
 from mvgeo.align.graph import components, maximum_spanning_tree
 from mvgeo.align.pairs import PairPrediction
+from mvgeo.align.pointmap_geometry import (
+    AlignInit,
+    pair_similarities,
+    pixel_rays,
+    weighted_umeyama,
+)
+from mvgeo.align.pointmap_geometry import valid_pointmap_pixels as _valid
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.progress import progress_bar
 from mvgeo.common.threads import torch_threads
-from mvgeo.transforms import quat_from_R, umeyama
+from mvgeo.transforms import quat_from_R
 from mvgeo.transforms_torch import R_from_quat
 
 _log = logging.getLogger(__name__)
@@ -112,29 +119,6 @@ class GlobalAlignResult:
     loss_history: list[float] = field(default_factory=list)
     init_loss: float = float("nan")
     final_loss: float = float("nan")
-
-
-# --------------------------------------------------------------------------- small kernels
-
-
-def weighted_umeyama(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Confidence-weighted Procrustes with scale: (s, R, t) with dst ~ s R src + t (mvgeo.transforms.umeyama).
-
-    Raises:
-        DegenerateGeometryError: fewer than 3 weighted points, or a degenerate configuration.
-    """
-    if np.count_nonzero(w > 0) < 3:
-        raise DegenerateGeometryError("Procrustes needs at least 3 points with positive confidence")
-    sim = umeyama(src, dst, weights=w, with_scale=True)
-    if not sim.scale > 0:
-        raise DegenerateGeometryError("Procrustes gave a non-positive scale (all target points coincide)")
-    return float(sim.scale), sim.R, sim.t
-
-
-def pixel_rays(H: int, W: int, focal_px: float) -> np.ndarray:
-    """(H, W, 3) rays (x/z, y/z, 1) of the pixel centres, principal point at (W/2, H/2)."""
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
-    return np.stack([(u - W / 2.0) / focal_px, (v - H / 2.0) / focal_px, np.ones_like(u)], axis=-1)
 
 
 # --------------------------------------------------------------------------- the problem
@@ -378,20 +362,6 @@ def alignment_loss_reference(preds: Sequence[PairPrediction], *, cam_from_world:
 # --------------------------------------------------------------------------- initialisation
 
 
-@dataclass
-class AlignInit:
-    """Initial values (numpy float64) for the optimisation."""
-
-    cam_from_world: np.ndarray  # (N, 3, 4)
-    focal_px: np.ndarray  # (N,)
-    depth: list[np.ndarray]  # (H_n, W_n)
-    pair_sim: list[tuple[float, np.ndarray, np.ndarray]]  # pair frame -> world
-
-
-def _valid(C: np.ndarray, P: np.ndarray) -> np.ndarray:
-    return (C > 1.0) & np.all(np.isfinite(P), axis=-1)
-
-
 #: The LM refinement of each view's initial PnP pose uses at most this many pixels, evenly spread
 #: (all 12k of a 128 x 96 pointmap took ~18 ms per view; 3000 ~4 ms; it only starts the alignment).
 PNP_REFINE_POINTS = 3000
@@ -470,24 +440,6 @@ def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[
         depth.append(z)
     return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth,
                      pair_similarities(preds, sizes_hw, cam_from_world, depth, focal_init_px))
-
-
-def pair_similarities(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], cam_from_world: np.ndarray,
-                      depth: Sequence[np.ndarray], focal_px: np.ndarray) -> list[tuple[float, np.ndarray, np.ndarray]]:
-    """Each pair's similarity (s, R, t): pair frame -> world, by weighted Procrustes against the posed depth maps."""
-    pair_sim = []
-    for p in preds:
-        src, dst, w = [], [], []
-        for v, P, C in ((p.i, p.pts_i, p.conf_i), (p.j, p.pts_j, p.conf_j)):
-            ok = _valid(C, P)
-            H, W = sizes_hw[v]
-            R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
-            x_cam = pixel_rays(H, W, float(focal_px[v])) * depth[v][..., None]
-            src.append(P[ok].astype(np.float64))
-            dst.append((x_cam[ok] - t) @ R)  # R^T (x - t)
-            w.append(np.log(C[ok]))
-        pair_sim.append(weighted_umeyama(np.concatenate(src), np.concatenate(dst), np.concatenate(w)))
-    return pair_sim
 
 
 # --------------------------------------------------------------------------- driver

@@ -22,8 +22,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mvgeo.align.global_align import AlignInit, pair_similarities
 from mvgeo.align.pairs import PairPrediction
+from mvgeo.align.pointmap_geometry import AlignInit, pair_similarities
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError
 

@@ -2,7 +2,11 @@
 stage timing, atomic output folders, safe third-party imports and image I/O.
 
 This is the lowest layer of the project; it imports nothing from the other
-packages.
+packages. It is light: importing it, or any of its modules, loads no cv2,
+pycolmap or torch and sets no environment variable (those load on first use;
+the command lines set the thread policy with
+`mvgeo.common.threads.apply_thread_policy`). `tests/common/test_import_light.py`
+checks every module.
 """
 
 from mvgeo.common.atomic import atomic_output_dir

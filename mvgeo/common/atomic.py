@@ -1,56 +1,149 @@
-"""Atomic output folders: write into a temporary sibling, rename when complete.
+"""Atomic output folders and files: write into a temporary name, rename when complete.
 
-A crash or an error never leaves a half-written folder under the final name.
+A crash or an error never leaves a half-written folder under the final name,
+and no temporary `.tmp-*` / `.old-*` entry stays behind on an error path.
+What may be replaced is decided by the output policy (`mvgeo.common.output`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
-import shutil
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+from mvgeo.common.errors import InputError
+from mvgeo.common.output import (
+    LOCK_NAME,
+    OutputPlan,
+    make_dirs,
+    recheck,
+    remove_empty_dirs,
+    remove_tree,
+    write_manifest,
+)
+
+__all__ = ["atomic_output_dir", "atomic_write_bytes", "atomic_write_text"]
+
+
+def _commit_error(plan: OutputPlan, exc: OSError) -> InputError:
+    return InputError(f"cannot put the output in place ({exc.strerror or exc}); nothing was changed",
+                      path=plan.out, fix="check what appeared at --out meanwhile, or choose another --out")
+
 
 @contextlib.contextmanager
-def atomic_output_dir(out: str | Path, *, overwrite: bool = True) -> Iterator[Path]:
-    """Yield a temporary folder next to `out`; on success it replaces `out`.
+def atomic_output_dir(plan: OutputPlan) -> Iterator[Path]:
+    """Yield an empty temporary folder; when the block completes it becomes `plan.path`.
 
     Args:
-        out: the final folder.
-        overwrite: replace an existing `out` (after the new one is complete).
-            When False and `out` exists, raise `FileExistsError` up front.
+        plan: from `mvgeo.common.output.prepare_output` (made before the work). It is checked
+            again here, since the folder may have changed while the output was computed.
 
-    On an exception the temporary folder is removed and `out` is untouched.
+    The manifest (`MANIFEST_NAME`) is added to the folder. What happens at `plan.path`:
+
+    - ``"absent"``: the temporary folder is a hidden sibling, renamed to `plan.path`;
+    - ``"empty"``: the temporary folder is inside `plan.path` and its entries are moved up (an
+      empty folder, possibly the current directory, is never renamed);
+    - ``"previous"`` (with `plan.overwrite`): the old output is renamed to a hidden sibling, the
+      new one renamed in its place, then the old one removed; if the second rename fails the old
+      output is put back.
+
+    On an exception in the block the temporary folder (and any parent folder created for it) is
+    removed and `plan.path` is untouched.
+
+    Raises:
+        InputError: `plan.path` is no longer acceptable (re-check), or the final renames fail.
     """
-    out = Path(out)
-    if out.exists() and not overwrite:
-        raise FileExistsError(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
+    if plan.resume:
+        raise ValueError("atomic_output_dir replaces a folder; use resumable_output_dir for resume=True plans")
+    plan = recheck(plan)
+    tag = uuid.uuid4().hex[:8]
+    if plan.state == "empty":
+        created: list[Path] = []
+        tmp = plan.path / f".tmp-{tag}"
+    else:
+        created = make_dirs(plan.path.parent)
+        tmp = plan.path.parent / f".{plan.path.name}.tmp-{tag}"
+    try:
+        tmp.mkdir()
+    except OSError as exc:
+        remove_empty_dirs(created)
+        raise InputError(f"cannot create the output folder ({exc.strerror or exc})", path=plan.out,
+                         fix="choose an --out in a folder you can write to") from None
     try:
         yield tmp
+        write_manifest(tmp, plan.command)
+        _commit(plan, tmp, tag)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        remove_tree(tmp)
+        remove_empty_dirs(created)
         raise
-    old = None
-    if out.exists():
-        old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
-        os.replace(out, old)
-    os.replace(tmp, out)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+
+
+def _commit(plan: OutputPlan, tmp: Path, tag: str) -> None:
+    path = plan.path
+    if plan.state == "empty":  # `tmp` is inside; `_move_entries_up` checks that nothing else appeared
+        _move_entries_up(plan, tmp)
+        return
+    now = recheck(plan)  # the folder must still be what the plan allows (raises InputError if not)
+    if now.state != plan.state:
+        raise InputError(f"--out changed while the output was computed (was {plan.state}, now {now.state})",
+                         path=plan.out, fix="run the command again")
+    if plan.state == "absent":
+        try:
+            os.rename(tmp, path)
+        except OSError as exc:
+            raise _commit_error(plan, exc) from None
+    else:
+        old = path.parent / f".{path.name}.old-{tag}"
+        try:
+            os.rename(path, old)
+        except OSError as exc:
+            raise _commit_error(plan, exc) from None
+        try:
+            os.rename(tmp, path)
+        except OSError as exc:
+            os.rename(old, path)
+            raise _commit_error(plan, exc) from None
+        remove_tree(old)
+
+
+def _move_entries_up(plan: OutputPlan, tmp: Path) -> None:
+    path = plan.path
+    others = set(os.listdir(path)) - {tmp.name, LOCK_NAME}
+    if others:
+        raise InputError(f"--out is no longer empty ({sorted(others)[:3]} appeared while computing)",
+                         path=plan.out, fix="choose another --out, or run the command again")
+    moved: list[Path] = []
+    try:
+        for name in sorted(os.listdir(tmp)):
+            dst = path / name
+            if os.path.lexists(dst):
+                raise OSError(errno.EEXIST, "exists", str(dst))
+            os.rename(tmp / name, dst)
+            moved.append(dst)
+        tmp.rmdir()
+    except OSError as exc:
+        for dst in moved:  # only what was just moved in: the folder was empty before
+            if dst.is_dir() and not dst.is_symlink():
+                remove_tree(dst)
+            else:
+                dst.unlink(missing_ok=True)
+        raise _commit_error(plan, exc) from None
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write a file atomically (temporary sibling + rename)."""
+    """Write a file atomically (temporary sibling + rename); the temporary file never stays behind."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:

@@ -1,11 +1,22 @@
 """What every console script shares: argument parsing glue, logging, and
-turning `InputError` into a one-paragraph message with exit code 2."""
+turning `InputError` into a one-paragraph message with exit code 2.
+
+SIGTERM (a job scheduler or `kill` stopping a run) raises `Terminated` in the
+main thread while the command runs: the stack unwinds through the commands'
+`with` blocks, so temporary output folders and locks are removed, and the
+process exits with 143 (128 + SIGTERM) after a one-line message. pycolmap's
+logging library replaces the SIGTERM handler with one that prints a native
+stack dump when pycolmap is imported; `mvgeo.common.deps` puts the Python
+handler back after that import.
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 
 from mvgeo.common.errors import DgsError, InputError
@@ -13,6 +24,23 @@ from mvgeo.common.log import setup_logging
 
 EXIT_INPUT_ERROR = 2
 EXIT_FAILURE = 1
+EXIT_TERMINATED = 128 + signal.SIGTERM
+
+
+class Terminated(BaseException):
+    """Raised in the main thread by SIGTERM while a command runs (a BaseException, so that
+    `except Exception` in library code does not swallow it)."""
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated
+
+
+def _install_sigterm_handler():
+    """Install `_raise_terminated` for SIGTERM; returns the previous handler (None off the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_terminated)
 
 
 def add_common_args(parser: argparse.ArgumentParser) -> None:
@@ -26,9 +54,11 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
     - `InputError` (bad files, keys, values): message on stderr, no traceback, exit 2.
     - other `DgsError` (e.g. degenerate geometry the user must know about): message, exit 1.
     - argparse usage errors exit 2 (argparse's own behaviour).
+    - SIGTERM while `main` runs: one line on stderr, exit 143 (see the module docstring).
     """
     args = parser.parse_args(argv)
     setup_logging(getattr(args, "verbose", 0))
+    previous = _install_sigterm_handler()
     try:
         code = main(args)
     except InputError as exc:
@@ -41,4 +71,10 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print("terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return int(code or 0)

@@ -6,20 +6,50 @@ the wrong order). Importing cv2 first avoids it. Never `import pycolmap`
 elsewhere: `from mvgeo.common.deps import pycolmap`. Ruff's banned-api rule
 enforces this; `tests/common/test_import_order.py` is the regression test.
 
-It is also the first module every package imports, so it sets the OpenMP wait
-policy before torch (or OpenCV) starts its thread pool: with the default
-(spinning) policy, torch's idle intra-op threads busy-wait between the many
-small ops of a training step, and on a loaded 2-core machine that made N2V
-training 1.7x slower with 2 threads than with 1 and splat training up to ~20x
-slower; with `OMP_WAIT_POLICY=PASSIVE` the same 2-thread N2V run was 3.7x
-faster than spinning (docs/benchmarks.md, "Threads"). A value the user set is kept.
+The imports are lazy (PEP 562 module `__getattr__`): importing this module
+loads nothing; the first `from mvgeo.common.deps import cv2` (or `pycolmap`)
+loads cv2, and `pycolmap` always loads cv2 first. So the shared base stays
+light (`tests/common/test_import_light.py`) and the order rule still holds
+wherever pycolmap is reached through here.
 """
 
-import os
+from __future__ import annotations
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import importlib
+from types import ModuleType
+from typing import TYPE_CHECKING
 
-import cv2  # noqa: F401  (must precede pycolmap)
-import pycolmap  # noqa: E402
+if TYPE_CHECKING:  # for type checkers and editors only; at run time `__getattr__` imports them
+    import cv2
+    import pycolmap
 
 __all__ = ["cv2", "pycolmap"]
+
+
+def __getattr__(name: str) -> ModuleType:
+    if name == "cv2":
+        return importlib.import_module("cv2")
+    if name == "pycolmap":
+        importlib.import_module("cv2")  # must precede pycolmap
+        return _import_pycolmap()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _import_pycolmap() -> ModuleType:
+    """pycolmap, keeping Python's SIGTERM handler: pycolmap's glog installs a failure signal handler
+    at import that answers SIGTERM with a native stack dump (`mvgeo.common.cli` handles SIGTERM)."""
+    import signal
+    import sys
+    import threading
+
+    if "pycolmap" in sys.modules:
+        return sys.modules["pycolmap"]
+    before = signal.getsignal(signal.SIGTERM)
+    module = importlib.import_module("pycolmap")
+    if before is not None and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, before)
+    return module
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *__all__])

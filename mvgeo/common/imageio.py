@@ -1,16 +1,17 @@
 """Image file I/O at the project's boundary (see docs/conventions.md).
 
 Arrays are H x W x 3 float32 RGB in [0, 1]. cv2 does the decoding (BGR) and
-we convert once here.
+we convert once here. cv2 is imported on the first read or write, so importing
+this module stays light (`tests/common/test_import_light.py`).
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
-from mvgeo.common.deps import cv2
 from mvgeo.common.errors import InputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -20,28 +21,95 @@ def list_images(folder: str | Path) -> list[Path]:
     """Sorted image files (by name) directly inside `folder`.
 
     Raises:
-        InputError: the folder is missing, not a folder, or holds no images.
+        InputError: the folder is missing, not a folder, holds no images, or holds a broken
+            symbolic link with an image name (named).
     """
     folder = Path(folder)
     if not folder.exists():
         raise InputError("folder does not exist", path=folder, fix="pass a folder of images")
     if not folder.is_dir():
         raise InputError("not a folder", path=folder, fix="pass a folder of images")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    named = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    for p in named:
+        if p.is_symlink() and not p.exists():  # a photo we would silently lose
+            raise InputError("broken symbolic link: the image it points to does not exist", path=p,
+                             fix=f"restore its target ({os.readlink(p)}) or remove the link")
+    files = [p for p in named if p.is_file()]
     if not files:
         raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder", path=folder,
                          fix="put PNG/JPEG images directly in this folder")
     return files
 
 
+def jpeg_exif_orientation(data: bytes | np.ndarray) -> int:
+    """The EXIF Orientation tag (1..8) of JPEG file bytes; 1 (as stored) when absent or unreadable.
+
+    Walks the JPEG markers up to the first scan, finds the APP1 "Exif" segment, and reads tag
+    0x0112 from IFD0 of its TIFF block (either byte order).
+    """
+    b = data if isinstance(data, bytes) else np.asarray(data, np.uint8).tobytes()
+    if b[:2] != b"\xff\xd8":
+        return 1
+    i = 2
+    while i + 4 <= len(b) and b[i] == 0xFF:
+        marker, length = b[i + 1], int.from_bytes(b[i + 2:i + 4], "big")
+        if marker == 0xDA or length < 2:  # start of scan: no more metadata
+            return 1
+        seg = b[i + 4:i + 2 + length]
+        if marker == 0xE1 and seg[:6] == b"Exif\x00\x00":
+            return _tiff_orientation(seg[6:])
+        i += 2 + length
+    return 1
+
+
+def _tiff_orientation(t: bytes) -> int:
+    if len(t) < 8 or t[:2] not in (b"II", b"MM"):
+        return 1
+    order = "little" if t[:2] == b"II" else "big"
+    ifd = int.from_bytes(t[4:8], order)
+    if ifd + 2 > len(t):
+        return 1
+    for k in range(int.from_bytes(t[ifd:ifd + 2], order)):
+        e = ifd + 2 + 12 * k
+        if e + 12 > len(t):
+            break
+        if int.from_bytes(t[e:e + 2], order) == 0x0112:  # Orientation, type SHORT, count 1: value inline
+            value = int.from_bytes(t[e + 8:e + 10], order)
+            return value if 1 <= value <= 8 else 1
+    return 1
+
+
+def apply_exif_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
+    """Turn an (H, W, ...) array stored with EXIF `orientation` into the upright photo.
+
+    1 as is, 2 mirrored left-right, 3 rotated 180, 4 mirrored top-bottom, 5 transposed,
+    6 rotated 90 degrees clockwise, 7 transversed, 8 rotated 90 degrees counter-clockwise
+    (the TIFF/EXIF definitions; what PIL's `ImageOps.exif_transpose` does).
+    """
+    ops = {
+        1: lambda a: a,
+        2: lambda a: a[:, ::-1],
+        3: lambda a: a[::-1, ::-1],
+        4: lambda a: a[::-1],
+        5: lambda a: a.swapaxes(0, 1),
+        6: lambda a: np.rot90(a, k=-1),
+        7: lambda a: a[::-1, ::-1].swapaxes(0, 1),
+        8: lambda a: np.rot90(a, k=1),
+    }
+    return np.ascontiguousarray(ops.get(int(orientation), ops[1])(img))
+
+
 def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
     """Read an 8/16-bit image as float32 RGB in [0, 1], shape (H, W, 3).
 
-    Grayscale files are replicated to three channels; alpha is dropped.
+    Grayscale files are replicated to three channels; alpha is dropped. A JPEG's EXIF
+    Orientation tag is applied (the array is the photo as a viewer shows it).
 
     Raises:
         InputError: missing, unreadable or corrupt file (named).
     """
+    from mvgeo.common.deps import cv2
+
     path = Path(path)
     if not path.is_file():
         raise InputError("image file does not exist", path=path)
@@ -58,6 +126,7 @@ def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
         raise InputError(f"unsupported pixel type {img.dtype}", path=path, fix="use 8- or 16-bit images")
     if img.ndim == 2:
         img = img[:, :, None]
+    img = apply_exif_orientation(img, jpeg_exif_orientation(data))
     if img.shape[2] == 4:
         img = img[:, :, :3]
     if img.shape[2] == 1:
@@ -80,6 +149,8 @@ def to_uint(img: np.ndarray, bits: int = 8) -> np.ndarray:
 
 def write_image(path: str | Path, img: np.ndarray, *, bits: int = 8) -> None:
     """Write an (H, W, 3) or (H, W) float image in [0, 1] (RGB) as PNG/JPEG."""
+    from mvgeo.common.deps import cv2
+
     path = Path(path)
     arr = to_uint(img, bits)
     if arr.ndim == 3:

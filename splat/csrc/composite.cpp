@@ -1,14 +1,16 @@
 // Tile compositing of 2D Gaussians on the CPU: forward and backward.
 //
 // Plain C++17 (no torch headers, so it builds in about a second); called via
-// ctypes from splat/_cpu_kernel.py with pointers to contiguous tensors.
+// ctypes from splat/_cpu_kernel.py with pointers to contiguous tensors (C API: kernel_api.h).
 // The maths is the same as splat/composite.py::_composite_tiles_torch (the
 // reference the tests compare against) and as gsplat's rasterize_to_pixels:
 //   pixel (row, col) is evaluated at (col + 0.5, row + 0.5);
 //   sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with d = mean - pixel;
-//   alpha = min(0.99, opacity * exp(-sigma)); skipped when sigma < 0 or
-//   alpha < 1/255; a pixel stops before the Gaussian that would bring the
-//   transmittance to <= 1e-4.
+//   alpha = min(alpha_max, opacity * exp(-sigma)); skipped when sigma < 0 or
+//   alpha < alpha_min; a pixel stops before the Gaussian that would bring the
+//   transmittance to <= transmittance_min.
+// The three rule constants are arguments, passed from splat/composite.py (ALPHA_MAX,
+// TRANSMITTANCE_MIN) and splat/projection.py (ALPHA_MIN): they are defined there only.
 // Outputs: accum (H, W, C) = sum_i c_i alpha_i T_i and T_final (H, W).
 // The backward writes one gradient row per tile intersection, [d mean_x, d mean_y, d a, d b, d c,
 // d opacity, d colour_0 .. d colour_{C-1}] (each tile is owned by one thread, so no atomics); the
@@ -22,11 +24,9 @@
 #include <thread>
 #include <vector>
 
-namespace {
+#include "kernel_api.h"
 
-constexpr double kAlphaMin = 1.0 / 255.0;
-constexpr double kAlphaMax = 0.99;
-constexpr double kTransmittanceMin = 1e-4;
+namespace {
 
 template <typename F>
 void parallel_tiles(int64_t num_tiles, int num_threads, F fn) {
@@ -47,7 +47,7 @@ void parallel_tiles(int64_t num_tiles, int num_threads, F fn) {
 }
 
 // Per-Gaussian record gathered per tile: [mx, my, a, b, c, o, skip_sigma].
-// skip_sigma = log(255 o) * (1 + 1e-4) + 1e-6: sigma above it gives alpha < 1/255 for sure, so the
+// skip_sigma = log(o / alpha_min) * (1 + 1e-4) + 1e-6: sigma above it gives alpha < alpha_min for sure, so the
 // exp() is skipped; at or below it the exact alpha test decides (identical results, much less work).
 constexpr int64_t kStride = 7;
 
@@ -87,8 +87,8 @@ Box pixel_box(const T* gk, int64_t col_lo, int64_t col_hi, int64_t row_lo, int64
 
 template <typename T>
 void gather(int64_t n, int64_t begin, const int64_t* gaussian_ids, const T* means2d, const T* conics,
-            const T* opacities, int64_t col_lo, int64_t col_hi, int64_t row_lo, int64_t row_hi, T* g,
-            Box* boxes) {
+            const T* opacities, double alpha_min, int64_t col_lo, int64_t col_hi, int64_t row_lo,
+            int64_t row_hi, T* g, Box* boxes) {
   for (int64_t k = 0; k < n; ++k) {
     const int64_t id = gaussian_ids[begin + k];
     T* gk = g + kStride * k;
@@ -99,7 +99,7 @@ void gather(int64_t n, int64_t begin, const int64_t* gaussian_ids, const T* mean
     gk[4] = conics[3 * id + 2];
     gk[5] = opacities[id];
     const double o = double(opacities[id]);
-    gk[6] = o > 0 ? T(std::log(o / kAlphaMin) * (1.0 + 1e-4) + 1e-6) : T(-1);
+    gk[6] = o > 0 ? T(std::log(o / alpha_min) * (1.0 + 1e-4) + 1e-6) : T(-1);
     boxes[k] = pixel_box(gk, col_lo, col_hi, row_lo, row_hi);
   }
 }
@@ -111,8 +111,9 @@ template <typename T>
 void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t width, int64_t height,
                   const int64_t* tile_offsets, const int64_t* gaussian_ids, const T* means2d,
                   const T* conics, const T* colors, const T* opacities, int64_t C, T* out_accum,
-                  T* out_transmittance, int32_t* out_last, int num_threads) {
-  const T alpha_min = T(kAlphaMin), alpha_max = T(kAlphaMax), t_min = T(kTransmittanceMin);
+                  T* out_transmittance, int32_t* out_last, double alpha_min_d, double alpha_max_d,
+                  double transmittance_min_d, int num_threads) {
+  const T alpha_min = T(alpha_min_d), alpha_max = T(alpha_max_d), t_min = T(transmittance_min_d);
   parallel_tiles(tiles_x * tiles_y, num_threads, [&](int64_t tile) {
     const int64_t ty = tile / tiles_x, tx = tile % tiles_x;
     const int64_t begin = tile_offsets[tile], end = tile_offsets[tile + 1];
@@ -122,8 +123,8 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t w
     const int64_t tw = col_hi - col_lo + 1, th = row_hi - row_lo + 1, P = tw * th;
     std::vector<T> g(kStride * n);
     std::vector<Box> boxes(n);
-    gather(n, begin, gaussian_ids, means2d, conics, opacities, col_lo, col_hi, row_lo, row_hi, g.data(),
-           boxes.data());
+    gather(n, begin, gaussian_ids, means2d, conics, opacities, alpha_min_d, col_lo, col_hi, row_lo, row_hi,
+           g.data(), boxes.data());
     std::vector<T> trans(P, T(1)), acc(P * C, T(0));
     std::vector<int32_t> last(P, 0);
     std::vector<uint8_t> done(P, 0);
@@ -177,8 +178,9 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
                    const int64_t* tile_offsets, const int64_t* gaussian_ids, const T* means2d,
                    const T* conics, const T* colors, const T* opacities, int64_t C,
                    const T* transmittance, const int32_t* last, const T* grad_accum,
-                   const T* grad_transmittance, T* g_rows, int num_threads) {
-  const T alpha_min = T(kAlphaMin), alpha_max = T(kAlphaMax);
+                   const T* grad_transmittance, T* g_rows, double alpha_min_d, double alpha_max_d,
+                   int num_threads) {
+  const T alpha_min = T(alpha_min_d), alpha_max = T(alpha_max_d);
   parallel_tiles(tiles_x * tiles_y, num_threads, [&](int64_t tile) {
     const int64_t ty = tile / tiles_x, tx = tile % tiles_x;
     const int64_t begin = tile_offsets[tile], end = tile_offsets[tile + 1];
@@ -205,8 +207,8 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
     if (k_end == 0) return;
     std::vector<T> g(kStride * n);
     std::vector<Box> boxes(n);
-    gather(n, begin, gaussian_ids, means2d, conics, opacities, col_lo, col_hi, row_lo, row_hi, g.data(),
-           boxes.data());
+    gather(n, begin, gaussian_ids, means2d, conics, opacities, alpha_min_d, col_lo, col_hi, row_lo, row_hi,
+           g.data(), boxes.data());
     // Rows [begin, end) of the per-intersection gradients belong to this tile only.
     for (int64_t k = k_end - 1; k >= 0; --k) {
       const Box bx = boxes[k];
@@ -271,18 +273,21 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
       int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t width, int64_t height,                \
       const int64_t* tile_offsets, const int64_t* gaussian_ids, const T* means2d, const T* conics,       \
       const T* colors, const T* opacities, int64_t C, T* out_accum, T* out_transmittance,                \
-      int32_t* out_last, int num_threads) {                                                               \
+      int32_t* out_last, double alpha_min, double alpha_max, double transmittance_min,                   \
+      int32_t num_threads) {                                                                              \
     forward_impl<T>(tiles_x, tiles_y, tile_size, width, height, tile_offsets, gaussian_ids, means2d,     \
-                    conics, colors, opacities, C, out_accum, out_transmittance, out_last, num_threads);  \
+                    conics, colors, opacities, C, out_accum, out_transmittance, out_last, alpha_min,     \
+                    alpha_max, transmittance_min, num_threads);                                          \
   }                                                                                                       \
   extern "C" void splat_composite_backward_##SUFFIX(                                                      \
       int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t width, int64_t height,                \
       const int64_t* tile_offsets, const int64_t* gaussian_ids, const T* means2d, const T* conics,       \
       const T* colors, const T* opacities, int64_t C, const T* transmittance, const int32_t* last,       \
-      const T* grad_accum, const T* grad_transmittance, T* g_rows, int num_threads) {                     \
+      const T* grad_accum, const T* grad_transmittance, T* g_rows, double alpha_min, double alpha_max,   \
+      int32_t num_threads) {                                                                              \
     backward_impl<T>(tiles_x, tiles_y, tile_size, width, height, tile_offsets, gaussian_ids, means2d,    \
                      conics, colors, opacities, C, transmittance, last, grad_accum, grad_transmittance,  \
-                     g_rows, num_threads);                                                               \
+                     g_rows, alpha_min, alpha_max, num_threads);                                         \
   }
 
 SPLAT_EXPORT(float, f32)

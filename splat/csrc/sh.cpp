@@ -1,27 +1,39 @@
 // Real spherical harmonics colour (degree 0..3, 3DGS / gsplat basis and ordering): forward and backward.
 //
 // Same maths as splat/sh.py::eval_sh (the reference the tests compare against):
-//   u = d / max(|d|, 1e-12);  colour_c = sum_{k < (degree+1)^2} B_k(u) sh[k][c].
+//   u = d / max(|d|, eps);  colour_c = sum_{k < (degree+1)^2} B_k(u) sh[k][c].
 // Backward: d sh[k][c] = B_k(u) g_c (zero for unused bases), and d d = (I - u u^T) / |d| * dL/du
-// (dL/du / 1e-12 when |d| <= 1e-12, as torch's normalize). Plain C++17, no torch headers; called via
-// ctypes (splat/_cpu_kernel.py) with pointers to contiguous arrays.
+// (dL/du / eps when |d| <= eps, as torch's normalize). Plain C++17, no torch headers; called via
+// ctypes (splat/_cpu_kernel.py) with pointers to contiguous arrays (C API: kernel_api.h).
+// The basis constants (C0, C1, C2[5], C3[7], in this order) and eps are arguments, passed from
+// splat/sh.py, where they are defined.
 
 #include <cmath>
 #include <cstdint>
 
+#include "kernel_api.h"
+
 namespace {
 
-constexpr double kC0 = 0.28209479177387814;
-constexpr double kC1 = 0.4886025119029199;
-constexpr double kC2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-                           0.5462742152960396};
-constexpr double kC3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-                           -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
-constexpr double kNormEps = 1e-12;
+// Offsets of the degree-1, -2 and -3 constants in the basis_constants array (C0 is at 0).
+constexpr int kOffC1 = 1, kOffC2 = 2, kOffC3 = 7, kNumConstants = 14;
+
+// The constants converted to T once per call, in a local array: the loops below then read them
+// from memory the compiler knows nothing else writes (as fast as compiled-in constants).
+template <typename T>
+struct Constants {
+  T c[kNumConstants];
+  explicit Constants(const double* cst) {
+    for (int k = 0; k < kNumConstants; ++k) c[k] = T(cst[k]);
+  }
+};
 
 // Basis values b[0..nb) and, when grad != nullptr, their gradients w.r.t. the unit direction.
 template <typename T>
-void basis(int degree, T x, T y, T z, T* b, T (*grad)[3]) {
+void basis(int degree, const Constants<T>& cst, T x, T y, T z, T* b, T (*grad)[3]) {
+  const T kC0 = cst.c[0], kC1 = cst.c[kOffC1];
+  const T* kC2 = cst.c + kOffC2;
+  const T* kC3 = cst.c + kOffC3;
   b[0] = T(kC0);
   if (grad) grad[0][0] = grad[0][1] = grad[0][2] = T(0);
   if (degree < 1) return;
@@ -72,20 +84,22 @@ void basis(int degree, T x, T y, T z, T* b, T (*grad)[3]) {
 }
 
 template <typename T>
-void unit(const T* d, T* u, T* norm_out) {
+void unit(const T* d, double norm_eps, T* u, T* norm_out) {
   const T norm = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-  const T denom = norm > T(kNormEps) ? norm : T(kNormEps);
+  const T denom = norm > T(norm_eps) ? norm : T(norm_eps);
   u[0] = d[0] / denom, u[1] = d[1] / denom, u[2] = d[2] / denom;
   *norm_out = norm;
 }
 
 template <typename T>
-void forward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, T* out) {
+void forward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, const double* constants,
+                  double norm_eps, T* out) {
+  const Constants<T> cst(constants);
   const int nb = (degree + 1) * (degree + 1);
   for (int64_t i = 0; i < n; ++i) {
     T u[3], norm, b[16];
-    unit(dirs + 3 * i, u, &norm);
-    basis<T>(degree, u[0], u[1], u[2], b, nullptr);
+    unit(dirs + 3 * i, norm_eps, u, &norm);
+    basis<T>(degree, cst, u[0], u[1], u[2], b, nullptr);
     const T* s = sh + i * K * 3;
     for (int c = 0; c < 3; ++c) {
       T acc = T(0);
@@ -96,13 +110,14 @@ void forward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, 
 }
 
 template <typename T>
-void backward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, const T* grad_out, T* g_sh,
-                   T* g_dirs) {
+void backward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, const double* constants,
+                   double norm_eps, const T* grad_out, T* g_sh, T* g_dirs) {
+  const Constants<T> cst(constants);
   const int nb = (degree + 1) * (degree + 1);
   for (int64_t i = 0; i < n; ++i) {
     T u[3], norm, b[16], gb[16][3];
-    unit(dirs + 3 * i, u, &norm);
-    basis<T>(degree, u[0], u[1], u[2], b, gb);
+    unit(dirs + 3 * i, norm_eps, u, &norm);
+    basis<T>(degree, cst, u[0], u[1], u[2], b, gb);
     const T* s = sh + i * K * 3;
     const T* g = grad_out + 3 * i;
     T* gs = g_sh + i * K * 3;
@@ -120,25 +135,26 @@ void backward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs,
       for (int a = 0; a < 3; ++a) du[a] += db * gb[k][a];
     }
     T* gd = g_dirs + 3 * i;
-    if (norm > T(kNormEps)) {
+    if (norm > T(norm_eps)) {
       const T dot = u[0] * du[0] + u[1] * du[1] + u[2] * du[2];
       for (int a = 0; a < 3; ++a) gd[a] = (du[a] - u[a] * dot) / norm;
     } else {
-      for (int a = 0; a < 3; ++a) gd[a] = du[a] / T(kNormEps);
+      for (int a = 0; a < 3; ++a) gd[a] = du[a] / T(norm_eps);
     }
   }
 }
 
 }  // namespace
 
-#define SH_EXPORT(T, SUFFIX)                                                                             \
-  extern "C" void splat_sh_forward_##SUFFIX(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, \
-                                             T* out) {                                                   \
-    forward_impl<T>(n, K, degree, sh, dirs, out);                                                        \
-  }                                                                                                      \
-  extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, \
-                                              const T* grad_out, T* g_sh, T* g_dirs) {                   \
-    backward_impl<T>(n, K, degree, sh, dirs, grad_out, g_sh, g_dirs);                                    \
+#define SH_EXPORT(T, SUFFIX)                                                                              \
+  extern "C" void splat_sh_forward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
+                                             const double* basis_constants, double norm_eps, T* out) {     \
+    forward_impl<T>(n, K, degree, sh, dirs, basis_constants, norm_eps, out);                              \
+  }                                                                                                       \
+  extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
+                                              const double* basis_constants, double norm_eps,               \
+                                              const T* grad_out, T* g_sh, T* g_dirs) {                     \
+    backward_impl<T>(n, K, degree, sh, dirs, basis_constants, norm_eps, grad_out, g_sh, g_dirs);          \
   }
 
 SH_EXPORT(float, f32)

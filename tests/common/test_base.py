@@ -3,6 +3,7 @@ import pytest
 
 from mvgeo.common import ConfigError, InputError, ShapeError, StageTimer, atomic_output_dir, check_shape
 from mvgeo.common.imageio import list_images, read_image, write_image
+from mvgeo.common.output import MANIFEST_NAME, prepare_output, read_manifest
 
 
 def test_input_error_names_path_and_fix(tmp_path):
@@ -26,15 +27,21 @@ def test_check_shape():
 
 def test_atomic_dir_success_and_failure(tmp_path):
     out = tmp_path / "out"
-    with atomic_output_dir(out) as tmp:
+    with atomic_output_dir(prepare_output(out, command="test cmd")) as tmp:
         (tmp / "a.txt").write_text("1")
         assert not out.exists()
     assert (out / "a.txt").read_text() == "1"
-    with pytest.raises(RuntimeError), atomic_output_dir(out) as tmp:
+    assert read_manifest(out)["command"] == "test cmd"
+    plan = prepare_output(out, command="test cmd", overwrite=True)
+    with pytest.raises(RuntimeError), atomic_output_dir(plan) as tmp:
         (tmp / "b.txt").write_text("2")
         raise RuntimeError("boom")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temp left behind
     assert not (out / "b.txt").exists() and (out / "a.txt").exists()  # old output untouched
+    with atomic_output_dir(plan) as tmp:  # a previous output of the same command, with overwrite
+        (tmp / "b.txt").write_text("2")
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST_NAME, "b.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
 def test_stage_timer():

@@ -42,39 +42,3 @@ def test_unsafe_order_is_still_dangerous(tmp_path):
     if not crashed:
         pytest.xfail("pycolmap-before-cv2 no longer crashes with the locked versions")
     assert crashed
-
-
-@pytest.mark.parametrize("package", ["mvgeo", "splat", "denoise", "eval", "data_synth"])
-def test_package_import_sets_passive_openmp_wait_before_torch(package):
-    """Each package sets OMP_WAIT_POLICY=PASSIVE before torch is imported (spinning idle OpenMP threads
-    made training several times slower on a loaded machine; docs/benchmarks.md, "Threads")."""
-    import os
-
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    # A meta-path hook records the policy at the moment torch is first imported (wherever that happens).
-    code = textwrap.dedent(f"""
-        import os, sys
-        seen = []
-        class Hook:
-            def find_spec(self, name, path, target=None):
-                if name == "torch" and not seen:
-                    seen.append(os.environ.get("OMP_WAIT_POLICY"))
-                return None
-        sys.meta_path.insert(0, Hook())
-        import {package}
-        import torch
-        print(seen[0])
-    """)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip().splitlines()[-1] == "PASSIVE"
-
-
-def test_user_openmp_wait_policy_is_kept():
-    import os
-
-    env = dict(os.environ, OMP_WAIT_POLICY="ACTIVE")
-    proc = subprocess.run([sys.executable, "-c", "import os, mvgeo; print(os.environ['OMP_WAIT_POLICY'])"],
-                          capture_output=True, text=True, timeout=120, env=env)
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip().splitlines()[-1] == "ACTIVE"

@@ -13,11 +13,10 @@ from denoise.losses import (
     gradient_loss,
     low_frequency_loss,
     rgb_to_ycbcr,
-    ssim,
-    ssim_map,
     total_variation,
 )
 from mvgeo.common.errors import ShapeError
+from mvgeo.image_metrics import ssim, ssim_map
 
 
 def _pair(rng, h=37, w=45, dtype=np.float64):

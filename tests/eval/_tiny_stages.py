@@ -9,6 +9,7 @@ variance; refine = a blur blended toward the previous render.
 from __future__ import annotations
 
 import json
+import time
 from collections import Counter
 from pathlib import Path
 
@@ -56,6 +57,9 @@ class TinyStages:
     def __init__(self):
         self.calls: Counter[str] = Counter()
         self.fail_next: set[str] = set()
+        #: When True, denoise writes the time into n2v_model.pt, as a checkpoint carrying a timestamp
+        #: would: its outputs' bytes then differ from one run to the next.
+        self.stamp_checkpoints = False
 
     def _enter(self, name: str) -> None:
         self.calls[name] += 1
@@ -73,7 +77,8 @@ class TinyStages:
         # Write one output, then (maybe) fail: a half-done stage must leave nothing behind.
         write_views(ctx.work_dir / "denoised", out)
         self._maybe_fail("denoise")
-        (ctx.work_dir / "n2v_model.pt").write_text(json.dumps({"sigma": 1.0, "seed": ctx.seed}))
+        stamp = {"saved_ns": time.time_ns()} if self.stamp_checkpoints else {}
+        (ctx.work_dir / "n2v_model.pt").write_text(json.dumps({"sigma": 1.0, "seed": ctx.seed, **stamp}))
         return {"views": list(out)}
 
     def align(self, ctx: StageContext):

@@ -1,4 +1,4 @@
-"""DTU-style folder -> evaluation dataset (a synthetic stand-in: tests must not need ../shared)."""
+"""DTU-style folder -> evaluation dataset via `eval.datasets` (a synthetic stand-in: tests must not need ../shared)."""
 
 import json
 
@@ -46,7 +46,7 @@ def test_dtu_dataset_cameras_reproject_like_the_source(tmp_path):
     model = read_sparse_model(out / "sparse" / "0")
     rng = np.random.default_rng(1)
     for name in model.names:
-        i = int(name[5:8])
+        i = int(name[:6])  # the source image's stem, 000000..
         cam, cfw = model.camera_of(name), model.image(name).cam_from_world
         X = rng.normal(0, 0.3, (5, 3))  # normalised world
         Xw = (scale @ np.hstack([X, np.ones((5, 1))]).T).T  # original world (mm)
@@ -61,7 +61,7 @@ def test_dtu_dataset_cameras_reproject_like_the_source(tmp_path):
     noisy = read_image(out / "images" / ds.images[ds.train[0]].name)
     clean = read_image(out / "clean" / ds.clean[ds.train[0]].name)
     assert noisy.shape == (96, 96, 3) and 15 / 255 < np.std(noisy - clean) < 30 / 255  # clipped sigma 25
-    assert json.loads((out / "meta.json").read_text())["noise"]["sigma_8bit"] == 25
+    assert json.loads((out / "meta.json").read_text())["noise"]["params"]["sigma_8bit"] == 25
 
 
 def test_spread_split_and_errors(tmp_path):
@@ -103,8 +103,34 @@ def test_dtu_dataset_cluster_layout_and_unknown_layout(tmp_path):
     _fake_dtu(tmp_path / "dtu", n=9, grid=True)
     out = dtu_dataset(tmp_path / "dtu", tmp_path / "ds", size_px=64, train_views=5, test_views=1, layout="cluster")
     split = json.loads((out / "split.json").read_text())
-    assert len(split["train"]) == 5 and split["test"] == ["view_004.png"]  # the grid's centre
-    assert json.loads((out / "meta.json").read_text())["layout"] == "cluster"
+    assert len(split["train"]) == 5 and split["test"] == ["000004.png"]  # the grid's centre
+    assert json.loads((out / "meta.json").read_text())["split"]["layout"] == "cluster"
     with pytest.raises(InputError, match="layout"):
         dtu_dataset(tmp_path / "dtu", tmp_path / "ds2", layout="ring")
     assert not (tmp_path / "ds2").exists()
+
+
+def test_dtu_original_size_keeps_k_and_other_sizes_are_refused(tmp_path):
+    from eval.real import import_dataset
+
+    scale, truth = _fake_dtu(tmp_path / "dtu", n=4)
+    for p in (tmp_path / "dtu" / "images").glob("*.png"):  # the original 1600x1200 frames (flat: small files)
+        write_image(p, np.full((1200, 1600, 3), 0.5, np.float32))
+    out = import_dataset("dtu", tmp_path / "dtu", tmp_path / "ds", test=1, max_size_px=400)
+    model = read_sparse_model(out / "sparse" / "0")
+    X = np.random.default_rng(2).normal(0, 0.3, (5, 3))
+    for name in model.names:
+        cam, cfw = model.camera_of(name), model.image(name).cam_from_world
+        uv = (truth[int(name[:6])] @ (scale @ np.hstack([X, np.ones((5, 1))]).T)).T
+        expect = (uv[:, :2] / uv[:, 2:] + 0.5) * 0.25  # OpenCV centres -> ours, then 1600 -> 400
+        x = (cfw[:, :3] @ X.T).T + cfw[:, 3]
+        got = np.stack([cam.fx * x[:, 0] / x[:, 2] + cam.cx, cam.fy * x[:, 1] / x[:, 2] + cam.cy], 1)
+        np.testing.assert_allclose(got, expect, atol=1e-6)
+        assert cam.size_wh == (400, 300)
+    write_image(tmp_path / "dtu" / "images" / "000000.png", np.zeros((100, 100, 3)))
+    with pytest.raises(InputError, match="different sizes"):
+        import_dataset("dtu", tmp_path / "dtu", tmp_path / "ds2")
+    for p in (tmp_path / "dtu" / "images").glob("*.png"):
+        write_image(p, np.zeros((100, 100, 3)))
+    with pytest.raises(InputError, match="original 1600x1200"):
+        import_dataset("dtu", tmp_path / "dtu", tmp_path / "ds2")

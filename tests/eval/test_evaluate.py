@@ -17,9 +17,9 @@ from eval.evaluate import (
 )
 from eval.pipeline import StageRunner, StageSpec, preset
 from eval.pipeline.views import read_views, write_views
-from eval.psnr import psnr
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import InputError
+from mvgeo.image_metrics import psnr
 
 
 def test_method_settings():

@@ -34,7 +34,7 @@ def test_pipeline_runs_fuse_before_each_splat_only_when_asked(tmp_path):
         return tiny.splat(ctx)
 
     stages = dataclasses.replace(tiny.stages(), splat=splat)
-    cfg = preset("fast", views=3, rounds=2)
+    cfg = dataclasses.replace(preset("fast", views=3, rounds=2), fuse_noisy_splat=False)
     res = run_pipeline(scene, tmp_path / "plain", cfg, stages=stages)
     assert tiny.calls["fuse"] == 0 and seen == [("round1", "denoised"), ("round2", "denoised")]
     assert "fuse" not in res.rounds[0].stages

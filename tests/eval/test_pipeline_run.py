@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
-import os
 import shutil
 
 import numpy as np
 import pytest
 
 from eval.pipeline import PipelineConfig, preset, run_pipeline
-from eval.pipeline.lock import LOCK_NAME
+from eval.pipeline.lock import LOCK_NAME, output_lock
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import write_image
+from mvgeo.common.output import MANIFEST_NAME
 from mvgeo.sparse_model import read_sparse_model
 from tests.eval._tiny_stages import TinyStages, make_scene
 
@@ -20,11 +21,12 @@ ALL_STAGES = {"denoise", "align", "splat", "render", "select", "refine"}
 
 
 def _cfg(**kw) -> PipelineConfig:
-    return preset("fast", views=3, **kw)
+    # The run's mechanics without the fuse extension (tests/eval/test_fuse_stage.py covers it).
+    return dataclasses.replace(preset("fast", views=3, **kw), fuse_noisy_splat=False)
 
 
 def _leftovers(out):
-    return [p for p in out.rglob(".*") if p.name != LOCK_NAME]
+    return [p for p in out.rglob(".*") if p.name not in (LOCK_NAME, MANIFEST_NAME)]
 
 
 @pytest.fixture()
@@ -158,10 +160,9 @@ def test_duplicate_stems_and_tiny_images(tmp_path, scene):
 def test_live_lock_refuses_second_run(tmp_path, scene):
     out = tmp_path / "out"
     out.mkdir()
-    (out / LOCK_NAME).write_text(str(os.getppid()))  # the test runner's parent: alive
-    with pytest.raises(InputError, match="another run"):
+    with output_lock(out), pytest.raises(InputError, match="another run"):  # a live holder
         run_pipeline(scene, out, _cfg(), stages=TinyStages().stages())
-    (out / LOCK_NAME).write_text("999999999")  # no such process: stale lock is taken over
+    (out / LOCK_NAME).write_text("999999999")  # a lock file nobody holds (its owner died) is taken over
     run_pipeline(scene, out, _cfg(rounds=1), stages=TinyStages().stages())
 
 
@@ -180,7 +181,7 @@ def test_product_stages_except_alignment(tmp_path):
     tiny = TinyStages()
     real = product_stages()
     stages = dataclasses.replace(real, align=tiny.align)
-    cfg = dataclasses.replace(preset("fast", views=3),
+    cfg = dataclasses.replace(preset("fast", views=3), fuse_noisy_splat=False,
                               denoise=DenoiseSettings(n2v_preset="fast", n2v_steps=8, passes=1, round2_steps=3),
                               splat=SplatSettings(preset="quick", iters=5))
     res = run_pipeline(scene, tmp_path / "out", cfg, stages=stages)
@@ -213,29 +214,3 @@ def test_changed_component_default_reruns_its_stage(tmp_path, scene, monkeypatch
     tiny2 = TinyStages()
     run_pipeline(scene, out, _cfg(rounds=1), stages=tiny2.stages())
     assert dict(tiny2.calls) == {"splat": 1, "render": 1}
-
-
-def test_changed_component_code_reruns_its_stage(tmp_path, scene, monkeypatch):
-    # A fixed bug inside a component (same configs) must not be hidden by the stage cache: the stage
-    # keys carry a digest of the component's sources, and a change re-runs its stages and what follows.
-    from eval.pipeline import stages as stage_mod
-
-    tiny = TinyStages()
-    out = tmp_path / "out"
-    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny.stages())
-    real = stage_mod.component_code_digest
-    monkeypatch.setattr(stage_mod, "component_code_digest", lambda pkg: "edited" if pkg == "mvgeo" else real(pkg))
-    tiny2 = TinyStages()
-    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny2.stages())
-    assert dict(tiny2.calls) == {"align": 1, "splat": 1, "render": 1}
-    tiny3 = TinyStages()  # unchanged code: everything is reused
-    run_pipeline(scene, out, _cfg(rounds=1), stages=tiny3.stages())
-    assert dict(tiny3.calls) == {}
-
-
-def test_component_code_digest_covers_the_sources():
-    from eval.pipeline.stages import component_code_digest
-
-    d = component_code_digest("splat")
-    assert d is not None and len(d) == 64 and d != component_code_digest("mvgeo")
-    assert component_code_digest("no_such_package_here") is None

@@ -1,14 +1,18 @@
-"""StageRunner: keys, skipping, atomic commit, and errors; config presets; component lookup."""
+"""StageRunner: keys, skipping, output checks, atomic commit, and errors; config presets; component lookup."""
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
+import shutil
 
 import pytest
 
 from eval.pipeline import PRESETS, MissingComponentError, StageRunner, StageSpec, preset
 from eval.pipeline.components import component_config, require
+from eval.pipeline.hashing import file_sha256, hash_json, tree_files
+from eval.pipeline.stage import verify_outputs
 from eval.pipeline.stages import _align_config
 from mvgeo.common.errors import ConfigError, DgsError
 
@@ -65,6 +69,57 @@ def test_commit_skip_and_replace(tmp_path):
     assert (tmp_path / "st" / "a.txt").read_text() == "two"
     assert sorted(p.name for p in (tmp_path / "st" / "d").iterdir()) == ["b.txt"]
     assert list(runner.timer.seconds) == ["s"]
+
+
+def test_record_holds_size_and_sha256_of_every_output_file(tmp_path):
+    res = StageRunner().run(_spec(tmp_path, _writer("one", [])))
+    st = tmp_path / "st"
+    manifest = json.loads((st / "stages" / "s.json").read_text())["manifest"]
+    assert manifest["outputs"] == {"a.txt": "file", "d": "dir"}
+    # Reference: hashlib over each file's bytes.
+    assert manifest["files"] == {rel: {"size": (st / rel).stat().st_size,
+                                       "sha256": hashlib.sha256((st / rel).read_bytes()).hexdigest()}
+                                 for rel in ("a.txt", "d/b.txt")}
+    assert res.outputs_digest == hash_json(manifest)
+    assert verify_outputs(st, manifest) is None
+
+
+@pytest.mark.parametrize(("damage", "reason"), [
+    (lambda st: (st / "a.txt").write_text("on"), "a.txt has 2 bytes, 3 recorded"),
+    (lambda st: (st / "d" / "b.txt").write_text("ONEONE"), "d/b.txt changed"),  # same size
+    (lambda st: (st / "d" / "b.txt").unlink(), "d/b.txt is missing"),
+    (lambda st: (st / "d" / "new.txt").write_text("x"), "d/new.txt was not written by the stage"),
+    (lambda st: shutil.rmtree(st / "d"), "d is missing"),
+    (lambda st: (shutil.rmtree(st / "d"), (st / "d").write_text("x")), "d is not a dir"),
+])
+def test_damaged_output_reruns_the_stage(tmp_path, damage, reason):
+    calls: list = []
+    runner = StageRunner()
+    first = runner.run(_spec(tmp_path, _writer("one", calls)))
+    st = tmp_path / "st"
+    manifest = json.loads((st / "stages" / "s.json").read_text())["manifest"]
+    damage(st)
+    assert reason in verify_outputs(st, manifest)
+    again = runner.run(_spec(tmp_path, _writer("one", calls)))
+    assert not again.skipped and len(calls) == 2
+    assert again.outputs_digest == first.outputs_digest and verify_outputs(st, manifest) is None
+    assert runner.run(_spec(tmp_path, _writer("one", calls))).skipped and len(calls) == 2
+
+
+def test_hidden_files_in_output_folders_are_not_outputs(tmp_path):
+    calls: list = []
+    StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    (tmp_path / "st" / "d" / ".DS_Store").write_text("x")
+    assert StageRunner().run(_spec(tmp_path, _writer("one", calls))).skipped and len(calls) == 1
+
+
+def test_key_depends_on_upstream_outputs(tmp_path):
+    # Same upstream key (closure values are not in it), different bytes written: downstream keys differ.
+    up_a = StageRunner().run(_spec(tmp_path / "a", _writer("one", []), name="up"))
+    up_b = StageRunner().run(_spec(tmp_path / "b", _writer("two", []), name="up"))
+    assert up_a.key == up_b.key and up_a.outputs_digest != up_b.outputs_digest
+    down = [_spec(tmp_path, _writer("x", []), upstream=(u,)).key() for u in (up_a, up_b)]
+    assert down[0] != down[1]
 
 
 def test_failing_stage_leaves_old_outputs_unrecorded(tmp_path):
@@ -142,3 +197,13 @@ def test_missing_components_are_named():
     cfg = component_config("eval.pipeline.config", "PRESETS", "fast", {"views": 5, "rounds": None},
                            needed_for="test")
     assert cfg.views == 5 and cfg.rounds == PRESETS["fast"].rounds
+
+
+def test_file_hashes_against_hashlib(tmp_path):
+    big = tmp_path / "big.bin"
+    big.write_bytes(bytes(range(256)) * 9000)  # over one read chunk
+    assert file_sha256(big) == hashlib.sha256(big.read_bytes()).hexdigest()
+    (tmp_path / "sub" / ".hidden").mkdir(parents=True)
+    for rel in ("sub/z.txt", "sub/.hidden/h.txt", ".top.txt", "a.txt"):
+        (tmp_path / rel).write_text(rel)
+    assert [p.relative_to(tmp_path).as_posix() for p in tree_files(tmp_path)] == ["a.txt", "big.bin", "sub/z.txt"]

@@ -8,9 +8,9 @@ import skimage.metrics
 import torch
 
 from eval.image_metrics import score_images
-from eval.psnr import psnr
-from eval.ssim import ssim
 from mvgeo.common.errors import ShapeError
+from mvgeo.image_metrics import psnr
+from mvgeo.image_metrics import ssim_per_image as ssim
 
 
 def _pair(rng, h=40, w=53, sigma=0.05):

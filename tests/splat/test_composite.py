@@ -15,7 +15,7 @@ import torch
 from splat.composite import composite_tiles
 from splat.tiles import bin_gaussians
 
-pytest.importorskip("splat._cpu_kernel")
+pytestmark = pytest.mark.needs_cpp_kernel  # every test here compares the C++ kernel
 
 
 def _random_2d(n, width, height, seed, dtype, *, ill_conditioned):

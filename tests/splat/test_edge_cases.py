@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from splat.rasterize import RasterConfig, rasterize
+from tests.splat.backends import BACKENDS
 
-BACKENDS = ["cpp", "torch"]
 DT = torch.float64
 
 

@@ -7,10 +7,9 @@ import torch
 
 from mvgeo.transforms_torch import se3_exp
 from splat.rasterize import RasterConfig, rasterize
+from tests.splat.backends import BACKENDS
 from tests.splat.dense_reference import render_dense
 from tests.splat.scenes import random_camera, random_scene
-
-BACKENDS = ["cpp", "torch"]
 
 
 def _render_both(params, delta, focal_scale, cam, K, width, height, backend, *, background, sh_degree,

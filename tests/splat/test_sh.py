@@ -35,7 +35,7 @@ def test_dc_round_trip_and_degree_use():
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_cpp_sh_matches_torch_values_and_gradients(degree, dtype):
+def test_cpp_sh_matches_torch_values_and_gradients(degree, dtype, cpp_kernel):
     g = torch.Generator().manual_seed(degree)
     n = 200
     sh = torch.randn(n, 16, 3, generator=g, dtype=dtype)  # more bases than used: the rest get zero gradient
@@ -58,7 +58,7 @@ def test_cpp_sh_matches_torch_values_and_gradients(degree, dtype):
     assert (results[0][1][:, (degree + 1) ** 2:] == 0).all()
 
 
-def test_cpp_sh_gradcheck():
+def test_cpp_sh_gradcheck(cpp_kernel):
     g = torch.Generator().manual_seed(0)
     sh = torch.randn(5, 16, 3, generator=g, dtype=torch.float64, requires_grad=True)
     dirs = torch.randn(5, 3, generator=g, dtype=torch.float64, requires_grad=True)

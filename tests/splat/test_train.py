@@ -15,6 +15,7 @@ import torch
 
 from mvgeo.camera import Camera
 from mvgeo.common.imageio import write_image
+from mvgeo.common.output import MANIFEST_NAME
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 from mvgeo.transforms_torch import se3_exp
 from splat.cli import main
@@ -106,7 +107,8 @@ def test_cli_train_and_render(tmp_path, scene):
     assert sparse.names == names[:4]  # held-out views stay held out
     assert main(["render", str(out), "--cameras", str(tmp_path / "data" / "sparse" / "0"),
                  "--out", str(tmp_path / "renders")]) == 0
-    assert sorted(p.name for p in (tmp_path / "renders").iterdir()) == sorted(names)
+    # The renders, and the output manifest that marks the folder as this command's (mvgeo.common.output).
+    assert sorted(p.name for p in (tmp_path / "renders").iterdir()) == sorted([*names, MANIFEST_NAME])
 
 
 def test_cli_input_errors(tmp_path, scene, capsys):

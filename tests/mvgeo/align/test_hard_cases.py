@@ -125,9 +125,9 @@ def test_orbit_view_with_undetermined_position_is_a_specific_failure(tmp_path):
     train = json.loads((d / "split.json").read_text())["train"]
     paths = [p for p in list_images(d / "images") if p.name in train]
     cfg = replace(AlignConfig(), dense_stereo=DenseStereoConfig(enabled=False))
-    # Which check names it depends on the machine (SIFT's floating point differs between CPUs): on the ninth
-    # session's machine the position check (view 15's ratio 19, the others <= 0.024); on the eleventh's the
-    # view-support check (ratio 0.14, but both of its pairs inconsistent: 70 % explained and 24 deg off, 30 %).
+    # Which check names it depends on the machine (SIFT's floating point differs between CPUs): on one AMD EPYC
+    # the position check (view 15's ratio 19, the others <= 0.024); on an AMD EPYC Zen 4 the view-support
+    # check (ratio 0.14, but both of its pairs inconsistent: 70 % explained and 24 deg off, 30 %).
     with pytest.raises(DegenerateGeometryError,
                        match="contradicts every verified image pair|not determined by the feature tracks") as info:
         align_images(paths, cfg)

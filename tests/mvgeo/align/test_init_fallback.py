@@ -1,6 +1,6 @@
 """The alignment falls back to the pairs' own relative poses when DUSt3R's chained initialisation fails.
 
-Measured (eleventh session, docs/bench/align.md): on 12 N2V-denoised llff_like photos the Procrustes chaining
+Measured (docs/bench/align.md, CHANGELOG.md 2026-11-25): on 12 N2V-denoised llff_like photos the Procrustes chaining
 of the pointmaps put view 8 117 deg off, although every pair's own rotation was within 3 deg of the truth; the
 global alignment and bundle adjustment stayed in that minimum, the checks refused the result (23 of 65 pairs
 inconsistent), and the pipeline stopped. Here the same failure is provoked on a small scene by turning one

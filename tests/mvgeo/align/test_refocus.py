@@ -60,6 +60,9 @@ def test_a_focal_close_enough_is_not_re_estimated(llff6):
     info = res.stats["focal_reestimation"]
     assert info is not None and not info["refocused"]
     assert abs(np.log(info["bundle_focal_px"] / info["pairs_focal_px"])) <= 0.1
+    # One shared focal in the bundle adjustment: one camera for all views, as COLMAP's single-camera mode.
+    assert len(res.sparse_model.cameras) == 1
+    assert {im.camera_id for im in res.sparse_model.images} == {1}
 
 
 def test_refocused_model_reuses_the_matches(llff6, monkeypatch):
@@ -103,3 +106,23 @@ def test_the_first_pass_is_kept_when_the_second_fails(llff6, monkeypatch):
     assert len(calls) == 2 and info["refocused"]
     assert info["kept"].startswith("first pass (the second failed: stand-in failure")
     assert res.stats["n_registered"] == 6
+
+
+def test_a_second_start_reuses_the_pair_stage(llff6, monkeypatch):
+    images = [read_image(p) for p in list_images(llff6 / "images")[:3]]
+    model = ClassicalPointmapModel(PREVIEW.pairwise, seed=0)
+    pairs = [(0, 1), (0, 2), (1, 2)]
+    preds, fails = model.predict_pairs(images, pairs)
+    sparse = model.sparse_matches
+
+    def no_pairs(*args, **kwargs):
+        raise AssertionError("the same images and pairs must reuse the pair stage")
+
+    monkeypatch.setattr(model, "_predict_pairs", no_pairs)
+    again, fails_again = model.predict_pairs(images, pairs)
+    assert [(p.i, p.j) for p in again] == [(p.i, p.j) for p in preds] and len(fails_again) == len(fails)
+    for a, b in zip(again, preds, strict=True):
+        np.testing.assert_array_equal(a.pts_j, b.pts_j)
+    assert model.sparse_matches is sparse
+    with pytest.raises(AssertionError, match="reuse the pair stage"):
+        model.predict_pairs(images, pairs[:2])  # other pairs: computed anew

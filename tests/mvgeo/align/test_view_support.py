@@ -3,7 +3,7 @@
 The whole-result check (`max_unexplained_fraction`) weighs pairs by their matches, so one wrong view with few
 matches passes it: measured on object_ring rendered with 32 views (28 training views), where view_001 came out
 6.3 m off on a 3 m ring with every one of its four pairs 69-72 deg off its matches, and `mvgeo align` returned
-it (docs/bench/align.md, eleventh session).
+it (CHANGELOG.md, 2026-11-25).
 """
 
 import itertools

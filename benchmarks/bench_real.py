@@ -1,0 +1,355 @@
+"""Real photographs: `mvgeo align` vs pycolmap incremental and global mapping, on identical image files.
+
+Usage: `python benchmarks/bench_real.py [--data=DIR[,DIR...]] [--sets=temple,dtu_spread,dtu_cluster,data]
+[--noise=clean,noisy] [--methods=ours,ours_intr,incremental,global] [--out=NAME]` (writes docs/bench/NAME.md,
+default `real`; only the table and its header).
+
+Sets (each on 12 training views, clean and with Gaussian noise sigma = 25/255 added, seed 0, saved as 8-bit PNG):
+- `temple`: ../shared/data/temple_sparse_ring (Middlebury, 640x480, calibrated `templeSR_par.txt`), 12 of its 16
+  views spread around the ring (`ring_pick`: the duplicate camera position is dropped, then repeatedly the view
+  whose two ring neighbours are closest);
+- `dtu_spread`: ../shared/data/dtu_scan24 (384x384, `cameras.npz`), the 12 views of
+  `eval.datasets.spread_split(49, 12, 4)` (20-40 deg between neighbours);
+- `dtu_cluster`: the same scan, the 12 training views of `eval.datasets.cluster_split` (about 11 deg apart);
+- any dataset folder in the project's layout given with `--data` (`images/` or `clean/`, `split.json` with
+  `train`, `sparse/0` with the reference cameras): its first 12 training views; `clean/` when present is the
+  clean variant (and gets the noise added), else `images/` is used as it is.
+Missing sets are named and skipped; with none, the script says so and exits 0.
+
+Methods, alternated (the order rotates from one variant to the next), all in this one process:
+`ours` = `mvgeo align` defaults without the final dense stereo (poses + sparse points: the product pycolmap's
+mappers make); `ours --intrinsics` = the same with the known calibration (a COLMAP cameras.txt written from the
+set's calibration, read by `mvgeo.align.intrinsics.read_intrinsics`); `pycolmap incremental` and
+`pycolmap global` (`mvgeo.align.colmap_sfm.run_colmap`: CPU SIFT, exhaustive matching, one SIMPLE_RADIAL camera).
+
+Columns: registered / total; rotation error median and max over all pairs of registered views (relative
+rotations, `mvgeo.metrics.compare_poses`: free of the gauge); translation-direction error median; ATE RMSE of
+the camera centres after Sim(3) alignment divided by the scene scale (RMS distance of the reference centres to
+their centroid); focal error (%); seconds; verified pairs (ours: pairs with a relative pose; pycolmap: two-view
+geometries with at least 15 inliers in its database after exhaustive matching, counted in a separate, untimed
+run of its feature extraction and matching); and the bundle adjustment's tracks (ours).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from _common import ROOT, md_table, write_fragment
+
+os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap's per-image log lines
+
+from mvgeo.align.api import AlignConfig, align_images  # imports cv2 before pycolmap
+from mvgeo.align.colmap_sfm import ColmapConfig, run_colmap
+from mvgeo.align.dense_stereo import DenseStereoConfig
+from mvgeo.align.intrinsics import read_intrinsics
+from mvgeo.camera import Camera
+from mvgeo.common.imageio import list_images, read_image, write_image
+from mvgeo.metrics import compare_poses
+from mvgeo.sparse_model import SparseModel, read_sparse_model, write_sparse_model
+
+SHARED = ROOT.parent / "shared" / "data"
+TEMPLE = SHARED / "temple_sparse_ring"
+DTU = SHARED / "dtu_scan24"
+SIGMA_8BIT = 25.0
+N_VIEWS = 12
+#: Poses-only `mvgeo align` (what pycolmap's mappers return).
+OURS = AlignConfig(dense_stereo=DenseStereoConfig(enabled=False))
+
+
+@dataclass
+class RealSet:
+    """One benchmark set: clean image files, reference cameras, calibration.
+
+    Attributes:
+        name: table label.
+        files: the 12 image files (clean, or as given).
+        gt: {file name: cam_from_world (3, 4)} reference poses.
+        K: (3, 3) calibration in our pixel convention (top-left pixel centre at 0.5).
+        add_noise: whether the noisy variant adds noise (False: the files are noisy already).
+    """
+
+    name: str
+    files: list[Path]
+    gt: dict[str, np.ndarray]
+    K: np.ndarray
+    add_noise: bool = True
+
+
+def ring_pick(centres: np.ndarray, k: int) -> list[int]:
+    """Indices of `k` views spread around a ring of camera centres (N, 3), in ring order.
+
+    The ring's plane is the centres' best-fit plane; a view at the same position as an earlier one is
+    dropped; then the view whose two neighbours around the ring are closest is dropped until `k` remain.
+    """
+    c = centres - centres.mean(axis=0)
+    _, _, vt = np.linalg.svd(c)
+    ang = np.arctan2(c @ vt[1], c @ vt[0])
+    keep = []
+    for v in range(len(c)):
+        if all(np.linalg.norm(centres[v] - centres[u]) > 1e-6 for u in keep):
+            keep.append(v)
+    keep.sort(key=lambda v: ang[v])
+    while len(keep) > k:
+        a = np.array([ang[v] for v in keep])
+        span = (np.roll(a, -1) - np.roll(a, 1)) % (2 * np.pi)  # neighbours' separation around each view
+        keep.pop(int(np.argmin(span)))
+    return keep
+
+
+def temple_set() -> RealSet | None:
+    if not (TEMPLE / "templeSR_par.txt").is_file():
+        return None
+    rows = [ln.split() for ln in (TEMPLE / "templeSR_par.txt").read_text().splitlines()[1:] if len(ln.split()) == 22]
+    names = [r[0] for r in rows]
+    vals = np.array([[float(x) for x in r[1:]] for r in rows])
+    Ks, Rs, ts = vals[:, :9].reshape(-1, 3, 3), vals[:, 9:18].reshape(-1, 3, 3), vals[:, 18:21]
+    centres = -np.einsum("nji,nj->ni", Rs, ts)
+    pick = ring_pick(centres, N_VIEWS)
+    K = np.median(Ks[pick], axis=0)
+    K[0, 2] += 0.5  # Middlebury's projection uses OpenCV pixel centres (top-left at 0)
+    K[1, 2] += 0.5
+    gt = {names[v]: np.hstack([Rs[v], ts[v][:, None]]) for v in pick}
+    imgs = TEMPLE if list(TEMPLE.glob("*.png")) else TEMPLE / "images"
+    return RealSet("temple_sparse_ring", [imgs / names[v] for v in sorted(pick)], gt, K)
+
+
+def dtu_set(layout: str) -> RealSet | None:
+    if not (DTU / "cameras.npz").is_file():
+        return None
+    from eval.datasets import cluster_split, dtu_cameras, spread_split
+
+    files = sorted((DTU / "images").glob("*.png"))
+    cams = dtu_cameras(DTU / "cameras.npz", len(files))
+    if layout == "spread":
+        train, _ = spread_split(len(files), N_VIEWS, 4)
+    else:
+        train, _ = cluster_split(np.array([T[2, :3] for _, T in cams]), N_VIEWS, 4)
+    K = np.median(np.stack([cams[v][0] for v in train]), axis=0)
+    return RealSet(f"dtu_scan24 ({layout})", [files[v] for v in train],
+                   {files[v].name: cams[v][1] for v in train}, K)
+
+
+def folder_set(folder: Path) -> RealSet | None:
+    """A dataset in the project's layout (`images/`/`clean/`, `split.json`, `sparse/0`)."""
+    if not (folder / "sparse" / "0").is_dir():
+        print(f"note: {folder} has no sparse/0, skipped", file=sys.stderr)
+        return None
+    ref = read_sparse_model(folder / "sparse" / "0")
+    clean = (folder / "clean").is_dir()
+    src = folder / ("clean" if clean else "images")
+    names = [p.name for p in list_images(src)]
+    split = folder / "split.json"
+    if split.is_file():
+        names = [n for n in json.loads(split.read_text())["train"] if n in names]
+    names = [n for n in names if n in ref.names][:N_VIEWS]
+    gt = {n: g for n, g in ref.cam_from_world_by_name().items() if n in names}
+    return RealSet(folder.name, [src / n for n in names], gt, ref.camera_of(names[0]).K, add_noise=clean)
+
+
+def prepare(s: RealSet, work: Path, noisy: bool) -> Path:
+    """A folder with exactly the set's 12 image files (8-bit PNG; noisy: sigma 25/255 added, seed 0)."""
+    out = work / f"{s.name.replace(' ', '_').replace('(', '').replace(')', '')}_{'noisy' if noisy else 'clean'}"
+    out.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for f in s.files:
+        if noisy and s.add_noise:
+            img = np.round(read_image(f) * 255.0) / 255.0
+            write_image(out / f.name, np.clip(img + rng.normal(0.0, SIGMA_8BIT / 255.0, img.shape), 0.0, 1.0))
+        else:
+            shutil.copy(f, out / f.name)
+    return out
+
+
+def write_cameras_txt(K: np.ndarray, wh: tuple[int, int], path: Path) -> Path:
+    """One PINHOLE camera in COLMAP's text format (the `mvgeo align --intrinsics` input)."""
+    path.mkdir(parents=True, exist_ok=True)
+    cam = Camera("PINHOLE", wh[0], wh[1], [K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    write_sparse_model(path, SparseModel({1: cam}, []), binary=False)
+    return path / "cameras.txt"
+
+
+def scene_scale(gt: dict[str, np.ndarray]) -> float:
+    C = np.stack([-T[:, :3].T @ T[:, 3] for T in gt.values()])
+    return float(np.sqrt(np.mean(np.sum((C - C.mean(axis=0)) ** 2, axis=1))))
+
+
+def metrics_row(label, method, est: dict, gt: dict, f_est: float, f_ref: float, sec: float, pairs="", tracks="",
+                note=""):
+    m = compare_poses(est, gt)
+    rot = m.rotation_deg
+    ate = m.ate.rmse / scene_scale(gt) if m.ate is not None else float("nan")
+    return [label, method, f"{m.n_registered}/{m.n_ref}", m.median_rotation_deg,
+            float(rot.max()) if rot.size else float("nan"), m.median_translation_deg, ate,
+            abs(f_est / f_ref - 1) * 100, sec, pairs, tracks, note]
+
+
+def failed_row(label, method, exc: Exception, sec: float, pairs=""):
+    msg = f"failed: {type(exc).__name__}: {exc}".replace("|", "/").replace("\n", " ")
+    return [label, method, "0/12", "", "", "", "", "", sec, pairs, "", msg[:220]]
+
+
+def run_ours(label, method, folder: Path, gt, f_ref, intrinsics_txt: Path | None, config: AlignConfig):
+    paths = [p for p in list_images(folder) if p.name in gt]
+    t = time.perf_counter()
+    try:
+        intr = read_intrinsics(intrinsics_txt) if intrinsics_txt is not None else None
+        res = align_images(paths, config, intrinsics=intr)
+    except Exception as exc:  # report, keep benchmarking
+        return failed_row(label, method, exc, time.perf_counter() - t)
+    sec = time.perf_counter() - t
+    st = res.stats
+    f = float(np.median([c.fx for c in res.sparse_model.cameras.values()]))
+    ba = st["bundle_adjustment"] or {}
+    note = []
+    if st.get("sift_fallback_used"):
+        note.append("sensitive SIFT")
+    if st.get("pairs_rejected_by_loops"):
+        note.append(f"{len(st['pairs_rejected_by_loops'])} pairs rejected by loops")
+    if st.get("pairs_dropped_as_inconsistent"):
+        note.append(f"{len(st['pairs_dropped_as_inconsistent'])} pairs dropped")
+    if st.get("init_fallback"):
+        note.append(f"init fallback: kept {st['init_fallback'].get('kept', '')[:30]}")
+    if ba:
+        note.append(f"reproj {ba['reproj_rms_after_px']:.2g} px")
+    return metrics_row(label, method, res.sparse_model.cam_from_world_by_name(), gt, f, f_ref, sec,
+                       f"{st['n_pairs_sparse']}/{st['n_pairs']}", ba.get("n_points", ""), "; ".join(note))
+
+
+def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref):
+    names = sorted(gt)
+    t = time.perf_counter()
+    try:
+        col = run_colmap(folder, ColmapConfig(mapper=mapper), image_names=names)
+    except Exception as exc:
+        return failed_row(label, f"pycolmap {mapper}", exc, time.perf_counter() - t)
+    sec = time.perf_counter() - t
+    f = float(np.median([c.fx for c in col.sparse_model.cameras.values()]))
+    return metrics_row(label, f"pycolmap {mapper}", col.sparse_model.cam_from_world_by_name(), gt, f, f_ref, sec,
+                       tracks=int(col.stats["n_points"]))
+
+
+def colmap_verified_pairs(folder: Path, names: list[str], min_inliers: int = 15) -> int:
+    """Image pairs with a verified two-view geometry after pycolmap's extraction and exhaustive matching."""
+    from mvgeo.common.deps import pycolmap
+
+    with tempfile.TemporaryDirectory(prefix="bench-real-db-") as tmp:
+        db_path = Path(tmp) / "database.db"
+        ext = pycolmap.FeatureExtractionOptions()
+        ext.use_gpu = False
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "SIMPLE_RADIAL"
+        pycolmap.extract_features(db_path, folder, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(db_path, device=pycolmap.Device.cpu)
+        db = pycolmap.Database.open(db_path)
+        try:
+            _, geoms = db.read_two_view_geometries()
+            bad = {pycolmap.TwoViewGeometryConfiguration.UNDEFINED, pycolmap.TwoViewGeometryConfiguration.DEGENERATE}
+            return sum(1 for g in geoms if g.config not in bad and len(g.inlier_matches) >= min_inliers)
+        finally:
+            db.close()
+
+
+METHODS = ("ours", "ours_intr", "global", "incremental")
+
+
+def main() -> int:
+    if "-h" in sys.argv or "--help" in sys.argv:
+        print(__doc__)
+        return 0
+    logging.basicConfig(level=logging.ERROR)
+    os.environ.setdefault("DGS_NO_PROGRESS", "1")
+
+    def opt(key, default):
+        vals = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith(f"--{key}=")]
+        return vals[0] if vals else default
+
+    which = opt("sets", "temple,dtu_spread,dtu_cluster,data").split(",")
+    noise = opt("noise", "clean,noisy").split(",")
+    methods = [m for m in METHODS if m in opt("methods", ",".join(METHODS)).split(",")]
+    out_name = opt("out", "real")
+    sets: list[RealSet] = []
+    missing = []
+    found = [(temple_set, "temple", TEMPLE), (lambda: dtu_set("spread"), "dtu_spread", DTU),
+             (lambda: dtu_set("cluster"), "dtu_cluster", DTU)]
+    for make, key, where in found:
+        if key in which:
+            s = make()
+            if s is None:
+                missing.append(str(where))
+            else:
+                sets.append(s)
+    if "data" in which:
+        for d in filter(None, opt("data", "").split(",")):
+            s = folder_set(Path(d))
+            if s:
+                sets.append(s)
+    for m in sorted(set(missing)):
+        print(f"note: {m} is missing; its sets are skipped", file=sys.stderr)
+    if not sets:
+        print("no real image set is available (../shared/data missing and no --data): nothing to benchmark")
+        return 0
+    load0 = os.getloadavg()
+    rows, pair_counts = [], []
+    k = 0
+    with tempfile.TemporaryDirectory(prefix="bench-real-") as tmp:
+        work = Path(tmp)
+        for si, s in enumerate(sets):
+            wh = read_image(s.files[0]).shape[1::-1]
+            cams_txt = write_cameras_txt(s.K, wh, work / f"cams_{si}")
+            f_ref = float(s.K[0, 0])
+            for variant in noise:
+                if variant == "noisy" and not s.add_noise and "clean" in noise:
+                    continue
+                folder = prepare(s, work, variant == "noisy")
+                label = f"{s.name}, {variant}" if s.add_noise else s.name
+                order = methods[k % len(methods):] + methods[:k % len(methods)]
+                k += 1
+                for m in order:
+                    if m == "ours":
+                        r = run_ours(label, "ours", folder, s.gt, f_ref, None, OURS)
+                    elif m == "ours_intr":
+                        r = run_ours(label, "ours --intrinsics", folder, s.gt, f_ref, cams_txt, OURS)
+                    else:
+                        r = run_pycolmap(label, m, folder, s.gt, f_ref)
+                    rows.append(r)
+                    print(r, file=sys.stderr, flush=True)
+                if "--no-colmap-pairs" not in sys.argv:
+                    n = colmap_verified_pairs(folder, sorted(s.gt))
+                    pair_counts.append((label, n))
+                    print(f"{label}: COLMAP exhaustive matching verifies {n} pairs", file=sys.stderr, flush=True)
+    load1 = os.getloadavg()
+    cpu = subprocess.run("lscpu | grep 'Model name'", shell=True, capture_output=True, text=True).stdout.strip()
+    cmd = "python benchmarks/bench_real.py " + " ".join(sys.argv[1:])
+    body = (f"Command: `{cmd.strip()}`. Machine: {cpu.split(':', 1)[-1].strip()}, {os.cpu_count()} cores; "
+            f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. Load average (1/5/15 min) at start "
+            f"{load0[0]:.2f}/{load0[1]:.2f}/{load0[2]:.2f}, at end {load1[0]:.2f}/{load1[1]:.2f}/{load1[2]:.2f}.\n\n"
+            "12 training views per set; `noisy` adds Gaussian noise sigma 25/255 (seed 0) to the clean 8-bit "
+            "images. Rotation errors are over all pairs of registered views (relative rotations, in deg); "
+            "ATE / scale is the RMSE of the camera centres after Sim(3) alignment over the RMS distance of the "
+            "reference centres to their centroid. `ours` is `mvgeo align` without the dense stereo (poses and "
+            "sparse points, as the mappers return); `pairs` is verified pairs / all pairs; `tracks` the bundle "
+            "adjustment's tracks (ours) or the model's points (pycolmap). See the script's docstring.\n\n")
+    body += md_table(["set", "method", "registered", "rot med (deg)", "rot max (deg)", "transl dir (deg)",
+                      "ATE / scale", "focal err %", "time (s)", "pairs", "tracks", "note"], rows)
+    if pair_counts:
+        body += ("\nVerified pairs of pycolmap's exhaustive matching (two-view geometries with >= 15 inliers, of "
+                 "66): " + ", ".join(f"{a}: {b}" for a, b in pair_counts) + "\n")
+    if missing:
+        body += "\nMissing (skipped): " + ", ".join(sorted(set(missing))) + "\n"
+    print(write_fragment(out_name, "Real photographs: mvgeo align vs pycolmap incremental and global", body))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,135 @@
+"""The working images of a run: the input photos upright (EXIF orientation) and downscaled once.
+
+`denoise-gs run --max-size N` (default 512, InstantSplat's working size) fixes the long side of
+the images every stage works on. Each input larger than that is resized once, with the area
+filter (each output pixel the mean of the input pixels it covers: no aliasing of noise or
+texture), and written as a 16-bit PNG into `OUT/inputs/`; smaller inputs are copied unchanged
+(8-bit values survive 16-bit PNG exactly). `OUT/inputs/sizes.json` keeps each view's input and
+working size, so the final cameras can also be written at the input resolution
+(`eval.pipeline.publish`).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from eval.pipeline.stage import StageContext
+from eval.pipeline.views import view_files, write_views
+from mvgeo.common.errors import InputError
+from mvgeo.common.imageio import read_image
+
+__all__ = ["SIZES_FILE", "WORKING_DIR", "prepare_inputs", "read_sizes", "resize_area",
+           "working_dataset", "working_size"]
+
+#: Folder of the working images inside OUT, and the sizes file inside it.
+WORKING_DIR = "inputs"
+SIZES_FILE = "sizes.json"
+
+
+def working_size(width: int, height: int, max_size: int | None) -> tuple[int, int]:
+    """(W, H) of the working image: unchanged when the long side is <= `max_size` (or None), else
+    scaled so the long side is `max_size`, the short side rounded (at least 1)."""
+    if max_size is None or max(width, height) <= max_size:
+        return int(width), int(height)
+    s = max_size / max(width, height)
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
+def resize_area(img: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
+    """(H, W, C) float image -> (h, w, C) with the area filter (`cv2.INTER_AREA`); unchanged when
+    the size already matches."""
+    from mvgeo.common.deps import cv2
+
+    w, h = size_wh
+    if img.shape[1] == w and img.shape[0] == h:
+        return img
+    if w > img.shape[1] or h > img.shape[0]:
+        raise ValueError(f"resize_area only downscales: {img.shape[1]}x{img.shape[0]} -> {w}x{h}")
+    return cv2.resize(np.ascontiguousarray(img, np.float32), (w, h), interpolation=cv2.INTER_AREA)
+
+
+def prepare_inputs(ctx: StageContext) -> Mapping[str, object]:
+    """Stage `inputs`: `ctx.inputs["noisy"]` -> `WORKING_DIR/<stem>.png` at the working size
+    (`ctx.settings["max_size"]`) and `WORKING_DIR/sizes.json`."""
+    max_size = ctx.settings["max_size"]
+    out = ctx.work_dir / WORKING_DIR
+    sizes: dict[str, dict[str, list[int]]] = {}
+    images = {}
+    for stem, path in view_files(Path(ctx.inputs["noisy"])).items():
+        img = read_image(path)
+        size = working_size(img.shape[1], img.shape[0], max_size)
+        images[stem] = resize_area(img, size)
+        sizes[stem] = {"input": [img.shape[1], img.shape[0]], "working": list(size)}
+    write_views(out, images)
+    (out / SIZES_FILE).write_text(json.dumps(sizes, indent=2) + "\n")
+    resized = sorted(s for s, v in sizes.items() if v["input"] != v["working"])
+    return {"max_size": max_size, "sizes": sizes, "resized": resized}
+
+
+def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int]]]:
+    """`sizes.json` -> stem -> {"input": (W, H), "working": (W, H)}.
+
+    Raises:
+        InputError: missing or malformed file.
+    """
+    path = Path(path)
+    try:
+        raw = json.loads(path.read_text())
+        return {stem: {k: (int(v[k][0]), int(v[k][1])) for k in ("input", "working")} for stem, v in raw.items()}
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        raise InputError(f"cannot read the working sizes ({exc})", path=path,
+                         fix="re-run with --force to rebuild OUT/inputs") from exc
+
+
+def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -> Path:
+    """An evaluation dataset (`images/`, `clean/`, `split.json`, `sparse/0/`) at the working size.
+
+    `folder` itself when no image's long side exceeds `max_size` (or `max_size` is None); else
+    `out/data/<name>_max<N>/`, made once (reused when complete): the noisy and clean images
+    downscaled with the area filter (16-bit PNG), the ground-truth cameras scaled to match
+    (`Camera.scaled`, poses unchanged), `split.json` copied. Other files of `folder` are not copied.
+
+    Raises:
+        InputError: an image whose size differs from its ground-truth camera's.
+    """
+    from mvgeo.sparse_model import SparseModel, read_sparse_model, write_sparse_model
+
+    folder, out = Path(folder), Path(out)
+    files = {part: view_files(folder / part) for part in ("images", "clean")}
+    sizes = {}
+    for part, views in files.items():
+        for stem, path in views.items():
+            img = read_image(path)
+            sizes[part, stem] = (img.shape[1], img.shape[0])
+    if max_size is None or all(max(s) <= max_size for s in sizes.values()):
+        return folder
+    target = out / "data" / f"{folder.name}_max{max_size}"
+    if (target / "split.json").is_file():
+        return target
+    gt = read_sparse_model(folder / "sparse" / "0")
+    cameras = {}
+    for im in gt.images:
+        cam, stem = gt.cameras[im.camera_id], Path(im.name).stem
+        for part in ("images", "clean"):
+            if (part, stem) in sizes and sizes[part, stem] != (cam.width, cam.height):
+                raise InputError(f"{part}/{stem} is {sizes[part, stem][0]}x{sizes[part, stem][1]} px but its "
+                                 f"ground-truth camera is {cam.width}x{cam.height}", path=folder / part,
+                                 fix="make the images and sparse/0 agree")
+        cameras[im.camera_id] = cam.scaled(*working_size(cam.width, cam.height, max_size))
+    tmp = target.with_name(f".{target.name}.tmp")
+    if tmp.exists():
+        import shutil
+
+        shutil.rmtree(tmp)
+    for part, views in files.items():
+        write_views(tmp / part, {stem: resize_area(read_image(p), working_size(*sizes[part, stem], max_size))
+                                 for stem, p in views.items()})
+    write_sparse_model(tmp / "sparse" / "0", SparseModel(cameras, gt.images, gt.points_xyz, gt.points_rgb),
+                       binary=False)
+    (tmp / "split.json").write_bytes((folder / "split.json").read_bytes())
+    tmp.replace(target)
+    return target

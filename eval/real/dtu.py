@@ -1,0 +1,102 @@
+"""DTU captures in the IDR / MonoSDF layout: `images/*.png` plus `cameras.npz`.
+
+`cameras.npz` holds, per view index i (the i-th image in sorted order),
+`world_mat_i` (4 x 4; its top 3 x 4 is the projection ``K [R | t]`` of the
+original 1600 x 1200 image, world units mm) and `scale_mat_i` (maps the unit
+sphere around the object to world coordinates). We use the normalised world
+(object inside the unit sphere): ``P = world_mat[:3] @ scale_mat``, decomposed
+into ``K [R | t]`` (OpenCV axes, pixel centres at integers as OpenCV's).
+
+Pixels: for MonoSDF's 384 x 384 images (a centre crop of 1200 x 1200, then a
+resize) K is mapped with ``u' = 0.32 (u - 200)``, ``v' = 0.32 v`` (the
+README's formula); for the original 1600 x 1200 images it is kept. Then +0.5
+px moves the principal point to our convention. The half-pixel conventions of
+the original crop are not documented.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from eval.real.capture import BoundingSphere, Capture, CaptureView, image_size_wh
+from mvgeo.camera import Camera
+from mvgeo.common.deps import cv2
+from mvgeo.common.errors import InputError
+
+__all__ = ["dtu_cameras", "read_dtu"]
+
+#: Original DTU pixels -> MonoSDF's 384 x 384 crop (both with pixel centres at integers).
+CROP_384 = np.array([[0.32, 0.0, -0.32 * 200.0], [0.0, 0.32, 0.0], [0.0, 0.0, 1.0]])
+
+
+def dtu_cameras(npz_path: Path, n: int, *, size_wh: tuple[int, int] = (384, 384)
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(K (3, 3) in our pixel convention for images of `size_wh`, cam_from_world (3, 4)) for views 0..n-1.
+
+    Raises:
+        InputError: a `world_mat_i` / `scale_mat_i` is missing or not 4 x 4, an unsupported image size,
+            or a projection that decomposes to a reflection.
+    """
+    npz_path = Path(npz_path)
+    if tuple(size_wh) == (384, 384):
+        to_pixels = CROP_384
+    elif tuple(size_wh) == (1600, 1200):
+        to_pixels = np.eye(3)
+    else:
+        raise InputError(f"DTU images are {size_wh[0]}x{size_wh[1]}; the cameras fit the original 1600x1200 "
+                         "images or MonoSDF's 384x384 crop", path=npz_path,
+                         fix="import the original or the 384x384 images and resize with --size / --max-size")
+    try:
+        data = np.load(npz_path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read cameras.npz ({exc})", path=npz_path) from exc
+    out = []
+    for i in range(n):
+        keys = (f"world_mat_{i}", f"scale_mat_{i}")
+        for key in keys:
+            if key not in data:
+                raise InputError(f"cameras.npz has no {key} (image {i} in sorted order)", path=npz_path,
+                                 fix="keep one world_mat_i / scale_mat_i per image in images/")
+            if data[key].shape != (4, 4):
+                raise InputError(f"{key} must be 4x4, got {data[key].shape}", path=npz_path)
+        P = (data[keys[0]].astype(np.float64) @ data[keys[1]].astype(np.float64))[:3]
+        K, R, c_h = cv2.decomposeProjectionMatrix(P)[:3]
+        K = K / K[2, 2]
+        if np.linalg.det(R) < 0:
+            raise InputError(f"view {i}: projection decomposes to a reflection", path=npz_path)
+        C = (c_h[:3] / c_h[3]).reshape(3)
+        K_px = to_pixels @ K
+        K_px[0, 2] += 0.5
+        K_px[1, 2] += 0.5
+        out.append((K_px, np.hstack([R, (-R @ C)[:, None]])))
+    return out
+
+
+def read_dtu(src: str | Path) -> Capture:
+    """Read a DTU scan folder (`images/*.png`, `cameras.npz`); the world is normalised by `scale_mat`.
+
+    Returns:
+        The capture; views in index order, named by the image stems; the bounding sphere is the unit
+        sphere.
+
+    Raises:
+        InputError: see `dtu_cameras`; also missing files or images of different sizes.
+    """
+    src = Path(src)
+    files = sorted((src / "images").glob("*.png")) if (src / "images").is_dir() else []
+    if not files or not (src / "cameras.npz").is_file():
+        raise InputError("not a DTU scan folder (needs images/*.png and cameras.npz)", path=src,
+                         fix="point at a folder in the IDR/MonoSDF layout (images/000000.png..., cameras.npz)")
+    sizes = {image_size_wh(f) for f in files}
+    if len(sizes) != 1:
+        raise InputError(f"the images have different sizes {sorted(sizes)}", path=src / "images")
+    (size_wh,) = sizes
+    cams = dtu_cameras(src / "cameras.npz", len(files), size_wh=size_wh)
+    views = [CaptureView(name=f.stem, image_path=f, camera=Camera.from_K(K, *size_wh), cam_from_world=cfw)
+             for f, (K, cfw) in zip(files, cams, strict=True)]
+    notes = ("DTU P = world_mat @ scale_mat decomposed; 384x384: u' = 0.32 (u - 200), v' = 0.32 v; "
+             "principal point + 0.5 px (OpenCV pixel centres)",)
+    return Capture(kind="dtu", source=src, views=views, world_units="DTU mm / scale_mat (object in the unit sphere)",
+                   sphere=BoundingSphere((0.0, 0.0, 0.0), 1.0), notes=notes)

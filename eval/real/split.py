@@ -1,0 +1,118 @@
+"""Train / held-out view splits for imported captures.
+
+Three rules, all deterministic:
+
+- `every_kth_split`: LLFF's convention (every K-th view, from the first, is
+  held out; the training views are spread over the rest);
+- `spread_split`: training views spread evenly over the index range,
+  held-out views midway between them;
+- `cluster_split`: the most alike views (by viewing direction), with
+  held-out views inside the training views.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mvgeo.common.errors import InputError
+
+__all__ = ["cluster_split", "every_kth_split", "spread_split"]
+
+
+def every_kth_split(n: int, test_every: int, train: int | None = None) -> tuple[list[int], list[int]]:
+    """Views ``0, K, 2K, ...`` held out; `train` views spread evenly over the others (all when None).
+
+    The sparse-view LLFF protocol (RegNeRF, FreeNeRF): ``test = i % K == 0``, training views at
+    ``round(linspace(0, len(rest) - 1, train))`` of the remaining ones.
+
+    Raises:
+        InputError: K < 2, or fewer remaining views than `train`.
+    """
+    if test_every < 2:
+        raise InputError(f"--test-every must be >= 2, got {test_every}")
+    te = list(range(0, n, test_every))
+    rest = [i for i in range(n) if i % test_every]
+    if train is None:
+        return rest, te
+    if train < 2 or train > len(rest):
+        raise InputError(f"{n} views with every {test_every}th held out leave {len(rest)} training candidates; "
+                         f"cannot take {train}", fix=f"ask for 2..{len(rest)} training views")
+    picks = np.unique(np.round(np.linspace(0, len(rest) - 1, train)).astype(int))
+    return [rest[int(k)] for k in picks], te
+
+
+def spread_split(n: int, train: int, test: int) -> tuple[list[int], list[int]]:
+    """`train` indices spread evenly over ``0..n-1`` and `test` others, also spread (midway between)."""
+    if train + test > n or train < 2 or test < 1:
+        raise InputError(f"cannot split {n} views into {train} training and {test} held-out views")
+    tr = [int(v) for v in np.unique(np.round(np.linspace(0, n - 1, train)).astype(int))]
+    rest = [i for i in range(n) if i not in tr]
+    te = [rest[int(v)] for v in np.unique(np.round(np.linspace(0, len(rest) - 1, test + 2)[1:-1]).astype(int))]
+    return tr, te
+
+
+def cluster_split(view_dirs_world: np.ndarray, train: int, test: int) -> tuple[list[int], list[int]]:
+    """The ``train + test`` views that look most alike, with interior held-out views.
+
+    The cluster is the ``train + test`` views whose viewing directions are closest (in angle) to the
+    mean viewing direction of all views. Held-out views are taken greedily from the cluster's centre
+    outwards. A view is held out when its training neighbours (within 1.5 times the cluster's median
+    nearest-neighbour angle; views already held out do not count) surround it: no gap of 150 deg or more
+    between their bearings around it, so that it lies inside the training views. Views with no held-out
+    neighbour are taken first, then any that are still surrounded.
+
+    Args:
+        view_dirs_world: (N, 3) unit viewing directions (camera +z axes in the world frame).
+        train, test: split sizes.
+
+    Returns:
+        (training indices, held-out indices), each sorted.
+
+    Raises:
+        InputError: the split does not fit, or the interior has too few views for `test`.
+    """
+    d = np.asarray(view_dirs_world, dtype=np.float64)
+    n = len(d)
+    if train + test > n or train < 2 or test < 1:
+        raise InputError(f"cannot split {n} views into {train} training and {test} held-out views")
+    mean = d.mean(axis=0)
+    mean /= np.linalg.norm(mean)
+    cluster = np.argsort(-(d @ mean), kind="stable")[: train + test]
+    dc = d[cluster]
+    centre = dc.mean(axis=0)
+    angle = np.arccos(np.clip(dc @ dc.T, -1.0, 1.0))
+    np.fill_diagonal(angle, np.inf)
+    neighbour = angle <= 1.5 * np.median(angle.min(axis=1))
+    order = np.argsort(-(dc @ centre), kind="stable")
+    held: list[int] = []
+    for apart in (True, False):  # first views with no held-out neighbour, then any that are still inside
+        for k in order:
+            if len(held) == test:
+                break
+            if k in held or (apart and neighbour[k, held].any()):
+                continue
+            train_near = [m for m in np.flatnonzero(neighbour[k]) if m not in held]
+            if _surrounded(dc[k], dc[train_near]):
+                held.append(int(k))
+    if len(held) < test:
+        raise InputError(f"a cluster of {train + test} views has room for only {len(held)} interior held-out "
+                         f"views (asked {test})", fix="hold out fewer views or train on more")
+    te = sorted(int(cluster[k]) for k in held)
+    tr = sorted(int(i) for i in cluster if int(i) not in te)
+    return tr, te
+
+
+def _surrounded(direction: np.ndarray, others: np.ndarray) -> bool:
+    """Whether the directions `others` (K, 3) surround `direction` (3,): all bearing gaps < 150 deg.
+
+    (< 180 deg would admit a view on the segment between two others, on the edge of their hull.)
+    """
+    if len(others) < 3:
+        return False
+    helper = np.eye(3)[int(np.argmin(np.abs(direction)))]
+    e1 = np.cross(direction, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(direction, e1)
+    bearing = np.sort(np.arctan2(others @ e2, others @ e1))
+    gaps = np.diff(np.concatenate([bearing, bearing[:1] + 2.0 * np.pi]))
+    return bool(gaps.max() < np.radians(150.0))

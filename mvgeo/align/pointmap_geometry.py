@@ -1,0 +1,71 @@
+"""Pointmap geometry shared by the global alignment (`mvgeo.align.global_align`) and its two
+initialisations (`init_from_spanning_tree` there, `mvgeo.align.pose_chain.init_from_pair_poses`):
+pixel rays, confidence-weighted Procrustes, the initial values `AlignInit` and each pair's
+similarity into the world. Conventions: docs/conventions.md.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mvgeo.align.pairs import PairPrediction
+from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.transforms import umeyama
+
+__all__ = ["AlignInit", "pair_similarities", "pixel_rays", "valid_pointmap_pixels", "weighted_umeyama"]
+
+
+def weighted_umeyama(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Confidence-weighted Procrustes with scale: (s, R, t) with dst ~ s R src + t (mvgeo.transforms.umeyama).
+
+    Raises:
+        DegenerateGeometryError: fewer than 3 weighted points, or a degenerate configuration.
+    """
+    if np.count_nonzero(w > 0) < 3:
+        raise DegenerateGeometryError("Procrustes needs at least 3 points with positive confidence")
+    sim = umeyama(src, dst, weights=w, with_scale=True)
+    if not sim.scale > 0:
+        raise DegenerateGeometryError("Procrustes gave a non-positive scale (all target points coincide)")
+    return float(sim.scale), sim.R, sim.t
+
+
+def pixel_rays(H: int, W: int, focal_px: float) -> np.ndarray:
+    """(H, W, 3) rays (x/z, y/z, 1) of the pixel centres, principal point at (W/2, H/2)."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
+    return np.stack([(u - W / 2.0) / focal_px, (v - H / 2.0) / focal_px, np.ones_like(u)], axis=-1)
+
+
+@dataclass
+class AlignInit:
+    """Initial values (numpy float64) for the optimisation."""
+
+    cam_from_world: np.ndarray  # (N, 3, 4)
+    focal_px: np.ndarray  # (N,)
+    depth: list[np.ndarray]  # (H_n, W_n)
+    pair_sim: list[tuple[float, np.ndarray, np.ndarray]]  # pair frame -> world
+
+
+def valid_pointmap_pixels(C: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """(H, W) mask of the pixels a pointmap can be trusted at: confidence above 1 and a finite point."""
+    return (C > 1.0) & np.all(np.isfinite(P), axis=-1)
+
+
+def pair_similarities(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], cam_from_world: np.ndarray,
+                      depth: Sequence[np.ndarray], focal_px: np.ndarray) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """Each pair's similarity (s, R, t): pair frame -> world, by weighted Procrustes against the posed depth maps."""
+    pair_sim = []
+    for p in preds:
+        src, dst, w = [], [], []
+        for v, P, C in ((p.i, p.pts_i, p.conf_i), (p.j, p.pts_j, p.conf_j)):
+            ok = valid_pointmap_pixels(C, P)
+            H, W = sizes_hw[v]
+            R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
+            x_cam = pixel_rays(H, W, float(focal_px[v])) * depth[v][..., None]
+            src.append(P[ok].astype(np.float64))
+            dst.append((x_cam[ok] - t) @ R)  # R^T (x - t)
+            w.append(np.log(C[ok]))
+        pair_sim.append(weighted_umeyama(np.concatenate(src), np.concatenate(dst), np.concatenate(w)))
+    return pair_sim

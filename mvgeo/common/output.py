@@ -1,0 +1,387 @@
+"""One output policy for every command that writes an `--out` folder.
+
+A command never destroys data it did not write. `prepare_output` decides, before
+any computation, what may happen at `--out`:
+
+- nothing there, or an empty folder: the output is written there;
+- a folder holding a previous output of the same command, recognised by the
+  manifest `OUT/.denoise-gs-output.json` that every command writes (command
+  name, package version, creation time): replaced with `overwrite=True`
+  (`--overwrite`), or, for the commands that resume inside their folder
+  (`resume=True`: `denoise-gs run`, `eval`, `cost`), reused;
+- anything else (a non-empty folder we did not write, a file, a broken
+  symbolic link, an output of another command) is refused with `InputError`
+  naming the path and the fix.
+
+It also refuses an `--out` that is, contains or lies inside an input (symbolic
+links and `..` resolved), and one whose nearest existing parent cannot be
+written (checked with `os.access` and a real probe folder, so a read-only
+parent fails at once, not after the computation). An existing folder that is
+the current directory is written into only when empty (it is never renamed);
+replacing a previous output there is refused (run from another folder).
+
+`mvgeo.common.atomic.atomic_output_dir(plan)` then writes the folder
+atomically and `resumable_output_dir(plan)` opens a resumable one.
+This module imports only the standard library.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fnmatch
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from mvgeo.common.errors import InputError
+
+__all__ = [
+    "LOCK_NAME",
+    "MANIFEST_NAME",
+    "OUT_HELP",
+    "OUT_RESUME_HELP",
+    "OVERWRITE_HELP",
+    "OutputPlan",
+    "as_output_plan",
+    "prepare_output",
+    "prepare_output_file",
+    "read_manifest",
+    "resumable_output_dir",
+    "write_manifest",
+]
+
+#: The manifest every command writes at the top of its output folder.
+MANIFEST_NAME = ".denoise-gs-output.json"
+#: The lock file of a resumable output folder (`eval.pipeline.lock`); a folder holding only this
+#: file (left by a run that was killed) counts as empty.
+LOCK_NAME = ".denoise-gs.lock"
+MANIFEST_FORMAT = 1
+
+#: `--out` / `--overwrite` help texts of the commands that replace their output folder.
+OUT_HELP = ("output folder: a new or empty one (written there; `.` works only when the current folder is "
+            "empty), or a previous output of this command with --overwrite; anything else is refused")
+OVERWRITE_HELP = "replace --out when it holds a previous output of this same command (nothing else is ever replaced)"
+#: `--out` help text of the commands that resume inside their output folder.
+OUT_RESUME_HELP = ("output folder (resumable): a new or empty one, or a previous output of this command, which is "
+                   "resumed; a folder holding anything else is refused")
+
+OutputState = Literal["absent", "empty", "previous"]
+
+
+@dataclass(frozen=True)
+class OutputPlan:
+    """What `prepare_output` found at `--out` and what may be done there.
+
+    Attributes:
+        out: the path as the user gave it (used in messages).
+        path: absolute path with symbolic links and `..` resolved: where the files go.
+        command: the command writing it, e.g. ``"mvgeo align"``.
+        state: ``"absent"`` (nothing there), ``"empty"`` (an empty folder) or ``"previous"``
+            (a previous output of `command`, to replace or resume).
+        overwrite: a previous output may be replaced.
+        resume: the command resumes inside the folder instead of replacing it.
+        inputs: the resolved input paths (checked again when the output is committed).
+        layout: for resumable commands, name patterns of the entries the command writes; a
+            folder holding only such entries (and no manifest) counts as a previous output.
+    """
+
+    out: Path
+    path: Path
+    command: str
+    state: OutputState
+    overwrite: bool = False
+    resume: bool = False
+    inputs: tuple[Path, ...] = ()
+    layout: tuple[str, ...] = ()
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("denoise-gs")
+    except Exception:  # not installed (running from a checkout)
+        return "0+unknown"
+
+
+def write_manifest(folder: str | Path, command: str) -> Path:
+    """Write `folder/.denoise-gs-output.json`: ``{"command", "version", "created_utc", "format"}``."""
+    path = Path(folder) / MANIFEST_NAME
+    data = {"command": command, "version": _version(),
+            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "format": MANIFEST_FORMAT}
+    tmp = path.with_name(f"{MANIFEST_NAME}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def read_manifest(folder: str | Path) -> dict | None:
+    """The manifest of `folder`, or None when it has none or it cannot be parsed."""
+    try:
+        data = json.loads((Path(folder) / MANIFEST_NAME).read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and isinstance(data.get("command"), str) else None
+
+
+def _resolve(p: str | Path) -> Path:
+    return Path(os.path.abspath(os.fspath(p))).resolve()
+
+
+def _relation(out: Path, inp: Path) -> str | None:
+    if out == inp:
+        return "is"
+    if out in inp.parents:
+        return "contains"
+    if inp in out.parents:
+        return "is inside"
+    return None
+
+
+def _check_inputs(plan_out: Path, path: Path, inputs: Iterable[str | Path | None]) -> tuple[Path, ...]:
+    resolved = []
+    for inp in inputs:
+        if inp is None or os.fspath(inp) == "":
+            continue
+        ip = _resolve(inp)
+        resolved.append(ip)
+        rel = _relation(path, ip)
+        if rel is not None:
+            what = {"is": "is the input", "contains": "contains the input", "is inside": "is inside the input"}[rel]
+            raise InputError(f"--out {what} '{inp}'", path=plan_out,
+                             fix="write the output to a separate folder, outside every input")
+    return tuple(resolved)
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not os.path.lexists(p):
+        if p.parent == p:
+            break
+        p = p.parent
+    return p
+
+
+def _check_writable(folder: Path, plan_out: Path) -> None:
+    """`folder` (an existing path) must be a folder we can create entries in."""
+    if not folder.is_dir():
+        raise InputError(f"cannot create the output: {folder} is not a folder", path=plan_out,
+                         fix="choose an --out whose parent is a folder")
+    problem = None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        problem = "permission denied"
+    else:
+        try:
+            probe = tempfile.mkdtemp(prefix=".denoise-gs-probe-", dir=folder)
+        except OSError as exc:
+            problem = exc.strerror or str(exc)
+        else:
+            os.rmdir(probe)
+    if problem is not None:
+        raise InputError(f"cannot write the output: {folder} is not writable ({problem})", path=plan_out,
+                         fix="choose an --out in a folder you can write to")
+
+
+def _entries(folder: Path, *, resume: bool) -> list[str]:
+    names = os.listdir(folder)
+    return [n for n in names if not (resume and n == LOCK_NAME)]
+
+
+def _is_cwd_or_ancestor(path: Path) -> bool:
+    try:
+        cwd = _resolve(os.getcwd())
+    except OSError:
+        return False
+    return path == cwd or path in cwd.parents
+
+
+def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path | None] = (),
+                   overwrite: bool = False, resume: bool = False, layout: Iterable[str] = ()) -> OutputPlan:
+    """Check `out` against the output policy (module docstring) before any work; create nothing.
+
+    Args:
+        out: the `--out` folder.
+        command: the command's name as the user types it, e.g. ``"splat render"``.
+        inputs: every input file or folder of the command (None entries are skipped).
+        overwrite: a previous output of `command` at `out` may be replaced (`--overwrite`).
+        resume: the command resumes inside `out` (a previous output is reused, never replaced).
+        layout: resumable commands only: name patterns (`fnmatch`) of the entries the command
+            writes at the top of `out`; a folder without manifest holding only such entries is
+            taken as a previous output (e.g. one written before manifests existed).
+
+    Returns:
+        The plan for `atomic_output_dir` / `resumable_output_dir`.
+
+    Raises:
+        InputError: `out` is refused; the message names the path and the fix.
+    """
+    if os.fspath(out).strip() == "":
+        raise InputError("--out is empty", fix="pass an output folder")
+    out = Path(out)
+    if out.is_symlink() and not out.exists():
+        raise InputError("--out is a broken symbolic link", path=out,
+                         fix="remove the link or choose another --out")
+    path = _resolve(out)
+    resolved_inputs = _check_inputs(out, path, inputs)
+    layout = tuple(layout)
+    state: OutputState
+    if os.path.lexists(path) and not path.is_dir():
+        raise InputError("--out exists and is not a folder", path=out,
+                         fix="choose another --out (a new or empty folder), or remove the file yourself")
+    if not path.is_dir():
+        state = "absent"
+        _check_writable(_nearest_existing(path.parent), out)
+    else:
+        try:
+            entries = _entries(path, resume=resume)
+        except OSError as exc:
+            raise InputError(f"cannot read the output folder ({exc.strerror or exc})", path=out,
+                             fix="choose another --out") from None
+        manifest = read_manifest(path)
+        if not entries:
+            state = "empty"
+        elif manifest is not None and manifest["command"] == command:
+            state = "previous"
+        elif manifest is not None:
+            raise InputError(f"--out holds the output of `{manifest['command']}`, not of `{command}`", path=out,
+                             fix="choose another --out (a new or empty folder)")
+        elif resume and layout and all(any(fnmatch.fnmatchcase(n, pat) for pat in layout) for n in entries):
+            state = "previous"
+        else:
+            shown = ", ".join(repr(n) for n in sorted(entries)[:3]) + (", ..." if len(entries) > 3 else "")
+            raise InputError(f"--out is a folder that holds files `{command}` did not write ({shown})", path=out,
+                             fix="choose a new or empty folder for --out; nothing was changed")
+        if state == "previous" and not resume:
+            if not overwrite:
+                raise InputError(f"--out holds a previous output of `{command}`", path=out,
+                                 fix="pass --overwrite (overwrite=True in Python) to replace it, or choose "
+                                     "another --out")
+            if _is_cwd_or_ancestor(path):
+                raise InputError("--out is the current folder (or holds it); a previous output there cannot be "
+                                 "replaced while it is in use", path=out,
+                                 fix="run the command from another folder (e.g. `cd ..`), or choose another --out")
+        # Replacing renames `path` inside its parent; writing into an empty or resumed folder creates
+        # entries inside `path` itself.
+        _check_writable(path.parent if state == "previous" and not resume else path, out)
+    return OutputPlan(out=out, path=path, command=command, state=state, overwrite=overwrite, resume=resume,
+                      inputs=resolved_inputs, layout=layout)
+
+
+def as_output_plan(out: OutputPlan | str | Path, *, command: str, overwrite: bool = False) -> OutputPlan:
+    """`out` itself when it is a plan for `command`, else `prepare_output(out, command=..., overwrite=...)`.
+
+    The library writers (`write_align_result`, `write_dataset`, ...) accept either: a plan made by
+    their command line up front, or a path, checked here (by default an existing output is refused).
+    """
+    if isinstance(out, OutputPlan):
+        if out.command != command:
+            raise ValueError(f"output plan of {out.command!r} passed to a writer of {command!r}")
+        return out
+    return prepare_output(out, command=command, overwrite=overwrite)
+
+
+def recheck(plan: OutputPlan) -> OutputPlan:
+    """The plan made again just before writing: what is at `--out` may have changed during the work."""
+    return prepare_output(plan.out, command=plan.command, inputs=plan.inputs, overwrite=plan.overwrite,
+                          resume=plan.resume, layout=plan.layout)
+
+
+def make_dirs(path: Path) -> list[Path]:
+    """`mkdir -p path`; return the folders created, deepest last."""
+    missing = []
+    p = path
+    while not os.path.lexists(p):
+        missing.append(p)
+        p = p.parent
+    created = []
+    for d in reversed(missing):
+        try:
+            d.mkdir()
+        except FileExistsError:
+            continue
+        created.append(d)
+    return created
+
+
+def remove_empty_dirs(created: list[Path]) -> None:
+    """Remove the folders of `make_dirs` that are still empty, deepest first."""
+    for d in reversed(created):
+        try:
+            d.rmdir()
+        except OSError:
+            break
+
+
+@contextlib.contextmanager
+def resumable_output_dir(plan: OutputPlan) -> Iterator[Path]:
+    """Open the resumable output folder of `plan` (created if needed, manifest written) and yield it.
+
+    When the block raises and the folder holds nothing but what this call added (the manifest, a
+    lock file), that is removed again: a failed first run leaves no empty `--out` behind.
+    """
+    if not plan.resume:
+        raise ValueError("resumable_output_dir needs a plan made with resume=True")
+    plan = recheck(plan)
+    created = make_dirs(plan.path)
+    wrote_manifest = False
+    try:
+        if read_manifest(plan.path) is None:
+            write_manifest(plan.path, plan.command)
+            wrote_manifest = True
+    except OSError as exc:
+        remove_empty_dirs(created)
+        raise InputError(f"cannot write the output folder ({exc.strerror or exc})", path=plan.out,
+                         fix="choose an --out in a folder you can write to") from None
+    try:
+        yield plan.path
+    except BaseException:
+        if wrote_manifest:
+            with contextlib.suppress(OSError):
+                if set(os.listdir(plan.path)) <= {MANIFEST_NAME, LOCK_NAME}:
+                    (plan.path / MANIFEST_NAME).unlink(missing_ok=True)
+                    remove_empty_dirs(created)
+        raise
+
+
+def prepare_output_file(out: str | Path, *, inputs: Iterable[str | Path | None] = (),
+                        overwrite: bool = False) -> Path:
+    """The policy for a single output file (e.g. `denoise select --out FILE`); return its resolved path.
+
+    A folder at `out` is refused; an existing file only without `overwrite`; the file must not be
+    an input or lie inside one; its nearest existing parent must be writable. Creates nothing.
+
+    Raises:
+        InputError: naming the path and the fix.
+    """
+    if os.fspath(out).strip() == "":
+        raise InputError("--out is empty", fix="pass an output file")
+    out = Path(out)
+    if out.is_symlink() and not out.exists():
+        raise InputError("--out is a broken symbolic link", path=out, fix="remove the link or choose another --out")
+    path = _resolve(out)
+    _check_inputs(out, path, inputs)
+    if path.is_dir():
+        raise InputError("--out is a folder; it must name a file", path=out,
+                         fix=f"pass a file name, e.g. --out {out / 'selection.json'}")
+    if os.path.lexists(path):
+        if not overwrite:
+            raise InputError("--out already exists", path=out,
+                             fix="pass --overwrite to replace it, or choose another --out")
+        _check_writable(path.parent, out)
+    else:
+        _check_writable(_nearest_existing(path.parent), out)
+    return path
+
+
+def remove_tree(path: Path) -> None:
+    """`rm -rf path` that never raises (used on error paths)."""
+    shutil.rmtree(path, ignore_errors=True)

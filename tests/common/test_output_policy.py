@@ -1,0 +1,264 @@
+"""The output policy (`mvgeo.common.output`) and the atomic folder writer on top of it."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from mvgeo.common.atomic import atomic_output_dir, atomic_write_text
+from mvgeo.common.errors import InputError
+from mvgeo.common.output import (
+    LOCK_NAME,
+    MANIFEST_NAME,
+    prepare_output,
+    prepare_output_file,
+    read_manifest,
+    resumable_output_dir,
+    write_manifest,
+)
+
+CMD = "tool write"
+
+
+def _tree(root):
+    """Relative path -> bytes (None for folders, "-> target" for links) of everything under `root`."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = os.path.join(dirpath, name)
+            if os.path.islink(p):
+                content = "-> " + os.readlink(p)
+            elif os.path.isdir(p):
+                content = None
+            else:
+                with open(p, "rb") as f:
+                    content = f.read()
+            out[os.path.relpath(p, root)] = content
+    return out
+
+
+def _temporaries(root):
+    return [p for p in _tree(root) if ".tmp-" in p or ".old-" in p or "probe" in p]
+
+
+def _write(out, *, command=CMD, overwrite=False, files=("a.txt",)):
+    with atomic_output_dir(prepare_output(out, command=command, overwrite=overwrite)) as tmp:
+        for name in files:
+            (tmp / name).write_text(name)
+
+
+def test_new_folder_gets_the_outputs_and_a_manifest(tmp_path):
+    out = tmp_path / "a" / "b" / "out"  # missing parents are created
+    _write(out)
+    assert sorted(os.listdir(out)) == [MANIFEST_NAME, "a.txt"]
+    m = json.loads((out / MANIFEST_NAME).read_text())
+    assert m["command"] == CMD and m["version"] and m["created_utc"].endswith("Z")
+    assert not _temporaries(tmp_path)
+
+
+def test_empty_folder_is_written_in_place(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    inode = out.stat().st_ino
+    _write(out)
+    assert out.stat().st_ino == inode  # filled, not renamed or replaced
+    assert sorted(os.listdir(out)) == [MANIFEST_NAME, "a.txt"]
+
+
+def test_foreign_folder_file_and_links_are_refused_untouched(tmp_path):
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "thesis.tex").write_text("x")
+    afile = tmp_path / "file.txt"
+    afile.write_text("mine")
+    link_dir = tmp_path / "link_dir"
+    link_dir.symlink_to(user)
+    broken = tmp_path / "broken"
+    broken.symlink_to(tmp_path / "nowhere")
+    before = _tree(tmp_path)
+    for out, needle in ((user, "did not write"), (afile, "not a folder"), (link_dir, "did not write"),
+                        (broken, "broken symbolic link")):
+        for overwrite in (False, True):
+            with pytest.raises(InputError, match=needle) as exc:
+                prepare_output(out, command=CMD, overwrite=overwrite)
+            assert str(out) in str(exc.value) and "fix:" in str(exc.value)
+    assert _tree(tmp_path) == before
+    assert broken.is_symlink() and link_dir.is_symlink()
+
+
+def test_previous_output_needs_overwrite_and_the_same_command(tmp_path):
+    out = tmp_path / "out"
+    _write(out, files=("old.txt",))
+    with pytest.raises(InputError, match="previous output") as exc:
+        prepare_output(out, command=CMD)
+    assert "--overwrite" in str(exc.value)
+    with pytest.raises(InputError, match="output of `tool write`, not of `other cmd`"):
+        prepare_output(out, command="other cmd", overwrite=True)
+    _write(out, overwrite=True, files=("new.txt",))
+    assert sorted(os.listdir(out)) == [MANIFEST_NAME, "new.txt"]
+    assert not _temporaries(tmp_path)
+    # a symbolic link to a previous output: the folder it names is replaced, the link kept
+    link = tmp_path / "link"
+    link.symlink_to(out)
+    _write(link, overwrite=True, files=("third.txt",))
+    assert link.is_symlink() and sorted(os.listdir(link)) == [MANIFEST_NAME, "third.txt"]
+
+
+def test_corrupt_manifest_counts_as_foreign(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / MANIFEST_NAME).write_text("{not json")
+    (out / "data.bin").write_bytes(b"1")
+    with pytest.raises(InputError, match="did not write"):
+        prepare_output(out, command=CMD, overwrite=True)
+
+
+@pytest.mark.parametrize("where", ["equal", "inside", "contains", "dotdot", "symlink"])
+def test_out_overlapping_an_input_is_refused(tmp_path, where):
+    data = tmp_path / "data"
+    (data / "images").mkdir(parents=True)
+    (data / "images" / "v.png").write_bytes(b"png")
+    (tmp_path / "alias").symlink_to(data / "images")
+    inp = data / "images"
+    out = {"equal": inp, "inside": inp / "out", "contains": data,
+           "dotdot": data / "images" / ".." / "images", "symlink": tmp_path / "alias"}[where]
+    before = _tree(tmp_path)
+    with pytest.raises(InputError, match="--out (is|contains|is inside) the input"):
+        prepare_output(out, command=CMD, inputs=[inp], overwrite=True)
+    assert _tree(tmp_path) == before
+
+
+def test_current_folder(tmp_path, monkeypatch):
+    cwd = tmp_path / "work"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    _write(".")  # empty: written into, never renamed
+    assert sorted(os.listdir(cwd)) == [MANIFEST_NAME, "a.txt"] and os.getcwd() == str(cwd)
+    with pytest.raises(InputError, match="current folder"):  # replacing it would rename the cwd
+        prepare_output(".", command=CMD, overwrite=True)
+    before = _tree(tmp_path)
+    (cwd / "sub").mkdir()
+    monkeypatch.chdir(cwd / "sub")
+    with pytest.raises(InputError, match="current folder"):  # an ancestor of the cwd
+        prepare_output("..", command=CMD, overwrite=True)
+    (cwd / "sub").rmdir()
+    assert _tree(tmp_path) == before
+
+
+def test_read_only_parent_fails_before_any_work(tmp_path, monkeypatch):
+    # Running as root ignores permission bits, so `chmod` cannot make a folder read-only here; the
+    # check is exercised through `os.access`, which is what it consults first.
+    parent = tmp_path / "ro"
+    parent.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if os.fspath(p) == str(parent)
+                        else real_access(p, mode, **kw))
+    with pytest.raises(InputError, match="not writable") as exc:
+        prepare_output(parent / "a" / "out", command=CMD)  # nearest existing parent: ro
+    assert "fix:" in str(exc.value)
+    with pytest.raises(InputError, match="not writable"):
+        prepare_output_file(parent / "sel.json")
+    assert os.listdir(parent) == []
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores permission bits: chmod cannot make a folder read-only")
+def test_read_only_parent_by_chmod(tmp_path):
+    parent = tmp_path / "ro"
+    parent.mkdir()
+    parent.chmod(0o555)
+    try:
+        with pytest.raises(InputError, match="not writable"):
+            prepare_output(parent / "out", command=CMD)
+    finally:
+        parent.chmod(0o755)
+
+
+def test_parent_that_is_a_file(tmp_path):
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(InputError, match="is not a folder"):
+        prepare_output(tmp_path / "f" / "out", command=CMD)
+
+
+def test_error_in_the_block_leaves_nothing(tmp_path):
+    out = tmp_path / "new" / "deeper" / "out"
+    with pytest.raises(RuntimeError), atomic_output_dir(prepare_output(out, command=CMD)) as tmp:
+        (tmp / "half.txt").write_text("1")
+        raise RuntimeError("boom")
+    assert os.listdir(tmp_path) == []  # the parents it created are gone too
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(RuntimeError), atomic_output_dir(prepare_output(empty, command=CMD)) as tmp:
+        (tmp / "half.txt").write_text("1")
+        raise RuntimeError("boom")
+    assert os.listdir(empty) == []
+
+
+def test_something_appearing_at_out_during_the_work_is_kept(tmp_path):
+    out = tmp_path / "out"
+    plan = prepare_output(out, command=CMD)
+    with pytest.raises(InputError, match="did not write"), atomic_output_dir(plan) as tmp:
+        (tmp / "a.txt").write_text("1")
+        out.mkdir()
+        (out / "user.txt").write_text("user")
+    assert sorted(os.listdir(tmp_path)) == ["out"] and os.listdir(out) == ["user.txt"]
+
+
+def test_resumable_folder(tmp_path):
+    out = tmp_path / "o" / "x"
+    plan = prepare_output(out, command="run cmd", resume=True)
+    with pytest.raises(InputError), resumable_output_dir(plan) as path:
+        assert read_manifest(path)["command"] == "run cmd"
+        raise InputError("bad scene file")
+    assert os.listdir(tmp_path) == []  # a failed first run leaves no empty folder behind
+    with resumable_output_dir(prepare_output(out, command="run cmd", resume=True)) as path:
+        (path / "round1").mkdir()
+    plan = prepare_output(out, command="run cmd", resume=True)  # resumed without --overwrite
+    assert plan.state == "previous"
+    with pytest.raises(InputError), resumable_output_dir(plan):
+        raise InputError("later failure")
+    assert sorted(os.listdir(out)) == [MANIFEST_NAME, "round1"]  # a resumed folder is kept
+    with pytest.raises(InputError, match="not of `other cmd`"):
+        prepare_output(out, command="other cmd", resume=True)
+
+
+def test_resumable_layout_and_leftover_lock(tmp_path):
+    old = tmp_path / "old"
+    (old / "round1").mkdir(parents=True)
+    (old / "report.md").write_text("r")
+    assert prepare_output(old, command="run cmd", resume=True, layout=("round[0-9]*", "report.md")).state == "previous"
+    (old / "thesis.tex").write_text("x")
+    with pytest.raises(InputError, match="thesis.tex"):
+        prepare_output(old, command="run cmd", resume=True, layout=("round[0-9]*", "report.md"))
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    (locked / LOCK_NAME).write_text("123")
+    assert prepare_output(locked, command="run cmd", resume=True).state == "empty"
+
+
+def test_output_file_policy(tmp_path):
+    (tmp_path / "dir").mkdir()
+    with pytest.raises(InputError, match="is a folder"):
+        prepare_output_file(tmp_path / "dir")
+    f = tmp_path / "sel.json"
+    f.write_text("{}")
+    with pytest.raises(InputError, match="--overwrite"):
+        prepare_output_file(f)
+    assert prepare_output_file(f, overwrite=True) == f.resolve()
+    with pytest.raises(InputError, match="is inside the input"):
+        prepare_output_file(tmp_path / "dir" / "s.json", inputs=[tmp_path / "dir"])
+
+
+def test_atomic_write_text_leaves_no_temporary_on_failure(tmp_path):
+    (tmp_path / "d").mkdir()
+    with pytest.raises(IsADirectoryError):
+        atomic_write_text(tmp_path / "d", "x")
+    assert os.listdir(tmp_path) == ["d"] and os.listdir(tmp_path / "d") == []
+
+
+def test_manifest_roundtrip_and_garbage(tmp_path):
+    write_manifest(tmp_path, "a b")
+    assert read_manifest(tmp_path)["command"] == "a b"
+    (tmp_path / MANIFEST_NAME).write_text(json.dumps({"command": 3}))
+    assert read_manifest(tmp_path) is None

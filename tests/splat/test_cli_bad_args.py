@@ -1,0 +1,70 @@
+"""`splat train|render` refuse bad numeric options and devices before any work: exit 2, no traceback,
+inputs byte-identical, no output or temporary folder left."""
+
+import pytest
+import torch
+
+from splat.cli import main
+from tests.common.cli_contract import assert_refused
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from data_synth import render_scene
+
+    return render_scene("llff_like", tmp_path_factory.mktemp("data") / "llff", size_wh=(64, 48), views=3)
+
+
+@pytest.fixture
+def no_cuda(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+
+
+@pytest.fixture
+def no_training(monkeypatch):
+    """Any training or rendering means the check came too late."""
+    import splat.cli
+
+    def fail(*args, **kwargs):
+        raise AssertionError("work started before the options were checked")
+
+    monkeypatch.setattr(splat.cli, "train_gaussians", fail)
+    monkeypatch.setattr(splat.cli, "render_views", fail)
+
+
+@pytest.mark.parametrize(("option", "value"), [
+    ("--depth-stride", "0"), ("--depth-stride", "-2"), ("--iters", "0"), ("--iters", "-1"), ("--iters", "ten"),
+    ("--seed", "-1")])
+def test_train_numeric_options(dataset, tmp_path, capsys, option, value):
+    out = tmp_path / "out"
+    assert_refused(main, ["train", dataset, "--out", out, "--init", "depth", option, value], capsys,
+                   inputs=[dataset], watch=[tmp_path, dataset.parent], message=f"argument {option}")
+
+
+@pytest.mark.parametrize(("device", "message"), [("banana", "unknown device"), ("cudaa", "unknown device"),
+                                                 ("cuda", "CUDA is not available"),
+                                                 ("cuda:1", "CUDA is not available")])
+def test_train_device_is_checked_first(dataset, tmp_path, capsys, no_cuda, no_training, device, message):
+    out = tmp_path / "out"
+    assert_refused(main, ["train", dataset, "--out", out, "--init", "depth", "--iters", "2", "--device", device],
+                   capsys, inputs=[dataset], watch=[tmp_path, dataset.parent], message=["--device", message])
+
+
+def test_render_device_is_checked_first(dataset, tmp_path, capsys, no_cuda, no_training):
+    model = tmp_path / "model.ply"
+    model.write_bytes(b"ply\n")  # never read: the device is refused first
+    out = tmp_path / "renders"
+    assert_refused(main, ["render", model, "--cameras", dataset / "sparse" / "0", "--out", out, "--device", "cuda"],
+                   capsys, inputs=[dataset, model], watch=[tmp_path], message="CUDA is not available")
+
+
+def test_render_cuda_index_beyond_the_gpus(dataset, tmp_path, capsys, monkeypatch, no_training):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    model = tmp_path / "model.ply"
+    model.write_bytes(b"ply\n")
+    out = tmp_path / "renders"
+    assert_refused(main, ["render", model, "--cameras", dataset / "sparse" / "0", "--out", out,
+                          "--device", "cuda:3"], capsys, inputs=[dataset, model], watch=[tmp_path],
+                   message="1 CUDA device")
