@@ -122,12 +122,14 @@ def method_pipeline_config(method: str, base: PipelineConfig) -> tuple[str, Pipe
     """(pipeline folder family, config) of a pipeline-based method; round count = config.rounds.
 
     Methods of one family differ only in the number of rounds, so they share a folder and its stages.
-    Only the `*_fused` methods fuse (`PipelineConfig.fuse_noisy_splat`); every other method runs
-    without it, whatever the preset says, so that (d), (e), the ablations and the baselines stay the
-    paper's.
+    Only the `*_fused` methods fuse (`PipelineConfig.fuse_noisy_splat`) and hand round 1's geometry to a
+    round 2 whose own alignment pins the views less well (`AlignSettings.reuse_geometry`); every other
+    method runs without either, whatever the preset says, so that (d), (e), the ablations and the
+    baselines stay the paper's.
     """
     fused = method in ("n2v_fused_round1", "denoise_gs_fused")
-    base = dataclasses.replace(base, fuse_noisy_splat=fused)
+    base = dataclasses.replace(base, fuse_noisy_splat=fused,
+                               align=dataclasses.replace(base.align, reuse_geometry="auto" if fused else "never"))
     if method.startswith("rounds_"):
         return "n2v", dataclasses.replace(base, rounds=int(method.split("_")[1]))
     if method in ("n2v_round1", "denoise_gs"):

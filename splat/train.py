@@ -270,7 +270,8 @@ def _train(images, cameras, cam_from_world, init_points_xyz, init_points_rgb, cf
                 on_step(step + 1, model)
 
     with torch.no_grad():
-        final = se3_exp(deltas.detach().double() * pose_mask.double()) @ homogeneous(torch.as_tensor(poses))
+        # The pose deltas live on the training device; the poses are float64 on the CPU.
+        final = se3_exp(deltas.detach().double().cpu() * pose_mask.double().cpu()) @ homogeneous(torch.as_tensor(poses))
     _log.info("trained %d Gaussians for %d steps in %.1f s", model.num_gaussians, cfg.iters,
               time.perf_counter() - start)
     return TrainResult(model=model, cam_from_world_optimized=final[:, :3].cpu().numpy(), history=history,

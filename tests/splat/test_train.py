@@ -122,3 +122,18 @@ def test_cli_input_errors(tmp_path, scene, capsys):
     assert main(["train", str(tmp_path / "bad"), "--out", str(tmp_path / "o3")]) == 2
     assert not (tmp_path / "o3").exists()
     assert main(["render", str(tmp_path / "missing"), "--cameras", str(tmp_path), "--out", str(tmp_path / "r")]) == 2
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the CPU path is tested above)")
+def test_cli_train_and_render_on_cuda(tmp_path, scene):
+    # Training with pose optimisation on CUDA used to fail at its last step (pose deltas on the GPU,
+    # poses on the CPU); the optimised poses come back as CPU float64 like on the CPU path.
+    _write_dataset(tmp_path / "data", scene)
+    out = tmp_path / "out"
+    assert main(["train", str(tmp_path / "data"), "--out", str(out), "--iters", "15", "--optimize-poses",
+                 "--device", "cuda"]) == 0
+    assert (out / "point_cloud.ply").is_file()
+    assert main(["render", str(out), "--cameras", str(tmp_path / "data" / "sparse" / "0"),
+                 "--out", str(tmp_path / "renders"), "--device", "cuda"]) == 0
+    assert len(list((tmp_path / "renders").glob("*.png"))) == len(scene["poses"])
