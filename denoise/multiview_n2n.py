@@ -36,11 +36,10 @@ import torch
 
 from denoise.images import images_to_tensors
 from denoise.model import N2VModel
-from denoise.n2v import N2VConfig, lr_factor, masked_mse, new_model
+from denoise.n2v import N2VConfig, masked_mse, new_model, optimise_unet
 from denoise.patches import effective_patch_px, sample_patches
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import ConfigError, InputError, ShapeError
-from mvgeo.common.progress import progress_bar
 
 _log = logging.getLogger(__name__)
 
@@ -230,24 +229,10 @@ def train_multiview_n2n(images: Sequence[np.ndarray], targets: Sequence[tuple[np
     paired = [torch.cat([(torch.from_numpy(np.ascontiguousarray(tgt.transpose(2, 0, 1))) - mean) / std,
                          torch.from_numpy((cnt > 0).astype(np.float32))[None]], dim=0).to(device)
               for tgt, cnt in targets]
-    unet = model.unet
-    unet.train()
-    opt = torch.optim.Adam(unet.parameters(), lr=config.lr)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: lr_factor(s, steps=config.steps, warmup_frac=config.warmup_frac,
-                                 min_lr_frac=config.min_lr_frac))
-    with progress_bar(desc="multiview-n2n", total=config.steps) as bar:
-        for _ in range(config.steps):
-            batch, extra = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
-                                          paired=paired, augment=config.augment)
-            out = batch + model.alpha * unet(batch)
-            loss = masked_mse(out, extra[:, :3], extra[:, 3:4] > 0.5)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            model.history.append(loss.item())
-            bar.update(1)
-            bar.set_postfix(loss=f"{model.history[-1]:.4f}")
-    unet.eval()
-    return model
+    def step_loss(step: int) -> torch.Tensor:
+        batch, extra = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
+                                      paired=paired, augment=config.augment)
+        out = batch + model.alpha * model.unet(batch)
+        return masked_mse(out, extra[:, :3], extra[:, 3:4] > 0.5)
+
+    return optimise_unet(model, config, step_loss, desc="multiview-n2n")

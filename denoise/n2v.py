@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -238,20 +238,32 @@ def train_n2v(images: Sequence[np.ndarray], config: N2VConfig | None = None, *, 
     mean = torch.tensor(model.mean).reshape(3, 1, 1)
     std = torch.tensor(model.std).reshape(3, 1, 1)
     normed = [((t - mean) / std).to(device) for t in tensors]
+    def blind_spot_loss(step: int) -> torch.Tensor:
+        batch, _ = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
+                                  augment=config.augment)
+        mb = mask_pixels(batch, p=config.mask_prob, replacement=config.replacement, radius=config.radius,
+                         generator=gen)
+        out = mb.masked + model.alpha * model.unet(mb.masked)
+        return masked_mse(out, batch, mb.mask)
+
+    return optimise_unet(model, config, blind_spot_loss, desc="n2v")
+
+
+def optimise_unet(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[int], torch.Tensor], *,
+                  desc: str) -> N2VModel:
+    """The training loop every self-supervised objective shares: Adam at `config.lr` with the warm-up
+    and cosine schedule of `lr_factor`, `config.steps` steps, `loss_at_step(step)` giving each step's loss
+    (it draws its own batch), the loss history appended to `model.history`. Returns `model` in eval mode.
+    """
     unet = model.unet
     unet.train()
     opt = torch.optim.Adam(unet.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: lr_factor(s, steps=config.steps, warmup_frac=config.warmup_frac,
                                  min_lr_frac=config.min_lr_frac))
-    with progress_bar(desc="n2v", total=config.steps) as bar:
-        for _ in range(config.steps):
-            batch, _ = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
-                                      augment=config.augment)
-            mb = mask_pixels(batch, p=config.mask_prob, replacement=config.replacement, radius=config.radius,
-                             generator=gen)
-            out = mb.masked + model.alpha * unet(mb.masked)
-            loss = masked_mse(out, batch, mb.mask)
+    with progress_bar(desc=desc, total=config.steps) as bar:
+        for step in range(config.steps):
+            loss = loss_at_step(step)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

@@ -33,13 +33,13 @@ from denoise.images import image_to_tensor, images_to_tensors, tensor_to_image
 from denoise.inference import CLEAN_SIGMA, NoiseModel, denoise_images, predict_tiled
 from denoise.losses import neighbor2neighbor_loss
 from denoise.model import N2VModel
-from denoise.n2v import N2VConfig, lr_factor, new_model, train_n2v
+from denoise.n2v import N2VConfig, new_model, optimise_unet, train_n2v
 from denoise.neighbor2neighbor import neighbour_choice, neighbour_subsample
 from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_pca
 from denoise.patches import effective_patch_px, sample_patches
 from denoise.r2r import recorrupt
 from mvgeo.common.errors import InputError
-from mvgeo.common.progress import progress, progress_bar
+from mvgeo.common.progress import progress
 
 _log = logging.getLogger(__name__)
 
@@ -113,35 +113,22 @@ def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, se
         # Per-image std in normalised units, as a (broadcast, not copied) map cropped with the patches.
         paired = [(s / std).to(device).expand(3, *t.shape[-2:]) for s, t in zip(sig, tensors, strict=True)]
     unet = model.unet
-    unet.train()
-    opt = torch.optim.Adam(unet.parameters(), lr=config.lr)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: lr_factor(s, steps=config.steps, warmup_frac=config.warmup_frac,
-                                 min_lr_frac=config.min_lr_frac))
-    with progress_bar(desc=config.method, total=config.steps) as bar:
-        for step in range(config.steps):
-            batch, extra = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
-                                          paired=paired, augment=config.augment)
-            if config.method == "neighbor2neighbor":
-                choice = neighbour_choice(batch.shape[0], patch, patch, generator=gen, device=device)
-                g1, g2 = neighbour_subsample(batch, choice)
-                with torch.no_grad():
-                    full1, full2 = neighbour_subsample(batch + model.alpha * unet(batch), choice)
-                pred = g1 + model.alpha * unet(g1)
-                gamma = config.nb2nb_gamma * (step + 1) / config.steps
-                loss = neighbor2neighbor_loss(pred, g2, full1, full2, gamma=gamma)
-            else:
-                inp, tgt = recorrupt(batch, extra, alpha=config.r2r_alpha, generator=gen)
-                loss = torch.mean((inp + model.alpha * unet(inp) - tgt) ** 2)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            model.history.append(loss.item())
-            bar.update(1)
-            bar.set_postfix(loss=f"{model.history[-1]:.4f}")
-    unet.eval()
-    return model
+
+    def step_loss(step: int) -> torch.Tensor:
+        batch, extra = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
+                                      paired=paired, augment=config.augment)
+        if config.method == "neighbor2neighbor":
+            choice = neighbour_choice(batch.shape[0], patch, patch, generator=gen, device=device)
+            g1, g2 = neighbour_subsample(batch, choice)
+            with torch.no_grad():
+                full1, full2 = neighbour_subsample(batch + model.alpha * unet(batch), choice)
+            pred = g1 + model.alpha * unet(g1)
+            gamma = config.nb2nb_gamma * (step + 1) / config.steps
+            return neighbor2neighbor_loss(pred, g2, full1, full2, gamma=gamma)
+        inp, tgt = recorrupt(batch, extra, alpha=config.r2r_alpha, generator=gen)
+        return torch.mean((inp + model.alpha * unet(inp) - tgt) ** 2)
+
+    return optimise_unet(model, config, step_loss, desc=config.method)
 
 
 def denoise_one_pass(model: N2VModel, images: Sequence[np.ndarray], *, tile_px: int = 256, margin_px: int = 48,
