@@ -21,7 +21,7 @@ from pathlib import Path
 from eval.evaluate import EVAL_METHODS, EvalConfig, evaluate_dataset, scene_dataset
 from eval.pipeline import PRESETS, preset, run_pipeline, validate_dataset_folder
 from eval.pipeline.components import require
-from eval.pipeline.config import PipelineConfig
+from eval.pipeline.config import DENOISE_METHODS, PipelineConfig
 from eval.pipeline.inputs import working_dataset
 from eval.pipeline.lock import output_lock
 from eval.pipeline.validate import MIN_IMAGE_SIZE_PX
@@ -84,6 +84,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, align=dataclasses.replace(config.align,
                                                                        reuse_intrinsics=args.reuse_intrinsics))
     config = dataclasses.replace(config, max_size=args.max_size)
+    if args.denoiser is not None:
+        config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, method=args.denoiser))
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
@@ -112,7 +114,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     plan = _prepare_out(args, "denoise-gs eval", kind, source, EVAL_LAYOUT)
     config = EvalConfig(methods=tuple(dict.fromkeys(args.methods)), seeds=args.seeds, preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
-                        device=device, allow_focal_prior=not args.strict_focal)
+                        device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser)
     out = Path(args.out)
     if kind != "dataset":
         require("data_synth", "render_scene", needed_for="denoise-gs eval on a scene")
@@ -229,6 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--device", default=None, help=DEVICE_HELP + "; default cpu")
     run.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
                      help=MAX_SIZE_HELP)
+    run.add_argument("--denoiser", choices=DENOISE_METHODS, default=None,
+                     help="round 1's self-supervised objective on the UNet (default n2v; the others need --rounds 1)")
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",
@@ -259,6 +263,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--pose-fit-iters", type=nonneg_int, default=None, help="held-out pose refinement steps")
     ev.add_argument("--splat-iters", type=positive_int, default=None, help="splat training iterations (all methods)")
     ev.add_argument("--device", default="cpu", help=DEVICE_HELP + "; default cpu")
+    ev.add_argument("--denoiser", choices=DENOISE_METHODS, default="n2v",
+                    help="round 1's objective for the N2V methods (default n2v; others: one-round methods only)")
     ev.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
                     help=MAX_SIZE_HELP + " (the clean images and ground-truth cameras are scaled alike)")
     ev.add_argument("--size", type=_size_wh, default=None, metavar="WxH",

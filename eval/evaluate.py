@@ -49,6 +49,7 @@ from eval.heldout import map_cameras_local
 from eval.image_metrics import score_images
 from eval.pipeline import PipelineConfig, StageContext, preset, product_stages, run_pipeline
 from eval.pipeline.components import require
+from eval.pipeline.config import DENOISE_METHODS, DenoiseMethod
 from eval.pipeline.stages import check_product_components
 from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import read_views, write_views
@@ -81,6 +82,9 @@ EVAL_METHODS = (
     "denoise_gs_fused",     # extension: (e) with fuse_noisy_splat
     "oracle_clean",         # reference, not a competitor: (b) on the *clean* training photos
 )
+#: Methods of one round (the only ones `EvalConfig.denoiser` other than "n2v" can run).
+ONE_ROUND_METHODS = ("3dgs_gt_poses", "instantsplat", "nlm_instantsplat", "oracle_clean", "n2v_round1",
+                     "n2v_fused_round1")
 
 
 @dataclass(frozen=True)
@@ -98,6 +102,8 @@ class EvalConfig:
         allow_focal_prior: let alignment keep an undetermined focal length (the prior or its
             estimate) instead of refusing (`AlignSettings.max_focal_log_std`), as InstantSplat does;
             the held-out scores and pose errors then show the cost.
+        denoiser: round 1's objective for the N2V-family methods (`DenoiseSettings.method`); other
+            than "n2v" only the one-round methods may run, in folders named after it (`n2v_r2r`, ...).
     """
 
     methods: tuple[str, ...] = ("instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs")
@@ -108,14 +114,28 @@ class EvalConfig:
     splat_iters: int | None = None
     device: str = "cpu"
     allow_focal_prior: bool = True
+    denoiser: DenoiseMethod = "n2v"
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.methods if m not in EVAL_METHODS]
         if unknown:
             raise InputError(f"unknown method(s) {unknown}", fix=f"choose from {', '.join(EVAL_METHODS)}")
+        if self.denoiser not in DENOISE_METHODS:
+            raise InputError(f"unknown denoiser {self.denoiser!r}", fix=f"choose from {', '.join(DENOISE_METHODS)}")
+        multi_round = [m for m in self.methods if m not in ONE_ROUND_METHODS]
+        if self.denoiser != "n2v" and multi_round:
+            raise InputError(f"--denoiser {self.denoiser} runs round 1 only; these methods have more rounds: "
+                             f"{', '.join(multi_round)}", fix=f"use {', '.join(ONE_ROUND_METHODS)}")
         if self.seeds < 1:
             raise InputError(f"--seeds must be at least 1, got {self.seeds}")
         preset(self.preset)
+
+
+def row_label(method: str, config: EvalConfig) -> str:
+    """The method's name in the results: with the denoiser appended when it is not N2V (`n2v_round1+r2r`)."""
+    if config.denoiser == "n2v" or method not in ("n2v_round1", "n2v_fused_round1"):
+        return method
+    return f"{method}+{config.denoiser}"
 
 
 def method_pipeline_config(method: str, base: PipelineConfig) -> tuple[str, PipelineConfig]:
@@ -359,6 +379,9 @@ def _run_method(method: str, seed: int, dataset: DatasetFolder, gt: SparseModel,
         seconds = time.perf_counter() - start
     else:
         family, cfg = method_pipeline_config(method, dataclasses.replace(base, seed=seed))
+        if family in ("n2v", "n2v_fused") and config.denoiser != "n2v":
+            family = f"{family}_{config.denoiser}"
+            cfg = dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, method=config.denoiser))
         stages = dataclasses.replace(product_stages(), export=None)  # the scores need no viewer files
         if method == "instantsplat":
             stages = dataclasses.replace(stages, denoise=_identity_stage)
@@ -383,7 +406,7 @@ def _run_method(method: str, seed: int, dataset: DatasetFolder, gt: SparseModel,
     per_view, pose_stats = _score_scene(model, gt, est, dataset, config, est_cams, renders_out=held_out)
     save_heldout_renders(out / "heldout" / scene, method, seed, held_out, dataset)
     means = {m: float(np.mean([v[m] for v in per_view.values()])) for m in ("psnr_db", "ssim", "lpips")}
-    return RunScores(scene, method, seed, **means, **pose_stats, seconds=seconds, per_view=per_view)
+    return RunScores(scene, row_label(method, config), seed, **means, **pose_stats, seconds=seconds, per_view=per_view)
 
 
 def save_heldout_renders(folder: Path, method: str, seed: int, renders: Mapping[str, np.ndarray],
@@ -437,7 +460,8 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
                 # row is kept with NaN metrics and the error, and the table shows it as failed.
                 _log.error("eval %s: %s, seed %d failed: %s: %s", scene, method, seed, type(exc).__name__, exc)
                 nan = float("nan")
-                rows.append(RunScores(scene, method, seed, nan, nan, nan, error=f"{type(exc).__name__}: {exc}"))
+                rows.append(RunScores(scene, row_label(method, config), seed, nan, nan, nan,
+                                      error=f"{type(exc).__name__}: {exc}"))
             if on_row is not None:
                 on_row(list(rows))
     return rows

@@ -18,6 +18,9 @@ from mvgeo.common.errors import ConfigError
 __all__ = ["PRESETS", "AlignSettings", "DenoiseSettings", "PipelineConfig", "SplatSettings", "preset"]
 
 Round2Loss = Literal["joint", "charbonnier"]
+DenoiseMethod = Literal["n2v", "neighbor2neighbor", "r2r"]
+#: The values of `DenoiseSettings.method`.
+DENOISE_METHODS: tuple[str, ...] = ("n2v", "neighbor2neighbor", "r2r")
 ReuseIntrinsics = Literal["auto", "always", "never"]
 ReuseGeometry = Literal["auto", "never"]
 
@@ -28,6 +31,9 @@ class DenoiseSettings:
 
     Attributes:
         n2v_preset: name of a `denoise` N2V preset for round 1.
+        method: round 1's self-supervised objective on the same UNet (`denoise.n2v.N2VConfig.method`):
+            "n2v" (default, the paper's), "neighbor2neighbor" or "r2r" (docs/bench/denoise_real.md).
+            Rounds >= 2 fine-tune a blind-spot network, so the other two run with `rounds=1` only.
         n2v_steps: training steps; None keeps the preset's.
         passes: inference maskings averaged per image (the paper's K).
         round2_preset: name of a `denoise` round-2 fine-tuning preset.
@@ -36,6 +42,7 @@ class DenoiseSettings:
     """
 
     n2v_preset: str = "default"
+    method: DenoiseMethod = "n2v"
     n2v_steps: int | None = None
     passes: int = 8
     round2_preset: str = "default"
@@ -138,6 +145,12 @@ class PipelineConfig:
             raise ConfigError(f"must be at least 1, got {self.rounds}", key="rounds", expected="an integer >= 1")
         if self.denoise.passes < 1:
             raise ConfigError(f"must be at least 1, got {self.denoise.passes}", key="denoise.passes")
+        if self.denoise.method not in DENOISE_METHODS:
+            raise ConfigError(f"unknown method {self.denoise.method!r}", key="denoise.method",
+                              expected=" or ".join(map(repr, DENOISE_METHODS)))
+        if self.denoise.method != "n2v" and self.rounds >= 2:
+            raise ConfigError(f"{self.denoise.method} runs round 1 only: round 2 fine-tunes a blind-spot (N2V) "
+                              f"network", key="denoise.method", fix="use --rounds 1, or --denoiser n2v")
         if self.denoise.round2_loss not in ("joint", "charbonnier"):
             raise ConfigError(f"unknown loss {self.denoise.round2_loss!r}", key="denoise.round2_loss",
                               expected="'joint' or 'charbonnier'")

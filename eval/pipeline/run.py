@@ -183,7 +183,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         den = runner.run(StageSpec(
             "denoise", rd, stages.denoise, ("denoised", "n2v_model.pt"), inputs={"noisy": working}, upstream=(prep,),
             settings={"noisy_digest": noisy_digest, "n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps,
-                      "passes": d.passes, "device": config.device, "resolved": resolved["n2v"]},
+                      "method": d.method, "passes": d.passes, "device": config.device, "resolved": resolved["n2v"]},
             seed=stage_seed(config.seed, 1, "denoise"), code=stages.code.get("denoise", ())),
             label="round1/denoise")
         scene = _scene_stages(runner, stages, rd, den, config, 1, resolved, noisy=(working, noisy_digest))

@@ -78,8 +78,9 @@ def _history_summary(history: object) -> dict[str, object]:
 
 
 def _n2v_config(s: Mapping[str, object], need: str):
-    return component_config("denoise.n2v", "N2V_PRESETS", s["n2v_preset"], {"steps": s["n2v_steps"]},
-                            needed_for=need)
+    # "method" is absent from the settings of rounds >= 2 (they fine-tune the N2V network): the preset's.
+    return component_config("denoise.n2v", "N2V_PRESETS", s["n2v_preset"],
+                            {"steps": s["n2v_steps"], "method": s.get("method")}, needed_for=need)
 
 
 def _round2_config(s: Mapping[str, object], need: str):
@@ -113,16 +114,16 @@ def _train_config(s: Mapping[str, object], seed: int, need: str):
 
 
 def denoise(ctx: StageContext) -> Mapping[str, object]:
-    """Round 1: train the N2V-UNet on all noisy images, denoise them all."""
+    """Round 1: train the UNet on all noisy images with `DenoiseSettings.method`, denoise them all."""
     need = "denoise stage (round 1)"
     s = ctx.settings
     cfg = _n2v_config(s, need)
-    train_n2v = require("denoise.n2v", "train_n2v", needed_for=need)
-    denoise_images = require("denoise.inference", "denoise_images", needed_for=need)
+    train_with_method = require("denoise.self_supervised", "train_with_method", needed_for=need)
+    denoise_with_method = require("denoise.self_supervised", "denoise_with_method", needed_for=need)
     save_checkpoint = require("denoise.model", "save_checkpoint", needed_for=need)
     noisy = read_views(ctx.inputs["noisy"])
-    model = train_n2v(list(noisy.values()), cfg, seed=ctx.seed, device=s["device"])
-    out = denoise_images(model, list(noisy.values()), passes=s["passes"], seed=ctx.seed)
+    model = train_with_method(list(noisy.values()), cfg, seed=ctx.seed, device=s["device"])
+    out = denoise_with_method(model, list(noisy.values()), cfg, passes=s["passes"], seed=ctx.seed)
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / "n2v_model.pt", model)
     return {"views": list(noisy), "train": _history_summary(getattr(model, "history", None))}
@@ -389,7 +390,8 @@ def resolved_configs(config: PipelineConfig) -> dict[str, object]:
         return json.loads(json.dumps(dataclasses.asdict(cfg), default=str, sort_keys=True))
 
     out = {
-        "n2v": as_json(lambda: _n2v_config({"n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps}, need)),
+        "n2v": as_json(lambda: _n2v_config({"n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps,
+                                            "method": d.method}, need)),
         "align": as_json(lambda: _align_config(dataclasses.asdict(a), 0, need)),
         "splat": as_json(lambda: _train_config({"preset": sp.preset, "iters": sp.iters}, 0, need)),
         "round2": as_json(lambda: _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,

@@ -80,8 +80,8 @@ def test_numeric_options_are_checked_by_the_parser(images, tmp_path, capsys, no_
 
 
 def test_the_denoise_stage_trains_on_the_configured_device(tmp_path, monkeypatch):
-    """The round-1 N2V training receives the pipeline's device (it used to train on the CPU always)."""
-    import denoise.n2v
+    """The round-1 training receives the pipeline's device (it used to train on the CPU always)."""
+    import denoise.self_supervised
     from eval.pipeline import stages
     from eval.pipeline.stage import StageContext
 
@@ -94,7 +94,9 @@ def test_the_denoise_stage_trains_on_the_configured_device(tmp_path, monkeypatch
         seen.append(device)
         raise Stop
 
-    monkeypatch.setattr(denoise.n2v, "train_n2v", recording)  # `require` looks it up at call time
+    # The stage trains through `train_with_method` (any `DenoiseSettings.method`); `require` looks it up at
+    # call time.
+    monkeypatch.setattr(denoise.self_supervised, "train_with_method", recording)
     images = make_scene(tmp_path / "noisy", n=2)
     settings = {"n2v_preset": "fast", "n2v_steps": 2, "passes": 1, "device": "cuda:1"}
     ctx = StageContext(name="denoise", work_dir=tmp_path / "w", inputs={"noisy": images}, settings=settings, seed=0)

@@ -1,0 +1,92 @@
+"""Round 1's denoiser (`DenoiseSettings.method`): validation, stage keys, the real stage, the CLIs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from eval.cli import main
+from eval.evaluate import EvalConfig
+from eval.pipeline import preset, run_pipeline
+from eval.pipeline.config import PipelineConfig
+from eval.pipeline.stage import StageContext
+from eval.pipeline.stages import _n2v_config, denoise
+from eval.pipeline.views import read_views, write_views
+from mvgeo.common.errors import ConfigError, InputError
+from tests.eval._tiny_stages import TinyStages, make_scene
+
+
+def _with_method(config: PipelineConfig, method: str) -> PipelineConfig:
+    return dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, method=method))
+
+
+def test_other_methods_run_round_1_only_and_unknown_ones_are_refused():
+    one_round = preset("fast", rounds=1)
+    assert _with_method(one_round, "r2r").denoise.method == "r2r"
+    with pytest.raises(ConfigError, match="round 1 only"):
+        _with_method(preset("fast", rounds=2), "neighbor2neighbor")
+    with pytest.raises(ConfigError, match="denoise.method"):
+        _with_method(one_round, "bm3d")
+
+
+def test_the_method_reaches_the_n2v_config_and_rounds_2_keep_n2v():
+    s = {"n2v_preset": "fast", "n2v_steps": 5}
+    assert _n2v_config({**s, "method": "r2r"}, "test").method == "r2r"
+    assert _n2v_config(s, "test").method == "n2v"  # the refine stage's settings carry no method
+
+
+def test_changing_the_method_reruns_the_denoise_stage(tmp_path):
+    scene = make_scene(tmp_path / "images", n=5)
+    out = tmp_path / "out"
+    cfg = dataclasses.replace(preset("fast", views=3, rounds=1), fuse_noisy_splat=False)
+    tiny = TinyStages()
+    run_pipeline(scene, out, cfg, stages=tiny.stages())
+    run_pipeline(scene, out, cfg, stages=tiny.stages())
+    assert tiny.calls["denoise"] == 1  # same settings: reused
+    run_pipeline(scene, out, _with_method(cfg, "r2r"), stages=tiny.stages())
+    assert tiny.calls["denoise"] == 2
+
+
+@pytest.mark.parametrize("method", ["r2r", "neighbor2neighbor"])
+def test_the_real_stage_trains_and_applies_the_method(tmp_path, method):
+    rng = np.random.default_rng(0)
+    clean = np.clip(rng.random((1, 1, 3)) * 0.6 + 0.2 + np.zeros((40, 48, 3)), 0, 1).astype(np.float32)
+    noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
+    write_views(tmp_path / "noisy", noisy)
+    settings = {"n2v_preset": "fast", "n2v_steps": 30, "method": method, "passes": 2, "device": "cpu"}
+    ctx = StageContext(name="denoise", work_dir=tmp_path / "work", inputs={"noisy": tmp_path / "noisy"},
+                       settings=settings, seed=0)
+    (tmp_path / "work").mkdir()
+    summary = denoise(ctx)
+    out = read_views(tmp_path / "work" / "denoised")
+    assert sorted(out) == sorted(noisy) == summary["views"]
+    assert (tmp_path / "work" / "n2v_model.pt").is_file()
+    # A flat patch: any sensible denoiser lowers the error to it (30 steps; the noisy error is 0.1^2).
+    err_noisy = np.mean([(noisy[k] - clean) ** 2 for k in noisy])
+    err_out = np.mean([(out[k] - clean) ** 2 for k in out])
+    assert err_out < 0.8 * err_noisy, (err_out, err_noisy)
+
+
+def test_eval_refuses_multi_round_methods_with_another_denoiser():
+    EvalConfig(methods=("instantsplat", "n2v_fused_round1"), denoiser="r2r")
+    with pytest.raises(InputError, match="round 1 only"):
+        EvalConfig(methods=("n2v_round1", "denoise_gs"), denoiser="r2r")
+
+
+def test_run_cli_refuses_two_rounds_with_r2r_before_any_work(tmp_path, capsys):
+    scene = make_scene(tmp_path / "images", n=3)
+    assert main(["run", str(scene), "--out", str(tmp_path / "o"), "--denoiser", "r2r"]) == 2
+    err = capsys.readouterr().err
+    assert "round 1 only" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_results_rows_name_the_denoiser():
+    from eval.evaluate import row_label
+
+    config = EvalConfig(methods=("instantsplat", "n2v_round1"), denoiser="r2r")
+    assert row_label("n2v_round1", config) == "n2v_round1+r2r"
+    assert row_label("instantsplat", config) == "instantsplat"
+    assert row_label("n2v_round1", EvalConfig(methods=("n2v_round1",))) == "n2v_round1"
