@@ -275,7 +275,7 @@ def fuse(ctx: StageContext) -> Mapping[str, object]:
 
     The splat of 12 noisy views keeps the scene's fine texture (the same in every view) and averages
     the noise (different in every view); the denoiser removes noise and texture alike. Their errors
-    differ, so the mean is better than either (`docs/bench/pipeline.md`, sixth session).
+    differ, so the mean is better than either (CHANGELOG.md, 2026-11-22).
     """
     need = "fuse stage"
     render_views = require("splat.render", "render_views", needed_for=need)
