@@ -26,6 +26,19 @@ def time_call(fn: Callable[[], object], *, repeat: int = 3, warmup: int = 1) -> 
     return times[len(times) // 2]
 
 
+def first_train_views(data: Path, n: int):
+    """The first `n` training views of a dataset folder (`splat.dataset.load_views`, split "train")."""
+    from splat.dataset import load_views
+
+    views = load_views(data, split="train")
+    keep = list(range(len(views.names)))[:n]
+    views.names = [views.names[i] for i in keep]
+    views.images = [views.images[i] for i in keep]
+    views.cameras = [views.cameras[i] for i in keep]
+    views.cam_from_world = views.cam_from_world[keep]
+    return views
+
+
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far, MiB (Linux ru_maxrss is KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

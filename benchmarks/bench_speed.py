@@ -31,7 +31,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from _common import md_table, write_fragment  # noqa: E402
+from _common import first_train_views, md_table, write_fragment  # noqa: E402
 
 from splat.composite import composite_tiles  # noqa: E402
 from splat.losses import photometric_loss  # noqa: E402
@@ -236,12 +236,7 @@ def bench_quality(rows, iters: int = 300, size_wh=(128, 96)):
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "llff"
         render_scene("llff_like_clean", data, size_wh=size_wh)
-        views = load_views(data, split="train")
-        keep = list(range(len(views.names)))[:12]
-        views.names = [views.names[i] for i in keep]
-        views.images = [views.images[i] for i in keep]
-        views.cameras = [views.cameras[i] for i in keep]
-        views.cam_from_world = views.cam_from_world[keep]
+        views = first_train_views(data, 12)
         xyz, rgb = points_from_depth(data, views, stride_px=4)
         test = load_views(data, split="test")
         clean = [read_image(data / "clean" / n) for n in test.names]

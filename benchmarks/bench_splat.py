@@ -26,7 +26,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from _common import md_table, peak_rss_mb, time_call, write_fragment  # noqa: E402
+from _common import first_train_views, md_table, peak_rss_mb, time_call, write_fragment  # noqa: E402
 
 from data_synth import render_scene  # noqa: E402
 from mvgeo.common.imageio import read_image  # noqa: E402
@@ -87,12 +87,7 @@ def bench_train(tmp: Path, size_wh, iters, eval_at, densify=None):
     data = tmp / f"llff_{size_wh[0]}"
     if not data.exists():
         render_scene("llff_like_clean", data, size_wh=size_wh)
-    views = load_views(data, split="train")
-    keep = list(range(len(views.names)))[:12]
-    views.names = [views.names[i] for i in keep]
-    views.images = [views.images[i] for i in keep]
-    views.cameras = [views.cameras[i] for i in keep]
-    views.cam_from_world = views.cam_from_world[keep]
+    views = first_train_views(data, 12)
     xyz, rgb = points_from_depth(data, views, stride_px=8)
     test = load_views(data, split="test")
     clean = [read_image(data / "clean" / n) for n in test.names]

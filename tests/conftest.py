@@ -16,3 +16,12 @@ apply_thread_policy()
 def rng() -> np.random.Generator:
     """A fresh seeded generator per test (tests are deterministic)."""
     return np.random.default_rng(20261121)
+
+
+@pytest.fixture
+def no_cuda(monkeypatch):
+    """torch sees no CUDA device (for the `--device` checks, whatever this machine has)."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)

@@ -160,7 +160,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     """
     images_dir, out = Path(images_dir), Path(out)
     plan = prepare_output(out, command=RUN_COMMAND, inputs=[images_dir], resume=True, layout=RUN_LAYOUT)
-    files = validate_run_inputs(images_dir, out, config)
+    files = validate_run_inputs(images_dir, config)
     if stages is None:
         check_product_components(config)  # fail now, not after an hour of round 1
         stages = product_stages()

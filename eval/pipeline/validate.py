@@ -25,15 +25,15 @@ MIN_IMAGE_SIZE_PX = 32
 MIN_VIEWS = 2
 
 
-def validate_run_inputs(images_dir: Path, out: Path, config: PipelineConfig) -> dict[str, Path]:
+def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, Path]:
     """Check the inputs of `run_pipeline`; return stem -> image file.
 
     Checks: the folder exists and holds images with distinct stems, each one
     decodes and is at least `MIN_IMAGE_SIZE_PX` on each side, there are at
     least two, and at least `config.views` when a second round will select
     views (with fewer images than K the selection would be meaningless, so we
-    stop and ask for a smaller `--views` instead of silently using all views);
-    `out` is not a file and not the input folder itself.
+    stop and ask for a smaller `--views` instead of silently using all views).
+    The output folder is checked before, by `mvgeo.common.output.prepare_output`.
 
     Raises:
         InputError: naming the offending file/option and the fix.
@@ -58,11 +58,6 @@ def validate_run_inputs(images_dir: Path, out: Path, config: PipelineConfig) -> 
         raise InputError(f"{n} images but --views {config.views}: round 2 keeps K = --views views chosen "
                          f"among the inputs, so K cannot exceed the number of images", path=images_dir,
                          fix=f"pass --views {n} (or fewer), or add images")
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", path=out, fix="choose another --out")
-    if out.resolve() == images_dir.resolve():
-        raise InputError("--out is the input folder", path=out, fix="write the results to a separate folder")
     return files
 
 

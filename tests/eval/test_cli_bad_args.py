@@ -13,12 +13,6 @@ from tests.eval._tiny_stages import make_scene
 
 
 @pytest.fixture
-def no_cuda(monkeypatch):
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
-
-
-@pytest.fixture
 def no_work(monkeypatch):
     """Any stage, scene render or sweep means the checks came too late."""
     import eval.cli

@@ -16,12 +16,6 @@ def dataset(tmp_path_factory):
 
 
 @pytest.fixture
-def no_cuda(monkeypatch):
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
-
-
-@pytest.fixture
 def no_training(monkeypatch):
     """Any training or rendering means the check came too late."""
     import splat.cli
