@@ -119,13 +119,14 @@ def _ours(scene, label, cfg, paths, ref, f_ref):
                 ""]
     sec = time.perf_counter() - t
     f = float(np.median([c.fx for c in res.sparse_model.cameras.values()]))
-    ba = res.stats["bundle_adjustment"]
-    extra = (f"reproj RMS {ba['reproj_rms_before_px']:.3g} -> {ba['reproj_rms_after_px']:.3g} px" if ba else "no BA")
-    if res.stats.get("unregistered"):
-        extra += f"; {len(res.stats['unregistered'])} unregistered"
-    if res.stats.get("pairs_rejected_by_loops"):
-        extra += "; loop check rejected " + ", ".join(f"{r['i'][-8:-4]}-{r['j'][-8:-4]}"
-                                                       for r in res.stats["pairs_rejected_by_loops"])
+    st = res.stats
+    ba = st.bundle_adjustment
+    extra = (f"reproj RMS {ba.reproj_rms_before_px:.3g} -> {ba.reproj_rms_after_px:.3g} px" if ba else "no BA")
+    extra += f"; {st.initial_poses} start, {len(st.candidates)} candidate(s)"
+    if st.unregistered:
+        extra += f"; {len(st.unregistered)} unregistered"
+    if st.pairs_rejected_by_loops:
+        extra += "; loop check rejected " + ", ".join(f"{r.i[-8:-4]}-{r.j[-8:-4]}" for r in st.pairs_rejected_by_loops)
     return row(scene, label, res.sparse_model.cam_from_world_by_name(), ref, f, f_ref, sec, extra)
 
 

@@ -209,20 +209,18 @@ def run_ours(label, method, folder: Path, gt, f_ref, intrinsics_txt: Path | None
     sec = time.perf_counter() - t
     st = res.stats
     f = float(np.median([c.fx for c in res.sparse_model.cameras.values()]))
-    ba = st["bundle_adjustment"] or {}
-    note = []
-    if st.get("sift_fallback_used"):
+    ba = st.bundle_adjustment
+    note = [f"{st.initial_poses} start, {len(st.candidates)} candidate(s)"]
+    if st.sensitive_features:
         note.append("sensitive SIFT")
-    if st.get("pairs_rejected_by_loops"):
-        note.append(f"{len(st['pairs_rejected_by_loops'])} pairs rejected by loops")
-    if st.get("pairs_dropped_as_inconsistent"):
-        note.append(f"{len(st['pairs_dropped_as_inconsistent'])} pairs dropped")
-    if st.get("init_fallback"):
-        note.append(f"init fallback: kept {st['init_fallback'].get('kept', '')[:30]}")
-    if ba:
-        note.append(f"reproj {ba['reproj_rms_after_px']:.2g} px")
+    if st.pairs_rejected_by_loops:
+        note.append(f"{len(st.pairs_rejected_by_loops)} pairs rejected by loops")
+    if st.pairs_dropped_as_inconsistent:
+        note.append(f"{len(st.pairs_dropped_as_inconsistent)} pairs dropped")
+    if ba is not None:
+        note.append(f"reproj {ba.reproj_rms_after_px:.2g} px")
     return metrics_row(label, method, res.sparse_model.cam_from_world_by_name(), gt, f, f_ref, sec,
-                       f"{st['n_pairs_sparse']}/{st['n_pairs']}", ba.get("n_points", ""), "; ".join(note))
+                       f"{st.n_pairs_verified}/{st.n_pairs}", "" if ba is None else ba.n_points, "; ".join(note))
 
 
 def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref):

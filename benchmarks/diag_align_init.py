@@ -1,7 +1,7 @@
 """The global alignment's two initialisations side by side: DUSt3R's chained pointmaps and the pairs' own poses.
 
-For each scene, `mvgeo align` (dense stereo off) with `GlobalAlignConfig.init="procrustes"` (the default start)
-and with `init="pair_poses"`, each alone (`AlignConfig.init_fallback` off), scored against ground truth:
+For each scene, `mvgeo align` (dense stereo off) from the "chain" start and from the "averaged" start
+(`AlignConfig.initial_poses`), each alone (`AlignConfig.second_start` off), scored against ground truth:
 registered views, median relative rotation error (deg), ATE. Scenes are those of `bench_align.py`
 (`llff_like`, `subsets`, `temple`, `object_ring`, `dtu`; temple and object_ring with `--allow-partial`), the
 data_synth scenes named, and any dataset folder given as `dir:PATH` (its `split.json` training views against
@@ -35,8 +35,8 @@ SYNTH_SCENES = ("hard_highnoise", "poisson", "hard_tinybaseline", "hard_lowtextu
 
 
 def _row(scene: str, init: str, paths, ref, partial: bool) -> list:
-    cfg = replace(DEFAULT, dense_stereo=DenseStereoConfig(enabled=False), init_fallback=False, allow_partial=partial,
-                  align=replace(DEFAULT.align, init=init))
+    cfg = replace(DEFAULT, dense_stereo=DenseStereoConfig(enabled=False), second_start=False, allow_partial=partial,
+                  initial_poses=init)
     try:
         res = align_images(paths, cfg)
     except Exception as exc:  # report, keep going
@@ -69,7 +69,7 @@ def main() -> None:
             jobs.append((folder, [d / "images" / n for n in train],
                          read_sparse_model(d / "sparse" / "0").cam_from_world_by_name(), False))
         for scene, paths, ref, partial in jobs:
-            for init in ("procrustes", "pair_poses"):
+            for init in ("chain", "averaged"):
                 rows.append(_row(scene, init, paths, ref, partial))
                 print(rows[-1], file=sys.stderr, flush=True)
     print(md_table(["scene", "initialisation", "registered", "rot err (deg)", "ATE"], rows))

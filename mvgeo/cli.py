@@ -53,6 +53,10 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--allow-partial", action="store_true",
                    help="if some images cannot be connected, register the largest connected group and list "
                         "the others in align.json 'unregistered' (default: fail naming them)")
+    a.add_argument("--initial-poses", choices=["auto", "chain", "averaged"], default="auto",
+                   help="how the poses are initialised: DUSt3R's chaining of the pairs' pointmaps, rotation "
+                        "averaging then positions from the tracks (GLOMAP's approach), or 'auto' (the stated rule, "
+                        "mvgeo.align.init.choose_start; default)")
     add_common_args(a)
 
     c = sub.add_parser("colmap", help="pycolmap SfM (CPU SIFT, exhaustive matching) into the same layout")
@@ -93,16 +97,16 @@ def _align(args: argparse.Namespace) -> int:
                                               pixel_stride=args.align_stride),
                       points_budget=args.points, bundle_adjust=args.ba, allow_partial=args.allow_partial,
                       downsample=args.downsample, dense_stereo=DenseStereoConfig(enabled=args.dense_stereo),
-                      hole_fill=HoleFillConfig(enabled=args.hole_fill))
+                      hole_fill=HoleFillConfig(enabled=args.hole_fill), initial_poses=args.initial_poses)
     result = align_images(paths, cfg, intrinsics=intr)
     write_align_result(plan, result)
     s = result.stats
-    if s["unregistered"]:
-        print(f"warning: {len(s['unregistered'])} images not registered: "
-              f"{[u['name'] for u in s['unregistered']]}", file=sys.stderr)
-    print(f"aligned {s['n_registered']}/{s['n_images']} images ({s['n_pairs_ok']}/{s['n_pairs']} pairs), "
-          f"{s['n_points']} points, "
-          f"loss {s['init_loss']:.4g} -> {s['final_loss']:.4g}, {s['timings_s']['total']:.1f} s -> {args.out}")
+    if s.unregistered:
+        print(f"warning: {len(s.unregistered)} images not registered: {[u.name for u in s.unregistered]}",
+              file=sys.stderr)
+    print(f"aligned {s.n_registered}/{s.n_images} images ({s.n_pairs_ok}/{s.n_pairs} pairs, {s.initial_poses} "
+          f"start, {len(s.candidates)} candidate(s)), {s.n_points} points, "
+          f"loss {s.init_loss:.4g} -> {s.final_loss:.4g}, {s.timings_s['total']:.1f} s -> {args.out}")
     return 0
 
 

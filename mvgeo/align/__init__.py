@@ -1,4 +1,4 @@
-"""Pose-free alignment of a few photos (`mvgeo align`), DUSt3R-style, with a classical pair model.
+"""Pose-free alignment of a few photos (`mvgeo align`): pairwise pointmaps, DUSt3R global alignment, bundle adjustment.
 
 Python API (what `mvgeo align` runs)::
 
@@ -6,56 +6,43 @@ Python API (what `mvgeo align` runs)::
     result = align_images(sorted(Path("scene/images").glob("*.png")), AlignConfig())
     result.sparse_model        # SparseModel: PINHOLE cameras at the input size, cam_from_world per image
     result.points_xyz, result.points_rgb, result.points_conf   # dense cloud (P, 3), (P, 3) uint8, (P,)
-    result.stats               # timings, losses, focals, failed pairs, bundle-adjustment report
+    result.stats               # AlignStats: what ran, the candidates, the bundle adjustment, timings
     write_align_result("out", result)  # out/sparse/0/*.bin, out/points.ply, out/align.json (atomic)
 
-Pipeline and modules:
+Stages (`api.align_images` is the orchestrator), each a module with a typed result:
 
-- `pairs`: `PairPrediction` (DUSt3R's pairwise output format) and the
-  `PointmapModel` protocol: `predict_pairs(images, pairs) -> (predictions, failures)`.
-  A learned DUSt3R/MASt3R wrapper can be passed as `align_images(..., model=...)`.
-- `classical_pairs`: the default, weight-free model (SIFT with RootSIFT
-  mutual-ratio matching in one BLAS product, shared-focal relative pose from
-  `mvgeo.twoview` with OpenCV's USAC_MAGSAC, edge-aware + DIS dense flow with a
-  forward-backward check, `mvgeo.triangulate`, confidences >= 1). Dense
-  pointmaps for each view's 4 strongest pairs (+ a spanning tree); the sparse
-  matches of every verified pair go to the bundle adjustment.
-- `graph`: complete / window:K pair graphs, connectivity, maximum spanning tree.
-- `global_align`: DUSt3R's global alignment in torch (per-view log-depth, pose,
-  log-focal; per-pair similarity; sum of log(conf)-weighted Euclidean
-  residuals; pinned geometric-mean pair scale; MST + Procrustes init; Adam + cosine).
-- `bundle`, `bundle_lm`: sparse bundle adjustment on multi-view feature tracks
-  (Levenberg-Marquardt with the Schur complement, analytic Jacobian, Huber
-  loss, shared or per-view focal; scipy `least_squares` kept as the reference).
-  This step sets the final pose accuracy. When it moves the shared focal by more
-  than 10 % from the one the pairs were computed with, the pairs are computed
-  again with its focal (same matches) and the alignment runs once more
-  (`AlignConfig.refocus_min_change`; two-view focals fail for narrow fields of view).
-- `checks`: every verified pair's matches must be explained by the final
-  geometry; otherwise the inconsistent pairs are dropped and the problem
-  solved once more, and a result that still contradicts the evidence (or whose
-  focal length nothing determines) fails with a specific message.
-- `dense_stereo`: once the cameras are final, the output cloud's depth maps are
-  recomputed by flow stereo per pair with those cameras at `max_size_px`, fused
-  per view (the pairwise pointmaps carry their own pair poses' errors).
-- `hole_fill`: the wide holes of those depth maps (textureless surfaces, where
-  flow stereo finds nothing) get the harmonic interpolation of the inverse depth
-  around them, at low confidence.
-- `scene`: co-visibility pruning, the multi-view consistency check, and
-  confidence-aware thinning to the point budget (per pixel cell of each view by
-  default, or per voxel).
-- `intrinsics`: known calibration (COLMAP cameras.txt, mrcal .cameramodel) and undistortion.
-- `colmap_sfm`: the pycolmap SfM reference (`mvgeo colmap`).
+1. `inputs`: the images checked, undistorted with known intrinsics, downscaled once (`AlignInputs`).
+2. `features` + `classical_pairs`: SIFT and putative matches, once per image and pair (`MatchSet`); each
+   pair's relative pose at one shared focal and dense pointmaps (`PairSet`, defined in `pairs` with the
+   `PointmapModel` protocol a learned DUSt3R/MASt3R wrapper can implement; `dense_pairs` holds the flows
+   and the triangulated pointmaps).
+3. `solve`: the pair graph (loop check `loops`, connectivity `graph`), then one candidate: initial poses
+   (`init`: DUSt3R's chaining, or rotation averaging `rotation_averaging` then positions), DUSt3R's global
+   alignment (`global_align`, objective in `alignment_objective`), bundle adjustment on every verified
+   pair's tracks (`bundle`, `bundle_lm`), and a `verdict` with typed reasons naming the views.
+4. `policy`: which candidates are solved (focal re-estimation, pruning of contradicted pairs, the second
+   start) and the one rule that chooses.
+5. `cloud`: depth maps recomputed by flow stereo with the final cameras (`dense_stereo`, `hole_fill`),
+   co-visibility pruning and thinning (`scene`).
+6. `stats` (`AlignStats`, align.json) and `writer`.
 
-Resolutions: matching and the final dense stereo at `max_size_px` (512) on the
-long side; pairwise pointmaps and the optimised depth maps at
-`pairwise.pointmap_size_px` (128), the global alignment on every 4th pixel
-row/column (100 iterations); cameras are written at the input images'
-resolution (intrinsics scaled).
+Also: `intrinsics` (known calibration, undistortion), `colmap_sfm` (the pycolmap reference, `mvgeo colmap`),
+`translation_averaging` (global positioning of the cameras from the tracks). Options: `config.AlignConfig`.
 """
 
-from mvgeo.align.api import PREVIEW, AlignConfig, AlignResult, align_images, write_align_result
-from mvgeo.align.pairs import PairFailure, PairPrediction, PointmapModel
+import importlib
 
-__all__ = ["PREVIEW", "AlignConfig", "AlignResult", "PairFailure", "PairPrediction", "PointmapModel",
-           "align_images", "write_align_result"]
+#: Public name -> the module that defines it. Imported on first use (PEP 562), so that `mvgeo.align.stats`
+#: or `mvgeo.align.pairs` can be imported without loading torch, OpenCV and pycolmap.
+_EXPORTS = {"PREVIEW": "config", "AlignConfig": "config", "AlignResult": "result", "AlignStats": "stats",
+            "PairFailure": "pairs", "PairGeometry": "pairs", "PairPrediction": "pairs", "PairSet": "pairs",
+            "PointmapModel": "pairs", "align_images": "api", "write_align_result": "writer"}
+
+__all__ = ["PREVIEW", "AlignConfig", "AlignResult", "AlignStats", "PairFailure", "PairGeometry", "PairPrediction",
+           "PairSet", "PointmapModel", "align_images", "write_align_result"]
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"mvgeo.align.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'mvgeo.align' has no attribute {name!r}")

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mvgeo.align.classical_pairs import flow_checks, pair_flows
+from mvgeo.align.dense_pairs import flow_checks, pair_flows
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError, ShapeError
 from mvgeo.common.progress import progress_bar

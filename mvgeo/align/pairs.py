@@ -15,7 +15,7 @@ and the principal point is assumed at the image centre `(W / 2, H / 2)`
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -79,18 +79,89 @@ class PairFailure:
     reason: str
 
 
+@dataclass(frozen=True)
+class PairGeometry:
+    """A verified pair's two-view geometry: its inlier matches and, where the model has it, its relative pose.
+
+    Attributes:
+        i, j: view indices (i < j for the classical model).
+        matches_px: (M, 4) inlier matches `(u_i, v_i, u_j, v_j)` in pixels of the images the model was given.
+        cam_j_from_cam_i: (3, 4) relative pose with a unit translation, or None when the model has none.
+    """
+
+    i: int
+    j: int
+    matches_px: np.ndarray
+    cam_j_from_cam_i: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        check_shape(self.matches_px, ["M", 4], "matches_px")
+        if self.cam_j_from_cam_i is not None:
+            check_shape(self.cam_j_from_cam_i, [3, 4], "cam_j_from_cam_i")
+
+
+@dataclass(frozen=True)
+class PairSet:
+    """Everything a `PointmapModel` knows about the image pairs (the pair stage's result).
+
+    Attributes:
+        predictions: dense pointmaps (the global alignment's input); the classical model computes them
+            for a subset of the verified pairs (`ClassicalPairConfig.dense_top_k`).
+        failures: every pair the model could not relate, with the reason.
+        geometries: every verified pair (a superset of the predictions' pairs): the bundle adjustment,
+            the loop check and the rotation averaging use all of them. Empty when the model has no
+            sparse matches (then the bundle adjustment is skipped).
+        focal_determined: whether the pairs determine the focal length. No default: a model that cannot
+            tell says False, and the alignment then checks the bundle adjustment's focal uncertainty
+            (`AlignConfig.max_focal_log_std`).
+        focal_px: the one focal length (alignment pixels) the pair geometry assumed, or None when each pair
+            estimated its own (DUSt3R) or the intrinsics were given per view.
+        focal_undetermined_why: why the pairs do not determine the focal (a phrase for the error message).
+        sensitive_features: the model re-detected features with a more sensitive detector to connect the
+            pair graph (`ClassicalPairConfig.fallback_sift`).
+    """
+
+    predictions: list[PairPrediction]
+    failures: list[PairFailure]
+    geometries: list[PairGeometry]
+    focal_determined: bool
+    focal_px: float | None = None
+    focal_undetermined_why: str = ""
+    sensitive_features: bool = False
+
+    @property
+    def matches(self) -> list[tuple[int, int, np.ndarray]]:
+        """`(i, j, (M, 4) matches_px)` of every verified pair (the bundle adjustment's input format)."""
+        return [(g.i, g.j, g.matches_px) for g in self.geometries]
+
+    def without_pairs(self, gone: set[tuple[int, int]]) -> PairSet:
+        """The same set with the pairs `gone` ((i, j) as stored) removed from predictions and geometries."""
+        return replace(self, predictions=[p for p in self.predictions if (p.i, p.j) not in gone],
+                       geometries=[g for g in self.geometries if (g.i, g.j) not in gone])
+
+    def restricted(self, keep: Sequence[int]) -> PairSet:
+        """Only the views `keep`, renumbered in that order (pairs with another view are dropped)."""
+        new = {v: k for k, v in enumerate(keep)}
+        return replace(
+            self,
+            predictions=[replace(p, i=new[p.i], j=new[p.j]) for p in self.predictions if p.i in new and p.j in new],
+            failures=[replace(f, i=new[f.i], j=new[f.j]) for f in self.failures if f.i in new and f.j in new],
+            geometries=[replace(g, i=new[g.i], j=new[g.j]) for g in self.geometries if g.i in new and g.j in new])
+
+
 @runtime_checkable
 class PointmapModel(Protocol):
-    """Anything that turns image pairs into `PairPrediction`s.
+    """Anything that turns image pairs into a `PairSet`.
 
     `predict_pairs(images, pairs)` receives all N images, (H, W, 3) float32 RGB
     in [0, 1] at the alignment resolution (long side <= `--max-size`), and the
-    (i, j) pairs of the pair graph. It returns the predictions, with pointmaps
-    on a grid whose long side is `pointmap_size_px` (see
-    `mvgeo.align.classical_pairs.pointmap_shape`), and a `PairFailure` with a
+    (i, j) pairs of the pair graph. It returns a `PairSet`: pointmaps on a grid
+    whose long side is `pointmap_size_px` (see
+    `mvgeo.align.classical_pairs.pointmap_shape`), a `PairFailure` with a
     human-readable reason for every pair it could not relate (reported in
-    align.json, never raised). Batching over pairs lets a model reuse per-image
-    work (features, encoder outputs).
+    align.json, never raised), the verified pairs' matches if it has any, and
+    whether the pairs determine the focal length. Batching over pairs lets a
+    model reuse per-image work (features, encoder outputs).
 
     A learned DUSt3R/MASt3R wrapper fits here: run the network on each (i, j),
     return its `pts3d` / `pts3d_in_other_view` / `conf` outputs as
@@ -102,8 +173,16 @@ class PointmapModel(Protocol):
     @property
     def pointmap_size_px(self) -> int: ...
 
-    def predict_pairs(self, images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int]]
-                      ) -> tuple[list[PairPrediction], list[PairFailure]]: ...
+    def predict_pairs(self, images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int]]) -> PairSet: ...
+
+
+@runtime_checkable
+class RefocusableModel(PointmapModel, Protocol):
+    """A `PointmapModel` that can recompute its pair geometry at another shared focal length from the same
+    features and matches (the classical model): the alignment's focal re-estimation needs it
+    (`AlignConfig.refocus_min_change`)."""
+
+    def refocus(self, images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int]], focal_px: float) -> PairSet: ...
 
 
 def focal_from_pointmap(pts: np.ndarray, conf: np.ndarray | None = None) -> float:

@@ -50,12 +50,19 @@ def instant_align(monkeypatch):
 
 def _result(names):
     from mvgeo.align import api
+    from mvgeo.align.stats import AlignStats
 
     cam = Camera.pinhole(30.0, 30.0, 16.0, 12.0, 32, 24)
     pose = np.hstack([np.eye(3), np.zeros((3, 1))])
     model = SparseModel(cameras={1: cam}, images=[PosedImage(n, 1, pose) for n in names])
-    stats = {"unregistered": [], "n_registered": len(names), "n_images": len(names), "n_pairs_ok": 1,
-             "n_pairs": 1, "n_points": 3, "init_loss": 1.0, "final_loss": 0.5, "timings_s": {"total": 0.0}}
+    stats = AlignStats(
+        n_images=len(names), n_registered=len(names), input_size_wh=[32, 24], align_size_wh=[32, 24],
+        pointmap_size_wh=[32, 24], n_pairs=1, n_pairs_ok=1, n_pairs_verified=1, failed_pairs=[],
+        pairs_rejected_by_loops=[], unregistered=[], iterations=1, init_loss=1.0, final_loss=0.5,
+        focal_px={n: 30.0 for n in names}, known_intrinsics=False, shared_focal=True, bundle_adjustment=None,
+        dense_stereo=None, focal_determined_by_pairs=True, sensitive_features=False, initial_poses="chain",
+        candidates=[], pairs_dropped_as_inconsistent=[], pair_consistency_min=1.0, pairs_inconsistent=[], n_points=3,
+        mean_confidence=1.0, timings_s={"total": 0.0}, config={})
     return api.AlignResult(model, np.zeros((3, 3)), np.zeros((3, 3), np.uint8), np.ones(3, np.float32), stats)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mvgeo.align.global_align import pixel_rays
-from mvgeo.align.pairs import PairPrediction
+from mvgeo.align.pairs import PairGeometry, PairPrediction, PairSet
 
 SPHERE_C = np.array([0.0, 0.0, 4.0])
 SPHERE_R = 1.0
@@ -74,3 +74,36 @@ def make_pairs(poses, depths, focal: float, rng: np.random.Generator, *, noise: 
         f_est = focal * (1 + focal_err * rng.normal())
         out.append(PairPrediction(i, j, pts[0], pts[1], conf[0], conf[1], f_est, f_est))
     return out
+
+
+def make_matches(poses, depths, focal: float, pairs, *, step: int = 2) -> list[tuple[int, int, np.ndarray]]:
+    """Exact matches `(i, j, (M, 4) (u_i, v_i, u_j, v_j))` in the depth maps' pixels: every `step`-th pixel of
+    view i projected into view j, where it is inside and not occluded (view j's depth agrees within 1 %)."""
+    H, W = depths[0].shape
+    v, u = np.mgrid[0:H:step, 0:W:step] + 0.5
+    out = []
+    for i, j in pairs:
+        z = depths[i][v.astype(int), u.astype(int)]
+        x_cam = np.stack([(u - W / 2) / focal * z, (v - H / 2) / focal * z, z], -1).reshape(-1, 3)
+        x_w = (x_cam - poses[i][:, 3]) @ poses[i][:, :3]
+        x_j = x_w @ poses[j][:, :3].T + poses[j][:, 3]
+        uv_j = x_j[:, :2] / x_j[:, 2:] * focal + np.array([W / 2, H / 2])
+        inside = (x_j[:, 2] > 0) & np.all((uv_j >= 0) & (uv_j < [W, H]), axis=1)
+        z_j = np.full(len(uv_j), np.nan)
+        z_j[inside] = depths[j][uv_j[inside, 1].astype(int), uv_j[inside, 0].astype(int)]
+        seen = inside & (np.abs(x_j[:, 2] / z_j - 1.0) < 0.01)
+        out.append((i, j, np.concatenate([np.stack([u.ravel(), v.ravel()], 1)[seen], uv_j[seen]], axis=1)))
+    return out
+
+
+class PairSetModel:
+    """A `PointmapModel` that returns precomputed pointmaps (and, where given, matches as verified pairs)."""
+
+    pointmap_size_px = 32
+
+    def __init__(self, preds, matches=(), *, focal_determined: bool = True):
+        self.preds, self.matches, self.focal_determined = list(preds), list(matches), focal_determined
+
+    def predict_pairs(self, images, pairs) -> PairSet:
+        geos = [PairGeometry(i, j, np.asarray(uv, float)) for i, j, uv in self.matches]
+        return PairSet(list(self.preds), [], geos, focal_determined=self.focal_determined)

@@ -17,11 +17,9 @@ FAST = ["--points", "5000"]
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    from data_synth import render_scene
-
-    out = tmp_path_factory.mktemp("scene") / "llff"
-    return render_scene("llff_like", out, size_wh=(256, 192), views=6)
+def scene(llff6) -> Path:
+    """llff_like, 6 noisy views at 256x192 (conftest.py)."""
+    return llff6
 
 
 @pytest.fixture(scope="module")

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from mvgeo.align.global_align import (
-    GlobalAlignConfig,
+from mvgeo.align.alignment_objective import (
+    Adam,
     _build_terms,
     _Grid,
     _Params,
@@ -15,10 +15,8 @@ from mvgeo.align.global_align import (
     alignment_loss,
     alignment_loss_and_grads,
     alignment_loss_reference,
-    global_align,
-    init_from_spanning_tree,
-    pixel_rays,
 )
+from mvgeo.align.global_align import GlobalAlignConfig, global_align, init_from_spanning_tree, pixel_rays
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.metrics import compare_poses
 from mvgeo.transforms import quat_from_R
@@ -173,13 +171,12 @@ def test_disconnected_views_raise(rng):
 
 
 def test_own_adam_matches_torch_optim(rng):
-    """`_Adam` against `torch.optim.Adam` on a quadratic: identical iterates (float64)."""
-    from mvgeo.align.global_align import _Adam
+    """`Adam` against `torch.optim.Adam` on a quadratic: identical iterates (float64)."""
 
     target = torch.as_tensor(rng.normal(size=5))
     a = torch.zeros(5, dtype=torch.float64, requires_grad=True)
     b = torch.zeros(5, dtype=torch.float64, requires_grad=True)
-    ours = _Adam([a], betas=(0.9, 0.9))
+    ours = Adam([a], betas=(0.9, 0.9))
     ref = torch.optim.Adam([b], lr=0.1, betas=(0.9, 0.9))
     for k in range(20):
         lr = 0.1 / (1 + k)

@@ -67,7 +67,7 @@ def test_consistency_check_drops_only_contradicted_unconfirmed_points():
     args = ([pts0, pts1], [d0, d1], [conf0, conf1], np.stack([cam, cam]), [K, K])
     keep = covisibility_keep(*args, consistency_rel_tol=0.05)
     assert not keep[0][1, 1] and not keep[0][2, 2] and keep[0][4, 6] and keep[0].sum() == H * W - 2
-    off = covisibility_keep(*args)  # the check off: every view-0 point stays (the old behaviour)
+    off = covisibility_keep(*args)  # the check off: every view-0 point stays
     assert off[0].sum() == H * W
 
 

@@ -25,7 +25,7 @@ def _usable_or_specific_failure(paths, config=FAST):
     assert np.isfinite(cams).all()
     assert all(np.isfinite(c.params).all() for c in res.sparse_model.cameras.values())
     assert np.isfinite(res.points_xyz).all() and np.isfinite(res.points_conf).all()
-    assert np.isfinite(res.stats["final_loss"])
+    assert np.isfinite(res.stats.final_loss)
     return res
 
 
@@ -47,8 +47,8 @@ def test_two_views(small_scene):
     cam = gt.cameras[gt.images[0].camera_id]
     res = align_images(paths, FAST, intrinsics=cam)
     assert len(res.sparse_model.images) == 2
-    ba = res.stats["bundle_adjustment"]
-    assert ba is not None and ba["reproj_rms_after_px"] <= ba["reproj_rms_before_px"]
+    ba = res.stats.bundle_adjustment
+    assert ba is not None and ba.reproj_rms_after_px <= ba.reproj_rms_before_px
     assert np.isfinite(np.stack([im.cam_from_world for im in res.sparse_model.images])).all()
 
 
@@ -88,17 +88,10 @@ def test_known_intrinsics_from_colmap_cameras_txt(small_scene, tmp_path):
     write_sparse_model(tmp_path / "m", gt, binary=False)
     cam = read_intrinsics(tmp_path / "m" / "cameras.txt")
     known = align_images(list_images(small_scene / "images"), FAST, intrinsics=cam)
-    assert known.stats["known_intrinsics"]
+    assert known.stats.known_intrinsics
     for c in known.sparse_model.cameras.values():  # written unchanged at the input resolution
         np.testing.assert_allclose(c.params, cam.K[[0, 1, 0, 1], [0, 1, 2, 2]])
     assert np.isfinite(np.stack([im.cam_from_world for im in known.sparse_model.images])).all()
-
-
-def test_classical_model_is_a_pointmap_model():
-    from mvgeo.align.classical_pairs import ClassicalPointmapModel
-    from mvgeo.align.pairs import PointmapModel
-
-    assert isinstance(ClassicalPointmapModel(), PointmapModel)
 
 
 def test_unknown_intrinsics_format_is_input_error(tmp_path):
@@ -134,8 +127,38 @@ def test_orbit_view_with_undetermined_position_is_a_specific_failure(tmp_path):
     assert "view_015.png" in str(info.value)
     # With both checks off a result is returned, and view 15 is the view it does not pin or support.
     res = align_images(paths, replace(cfg, max_centre_std_ratio=0.0, reject_unsupported_views=False))
-    ratio = res.stats["bundle_adjustment"]["centre_std_ratio"]
-    pairs_15 = [(i, j) for i, j, *_ in res.stats["pairs_inconsistent"] if "view_015.png" in (i, j)]
+    ratio = res.stats.bundle_adjustment.centre_std_ratio
+    pairs_15 = [(p.i, p.j) for p in res.stats.pairs_inconsistent if "view_015.png" in (p.i, p.j)]
     loose = max(ratio) > 5.0 and sorted(ratio)[-2] < 0.1
     unsupported = len(pairs_15) >= 2  # both of its pairs (with views 14 and 17)
-    assert loose or unsupported, (ratio, res.stats["pairs_inconsistent"])
+    assert loose or unsupported, (ratio, res.stats.pairs_inconsistent)
+
+
+@pytest.mark.slow
+def test_denser_orbit_with_an_unsupported_view_is_a_specific_failure(tmp_path):
+    """object_ring with 32 views at 256x192: 28 training views (11.25 deg steps, four 22.5 deg gaps). Without
+    the view-support check (`reject_unsupported_views`) `mvgeo align` returned view_001 6.3 m off (ATE 1.39 m on
+    a 3 m ring, median relative rotation error 3.6 deg). With it the alignment fails naming view_001; with
+    `allow_partial` it registers a subset that is right:
+    measured 14 of 28 at 0.62 deg median relative rotation error and ATE 0.017 m. The bounds (1.5 deg, 0.05 m)
+    lie between that and the bent results seen on this ring (3.6-5.1 deg, ATE 0.11-1.39 m)."""
+    import json
+
+    from data_synth import render_scene
+    from mvgeo.align.api import AlignConfig
+    from mvgeo.align.dense_stereo import DenseStereoConfig
+    from mvgeo.metrics import compare_poses
+    from mvgeo.sparse_model import read_sparse_model
+
+    d = render_scene("object_ring", tmp_path / "ring", size_wh=(256, 192), views=32)
+    train = json.loads((d / "split.json").read_text())["train"]
+    paths = [p for p in list_images(d / "images") if p.name in train]
+    cfg = replace(AlignConfig(), dense_stereo=DenseStereoConfig(enabled=False))
+    with pytest.raises(DegenerateGeometryError, match="contradicts every verified image pair") as info:
+        align_images(paths, cfg)
+    assert "view_001.png" in str(info.value)
+    res = align_images(paths, replace(cfg, allow_partial=True))
+    m = compare_poses(res.sparse_model.cam_from_world_by_name(),
+                      read_sparse_model(d / "sparse" / "0").cam_from_world_by_name())
+    assert m.n_registered >= 3
+    assert m.median_rotation_deg < 1.5 and m.ate.rmse < 0.05

@@ -1,4 +1,4 @@
-"""`build_tracks` (connected components) against the union-find reference."""
+"""`mvgeo.align.bundle`: `build_tracks` (connected components of the matches) against the union-find reference."""
 
 import numpy as np
 import pytest

@@ -1,20 +1,23 @@
-"""The dense point cloud must agree with the cameras it is returned with.
+"""`mvgeo.align.cloud`: the dense cloud must agree with the cameras it is returned with.
 
-Regression: the bundle adjustment fixes only view 0's pose, so its scene may come out at another scale
-than the global alignment's; the dense depth maps were re-posed without rescaling, and the output cloud
-sat 1.3-2x too far from the cameras (median relative depth error 60 % on a 256x192 llff_like run), which
-smeared the splat initialisation.
+The bundle adjustment fixes only view 0's pose, so its scene may come out at another scale than the global
+alignment's; depth maps re-posed without rescaling put the output cloud 1.3-2x too far from the cameras (median
+relative depth error 60 % on a 256x192 llff_like run), which smeared the splat initialisation. `reposed`
+rescales them onto the tracks (`depth_rescale`); `dense_cloud` recomputes them by stereo with the final cameras.
 """
 
 import dataclasses
 
 import numpy as np
-import pytest
 
-from mvgeo.align.api import PREVIEW, align_images, depth_rescale
+import mvgeo.align.cloud as cloud
+from mvgeo.align.api import PREVIEW, align_images
+from mvgeo.align.bundle import BundleResult
+from mvgeo.align.cloud import backproject_depth, depth_rescale, reposed
+from mvgeo.align.pointmap_geometry import pixel_rays
 from mvgeo.common.imageio import list_images
 from mvgeo.sparse_model import read_sparse_model
-from mvgeo.transforms import umeyama
+from mvgeo.transforms import so3_exp, umeyama
 
 
 def test_depth_rescale_recovers_per_view_scales_with_outliers():
@@ -59,10 +62,6 @@ class _Aligned:
 
 def test_reposed_puts_the_dense_points_on_a_rescaled_bundle_adjustment():
     """A BA that returns the same scene at half the scale: the re-posed cloud must follow it."""
-    from mvgeo.align.api import _reposed
-    from mvgeo.align.bundle import BundleResult
-    from mvgeo.align.global_align import pixel_rays
-
     rng = np.random.default_rng(1)
     H, W, f, n = 12, 16, 20.0, 2
     cfw = np.stack([np.hstack([np.eye(3), np.array([[-0.5 * v], [0.0], [0.0]])]) for v in range(n)])
@@ -77,19 +76,13 @@ def test_reposed_puts_the_dense_points_on_a_rescaled_bundle_adjustment():
     X = np.concatenate([0.5 * p.reshape(-1, 3) for p in pts])
     ba = BundleResult(half, np.full(n, f), len(X), len(X), 0.0, 0.0, 0.0, 0.0,
                       track_xyz=X, obs_view=ov, obs_point=np.arange(len(X)), obs_uv=uv)
-    out, report = _reposed(res, half, np.full(n, f), ba, 1.0)
-    np.testing.assert_allclose(report["scale"], [0.5, 0.5], rtol=1e-6)
+    out, rescale = reposed(res, half, np.full(n, f), ba, 1.0)
+    np.testing.assert_allclose(rescale[0], [0.5, 0.5], rtol=1e-6)
     for v in range(n):
         np.testing.assert_allclose(out.pts_world[v], 0.5 * pts[v], atol=1e-9)
-    stale, _ = _reposed(res, half, np.full(n, f))  # without tracks: the old behaviour, off by 2x
+    stale, none = reposed(res, half, np.full(n, f))  # without tracks: not rescaled, off by 2x
+    assert none is None
     assert np.abs(stale.pts_world[1] - 0.5 * pts[1]).max() > 1.0
-
-
-@pytest.fixture(scope="module")
-def llff6(tmp_path_factory):
-    from data_synth import render_scene
-
-    return render_scene("llff_like", tmp_path_factory.mktemp("llff6") / "llff", views=6, size_wh=(256, 192))
 
 
 def test_dense_cloud_lies_on_the_true_surface(llff6):
@@ -124,14 +117,12 @@ def test_dense_cloud_lies_on_the_true_surface(llff6):
     assert med < 0.07, f"median relative depth error of the dense cloud {med:.3f}"
     # The stereo depths agree with the bundle-adjusted tracks of the same cameras (median ratio per view;
     # measured within 0.5 % of 1).
-    ratio = np.array(res.stats["dense_stereo"]["track_depth_ratio"])
+    ratio = np.array(res.stats.dense_stereo.track_depth_ratio)
     assert np.all(np.abs(ratio - 1.0) < 0.02), ratio
 
 
 def test_a_view_the_stereo_leaves_empty_keeps_the_alignment_depth(llff6, monkeypatch):
-    import mvgeo.align.api as api
-
-    real = api.stereo_depths
+    real = cloud.stereo_depths
 
     def first_view_empty(*args, **kwargs):
         out = real(*args, **kwargs)
@@ -139,14 +130,32 @@ def test_a_view_the_stereo_leaves_empty_keeps_the_alignment_depth(llff6, monkeyp
         out.conf[0] = np.ones_like(out.conf[0])
         return out
 
-    monkeypatch.setattr(api, "stereo_depths", first_view_empty)
+    monkeypatch.setattr(cloud, "stereo_depths", first_view_empty)
     res = align_images(list_images(llff6 / "images"), dataclasses.replace(PREVIEW, seed=0))
     first = res.sparse_model.images[0].name
-    assert res.stats["dense_stereo"]["views_with_alignment_depth"] == [first]
-    assert res.stats["dense_stereo"]["fraction_with_depth"][0] == 0.0
+    assert res.stats.dense_stereo.views_with_alignment_depth == [first]
+    assert res.stats.dense_stereo.fraction_with_depth[0] == 0.0
     # The view still contributes points: project the cloud into it and count those in front and inside.
     T = np.asarray(res.sparse_model.images[0].cam_from_world)[:3]
     cam = res.sparse_model.camera_of(first)
     x = res.points_xyz @ T[:, :3].T + T[:, 3]
     u = cam.params[0] * x[:, 0] / x[:, 2] + cam.params[2]
     assert np.count_nonzero((x[:, 2] > 0) & (u >= 0) & (u < cam.width)) > 100
+
+
+def test_backproject_depth_matches_the_pixel_loop(rng):
+    H, W = 5, 7
+    K = np.array([[6.0, 0.0, 3.2], [0.0, 5.5, 2.4], [0.0, 0.0, 1.0]])
+    depth = rng.uniform(1.0, 3.0, (H, W))
+    depth[1, 2] = np.nan
+    R = so3_exp(np.array([0.1, -0.2, 0.3]))
+    T = np.c_[R, [0.5, -0.1, 2.0]]
+    pts = backproject_depth(depth, K, T)
+    for r in range(H):
+        for c in range(W):
+            x_cam = depth[r, c] * np.linalg.solve(K, [c + 0.5, r + 0.5, 1.0])  # pixel centre (c + 0.5, r + 0.5)
+            want = R.T @ (x_cam - T[:, 3])
+            if np.isnan(depth[r, c]):
+                assert np.isnan(pts[r, c]).all()
+            else:
+                np.testing.assert_allclose(pts[r, c], want, rtol=1e-12, atol=1e-12)

@@ -1,0 +1,200 @@
+"""One candidate solution: the checked pair graph, then global alignment, bundle adjustment and the verdict.
+
+`pair_graph` turns the pair stage's `PairSet` into the graph a candidate is solved on: pairs whose relative
+rotation contradicts most of their loops of three pairs are rejected (`mvgeo.align.loops`), and the views
+must be connected (or, with `allow_partial`, the largest connected group is kept). `solve` runs one start
+(`mvgeo.align.init`) through the global alignment and the bundle adjustment on every verified pair's
+matches, and judges the result against all of them (`mvgeo.align.verdict`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from mvgeo.align.bundle import BundleResult, bundle_adjust
+from mvgeo.align.checks import PairCheck
+from mvgeo.align.cloud import reposed
+from mvgeo.align.global_align import GlobalAlignConfig, GlobalAlignResult, focal_estimates, global_align
+from mvgeo.align.graph import components
+from mvgeo.align.init import initial_values
+from mvgeo.align.inputs import AlignInputs
+from mvgeo.align.loops import pair_rotations, reject_by_loops
+from mvgeo.align.pairs import PairFailure, PairSet
+from mvgeo.align.stats import FailedPair, RejectedPair, Unregistered
+from mvgeo.align.verdict import Verdict, judge_pairs, verdict
+from mvgeo.common.errors import InputError
+from mvgeo.common.timing import StageTimer
+
+__all__ = ["Candidate", "PairGraph", "pair_graph", "solve"]
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PairGraph:
+    """The pairs a candidate is solved on (after the loop check), restricted to the views to register.
+
+    Attributes:
+        inputs: the registered views; pairs: their pairs, renumbered.
+        failed: every pair that failed or was rejected, by name; rejected: the loop check's rejections.
+        unregistered: views left out because no usable pair connects them (`allow_partial`).
+        refocused: how many times the pairs were recomputed at a bundle-adjusted focal.
+    """
+
+    inputs: AlignInputs
+    pairs: PairSet
+    failed: list[FailedPair]
+    rejected: list[RejectedPair]
+    unregistered: list[Unregistered]
+    refocused: int = 0
+
+    @property
+    def grid_to_align(self) -> float:
+        """Alignment pixels per pointmap pixel."""
+        return self.inputs.align_wh[0] / self.pairs.predictions[0].pts_i.shape[1]
+
+
+def _loop_check(inputs: AlignInputs, pairs: PairSet, config) -> tuple[PairSet, list[tuple[tuple[int, int], int, int]]]:
+    preds, n = pairs.predictions, len(inputs)
+    K_align = inputs.K_align
+    if K_align is None:  # the pairs' focal estimates, pointmap pixels -> alignment pixels
+        Hp, Wp = preds[0].pts_i.shape[:2]
+        s = inputs.align_wh[0] / Wp
+        K_align = np.array([[[f, 0, Wp * s / 2.0], [0, f, Hp * s / 2.0], [0, 0, 1]]
+                            for f in focal_estimates(preds, n) * s])
+    rel, weight = pair_rotations(pairs.matches, K_align, preds)
+    loop = reject_by_loops(rel, weight, max_loop_deg=config.max_loop_deg)
+    if not loop.removed:
+        return pairs, []
+    _log.warning("loop check: %d of %d loops of three pairs are inconsistent; rejected pairs %s",
+                 loop.n_inconsistent, loop.n_triangles, sorted(loop.removed))
+    gone = {(min(i, j), max(i, j)) for i, j in loop.removed}
+    kept = replace(pairs, predictions=[p for p in preds if (min(p.i, p.j), max(p.i, p.j)) not in gone],
+                   geometries=[g for g in pairs.geometries if (min(g.i, g.j), max(g.i, g.j)) not in gone],
+                   failures=pairs.failures + [PairFailure(i, j, "rejected by the loop check") for i, j in loop.removed])
+    return kept, [(e, b, g) for e, (b, g) in zip(loop.removed, loop.votes, strict=True)]
+
+
+def pair_graph(inputs: AlignInputs, pairs: PairSet, config, timer: StageTimer, *, refocused: int = 0) -> PairGraph:
+    """Loop check and connectivity (module docstring). `config`: `AlignConfig`.
+
+    Raises:
+        InputError: the pairs do not connect the views (without `allow_partial`), naming them.
+    """
+    names = inputs.names
+    failed = [FailedPair(names[f.i], names[f.j], f.reason) for f in pairs.failures]
+    rejected = []
+    if config.loop_check and pairs.predictions:
+        with timer.stage("loop_check"):
+            pairs, votes = _loop_check(inputs, pairs, config)
+        for (i, j), bad, good in votes:
+            rejected.append(RejectedPair(names[i], names[j], bad, good))
+            failed.append(FailedPair(names[i], names[j], f"rejected: its relative rotation contradicts {bad} of the "
+                                                         f"{bad + good} loops of three pairs it is in"))
+    comps = components(len(inputs), [(p.i, p.j) for p in pairs.predictions])
+    main = comps[0]
+    if len(comps) > 1 and not (config.allow_partial and len(main) >= 2):
+        lost = [names[v] for c in comps[1:] for v in c]
+        reasons = "; ".join(f"({names[f.i]}, {names[f.j]}): {f.reason}" for f in pairs.failures
+                            if (f.i in main) != (f.j in main))[:2000]
+        raise InputError(
+            f"the pair graph is disconnected: images {lost} could not be related to {[names[v] for v in main]}"
+            + (f". Failed pairs: {reasons}" if reasons else ""),
+            fix=("no two images could be related: check that they show one scene with enough overlap and texture"
+                 if len(main) < 2 else "add views that overlap the disconnected ones, or remove them; try --pairs "
+                 "complete; or pass --allow-partial to register only the largest connected group"))
+    unregistered = []
+    if len(main) < len(inputs):
+        unregistered = [Unregistered(names[v], "not connected to the registered images by any usable pair")
+                        for v in range(len(inputs)) if v not in main]
+        _log.warning("registering %d of %d images (--allow-partial); not connected: %s", len(main), len(inputs),
+                     [u.name for u in unregistered])
+        inputs, pairs = inputs.restricted(main), pairs.restricted(main)
+    return PairGraph(inputs, pairs, failed, rejected, unregistered, refocused)
+
+
+@dataclass
+class Candidate:
+    """One solved start (see `mvgeo.align.policy` for how candidates are generated and chosen).
+
+    Attributes:
+        start: "chain" or "averaged"; graph: the pair graph it derives from.
+        inputs, pairs: the views and pairs it was solved with (the graph's, less dropped pairs and views).
+        result: the global alignment, re-posed by the bundle adjustment when it ran.
+        ba: the bundle adjustment, or None; depth_rescale: per-view depth scales onto its tracks.
+        align_config: the global alignment's config.
+        checks, bad: every verified pair of the registered views (dropped ones included) against the result.
+        dropped: pairs (by name) left out because an earlier candidate did not explain them.
+        unregistered: views left out, with the reason (the graph's and the dropped ones).
+        verdict: the reasons to refuse it (none: accepted).
+    """
+
+    start: str
+    graph: PairGraph
+    inputs: AlignInputs
+    pairs: PairSet
+    result: GlobalAlignResult
+    ba: BundleResult | None
+    depth_rescale: tuple[np.ndarray, np.ndarray] | None
+    align_config: GlobalAlignConfig
+    checks: list[PairCheck]
+    bad: list[PairCheck]
+    dropped: list[tuple[str, str]] = field(default_factory=list)
+    unregistered: list[Unregistered] = field(default_factory=list)
+    verdict: Verdict = Verdict()
+
+    @property
+    def explained_fraction(self) -> float:
+        """Fraction of the verified matches the result explains (1 without matches)."""
+        total = sum(c.n_matches for c in self.checks)
+        return 1.0 if not total else sum(c.n_matches * c.explained_fraction for c in self.checks) / total
+
+    @property
+    def bundle_focal_px(self) -> float | None:
+        """The bundle adjustment's median focal (alignment px), or None without it."""
+        return None if self.ba is None else float(np.median(self.ba.focal_px))
+
+
+def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: AlignInputs | None = None,
+          pairs: PairSet | None = None, dropped: list[tuple[str, str]] | None = None,
+          unregistered: list[Unregistered] | None = None) -> Candidate:
+    """Global alignment from `start`, bundle adjustment, verdict. `inputs`/`pairs` default to the graph's
+    (a pruned candidate passes fewer); `config`: `AlignConfig`."""
+    inputs = graph.inputs if inputs is None else inputs
+    pairs = graph.pairs if pairs is None else pairs
+    n, s = len(inputs), graph.grid_to_align
+    Hp, Wp = pairs.predictions[0].pts_i.shape[:2]
+    sizes = [(Hp, Wp)] * n
+    focal_init = None
+    align_cfg = config.align
+    if inputs.intrinsics is not None:  # known calibration: fx at the pointmap grid (square pixels assumed)
+        W0, H0 = inputs.input_wh
+        focal_init = np.full(n, 0.5 * (inputs.intrinsics.fx * Wp / W0 + inputs.intrinsics.fy * Hp / H0))
+        align_cfg = replace(align_cfg, optimize_focal=False)
+    with timer.stage("global_align"):
+        align_cfg, init = initial_values(start, pairs, sizes, focal_init, align_cfg, s, inputs.align_wh)
+        res = global_align(pairs.predictions, sizes, config=align_cfg, focal_init_px=focal_init, init=init)
+    ba, rescale = None, None
+    if config.bundle_adjust and pairs.geometries:
+        with timer.stage("bundle_adjust"):
+            ba_cfg = replace(config.bundle, shared_focal=config.bundle.shared_focal or align_cfg.shared_focal,
+                             optimize_focal=inputs.intrinsics is None)
+            ba = bundle_adjust(res.cam_from_world, res.focal_px * s, inputs.align_wh, pairs.matches, config=ba_cfg)
+            res, rescale = reposed(res, ba.cam_from_world, ba.focal_px / s, ba, s)
+    # Judged against every verified pair of these views, the dropped ones included. Without the bundle
+    # adjustment the poses come from pointmaps `s` times coarser than the matches: judged at that resolution.
+    keep = {name: k for k, name in enumerate(inputs.names)}
+    index = [keep.get(name) for name in graph.inputs.names]
+    evidence = [(index[i], index[j], uv) for i, j, uv in graph.pairs.matches
+                if index[i] is not None and index[j] is not None]
+    thr = config.consistency_px * (1.0 if ba is not None else max(s, 1.0))
+    checks, bad = judge_pairs(res.cam_from_world, res.focal_px * s, inputs.align_wh, evidence, threshold_px=thr,
+                              min_explained=config.min_pair_explained, max_rotation_deg=config.max_pair_rotation_deg)
+    judged = verdict(checks, bad, inputs.names, ba=ba,
+                     focal_determined=pairs.focal_determined or inputs.intrinsics is not None,
+                     focal_undetermined_why=pairs.focal_undetermined_why, config=config)
+    return Candidate(start, graph, inputs, pairs, res, ba, rescale, align_cfg, checks, bad, list(dropped or []),
+                     list(graph.unregistered) + list(unregistered or []), judged)

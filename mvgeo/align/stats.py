@@ -1,0 +1,187 @@
+"""`AlignStats`: the alignment's report (align.json), typed, with one JSON serializer.
+
+`to_json` writes plain JSON (NaN where a figure does not exist); `from_json` reads it back. Keys a caller
+adds (the `denoise-gs` pipeline's geometry decisions) live in `annotations` and are written as top-level
+keys, so align.json stays one flat document.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = ["AlignStats", "BundleStats", "CandidateSummary", "DenseStereoStats", "FailedPair", "InconsistentPair",
+           "RejectedPair", "Unregistered"]
+
+
+@dataclass(frozen=True)
+class FailedPair:
+    """A pair the pair stage could not relate (or the loop check rejected), by image name."""
+
+    i: str
+    j: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class RejectedPair:
+    """A pair the loop check rejected: how many loops of three pairs it is in contradict / agree with it."""
+
+    i: str
+    j: str
+    inconsistent_loops: int
+    consistent_loops: int
+
+
+@dataclass(frozen=True)
+class Unregistered:
+    """A view left out (`AlignConfig.allow_partial`) and why."""
+
+    name: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class InconsistentPair:
+    """A verified pair the chosen solution does not explain: the explained fraction of its matches and how far
+    the solution's relative rotation is from the one its matches imply (deg; None: not measured)."""
+
+    i: str
+    j: str
+    explained_fraction: float
+    rotation_deviation_deg: float | None
+
+
+@dataclass(frozen=True)
+class BundleStats:
+    """The bundle adjustment of the chosen solution (pixels at the alignment size)."""
+
+    n_points: int
+    n_observations: int
+    reproj_rms_before_px: float
+    reproj_rms_after_px: float
+    reproj_median_before_px: float
+    reproj_median_after_px: float
+    focal_log_std: float
+    solver: str
+    #: per view, centre standard deviation / median nearest-camera distance (`verdict.centre_std_ratio`).
+    centre_std_ratio: list[float] | None = None
+    #: per view, the scale that brought the global alignment's depth map onto the tracks, and its spread.
+    dense_depth_scale: list[float] | None = None
+    dense_depth_log_mad: list[float | None] | None = None
+
+
+@dataclass(frozen=True)
+class DenseStereoStats:
+    """The output cloud's depth maps (`mvgeo.align.dense_stereo`)."""
+
+    size_wh: list[int]
+    n_pairs: int
+    fraction_with_depth: list[float]
+    fraction_filled: list[float]
+    views_with_alignment_depth: list[str]
+    track_depth_ratio: list[float] | None = None
+    track_log_mad: list[float | None] | None = None
+
+
+@dataclass(frozen=True)
+class CandidateSummary:
+    """One candidate solution the policy solved (`mvgeo.align.policy`), in the order they were solved.
+
+    Attributes:
+        start: "chain" or "averaged" (`mvgeo.align.init`).
+        pairs_focal_px: the shared focal (alignment px) its pair geometry assumed (None: unknown / per pair).
+        bundle_focal_px: the bundle adjustment's median focal (alignment px; None without it).
+        refocused: its pairs were recomputed at an earlier candidate's bundle-adjusted focal.
+        n_pairs_dropped: verified pairs left out because an earlier candidate did not explain them.
+        explained_fraction: fraction of all verified matches its final poses explain.
+        reasons: the verdict's reason kinds (empty: accepted).
+        chosen: the selection rule kept this one.
+        error: the error that stopped it before a verdict (e.g. a disconnected graph), else "".
+    """
+
+    start: str
+    pairs_focal_px: float | None
+    bundle_focal_px: float | None
+    refocused: bool
+    n_pairs_dropped: int
+    explained_fraction: float
+    reasons: list[str]
+    chosen: bool = False
+    error: str = ""
+
+
+@dataclass
+class AlignStats:
+    """align.json: what `align_images` did and how well the result fits (sizes as [W, H])."""
+
+    n_images: int
+    n_registered: int
+    input_size_wh: list[int]
+    align_size_wh: list[int]
+    pointmap_size_wh: list[int]
+    n_pairs: int
+    n_pairs_ok: int
+    n_pairs_verified: int
+    failed_pairs: list[FailedPair]
+    pairs_rejected_by_loops: list[RejectedPair]
+    unregistered: list[Unregistered]
+    iterations: int
+    init_loss: float
+    final_loss: float
+    focal_px: dict[str, float]
+    known_intrinsics: bool
+    shared_focal: bool
+    bundle_adjustment: BundleStats | None
+    dense_stereo: DenseStereoStats | None
+    focal_determined_by_pairs: bool
+    sensitive_features: bool
+    initial_poses: str
+    candidates: list[CandidateSummary]
+    pairs_dropped_as_inconsistent: list[list[str]]
+    pair_consistency_min: float
+    pairs_inconsistent: list[InconsistentPair]
+    n_points: int
+    mean_confidence: float
+    timings_s: dict[str, float]
+    config: dict[str, Any]
+    annotations: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dict (annotations as top-level keys)."""
+        out = dataclasses.asdict(self)
+        extra = out.pop("annotations")
+        clash = set(extra) & set(out)
+        if clash:
+            raise ValueError(f"annotations may not replace align.json fields: {sorted(clash)}")
+        return {**out, **extra}
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> AlignStats:
+        """The inverse of `to_json` (keys that are not fields become annotations)."""
+        names = {f.name for f in dataclasses.fields(cls)} - {"annotations"}
+        missing = names - set(data)
+        if missing:
+            raise KeyError(f"align.json lacks {sorted(missing)}")
+        kw = {k: data[k] for k in names}
+        kw["failed_pairs"] = [FailedPair(**x) for x in kw["failed_pairs"]]
+        kw["pairs_rejected_by_loops"] = [RejectedPair(**x) for x in kw["pairs_rejected_by_loops"]]
+        kw["unregistered"] = [Unregistered(**x) for x in kw["unregistered"]]
+        kw["pairs_inconsistent"] = [InconsistentPair(**x) for x in kw["pairs_inconsistent"]]
+        kw["candidates"] = [CandidateSummary(**x) for x in kw["candidates"]]
+        if kw["bundle_adjustment"] is not None:
+            kw["bundle_adjustment"] = BundleStats(**kw["bundle_adjustment"])
+        if kw["dense_stereo"] is not None:
+            kw["dense_stereo"] = DenseStereoStats(**kw["dense_stereo"])
+        return cls(**kw, annotations={k: v for k, v in data.items() if k not in names})
+
+    def write(self, path: Path) -> None:
+        Path(path).write_text(json.dumps(self.to_json(), indent=2, allow_nan=True))
+
+    @classmethod
+    def read(cls, path: Path) -> AlignStats:
+        return cls.from_json(json.loads(Path(path).read_text()))
+

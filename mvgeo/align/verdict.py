@@ -1,0 +1,159 @@
+"""The verdict on a candidate solution: does the evidence support it? Typed reasons, naming the views.
+
+Four reasons to refuse a solution, checked in this order (`verdict`):
+
+- `pairs_contradicted`: the verified pairs the solution does not explain (too few matches within
+  `AlignConfig.consistency_px` Sampson distance, or a relative rotation more than `max_pair_rotation_deg`
+  off the one the matches imply, `judge_pairs`) hold more than `max_unexplained_fraction` of all verified
+  matches: the solution as a whole is wrong;
+- `views_unsupported`: every verified pair of a view is contradicted (`reject_unsupported_views`);
+- `positions_undetermined`: the bundle adjustment leaves a camera centre uncertain by more than
+  `max_centre_std_ratio` times the median distance between neighbouring cameras;
+- `focal_undetermined`: no pair determined the focal and the bundle adjustment leaves it uncertain by more
+  than `max_focal_log_std`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from mvgeo.align.bundle import BundleResult
+from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_without_consistent_pair
+from mvgeo.common.errors import DegenerateGeometryError
+
+__all__ = ["Reason", "Verdict", "centre_std_ratio", "judge_pairs", "loose_views", "mostly_unexplained", "verdict"]
+
+REASON_KINDS = ("pairs_contradicted", "views_unsupported", "positions_undetermined", "focal_undetermined")
+
+
+@dataclass(frozen=True)
+class Reason:
+    """Why a solution is refused. kind: one of `REASON_KINDS`; views: the names concerned; message: for users."""
+
+    kind: str
+    views: tuple[str, ...]
+    message: str
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The reasons a solution is refused; none: it is accepted."""
+
+    reasons: tuple[Reason, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return not self.reasons
+
+    def error(self) -> DegenerateGeometryError:
+        """The first reason as the error `align_images` raises."""
+        return DegenerateGeometryError(self.reasons[0].message)
+
+
+def judge_pairs(cam_from_world: np.ndarray, focal_align_px: np.ndarray, size_wh: tuple[int, int],
+                matches: Sequence[tuple[int, int, np.ndarray]], *, threshold_px: float, min_explained: float,
+                max_rotation_deg: float) -> tuple[list[PairCheck], list[PairCheck]]:
+    """Per pair, the Sampson check and the rotation check (`pair_rotation_deviation`); (checks, failing ones).
+
+    A pair fails when it explains less than `min_explained` of its matches, or when the solution's relative
+    rotation is more than `max_rotation_deg` (0: off) off the one its matches imply under the final focal.
+    """
+    if not matches:
+        return [], []
+    checks = pair_consistency(cam_from_world, focal_align_px, size_wh, matches, threshold_px=threshold_px)
+    if max_rotation_deg > 0:
+        dev = pair_rotation_deviation(cam_from_world, focal_align_px, size_wh, matches)
+        checks = [replace(c, rotation_deviation_deg=d) for c, d in zip(checks, dev, strict=True)]
+    bad = [c for c in checks if c.explained_fraction < min_explained
+           or (max_rotation_deg > 0 and c.rotation_deviation_deg > max_rotation_deg)]
+    return checks, bad
+
+
+def mostly_unexplained(checks: Sequence[PairCheck], bad: Sequence[PairCheck], max_fraction: float) -> bool:
+    """The failing pairs hold more than `max_fraction` of all verified matches (not one weakly linked view)."""
+    total = sum(c.n_matches for c in checks)
+    return bool(total) and sum(c.n_matches for c in bad) > max_fraction * total
+
+
+def centre_std_ratio(ba: BundleResult) -> list[float] | None:
+    """Per view, the largest standard deviation of its camera centre over the median distance from each
+    camera to its nearest neighbour; None without the estimate (scipy solver) or with fewer than 3 views
+    (with two, holding one camera leaves the other's distance free: that is the scale gauge, not a defect)."""
+    if ba.centre_std is None or len(ba.centre_std) < 3:
+        return None
+    R, t = ba.cam_from_world[:, :, :3], ba.cam_from_world[:, :, 3]
+    C = -np.einsum("nji,nj->ni", R, t)
+    d = np.linalg.norm(C[:, None] - C[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    scale = float(np.median(d.min(axis=1)))
+    if not scale > 0:
+        return [float("inf")] * len(C)
+    return [round(float(s) / scale, 4) for s in ba.centre_std]
+
+
+def loose_views(ba: BundleResult | None, max_ratio: float) -> list[int]:
+    """Views whose `centre_std_ratio` exceeds `max_ratio` (0: off)."""
+    ratio = centre_std_ratio(ba) if ba is not None else None
+    if ratio is None or max_ratio <= 0:
+        return []
+    return [v for v, q in enumerate(ratio) if q > max_ratio]
+
+
+def _pair_phrase(c: PairCheck, names, max_rot: float) -> str:
+    return (f"({names[c.i]}, {names[c.j]}): {c.explained_fraction:.0%}"
+            + (f" rotation {c.rotation_deviation_deg:.0f} deg off its matches" if c.rotation_deviation_deg > max_rot
+               else ""))
+
+
+def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequence[str], *, ba: BundleResult | None,
+            focal_determined: bool, focal_undetermined_why: str, config) -> Verdict:
+    """Every reason (module docstring) to refuse a solution. `config`: `AlignConfig`."""
+    reasons = []
+    max_rot = config.max_pair_rotation_deg
+    if mostly_unexplained(checks, bad, config.max_unexplained_fraction):
+        total, unexplained = sum(c.n_matches for c in checks), sum(c.n_matches for c in bad)
+        listing = ", ".join(_pair_phrase(c, names, max_rot) for c in bad)[:1500]
+        reasons.append(Reason("pairs_contradicted", tuple(sorted({names[v] for c in bad for v in (c.i, c.j)})), (
+            f"the reconstruction is inconsistent with {len(bad)} of {len(checks)} verified image pairs "
+            f"({unexplained} of {total} matches unexplained; explained fraction per pair, and the rotation "
+            f"where the result turns the pair more than {max_rot:g} deg away from the one its matches imply: "
+            f"{listing}). Likely causes: too little overlap between neighbouring views (e.g. an orbit with large "
+            "steps), repeated or symmetric structure matched across the scene"
+            + ("" if focal_determined else ", and no image pair determines the focal length")
+            + (". The bundle adjustment is off: the dense alignment alone is this coarse; enable it (--ba)"
+               if ba is None else ". Add views between the existing ones, or pass --intrinsics"))))
+    orphans = views_without_consistent_pair(checks, bad, len(names)) if config.reject_unsupported_views else []
+    if orphans:
+        def pairs_of(v):
+            return "; ".join(f"with {names[c.j if c.i == v else c.i]}: {c.explained_fraction:.0%} explained"
+                             + (f", rotation {c.rotation_deviation_deg:.0f} deg off"
+                                if c.rotation_deviation_deg > max_rot else "")
+                             for c in bad if v in (c.i, c.j))
+        listing = ", ".join(f"{names[v]} ({pairs_of(v)})" for v in orphans)[:1500]
+        reasons.append(Reason("views_unsupported", tuple(names[v] for v in orphans), (
+            f"the reconstruction contradicts every verified image pair of {len(orphans)} of {len(names)} views, "
+            f"so their poses are not supported by their matches: {listing}. Likely causes: too little overlap "
+            "between these views and their neighbours (e.g. an orbit with large steps), or repeated or symmetric "
+            "structure matched across the scene. Add views between the existing ones, or pass --allow-partial "
+            "to register the others")))
+    loose = loose_views(ba, config.max_centre_std_ratio)
+    if loose:
+        ratio = centre_std_ratio(ba)
+        listing = ", ".join(f"{names[v]} ({ratio[v]:.2g})" for v in loose)[:1500]
+        reasons.append(Reason("positions_undetermined", tuple(names[v] for v in loose), (
+            f"the positions of {len(loose)} of {len(ratio)} views are not determined by the feature tracks: "
+            f"their camera centres are uncertain by more than {config.max_centre_std_ratio:g} times the "
+            f"median distance between neighbouring cameras (standard deviation / that distance: {listing}). "
+            "Likely cause: these views are linked to the others by tracks seen in two views only, so each "
+            "pair fixes a direction but not a distance (e.g. an orbit with large steps). Add views between "
+            "the existing ones, or pass --allow-partial to register the others")))
+    if not focal_determined and ba is not None and ba.focal_log_std > config.max_focal_log_std:
+        why = f": {focal_undetermined_why}" if focal_undetermined_why else ""
+        reasons.append(Reason("focal_undetermined", (), (
+            f"the focal length is not determined by these views (no image pair determines it{why}; and the "
+            f"bundle adjustment leaves a relative uncertainty of {ba.focal_log_std:.0%}). Pass the calibration "
+            "with --intrinsics, or add views with more parallax")))
+    return Verdict(tuple(reasons))

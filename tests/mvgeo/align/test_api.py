@@ -1,0 +1,61 @@
+"""`align_images` end to end (the Python API): its result, its report, the files it writes, and the native-thread
+limit it runs under."""
+
+import json
+
+import numpy as np
+
+from mvgeo.align import write_align_result
+from mvgeo.align.stats import AlignStats
+from mvgeo.common.deps import cv2
+from mvgeo.common.imageio import list_images
+from mvgeo.common.threads import blas_thread_counts, native_threads
+from mvgeo.metrics import compare_poses
+from mvgeo.sparse_model import read_sparse_model
+
+
+def test_native_threads_limits_and_restores():
+    before, cv_before = blas_thread_counts(), cv2.getNumThreads()
+    assert before  # numpy's OpenBLAS is loaded in this process (Linux wheels)
+    with native_threads(1):
+        assert blas_thread_counts() == [1] * len(before)
+        assert cv2.getNumThreads() == 1
+    assert blas_thread_counts() == before and cv2.getNumThreads() == cv_before
+
+
+def test_result_and_typed_report(llff6, llff6_preview):
+    res = llff6_preview
+    names = [p.name for p in list_images(llff6 / "images")]
+    assert [im.name for im in res.sparse_model.images] == names  # input order, names as given
+    s = res.stats
+    assert isinstance(s, AlignStats)
+    assert (s.n_images, s.n_registered, s.unregistered) == (6, 6, [])
+    assert s.input_size_wh == [256, 192] and s.align_size_wh == [256, 192]
+    assert max(s.pointmap_size_wh) == 96  # PREVIEW's pointmaps
+    assert s.n_pairs == 15 and 0 < s.n_pairs_ok <= s.n_pairs_verified <= 15
+    assert s.n_points == len(res.points_xyz) == len(res.points_rgb) == len(res.points_conf) > 100
+    assert res.points_rgb.dtype == np.uint8 and np.all(res.points_conf > 2.0)  # above min_conf
+    assert sorted(s.focal_px) == sorted(names) and len(set(s.focal_px.values())) == 1  # one shared camera
+    assert s.final_loss <= s.init_loss
+    ba = s.bundle_adjustment
+    assert ba is not None and ba.reproj_rms_after_px < ba.reproj_rms_before_px and ba.n_points > 100
+    assert len(ba.centre_std_ratio) == 6 and max(ba.centre_std_ratio) <= 1.0  # every position determined
+    assert s.pairs_inconsistent == [] and s.pair_consistency_min >= 0.5
+    for stage in ("load", "pairwise", "global_align", "bundle_adjust", "dense_stereo", "total"):
+        assert stage in s.timings_s, stage
+    assert s.config["max_size_px"] == 320 and s.config["initial_poses"] == "auto"
+    m = compare_poses(res.sparse_model.cam_from_world_by_name(),
+                      read_sparse_model(llff6 / "sparse" / "0").cam_from_world_by_name())
+    # Measured 0.35 deg with PREVIEW (noisy 256x192 views); 1 deg leaves room for other machines' SIFT.
+    assert m.registered_fraction == 1.0 and m.median_rotation_deg < 1.0
+
+
+def test_written_result_reads_back(llff6_preview, tmp_path):
+    out = write_align_result(tmp_path / "out", llff6_preview)
+    raw = json.loads((out / "align.json").read_text())
+    assert raw["n_points"] == llff6_preview.stats.n_points and "annotations" not in raw
+    assert AlignStats.read(out / "align.json") == llff6_preview.stats
+    model = read_sparse_model(out / "sparse" / "0")
+    assert model.names == llff6_preview.sparse_model.names
+    for a, b in zip(model.images, llff6_preview.sparse_model.images, strict=True):
+        np.testing.assert_allclose(np.asarray(a.cam_from_world)[:3], np.asarray(b.cam_from_world)[:3], atol=1e-9)

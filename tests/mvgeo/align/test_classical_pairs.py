@@ -1,0 +1,141 @@
+"""`mvgeo.align.classical_pairs`: the `PairSet` the classical model returns, features and matches computed once
+and reused by `refocus`, the dense-pair selection, and the diagnosis of an undetermined focal."""
+
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import mvgeo.align.classical_pairs as cp
+from mvgeo.align.api import PREVIEW
+from mvgeo.align.classical_pairs import ClassicalPointmapModel, _why_no_focal, select_dense_pairs
+from mvgeo.align.graph import components
+from mvgeo.align.loops import rotation_angle_deg
+from mvgeo.align.pairs import PairSet, PointmapModel, RefocusableModel
+from mvgeo.common.imageio import list_images, read_image
+from mvgeo.sparse_model import read_sparse_model
+from mvgeo.twoview import TwoViewConfig
+
+PAIRS = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+
+
+@pytest.fixture(scope="module")
+def views4(llff6):
+    paths = list_images(llff6 / "images")[:4]
+    return [p.name for p in paths], [read_image(p) for p in paths]
+
+
+@pytest.fixture(scope="module")
+def pairset4(views4) -> PairSet:
+    return ClassicalPointmapModel(PREVIEW.pairwise, seed=0).predict_pairs(views4[1], PAIRS)
+
+
+def test_classical_model_is_a_refocusable_pointmap_model():
+    model = ClassicalPointmapModel()
+    assert isinstance(model, PointmapModel) and isinstance(model, RefocusableModel)
+    assert model.pointmap_size_px == cp.ClassicalPairConfig().pointmap_size_px
+
+
+def test_pair_set_holds_every_verified_pair_with_its_geometry(pairset4, views4, llff6):
+    ps = pairset4
+    geo = {(g.i, g.j): g for g in ps.geometries}
+    failed = {(f.i, f.j) for f in ps.failures}
+    assert set(geo) | failed == set(PAIRS)  # every pair is verified or has a reason
+    assert all(f.reason for f in ps.failures)
+    assert len(ps.predictions) >= 3 and len(components(4, [(p.i, p.j) for p in ps.predictions])) == 1
+    H, W = views4[1][0].shape[:2]
+    for p in ps.predictions:  # the dense pairs are verified pairs; their matches are the geometry's
+        np.testing.assert_array_equal(p.matches_px, geo[(p.i, p.j)].matches_px)
+        assert max(p.pts_i.shape[:2]) == PREVIEW.pairwise.pointmap_size_px and np.all(p.conf_i >= 1)
+        assert p.focal_i_px == pytest.approx(ps.focal_px * p.pts_i.shape[1] / W)
+    assert [(i, j) for i, j, _ in ps.matches] == list(geo)
+    # The relative poses: unit translation, and close to the truth (noisy 256x192 views; measured 0.19-1.36 deg
+    # off with PREVIEW, seed 0).
+    gt = read_sparse_model(llff6 / "sparse" / "0")
+    T = [np.asarray(gt.image(n).cam_from_world)[:3] for n in views4[0]]
+    for (i, j), g in geo.items():
+        assert len(g.matches_px) >= 15
+        assert np.all((g.matches_px >= 0) & (g.matches_px <= [W, H, W, H]))
+        R, t = g.cam_j_from_cam_i[:, :3], g.cam_j_from_cam_i[:, 3]
+        assert np.linalg.norm(t) == pytest.approx(1.0)
+        R_true = T[j][:, :3] @ T[i][:, :3].T
+        assert rotation_angle_deg(R @ R_true.T) < 3.0, (i, j)
+
+
+def test_match_is_computed_once_and_refocus_reuses_it(views4, monkeypatch):
+    """Features and matches: once for the same images and pairs; `refocus` recomputes the geometry at another
+    focal from them; other pairs or other images are matched anew."""
+    real, calls = cp.detect_and_match, []
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(cp, "detect_and_match", counting)
+    images = views4[1][:3]
+    pairs = [(0, 1), (0, 2), (1, 2)]
+    # No pair focal (focal_pairs=0): the prior 1.2 * max(W, H).
+    model = ClassicalPointmapModel(dataclasses.replace(PREVIEW.pairwise, focal_pairs=0), seed=0)
+    first = model.predict_pairs(images, pairs)
+    assert len(calls) == 1
+    assert first.focal_px == pytest.approx(1.2 * 256) and not first.focal_determined
+    assert first.focal_undetermined_why == "no pair has enough matches to try"
+    matched = model.match(images, pairs)
+    again = model.predict_pairs([im.copy() for im in images], pairs)  # equal images: the same key
+    assert len(calls) == 1 and model.match(images, pairs) is matched
+    assert [(p.i, p.j) for p in again.predictions] == [(p.i, p.j) for p in first.predictions]
+    for a, b in zip(again.predictions, first.predictions, strict=True):
+        np.testing.assert_array_equal(a.pts_j, b.pts_j)
+    refocused = model.refocus(images, pairs, 200.0)
+    assert len(calls) == 1  # the same features and matches
+    assert refocused.focal_px == 200.0 and len(refocused.predictions) >= 2
+    Wp = refocused.predictions[0].pts_i.shape[1]
+    np.testing.assert_allclose([p.focal_i_px for p in refocused.predictions], 200.0 * Wp / 256)
+    # Every refocused pair's inliers are among the pair's putative matches.
+    for g in refocused.geometries:
+        u1, u2 = matched.pixels(g.i, g.j)
+        putative = {tuple(r) for r in np.concatenate([u1, u2], axis=1)}
+        assert {tuple(r) for r in g.matches_px} <= putative
+    model.predict_pairs(images, pairs[:2])  # other pairs: matched anew
+    assert len(calls) == 2
+    model.predict_pairs(images[::-1], pairs)  # other images (order): matched anew
+    assert len(calls) == 3
+
+
+def test_dense_pair_selection_is_connected_and_top_k(rng):
+    n = 10
+    inliers = {(i, j): int(rng.integers(20, 500)) for i in range(n) for j in range(i + 1, n) if rng.random() < 0.6}
+    inliers.update({(i, i + 1): 25 for i in range(n - 1)})  # a weak chain keeps the full graph connected
+    for k in (1, 2, 4):
+        sel = select_dense_pairs(n, inliers, k)
+        assert len(components(n, sel)) == 1
+        for v in range(n):
+            mine = sorted((p for p in inliers if v in p), key=lambda p: -inliers[p])[:k]
+            assert set(mine) <= set(sel)
+    assert sorted(select_dense_pairs(n, inliers, 0)) == sorted(inliers)
+
+
+CFG = TwoViewConfig()
+
+
+def _rel(success: bool, h_ratio: float | None):
+    return SimpleNamespace(success=success, homography_ratio=h_ratio, focal_well_determined=False)
+
+
+def test_focal_diagnosis_counts_each_cause_once():
+    rels = [_rel(False, 0.99), _rel(False, CFG.max_homography_ratio),  # homography: planar / no baseline
+            _rel(True, 0.4), _rel(True, None),  # a pose, but the focal too uncertain
+            _rel(False, 0.2), None]  # no pose (None: OpenCV's estimator raised)
+    why = _why_no_focal(rels, CFG)
+    assert why.startswith("of the 6 pairs tried")
+    assert f"in 2 a homography explains at least {CFG.max_homography_ratio:.0%}" in why
+    assert "no baseline" in why
+    assert "in 2 the focal is too uncertain" in why
+    assert "2 gave no relative pose" in why
+
+
+def test_focal_diagnosis_names_only_the_causes_that_occur():
+    why = _why_no_focal([_rel(True, 0.1)], CFG)
+    assert why == "of the 1 pair tried, in 1 the focal is too uncertain (e.g. an object-centric orbit)"
+    assert _why_no_focal([], CFG) == "no pair has enough matches to try"

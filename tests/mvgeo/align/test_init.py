@@ -1,0 +1,105 @@
+"""`mvgeo.align.init`: the rule that picks the first start, and each start's initial values (exact on exact
+pointmaps), with the pair-pose chaining where rotation averaging fails."""
+
+import numpy as np
+import pytest
+
+import mvgeo.align.init as init_mod
+from mvgeo.align.global_align import GlobalAlignConfig, global_align
+from mvgeo.align.init import STARTS, choose_start, initial_values, other_start
+from mvgeo.align.pairs import PairGeometry, PairSet
+from mvgeo.align.pose_chain import init_from_pair_poses
+from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.metrics import compare_poses
+
+from .synthetic import make_matches, make_pairs, make_views
+
+FOCAL = 30.0
+
+
+def _pair_set(preds, matches=()):
+    return PairSet(preds, [], [PairGeometry(i, j, uv) for i, j, uv in matches], focal_determined=True)
+
+
+def test_the_first_start_rule():
+    ps = _pair_set([])
+    assert choose_start("auto", ps, 5) == "averaged"  # averaging first; the policy may add the chaining
+    for start in STARTS:
+        assert choose_start(start, ps, 5) == start
+        assert other_start(start) != start and other_start(other_start(start)) == start
+    assert set(STARTS) == {"chain", "averaged"}
+
+
+def test_the_chain_start_lets_the_alignment_chain_the_pointmaps(rng):
+    poses, depths = make_views(4)
+    preds = make_pairs(poses, depths, FOCAL, rng)
+    cfg, init = initial_values("chain", _pair_set(preds), [d.shape for d in depths], None,
+                               GlobalAlignConfig(init="pair_poses"), 1.0, (32, 24))
+    assert cfg.init == "procrustes" and init is None
+
+
+def test_the_averaged_start_is_exact_on_exact_pointmaps_and_tracks(rng, caplog):
+    """Rotation averaging and global positioning on exact tracks: the true poses (up to the gauge)."""
+    poses, depths = make_views(5)
+    preds = make_pairs(poses, depths, FOCAL, rng)
+    matches = make_matches(poses, depths, FOCAL, [(p.i, p.j) for p in preds])
+    assert min(len(uv) for *_, uv in matches) > 20
+    sizes = [d.shape for d in depths]
+    with caplog.at_level("WARNING", logger="mvgeo.align.init"):
+        cfg, init = initial_values("averaged", _pair_set(preds, matches), sizes, np.full(5, FOCAL),
+                                   GlobalAlignConfig(), 1.0, (32, 24))
+    assert cfg.init == "pair_poses" and init is not None and not caplog.text  # positioned on the tracks
+    names = [str(k) for k in range(5)]
+    m = compare_poses(dict(zip(names, init.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
+    assert m.median_rotation_deg < 0.01 and m.ate.rmse < 1e-3, m
+    np.testing.assert_allclose(init.focal_px, FOCAL)
+
+
+@pytest.mark.parametrize("shared_focal", [False, True])
+def test_the_averaged_start_without_tracks_chains_the_pair_translations(rng, caplog, shared_focal):
+    """No matches: the positions come from the pairs' own translation directions (chained); the focals are the
+    pairs' estimates, one geometric mean for every view with a shared focal."""
+    poses, depths = make_views(5)
+    preds = make_pairs(poses, depths, FOCAL, rng)
+    for k, p in enumerate(preds):  # pair focal estimates 0 and 4 % off
+        p.focal_i_px = p.focal_j_px = FOCAL * (1.0 + 0.04 * (k % 2))
+    sizes = [d.shape for d in depths]
+    with caplog.at_level("WARNING", logger="mvgeo.align.init"):
+        cfg, init = initial_values("averaged", _pair_set(preds), sizes, None,
+                                   GlobalAlignConfig(shared_focal=shared_focal), 1.0, (32, 24))
+    assert "chaining the pairs' poses" in caplog.text
+    assert cfg.init == "pair_poses" and init is not None
+    if shared_focal:
+        np.testing.assert_allclose(init.focal_px, init.focal_px[0])
+        assert FOCAL < init.focal_px[0] < 1.04 * FOCAL
+    else:
+        assert np.all((init.focal_px > FOCAL - 1e-4) & (init.focal_px < 1.04 * FOCAL + 1e-4))
+    names = [str(k) for k in range(5)]
+    m = compare_poses(dict(zip(names, init.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
+    assert m.median_rotation_deg < 0.1  # measured 0.018 deg: the pairs' focal errors turn their PnP rotations
+
+
+def test_the_averaged_start_falls_back_to_the_pair_poses_when_averaging_fails(rng, monkeypatch):
+    def fails(*args, **kwargs):
+        raise DegenerateGeometryError("the pairs with a rotation do not connect the views")
+
+    monkeypatch.setattr(init_mod, "init_from_averaged_rotations", fails)
+    poses, depths = make_views(3)
+    preds = make_pairs(poses, depths, FOCAL, rng)
+    cfg, init = initial_values("averaged", _pair_set(preds), [d.shape for d in depths], None, GlobalAlignConfig(),
+                               1.0, (32, 24))
+    assert cfg.init == "pair_poses" and init is None  # `global_align` chains the pairs' own poses
+
+
+def test_pair_pose_chaining_init_is_exact_on_exact_pointmaps(rng):
+    poses, depths = make_views(5)
+    preds = make_pairs(poses, depths, FOCAL, rng)
+    init = init_from_pair_poses(preds, [d.shape for d in depths], focal_init_px=np.full(5, FOCAL))
+    names = [str(k) for k in range(5)]
+    m = compare_poses(dict(zip(names, init.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
+    # Exact float32 pointmaps and the true focal: PnP + depth-ratio chaining, ~1e-4 deg / 1e-5 units.
+    assert m.median_rotation_deg < 0.01 and m.ate.rmse < 1e-3
+    res = global_align(preds, [d.shape for d in depths], config=GlobalAlignConfig(iters=0, init="pair_poses"),
+                       focal_init_px=np.full(5, FOCAL))
+    # The alignment rescales the world (pinned pair scales): same rotations (float32 round-off).
+    assert np.allclose(res.cam_from_world[:, :, :3], init.cam_from_world[:, :, :3], atol=1e-5)

@@ -1,0 +1,386 @@
+"""`mvgeo.align.policy`: which candidate solutions are generated (focal re-estimation, pruning, second start,
+the budget) and the one selection rule, first on scripted candidates (fake `solve`), then end to end."""
+
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import mvgeo.align.classical_pairs as classical_pairs
+import mvgeo.align.global_align as ga
+import mvgeo.align.policy as policy
+import mvgeo.align.solve as solve_mod
+from mvgeo.align.api import PREVIEW, AlignConfig, align_images
+from mvgeo.align.checks import PairCheck
+from mvgeo.align.global_align import GlobalAlignConfig
+from mvgeo.align.pairs import PairSet
+from mvgeo.align.policy import choose_solution
+from mvgeo.align.solve import Candidate
+from mvgeo.align.stats import Unregistered
+from mvgeo.align.verdict import Reason, Verdict
+from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.imageio import list_images
+from mvgeo.common.timing import StageTimer
+from mvgeo.metrics import compare_poses
+from mvgeo.sparse_model import read_sparse_model
+from mvgeo.transforms import R_from_axis_angle
+
+from .synthetic import PairSetModel, make_pairs, make_views
+
+# ---------------------------------------------------------------------------------------------------------------
+# The rule on scripted candidates: `pair_graph` and `solve` are replaced by fakes that return what a test says.
+
+
+class _Inputs:
+    names = ["a.png", "b.png", "c.png"]
+    intrinsics = None
+    small: list = []
+
+    def __len__(self):
+        return len(self.names)
+
+
+def _pairs(focal_px=None, focal_determined=True):
+    return PairSet([], [], [], focal_determined=focal_determined, focal_px=focal_px)
+
+
+def _candidate(graph, start, *, explained=1.0, reasons=(), mostly=False, f_pairs=None, f_ba=None):
+    """A solved candidate: `explained` of its 100 matches explained; `mostly`: its failing pairs hold them all
+    (a contradicted solution, `verdict.mostly_unexplained`), else none fail. No pair is prunable (the fake pair
+    set has none)."""
+    checks = [PairCheck(0, 1, 100, explained)]
+    ba = None if f_ba is None else SimpleNamespace(focal_px=np.array([f_ba]))
+    verdict = Verdict(tuple(Reason(k, (), f"{start} refused: {k}") for k in reasons))
+    pairs = dataclasses.replace(graph.pairs, focal_px=f_pairs if f_pairs is not None else graph.pairs.focal_px)
+    return Candidate(start, graph, graph.inputs, pairs, None, ba, None, None, checks, checks if mostly else [],
+                     verdict=verdict)
+
+
+class _Script:
+    """Fake `pair_graph` and `solve`: `outcomes[(start, refocused)]` makes each candidate (or raises)."""
+
+    def __init__(self, monkeypatch, outcomes):
+        self.outcomes, self.calls, self.graphs = outcomes, [], []
+        monkeypatch.setattr(policy, "pair_graph", self.pair_graph)
+        monkeypatch.setattr(policy, "solve", self.solve)
+
+    def pair_graph(self, inputs, pairs, config, timer, *, refocused=False):
+        g = SimpleNamespace(inputs=inputs, pairs=pairs, refocused=refocused, unregistered=[])
+        self.graphs.append(g)
+        return g
+
+    def solve(self, graph, start, config, timer, **kwargs):
+        self.calls.append((start, graph.refocused))
+        out = self.outcomes[(start, graph.refocused)]
+        if isinstance(out, Exception):
+            raise out
+        return _candidate(graph, start, **out)
+
+
+class _Refocusable:
+    """A `RefocusableModel` whose `refocus` records the focal it is asked for."""
+
+    pointmap_size_px = 32
+
+    def __init__(self):
+        self.focals = []
+
+    def predict_pairs(self, images, pairs):
+        raise AssertionError("the policy never recomputes the pair stage from scratch")
+
+    def refocus(self, images, pairs, focal_px):
+        self.focals.append(focal_px)
+        return _pairs(focal_px=focal_px, focal_determined=True)
+
+
+def _choose(config=None, model=None, pairs=None):
+    # The chain start first, so that the scripted second start is the averaged one (the "auto" rule's own
+    # choice is `test_init.py::test_the_first_start_rule`).
+    return choose_solution(_Inputs(), pairs or _pairs(), [(0, 1), (0, 2), (1, 2)], model or _Refocusable(),
+                           config or AlignConfig(initial_poses="chain"), StageTimer())
+
+
+def test_an_accepted_first_candidate_is_the_only_one(monkeypatch):
+    script = _Script(monkeypatch, {("chain", False): dict(explained=0.99), ("averaged", False): dict()})
+    chosen, summaries = _choose()
+    assert script.calls == [("chain", False)] and chosen.start == "chain"
+    assert [(s.start, s.chosen, s.reasons, s.explained_fraction) for s in summaries] == [("chain", True, [], 0.99)]
+    script.calls.clear()
+    chosen, _ = _choose(AlignConfig(initial_poses="averaged"))  # the configured start is the first
+    assert script.calls == [("averaged", False)] and chosen.start == "averaged"
+
+
+def test_a_contradicted_first_start_is_solved_from_the_other_start(monkeypatch):
+    script = _Script(monkeypatch, {
+        ("chain", False): dict(explained=0.6, reasons=("pairs_contradicted",), mostly=True),
+        ("averaged", False): dict(explained=0.99)})
+    chosen, summaries = _choose()
+    assert script.calls == [("chain", False), ("averaged", False)]
+    assert chosen.start == "averaged"
+    assert [(s.start, s.chosen, s.reasons) for s in summaries] == [("chain", False, ["pairs_contradicted"]),
+                                                                   ("averaged", True, [])]
+    assert script.graphs[0] is chosen.graph  # the second start reuses the pair graph (and the pair stage)
+    script.calls.clear()
+    with pytest.raises(DegenerateGeometryError, match="chain refused: pairs_contradicted"):
+        _choose(AlignConfig(initial_poses="chain", second_start=False))
+    assert script.calls == [("chain", False)]
+
+
+def test_an_accepted_candidate_outranks_a_refused_one_that_explains_more(monkeypatch):
+    _Script(monkeypatch, {("chain", False): dict(explained=0.98, reasons=("pairs_contradicted",), mostly=True),
+                          ("averaged", False): dict(explained=0.9)})
+    chosen, summaries = _choose()
+    assert chosen.start == "averaged" and [s.chosen for s in summaries] == [False, True]
+
+
+def test_a_weak_view_gets_no_second_start(monkeypatch):
+    """One unsupported view is weak data, not a wrong minimum: the other start is not tried."""
+    script = _Script(monkeypatch, {("chain", False): dict(explained=0.95, reasons=("views_unsupported",)),
+                                   ("averaged", False): dict(explained=1.0)})
+    with pytest.raises(DegenerateGeometryError, match="chain refused: views_unsupported"):
+        _choose()
+    assert script.calls == [("chain", False)]
+
+
+@pytest.mark.parametrize("chain_explained, averaged_explained", [(0.6, 0.8), (0.8, 0.6)])
+def test_among_refused_candidates_the_one_explaining_most_is_reported(monkeypatch, chain_explained,
+                                                                      averaged_explained):
+    script = _Script(monkeypatch, {
+        ("chain", False): dict(explained=chain_explained, reasons=("pairs_contradicted",), mostly=True),
+        ("averaged", False): dict(explained=averaged_explained, reasons=("views_unsupported",), mostly=True)})
+    best = "averaged" if averaged_explained > chain_explained else "chain"
+    with pytest.raises(DegenerateGeometryError, match=f"^{best} refused"):
+        _choose()
+    assert len(script.calls) == 2
+
+
+def test_a_focal_the_bundle_adjustment_moved_far_is_re_estimated_and_outranks_explained(monkeypatch):
+    """The first candidate is accepted but its pairs assumed 150 px where its bundle adjustment found 200 px
+    (log change 0.29 > 0.1): the pairs are computed again at 200 px from the same matches and solved from the
+    same start; that candidate is self-consistent and is chosen although it explains a little less."""
+    script = _Script(monkeypatch, {("chain", False): dict(explained=0.99, f_pairs=150.0, f_ba=200.0),
+                                   ("chain", True): dict(explained=0.97, f_pairs=200.0, f_ba=201.0)})
+    model = _Refocusable()
+    chosen, summaries = _choose(model=model, pairs=_pairs(focal_px=150.0, focal_determined=False))
+    assert model.focals == [200.0] and script.calls == [("chain", False), ("chain", True)]
+    assert chosen.graph.refocused and chosen.pairs.focal_px == 200.0
+    assert [(s.refocused, s.pairs_focal_px, s.bundle_focal_px, s.chosen) for s in summaries] == [
+        (False, 150.0, 200.0, False), (True, 200.0, 201.0, True)]
+    # Whether the pairs determine the focal is carried over (the model's refocus says True here).
+    assert script.graphs[1].pairs.focal_determined is False
+    # Within `refocus_min_change`, or with it off: no re-estimation.
+    for cfg in (AlignConfig(initial_poses="chain", refocus_min_change=0.3),
+                AlignConfig(initial_poses="chain", refocus_min_change=0.0)):
+        script.calls.clear()
+        chosen, summaries = _choose(cfg, model=_Refocusable(), pairs=_pairs(focal_px=150.0))
+        assert script.calls == [("chain", False)] and len(summaries) == 1 and summaries[0].chosen
+
+
+def test_a_focal_that_keeps_moving_gets_the_other_start(monkeypatch):
+    """Accepted candidates whose focal still moves after `MAX_REFOCUS` re-estimations (measured on noisy DTU with
+    ratio-0.85 matching: 256 -> 194 -> 168 -> 110 px, truth 925 px): the other start on the first pair graph."""
+    drifting = dict(explained=0.88, f_pairs=256.0, f_ba=194.0)
+    script = _Script(monkeypatch, {("averaged", 0): drifting, ("averaged", 1): drifting, ("averaged", 2): drifting,
+                                   ("chain", 0): dict(explained=0.99, f_pairs=256.0, f_ba=260.0)})
+    chosen, summaries = _choose(AlignConfig(initial_poses="averaged"), pairs=_pairs(focal_px=256.0))
+    assert policy.MAX_REFOCUS == 2
+    assert script.calls == [("averaged", 0), ("averaged", 1), ("averaged", 2), ("chain", 0)]
+    assert chosen.start == "chain" and summaries[-1].chosen and not any(s.chosen for s in summaries[:-1])
+    assert script.graphs[0] is chosen.graph  # the first pair graph, not a refocused one
+    # Off: the best of the drifting candidates is kept (all accepted, none self-consistent).
+    script.calls.clear()
+    chosen, _ = _choose(AlignConfig(initial_poses="averaged", second_start=False), pairs=_pairs(focal_px=256.0))
+    assert [c[0] for c in script.calls] == ["averaged"] * 3 and chosen.start == "averaged"
+
+
+def test_a_model_that_cannot_refocus_keeps_its_candidate(monkeypatch):
+    script = _Script(monkeypatch, {("chain", False): dict(explained=0.99, f_pairs=150.0, f_ba=200.0)})
+    chosen, summaries = _choose(model=PairSetModel([]), pairs=_pairs(focal_px=150.0))
+    assert script.calls == [("chain", False)] and chosen.start == "chain" and summaries[0].chosen
+
+
+def test_a_failing_successor_is_recorded_and_skipped(monkeypatch):
+    script = _Script(monkeypatch, {("chain", False): dict(explained=0.99, f_pairs=150.0, f_ba=200.0),
+                                   ("chain", True): DegenerateGeometryError("stand-in failure of the refocused pairs")})
+    chosen, summaries = _choose(pairs=_pairs(focal_px=150.0))
+    assert script.calls == [("chain", False), ("chain", True)]
+    assert chosen.graph.refocused is False and summaries[0].chosen
+    assert summaries[1].error.startswith("stand-in failure") and not summaries[1].chosen
+
+
+def test_the_candidate_budget(monkeypatch):
+    """A refused first start with a moved focal: refocus, then (still contradicted) the other start on the
+    refocused pairs; `max_candidates` stops the generation."""
+    refused = dict(explained=0.5, reasons=("pairs_contradicted",), mostly=True)
+    script = _Script(monkeypatch, {("chain", False): {**refused, "f_pairs": 150.0, "f_ba": 200.0},
+                                   ("chain", True): {**refused, "f_pairs": 200.0, "f_ba": 200.0},
+                                   ("averaged", True): dict(explained=0.99, f_pairs=200.0, f_ba=200.0)})
+    chosen, summaries = _choose(pairs=_pairs(focal_px=150.0))
+    assert script.calls == [("chain", False), ("chain", True), ("averaged", True)]
+    assert chosen.start == "averaged" and [s.chosen for s in summaries] == [False, False, True]
+    for budget in (1, 2):
+        script.calls.clear()
+        with pytest.raises(DegenerateGeometryError, match="chain refused"):
+            _choose(AlignConfig(initial_poses="chain", max_candidates=budget), pairs=_pairs(focal_px=150.0))
+        assert len(script.calls) == budget
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Pruning, on exact synthetic pointmaps with a fake judgement.
+
+FOCAL = 30.0
+
+
+def test_allow_partial_drops_views_whose_pairs_the_result_contradicts(rng, monkeypatch):
+    """Control flow: a pair judged inconsistent whose removal cuts a view off -> that view is unregistered
+    (with allow_partial) and the rest is solved again; without allow_partial the result fails."""
+    poses, depths = make_views(5)
+    pairs = [(0, 1), (1, 2), (0, 2), (2, 3), (1, 3), (3, 4)]
+    preds = make_pairs(poses, depths, FOCAL, rng, pairs=pairs)
+    model = PairSetModel(preds, [(i, j, np.zeros((1, 4))) for i, j in pairs])  # one dummy match row per pair
+    names = [f"v{k}.png" for k in range(5)]
+    images = [rng.random((24, 32, 3)).astype(np.float32) for _ in range(5)]
+    calls = []
+
+    def judge(cam_from_world, focal_align_px, size_wh, matches, *, threshold_px, min_explained, max_rotation_deg):
+        calls.append(len(cam_from_world))
+        checks = [PairCheck(i, j, 10, 1.0, 0.0) for i, j, _ in matches]
+        bad = [c for c in checks if len(calls) == 1 and (c.i, c.j) == (3, 4)]
+        return checks, bad
+
+    monkeypatch.setattr(solve_mod, "judge_pairs", judge)
+    # second_start off: the fake judgement finds the pair bad on the first call only, so the other start would
+    # pass.
+    cfg = AlignConfig(align=GlobalAlignConfig(iters=40), max_size_px=32, points_budget=2000, bundle_adjust=False,
+                      loop_check=False, second_start=False)
+    with pytest.raises(DegenerateGeometryError, match="v3.png, v4.png"):
+        align_images(images, cfg, names=names, model=model)
+    calls.clear()
+    res = align_images(images, dataclasses.replace(cfg, allow_partial=True), names=names, model=model)
+    assert calls == [5, 4]  # first solve, then the 4 kept views (judged on every pair among them)
+    assert sorted(res.sparse_model.cam_from_world_by_name()) == names[:4]
+    assert res.stats.unregistered == [Unregistered("v4.png",
+                                                   "its pairs are inconsistent with the reconstruction of the others")]
+    assert res.stats.pairs_dropped_as_inconsistent == [["v3.png", "v4.png"]]
+    assert [(s.n_pairs_dropped, s.chosen) for s in res.stats.candidates] == [(0, False), (1, True)]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# End to end on llff_like (6 noisy views at 256x192, PREVIEW).
+
+
+@pytest.fixture
+def flipped_chaining(monkeypatch):
+    """`init_from_spanning_tree` with view 3 turned 117 deg about its x axis; records its calls.
+
+    Measured (docs/bench/align.md): on 12 N2V-denoised llff_like photos the Procrustes chaining of the pointmaps
+    put view 8 117 deg off, although every pair's own rotation was within 3 deg of the truth; the global
+    alignment and bundle adjustment stayed in that minimum and the checks refused the result (23 of 65 pairs
+    inconsistent). Here the same failure is provoked on a small scene."""
+    real = ga.init_from_spanning_tree
+    calls = []
+
+    def flipped(preds, sizes_hw, *, focal_init_px):
+        init = real(preds, sizes_hw, focal_init_px=focal_init_px)
+        cams = init.cam_from_world.copy()
+        cams[3, :, :3] = R_from_axis_angle(np.array([1.0, 0.0, 0.0]) * np.deg2rad(117.0)) @ cams[3, :, :3]
+        calls.append(1)
+        return dataclasses.replace(init, cam_from_world=cams, pair_sim=ga.pair_similarities(
+            preds, sizes_hw, cams, init.depth, init.focal_px))
+
+    monkeypatch.setattr(ga, "init_from_spanning_tree", flipped)
+    return calls
+
+
+def test_a_failed_chained_start_is_replaced_by_the_averaged_start(llff6, flipped_chaining, monkeypatch):
+    real, matched = classical_pairs.detect_and_match, []
+
+    def counting(*args, **kwargs):
+        matched.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(classical_pairs, "detect_and_match", counting)
+    files = list_images(llff6 / "images")
+    cfg = dataclasses.replace(PREVIEW, seed=0, initial_poses="chain")
+    with pytest.raises(DegenerateGeometryError, match="inconsistent"):
+        align_images(files, dataclasses.replace(cfg, second_start=False))
+    assert flipped_chaining  # the provoked initialisation was used
+    matched.clear()
+    res = align_images(files, cfg)
+    assert len(matched) == 1  # the second start reuses the pair stage
+    cands = res.stats.candidates
+    assert cands[0].start == "chain" and "pairs_contradicted" in cands[0].reasons and not cands[0].chosen
+    chosen = [c for c in cands if c.chosen]
+    assert len(chosen) == 1 and chosen[0].start == "averaged" and chosen[0].reasons == []
+    assert res.stats.initial_poses == "averaged"
+    gt = read_sparse_model(llff6 / "sparse" / "0")
+    m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt.cam_from_world_by_name())
+    # PREVIEW from the default start: 0.35 deg; 1 deg leaves room for the other start.
+    assert m.n_registered == 6 and m.median_rotation_deg < 1.0, m
+
+
+def test_no_other_candidate_when_the_first_start_passes(llff6_preview):
+    """The default pair focal on llff_like: the adjustment moves it by less than 10 %, one candidate only."""
+    stats = llff6_preview.stats
+    assert [(c.start, c.chosen, c.reasons, c.refocused) for c in stats.candidates] == [("averaged", True, [], False)]
+    assert stats.initial_poses == "averaged"
+    c = stats.candidates[0]
+    assert abs(np.log(c.bundle_focal_px / c.pairs_focal_px)) <= 0.1
+    # One shared focal in the bundle adjustment: one camera for all views, as COLMAP's single-camera mode.
+    assert len(llff6_preview.sparse_model.cameras) == 1
+    assert {im.camera_id for im in llff6_preview.sparse_model.images} == {1}
+
+
+def _focal_config(prior: float, min_change: float):
+    # No pair focal: the pairs use `prior * max(W, H)`, a controlled wrong start; from the chain start, which
+    # the wrong focal bends (the averaged start may pass without the re-estimation).
+    return dataclasses.replace(PREVIEW, seed=0, refocus_min_change=min_change, initial_poses="chain",
+                               pairwise=dataclasses.replace(PREVIEW.pairwise, focal_pairs=0, focal_prior=prior))
+
+
+def test_a_focal_far_off_is_re_estimated(llff6):
+    """Two-view focal estimates are poor for narrow fields of view (12 DTU scan24 views, 925 px at 384 px: pair
+    estimates scattered from 77 to 7000 px). The pairs' relative poses and dense pointmaps are built with the
+    shared focal, so a bad one bends the global alignment; the bundle adjustment then moves the focal most of
+    the way back, and the pairs computed again with that focal recover."""
+    gt = read_sparse_model(llff6 / "sparse" / "0")
+    f_true = gt.camera_of(gt.names[0]).params[0]  # 208.9 px at 256x192
+    files = list_images(llff6 / "images")
+    # 0.6 * 256 = 154 px, 26 % under the truth. Measured 2026-11-22: without the re-estimation the checks refuse
+    # the result (11 of 15 pairs inconsistent); with it, 207.1 px (0.9 % off). (The other start passes too, so
+    # it is off here to see the re-estimation alone.)
+    with pytest.raises(DegenerateGeometryError, match="inconsistent"):
+        align_images(files, dataclasses.replace(_focal_config(0.6, 0.0), second_start=False))
+    res = align_images(files, _focal_config(0.6, 0.1))
+    cands = res.stats.candidates
+    chosen = [c for c in cands if c.chosen]
+    assert len(chosen) == 1 and chosen[0].refocused and not cands[0].refocused
+    assert cands[0].pairs_focal_px == pytest.approx(153.6)
+    assert not res.stats.focal_determined_by_pairs  # carried over to the refocused pairs
+    f = np.array([c.params[0] for c in res.sparse_model.cameras.values()])
+    assert np.all(np.abs(f / f_true - 1.0) < 0.03), f  # 3 %: three times the measured 0.9 %
+    # (PREVIEW from the default pair focal: 0.35 deg)
+    gt_poses = {n: np.asarray(gt.image(n).cam_from_world)[:3] for n in gt.names}
+    m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt_poses)
+    assert m.n_registered == 6 and m.median_rotation_deg < 0.5, m  # measured 0.08 deg
+
+
+def test_the_first_candidate_is_kept_when_the_refocused_one_fails(llff6, monkeypatch):
+    real, calls = policy.solve, []
+
+    def second_fails(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise DegenerateGeometryError("stand-in failure of the second pass")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(policy, "solve", second_fails)
+    # 2.0 * 256 = 512 px, 2.5x the truth: the first candidate still passes its checks (measured: 194 px), and the
+    # adjustment's move calls for the re-estimation.
+    res = align_images(list_images(llff6 / "images"), _focal_config(2.0, 0.1))
+    cands = res.stats.candidates
+    assert len(calls) == 2 and len(cands) == 2
+    assert cands[0].chosen and cands[0].reasons == [] and not cands[0].refocused
+    assert cands[1].error.startswith("stand-in failure") and not cands[1].chosen
+    assert res.stats.n_registered == 6
