@@ -9,6 +9,8 @@ Layers:
 - `eval.pipeline`: typed settings and presets, resumable stages keyed by
   content hashes, the rounds (`run_pipeline`), the report;
 - `eval.heldout`: Sim(3) registration and held-out camera mapping (InstantSplat protocol);
+- `eval.methods` (the registry of compared methods) + `eval.baselines` (their own stages):
+  what each method runs;
 - `eval.evaluate` + `eval.results`: methods side by side, mean +- std over seeds, figures;
 - `eval.cli`: `denoise-gs run | eval | cost`.
 """

@@ -18,9 +18,10 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
-from eval.evaluate import EVAL_METHODS, EvalConfig, evaluate_dataset, scene_dataset
+from eval.distributed import ClusterSettings, check_ray_address, ray_cluster
+from eval.evaluate import EvalConfig, evaluate_dataset, scene_dataset
+from eval.methods import METHODS
 from eval.pipeline import PRESETS, preset, run_pipeline, validate_dataset_folder
-from eval.pipeline.components import require
 from eval.pipeline.config import DENOISE_METHODS, PipelineConfig
 from eval.pipeline.inputs import working_dataset
 from eval.pipeline.lock import output_lock
@@ -115,15 +116,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     config = EvalConfig(methods=tuple(dict.fromkeys(args.methods)), seeds=args.seeds, preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
                         device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser)
+    cluster = _cluster_settings(args, device)
     out = Path(args.out)
-    if kind != "dataset":
-        require("data_synth", "render_scene", needed_for="denoise-gs eval on a scene")
-    with resumable_output_dir(plan), output_lock(out):
+    with resumable_output_dir(plan), output_lock(out), ray_cluster(cluster) as executor:
         name, folder = scene_dataset(kind, source, out, size_wh=args.size, views=args.scene_views)
         validate_dataset_folder(folder)
         dataset = validate_dataset_folder(working_dataset(folder, out, args.max_size))
         title = f"denoise-gs eval: {name}"
-        rows = evaluate_dataset(dataset, out, config, scene=name,
+        rows = evaluate_dataset(dataset, out, config, scene=name, executor=executor,
                                 on_row=lambda rs: write_results(out, rs, title=title + " (in progress)"))
         _, md = write_results(out, rows, title=title)
     print(f"results: {md}")
@@ -170,20 +170,39 @@ def _cmd_cost(args: argparse.Namespace) -> int:
         base = _allow_focal_prior(base)
     sweep_points(base, grid)  # bad values fail here, before any compute
     config = CostConfig(base=base, grid=grid, pose_fit_iters=args.pose_fit_iters)
+    cluster = _cluster_settings(args, device)
     out = Path(args.out)
-    if kind != "dataset":
-        require("data_synth", "render_scene", needed_for="denoise-gs cost on a scene")
-    with resumable_output_dir(plan), output_lock(out):
+    with resumable_output_dir(plan), output_lock(out), ray_cluster(cluster) as executor:
         name, folder = scene_dataset(kind, source, out, size_wh=args.size if kind != "dataset" else None,
                                      views=args.scene_views if kind != "dataset" else None)
         dataset = validate_dataset_folder(folder)
         if len(dataset.train) < 2:
             raise InputError("the cost sweep needs at least 2 training views", path=folder / "split.json")
         base = dataclasses.replace(base, views=min(base.views, len(dataset.train)))
-        rows = run_cost_sweep(dataset, out, dataclasses.replace(config, base=base))
+        rows = run_cost_sweep(dataset, out, dataclasses.replace(config, base=base), executor=executor)
         _, md = write_cost_results(out, rows, title=f"denoise-gs cost: {name}")
     print(f"results: {md}")
     return 0
+
+
+def _cluster_settings(args: argparse.Namespace, device: str) -> ClusterSettings:
+    """`--workers` / `--ray-address` -> where the tasks run (checked here, before any output is written).
+    On CUDA the tasks of a local cluster share the GPU; on a cluster each takes one."""
+    gpus = 0.0 if not device.startswith("cuda") else 1.0 if args.ray_address else 1.0 / args.workers
+    settings = ClusterSettings(workers=args.workers, address=args.ray_address, gpus_per_task=gpus,
+                               task_threads=args.task_threads)
+    if settings.address is not None:
+        check_ray_address(settings.address)
+    return settings
+
+
+WORKERS_HELP = ("runs at once: 1 (default) runs them one after another here; N > 1 starts a local Ray cluster "
+                "of N CPUs, one run per CPU (docs/cluster.md)")
+TASK_THREADS_HELP = ("with --workers or --ray-address: torch and compositor threads per run (default: the run's "
+                     "one CPU); N2V's training depends on torch's thread count, so its scores equal the serial "
+                     "run's only with that run's count, torch's default (the machine's cores)")
+RAY_ADDRESS_HELP = ("run on an existing Ray cluster instead: its head's host:port (as `ray start --head` prints), "
+                    "or auto; the out folder must be at the same path on every node (docs/cluster.md)")
 
 
 def _size_wh(text: str) -> tuple[int, int]:
@@ -256,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seeds", type=positive_int, default=3, help="seeds per method (default 3)")
     ev.add_argument("--methods", nargs="+", default=["instantsplat", "nlm_instantsplat", "n2v_round1",
                                                      "denoise_gs"], metavar="METHOD",
-                    help=f"any of: {', '.join(EVAL_METHODS)}")
+                    help="any of: " + "; ".join(f"{m.name}: {m.description}" for m in METHODS.values()))
     ev.add_argument("--preset", choices=sorted(PRESETS), default="default")
     ev.add_argument("--views", type=int_range(2), default=None,
                     help="K for rounds >= 2 (default min(12, training views))")
@@ -274,6 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--strict-focal", action="store_true",
                     help="alignment refuses an undetermined focal length (default: keep the prior, as "
                          "InstantSplat does, and let the scores show the cost)")
+    ev.add_argument("--workers", type=positive_int, default=1, metavar="N", help=WORKERS_HELP)
+    ev.add_argument("--ray-address", default=None, metavar="ADDR", help=RAY_ADDRESS_HELP)
+    ev.add_argument("--task-threads", type=positive_int, default=None, metavar="N", help=TASK_THREADS_HELP)
     ev.set_defaults(func=_cmd_eval)
 
     cost = sub.add_parser("cost", help="accuracy-time trade-off sweep on a scene",
@@ -297,6 +319,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="values of one knob (repeatable), e.g. --grid splat_iters=100,300")
     cost.add_argument("--pose-fit-iters", type=nonneg_int, default=None, help="held-out pose refinement steps")
     cost.add_argument("--strict-focal", action="store_true", help="as for eval")
+    cost.add_argument("--workers", type=positive_int, default=1, metavar="N", help=WORKERS_HELP)
+    cost.add_argument("--ray-address", default=None, metavar="ADDR", help=RAY_ADDRESS_HELP)
+    cost.add_argument("--task-threads", type=positive_int, default=None, metavar="N", help=TASK_THREADS_HELP)
     cost.set_defaults(func=_cmd_cost)
     add_dataset_parser(sub)
     return parser

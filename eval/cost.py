@@ -25,14 +25,19 @@ import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from eval.distributed import chain_after
 from eval.pipeline import PipelineConfig, PipelineStages, preset, run_pipeline
-from eval.pipeline.stages import check_product_components
+from eval.pipeline.stage_settings import check_settings
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import InputError
+
+if TYPE_CHECKING:
+    from eval.distributed import RayExecutor
 
 __all__ = ["DEFAULT_GRID", "KNOBS", "CostConfig", "CostPoint", "SweepPoint", "apply_knob", "run_cost_sweep",
            "sweep_points", "write_cost_results"]
@@ -215,7 +220,8 @@ def _inputs_folder(dataset: DatasetFolder, folder: Path, names: Sequence[str]) -
 
 
 def run_cost_sweep(dataset: DatasetFolder, out: Path, config: CostConfig, *,
-                   score: Callable | None = None, stages: PipelineStages | None = None) -> list[CostPoint]:
+                   score: Callable | None = None, stages: PipelineStages | None = None,
+                   executor: RayExecutor | None = None) -> list[CostPoint]:
     """Run and score every sweep point on `dataset`.
 
     Args:
@@ -225,49 +231,87 @@ def run_cost_sweep(dataset: DatasetFolder, out: Path, config: CostConfig, *,
         score: ``score(final_round_dir, dataset, train_names) -> dict`` with the keys of
             `CostPoint`'s metrics; default `eval.evaluate.score_reconstruction` (tests pass a cheap one).
         stages: pipeline stage functions (default the product's; tests pass small real ones).
+        executor: run the points as Ray tasks (`eval.distributed.ray_cluster`): the base point first,
+            then the others in parallel; the rows come back in the serial order. None: one after another.
 
     Raises:
-        InputError: bad grid values (before any compute).
-        MissingComponentError: a component is missing (checked before any compute).
+        InputError: bad grid values, or a preset a component does not have (before any compute).
     """
     from eval.evaluate import score_reconstruction
 
     out = Path(out)
     points = sweep_points(config.base, config.grid)
-    if stages is None:
-        for p in points:
-            check_product_components(p.config)
+    for p in points:
+        check_settings(p.config)
     if score is None:
         score = lambda rd, ds, names: score_reconstruction(  # noqa: E731
             rd, ds, names, pose_fit_iters=config.pose_fit_iters, device=config.base.device)
-    base_dir = out / "points" / "base"
-    rows: list[CostPoint] = []
-    for p in points:
-        names = _subset(dataset.train, p.train_views) if p.train_views else list(dataset.train)
-        tag = "" if p.train_views is None or len(names) == len(dataset.train) else f"_{len(names)}"
-        inputs = _inputs_folder(dataset, out / f"inputs{tag}", names)
-        run_dir = out / "points" / p.name
-        if p.name != "base" and not tag:
-            _share_stages(base_dir, run_dir)
-        _log.info("cost sweep: %s", p.name)
-        res = run_pipeline(inputs, run_dir, p.config, stages=stages)
-        stage_s = {f"round{r.index}/{n}": float(s.seconds) for r in res.rounds for n, s in r.stages.items()}
-        final = res.rounds[-1]
-        key = {"render": final.stages["render"].key, "pose_fit_iters": config.pose_fit_iters,
-               "test": list(dataset.test)}
-        cache = run_dir / "score.json"
-        metrics = None
-        if cache.is_file():
-            rec = json.loads(cache.read_text())
-            if rec.get("key") == key:
-                metrics = rec["metrics"]
-        if metrics is None:
-            metrics = {k: float(v) for k, v in dict(score(final.dir, dataset, names)).items()}
-            atomic_write_text(cache, json.dumps({"key": key, "metrics": metrics}, indent=2) + "\n")
-        rows.append(CostPoint(p.name, p.knob, p.value, stage_s, float(sum(stage_s.values())),
-                              **{k: metrics.get(k, float("nan"))
-                                 for k in ("psnr_db", "ssim", "lpips", "rot_err_deg", "ate")}))
-    return rows
+    jobs = [_PointJob(p, dataset, out, config.pose_fit_iters, score, stages) for p in points]
+    if executor is not None:
+        for job in jobs:  # here, before the tasks: points with the same images share the folder
+            _inputs_folder(dataset, out / f"inputs{job.tag}", job.names)
+        # A point linked to the base point's stages waits for it; a repeated point for its first run.
+        keys = [job.point.name for job in jobs]
+        after = [tuple(sorted({*a, *((0,) if i and job.shares_base else ())}))
+                 for i, (job, a) in enumerate(zip(jobs, chain_after(keys), strict=True))]
+        return executor.run(_run_point, jobs, after=after, desc="cost sweep")
+    return [_run_point(job) for job in jobs]
+
+
+@dataclass(frozen=True)
+class _PointJob:
+    """One sweep point to run and score: the argument of `_run_point` (picklable, to run as a task)."""
+
+    point: SweepPoint
+    dataset: DatasetFolder
+    out: Path
+    pose_fit_iters: int | None
+    score: Callable
+    stages: PipelineStages | None
+
+    @property
+    def names(self) -> list[str]:
+        """The training images it uses."""
+        train = self.dataset.train
+        return _subset(train, self.point.train_views) if self.point.train_views else list(train)
+
+    @property
+    def tag(self) -> str:
+        """Suffix of its inputs folder: "" for all training images."""
+        return "" if self.point.train_views is None or len(self.names) == len(self.dataset.train) \
+            else f"_{len(self.names)}"
+
+    @property
+    def shares_base(self) -> bool:
+        """Its folder starts from links to the base point's stages."""
+        return self.point.name != "base" and not self.tag
+
+
+def _run_point(job: _PointJob) -> CostPoint:
+    """Run (or resume) one sweep point in `out/points/<name>/` and score it (scores cached per point)."""
+    p, dataset, out = job.point, job.dataset, job.out
+    names, tag = job.names, job.tag
+    inputs = _inputs_folder(dataset, out / f"inputs{tag}", names)
+    run_dir = out / "points" / p.name
+    if job.shares_base:
+        _share_stages(out / "points" / "base", run_dir)
+    _log.info("cost sweep: %s", p.name)
+    res = run_pipeline(inputs, run_dir, p.config, stages=job.stages)
+    stage_s = {f"round{r.index}/{n}": float(s.seconds) for r in res.rounds for n, s in r.stages.items()}
+    final = res.rounds[-1]
+    key = {"render": final.stages["render"].key, "pose_fit_iters": job.pose_fit_iters,
+           "test": list(dataset.test)}
+    cache = run_dir / "score.json"
+    metrics = None
+    if cache.is_file():
+        rec = json.loads(cache.read_text())
+        if rec.get("key") == key:
+            metrics = rec["metrics"]
+    if metrics is None:
+        metrics = {k: float(v) for k, v in dict(job.score(final.dir, dataset, names)).items()}
+        atomic_write_text(cache, json.dumps({"key": key, "metrics": metrics}, indent=2) + "\n")
+    return CostPoint(p.name, p.knob, p.value, stage_s, float(sum(stage_s.values())),
+                     **{k: metrics.get(k, float("nan")) for k in ("psnr_db", "ssim", "lpips", "rot_err_deg", "ate")})
 
 
 # ----------------------------------------------------------------- reporting

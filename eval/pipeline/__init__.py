@@ -6,14 +6,14 @@ Public API:
 - `run_pipeline(images_dir, out, config, *, stages=None, force=False) -> PipelineResult`;
 - `StageRunner`, `StageSpec`, `StageContext`, `StageResult` (the resumable-stage machinery);
 - `PipelineStages`, `product_stages()` (the stage functions; tests pass their own);
-- `validate_run_inputs`, `validate_dataset_folder` (up-front checks);
-- `MissingComponentError` (a stage needs a component that is not available).
+- `RoundSettings`, `round_settings(config, r)` (the typed settings each stage receives);
+- `validate_run_inputs`, `validate_dataset_folder` (up-front checks).
 """
 
-from eval.pipeline.components import MissingComponentError
 from eval.pipeline.config import PRESETS, AlignSettings, DenoiseSettings, PipelineConfig, SplatSettings, preset
-from eval.pipeline.run import PipelineResult, RoundResult, run_pipeline, stage_seed
+from eval.pipeline.run import PipelineResult, RoundResult, run_pipeline
 from eval.pipeline.stage import StageContext, StageResult, StageRunner, StageSpec
+from eval.pipeline.stage_settings import RoundSettings, round_settings, stage_seed
 from eval.pipeline.stages import PipelineStages, product_stages
 from eval.pipeline.validate import DatasetFolder, validate_dataset_folder, validate_run_inputs
 
@@ -22,11 +22,11 @@ __all__ = [
     "AlignSettings",
     "DatasetFolder",
     "DenoiseSettings",
-    "MissingComponentError",
     "PipelineConfig",
     "PipelineResult",
     "PipelineStages",
     "RoundResult",
+    "RoundSettings",
     "SplatSettings",
     "StageContext",
     "StageResult",
@@ -34,6 +34,7 @@ __all__ = [
     "StageSpec",
     "preset",
     "product_stages",
+    "round_settings",
     "run_pipeline",
     "stage_seed",
     "validate_dataset_folder",

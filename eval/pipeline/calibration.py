@@ -48,7 +48,6 @@ under `GEOMETRY_KEY` (`GeometryChoice`).
 from __future__ import annotations
 
 import dataclasses
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from eval.pipeline.config import ReuseGeometry, ReuseIntrinsics
+from mvgeo.align.stats import AlignStats
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.sparse_model import SparseModel, read_sparse_model
@@ -69,18 +69,17 @@ INHERITED_KEY = "intrinsics_from_previous_round"
 GEOMETRY_KEY = "geometry_from_previous_round"
 
 
-def focal_log_std(stats: Mapping[str, object]) -> float | None:
+def focal_log_std(stats: AlignStats) -> float | None:
     """The focal-length uncertainty (std of log f) an alignment's `stats` report; None when unknown.
 
     An estimated focal has the bundle adjustment's figure (absent without the adjustment); a
     calibration inherited from an earlier round carries that round's figure.
     """
-    if stats.get("known_intrinsics"):
-        inherited = stats.get(INHERITED_KEY)
+    if stats.known_intrinsics:
+        inherited = stats.annotations.get(INHERITED_KEY)
         value = inherited.get("focal_log_std") if isinstance(inherited, Mapping) else None
     else:
-        ba = stats.get("bundle_adjustment")
-        value = ba.get("focal_log_std") if isinstance(ba, Mapping) else None
+        value = None if stats.bundle_adjustment is None else stats.bundle_adjustment.focal_log_std
     if value is None or not np.isfinite(float(value)):
         return None
     return float(value)
@@ -107,7 +106,7 @@ def previous_calibration(align_dir: Path) -> tuple[Camera, float | None]:
         raise InputError(f"the previous round's cameras have several sizes {sorted(sizes)}", path=align_dir)
     (width, height), = sizes
     fx, fy, cx, cy = np.median(np.array([[c.fx, c.fy, c.cx, c.cy] for c in cams]), axis=0)
-    stats = json.loads(stats_file.read_text())
+    stats = AlignStats.read(stats_file)
     return Camera.pinhole(fx, fy, cx, cy, width, height), focal_log_std(stats)
 
 
@@ -140,17 +139,14 @@ def _centres(model: SparseModel, names: Sequence[str]) -> np.ndarray:
     return np.array(out).reshape(-1, 3)
 
 
-def _ratios(stats: Mapping[str, object]) -> list[float] | None:
+def _ratios(stats: AlignStats) -> list[float] | None:
     """align.json `bundle_adjustment.centre_std_ratio` (one per registered view, in the sparse model's
     order), or None when absent."""
-    ba = stats.get("bundle_adjustment")
-    ratios = ba.get("centre_std_ratio") if isinstance(ba, Mapping) else None
-    if not isinstance(ratios, list | tuple):
-        return None
-    return [float(r) for r in ratios]
+    ratios = None if stats.bundle_adjustment is None else stats.bundle_adjustment.centre_std_ratio
+    return None if ratios is None else [float(r) for r in ratios]
 
 
-def centre_std_over_spacing(model: SparseModel, stats: Mapping[str, object],
+def centre_std_over_spacing(model: SparseModel, stats: AlignStats,
                             views: Sequence[str]) -> dict[str, float] | None:
     """Per view of `views`: its camera-centre standard deviation over the median nearest-neighbour
     distance among the `views` cameras, both in `model`'s frame; None when unknown.
@@ -171,7 +167,7 @@ def centre_std_over_spacing(model: SparseModel, stats: Mapping[str, object],
     return {v: by_name[v] * spacing_all / spacing_views for v in views}
 
 
-def restricted_ratios(model: SparseModel, stats: Mapping[str, object], views: Sequence[str]) -> list[float] | None:
+def restricted_ratios(model: SparseModel, stats: AlignStats, views: Sequence[str]) -> list[float] | None:
     """`bundle_adjustment.centre_std_ratio` of `model` restricted to `views` (in that order): the same
     stds over the restricted cameras' spacing, so that a later round compares against them."""
     per_view = centre_std_over_spacing(model, stats, views)
@@ -216,8 +212,8 @@ def _median(per_view: Mapping[str, float] | None) -> float | None:
     return value if np.isfinite(value) else None
 
 
-def choose_geometry(mode: ReuseGeometry, views: Sequence[str], previous: tuple[SparseModel, Mapping[str, object]],
-                    current: tuple[SparseModel, Mapping[str, object]] | None, *,
+def choose_geometry(mode: ReuseGeometry, views: Sequence[str], previous: tuple[SparseModel, AlignStats],
+                    current: tuple[SparseModel, AlignStats] | None, *,
                     current_error: str | None = None) -> GeometryChoice:
     """Whether a round's splat should start from the previous round's alignment (module docstring's rule).
 

@@ -54,8 +54,8 @@ def resize_area(img: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
 
 def prepare_inputs(ctx: StageContext) -> Mapping[str, object]:
     """Stage `inputs`: `ctx.inputs["noisy"]` -> `WORKING_DIR/<stem>.png` at the working size
-    (`ctx.settings["max_size"]`) and `WORKING_DIR/sizes.json`."""
-    max_size = ctx.settings["max_size"]
+    (`ctx.settings`: `InputsStageSettings`) and `WORKING_DIR/sizes.json`."""
+    max_size = ctx.settings.max_size
     out = ctx.work_dir / WORKING_DIR
     sizes: dict[str, dict[str, list[int]]] = {}
     images = {}

@@ -16,7 +16,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
-from eval.pipeline.components import require
 from eval.pipeline.inputs import read_sizes
 from eval.pipeline.stage import StageContext
 from mvgeo.camera import Camera
@@ -64,12 +63,12 @@ def input_size_cameras(sparse: SparseModel, sizes: Mapping[str, Mapping[str, tup
 def export(ctx: StageContext) -> Mapping[str, object]:
     """Write `scene.splat`, `view/` and `cameras/` for the scene `ctx.inputs["scene"]` (a 3DGS PLY), the
     cameras `ctx.inputs["sparse"]/0` and the sizes `ctx.inputs["sizes"]`."""
-    need = "export stage"
-    read_ply = require("splat.ply", "read_gaussian_ply", needed_for=need)
-    write_splat = require("splat.export", "write_splat", needed_for=need)
-    viewer_page = require("splat.viewer", "viewer_page", needed_for=need)
-    write_view_folder = require("splat.viewer", "write_view_folder", needed_for=need)
-    model = read_ply(ctx.inputs["scene"])
+    # splat loads torch: imported when the stage runs, not when this module is imported.
+    from splat.export import write_splat
+    from splat.ply import read_gaussian_ply
+    from splat.viewer import viewer_page, write_view_folder
+
+    model = read_gaussian_ply(ctx.inputs["scene"])
     sparse = read_sparse_model(Path(ctx.inputs["sparse"]) / "0")
     sizes = read_sizes(ctx.inputs["sizes"])
     work = ctx.work_dir

@@ -36,17 +36,18 @@ file's size and sha256, checked before a resumed run reuses them; see
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 from eval.pipeline.config import PipelineConfig
-from eval.pipeline.hashing import hash_files, hash_json
+from eval.pipeline.hashing import hash_files
 from eval.pipeline.inputs import SIZES_FILE, WORKING_DIR, prepare_inputs
 from eval.pipeline.lock import output_lock
 from eval.pipeline.report import write_report
 from eval.pipeline.rounds import RoundResult
 from eval.pipeline.stage import StageResult, StageRunner, StageSpec, code_digests
-from eval.pipeline.stages import PipelineStages, check_product_components, product_stages, resolved_configs
+from eval.pipeline.stage_settings import InputsStageSettings, RoundSettings, round_settings, stage_seed
+from eval.pipeline.stages import MODEL_FILE, PipelineStages, product_stages
 from eval.pipeline.validate import validate_run_inputs
 from mvgeo.common.output import prepare_output, resumable_output_dir
 from mvgeo.common.timing import StageTimer
@@ -59,14 +60,9 @@ _log = logging.getLogger(__name__)
 #: The command named in a run folder's manifest (`mvgeo.common.output`).
 RUN_COMMAND = "denoise-gs run"
 #: Top-level entries a run writes: a folder holding only these (e.g. a run written before manifests
-#: existed, or one whose round 1 `eval.evaluate.share_round1` linked in) is resumed.
+#: existed, or one whose round 1 `eval.methods.share_round1` linked in) is resumed.
 RUN_LAYOUT = ("round[0-9]*", "report.json", "report.md", "report_files", "stages", "inputs", "scene.splat", "view",
               "cameras")
-
-
-def stage_seed(seed: int, round_index: int, stage: str) -> int:
-    """A stage's seed, derived from the master seed, the round and the stage name (31 bits)."""
-    return int(hash_json([seed, round_index, stage])[:8], 16) & 0x7FFFFFFF
 
 
 @dataclass(frozen=True)
@@ -99,44 +95,40 @@ def _hash_stage_code(stages: PipelineStages) -> None:
 
 
 def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images: StageResult,
-                  config: PipelineConfig, r: int, resolved: dict, *, noisy: tuple[Path, str],
+                  config: PipelineConfig, settings: RoundSettings, *, working: Path,
                   previous: RoundResult | None = None) -> dict[str, StageResult]:
     """align -> [fuse ->] splat -> render on the round's denoised images (`previous`: round r-1, for
-    r >= 2; `noisy`: the input folder and its content digest, for the fuse stage)."""
+    r >= 2; `working`: the working images, which the fuse stage reads)."""
+    r = settings.index
     label = f"round{r}"
-    align_settings = {**asdict(config.align), "resolved": resolved["align"]}
     inputs, upstream = {"images": rd / "denoised"}, (images,)
-    if previous is None:
-        del align_settings["reuse_intrinsics"]  # a rounds >= 2 setting: round 1's key stays as it was
-        del align_settings["reuse_geometry"]  # likewise
-    else:  # the previous round's calibration (eval.pipeline.calibration)
+    if previous is not None:  # the previous round's calibration (eval.pipeline.calibration)
         inputs["previous_align"] = previous.dir / "align"
         upstream = (images, previous.stages["align"])
     al = runner.run(StageSpec("align", rd, stages.align, ("align",), inputs=inputs, upstream=upstream,
-                              settings=align_settings, seed=stage_seed(config.seed, r, "align"),
+                              settings=settings.align, seed=stage_seed(config.seed, r, "align"),
                               code=stages.code.get("align", ())),
                     label=f"{label}/align")
-    splat_settings = {**asdict(config.splat), "device": config.device, "resolved": resolved["splat"]}
     out: dict[str, StageResult] = {"align": al}
     splat_images, splat_upstream = rd / "denoised", (images, al)
-    if config.fuse_noisy_splat:
+    if settings.fuse is not None:
         if stages.fuse is None:
             raise ValueError("fuse_noisy_splat is on but the stages have no fuse function")
         fu = runner.run(StageSpec("fuse", rd, stages.fuse, ("fused", "noisy_renders"),
-                                  inputs={"noisy": noisy[0], "images": rd / "denoised", "align": rd / "align"},
-                                  upstream=(images, al), settings={**splat_settings, "noisy_digest": noisy[1]},
+                                  inputs={"noisy": working, "images": rd / "denoised", "align": rd / "align"},
+                                  upstream=(images, al), settings=settings.fuse,
                                   seed=stage_seed(config.seed, r, "fuse"), code=stages.code.get("fuse", ())),
                         label=f"{label}/fuse")
         out["fuse"] = fu
         splat_images, splat_upstream = rd / "fused", (images, al, fu)
     sp = runner.run(StageSpec("splat", rd, stages.splat, ("sparse", "point_cloud.ply"),
                               inputs={"images": splat_images, "align": rd / "align"}, upstream=splat_upstream,
-                              settings=splat_settings, seed=stage_seed(config.seed, r, "splat"),
+                              settings=settings.splat, seed=stage_seed(config.seed, r, "splat"),
                               code=stages.code.get("splat", ())),
                     label=f"{label}/splat")
     re = runner.run(StageSpec("render", rd, stages.render, ("renders",),
                               inputs={"sparse": rd / "sparse", "scene": rd / "point_cloud.ply"}, upstream=(sp,),
-                              settings={"device": config.device}, seed=0, code=stages.code.get("render", ())),
+                              settings=settings.render, seed=0, code=stages.code.get("render", ())),
                     label=f"{label}/render")
     return {**out, "splat": sp, "render": re}
 
@@ -155,62 +147,60 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         force: re-run every stage even when complete outputs exist.
 
     Raises:
-        InputError: bad inputs, found before any compute (see `validate_run_inputs`).
-        MissingComponentError: a stage needs a component that is not available.
+        InputError: bad inputs or settings (e.g. a preset name a component does not have), found
+            before any compute (see `validate_run_inputs`, `eval.pipeline.stage_settings`).
+        ValueError: `stages` cannot run `config` (no fuse function with `fuse_noisy_splat`, or a
+            denoise stage without a network before a second round).
     """
     images_dir, out = Path(images_dir), Path(out)
     plan = prepare_output(out, command=RUN_COMMAND, inputs=[images_dir], resume=True, layout=RUN_LAYOUT)
     files = validate_run_inputs(images_dir, config)
-    if stages is None:
-        check_product_components(config)  # fail now, not after an hour of round 1
-        stages = product_stages()
+    stages = product_stages() if stages is None else stages
+    if config.rounds >= 2 and MODEL_FILE not in stages.denoise_outputs:
+        raise ValueError(f"round 2 fine-tunes round 1's {MODEL_FILE}, which this denoise stage does not write "
+                         f"(outputs {list(stages.denoise_outputs)}): run it with rounds=1")
+    # Every stage's typed settings, resolved now: a preset a component lacks fails before any compute,
+    # and a changed component default changes the keys of the stages that use it.
+    settings = [round_settings(config, r) for r in range(1, config.rounds + 1)]
     timer = StageTimer()
     runner = StageRunner(timer=timer, force=force)
     # The noisy inputs enter the keys by content (only the image files, so
     # unrelated files in IMAGES_DIR change nothing).
     noisy_digest = hash_files(files.values())
-    resolved = resolved_configs(config)  # component configs, so a changed component default re-runs its stage
     _hash_stage_code(stages)
-    d = config.denoise
     rounds: list[RoundResult] = []
     with resumable_output_dir(plan), output_lock(out):
         # The working images (upright, long side <= max_size): every stage reads these, not the inputs.
         prep = runner.run(StageSpec(WORKING_DIR, out, prepare_inputs, (WORKING_DIR,), inputs={"noisy": images_dir},
-                                    settings={"noisy_digest": noisy_digest, "max_size": config.max_size},
+                                    settings=InputsStageSettings(config.max_size, noisy_digest),
                                     code=("eval.pipeline", "mvgeo")), label=WORKING_DIR)
         working = out / WORKING_DIR
         rd = out / "round1"
         den = runner.run(StageSpec(
-            "denoise", rd, stages.denoise, ("denoised", "n2v_model.pt"), inputs={"noisy": working}, upstream=(prep,),
-            settings={"noisy_digest": noisy_digest, "n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps,
-                      "method": d.method, "passes": d.passes, "device": config.device, "resolved": resolved["n2v"]},
-            seed=stage_seed(config.seed, 1, "denoise"), code=stages.code.get("denoise", ())),
-            label="round1/denoise")
-        scene = _scene_stages(runner, stages, rd, den, config, 1, resolved, noisy=(working, noisy_digest))
+            "denoise", rd, stages.denoise, stages.denoise_outputs, inputs={"noisy": working}, upstream=(prep,),
+            settings=settings[0].denoise, seed=stage_seed(config.seed, 1, "denoise"),
+            code=stages.code.get("denoise", ())), label="round1/denoise")
+        scene = _scene_stages(runner, stages, rd, den, config, settings[0], working=working)
         rounds.append(RoundResult(1, rd, {"denoise": den, **scene}))
-        for r in range(2, config.rounds + 1):
+        for rs in settings[1:]:
+            r = rs.index
             prev, rd = rounds[-1], out / f"round{r}"
+            model_stage = prev.stages.get("denoise") or prev.stages["refine"]
             sel = runner.run(StageSpec(
                 "select", rd, stages.select, ("selection.json",),
                 inputs={"sparse": prev.dir / "sparse", "images": prev.dir / "denoised"},
-                upstream=(prev.stages["splat"], prev.stages.get("denoise") or prev.stages["refine"]),
-                settings={"views": config.views, "select_views": config.select_views},
+                upstream=(prev.stages["splat"], model_stage), settings=rs.select,
                 seed=stage_seed(config.seed, r, "select"), code=stages.code.get("select", ())),
                 label=f"round{r}/select")
-            model_stage = prev.stages.get("denoise") or prev.stages["refine"]
             ref = runner.run(StageSpec(
-                "refine", rd, stages.refine, ("denoised", "n2v_model.pt"),
+                "refine", rd, stages.refine, ("denoised", MODEL_FILE),
                 inputs={"noisy": working, "selection": rd / "selection.json",
-                        "model": prev.dir / "n2v_model.pt", "renders": prev.dir / "renders",
+                        "model": prev.dir / MODEL_FILE, "renders": prev.dir / "renders",
                         "previous": prev.dir / "denoised"},
-                upstream=(sel, model_stage, prev.stages["render"]),
-                settings={"noisy_digest": noisy_digest, "round2_preset": d.round2_preset,
-                          "round2_steps": d.round2_steps, "round2_loss": d.round2_loss, "passes": d.passes,
-                          "device": config.device, "resolved": resolved["round2"]},
+                upstream=(sel, model_stage, prev.stages["render"]), settings=rs.refine,
                 seed=stage_seed(config.seed, r, "refine"), code=stages.code.get("refine", ())),
                 label=f"round{r}/refine")
-            scene = _scene_stages(runner, stages, rd, ref, config, r, resolved, noisy=(working, noisy_digest),
-                                  previous=prev)
+            scene = _scene_stages(runner, stages, rd, ref, config, rs, working=working, previous=prev)
             rounds.append(RoundResult(r, rd, {"select": sel, "refine": ref, **scene}))
         exported = None
         if stages.export is not None:

@@ -43,6 +43,8 @@ silently reuse stale results.
 
 from __future__ import annotations
 
+import dataclasses
+import enum
 import functools
 import json
 import logging
@@ -53,7 +55,10 @@ import time
 import uuid
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
+from typing import Any
+
+import numpy as np
 
 from eval.pipeline.hashing import file_sha256, hash_json, hash_path, source_digest, tree_files
 from mvgeo.common.atomic import atomic_write_text
@@ -61,7 +66,7 @@ from mvgeo.common.errors import DgsError
 from mvgeo.common.timing import StageTimer
 
 __all__ = ["RECORD_DIR", "StageContext", "StageFn", "StageResult", "StageRunner", "StageSpec", "code_digests",
-           "output_manifest", "verify_outputs"]
+           "output_manifest", "settings_json", "verify_outputs"]
 
 _log = logging.getLogger(__name__)
 
@@ -79,18 +84,52 @@ class StageContext:
         name: the stage's name (e.g. "denoise").
         work_dir: empty folder; write every declared output here under its name.
         inputs: input name -> file or folder to read (external inputs and upstream outputs).
-        settings: the JSON-able settings that entered the key (read-only view).
+        settings: the stage's settings as given in `StageSpec.settings`: a frozen dataclass (the
+            product's stages get theirs from `eval.pipeline.stage_settings`), or a copy of a mapping.
         seed: this stage's seed.
     """
 
     name: str
     work_dir: Path
     inputs: Mapping[str, Path]
-    settings: Mapping[str, object]
+    settings: Any
     seed: int
 
 
 StageFn = Callable[[StageContext], Mapping[str, object]]
+
+
+def _json_default(obj: object) -> object:
+    """JSON form of the non-JSON values a settings dataclass may hold (numpy scalars, numpy and torch
+    dtypes, torch devices, paths, enums); anything else is refused, so that no `repr` with a memory
+    address enters a key."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.dtype) or (type(obj).__module__ == "torch" and type(obj).__name__ in ("dtype", "device")):
+        return str(obj)  # "float32", "torch.float32", "cuda:0"
+    if isinstance(obj, PurePath):
+        return obj.as_posix()
+    if isinstance(obj, enum.Enum):
+        return obj.value
+    raise TypeError(f"stage settings hold a {type(obj).__name__}, which has no canonical JSON form")
+
+
+def settings_json(settings: object) -> dict[str, object]:
+    """The canonical JSON form of a stage's settings, which enters its key and its record:
+    `dataclasses.asdict` of a settings dataclass (nested dataclasses included) or a mapping's items,
+    numpy scalars, dtypes, torch devices, paths and enums as plain values, keys sorted.
+
+    Raises:
+        TypeError: `settings` is neither a dataclass instance nor a mapping, or holds a value
+            without a canonical JSON form (a bug in the caller).
+    """
+    if dataclasses.is_dataclass(settings) and not isinstance(settings, type):
+        raw = dataclasses.asdict(settings)
+    elif isinstance(settings, Mapping):
+        raw = dict(settings)
+    else:
+        raise TypeError(f"stage settings must be a dataclass instance or a mapping, got {type(settings).__name__}")
+    return json.loads(json.dumps(raw, default=_json_default, sort_keys=True, allow_nan=True))
 
 
 def _module_of(fn: StageFn) -> str:
@@ -119,7 +158,8 @@ class StageSpec:
             (external inputs); the others are upstream outputs, covered by `upstream`.
         upstream: results of the stages whose outputs this one reads; their keys and
             recorded output digests enter this key.
-        settings: JSON-able settings that enter the key.
+        settings: handed to `fn` as `ctx.settings`; a frozen dataclass (or a mapping) whose
+            canonical JSON form (`settings_json`) enters the key.
         seed: enters the key and is handed to `fn`.
         code: modules or packages the stage runs besides `fn`'s own module (e.g. `"splat"`);
             their source digests enter the key (the module docstring's rule).
@@ -132,7 +172,7 @@ class StageSpec:
     inputs: Mapping[str, Path] = field(default_factory=dict)
     hashed_inputs: tuple[str, ...] = ()
     upstream: Sequence[StageResult] = ()
-    settings: Mapping[str, object] = field(default_factory=dict)
+    settings: Any = field(default_factory=dict)
     seed: int = 0
     code: tuple[str, ...] = ()
 
@@ -142,7 +182,7 @@ class StageSpec:
             "format": STAGE_FORMAT_VERSION,
             "name": self.name,
             "outputs": list(self.outputs),
-            "settings": dict(self.settings),
+            "settings": settings_json(self.settings),
             "seed": self.seed,
             "inputs": {k: hash_path(self.inputs[k]) for k in sorted(self.hashed_inputs)},
             "upstream": {u.name: {"key": u.key, "outputs": u.outputs_digest} for u in self.upstream},
@@ -305,7 +345,8 @@ class StageRunner:
             _remove(stale)
         work = Path(tempfile.mkdtemp(prefix=f".{spec.name}.work-", dir=spec.stage_dir))
         try:
-            ctx = StageContext(spec.name, work, dict(spec.inputs), dict(spec.settings), spec.seed)
+            settings = dict(spec.settings) if isinstance(spec.settings, Mapping) else spec.settings
+            ctx = StageContext(spec.name, work, dict(spec.inputs), settings, spec.seed)
             start = time.perf_counter()
             with self.timer.stage(label):
                 summary = dict(spec.fn(ctx) or {})
@@ -319,7 +360,7 @@ class StageRunner:
                 record_text = json.dumps({"key": key, "name": spec.name, "manifest": manifest,
                                           "code": code_digests(spec.fn, spec.code),
                                           "seconds": round(seconds, 4), "seed": spec.seed,
-                                          "settings": dict(spec.settings), "summary": summary},
+                                          "settings": settings_json(spec.settings), "summary": summary},
                                          indent=2, sort_keys=True)
             except TypeError as exc:
                 raise DgsError(f"stage {label} returned a summary that is not JSON-able: {exc}") from exc

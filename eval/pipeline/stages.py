@@ -2,9 +2,11 @@
 
 Each function has the `StageFn` signature (`fn(ctx) -> summary`), reads
 `ctx.inputs`, writes the outputs `eval.pipeline.run` declares for it into
-`ctx.work_dir`, and calls the component packages through
-`eval.pipeline.components` (a missing component raises
-`MissingComponentError`; nothing is faked).
+`ctx.work_dir`, and runs the component packages with the typed settings it
+receives (`ctx.settings`, `eval.pipeline.stage_settings`).
+
+The component packages (`denoise`, `splat`, `mvgeo.align`) load torch, so each
+function imports what it calls when it runs, not when this module is imported.
 
 | stage     | inputs                                   | outputs                                   |
 |-----------|------------------------------------------|-------------------------------------------|
@@ -37,15 +39,21 @@ from eval.pipeline.calibration import (
     previous_calibration,
     restricted_ratios,
 )
-from eval.pipeline.components import MissingComponentError, component_config, require
-from eval.pipeline.config import PipelineConfig
 from eval.pipeline.stage import StageContext, StageFn
+from eval.pipeline.stage_settings import SplatStageSettings
 from eval.pipeline.views import read_views, view_files, write_views
+from mvgeo.align.stats import AlignStats
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
-__all__ = ["FUSE_WEIGHT", "STAGE_CODE", "PipelineStages", "align", "check_product_components", "denoise", "fuse",
-           "fuse_images", "product_stages", "refine", "render", "resolved_configs", "select", "splat"]
+__all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "STAGE_CODE", "PipelineStages", "align", "denoise",
+           "fuse", "fuse_images", "product_stages", "refine", "render", "select", "splat"]
+
+#: The network a denoise or refine stage writes (round r >= 2 fine-tunes round r-1's).
+MODEL_FILE = "n2v_model.pt"
+#: What the product's denoise stage writes; a denoiser without a network (the evaluation's
+#: baselines) writes "denoised" alone and runs round 1 only.
+DENOISE_OUTPUTS = ("denoised", MODEL_FILE)
 
 
 @dataclass(frozen=True)
@@ -63,6 +71,9 @@ class PipelineStages:
     export: StageFn | None = None
     #: stage name -> modules/packages it runs besides its function's own module (`StageSpec.code`).
     code: Mapping[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
+    #: What `denoise` writes into the round folder: `DENOISE_OUTPUTS`, or ("denoised",) for a
+    #: denoiser without a network, which cannot start a round 2 (no `MODEL_FILE` to fine-tune).
+    denoise_outputs: tuple[str, ...] = DENOISE_OUTPUTS
 
 
 def _history_summary(history: object) -> dict[str, object]:
@@ -77,81 +88,44 @@ def _history_summary(history: object) -> dict[str, object]:
     return out
 
 
-def _n2v_config(s: Mapping[str, object], need: str):
-    # "method" is absent from the settings of rounds >= 2 (they fine-tune the N2V network): the preset's.
-    return component_config("denoise.n2v", "N2V_PRESETS", s["n2v_preset"],
-                            {"steps": s["n2v_steps"], "method": s.get("method")}, needed_for=need)
-
-
-def _round2_config(s: Mapping[str, object], need: str):
-    # The joint loss is Round2Config's default; "charbonnier" sets its `loss` field (Table 2 ablation).
-    overrides = {"steps": s["round2_steps"], "loss": None if s["round2_loss"] == "joint" else s["round2_loss"]}
-    return component_config("denoise.round2", "ROUND2_PRESETS", s["round2_preset"], overrides, needed_for=need,
-                            config_cls="Round2Config")
-
-
-def _align_config(s: Mapping[str, object], seed: int, need: str):
-    # mvgeo.align has no presets table: "default" is AlignConfig(), "preview" its PREVIEW preset.
-    presets = {"default": require("mvgeo.align", "AlignConfig", needed_for=need)(),
-               "preview": require("mvgeo.align", "PREVIEW", needed_for=need)}
-    if s["preset"] not in presets:
-        raise MissingComponentError(f"{need}: mvgeo.align has no preset {s['preset']!r} (has default, preview)")
-    cfg = dataclasses.replace(presets[s["preset"]], seed=seed)
-    if s["max_size_px"] is not None:
-        cfg = dataclasses.replace(cfg, max_size_px=s["max_size_px"])
-    if s["iters"] is not None:
-        cfg = dataclasses.replace(cfg, align=dataclasses.replace(cfg.align, iters=s["iters"]))
-    if s.get("points") is not None:
-        cfg = dataclasses.replace(cfg, points_budget=int(s["points"]))
-    if s.get("max_focal_log_std") is not None:
-        cfg = dataclasses.replace(cfg, max_focal_log_std=float(s["max_focal_log_std"]))
-    return cfg
-
-
-def _train_config(s: Mapping[str, object], seed: int, need: str):
-    return component_config("splat.train", "TRAIN_PRESETS", s["preset"], {"iters": s["iters"], "seed": seed},
-                            needed_for=need)
-
-
 def denoise(ctx: StageContext) -> Mapping[str, object]:
-    """Round 1: train the UNet on all noisy images with `DenoiseSettings.method`, denoise them all."""
-    need = "denoise stage (round 1)"
+    """Round 1: train the UNet on all noisy images with `n2v.method`, denoise them all
+    (`ctx.settings`: `DenoiseStageSettings`)."""
+    from denoise.model import save_checkpoint
+    from denoise.self_supervised import denoise_with_method, train_with_method
+
     s = ctx.settings
-    cfg = _n2v_config(s, need)
-    train_with_method = require("denoise.self_supervised", "train_with_method", needed_for=need)
-    denoise_with_method = require("denoise.self_supervised", "denoise_with_method", needed_for=need)
-    save_checkpoint = require("denoise.model", "save_checkpoint", needed_for=need)
     noisy = read_views(ctx.inputs["noisy"])
-    model = train_with_method(list(noisy.values()), cfg, seed=ctx.seed, device=s["device"])
-    out = denoise_with_method(model, list(noisy.values()), cfg, passes=s["passes"], seed=ctx.seed)
+    model = train_with_method(list(noisy.values()), s.n2v, seed=ctx.seed, device=s.device)
+    out = denoise_with_method(model, list(noisy.values()), s.n2v, passes=s.passes, seed=ctx.seed)
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
-    save_checkpoint(ctx.work_dir / "n2v_model.pt", model)
+    save_checkpoint(ctx.work_dir / MODEL_FILE, model)
     return {"views": list(noisy), "train": _history_summary(getattr(model, "history", None))}
 
 
 def align(ctx: StageContext) -> Mapping[str, object]:
-    """Pose-free alignment of the denoised images (`mvgeo.align`), written as `mvgeo align` writes it."""
-    need = "align stage"
-    cfg = _align_config(ctx.settings, ctx.seed, need)
-    align_images = require("mvgeo.align", "align_images", needed_for=need)
-    write_align_result = require("mvgeo.align", "write_align_result", needed_for=need)
+    """Pose-free alignment of the denoised images (`mvgeo.align`), written as `mvgeo align` writes it
+    (`ctx.settings`: `AlignStageSettings`)."""
+    from mvgeo.align import align_images, write_align_result
+
+    s = ctx.settings
+    cfg = s.align
     files = list(view_files(ctx.inputs["images"]).values())
-    mode = ctx.settings.get("reuse_intrinsics", "never")
+    mode = s.reuse_intrinsics or "never"
     previous = ctx.inputs.get("previous_align")
     if previous is None:
         res = align_images(files, cfg)
     else:
         res = _align_keeping_better_geometry(align_images, files, cfg, Path(previous), mode,
-                                             ctx.settings.get("reuse_geometry", "never"))
+                                             s.reuse_geometry or "never")
     out = ctx.work_dir / "align"
     write_align_result(out, res)  # sparse/0/*.bin, points.ply, align.json
     np.savez(out / "points.npz", xyz=np.asarray(res.points_xyz, np.float64),
              rgb=np.asarray(res.points_rgb, np.uint8), conf=np.asarray(res.points_conf, np.float64))
-    stats = res.stats if isinstance(res.stats, Mapping) else {}
     summary = {"registered": len(res.sparse_model.images), "points": int(len(res.points_xyz)),
-               "stats": json.loads(json.dumps(stats, default=str))}
-    if GEOMETRY_KEY in stats:
-        summary["geometry"] = stats[GEOMETRY_KEY]
+               "stats": json.loads(json.dumps(res.stats.to_json(), default=str))}
+    if GEOMETRY_KEY in res.stats.annotations:
+        summary["geometry"] = res.stats.annotations[GEOMETRY_KEY]
     return summary
 
 
@@ -168,7 +142,7 @@ def _align_keeping_better_geometry(align_images, files: list[Path], cfg, previou
     except DegenerateGeometryError as exc:  # e.g. the K views alone do not pin the cameras
         res, error = None, exc
     prev_model = read_sparse_model(previous / "sparse" / "0")
-    prev_stats = json.loads((previous / "align.json").read_text())
+    prev_stats = AlignStats.read(previous / "align.json")
     views = [Path(f).name for f in files]
     choice = choose_geometry(geometry_mode, views, (prev_model, prev_stats),
                              None if res is None else (res.sparse_model, res.stats),
@@ -176,27 +150,28 @@ def _align_keeping_better_geometry(align_images, files: list[Path], cfg, previou
     if not choice.used_previous:
         if error is not None:
             raise error
-        res.stats[GEOMETRY_KEY] = choice.to_dict()
+        res.stats.annotations[GEOMETRY_KEY] = choice.to_dict()
         return res
     return _previous_geometry(previous, prev_model, prev_stats, choice)
 
 
-def _previous_geometry(previous: Path, model: SparseModel, stats: Mapping[str, object], choice: GeometryChoice):
+def _previous_geometry(previous: Path, model: SparseModel, stats: AlignStats, choice: GeometryChoice):
     """The previous round's alignment as this round's: its cameras and poses of `choice.views`, its
     points, and its align.json with the uncertainty figures restricted to those views (what the next
     round compares against) and the choice."""
-    align_result = require("mvgeo.align", "AlignResult", needed_for="align stage")
+    from mvgeo.align import AlignResult
+
     views = list(choice.views)
     images = [model.image(v) for v in views]
     sub = SparseModel({im.camera_id: model.cameras[im.camera_id] for im in images}, images,
                       model.points_xyz, model.points_rgb)
-    out_stats = json.loads(json.dumps(stats))
-    ba = out_stats.get("bundle_adjustment")
-    if isinstance(ba, dict) and "centre_std_ratio" in ba:
-        ba["centre_std_ratio"] = restricted_ratios(model, stats, views)
-    out_stats.update({"n_images": len(views), "n_registered": len(views), GEOMETRY_KEY: choice.to_dict()})
+    ba = stats.bundle_adjustment
+    if ba is not None and ba.centre_std_ratio is not None:
+        ba = dataclasses.replace(ba, centre_std_ratio=restricted_ratios(model, stats, views))
+    out_stats = dataclasses.replace(stats, n_images=len(views), n_registered=len(views), bundle_adjustment=ba,
+                                    annotations={**stats.annotations, GEOMETRY_KEY: choice.to_dict()})
     pts = np.load(previous / "points.npz")
-    return align_result(sub, np.asarray(pts["xyz"], np.float64), np.asarray(pts["rgb"], np.uint8),
+    return AlignResult(sub, np.asarray(pts["xyz"], np.float64), np.asarray(pts["rgb"], np.uint8),
                         np.asarray(pts["conf"], np.float64), out_stats)
 
 
@@ -213,40 +188,41 @@ def _align_with_previous_calibration(align_images, files: list[Path], cfg, previ
         else:
             current_std = focal_log_std(res.stats)
             if not prefer_previous("auto", previous_std, current_std):
-                res.stats[INHERITED_KEY] = {**inherited, "used": False, "estimate_focal_log_std": current_std}
+                res.stats.annotations[INHERITED_KEY] = {**inherited, "used": False,
+                                                        "estimate_focal_log_std": current_std}
                 return res
-            focals = res.stats.get("focal_px") or {}
+            focals = res.stats.focal_px
             inherited["estimate_discarded"] = {
                 "focal_px": float(np.median(list(focals.values()))) if focals else None,
                 "focal_log_std": current_std}
     res = align_images(files, cfg, intrinsics=camera)
-    res.stats[INHERITED_KEY] = {**inherited, "used": True}
+    res.stats.annotations[INHERITED_KEY] = {**inherited, "used": True}
     return res
 
 
-def _train_splat(images_dir: Path, align_dir: Path, s: Mapping[str, object], seed: int, need: str):
+def _train_splat(images_dir: Path, align_dir: Path, s: SplatStageSettings):
     """(training result, alignment's sparse model, view stems): a splat on `images_dir`'s views,
     initialised from the alignment in `align_dir`."""
-    cfg = _train_config(s, seed, need)
-    train_gaussians = require("splat.train", "train_gaussians", needed_for=need)
+    from splat.train import train_gaussians
+
     sparse = read_sparse_model(align_dir / "sparse" / "0")
     pts = np.load(align_dir / "points.npz")
     stems = [n.rsplit(".", 1)[0] for n in sparse.names]
     images = read_views(images_dir, stems)
     cameras = [sparse.camera_of(n) for n in sparse.names]
     cam_from_world = np.stack([sparse.image(n).cam_from_world for n in sparse.names])
-    res = train_gaussians(list(images.values()), cameras, cam_from_world, pts["xyz"], pts["rgb"], cfg,
-                          device=s["device"])
+    res = train_gaussians(list(images.values()), cameras, cam_from_world, pts["xyz"], pts["rgb"], s.train,
+                          device=s.device)
     return res, sparse, stems
 
 
 def splat(ctx: StageContext) -> Mapping[str, object]:
-    """Gaussian splatting with pose optimisation, initialised from the alignment."""
-    need = "splat stage"
-    s = ctx.settings
-    save_ply = require("splat.ply", "write_gaussian_ply", needed_for=need)
-    res, sparse, stems = _train_splat(ctx.inputs["images"], ctx.inputs["align"], s, ctx.seed, need)
-    save_ply(ctx.work_dir / "point_cloud.ply", res.model)
+    """Gaussian splatting with pose optimisation, initialised from the alignment (`ctx.settings`:
+    `SplatStageSettings`)."""
+    from splat.ply import write_gaussian_ply
+
+    res, sparse, stems = _train_splat(ctx.inputs["images"], ctx.inputs["align"], ctx.settings)
+    write_gaussian_ply(ctx.work_dir / "point_cloud.ply", res.model)
     optimised = [PosedImage(im.name, im.camera_id, np.asarray(res.cam_from_world_optimized[i])[:3])
                  for i, im in enumerate(sparse.images)]
     write_sparse_model(ctx.work_dir / "sparse" / "0",
@@ -275,11 +251,12 @@ def fuse(ctx: StageContext) -> Mapping[str, object]:
 
     The splat of 12 noisy views keeps the scene's fine texture (the same in every view) and averages
     the noise (different in every view); the denoiser removes noise and texture alike. Their errors
-    differ, so the mean is better than either (CHANGELOG.md, 2026-11-22).
+    differ, so the mean is better than either (CHANGELOG.md, 2026-11-22). `ctx.settings`: the
+    `SplatStageSettings` of that splat.
     """
-    need = "fuse stage"
-    render_views = require("splat.render", "render_views", needed_for=need)
-    res, sparse, stems = _train_splat(ctx.inputs["noisy"], ctx.inputs["align"], ctx.settings, ctx.seed, need)
+    from splat.render import render_views
+
+    res, sparse, stems = _train_splat(ctx.inputs["noisy"], ctx.inputs["align"], ctx.settings)
     cameras = [sparse.camera_of(n) for n in sparse.names]
     cam_from_world = np.stack([np.asarray(m)[:3] for m in res.cam_from_world_optimized])
     renders = dict(zip(stems, render_views(res.model, cameras, cam_from_world), strict=True))
@@ -290,12 +267,13 @@ def fuse(ctx: StageContext) -> Mapping[str, object]:
 
 
 def render(ctx: StageContext) -> Mapping[str, object]:
-    """Render the trained Gaussians at every pose of the round's `sparse/0`."""
-    need = "render stage"
-    load_ply = require("splat.ply", "read_gaussian_ply", needed_for=need)
-    render_views = require("splat.render", "render_views", needed_for=need)
+    """Render the trained Gaussians at every pose of the round's `sparse/0` (`ctx.settings`:
+    `RenderStageSettings`)."""
+    from splat.ply import read_gaussian_ply
+    from splat.render import render_views
+
     sparse = read_sparse_model(ctx.inputs["sparse"] / "0")
-    model = load_ply(ctx.inputs["scene"], device=ctx.settings["device"])
+    model = read_gaussian_ply(ctx.inputs["scene"], device=ctx.settings.device)
     cameras = [sparse.camera_of(n) for n in sparse.names]
     cam_from_world = np.stack([sparse.image(n).cam_from_world for n in sparse.names])
     images = render_views(model, cameras, cam_from_world)
@@ -305,18 +283,19 @@ def render(ctx: StageContext) -> Mapping[str, object]:
 
 
 def select(ctx: StageContext) -> Mapping[str, object]:
-    """Views for the next round: pose k-means (K = views) + sharpest (Laplacian variance) per cluster."""
-    need = "view selection stage"
+    """Views for the next round: pose k-means (K = views) + sharpest (Laplacian variance) per cluster
+    (`ctx.settings`: `SelectStageSettings`)."""
     s = ctx.settings
     sparse = read_sparse_model(ctx.inputs["sparse"] / "0")
     stems = [n.rsplit(".", 1)[0] for n in sparse.names]
-    if not s["select_views"] or len(stems) <= s["views"]:
-        selection = {"names": stems, "method": "all" if not s["select_views"] else "all (N <= K)"}
+    if not s.select_views or len(stems) <= s.views:
+        selection = {"names": stems, "method": "all" if not s.select_views else "all (N <= K)"}
     else:
-        select_views = require("denoise.view_selection", "select_views", needed_for=need)
+        from denoise.view_selection import select_views
+
         images = read_views(ctx.inputs["images"], stems)
         cfw = {stem: sparse.image(n).cam_from_world for stem, n in zip(stems, sparse.names, strict=True)}
-        sel = select_views(cfw, images, s["views"], seed=ctx.seed)
+        sel = select_views(cfw, images, s.views, seed=ctx.seed)
         selection = {"names": list(sel.names), "method": "kmeans+laplacian",
                      "cluster_of": {k: int(v) for k, v in dict(sel.cluster_of).items()},
                      "laplacian_var": {k: float(v) for k, v in dict(sel.laplacian_var).items()}}
@@ -325,21 +304,20 @@ def select(ctx: StageContext) -> Mapping[str, object]:
 
 
 def refine(ctx: StageContext) -> Mapping[str, object]:
-    """Rounds >= 2: fine-tune the UNet against the previous renders on the selected views, denoise them."""
-    need = "refine stage (round >= 2)"
+    """Rounds >= 2: fine-tune the UNet against the previous renders on the selected views, denoise them
+    (`ctx.settings`: `RefineStageSettings`)."""
+    from denoise.inference import denoise_images
+    from denoise.model import load_checkpoint, save_checkpoint
+    from denoise.round2 import refine_round2
+
     s = ctx.settings
-    cfg = _round2_config(s, need)
-    load_checkpoint = require("denoise.model", "load_checkpoint", needed_for=need)
-    refine_round2 = require("denoise.round2", "refine_round2", needed_for=need)
-    denoise_images = require("denoise.inference", "denoise_images", needed_for=need)
-    save_checkpoint = require("denoise.model", "save_checkpoint", needed_for=need)
     names = json.loads((ctx.inputs["selection"]).read_text())["names"]
     noisy = read_views(ctx.inputs["noisy"], names)
     renders = read_views(ctx.inputs["renders"], names)
-    model = load_checkpoint(ctx.inputs["model"], device=s["device"])
+    model = load_checkpoint(ctx.inputs["model"], device=s.device)
     # Trust target (the render only where it agrees with the photo within the noise) and the
     # blind-spot-loss guard: see denoise.round2.refine_round2.
-    model, r2 = refine_round2(model, list(noisy.values()), list(renders.values()), cfg, seed=ctx.seed)
+    model, r2 = refine_round2(model, list(noisy.values()), list(renders.values()), s.round2, seed=ctx.seed)
     # Keep the observation blend (denoise.fusion) for the fine-tuned model too: most of round 1's
     # quality comes from it, and without it round 2 fell from 23.97 to 20.92 dB on the demo scene
     # (8 views, 192x144, sigma 25/255).
@@ -348,15 +326,15 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
         # up to the random maskings of inference), so a reverted round changes nothing.
         out = list(read_views(ctx.inputs["previous"], names).values())
     else:
-        out = denoise_images(model, list(noisy.values()), passes=s["passes"], seed=ctx.seed, fuse=True)
+        out = denoise_images(model, list(noisy.values()), passes=s.passes, seed=ctx.seed, fuse=True)
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
-    save_checkpoint(ctx.work_dir / "n2v_model.pt", model)
+    save_checkpoint(ctx.work_dir / MODEL_FILE, model)
     return {"views": names, "train": _history_summary(getattr(model, "history", None)),
             "round2": json.loads(json.dumps(dataclasses.asdict(r2), default=float))}
 
 
 #: The code each product stage runs besides `eval/pipeline/stages.py`: all of `eval.pipeline` (views'
-#: PNG writing, calibration, components) and the component packages it calls, each with the project
+#: PNG writing, calibration, stage settings) and the component packages it calls, each with the project
 #: packages those import (`splat` imports `denoise.losses`; `denoise` and `splat` import `mvgeo`).
 #: Their source digests enter the stage keys (`eval.pipeline.stage`'s rule), so a changed constant or
 #: function in any of them re-runs the stage and the stages after it.
@@ -369,63 +347,6 @@ STAGE_CODE: dict[str, tuple[str, ...]] = {
     "select": ("eval.pipeline", "denoise", "mvgeo"),
     "refine": ("eval.pipeline", "denoise", "mvgeo"),
 }
-
-
-def resolved_configs(config: PipelineConfig) -> dict[str, object]:
-    """The component configs a run resolves to (JSON-able), per stage; they enter the stage keys.
-
-    Hashing preset *names* alone would reuse a cached stage after a component changed a
-    preset's default; hashing the resolved configs re-runs it (the code itself enters the keys
-    through `STAGE_CODE`). Seeds are left out (they are part of every key already). A component
-    that is missing resolves to None (the run then fails in `check_product_components`).
-    """
-    need = "stage keys"
-    d, a, sp = config.denoise, config.align, config.splat
-
-    def as_json(fn) -> object:
-        try:
-            cfg = fn()
-        except MissingComponentError:
-            return None
-        return json.loads(json.dumps(dataclasses.asdict(cfg), default=str, sort_keys=True))
-
-    out = {
-        "n2v": as_json(lambda: _n2v_config({"n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps,
-                                            "method": d.method}, need)),
-        "align": as_json(lambda: _align_config(dataclasses.asdict(a), 0, need)),
-        "splat": as_json(lambda: _train_config({"preset": sp.preset, "iters": sp.iters}, 0, need)),
-        "round2": as_json(lambda: _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,
-                                                  "round2_loss": d.round2_loss}, need)),
-    }
-    return out
-
-
-def check_product_components(config: PipelineConfig) -> None:
-    """Check, before any compute, that every component function and preset a run needs exists.
-
-    Raises:
-        MissingComponentError: naming the first missing piece.
-    """
-    need = "denoise-gs run"
-    d, a, sp = config.denoise, config.align, config.splat
-    _n2v_config({"n2v_preset": d.n2v_preset, "n2v_steps": d.n2v_steps}, need)
-    for module, name in (("denoise.n2v", "train_n2v"), ("denoise.inference", "denoise_images"),
-                         ("denoise.model", "save_checkpoint")):
-        require(module, name, needed_for=need)
-    _align_config(dataclasses.asdict(a), config.seed, need)
-    for name in ("align_images", "write_align_result"):
-        require("mvgeo.align", name, needed_for=need)
-    _train_config({"preset": sp.preset, "iters": sp.iters}, config.seed, need)
-    for module, name in (("splat.train", "train_gaussians"), ("splat.ply", "write_gaussian_ply"),
-                         ("splat.ply", "read_gaussian_ply"), ("splat.render", "render_views")):
-        require(module, name, needed_for=need)
-    if config.rounds >= 2:
-        _round2_config({"round2_preset": d.round2_preset, "round2_steps": d.round2_steps,
-                        "round2_loss": d.round2_loss}, need)
-        for module, name in (("denoise.model", "load_checkpoint"), ("denoise.round2", "refine_round2")):
-            require(module, name, needed_for=need)
-        if config.select_views:
-            require("denoise.view_selection", "select_views", needed_for=need)
 
 
 def product_stages() -> PipelineStages:

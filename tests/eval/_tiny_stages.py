@@ -106,7 +106,7 @@ class TinyStages:
         _write_ply(ctx.work_dir / "point_cloud.ply", pts["xyz"], pts["rgb"])
         self._maybe_fail("splat")
         write_sparse_model(ctx.work_dir / "sparse" / "0", sparse, binary=True)
-        return {"train": {"loss": {"first": 1.0, "last": 0.5, "count": int(ctx.settings["iters"] or 10)}}}
+        return {"train": {"loss": {"first": 1.0, "last": 0.5, "count": int(ctx.settings.train.iters)}}}
 
     def render(self, ctx: StageContext):
         self._enter("render")
@@ -122,10 +122,10 @@ class TinyStages:
     def select(self, ctx: StageContext):
         self._enter("select")
         images = read_views(ctx.inputs["images"])
-        k = ctx.settings["views"]
+        k = ctx.settings.views
         sharp = {n: float(cv2.Laplacian(cv2.cvtColor(v, cv2.COLOR_RGB2GRAY), cv2.CV_32F).var())
                  for n, v in images.items()}
-        names = sorted(sorted(sharp, key=sharp.get, reverse=True)[:k]) if ctx.settings["select_views"] \
+        names = sorted(sorted(sharp, key=sharp.get, reverse=True)[:k]) if ctx.settings.select_views \
             else list(images)
         (ctx.work_dir / "selection.json").write_text(json.dumps({"names": names}))
         return {"selected": names}

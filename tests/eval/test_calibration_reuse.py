@@ -4,7 +4,6 @@ stage's use of it, with a recording stand-in for `align_images` (the decision lo
 from __future__ import annotations
 
 import dataclasses
-import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -16,6 +15,7 @@ from eval.pipeline.stages import _align_with_previous_calibration
 from mvgeo.camera import Camera
 from mvgeo.common.errors import ConfigError, DegenerateGeometryError, InputError
 from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
+from tests.common.align_stats import align_stats, bundle_stats
 from tests.eval._tiny_stages import TinyStages, make_scene
 
 
@@ -24,18 +24,19 @@ def _align_dir(folder, focals=(210.0, 214.0, 212.0), std=0.02, known=False):
     images = [PosedImage(f"v{i}.png", i + 1, np.hstack([np.eye(3), [[i], [0.0], [0.0]]])) for i in range(len(focals))]
     write_sparse_model(folder / "sparse" / "0", SparseModel(cams, images, np.zeros((0, 3)), np.zeros((0, 3), np.uint8)),
                        binary=True)
-    stats = ({"known_intrinsics": True, INHERITED_KEY: {"focal_log_std": std}} if known
-             else {"known_intrinsics": False, "bundle_adjustment": {"focal_log_std": std}})
-    (folder / "align.json").write_text(json.dumps(stats))
+    stats = (align_stats(known_intrinsics=True, annotations={INHERITED_KEY: {"focal_log_std": std}}) if known
+             else align_stats(bundle_adjustment=bundle_stats(focal_log_std=std)))
+    stats.write(folder / "align.json")
     return folder
 
 
 def test_focal_log_std_sources():
-    assert focal_log_std({"known_intrinsics": False, "bundle_adjustment": {"focal_log_std": 0.03}}) == 0.03
-    assert focal_log_std({"known_intrinsics": False}) is None  # no bundle adjustment: unknown
-    assert focal_log_std({"known_intrinsics": False, "bundle_adjustment": {"focal_log_std": float("nan")}}) is None
-    assert focal_log_std({"known_intrinsics": True, INHERITED_KEY: {"focal_log_std": 0.01}}) == 0.01
-    assert focal_log_std({"known_intrinsics": True}) is None  # a user's calibration: no figure
+    assert focal_log_std(align_stats(bundle_adjustment=bundle_stats(focal_log_std=0.03))) == 0.03
+    assert focal_log_std(align_stats()) is None  # no bundle adjustment: unknown
+    assert focal_log_std(align_stats(bundle_adjustment=bundle_stats(focal_log_std=float("nan")))) is None
+    inherited = align_stats(known_intrinsics=True, annotations={INHERITED_KEY: {"focal_log_std": 0.01}})
+    assert focal_log_std(inherited) == 0.01
+    assert focal_log_std(align_stats(known_intrinsics=True)) is None  # a user's calibration: no figure
 
 
 @pytest.mark.parametrize(("mode", "prev", "cur", "expected"), [
@@ -72,9 +73,9 @@ class _FakeAlign:
         if intrinsics is None:
             if self.error is not None:
                 raise self.error
-            return SimpleNamespace(stats={"known_intrinsics": False, "focal_px": {"a": 170.0, "b": 166.0},
-                                          "bundle_adjustment": {"focal_log_std": self.std}})
-        return SimpleNamespace(stats={"known_intrinsics": True, "focal_px": {"a": intrinsics.fx}})
+            return SimpleNamespace(stats=align_stats(focal_px={"a": 170.0, "b": 166.0},
+                                                     bundle_adjustment=bundle_stats(focal_log_std=self.std)))
+        return SimpleNamespace(stats=align_stats(known_intrinsics=True, focal_px={"a": intrinsics.fx}))
 
 
 def test_align_stage_keeps_the_better_focal(tmp_path):
@@ -82,23 +83,23 @@ def test_align_stage_keeps_the_better_focal(tmp_path):
     worse = _FakeAlign(std=0.046)
     res = _align_with_previous_calibration(worse, [], None, prev, "auto")
     assert worse.calls[0] is None and worse.calls[1].fx == 212.0  # estimated, then re-aligned with round 1's
-    info = res.stats[INHERITED_KEY]
+    info = res.stats.annotations[INHERITED_KEY]
     assert info["used"] and info["focal_log_std"] == 0.02
     assert info["estimate_discarded"] == {"focal_px": 168.0, "focal_log_std": 0.046}
     assert focal_log_std(res.stats) == 0.02  # what round 3 will compare against
 
     better = _FakeAlign(std=0.01)
     res = _align_with_previous_calibration(better, [], None, prev, "auto")
-    assert better.calls == [None] and res.stats[INHERITED_KEY]["used"] is False
+    assert better.calls == [None] and res.stats.annotations[INHERITED_KEY]["used"] is False
 
     always = _FakeAlign(std=0.001)
     res = _align_with_previous_calibration(always, [], None, prev, "always")
-    assert len(always.calls) == 1 and always.calls[0].fx == 212.0 and res.stats[INHERITED_KEY]["used"]
+    assert len(always.calls) == 1 and always.calls[0].fx == 212.0 and res.stats.annotations[INHERITED_KEY]["used"]
 
     refused = _FakeAlign(error=DegenerateGeometryError("the focal length is not determined by these views"))
     res = _align_with_previous_calibration(refused, [], None, prev, "auto")
     assert refused.calls[1].fx == 212.0
-    assert "not determined" in res.stats[INHERITED_KEY]["estimate_refused"]
+    assert "not determined" in res.stats.annotations[INHERITED_KEY]["estimate_refused"]
 
 
 def test_pipeline_passes_the_previous_alignment_to_later_rounds_only(tmp_path):
@@ -107,7 +108,7 @@ def test_pipeline_passes_the_previous_alignment_to_later_rounds_only(tmp_path):
     tiny = TinyStages()
 
     def align(ctx):
-        seen.append((ctx.work_dir.parent.name, ctx.inputs.get("previous_align"), ctx.settings.get("reuse_intrinsics")))
+        seen.append((ctx.work_dir.parent.name, ctx.inputs.get("previous_align"), ctx.settings.reuse_intrinsics))
         return tiny.align(ctx)
 
     stages = dataclasses.replace(tiny.stages(), align=align)

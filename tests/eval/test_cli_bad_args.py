@@ -16,14 +16,14 @@ from tests.eval._tiny_stages import make_scene
 def no_work(monkeypatch):
     """Any stage, scene render or sweep means the checks came too late."""
     import eval.cli
-    import eval.evaluate
+    import eval.methods
 
     def fail(*args, **kwargs):
         raise AssertionError("work started before the options were checked")
 
     monkeypatch.setattr(eval.cli, "run_pipeline", fail)
     monkeypatch.setattr(eval.cli, "scene_dataset", fail)
-    monkeypatch.setattr(eval.evaluate, "run_pipeline", fail)
+    monkeypatch.setattr(eval.methods, "run_pipeline", fail)
 
 
 @pytest.fixture
@@ -76,8 +76,9 @@ def test_numeric_options_are_checked_by_the_parser(images, tmp_path, capsys, no_
 def test_the_denoise_stage_trains_on_the_configured_device(tmp_path, monkeypatch):
     """The round-1 training receives the pipeline's device (it used to train on the CPU always)."""
     import denoise.self_supervised
-    from eval.pipeline import stages
+    from eval.pipeline import DenoiseSettings, stages
     from eval.pipeline.stage import StageContext
+    from eval.pipeline.stage_settings import DenoiseStageSettings, n2v_config
 
     class Stop(Exception):
         pass
@@ -88,11 +89,11 @@ def test_the_denoise_stage_trains_on_the_configured_device(tmp_path, monkeypatch
         seen.append(device)
         raise Stop
 
-    # The stage trains through `train_with_method` (any `DenoiseSettings.method`); `require` looks it up at
-    # call time.
+    # The stage trains through `train_with_method` (any `DenoiseSettings.method`), imported when it runs.
     monkeypatch.setattr(denoise.self_supervised, "train_with_method", recording)
     images = make_scene(tmp_path / "noisy", n=2)
-    settings = {"n2v_preset": "fast", "n2v_steps": 2, "passes": 1, "device": "cuda:1"}
+    settings = DenoiseStageSettings(n2v_config(DenoiseSettings(n2v_preset="fast", n2v_steps=2)), passes=1,
+                                    device="cuda:1")
     ctx = StageContext(name="denoise", work_dir=tmp_path / "w", inputs={"noisy": images}, settings=settings, seed=0)
     with pytest.raises(Stop):
         stages.denoise(ctx)

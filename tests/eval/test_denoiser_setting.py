@@ -10,9 +10,10 @@ import pytest
 from eval.cli import main
 from eval.evaluate import EvalConfig
 from eval.pipeline import preset, run_pipeline
-from eval.pipeline.config import PipelineConfig
+from eval.pipeline.config import DenoiseSettings, PipelineConfig
 from eval.pipeline.stage import StageContext
-from eval.pipeline.stages import _n2v_config, denoise
+from eval.pipeline.stage_settings import DenoiseStageSettings, n2v_config, round_settings
+from eval.pipeline.stages import denoise
 from eval.pipeline.views import read_views, write_views
 from mvgeo.common.errors import ConfigError, InputError
 from tests.eval._tiny_stages import TinyStages, make_scene
@@ -31,10 +32,14 @@ def test_other_methods_run_round_1_only_and_unknown_ones_are_refused():
         _with_method(one_round, "bm3d")
 
 
-def test_the_method_reaches_the_n2v_config_and_rounds_2_keep_n2v():
-    s = {"n2v_preset": "fast", "n2v_steps": 5}
-    assert _n2v_config({**s, "method": "r2r"}, "test").method == "r2r"
-    assert _n2v_config(s, "test").method == "n2v"  # the refine stage's settings carry no method
+def test_the_method_reaches_the_n2v_config_and_only_round_1():
+    assert n2v_config(DenoiseSettings(n2v_preset="fast", n2v_steps=5, method="r2r")).method == "r2r"
+    assert n2v_config(DenoiseSettings(n2v_preset="fast", n2v_steps=5)).method == "n2v"
+    cfg = _with_method(preset("fast", rounds=1), "r2r")
+    assert round_settings(cfg, 1).denoise.n2v.method == "r2r"
+    # Rounds >= 2 fine-tune the N2V network: their stages carry no round-1 objective.
+    later = round_settings(preset("fast", rounds=2), 2)
+    assert later.denoise is None and later.refine is not None
 
 
 def test_changing_the_method_reruns_the_denoise_stage(tmp_path):
@@ -55,7 +60,8 @@ def test_the_real_stage_trains_and_applies_the_method(tmp_path, method):
     clean = np.clip(rng.random((1, 1, 3)) * 0.6 + 0.2 + np.zeros((40, 48, 3)), 0, 1).astype(np.float32)
     noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
     write_views(tmp_path / "noisy", noisy)
-    settings = {"n2v_preset": "fast", "n2v_steps": 30, "method": method, "passes": 2, "device": "cpu"}
+    settings = DenoiseStageSettings(n2v_config(DenoiseSettings(n2v_preset="fast", n2v_steps=30, method=method)),
+                                    passes=2, device="cpu")
     ctx = StageContext(name="denoise", work_dir=tmp_path / "work", inputs={"noisy": tmp_path / "noisy"},
                        settings=settings, seed=0)
     (tmp_path / "work").mkdir()
@@ -84,9 +90,13 @@ def test_run_cli_refuses_two_rounds_with_r2r_before_any_work(tmp_path, capsys):
 
 
 def test_results_rows_name_the_denoiser():
-    from eval.evaluate import row_label
+    from eval.methods import METHODS
 
-    config = EvalConfig(methods=("instantsplat", "n2v_round1"), denoiser="r2r")
-    assert row_label("n2v_round1", config) == "n2v_round1+r2r"
-    assert row_label("instantsplat", config) == "instantsplat"
-    assert row_label("n2v_round1", EvalConfig(methods=("n2v_round1",))) == "n2v_round1"
+    assert METHODS["n2v_round1"].row_label("r2r") == "n2v_round1+r2r"
+    assert METHODS["n2v_fused_round1"].row_label("neighbor2neighbor") == "n2v_fused_round1+neighbor2neighbor"
+    assert METHODS["instantsplat"].row_label("r2r") == "instantsplat"
+    assert METHODS["n2v_round1"].row_label("n2v") == "n2v_round1"
+    # The folder follows the label: N2V's runs are not reused for another objective.
+    assert (METHODS["n2v_round1"].folder("r2r"), METHODS["n2v_round1"].folder("n2v")) == ("n2v_r2r", "n2v")
+    assert METHODS["n2v_round1"].pipeline_config(preset("fast"), "r2r").denoise.method == "r2r"
+    assert METHODS["instantsplat"].pipeline_config(preset("fast"), "r2r").denoise.method == "n2v"

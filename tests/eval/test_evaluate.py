@@ -1,4 +1,5 @@
-"""Evaluation plumbing that runs without the full pipeline: method settings and the classical stages."""
+"""The baselines' stage functions (`eval.baselines`): what they compute and that they write only
+`denoised/` (no network, no placeholder checkpoint)."""
 
 from __future__ import annotations
 
@@ -7,42 +8,12 @@ import functools
 import numpy as np
 import pytest
 
-from eval.evaluate import (
-    EVAL_METHODS,
-    EvalConfig,
-    _identity_stage,
-    _nlm_stage,
-    _oracle_clean_stage,
-    method_pipeline_config,
-)
-from eval.pipeline import StageRunner, StageSpec, preset
+from eval.baselines import CLASSICAL_DENOISE_OUTPUTS, identity_denoise, nlm_denoise, oracle_clean_denoise
+from eval.pipeline import StageRunner, StageSpec
 from eval.pipeline.views import read_views, write_views
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import InputError
 from mvgeo.image_metrics import psnr
-
-
-def test_method_settings():
-    base = preset("fast", views=4)
-    fam = {m: method_pipeline_config(m, base) for m in EVAL_METHODS if m != "3dgs_gt_poses"}
-    # Methods that differ only in rounds share a folder (and so their completed rounds).
-    assert {m for m, (f, _) in fam.items() if f == "n2v"} == {"n2v_round1", "denoise_gs", "rounds_1", "rounds_2",
-                                                              "rounds_3", "rounds_4"}
-    assert fam["n2v_round1"][1].rounds == 1 and fam["denoise_gs"][1].rounds == 2 and fam["rounds_4"][1].rounds == 4
-    assert fam["ablate_no_selection"][1].select_views is False
-    assert fam["ablate_charbonnier"][1].denoise.round2_loss == "charbonnier"
-    assert fam["instantsplat"][1].rounds == 1
-    assert fam["oracle_clean"] == ("oracle_clean", fam["instantsplat"][1])  # (b)'s settings, own folder
-    assert {m for m, (f, _) in fam.items() if f == "n2v_fused"} == {"n2v_fused_round1", "denoise_gs_fused"}
-    # Only the *_fused methods fuse, whatever the preset says (`default` fuses, `fast` does not).
-    for name in ("fast", "default"):
-        for m in EVAL_METHODS:
-            if m != "3dgs_gt_poses":
-                assert method_pipeline_config(m, preset(name))[1].fuse_noisy_splat == ("_fused" in m), (name, m)
-    with pytest.raises(InputError, match="magic"):
-        EvalConfig(methods=("magic",))
-    with pytest.raises(InputError, match="seeds"):
-        EvalConfig(seeds=0)
 
 
 def _noisy_folder(tmp_path):
@@ -54,11 +25,12 @@ def _noisy_folder(tmp_path):
     return clean, tmp_path / "noisy"
 
 
-@pytest.mark.parametrize("fn", [_identity_stage, _nlm_stage])
+@pytest.mark.parametrize("fn", [identity_denoise, nlm_denoise])
 def test_classical_denoise_stages(tmp_path, fn):
     clean, folder = _noisy_folder(tmp_path)
-    res = StageRunner().run(StageSpec("denoise", tmp_path / "r", fn, ("denoised", "n2v_model.pt"),
+    res = StageRunner().run(StageSpec("denoise", tmp_path / "r", fn, CLASSICAL_DENOISE_OUTPUTS,
                                       inputs={"noisy": folder}))
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["denoised", "stages"]  # nothing else
     out = read_views(res.outputs["denoised"])["a"]
     noisy = read_views(folder)["a"]
 
@@ -66,7 +38,7 @@ def test_classical_denoise_stages(tmp_path, fn):
         return __import__("torch").from_numpy(x).permute(2, 0, 1)[None]
 
     gain = float(psnr(t(out), t(clean))[0] - psnr(t(noisy), t(clean))[0])
-    if fn is _identity_stage:
+    if fn is identity_denoise:
         assert gain == pytest.approx(0.0, abs=0.01)  # 16-bit PNG round trip only
     else:
         # NLM on a smooth image at sigma 25/255: several dB better (measured ~+8 dB); 3 dB is a floor
@@ -79,14 +51,14 @@ def test_oracle_clean_stage(tmp_path):
     clean, folder = _noisy_folder(tmp_path)
     write_views(tmp_path / "clean", {"a": clean})
     files = {"a": next((tmp_path / "clean").iterdir())}
-    stage = functools.partial(_oracle_clean_stage, files)
-    res = StageRunner().run(StageSpec("denoise", tmp_path / "r", stage, ("denoised", "n2v_model.pt"),
+    stage = functools.partial(oracle_clean_denoise, files)
+    res = StageRunner().run(StageSpec("denoise", tmp_path / "r", stage, CLASSICAL_DENOISE_OUTPUTS,
                                       inputs={"noisy": folder}))
     # The clean photo replaces the noisy one (16-bit PNG round trip: error < 1e-4).
     np.testing.assert_allclose(read_views(res.outputs["denoised"])["a"], clean, atol=1e-4)
     with pytest.raises(InputError, match="no clean image"):
-        StageRunner().run(StageSpec("denoise", tmp_path / "r2", functools.partial(_oracle_clean_stage, {}),
-                                    ("denoised", "n2v_model.pt"), inputs={"noisy": folder}))
+        StageRunner().run(StageSpec("denoise", tmp_path / "r2", functools.partial(oracle_clean_denoise, {}),
+                                    CLASSICAL_DENOISE_OUTPUTS, inputs={"noisy": folder}))
 
 
 @pytest.mark.parametrize("sigma", [0.02, 0.05, 0.1])

@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from eval.evaluate import method_pipeline_config
+from eval.methods import METHODS
 from eval.pipeline import preset, run_pipeline
 from eval.pipeline.stages import FUSE_WEIGHT, fuse_images
 from eval.pipeline.views import read_views
@@ -44,9 +44,10 @@ def test_pipeline_runs_fuse_before_each_splat_only_when_asked(tmp_path):
     r2 = res.rounds[1].dir
     assert sorted(read_views(r2 / "fused")) == sorted(read_views(r2 / "denoised"))  # the selected views
     # The eval methods of the extension share a folder family of their own.
-    fam, mcfg = method_pipeline_config("denoise_gs_fused", cfg)
-    assert fam == "n2v_fused" and mcfg.fuse_noisy_splat and mcfg.rounds == 2
-    assert method_pipeline_config("n2v_fused_round1", cfg)[1].rounds == 1
+    fused = METHODS["denoise_gs_fused"]
+    mcfg = fused.pipeline_config(cfg)
+    assert fused.family == "n2v_fused" and mcfg.fuse_noisy_splat and mcfg.rounds == 2
+    assert METHODS["n2v_fused_round1"].pipeline_config(cfg).rounds == 1
 
 
 @pytest.mark.slow  # real splat training (a few steps) twice

@@ -1,4 +1,4 @@
-"""StageRunner: keys, skipping, output checks, atomic commit, and errors; config presets; component lookup."""
+"""StageRunner: keys, skipping, output checks, atomic commit, and errors; config presets; typed stage settings."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import shutil
 
 import pytest
 
-from eval.pipeline import PRESETS, MissingComponentError, StageRunner, StageSpec, preset
-from eval.pipeline.components import component_config, require
+from eval.pipeline import PRESETS, StageRunner, StageSpec, preset
+from eval.pipeline.config import AlignSettings, DenoiseSettings, SplatSettings
 from eval.pipeline.hashing import file_sha256, hash_json, tree_files
-from eval.pipeline.stage import verify_outputs
-from eval.pipeline.stages import _align_config
+from eval.pipeline.stage import settings_json, verify_outputs
+from eval.pipeline.stage_settings import align_config, check_settings, round2_config, round_settings, train_config
 from mvgeo.common.errors import ConfigError, DgsError
 
 
@@ -172,31 +172,85 @@ def test_align_settings_reach_the_align_config():
     """The pipeline's align settings (preset + overrides) become the AlignConfig the stage runs."""
     from mvgeo.align import PREVIEW, AlignConfig
 
-    fast = dataclasses.asdict(PRESETS["fast"].align)
-    cfg = _align_config(fast, seed=3, need="test")
-    assert cfg.points_budget == PRESETS["fast"].align.points != PREVIEW.points_budget
+    fast = PRESETS["fast"].align
+    cfg = align_config(fast, seed=3)
+    assert cfg.points_budget == fast.points != PREVIEW.points_budget
     assert cfg.max_size_px == PREVIEW.max_size_px and cfg.seed == 3
-    default = _align_config(dataclasses.asdict(PRESETS["default"].align), seed=0, need="test")
+    default = align_config(PRESETS["default"].align, seed=0)
     assert default.points_budget == AlignConfig().points_budget  # None keeps the preset's
-    over = _align_config({**fast, "points": 1234, "iters": 7, "max_size_px": 99}, seed=0, need="test")
+    over = align_config(dataclasses.replace(fast, points=1234, iters=7, max_size_px=99), seed=0)
     assert (over.points_budget, over.align.iters, over.max_size_px) == (1234, 7, 99)
 
 
-def test_missing_components_are_named():
-    with pytest.raises(MissingComponentError, match="no_such_pkg_xyz"):
-        require("no_such_pkg_xyz", "f", needed_for="test")
-    with pytest.raises(MissingComponentError, match="eval.psnr.train_everything"):
-        require("eval.psnr", "train_everything", needed_for="test")
-    with pytest.raises(MissingComponentError, match="PRESETS_NOPE"):
-        component_config("eval.pipeline.config", "PRESETS_NOPE", "fast", {}, needed_for="test")
-    # A real presets table: unknown preset and unknown field are named too.
-    with pytest.raises(MissingComponentError, match="'turbo'"):
-        component_config("eval.pipeline.config", "PRESETS", "turbo", {}, needed_for="test")
-    with pytest.raises(MissingComponentError, match="steps"):
-        component_config("eval.pipeline.config", "PRESETS", "fast", {"steps": 3}, needed_for="test")
-    cfg = component_config("eval.pipeline.config", "PRESETS", "fast", {"views": 5, "rounds": None},
-                           needed_for="test")
-    assert cfg.views == 5 and cfg.rounds == PRESETS["fast"].rounds
+def test_round_settings_are_the_component_configs():
+    """Each stage gets the config its component runs, with the stage's seed; round 1 has no round-2 rules."""
+    from denoise.n2v import N2V_PRESETS
+    from denoise.round2 import Round2Config
+    from splat.train import TRAIN_PRESETS
+
+    cfg = preset("fast", rounds=2, seed=5)
+    r1, r2 = round_settings(cfg, 1), round_settings(cfg, 2)
+    assert r1.denoise.n2v == dataclasses.replace(N2V_PRESETS["fast"], method="n2v")
+    assert r1.denoise.passes == cfg.denoise.passes and r1.render.device == cfg.device
+    assert r1.splat.train == dataclasses.replace(TRAIN_PRESETS["quick"], seed=r1.splat.train.seed)
+    assert r1.splat.train.seed != r2.splat.train.seed != r2.align.align.seed  # each stage its own seed
+    assert (r1.align.reuse_intrinsics, r1.align.reuse_geometry) == (None, None)
+    assert (r2.align.reuse_intrinsics, r2.align.reuse_geometry) == ("auto", "auto")
+    assert r1.select is None and r1.refine is None and r2.denoise is None
+    assert (r2.select.views, r2.select.select_views) == (cfg.views, True)
+    assert r2.refine.round2 == Round2Config(steps=cfg.denoise.round2_steps)
+    assert r1.fuse is not None and r1.fuse.train.seed != r1.splat.train.seed  # `fast` fuses
+    charb = round2_config(DenoiseSettings(round2_loss="charbonnier"))
+    assert charb.loss == "charbonnier" and round2_config(DenoiseSettings()).loss == Round2Config().loss
+    assert train_config(SplatSettings(preset="quick", iters=17), seed=2).iters == 17
+
+
+@pytest.mark.parametrize(("change", "key"), [
+    ({"denoise": DenoiseSettings(n2v_preset="turbo")}, "denoise.n2v_preset"),
+    ({"denoise": DenoiseSettings(round2_preset="turbo")}, "denoise.round2_preset"),
+    ({"align": AlignSettings(preset="turbo")}, "align.preset"),
+    ({"splat": SplatSettings(preset="turbo")}, "splat.preset"),
+])
+def test_unknown_component_presets_are_config_errors(change, key):
+    with pytest.raises(ConfigError, match=key) as exc:
+        check_settings(dataclasses.replace(preset("fast"), **change))
+    assert "turbo" in str(exc.value)
+
+
+def test_dataclass_settings_reach_the_stage_and_key_by_their_json(tmp_path):
+    @dataclasses.dataclass(frozen=True)
+    class Inner:
+        size_px: int
+
+    @dataclasses.dataclass(frozen=True)
+    class Settings:
+        inner: Inner
+        name: str
+
+    seen = []
+
+    def fn(ctx):
+        seen.append(ctx.settings)
+        (ctx.work_dir / "a.txt").write_text(ctx.settings.name)
+        return {}
+
+    def spec(settings):
+        return StageSpec("s", tmp_path / "st", fn, ("a.txt",), settings=settings)
+
+    settings = Settings(Inner(3), "x")
+    res = StageRunner().run(spec(settings))
+    assert seen == [settings]  # the object itself, not a flattened dict
+    assert settings_json(settings) == {"inner": {"size_px": 3}, "name": "x"}
+    record = json.loads((tmp_path / "st" / "stages" / "s.json").read_text())
+    assert record["settings"] == {"inner": {"size_px": 3}, "name": "x"}
+    # The key is that of the canonical JSON: an equal mapping keys alike, a nested change does not.
+    assert spec({"name": "x", "inner": {"size_px": 3}}).key() == res.key == spec(Settings(Inner(3), "x")).key()
+    assert spec(Settings(Inner(4), "x")).key() != res.key
+    assert StageRunner().run(spec(Settings(Inner(3), "x"))).skipped and len(seen) == 1
+    with pytest.raises(TypeError, match="canonical JSON"):
+        settings_json({"f": object()})
+    with pytest.raises(TypeError, match="dataclass instance or a mapping"):
+        settings_json(3)
 
 
 def test_file_hashes_against_hashlib(tmp_path):

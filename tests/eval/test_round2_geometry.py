@@ -6,7 +6,6 @@ start) and the rule must pick the other, which the ground truth confirms is clos
 from __future__ import annotations
 
 import dataclasses
-import json
 
 import numpy as np
 import pytest
@@ -25,6 +24,7 @@ from mvgeo.align.bundle import bundle_adjust
 from mvgeo.camera import Camera
 from mvgeo.common.errors import ConfigError, DegenerateGeometryError
 from mvgeo.sparse_model import PosedImage, SparseModel
+from tests.common.align_stats import align_stats, bundle_stats
 from tests.eval._tiny_stages import TinyStages, make_scene
 
 W, H, F = 160, 120, 140.0
@@ -73,8 +73,8 @@ def _align(views: list[str], noise_px: float, start_deg: float, seed: int):
     cams = {k + 1: Camera.pinhole(f, f, W / 2, H / 2, W, H) for k, f in enumerate(ba.focal_px)}
     images = [PosedImage(views[k], k + 1, ba.cam_from_world[k]) for k in range(len(idx))]
     model = SparseModel(cams, images, X[:5].copy(), np.zeros((5, 3), np.uint8))
-    return model, {"known_intrinsics": False, "n_registered": len(views),
-                   "bundle_adjustment": {"centre_std_ratio": ratios, "focal_log_std": 0.01}}
+    return model, align_stats(n_registered=len(views),
+                              bundle_adjustment=bundle_stats(centre_std_ratio=ratios, focal_log_std=0.01))
 
 
 def _relative_rotation_error_deg(model: SparseModel, views: list[str]) -> float:
@@ -106,7 +106,7 @@ def _spacing_reference(model: SparseModel, names: list[str]) -> float:
 def test_centre_std_over_spacing_matches_a_loop_reference(alignments):
     model, stats = alignments["round1_good"]
     got = centre_std_over_spacing(model, stats, SELECTED)
-    ratios = dict(zip(model.names, stats["bundle_adjustment"]["centre_std_ratio"], strict=True))
+    ratios = dict(zip(model.names, stats.bundle_adjustment.centre_std_ratio, strict=True))
     scale = _spacing_reference(model, ALL) / _spacing_reference(model, SELECTED)
     assert set(got) == set(SELECTED)
     for v in SELECTED:
@@ -114,11 +114,11 @@ def test_centre_std_over_spacing_matches_a_loop_reference(alignments):
     # The restricted list is what the same figure reads on the restricted model.
     sub = SparseModel({im.camera_id: model.cameras[im.camera_id] for im in map(model.image, SELECTED)},
                       [model.image(v) for v in SELECTED])
-    restricted = {"bundle_adjustment": {"centre_std_ratio": restricted_ratios(model, stats, SELECTED)}}
+    restricted = align_stats(bundle_adjustment=bundle_stats(centre_std_ratio=restricted_ratios(model, stats, SELECTED)))
     again = centre_std_over_spacing(sub, restricted, SELECTED)
     assert all(again[v] == pytest.approx(got[v], rel=1e-9) for v in SELECTED)
     # Unknown: no figure, a view missing, or fewer than 3 views.
-    assert centre_std_over_spacing(model, {}, SELECTED) is None
+    assert centre_std_over_spacing(model, align_stats(), SELECTED) is None
     assert centre_std_over_spacing(model, stats, [*SELECTED[:2], "other.png"]) is None
     assert centre_std_over_spacing(model, stats, SELECTED[:2]) is None
 
@@ -150,8 +150,8 @@ def test_rules_before_the_figures(alignments):
     seven = SparseModel(prev[0].cameras, [prev[0].image(v) for v in ALL if v != SELECTED[1]])
     assert not choose_geometry("auto", SELECTED, (seven, prev[1]), alignments["round2_poor"]).used_previous
     # An unknown figure loses to a known one; two unknown keep this round's.
-    assert choose_geometry("auto", SELECTED, prev, (cur[0], {})).used_previous
-    assert not choose_geometry("auto", SELECTED, (prev[0], {}), alignments["round2_poor"]).used_previous
+    assert choose_geometry("auto", SELECTED, prev, (cur[0], align_stats())).used_previous
+    assert not choose_geometry("auto", SELECTED, (prev[0], align_stats()), alignments["round2_poor"]).used_previous
     # This round failed: the previous round's when it holds every view.
     failed = choose_geometry("auto", SELECTED, prev, None, current_error="degenerate")
     assert failed.used_previous and failed.current_registered == 0 and failed.current_error == "degenerate"
@@ -176,7 +176,7 @@ class _FakeAlign:
         if self.error is not None:
             raise self.error
         model, stats = self.alignment
-        stats = json.loads(json.dumps(stats))
+        stats = dataclasses.replace(stats, annotations=dict(stats.annotations))
         return AlignResult(model, np.zeros((2, 3)), np.zeros((2, 3), np.uint8), np.ones(2), stats)
 
 
@@ -192,8 +192,8 @@ def test_align_stage_hands_round1_geometry_to_round2(tmp_path, alignments):
                                    atol=1e-9)
         assert res.sparse_model.camera_of(v).fx == pytest.approx(prev_model.camera_of(v).fx, rel=1e-12)
     assert np.allclose(res.points_xyz, prev_model.points_xyz)  # round 1's cloud, in round 1's frame
-    record = res.stats[GEOMETRY_KEY]
-    assert record["used_previous"] and record["views"] == SELECTED and res.stats["n_registered"] == 5
+    record = res.stats.annotations[GEOMETRY_KEY]
+    assert record["used_previous"] and record["views"] == SELECTED and res.stats.n_registered == 5
     # Round 3 compares against the same figure round 2 measured for round 1.
     again = choose_geometry("auto", SELECTED, (res.sparse_model, res.stats), alignments["round2_poor"])
     assert again.previous_centre_std == pytest.approx(record["previous_centre_std"], rel=1e-6)
@@ -201,12 +201,13 @@ def test_align_stage_hands_round1_geometry_to_round2(tmp_path, alignments):
     kept = _align_keeping_better_geometry(_FakeAlign(alignments["round2_good"]), files, None,
                                           _write_previous(tmp_path / "poor", *alignments["round1_poor"]),
                                           "never", "auto")
-    assert kept.stats[GEOMETRY_KEY]["used_previous"] is False
+    assert kept.stats.annotations[GEOMETRY_KEY]["used_previous"] is False
     assert kept.sparse_model is alignments["round2_good"][0]
 
     paper = _align_keeping_better_geometry(_FakeAlign(alignments["round2_poor"]), files, None, prev_dir,
                                            "never", "never")
-    assert paper.sparse_model is alignments["round2_poor"][0] and not paper.stats[GEOMETRY_KEY]["used_previous"]
+    assert paper.sparse_model is alignments["round2_poor"][0]
+    assert not paper.stats.annotations[GEOMETRY_KEY]["used_previous"]
 
 
 def test_align_stage_failure_falls_back_or_raises(tmp_path, alignments):
@@ -214,7 +215,8 @@ def test_align_stage_failure_falls_back_or_raises(tmp_path, alignments):
     files = [tmp_path / "round2" / v for v in SELECTED]
     error = DegenerateGeometryError("the views do not determine the cameras")
     res = _align_keeping_better_geometry(_FakeAlign(error=error), files, None, prev_dir, "never", "auto")
-    assert res.stats[GEOMETRY_KEY]["used_previous"] and "do not determine" in res.stats[GEOMETRY_KEY]["current_error"]
+    record = res.stats.annotations[GEOMETRY_KEY]
+    assert record["used_previous"] and "do not determine" in record["current_error"]
     with pytest.raises(DegenerateGeometryError):
         _align_keeping_better_geometry(_FakeAlign(error=error), files, None, prev_dir, "never", "never")
     with pytest.raises(DegenerateGeometryError):
@@ -236,7 +238,7 @@ def test_reuse_geometry_reaches_later_rounds_only(tmp_path):
         tiny = TinyStages()
 
         def align(ctx):
-            seen.append((ctx.work_dir.parent.name, ctx.settings.get("reuse_geometry")))
+            seen.append((ctx.work_dir.parent.name, ctx.settings.reuse_geometry))
             return tiny.align(ctx)
 
         return tiny, dataclasses.replace(tiny.stages(), align=align)

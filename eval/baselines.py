@@ -1,0 +1,115 @@
+"""Stage functions of the evaluation's baselines (`eval.methods`), with the pipeline's stage signature.
+
+- `identity_denoise`, `nlm_denoise`, `oracle_clean_denoise`: round 1's denoise stage of
+  `instantsplat` (none), `nlm_instantsplat` (non-local means) and `oracle_clean` (the clean
+  photos). None of them has a network, so each writes `denoised/` alone (the pipeline's
+  `PipelineStages.denoise_outputs` says so) and runs round 1 only.
+- `gt_align`: the ground-truth cameras of the training views and initial points, written as the
+  align stage writes its folder, so that `3dgs_gt_poses` trains with the pipeline's own splat stage.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from denoise.noise_level import estimate_noise_sigma
+from eval.pipeline.stage import StageContext
+from eval.pipeline.validate import DatasetFolder
+from eval.pipeline.views import read_views, write_views
+from mvgeo.common.errors import InputError
+from mvgeo.common.imageio import read_image
+from mvgeo.sparse_model import SparseModel, read_sparse_model, write_sparse_model
+
+__all__ = ["CLASSICAL_DENOISE_OUTPUTS", "GtAlignSettings", "gt_align", "identity_denoise", "nlm_denoise",
+           "oracle_clean_denoise"]
+
+#: What the classical denoise stages write (no network: no `n2v_model.pt`).
+CLASSICAL_DENOISE_OUTPUTS = ("denoised",)
+
+
+def identity_denoise(ctx: StageContext) -> Mapping[str, object]:
+    """(b): no denoising; the noisy images go to alignment and splatting as they are."""
+    write_views(ctx.work_dir / "denoised", read_views(ctx.inputs["noisy"]))
+    return {"denoiser": "none"}
+
+
+def nlm_denoise(ctx: StageContext) -> Mapping[str, object]:
+    """(c): scikit-image non-local means, h = 0.8 sigma (its documented recipe), sigma estimated per image."""
+    from skimage.restoration import denoise_nl_means  # scikit-image: a second to import, this stage only
+
+    out, sigmas = {}, {}
+    for name, img in read_views(ctx.inputs["noisy"]).items():
+        sigma = estimate_noise_sigma(img)
+        out[name] = denoise_nl_means(img, h=0.8 * sigma, sigma=sigma, fast_mode=True, patch_size=5,
+                                     patch_distance=6, channel_axis=-1).astype(np.float32)
+        sigmas[name] = sigma
+    write_views(ctx.work_dir / "denoised", out)
+    return {"denoiser": "skimage.denoise_nl_means", "sigma_est": sigmas}
+
+
+def oracle_clean_denoise(clean_files: Mapping[str, Path], ctx: StageContext) -> Mapping[str, object]:
+    """`oracle_clean`: a perfect denoiser. The clean training photos go to alignment and splatting.
+
+    It reads `clean/` of the training views, so it is not a method a user could run: it is the
+    ceiling of every denoise-then-reconstruct method on the scene with these settings (what the
+    alignment and the splat lose on noise-free photos), against which the denoisers' gains are read.
+
+    Raises:
+        InputError: a training view without a clean image.
+    """
+    noisy = read_views(ctx.inputs["noisy"])
+    missing = [n for n in noisy if n not in clean_files]
+    if missing:
+        raise InputError(f"oracle_clean: no clean image for {missing}", fix="use a dataset with clean/ for every view")
+    write_views(ctx.work_dir / "denoised", {n: read_image(clean_files[n]) for n in noisy})
+    return {"denoiser": "oracle (clean photos)"}
+
+
+@dataclass(frozen=True)
+class GtAlignSettings:
+    """Settings of `gt_align`. Attributes: views: stems of the training views."""
+
+    views: tuple[str, ...]
+
+
+def gt_align_inputs(dataset: DatasetFolder) -> dict[str, Path]:
+    """The dataset files `gt_align` reads (all of them enter its key by content)."""
+    inputs = {"sparse": dataset.root / "sparse" / "0", "images": dataset.root / "images",
+              "split": dataset.root / "split.json"}
+    if (dataset.root / "depth").is_dir():
+        inputs["depth"] = dataset.root / "depth"
+    return inputs
+
+
+def gt_align(dataset: DatasetFolder, ctx: StageContext) -> Mapping[str, object]:
+    """`align/` of (a) `3dgs_gt_poses`: `sparse/0` with the ground-truth cameras of the training views
+    (`ctx.settings`: `GtAlignSettings`) and `points.npz` with the initial points: back-projected
+    ground-truth depth maps when the dataset ships `depth/` (an oracle initialisation, so the baseline
+    is optimistic), else the ground-truth model's points.
+
+    Raises:
+        InputError: no depth maps and no points in the ground-truth model.
+    """
+    from splat.dataset import load_views, points_from_depth  # torch: this stage only
+
+    gt = read_sparse_model(ctx.inputs["sparse"])
+    by_stem = {Path(n).stem: n for n in gt.names}
+    images = [gt.image(by_stem[s]) for s in ctx.settings.views]
+    if "depth" in ctx.inputs:
+        xyz, rgb = points_from_depth(dataset.root, load_views(dataset.root, split="train"))
+    elif len(gt.points_xyz):
+        xyz, rgb = gt.points_xyz, gt.points_rgb
+    else:
+        raise InputError("3dgs_gt_poses needs initial points: no depth/ maps and no points in sparse/0",
+                         path=dataset.root, fix="use a data_synth dataset (it ships depth/) or a model with points")
+    out = ctx.work_dir / "align"
+    cameras = {im.camera_id: gt.cameras[im.camera_id] for im in images}
+    # The points go to points.npz (what the splat stage initialises from), not into the model.
+    write_sparse_model(out / "sparse" / "0", SparseModel(cameras, images), binary=True)
+    np.savez(out / "points.npz", xyz=np.asarray(xyz, np.float64), rgb=np.asarray(rgb, np.uint8),
+             conf=np.ones(len(xyz)))
+    return {"registered": len(images), "points": int(len(xyz)), "poses": "ground truth"}

@@ -1,0 +1,365 @@
+"""`denoise-gs eval` and `denoise-gs cost` on a Ray cluster: one Ray task per run, a task graph, one driver.
+
+The unit of work is the serial path's own: `eval.evaluate.run_task(EvalTask)` for one (scene, method,
+seed) run, or one cost-sweep point. `RayExecutor.run` submits every unit as a Ray task and returns
+the results in the order of its input list, whatever order they finish in, so the rows, `results.json`
+and `results.md` are the serial run's.
+
+The task graph: units that write the same pipeline folder (methods of one family and seed, e.g.
+`n2v_round1` then `denoise_gs`, and the ablations that link its round 1) form a chain: each waits for
+the one before it (`chain_after`), so a shared stage is computed once, by the first, and the next
+finds it in the stage cache; chains run in parallel. The output lock of each run folder
+(`eval.pipeline.lock`) stays the safety net: a second writer is refused, never interleaved.
+
+Threads: each task gets `cpus_per_task` CPUs from Ray (1 by default) and runs with as many torch,
+compositor, BLAS and OpenCV threads (`mvgeo.common.threads`), so N tasks on N CPUs do not
+oversubscribe the cores; `ClusterSettings.task_threads` overrides the count (the serial run's count
+gives bit-identical scores: N2V's training depends on it). The workers get `OMP_WAIT_POLICY`
+(docs/conventions.md, "Threads").
+
+Storage: the out folder must be at the same path on every node (docs/cluster.md); a task reads its
+inputs from it and writes its run folder there, so it is the only state the tasks share.
+
+Ray is imported only when a cluster is used: the serial path (`--workers 1`) never loads it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import re
+import shutil
+import socket
+import sys
+import tempfile
+from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from mvgeo.common.errors import InputError
+from mvgeo.common.progress import progress_bar
+
+__all__ = ["ClusterSettings", "RayExecutor", "chain_after", "check_ray_address", "ray_cluster"]
+
+_log = logging.getLogger(__name__)
+
+#: Object store of a local cluster: the tasks exchange only their small result rows.
+LOCAL_OBJECT_STORE_BYTES = 256 * 1024**2
+
+#: Seconds to wait for a TCP connection to `--ray-address` before refusing it.
+ADDRESS_TIMEOUT_S = 3.0
+
+
+@dataclass(frozen=True)
+class ClusterSettings:
+    """Where the tasks run.
+
+    Attributes:
+        workers: tasks at once on a local cluster started for the run (`ray.init(num_cpus=workers)`);
+            1 with no `address` is the serial path (no Ray).
+        address: an existing cluster's address (`host:port` of its head, or "auto" for the cluster
+            `ray start` left on this machine); then the cluster's CPUs set how many tasks run at once.
+        cpus_per_task: CPUs Ray reserves for each task.
+        gpus_per_task: GPUs Ray reserves for each task (a fraction shares one; 0: none).
+        task_threads: torch, compositor, BLAS and OpenCV threads of each task; None: the CPUs Ray gave
+            it, so that tasks do not oversubscribe the cores. N2V training's result depends on torch's
+            thread count (the order of its parallel sums), so runs with N2V match a serial run's
+            scores only with that run's count (torch's default: the machine's cores).
+    """
+
+    workers: int = 1
+    address: str | None = None
+    cpus_per_task: int = 1
+    gpus_per_task: float = 0.0
+    task_threads: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.workers < 1:
+            raise InputError(f"--workers must be at least 1, got {self.workers}")
+        if self.cpus_per_task < 1:
+            raise InputError(f"cpus_per_task must be at least 1, got {self.cpus_per_task}")
+        if self.task_threads is not None and self.task_threads < 1:
+            raise InputError(f"--task-threads must be at least 1, got {self.task_threads}")
+        if self.task_threads is not None and not self.distributed:
+            raise InputError("--task-threads applies to runs on Ray", fix="add --workers N (N > 1) or --ray-address")
+        if self.gpus_per_task < 0:
+            raise InputError(f"gpus_per_task must be >= 0, got {self.gpus_per_task}")
+        if self.address is not None and self.workers > 1:
+            raise InputError("--workers and --ray-address are alternatives",
+                             fix="--workers N starts a local cluster of N CPUs; with --ray-address the cluster's "
+                                 "CPUs decide how many tasks run at once")
+
+    @property
+    def distributed(self) -> bool:
+        """True when the tasks go to Ray (a local cluster or `address`)."""
+        return self.workers > 1 or self.address is not None
+
+
+_HOST_PORT = re.compile(r"^(?P<host>\[[0-9a-fA-F:]+\]|[A-Za-z0-9.\-]+):(?P<port>\d{1,5})$")
+
+
+def check_ray_address(address: str) -> None:
+    """Refuse an address Ray cannot use here, before anything is written or started.
+
+    "auto" is left to `ray.init` (it finds the cluster `ray start` left on this machine). A
+    `host:port` must accept a TCP connection within `ADDRESS_TIMEOUT_S` (the head's GCS port,
+    6379 by default).
+
+    Raises:
+        InputError: a Ray Client address (`ray://`, which needs `ray[client]`), a malformed
+            address, or one that does not answer.
+    """
+    if address == "auto":
+        return
+    if address.startswith("ray://"):
+        raise InputError(f"--ray-address {address}: Ray Client addresses need the `ray[client]` extra, "
+                         "which this environment does not install",
+                         fix="give the head's GCS address host:port (6379 by default, as `ray start --head` "
+                             "prints) and run this command on a node of the cluster")
+    m = _HOST_PORT.match(address)
+    if m is None or not 0 < int(m["port"]) < 65536:
+        raise InputError(f"--ray-address {address!r} is not host:port", fix="e.g. --ray-address 10.0.0.5:6379, "
+                                                                           "or auto")
+    host = m["host"].strip("[]")
+    try:
+        with socket.create_connection((host, int(m["port"])), timeout=ADDRESS_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        raise InputError(f"--ray-address {address}: no Ray head answers there ({exc.strerror or exc})",
+                         fix="start the head with `ray start --head` and give the address it prints") from None
+
+
+def chain_after(keys: Sequence[Hashable]) -> list[tuple[int, ...]]:
+    """The task graph of units that share state by key: unit i waits for the previous unit with its key.
+
+    Args:
+        keys: one key per unit, in the serial order (units with equal keys write the same folder).
+
+    Returns:
+        For each unit, the indices of the units it must wait for (empty or one earlier index).
+    """
+    last: dict[Hashable, int] = {}
+    after = []
+    for i, k in enumerate(keys):
+        after.append((last[k],) if k in last else ())
+        last[k] = i
+    return after
+
+
+def _task_threads() -> int:
+    """The CPUs Ray gave this task (at least 1)."""
+    import ray
+
+    cpus = ray.get_runtime_context().get_assigned_resources().get("CPU", 1.0)
+    return max(1, int(cpus))
+
+
+def _run_unit(fn: Callable[[Any], Any], item: Any, threads: int | None, *after: Any) -> Any:
+    """One Ray task: `fn(item)` with `threads` threads (None: the task's CPUs). `after` (the results of
+    the units it waits for) only orders it in the graph."""
+    from mvgeo.common.threads import native_threads, torch_threads
+
+    threads = threads or _task_threads()
+    with torch_threads(threads), native_threads(threads):
+        return fn(item)
+
+
+#: Loggers whose levels the workers copy from the driver (`mvgeo.common.log.setup_logging` sets them).
+_LOGGERS = ("", "mvgeo", "splat", "denoise", "eval", "data_synth")
+
+
+def _driver_logging() -> tuple[dict[str, int], str, str | None]:
+    """The driver's log levels and its console format, to apply in the workers."""
+    levels = {name: logging.getLogger(name).level for name in _LOGGERS}
+    fmt, datefmt = "%(levelname).1s %(name)s: %(message)s", None
+    for handler in logging.getLogger().handlers:
+        if handler.formatter is not None and handler.formatter._fmt:
+            fmt, datefmt = handler.formatter._fmt, handler.formatter.datefmt
+            break
+    return levels, fmt, datefmt
+
+
+def _setup_worker(driver_logging: tuple[dict[str, int], str, str | None],
+                  worker_setup: Callable[[], None] | None) -> None:
+    """Run once in every Ray worker process before its first task: the driver's log levels and format
+    (the runs' messages reach the console, through Ray, as in the serial path), then `worker_setup`."""
+    levels, fmt, datefmt = driver_logging
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter(fmt, datefmt))
+    logging.getLogger().handlers[:] = [handler]
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
+    if worker_setup is not None:
+        worker_setup()
+
+
+class RayExecutor:
+    """Runs units of work as Ray tasks on the connected cluster (see `ray_cluster`)."""
+
+    def __init__(self, settings: ClusterSettings):
+        self.settings = settings
+
+    def run(self, fn: Callable[[Any], Any], items: Sequence[Any], *, after: Sequence[Sequence[int]] | None = None,
+            desc: str = "tasks", on_done: Callable[[Mapping[int, Any]], None] | None = None) -> list[Any]:
+        """`[fn(item) for item in items]`, each call a Ray task, run in parallel as the graph allows.
+
+        Args:
+            fn: a picklable function (module level) of one item.
+            items: the units, in the serial order.
+            after: for each unit, the indices of earlier units it must wait for (default none).
+            desc: the progress bar's label (a bar over finished tasks; `DGS_NO_PROGRESS=1` hides it).
+            on_done: called after each finished task with index -> result of every finished task.
+
+        Returns:
+            The results in the order of `items`.
+
+        Raises:
+            The first exception a task raised, as its own type; the tasks not yet finished are cancelled.
+        """
+        import ray
+
+        after = [()] * len(items) if after is None else [tuple(a) for a in after]
+        if len(after) != len(items):
+            raise ValueError(f"after has {len(after)} entries for {len(items)} items")
+        for i, deps in enumerate(after):
+            if any(not 0 <= d < i for d in deps):
+                raise ValueError(f"unit {i} waits for {deps}: only earlier units are allowed (the serial order)")
+        remote = ray.remote(_run_unit).options(num_cpus=self.settings.cpus_per_task,
+                                               num_gpus=self.settings.gpus_per_task, max_retries=0)
+        fn_ref = ray.put(fn)
+        refs = []
+        for item, deps in zip(items, after, strict=True):
+            refs.append(remote.remote(fn_ref, item, self.settings.task_threads, *(refs[d] for d in deps)))
+        index = {ref: i for i, ref in enumerate(refs)}
+        done: dict[int, Any] = {}
+        pending = list(refs)
+        with progress_bar(desc=desc, total=len(refs), unit="task") as bar:
+            try:
+                while pending:
+                    ready, pending = ray.wait(pending, num_returns=1)
+                    for ref in ready:
+                        done[index[ref]] = _get(ray, ref)
+                        bar.update(1)
+                    if on_done is not None:
+                        on_done(dict(done))
+            except BaseException:
+                for ref in pending:
+                    with contextlib.suppress(Exception):
+                        ray.cancel(ref)
+                raise
+        return [done[i] for i in range(len(refs))]
+
+
+def _get(ray: Any, ref: Any) -> Any:
+    """`ray.get(ref)`, raising a failed task's own exception (a `RayTaskError` wraps it)."""
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError as err:
+        cause = getattr(err, "cause", None)
+        if isinstance(cause, BaseException):
+            raise cause from None
+        raise
+
+
+@contextlib.contextmanager
+def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] | None = None
+                ) -> Iterator[RayExecutor | None]:
+    """Connect to Ray for the block: None for the serial path, else an executor on the cluster.
+
+    - `settings.workers > 1`: starts a local cluster of that many CPUs (no dashboard, node address
+      127.0.0.1, usage statistics off, its session files and logs in a temporary folder that is
+      removed after the cluster has shut down at the end of the block);
+    - `settings.address`: connects to that cluster (and leaves it running at the end);
+    - a Ray already initialised in this process (a notebook, a test) is used as it is and left so.
+
+    `worker_setup` runs once in every worker process before its first task (after the driver's log
+    level is applied there).
+
+    Raises:
+        InputError: the cluster cannot be started or reached.
+    """
+    if not settings.distributed:
+        yield None
+        return
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # nothing leaves the machine
+    os.environ.setdefault("RAY_DEDUP_LOGS", "0")  # every run's messages, as the serial path prints them
+    if not sys.stderr.isatty():
+        os.environ.setdefault("RAY_COLOR_PREFIX", "0")  # plain text in log files
+    import ray
+
+    if ray.is_initialized():
+        yield RayExecutor(settings)
+        return
+    if settings.address is not None:
+        check_ray_address(settings.address)
+    env = {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE"), "DGS_NO_PROGRESS": "1",
+           "RAY_USAGE_STATS_ENABLED": "0"}
+    driver_logging = _driver_logging()
+
+    def setup_hook() -> None:  # a named function: Ray labels the hook with its __name__
+        _setup_worker(driver_logging, worker_setup)
+
+    runtime_env = {"env_vars": env, "worker_process_setup_hook": setup_hook}
+    kwargs: dict[str, Any] = {"include_dashboard": False, "runtime_env": runtime_env,
+                              "logging_level": logging.WARNING, "log_to_driver": True}
+    if settings.address is not None:
+        with _connected(ray, {**kwargs, "address": settings.address}, settings, None) as executor:
+            yield executor
+        return
+    # Short path: Ray's Unix sockets live in it (at most 107 bytes).
+    temp_dir = tempfile.mkdtemp(prefix="dgs-ray-")
+    kwargs.update(num_cpus=settings.workers, object_store_memory=LOCAL_OBJECT_STORE_BYTES, _temp_dir=temp_dir)
+    with _loopback_only(), _connected(ray, kwargs, settings, temp_dir) as executor:
+        yield executor
+
+
+@contextlib.contextmanager
+def _loopback_only() -> Iterator[None]:
+    """Keep a local cluster on 127.0.0.1: Ray otherwise binds its services to the machine's outward
+    address even for one node. Ray's switch for that (`ENABLE_RAY_CLUSTER`, from the environment
+    variable below) is read when ray loads, and the cluster's processes inherit the variable."""
+    from ray._private import ray_constants
+
+    saved_env, saved = os.environ.get(_CLUSTER_VAR), ray_constants.ENABLE_RAY_CLUSTER
+    os.environ[_CLUSTER_VAR] = "0"
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        ray_constants.ENABLE_RAY_CLUSTER = saved
+        if saved_env is None:
+            os.environ.pop(_CLUSTER_VAR, None)
+        else:
+            os.environ[_CLUSTER_VAR] = saved_env
+
+
+_CLUSTER_VAR = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+@contextlib.contextmanager
+def _connected(ray: Any, kwargs: dict[str, Any], settings: ClusterSettings, temp_dir: str | None
+               ) -> Iterator[RayExecutor]:
+    """`ray.init(**kwargs)` for the block, then `ray.shutdown()` and `temp_dir` removed."""
+    try:
+        ray.init(**kwargs)
+    except BaseException as exc:
+        ray.shutdown()  # whatever it had started
+        if temp_dir is not None:
+            shutil.rmtree(temp_dir, ignore_errors=True)
+        if not isinstance(exc, ConnectionError | ValueError):
+            raise
+        where = f"the Ray cluster at {settings.address}" if settings.address else "a local Ray cluster"
+        raise InputError(f"cannot start or reach {where}: {exc}",
+                         fix="check `ray status` on the head, or run with --workers 1") from None
+    try:
+        cpus = ray.cluster_resources().get("CPU", 0)
+        _log.info("Ray: %g CPUs, %d per task", cpus, settings.cpus_per_task)
+        if cpus < settings.cpus_per_task:
+            raise InputError(f"the Ray cluster has {cpus:g} CPUs, fewer than one task needs "
+                             f"({settings.cpus_per_task})", fix="join worker nodes, or use --workers")
+        yield RayExecutor(settings)
+    finally:
+        ray.shutdown()
+        if temp_dir is not None:
+            shutil.rmtree(temp_dir, ignore_errors=True)

@@ -1,0 +1,257 @@
+"""The methods `denoise-gs eval` compares: one registry (`METHODS`) of what each one is, how it sets up
+the pipeline, which stages it runs, and the folder it runs in.
+
+- baselines (a)-(c): `3dgs_gt_poses` (the pipeline's splat stage on the noisy training photos with
+  the ground-truth cameras), `instantsplat` (alignment + splat on the noisy photos),
+  `nlm_instantsplat` (non-local means first);
+- Denoise-GS (d), (e): `n2v_round1`, `denoise_gs`; the Table 3 round counts `rounds_1` ..
+  `rounds_4`; the Table 2 ablations `ablate_no_selection`, `ablate_charbonnier`;
+- the extension `n2v_fused_round1`, `denoise_gs_fused` (`PipelineConfig.fuse_noisy_splat`);
+- the reference `oracle_clean`: (b) on the *clean* training photos, a perfect denoiser.
+
+Methods that differ only in their number of rounds share a folder (`EvalMethod.family`), so they
+reuse each other's completed rounds (the stage keys match); the ablations start from a link to
+the Denoise-GS folder's round 1. Every value here is plain data or a module-level function, so a
+method pickles (to run in another process).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from eval.baselines import (
+    CLASSICAL_DENOISE_OUTPUTS,
+    GtAlignSettings,
+    gt_align,
+    gt_align_inputs,
+    identity_denoise,
+    nlm_denoise,
+    oracle_clean_denoise,
+)
+from eval.pipeline import PipelineConfig, PipelineStages, StageRunner, StageSpec, product_stages, run_pipeline
+from eval.pipeline.config import DenoiseMethod
+from eval.pipeline.stage_settings import SplatStageSettings, stage_seed, train_config
+from eval.pipeline.stages import STAGE_CODE
+from eval.pipeline.validate import DatasetFolder
+
+__all__ = ["METHODS", "EvalMethod", "Reconstruction", "reconstruct", "share_round1"]
+
+
+# ----------------------------------------------------------------- how each method sets up the pipeline
+def paper_loop(base: PipelineConfig) -> PipelineConfig:
+    """The paper's loop, whatever the preset says: no noisy-photo fusion, each round's own alignment."""
+    return dataclasses.replace(base, fuse_noisy_splat=False,
+                               align=dataclasses.replace(base.align, reuse_geometry="never"))
+
+
+def fused_loop(base: PipelineConfig) -> PipelineConfig:
+    """The extension: each splat trains on the fused photos, and a round 2 whose own alignment pins the
+    views less well keeps round 1's geometry (`AlignSettings.reuse_geometry`)."""
+    return dataclasses.replace(base, fuse_noisy_splat=True,
+                               align=dataclasses.replace(base.align, reuse_geometry="auto"))
+
+
+def no_selection(base: PipelineConfig) -> PipelineConfig:
+    """Table 2 ablation: round 2 on every view."""
+    return dataclasses.replace(paper_loop(base), select_views=False)
+
+
+def charbonnier_round2(base: PipelineConfig) -> PipelineConfig:
+    """Table 2 ablation: round 2's joint loss replaced by Charbonnier alone."""
+    cfg = paper_loop(base)
+    return dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, round2_loss="charbonnier"))
+
+
+def gt_poses_splat(base: PipelineConfig) -> PipelineConfig:
+    """(a): the splat preset for known poses (`splat.train.TRAIN_PRESETS["gt_poses"]`: no pose learning)."""
+    return dataclasses.replace(paper_loop(base), splat=dataclasses.replace(base.splat, preset="gt_poses"))
+
+
+# ----------------------------------------------------------------- which stages each method runs
+def product_eval_stages(dataset: DatasetFolder) -> PipelineStages:
+    """The product's stages without the viewer export (the scores need no viewer files)."""
+    return dataclasses.replace(product_stages(), export=None)
+
+
+def identity_stages(dataset: DatasetFolder) -> PipelineStages:
+    """(b): no denoiser."""
+    return dataclasses.replace(product_eval_stages(dataset), denoise=identity_denoise,
+                               denoise_outputs=CLASSICAL_DENOISE_OUTPUTS)
+
+
+def nlm_stages(dataset: DatasetFolder) -> PipelineStages:
+    """(c): non-local means as round 1's denoiser."""
+    return dataclasses.replace(product_eval_stages(dataset), denoise=nlm_denoise,
+                               denoise_outputs=CLASSICAL_DENOISE_OUTPUTS)
+
+
+def oracle_clean_stages(dataset: DatasetFolder) -> PipelineStages:
+    """`oracle_clean`: the clean training photos as round 1's "denoised" photos."""
+    return dataclasses.replace(product_eval_stages(dataset),
+                               denoise=functools.partial(oracle_clean_denoise, dataset.clean),
+                               denoise_outputs=CLASSICAL_DENOISE_OUTPUTS)
+
+
+@dataclass(frozen=True)
+class EvalMethod:
+    """One method of `denoise-gs eval`.
+
+    Attributes:
+        name: its name on the command line (`--methods`) and in the results.
+        family: the folder it runs in under `runs/<scene>/seed<k>/`, shared by methods that differ
+            only in `rounds` (they reuse each other's completed rounds).
+        description: what it is, in a few words.
+        rounds: the pipeline's number of rounds.
+        configure: the pipeline settings from the evaluation's base settings (`rounds` is set after).
+        stages: the stage functions, given the dataset (`oracle_clean` reads its clean photos).
+        takes_denoiser: round 1 trains the UNet, with `EvalConfig.denoiser`'s objective: other than
+            "n2v", the method's folder and row are named after it (`n2v_r2r`, `n2v_round1+r2r`).
+        ground_truth_poses: no alignment: the splat stage trains with the dataset's cameras, and the
+            held-out views are rendered at their true poses.
+        shares_round1_with: the family whose completed round 1 is linked in before the run.
+    """
+
+    name: str
+    family: str
+    description: str
+    rounds: int
+    configure: Callable[[PipelineConfig], PipelineConfig]
+    stages: Callable[[DatasetFolder], PipelineStages] = product_eval_stages
+    takes_denoiser: bool = False
+    ground_truth_poses: bool = False
+    shares_round1_with: str | None = None
+
+    def _renamed(self, denoiser: DenoiseMethod) -> bool:
+        return self.takes_denoiser and denoiser != "n2v"
+
+    def pipeline_config(self, base: PipelineConfig, denoiser: DenoiseMethod = "n2v") -> PipelineConfig:
+        """The pipeline settings this method runs with, from the evaluation's `base`."""
+        cfg = dataclasses.replace(self.configure(base), rounds=self.rounds)
+        if self.takes_denoiser:
+            cfg = dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, method=denoiser))
+        return cfg
+
+    def folder(self, denoiser: DenoiseMethod = "n2v") -> str:
+        """Its folder under `runs/<scene>/seed<k>/`."""
+        return f"{self.family}_{denoiser}" if self._renamed(denoiser) else self.family
+
+    def row_label(self, denoiser: DenoiseMethod = "n2v") -> str:
+        """Its name in the results: with the denoiser appended when it is not N2V (`n2v_round1+r2r`)."""
+        return f"{self.name}+{denoiser}" if self._renamed(denoiser) else self.name
+
+
+def _registry(*methods: EvalMethod) -> dict[str, EvalMethod]:
+    return {m.name: m for m in methods}
+
+
+#: Every method, in the order the evaluation runs them (the ablations after the round 1 they share).
+METHODS: dict[str, EvalMethod] = _registry(
+    EvalMethod("3dgs_gt_poses", "3dgs_gt_poses", "(a) 3DGS on the noisy photos with ground-truth poses", 1,
+               gt_poses_splat, ground_truth_poses=True),
+    EvalMethod("instantsplat", "instantsplat", "(b) our alignment + splat on the noisy photos", 1, paper_loop,
+               identity_stages),
+    EvalMethod("nlm_instantsplat", "nlm_instantsplat", "(c) non-local means, then (b)", 1, paper_loop, nlm_stages),
+    EvalMethod("n2v_round1", "n2v", "(d) Denoise-GS round 1 only", 1, paper_loop, takes_denoiser=True),
+    EvalMethod("denoise_gs", "n2v", "(e) Denoise-GS, 2 rounds", 2, paper_loop, takes_denoiser=True),
+    EvalMethod("ablate_no_selection", "ablate_no_selection", "Table 2: round 2 on every view", 2, no_selection,
+               shares_round1_with="n2v"),
+    EvalMethod("ablate_charbonnier", "ablate_charbonnier", "Table 2: Charbonnier loss in round 2", 2,
+               charbonnier_round2, shares_round1_with="n2v"),
+    *(EvalMethod(f"rounds_{n}", "n2v", f"Table 3: Denoise-GS with {n} round(s)", n, paper_loop, takes_denoiser=True)
+      for n in (1, 2, 3, 4)),
+    EvalMethod("n2v_fused_round1", "n2v_fused", "extension: (d) with the noisy-photo fusion", 1, fused_loop,
+               takes_denoiser=True),
+    EvalMethod("denoise_gs_fused", "n2v_fused", "extension: (e) with the noisy-photo fusion", 2, fused_loop,
+               takes_denoiser=True),
+    EvalMethod("oracle_clean", "oracle_clean", "reference: (b) on the clean photos", 1, paper_loop,
+               oracle_clean_stages),
+)
+
+
+# ----------------------------------------------------------------- running one
+@dataclass(frozen=True)
+class Reconstruction:
+    """What a method produced, for scoring.
+
+    Attributes:
+        round_dir: the folder holding `point_cloud.ply` and `sparse/0/` (the last round's).
+        estimated_poses: True when the poses were estimated (they are registered to the ground
+            truth for scoring); False when they are the ground truth.
+        seconds: the stages' own recorded wall seconds (a stage reused from the cache counts the
+            time it took when it ran).
+    """
+
+    round_dir: Path
+    estimated_poses: bool
+    seconds: float
+
+
+def share_round1(src_run: Path, dst_run: Path) -> bool:
+    """Seed `dst_run/round1` with hard links to a completed `src_run/round1` (same round-1 settings).
+
+    The Table 2 ablations differ from `denoise_gs` only from round 2 on; linking round 1 lets
+    their stage keys match it and skip it (the stage runner still checks every key, so a
+    mismatch just re-runs). Returns True when something was linked.
+    """
+    src, dst = Path(src_run) / "round1", Path(dst_run) / "round1"
+    if dst.exists() or not (src / "stages").is_dir():
+        return False
+    tmp = dst.with_name(".round1.link-tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+
+    def link(a: str, b: str) -> None:
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    shutil.copytree(src, tmp, copy_function=link,
+                    ignore=lambda d, names: [n for n in names if n.startswith(".")])
+    os.replace(tmp, dst)
+    return True
+
+
+def _splat_on_ground_truth(stages: PipelineStages, config: PipelineConfig, dataset: DatasetFolder, inputs: Path,
+                           folder: Path) -> Reconstruction:
+    """(a): `gt_align` then the pipeline's splat stage on the noisy training photos in `inputs`, in
+    `folder/round1` (resumable like the pipeline's rounds)."""
+    rd = folder / "round1"
+    runner = StageRunner()
+    align_inputs = gt_align_inputs(dataset)
+    al = runner.run(StageSpec("align", rd, functools.partial(gt_align, dataset), ("align",), inputs=align_inputs,
+                              hashed_inputs=tuple(align_inputs), settings=GtAlignSettings(tuple(dataset.train)),
+                              code=STAGE_CODE["splat"]), label="gt_poses/align")
+    seed = stage_seed(config.seed, 1, "splat")
+    sp = runner.run(StageSpec("splat", rd, stages.splat, ("sparse", "point_cloud.ply"),
+                              inputs={"images": inputs, "align": rd / "align"}, hashed_inputs=("images",),
+                              upstream=(al,), settings=SplatStageSettings(train_config(config.splat, seed=seed),
+                                                                          config.device),
+                              seed=seed, code=stages.code.get("splat", ())), label="gt_poses/splat")
+    return Reconstruction(rd, False, float(al.seconds + sp.seconds))
+
+
+def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig, *, seed: int,
+                denoiser: DenoiseMethod, inputs: Path, seed_dir: Path) -> Reconstruction:
+    """Run (or resume) `method` with `seed` on the noisy training photos in `inputs`, in
+    `seed_dir/<its folder>`.
+
+    Raises:
+        Whatever the stages raise (`InputError`, `DegenerateGeometryError` for inputs the method
+        cannot handle).
+    """
+    config = method.pipeline_config(dataclasses.replace(base, seed=seed), denoiser)
+    stages = method.stages(dataset)
+    folder = seed_dir / method.folder(denoiser)
+    if method.ground_truth_poses:
+        return _splat_on_ground_truth(stages, config, dataset, inputs, folder)
+    if method.shares_round1_with is not None:
+        share_round1(seed_dir / method.shares_round1_with, folder)
+    res = run_pipeline(inputs, folder, config, stages=stages)
+    seconds = float(sum(st.seconds for rd in res.rounds for st in rd.stages.values()))
+    return Reconstruction(res.rounds[-1].dir, True, seconds)

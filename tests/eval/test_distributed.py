@@ -1,0 +1,320 @@
+"""`denoise-gs eval` / `cost` on Ray (`eval.distributed`): the task graph, rows identical to the serial
+path's, no shared stage computed twice, and the refused `--workers` / `--ray-address` values.
+
+The fast tests share one local cluster of 2 CPUs (module fixture). Its workers run the small real
+stages of the pipeline tests in place of the product's (installed by the cluster's worker setup, as
+`Harness` in test_eval_runs.py does in-process), and every stage call is logged to a file so that
+calls in the worker processes can be counted."""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import functools
+import json
+import math
+import os
+import socket
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import eval.evaluate
+import eval.methods
+from eval.cli import main
+from eval.cost import CostConfig, run_cost_sweep
+from eval.distributed import ClusterSettings, RayExecutor, chain_after, check_ray_address, ray_cluster
+from eval.evaluate import EvalConfig, evaluate_dataset, share_key
+from eval.pipeline import preset
+from eval.pipeline.validate import DatasetFolder
+from mvgeo.camera import Camera
+from mvgeo.common.errors import InputError
+from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
+from tests.common.cli_contract import assert_refused
+from tests.eval._tiny_stages import TinyStages, make_scene
+
+REPO = Path(__file__).resolve().parents[2]
+STAGE_NAMES = ("denoise", "align", "splat", "render", "select", "refine", "fuse")
+
+
+# ----------------------------------------------------------------- the tiny stages, in any process
+def _round_folder(work_dir: Path) -> str:
+    """The `.../roundN` folder a stage call works in (its work folder is a private one inside)."""
+    parts = Path(work_dir).parts
+    i = max(k for k, p in enumerate(parts) if p.startswith("round"))
+    return str(Path(*parts[:i + 1]))
+
+
+def _logged(log: Path, name: str, fn, ctx):
+    with open(log, "a") as f:  # one short line per O_APPEND write: lines of concurrent workers do not mix
+        f.write(f"{name}\t{_round_folder(ctx.work_dir)}\n")
+    return fn(ctx)
+
+
+def logged_stages(log: Path, tiny: TinyStages | None = None):
+    """The tiny stages, each call appended to `log` as "stage<TAB>round folder"."""
+    stages = (tiny or TinyStages()).stages()
+    return dataclasses.replace(stages, **{n: functools.partial(_logged, log, n, getattr(stages, n))
+                                          for n in STAGE_NAMES})
+
+
+def _ply_path(path, device):
+    return path
+
+
+def fake_score_scene(model, gt, est_train, dataset, config, est_cameras=(), renders_out=None):
+    """Scores that differ per run folder and per aligned camera rig (seeded), so a row in the wrong
+    place or from another run shows."""
+    ply = Path(model)
+    folder = "/".join(ply.parts[-4:-1])  # <seed>/<method folder>/<round>
+    rig = 0.0 if est_train is None else float(sum(np.abs(p).sum() for p in est_train.values()))
+    psnr = 20.0 + (zlib.crc32(folder.encode()) % 1000) / 100.0 + len(ply.read_text()) / 1e4
+    if renders_out is not None:
+        renders_out.update({n: np.full((40, 48, 3), 0.5, np.float32) for n in dataset.test})
+    return {n: {"psnr_db": psnr, "ssim": 0.5, "lpips": 0.3} for n in dataset.test}, \
+        {"rot_err_deg": rig, "ate": 0.1}
+
+
+def install_tiny(log: Path, setattr_=setattr) -> None:
+    """Tiny stages and the fake scorer in place of the product's (in a worker: at its start)."""
+    setattr_(eval.methods, "product_stages", functools.partial(logged_stages, log))
+    setattr_(eval.evaluate, "read_gaussian_ply", _ply_path)
+    setattr_(eval.evaluate, "_score_scene", fake_score_scene)
+
+
+def cost_score(run_dir, dataset, names):
+    return {"psnr_db": 20.0 + len(names) + len(run_dir.parent.name) / 100, "ssim": 0.5, "lpips": 0.3,
+            "rot_err_deg": 1.0, "ate": 0.1}
+
+
+def _calls(log: Path, out: Path) -> collections.Counter:
+    """(stage, round folder relative to `out`) -> calls."""
+    lines = log.read_text().splitlines() if log.is_file() else []
+    rows = [ln.split("\t") for ln in lines]
+    return collections.Counter((s, str(Path(f).relative_to(out))) for s, f in rows if Path(f).is_relative_to(out))
+
+
+# ----------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """A local Ray cluster of 2 CPUs whose workers run the tiny stages; yields (executor, stage log)."""
+    log = tmp_path_factory.mktemp("ray") / "stage_calls.log"
+    with pytest.MonkeyPatch.context() as mp:
+        # The workers import this module (the setup hook, the task functions): the repository on their path.
+        mp.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+        with ray_cluster(ClusterSettings(workers=2), worker_setup=functools.partial(install_tiny, log)) as ex:
+            yield ex, log
+
+
+@pytest.fixture()
+def dataset(tmp_path) -> DatasetFolder:
+    root = tmp_path / "data"
+    images = make_scene(root / "images", n=6)
+    files = {p.stem: p for p in sorted(images.glob("*.png"))}
+    names = sorted(files)
+    cam = Camera("PINHOLE", 48, 40, [50.0, 50.0, 24.0, 20.0])
+    posed = [PosedImage(f"{n}.png", 1, np.hstack([np.eye(3), [[-0.1 * i], [0.0], [0.0]]]))
+             for i, n in enumerate(names)]
+    rng = np.random.default_rng(0)
+    write_sparse_model(root / "sparse" / "0", SparseModel({1: cam}, posed, rng.normal(size=(30, 3)) + [0, 0, 4],
+                                                          (rng.random((30, 3)) * 255).astype(np.uint8)), binary=True)
+    (root / "split.json").write_text(json.dumps({"train": names[1:], "test": names[:1]}))
+    return DatasetFolder(root=root, train=names[1:], test=names[:1], images=files, clean=files)
+
+
+# ----------------------------------------------------------------- the task graph
+def test_chain_after_waits_for_the_previous_unit_of_a_key():
+    assert chain_after(["a", "b", "a", "c", "a", "b"]) == [(), (), (0,), (), (2,), (1,)]
+    assert chain_after([]) == []
+
+
+def test_share_key_chains_a_family_and_the_ablations_that_link_its_round1(tmp_path, dataset):
+    cfg = EvalConfig(methods=("instantsplat",), seeds=1, preset="fast")
+    tasks = [eval.evaluate.EvalTask("s", eval.methods.METHODS[m], seed, dataset, preset("fast"), tmp_path, tmp_path,
+                                    cfg)
+             for seed in (0, 1) for m in ("instantsplat", "n2v_round1", "denoise_gs", "ablate_no_selection")]
+    after = chain_after([share_key(t) for t in tasks])
+    # seed 0: instantsplat alone; n2v_round1 -> denoise_gs -> ablate_no_selection; seed 1 likewise, apart.
+    assert after == [(), (), (1,), (2,), (), (), (5,), (6,)]
+
+
+def rendezvous(item):
+    """(name, start, end, met): "wait" waits (up to 120 s) for the file `flag` that "signal" writes, so
+    it ends only if both ran at once; "fail" raises; anything else returns at once."""
+    name, action, flag = item
+    start = time.time()
+    met = None
+    if action == "fail":
+        raise KeyError(f"no action for {name}")
+    if action == "signal":
+        Path(flag).write_text(name)
+    if action == "wait":
+        while not (met := Path(flag).is_file()) and time.time() - start < 120:
+            time.sleep(0.05)
+    return name, start, time.time(), met
+
+
+def test_executor_keeps_the_order_and_the_graph(cluster, tmp_path):
+    ex, _ = cluster
+    flag = str(tmp_path / "flag")
+    items = [("a", "wait", flag), ("b", "", flag), ("c", "signal", flag)]
+    seen = []
+    res = ex.run(rendezvous, items, after=[(), (0,), ()], on_done=lambda d: seen.append(sorted(d)))
+    assert [r[0] for r in res] == ["a", "b", "c"]  # the input order, not the finishing order
+    (_, _, a_end, a_met), (_, b_start, _, _), (_, _, c_end, _) = res
+    assert a_met  # c ran while a was running: the two CPUs were used at once
+    assert c_end <= a_end
+    assert b_start >= a_end  # b waited for a
+    assert [len(d) for d in seen] == [1, 2, 3] and seen[-1] == [0, 1, 2]  # after each finished task
+    with pytest.raises(ValueError, match="earlier units"):
+        ex.run(rendezvous, items, after=[(1,), (), ()])
+
+
+def thread_counts(item):
+    """(torch threads, OpenCV threads) inside a task."""
+    import torch
+
+    from mvgeo.common.deps import cv2
+
+    return torch.get_num_threads(), cv2.getNumThreads()
+
+
+def test_tasks_run_with_their_cpus_or_the_given_threads(cluster):
+    ex, _ = cluster
+    assert ex.run(thread_counts, [0, 1]) == [(1, 1), (1, 1)]  # one CPU per task: one thread
+    three = RayExecutor(dataclasses.replace(ex.settings, task_threads=3))
+    assert three.run(thread_counts, [0]) == [(3, 3)]
+
+
+def test_executor_raises_a_task_error_as_its_own_type(cluster):
+    ex, _ = cluster
+    with pytest.raises(KeyError, match="no action for b"):
+        ex.run(rendezvous, [("a", "", ""), ("b", "fail", ""), ("c", "", "")])
+
+
+# ----------------------------------------------------------------- eval and cost: Ray vs serial
+def test_eval_on_ray_gives_the_serial_rows(cluster, dataset, tmp_path, monkeypatch):
+    ex, log = cluster
+    config = EvalConfig(methods=("3dgs_gt_poses", "instantsplat", "n2v_round1", "denoise_gs", "ablate_no_selection"),
+                        seeds=2, preset="fast")
+    serial_log = tmp_path / "serial_calls.log"
+    install_tiny(serial_log, monkeypatch.setattr)
+    serial_out, ray_out = tmp_path / "serial", tmp_path / "ray"
+    serial = evaluate_dataset(dataset, serial_out, config, scene="s")
+    partial = []
+    rows = evaluate_dataset(dataset, ray_out, config, scene="s", executor=ex,
+                            on_row=lambda rs: partial.append([(r.method, r.seed) for r in rs]))
+    order = [(r.method, r.seed) for r in serial]
+    assert order == [(m, s) for s in (0, 1) for m in config.methods]
+    assert [(r.method, r.seed) for r in rows] == order
+    # Identical rows but for the stages' measured wall seconds.
+    strip = [dataclasses.replace(r, seconds=0.0) for r in rows]
+    assert strip == [dataclasses.replace(r, seconds=0.0) for r in serial]
+    assert all(not r.error and math.isfinite(r.psnr_db) for r in rows)
+    assert len({r.psnr_db for r in rows}) == len(rows)  # every run scored apart: a swap would show
+    assert len(partial) == len(rows) and partial[-1] == order
+    assert all(p == [o for o in order if o in p] for p in partial)  # in the serial order at every step
+    # The same stage calls in the same round folders, none twice: shared round 1s were reused.
+    ray_calls, serial_calls = _calls(log, ray_out), _calls(serial_log, serial_out)
+    assert ray_calls == serial_calls and set(ray_calls.values()) == {1}
+    assert ray_calls[("denoise", "runs/s/seed0/n2v/round1")] == 1
+    assert ("denoise", "runs/s/seed0/ablate_no_selection/round1") not in ray_calls  # linked from n2v
+    assert ("refine", "runs/s/seed1/ablate_no_selection/round2") in ray_calls
+
+
+def test_cost_sweep_on_ray_gives_the_serial_rows(cluster, dataset, tmp_path):
+    ex, _ = cluster
+    cfg = CostConfig(base=preset("fast", rounds=1, views=3),
+                     grid={"splat_iters": (7,), "passes": (1,), "train_views": (3, 3)})
+    serial_log, ray_log = tmp_path / "serial.log", tmp_path / "ray.log"
+    serial = run_cost_sweep(dataset, tmp_path / "serial", cfg, score=cost_score,
+                            stages=logged_stages(serial_log))
+    rows = run_cost_sweep(dataset, tmp_path / "ray", cfg, score=cost_score, stages=logged_stages(ray_log),
+                          executor=ex)
+    assert [r.name for r in rows] == ["base", "splat_iters=7", "passes=1", "train_views=3", "train_views=3"]
+
+    def strip(r):
+        return dataclasses.replace(r, stage_s=dict.fromkeys(r.stage_s, 0.0), total_s=0.0)
+
+    assert [strip(r) for r in rows] == [strip(r) for r in serial]
+    # Points linked to the base point's stages waited for it (splat_iters re-ran the splat and what
+    # follows it, not denoise or align); the repeated point waited for its first run and recomputed nothing.
+    ray_calls = _calls(ray_log, tmp_path / "ray")
+    assert ray_calls == _calls(serial_log, tmp_path / "serial") and set(ray_calls.values()) == {1}
+    rerun = {s for s, f in ray_calls if f == "points/splat_iters=7/round1"}
+    assert "splat" in rerun and not rerun & {"denoise", "align"}
+
+
+# ----------------------------------------------------------------- refused values
+def _closed_port() -> int:
+    """A loopback port nothing listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_cluster_settings_refuse_bad_values():
+    with pytest.raises(InputError, match="at least 1"):
+        ClusterSettings(workers=0)
+    with pytest.raises(InputError, match="--task-threads"):
+        ClusterSettings(workers=2, task_threads=0)
+    with pytest.raises(InputError, match="alternatives"):
+        ClusterSettings(workers=2, address="auto")
+    assert not ClusterSettings().distributed and ClusterSettings(workers=2).distributed
+    assert ClusterSettings(address="auto").distributed
+
+
+@pytest.mark.parametrize(("address", "message"), [("ray://127.0.0.1:10001", "ray\\[client\\]"),
+                                                  ("127.0.0.1", "not host:port"), ("a b:1", "not host:port"),
+                                                  ("127.0.0.1:70000", "not host:port"),
+                                                  ("CLOSED", "no Ray head answers")])
+def test_check_ray_address_refuses(address, message):
+    address = address.replace("CLOSED", f"127.0.0.1:{_closed_port()}")
+    start = time.perf_counter()
+    with pytest.raises(InputError, match=message):
+        check_ray_address(address)
+    assert time.perf_counter() - start < 5.0
+
+
+@pytest.mark.parametrize("command", ["eval", "cost"])
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--workers", "0"], ["--workers"]),
+    (["--workers", "two"], ["--workers"]),
+    (["--ray-address", "CLOSED"], ["--ray-address", "no Ray head answers"]),
+    (["--ray-address", "ray://127.0.0.1:10001"], ["ray[client]"]),
+    (["--workers", "2", "--ray-address", "auto"], ["alternatives"]),
+    (["--workers", "2", "--task-threads", "0"], ["--task-threads"]),
+    (["--task-threads", "2"], ["--task-threads applies to runs on Ray"]),
+])
+def test_cli_refuses_bad_cluster_options(tmp_path, capsys, command, extra, message):
+    images = make_scene(tmp_path / "data" / "images", n=4)
+    extra = [a.replace("CLOSED", f"127.0.0.1:{_closed_port()}") for a in extra]
+    assert_refused(main, [command, "llff_like", "--out", tmp_path / "O", *extra], capsys, inputs=[images],
+                   watch=[tmp_path], message=message)
+
+
+# ----------------------------------------------------------------- a real evaluation
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_real_eval_with_two_workers_scores_as_serial(tmp_path):
+    """Two seeds of a real evaluation at a tiny size, serially and with `--workers 2`: identical scores.
+
+    The tasks run with the serial process's torch thread count (`--task-threads`): N2V's training
+    result depends on it (the order of torch's parallel sums)."""
+    import torch
+
+    args = ["eval", "llff_like", "--preset", "fast", "--size", "128x96", "--scene-views", "8", "--splat-iters",
+            "60", "--seeds", "2", "--methods", "nlm_instantsplat", "n2v_round1"]
+    assert main([*args, "--out", str(tmp_path / "serial")]) == 0
+    assert main([*args, "--out", str(tmp_path / "ray"), "--workers", "2",
+                 "--task-threads", str(torch.get_num_threads())]) == 0
+    serial = json.loads((tmp_path / "serial" / "results.json").read_text())["runs"]
+    ray = json.loads((tmp_path / "ray" / "results.json").read_text())["runs"]
+    keys = ("scene", "method", "seed", "psnr_db", "ssim", "lpips", "rot_err_deg", "ate", "per_view", "error")
+    assert [{k: r[k] for k in keys} for r in ray] == [{k: r[k] for k in keys} for r in serial]
+    assert [(r["method"], r["seed"]) for r in ray] == [(m, s) for s in (0, 1) for m in ("nlm_instantsplat",
+                                                                                      "n2v_round1")]
+    assert any(r["psnr_db"] is not None for r in ray)  # something was scored, not only failed rows

@@ -1,0 +1,160 @@
+"""`evaluate_dataset` / `run_task` with the small real stages of the pipeline tests in place of the
+product's (`eval.methods.product_stages` patched) and a recording scorer: which folders and files a
+method writes, which errors become "failed" rows, and the ground-truth-pose baseline's splat stage."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pickle
+
+import numpy as np
+import pytest
+
+import eval.evaluate
+import eval.methods
+from eval.evaluate import EvalConfig, EvalTask, evaluate_dataset, run_task
+from eval.methods import METHODS
+from eval.pipeline import preset
+from eval.pipeline.validate import DatasetFolder
+from mvgeo.camera import Camera
+from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
+from tests.eval._tiny_stages import TinyStages, make_scene
+
+
+@pytest.fixture()
+def dataset(tmp_path) -> DatasetFolder:
+    root = tmp_path / "data"
+    images = make_scene(root / "images", n=6)
+    files = {p.stem: p for p in sorted(images.glob("*.png"))}
+    names = sorted(files)
+    cam = Camera("PINHOLE", 48, 40, [50.0, 50.0, 24.0, 20.0])
+    posed = [PosedImage(f"{n}.png", 1, np.hstack([np.eye(3), [[-0.1 * i], [0.0], [0.0]]]))
+             for i, n in enumerate(names)]
+    rng = np.random.default_rng(0)
+    write_sparse_model(root / "sparse" / "0", SparseModel({1: cam}, posed, rng.normal(size=(30, 3)) + [0, 0, 4],
+                                                          (rng.random((30, 3)) * 255).astype(np.uint8)), binary=True)
+    (root / "split.json").write_text(json.dumps({"train": names[1:], "test": names[:1]}))
+    return DatasetFolder(root=root, train=names[1:], test=names[:1], images=files, clean=files)
+
+
+class Harness:
+    """Tiny stages in place of the product's, and a scorer that records what it was given."""
+
+    def __init__(self, monkeypatch):
+        self.tiny = TinyStages()
+        self.scored: list[dict] = []
+        self.splat_settings: list = []
+        monkeypatch.setattr(eval.methods, "product_stages", self.stages)
+        monkeypatch.setattr(eval.evaluate, "read_gaussian_ply", lambda path, device: path)
+        monkeypatch.setattr(eval.evaluate, "_score_scene", self.score)
+
+    def stages(self):
+        def splat(ctx):
+            self.splat_settings.append(ctx.settings)
+            return self.tiny.splat(ctx)
+
+        return dataclasses.replace(self.tiny.stages(), splat=splat)
+
+    def score(self, model, gt, est_train, dataset, config, est_cameras=(), renders_out=None):
+        self.scored.append({"ply": model, "est": est_train, "cams": list(est_cameras)})
+        if renders_out is not None:
+            renders_out.update({n: np.full((40, 48, 3), 0.5, np.float32) for n in dataset.test})
+        return {n: {"psnr_db": 20.0, "ssim": 0.5, "lpips": 0.3} for n in dataset.test}, \
+            {"rot_err_deg": 1.0, "ate": 0.1}
+
+
+def _task(dataset, tmp_path, name, seed=0, **config) -> EvalTask:
+    cfg = EvalConfig(methods=(name,), seeds=1, preset="fast", **config)
+    base = preset("fast", views=3)
+    inputs = eval.evaluate.copy_train_inputs(dataset, tmp_path / "out" / "inputs" / "s")
+    return EvalTask("s", METHODS[name], seed, dataset, base, inputs, tmp_path / "out", cfg)
+
+
+def test_baselines_write_no_model_file(tmp_path, dataset, monkeypatch):
+    """No fake outputs: a denoiser without a network leaves no `n2v_model.pt` in its run folder."""
+    h = Harness(monkeypatch)
+    runs = tmp_path / "out" / "runs" / "s" / "seed0"
+    for name in ("instantsplat", "n2v_round1"):
+        row = run_task(_task(dataset, tmp_path, name))
+        assert row.method == name and not row.error and row.psnr_db == 20.0
+    assert (runs / "instantsplat" / "round1" / "denoised").is_dir()
+    assert not list((runs / "instantsplat").rglob("n2v_model.pt"))
+    assert (runs / "n2v" / "round1" / "n2v_model.pt").is_file()  # the N2V method's network
+    assert h.tiny.calls["denoise"] == 1  # instantsplat's denoise stage is the identity, not the tiny one
+    assert all(s["est"] is not None for s in h.scored)  # pose-free: estimated poses are registered
+
+
+def test_gt_poses_baseline_runs_the_pipeline_splat_stage(tmp_path, dataset, monkeypatch):
+    h = Harness(monkeypatch)
+    row = run_task(_task(dataset, tmp_path, "3dgs_gt_poses"))
+    assert row.method == "3dgs_gt_poses" and not row.error
+    rd = tmp_path / "out" / "runs" / "s" / "seed0" / "3dgs_gt_poses" / "round1"
+    # The splat stage the pipeline uses, with the ground-truth cameras and the known-pose preset.
+    assert h.tiny.calls["splat"] == 1 and h.tiny.calls["align"] == 0
+    (settings,) = h.splat_settings
+    assert settings.train.optimize_poses is False
+    aligned = read_sparse_model(rd / "align" / "sparse" / "0")
+    gt = read_sparse_model(dataset.root / "sparse" / "0")
+    assert [n.rsplit(".", 1)[0] for n in aligned.names] == dataset.train
+    for n in aligned.names:
+        np.testing.assert_allclose(aligned.image(n).cam_from_world, gt.image(n).cam_from_world, atol=1e-12)
+    np.testing.assert_allclose(np.load(rd / "align" / "points.npz")["xyz"], gt.points_xyz)
+    assert h.scored[0]["est"] is None and h.scored[0]["ply"] == rd / "point_cloud.ply"
+    # Resumable like the pipeline: a second run reuses both stages.
+    run_task(_task(dataset, tmp_path, "3dgs_gt_poses"))
+    assert h.tiny.calls["splat"] == 1
+
+
+def test_degenerate_geometry_becomes_a_failed_row(tmp_path, dataset, monkeypatch):
+    h = Harness(monkeypatch)
+
+    def align(ctx):
+        raise DegenerateGeometryError("the focal length is not determined by these views")
+
+    monkeypatch.setattr(h.tiny, "align", align)
+    seen = []
+    rows = evaluate_dataset(dataset, tmp_path / "out", EvalConfig(methods=("3dgs_gt_poses", "instantsplat"), seeds=1,
+                                                                  preset="fast"),
+                            scene="s", on_row=lambda rs: seen.append(len(rs)))
+    assert [r.method for r in rows] == ["3dgs_gt_poses", "instantsplat"] and seen == [1, 2]
+    ok, failed = rows
+    assert not ok.error and ok.psnr_db == 20.0  # the other method's row is kept
+    assert failed.error.startswith("DegenerateGeometryError: the focal length")
+    assert all(math.isnan(v) for v in (failed.psnr_db, failed.ssim, failed.lpips))
+
+
+@pytest.mark.parametrize("error", [TypeError("bad argument"), RuntimeError("boom"), ValueError("shape"),
+                                   KeyError("views")])
+def test_programming_errors_surface(tmp_path, dataset, monkeypatch, error):
+    h = Harness(monkeypatch)
+
+    def align(ctx):
+        raise error
+
+    monkeypatch.setattr(h.tiny, "align", align)
+    rows = []
+    with pytest.raises(type(error)):
+        evaluate_dataset(dataset, tmp_path / "out", EvalConfig(methods=("instantsplat",), seeds=1, preset="fast"),
+                         scene="s", on_row=rows.append)
+    assert rows == []  # no "failed" row hides it
+
+
+def test_a_task_pickles(tmp_path, dataset):
+    task = _task(dataset, tmp_path, "denoise_gs_fused", seed=2)
+    again = pickle.loads(pickle.dumps(task))
+    assert again == task and again.method.pipeline_config(again.base) == task.method.pipeline_config(task.base)
+
+
+def test_a_denoiser_without_a_network_cannot_start_round_2(tmp_path):
+    from eval.baselines import CLASSICAL_DENOISE_OUTPUTS, identity_denoise
+    from eval.pipeline import run_pipeline
+
+    scene = make_scene(tmp_path / "images", n=4)
+    tiny = TinyStages()
+    stages = dataclasses.replace(tiny.stages(), denoise=identity_denoise, denoise_outputs=CLASSICAL_DENOISE_OUTPUTS)
+    with pytest.raises(ValueError, match="n2v_model.pt"):
+        run_pipeline(scene, tmp_path / "out", preset("fast", views=3, rounds=2), stages=stages)
+    assert not (tmp_path / "out").exists() and not tiny.calls

@@ -1,0 +1,102 @@
+"""The evaluation's method registry (`eval.methods.METHODS`): names, folders, labels, pipeline settings."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+
+import pytest
+
+from eval.evaluate import EvalConfig
+from eval.methods import METHODS, EvalMethod
+from eval.pipeline import preset
+from eval.pipeline.stages import DENOISE_OUTPUTS
+from eval.pipeline.validate import DatasetFolder
+from mvgeo.common.errors import InputError
+
+#: The names the results and the documentation use (results.json / results.md rows).
+NAMES = ("3dgs_gt_poses", "instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs", "ablate_no_selection",
+         "ablate_charbonnier", "rounds_1", "rounds_2", "rounds_3", "rounds_4", "n2v_fused_round1",
+         "denoise_gs_fused", "oracle_clean")
+
+
+def _dataset(tmp_path) -> DatasetFolder:
+    return DatasetFolder(root=tmp_path, train=["a", "b"], test=["c"], images={}, clean={"a": tmp_path / "a.png"})
+
+
+def test_every_name_resolves_in_run_order():
+    assert tuple(METHODS) == NAMES  # the run order: each ablation after the Denoise-GS round 1 it links
+    assert all(isinstance(m, EvalMethod) and m.name == name for name, m in METHODS.items())
+    assert EvalConfig(methods=NAMES).selected() == list(METHODS.values())
+    assert [m.name for m in EvalConfig(methods=("denoise_gs", "ablate_charbonnier", "instantsplat")).selected()] \
+        == ["instantsplat", "denoise_gs", "ablate_charbonnier"]
+    with pytest.raises(InputError, match="magic"):
+        EvalConfig(methods=("magic",))
+    with pytest.raises(InputError, match="seeds"):
+        EvalConfig(seeds=0)
+
+
+def test_families_share_folders_and_rounds_n_configs():
+    base = preset("fast", views=4)
+    assert {m.name for m in METHODS.values() if m.family == "n2v"} == {
+        "n2v_round1", "denoise_gs", "rounds_1", "rounds_2", "rounds_3", "rounds_4"}
+    assert {m.name for m in METHODS.values() if m.family == "n2v_fused"} == {"n2v_fused_round1", "denoise_gs_fused"}
+    for n in (1, 2, 3, 4):
+        cfg = METHODS[f"rounds_{n}"].pipeline_config(base)
+        assert cfg.rounds == n and cfg == dataclasses.replace(METHODS["denoise_gs"].pipeline_config(base), rounds=n)
+    assert METHODS["n2v_round1"].pipeline_config(base) == METHODS["rounds_1"].pipeline_config(base)
+    assert METHODS["denoise_gs"].pipeline_config(base).rounds == 2
+    ablation = METHODS["ablate_no_selection"].pipeline_config(base)
+    assert ablation.select_views is False and ablation.rounds == 2
+    charb = METHODS["ablate_charbonnier"].pipeline_config(base)
+    assert charb.denoise.round2_loss == "charbonnier" and charb.rounds == 2
+    # The ablations differ from denoise_gs only from round 2 on, and start from its round 1.
+    for name in ("ablate_no_selection", "ablate_charbonnier"):
+        assert METHODS[name].shares_round1_with == METHODS["denoise_gs"].family
+    assert METHODS["instantsplat"].pipeline_config(base).rounds == 1
+    assert METHODS["oracle_clean"].pipeline_config(base) == METHODS["instantsplat"].pipeline_config(base)
+    assert METHODS["oracle_clean"].family == "oracle_clean"  # (b)'s settings, its own folder
+    gt = METHODS["3dgs_gt_poses"]
+    assert gt.ground_truth_poses and gt.pipeline_config(base).splat.preset == "gt_poses"
+    assert gt.pipeline_config(base).splat.iters == base.splat.iters
+    assert [m.name for m in METHODS.values() if m.ground_truth_poses] == ["3dgs_gt_poses"]
+
+
+@pytest.mark.parametrize("name", ["fast", "default"])
+def test_only_the_fused_methods_fuse_whatever_the_preset(name):
+    for m in METHODS.values():
+        cfg = m.pipeline_config(preset(name))
+        assert cfg.fuse_noisy_splat == ("_fused" in m.name), m.name
+        assert cfg.align.reuse_geometry == ("auto" if "_fused" in m.name else "never"), m.name
+
+
+def test_labels_and_folders():
+    for m in METHODS.values():
+        assert m.row_label() == m.name and m.folder() == m.family and m.description
+    takes = {m.name for m in METHODS.values() if m.takes_denoiser}
+    assert takes == {"n2v_round1", "denoise_gs", "rounds_1", "rounds_2", "rounds_3", "rounds_4", "n2v_fused_round1",
+                     "denoise_gs_fused"}
+    assert METHODS["n2v_fused_round1"].folder("r2r") == "n2v_fused_r2r"
+    assert METHODS["nlm_instantsplat"].folder("r2r") == "nlm_instantsplat"
+    with pytest.raises(InputError, match="round 1 only"):
+        EvalConfig(methods=("rounds_2",), denoiser="r2r")
+    EvalConfig(methods=tuple(m.name for m in METHODS.values() if m.rounds == 1), denoiser="r2r")
+
+
+def test_stage_sets_declare_what_they_write(tmp_path):
+    """The baselines without a network declare `denoised/` alone; the N2V methods the checkpoint too."""
+    ds = _dataset(tmp_path)
+    classical = {"instantsplat", "nlm_instantsplat", "oracle_clean"}
+    for m in METHODS.values():
+        stages = m.stages(ds)
+        assert stages.export is None, m.name  # the scores need no viewer files
+        assert stages.denoise_outputs == (("denoised",) if m.name in classical else DENOISE_OUTPUTS), m.name
+        assert m.name in classical or stages.denoise.__module__ == "eval.pipeline.stages"
+        assert m.rounds == 1 or m.name not in classical
+
+
+def test_methods_pickle(tmp_path):
+    """A method (and so a run's task) can be sent to another process."""
+    for m in METHODS.values():
+        again = pickle.loads(pickle.dumps(m))
+        assert again == m and again.pipeline_config(preset("fast")) == m.pipeline_config(preset("fast"))
