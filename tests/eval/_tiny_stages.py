@@ -151,3 +151,21 @@ class TinyStages:
     def stages(self) -> PipelineStages:
         return PipelineStages(denoise=self.denoise, align=self.align, splat=self.splat, render=self.render,
                               select=self.select, refine=self.refine, fuse=self.fuse)
+
+
+def tiny_dataset(root: Path):
+    """A 6-view `DatasetFolder` (`make_scene` images as both noisy and clean, a PINHOLE camera, views 0.1
+    apart along x, 30 random points) with view 0 held out."""
+    from eval.pipeline.validate import DatasetFolder
+
+    images = make_scene(root / "images", n=6)
+    files = {p.stem: p for p in sorted(images.glob("*.png"))}
+    names = sorted(files)
+    cam = Camera("PINHOLE", 48, 40, [50.0, 50.0, 24.0, 20.0])
+    posed = [PosedImage(f"{n}.png", 1, np.hstack([np.eye(3), [[-0.1 * i], [0.0], [0.0]]]))
+             for i, n in enumerate(names)]
+    rng = np.random.default_rng(0)
+    write_sparse_model(root / "sparse" / "0", SparseModel({1: cam}, posed, rng.normal(size=(30, 3)) + [0, 0, 4],
+                                                          (rng.random((30, 3)) * 255).astype(np.uint8)), binary=True)
+    (root / "split.json").write_text(json.dumps({"train": names[1:], "test": names[:1]}))
+    return DatasetFolder(root=root, train=names[1:], test=names[:1], images=files, clean=files)

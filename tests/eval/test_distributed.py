@@ -30,11 +30,9 @@ from eval.distributed import ClusterSettings, RayExecutor, chain_after, check_ra
 from eval.evaluate import EvalConfig, evaluate_dataset, share_key
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
-from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
-from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
 from tests.common.cli_contract import assert_refused
-from tests.eval._tiny_stages import TinyStages, make_scene
+from tests.eval._tiny_stages import TinyStages, make_scene, tiny_dataset
 
 REPO = Path(__file__).resolve().parents[2]
 STAGE_NAMES = ("denoise", "align", "splat", "render", "select", "refine", "fuse")
@@ -111,18 +109,7 @@ def cluster(tmp_path_factory):
 
 @pytest.fixture()
 def dataset(tmp_path) -> DatasetFolder:
-    root = tmp_path / "data"
-    images = make_scene(root / "images", n=6)
-    files = {p.stem: p for p in sorted(images.glob("*.png"))}
-    names = sorted(files)
-    cam = Camera("PINHOLE", 48, 40, [50.0, 50.0, 24.0, 20.0])
-    posed = [PosedImage(f"{n}.png", 1, np.hstack([np.eye(3), [[-0.1 * i], [0.0], [0.0]]]))
-             for i, n in enumerate(names)]
-    rng = np.random.default_rng(0)
-    write_sparse_model(root / "sparse" / "0", SparseModel({1: cam}, posed, rng.normal(size=(30, 3)) + [0, 0, 4],
-                                                          (rng.random((30, 3)) * 255).astype(np.uint8)), binary=True)
-    (root / "split.json").write_text(json.dumps({"train": names[1:], "test": names[:1]}))
-    return DatasetFolder(root=root, train=names[1:], test=names[:1], images=files, clean=files)
+    return tiny_dataset(tmp_path / "data")
 
 
 # ----------------------------------------------------------------- the task graph

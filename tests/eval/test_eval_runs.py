@@ -5,7 +5,6 @@ method writes, which errors become "failed" rows, and the ground-truth-pose base
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import pickle
 
@@ -18,26 +17,14 @@ from eval.evaluate import EvalConfig, EvalTask, evaluate_dataset, run_task
 from eval.methods import METHODS
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
-from mvgeo.camera import Camera
 from mvgeo.common.errors import DegenerateGeometryError
-from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
-from tests.eval._tiny_stages import TinyStages, make_scene
+from mvgeo.sparse_model import read_sparse_model
+from tests.eval._tiny_stages import TinyStages, make_scene, tiny_dataset
 
 
 @pytest.fixture()
 def dataset(tmp_path) -> DatasetFolder:
-    root = tmp_path / "data"
-    images = make_scene(root / "images", n=6)
-    files = {p.stem: p for p in sorted(images.glob("*.png"))}
-    names = sorted(files)
-    cam = Camera("PINHOLE", 48, 40, [50.0, 50.0, 24.0, 20.0])
-    posed = [PosedImage(f"{n}.png", 1, np.hstack([np.eye(3), [[-0.1 * i], [0.0], [0.0]]]))
-             for i, n in enumerate(names)]
-    rng = np.random.default_rng(0)
-    write_sparse_model(root / "sparse" / "0", SparseModel({1: cam}, posed, rng.normal(size=(30, 3)) + [0, 0, 4],
-                                                          (rng.random((30, 3)) * 255).astype(np.uint8)), binary=True)
-    (root / "split.json").write_text(json.dumps({"train": names[1:], "test": names[:1]}))
-    return DatasetFolder(root=root, train=names[1:], test=names[:1], images=files, clean=files)
+    return tiny_dataset(tmp_path / "data")
 
 
 class Harness:

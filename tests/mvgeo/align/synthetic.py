@@ -107,3 +107,18 @@ class PairSetModel:
     def predict_pairs(self, images, pairs) -> PairSet:
         geos = [PairGeometry(i, j, np.asarray(uv, float)) for i, j, uv in self.matches]
         return PairSet(list(self.preds), [], geos, focal_determined=self.focal_determined)
+
+
+def three_view_matches(rng: np.random.Generator, *, W: int = 320, H: int = 240, f: float = 300.0):
+    """Three cameras 0.5 apart along x, turned 0.1 rad about y each, seeing 80 points 4-6 units ahead: (poses
+    (3, 3, 4) cam_from_world, exact matches [(i, j, (80, 4))] of the three pairs)."""
+    from mvgeo.transforms import so3_exp
+
+    X = rng.uniform([-1, -1, 4], [1, 1, 6], (80, 3))
+    poses = np.stack([np.concatenate([so3_exp(np.array([0, 0.1 * k, 0])), np.array([[-0.5 * k], [0], [0]])], 1)
+                      for k in range(3)])
+    uv = []
+    for P in poses:
+        xc = X @ P[:, :3].T + P[:, 3]
+        uv.append(f * xc[:, :2] / xc[:, 2:] + [W / 2, H / 2])
+    return poses, [(i, j, np.concatenate([uv[i], uv[j]], 1)) for i, j in ((0, 1), (0, 2), (1, 2))]

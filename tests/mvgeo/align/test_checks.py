@@ -8,21 +8,14 @@ import numpy as np
 from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_without_consistent_pair
 from mvgeo.transforms import so3_exp
 
-from .synthetic import make_views
+from .synthetic import make_views, three_view_matches
 
 FOCAL = 30.0
 
 
 def test_pair_consistency_exact_and_wrong_geometry(rng):
     W, H, f = 320, 240, 300.0
-    X = rng.uniform([-1, -1, 4], [1, 1, 6], (80, 3))
-    poses = np.stack([np.concatenate([so3_exp(np.array([0, 0.1 * k, 0])), np.array([[-0.5 * k], [0], [0]])], 1)
-                      for k in range(3)])
-    uv = []
-    for P in poses:
-        xc = X @ P[:, :3].T + P[:, 3]
-        uv.append(f * xc[:, :2] / xc[:, 2:] + [W / 2, H / 2])
-    matches = [(i, j, np.concatenate([uv[i], uv[j]], 1)) for i, j in ((0, 1), (0, 2), (1, 2))]
+    poses, matches = three_view_matches(rng, W=W, H=H, f=f)
     good = pair_consistency(poses, np.full(3, f), (W, H), matches)
     assert all(c.explained_fraction == 1.0 and c.n_matches == 80 for c in good)
     wrong = poses.copy()

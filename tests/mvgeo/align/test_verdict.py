@@ -22,6 +22,8 @@ from mvgeo.align.verdict import (
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.transforms import so3_exp
 
+from .synthetic import three_view_matches
+
 NAMES = [f"view_{k:03d}.png" for k in range(6)]
 
 
@@ -145,14 +147,7 @@ def test_every_reason_is_reported_in_the_stated_order():
 
 def test_judge_pairs_flags_unexplained_and_turned_pairs(rng):
     W, H, f = 320, 240, 300.0
-    X = rng.uniform([-1, -1, 4], [1, 1, 6], (80, 3))
-    poses = np.stack([np.concatenate([so3_exp(np.array([0, 0.1 * k, 0])), np.array([[-0.5 * k], [0], [0]])], 1)
-                      for k in range(3)])
-    uv = []
-    for P in poses:
-        xc = X @ P[:, :3].T + P[:, 3]
-        uv.append(f * xc[:, :2] / xc[:, 2:] + [W / 2, H / 2])
-    matches = [(i, j, np.concatenate([uv[i], uv[j]], 1)) for i, j in ((0, 1), (0, 2), (1, 2))]
+    poses, matches = three_view_matches(rng, W=W, H=H, f=f)
     kw = dict(threshold_px=2.0, min_explained=0.5, max_rotation_deg=5.0)
     checks, bad = judge_pairs(poses, np.full(3, f), (W, H), matches, **kw)
     assert not bad and all(c.explained_fraction == 1.0 and c.rotation_deviation_deg < 1e-3 for c in checks)
