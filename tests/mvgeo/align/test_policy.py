@@ -323,8 +323,8 @@ def test_a_failed_chained_start_is_replaced_by_the_averaged_start(llff6, flipped
 def test_no_other_candidate_when_the_first_start_passes(llff6_preview):
     """The default pair focal on llff_like: the adjustment moves it by less than 10 %, one candidate only."""
     stats = llff6_preview.stats
-    assert [(c.start, c.chosen, c.reasons, c.refocused) for c in stats.candidates] == [("averaged", True, [], False)]
-    assert stats.initial_poses == "averaged"
+    assert [(c.start, c.chosen, c.reasons, c.refocused) for c in stats.candidates] == [("chain", True, [], False)]
+    assert stats.initial_poses == "chain"
     c = stats.candidates[0]
     assert abs(np.log(c.bundle_focal_px / c.pairs_focal_px)) <= 0.1
     # One shared focal in the bundle adjustment: one camera for all views, as COLMAP's single-camera mode.
