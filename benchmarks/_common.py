@@ -62,3 +62,9 @@ def write_fragment(name: str, title: str, body: str) -> Path:
     text = f"## {title}\n\nReproduce: `make bench ONLY={name}`\n\n{body.rstrip()}\n"
     path.write_text(text)
     return path
+
+
+def cli_option(key: str, default: str) -> str:
+    """The value of `--key=VALUE` on this script's command line, or `default`."""
+    vals = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith(f"--{key}=")]
+    return vals[0] if vals else default

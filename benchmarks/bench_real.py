@@ -44,7 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from _common import ROOT, md_table, write_fragment
+from _common import ROOT, cli_option, md_table, write_fragment
 
 os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap's per-image log lines
 
@@ -268,9 +268,7 @@ def main() -> int:
     logging.basicConfig(level=logging.ERROR)
     os.environ.setdefault("DGS_NO_PROGRESS", "1")
 
-    def opt(key, default):
-        vals = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith(f"--{key}=")]
-        return vals[0] if vals else default
+    opt = cli_option
 
     which = opt("sets", "temple,dtu_spread,dtu_cluster,data").split(",")
     noise = opt("noise", "clean,noisy").split(",")

@@ -60,7 +60,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from _common import ROOT, md_table, write_fragment
+from _common import ROOT, cli_option, md_table, write_fragment
 from bench_real import OURS, RealSet, dtu_set, prepare, scene_scale, temple_set
 
 from mvgeo.align.api import align_images
@@ -348,9 +348,7 @@ def main() -> int:
     logging.basicConfig(level=logging.ERROR)
     os.environ.setdefault("DGS_NO_PROGRESS", "1")
 
-    def opt(key, default):
-        vals = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith(f"--{key}=")]
-        return vals[0] if vals else default
+    opt = cli_option
 
     which = opt("sets", ",".join(SETS)).split(",")
     noise = opt("noise", "clean,noisy").split(",")

@@ -123,8 +123,7 @@ def check_ray_address(address: str) -> None:
                                                                            "or auto")
     host = m["host"].strip("[]")
     try:
-        with socket.create_connection((host, int(m["port"])), timeout=ADDRESS_TIMEOUT_S):
-            pass
+        socket.create_connection((host, int(m["port"])), timeout=ADDRESS_TIMEOUT_S).close()
     except OSError as exc:
         raise InputError(f"--ray-address {address}: no Ray head answers there ({exc.strerror or exc})",
                          fix="start the head with `ray start --head` and give the address it prints") from None
@@ -268,7 +267,7 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
     """Connect to Ray for the block: None for the serial path, else an executor on the cluster.
 
     - `settings.workers > 1`: starts a local cluster of that many CPUs (no dashboard, node address
-      127.0.0.1, usage statistics off, its session files and logs in a temporary folder that is
+      127.0.0.1, usage statistics off, its runtime files and logs in a temporary folder that is
       removed after the cluster has shut down at the end of the block);
     - `settings.address`: connects to that cluster (and leaves it running at the end);
     - a Ray already initialised in this process (a notebook, a test) is used as it is and left so.
