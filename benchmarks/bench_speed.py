@@ -8,9 +8,11 @@
    alone; the sum matches a whole iteration to within the overhead of the cuts.
 2. Forward + backward per iteration at 256x192 and 504x378 with ~55k Gaussians, three paths in the
    same run:
-   - "cpp": `RasterConfig(backend="cpp")`, projection, binning, SH and compositor in C++;
-   - "torch proj+bin": torch projection and binning (the reference) with the C++ SH and compositor;
-   - "torch": the all-torch reference (256x192 only: its compositor takes seconds per iteration).
+   - "cpp": `RasterConfig(backend="cpp")`, projection, binning, SH and compositor in C++, and the fused
+     C++ L1 + SSIM loss (`splat/csrc/ssim.cpp`; its "loss forward" computes the gradient too);
+   - "torch proj+bin": torch projection and binning (the reference) with the C++ SH, compositor and loss;
+   - "torch": the all-torch reference, loss included (256x192 only: its compositor takes seconds per
+     iteration).
 3. A short training run (InstantSplat-style, ground-truth poses, 12 views of `llff_like_clean` at
    128x96, 300 iterations) with `backend="cpp"` and `backend="torch"`: held-out PSNR of each.
 
@@ -118,7 +120,8 @@ def iteration(leaves, cam, K, target, width, height, path: str) -> int:
         accum, _ = composite_tiles(proj.means2d, proj.conics, feats, proj.opacities, bins, width, height,
                                    backend="cpp", num_threads=KERNEL_THREADS)
         rgb, inter = accum[..., :3].permute(2, 0, 1), int(bins.gaussian_ids.numel())
-    photometric_loss(rgb, target).backward()
+    loss_backend = "torch" if path == "torch" else "cpp"
+    photometric_loss(rgb, target, backend=loss_backend, num_threads=KERNEL_THREADS).backward()
     return inter
 
 
@@ -164,7 +167,7 @@ def profile(scene, width: int = 504, height: int = 378, repeat: int = 5) -> tupl
                                    backend="cpp", num_threads=KERNEL_THREADS)
         lap("composite forward")
         (rgb,) = cut(accum[..., :3].permute(2, 0, 1))
-        loss = photometric_loss(rgb, target)
+        loss = photometric_loss(rgb, target, backend="cpp", num_threads=KERNEL_THREADS)
         lap("loss forward (L1 + SSIM)")
         loss.backward()
         lap("loss backward")
@@ -226,6 +229,25 @@ def bench_paths(rows, trainer):
                          f"{times[path] / times['cpp']:.2f}", inter])
 
 
+def bench_loss(rows, repeat: int = 7) -> None:
+    """The L1 + SSIM loss, value and gradient, at both sizes: the torch reference against the C++ kernel."""
+    g = torch.Generator().manual_seed(0)
+    for width, height in SIZES:
+        x = torch.rand(3, height, width, generator=g).requires_grad_(True)
+        y = torch.rand(3, height, width, generator=g)
+        times: dict[str, list[float]] = {"torch": [], "cpp": []}
+        for it in range(repeat + 1):
+            for backend in (("torch", "cpp") if it % 2 else ("cpp", "torch")):
+                x.grad = None
+                start = time.perf_counter()
+                photometric_loss(x, y, backend=backend, num_threads=KERNEL_THREADS).backward()
+                if it:
+                    times[backend].append(time.perf_counter() - start)
+        med = {k: float(np.median(v)) for k, v in times.items()}
+        rows.append([f"{width}x{height}", f"{1000 * med['torch']:.1f}", f"{1000 * med['cpp']:.1f}",
+                     f"{med['torch'] / med['cpp']:.1f}"])
+
+
 def bench_quality(rows, iters: int = 300, size_wh=(128, 96)):
     from data_synth import render_scene
     from mvgeo.common.imageio import read_image
@@ -269,6 +291,8 @@ def main(argv: list[str]) -> int:
         return 0
     path_rows: list[list[object]] = []
     bench_paths(path_rows, trainer)
+    loss_rows: list[list[object]] = []
+    bench_loss(loss_rows)
     quality_rows: list[list[object]] = []
     bench_quality(quality_rows)
     body = (
@@ -283,9 +307,13 @@ def main(argv: list[str]) -> int:
         "nearest-neighbour scales), seen from a training view.\n\n" + prof_text +
         f"\n### Forward + backward per iteration, {N_GAUSSIANS} Gaussians\n\n"
         "Activations, render (SH degree 3), L1 + SSIM loss and backward; no optimizer step. "
-        "`torch proj+bin`: torch projection and tile binning with the C++ SH and compositor.\n\n"
+        "`torch proj+bin`: torch projection and tile binning with the C++ SH, compositor and loss.\n\n"
         + md_table(["scene", "Gaussians", "size", "path", "s / iteration", "ratio to cpp", "intersections"],
                    path_rows) +
+        "\n### The L1 + SSIM loss: value and gradient\n\n"
+        "`photometric_loss(..., backend=...)` forward + backward on a random image pair: the torch reference "
+        f"(torch single-threaded) against the fused C++ kernel ({KERNEL_THREADS} threads).\n\n"
+        + md_table(["size", "torch ms", "C++ ms", "ratio"], loss_rows) +
         "\n### Quality: the same short training with each path\n\n"
         "`llff_like_clean`, 12 training views, ground-truth poses, no densification; held-out PSNR "
         "against the clean test views.\n\n"

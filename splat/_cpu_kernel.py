@@ -1,6 +1,7 @@
 """Build (once, cached), check and call the C++ CPU kernels: the compositor in `csrc/composite.cpp`,
-the spherical-harmonics colour in `csrc/sh.cpp`, the projection in `csrc/projection.cpp` and the
-tile binning in `csrc/tiles.cpp` (C API: `csrc/kernel_api.h`).
+the spherical-harmonics colour in `csrc/sh.cpp`, the projection in `csrc/projection.cpp`, the
+tile binning in `csrc/tiles.cpp` and the L1 + SSIM training loss in `csrc/ssim.cpp` (C API:
+`csrc/kernel_api.h`).
 
 The kernels are plain C++17 without torch headers, compiled (into one library) with the system
 `g++` (or `$CXX`) into `~/.cache/denoise-gs/splat/<hash>/` (`$XDG_CACHE_HOME` is honoured;
@@ -40,7 +41,8 @@ import torch
 _log = logging.getLogger(__name__)
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-_SOURCES = [_CSRC / name for name in ("composite.cpp", "sh.cpp", "projection.cpp", "tiles.cpp", "abi.cpp")]
+_SOURCES = [_CSRC / name for name in ("composite.cpp", "sh.cpp", "projection.cpp", "tiles.cpp", "ssim.cpp",
+                                       "abi.cpp")]
 _HEADERS = [_CSRC / "kernel_api.h"]
 _FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-pthread"]
 _LIB_NAME = "libsplat_kernels.so"
@@ -66,6 +68,8 @@ def _kernel_signatures() -> dict[str, tuple[str, ...]]:
             ("i64",) + (p,) * 6 + ("i64", "i64", "f64", "f64", "f64", "i32") + (p,) * 10 + ("i32",))
         table[f"splat_tiles_count_{t}"] = ("i64", p, p, "i32*") + ("i64",) * 5 + ("i64*",)
         table[f"splat_tiles_fill_{t}"] = ("i64", p, p, p, "i32*") + ("i64",) * 5 + ("i64*", "i64*")
+        table[f"splat_photometric_loss_{t}"] = (
+            ("i64",) * 3 + (p, p, "f64*", "i64", "f64", "f64", "f64", p, "f64*", p, "i32"))
     return table
 
 
@@ -373,3 +377,40 @@ def tiles_bin(means2d, extents, depths, visible, width: int, height: int, tile_s
     getattr(lib, f"splat_tiles_fill_{sfx}")(n, _p(means2d), _p(extents), _p(depths), _p(visible), width, height,
                                             tile_size, tiles_x, tiles_y, _p(tile_offsets), _p(gaussian_ids))
     return gaussian_ids, tile_offsets
+
+
+#: Workspace buffers of `photometric_loss`, reused across calls of one shape (one per thread).
+_workspace = threading.local()
+
+
+def photometric_loss(rendered: torch.Tensor, target: torch.Tensor, *, taps: torch.Tensor, c1: float, c2: float,
+                     ssim_weight: float, need_grad: bool, num_threads: int | None = None):
+    """`(1 - w) L1 + w (1 - SSIM)` and its gradient by `rendered` (`csrc/ssim.cpp`).
+
+    Args:
+        rendered, target: (C, H, W) contiguous CPU tensors of one float dtype.
+        taps: (K,) contiguous CPU float64 window taps (K odd), applied along rows and columns with
+            half-sample symmetric borders.
+        c1, c2: SSIM's stabilising constants; ssim_weight: `w`.
+        need_grad: also compute the gradient.
+
+    Returns:
+        (l1 mean, SSIM mean) as Python floats (float64 sums), and the (C, H, W) gradient of the
+        loss by `rendered` (None unless `need_grad`).
+    """
+    lib = load()
+    if taps.dtype != torch.float64 or taps.dim() != 1 or not taps.is_contiguous() or taps.numel() % 2 != 1:
+        raise ValueError("taps must be a contiguous 1-D float64 tensor of odd length")
+    C, H, W = rendered.shape
+    dt = rendered.dtype
+    key = (C, H, W, dt)
+    ws = getattr(_workspace, "buf", None)
+    if ws is None or getattr(_workspace, "key", None) != key:
+        ws = torch.empty(11 * C * H * W, dtype=dt)
+        _workspace.buf, _workspace.key = ws, key
+    terms = torch.zeros(2, dtype=torch.float64)
+    grad = torch.empty_like(rendered) if need_grad else None
+    getattr(lib, f"splat_photometric_loss_{_suffix(dt)}")(
+        C, H, W, _p(rendered), _p(target), _p(taps), taps.numel(), c1, c2, ssim_weight, _p(ws), _p(terms),
+        _p(grad) if grad is not None else None, _threads(num_threads))
+    return float(terms[0]), float(terms[1]), grad

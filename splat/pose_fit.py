@@ -86,7 +86,7 @@ def _fit_pose(model, image, camera, cam_from_world_init, iters, cfg: PoseFitConf
         for _ in range(n_iters):
             opt.zero_grad(set_to_none=True)
             out = model.render(se3_exp(delta) @ base, K, camera.width, camera.height, background=bg, config=raster)
-            loss = photometric_loss(out.rgb, target, ssim_weight=cfg.ssim_weight)
+            loss = photometric_loss(out.rgb, target, ssim_weight=cfg.ssim_weight, num_threads=raster.num_threads)
             loss.backward()
             opt.step()
             sched.step()

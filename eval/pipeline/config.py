@@ -35,7 +35,8 @@ class DenoiseSettings:
             "n2v" (default, the paper's), "neighbor2neighbor" or "r2r" (docs/bench/denoise_real.md).
             Rounds >= 2 fine-tune a blind-spot network, so the other two run with `rounds=1` only.
         n2v_steps: training steps; None keeps the preset's.
-        passes: inference maskings averaged per image (the paper's K).
+        passes: inference maskings averaged per image (the paper's K); 0 runs one pass on the
+            unmasked image (`denoise.inference.denoise_images`).
         round2_preset: name of a `denoise` round-2 fine-tuning preset.
         round2_steps: fine-tuning steps; None keeps the preset's.
         round2_loss: "joint" (the paper's loss) or "charbonnier" (Table 2 ablation).
@@ -120,6 +121,14 @@ class PipelineConfig:
             PSNR and lowered the LPIPS of the paper's loop (docs/bench/pipeline.md,
             docs/bench/pipeline_demo.md). `denoise-gs eval`'s `n2v_round1` and `denoise_gs` keep the
             paper's loop (off); `n2v_fused_round1` and `denoise_gs_fused` turn it on.
+        reuse_noisy_splat: with `fuse_noisy_splat`, rounds >= 2 only (round 1's stage keys ignore it):
+            when the round's alignment of its views is the previous round's (cameras and cam_from_world
+            equal up to float64 round-off, the same points; `AlignSettings.reuse_geometry` hands it
+            over) and its noisy photos are the same, the fuse stage takes the previous round's renders
+            of the noisy-photo splat for its views instead of training a new one on a subset of the
+            same photos with the same start (the previous splat saw these views and more). Saves one
+            splat training per such round; False trains every round (`eval.pipeline.stages.fuse`,
+            docs/bench/pipeline_schedule.md).
         device: torch device for the networks and the splatting ("cpu", "cuda").
         max_size: long side in pixels of the working images (`--max-size`): larger inputs are
             downscaled once, with the area filter, before any stage (`eval.pipeline.inputs`);
@@ -132,6 +141,7 @@ class PipelineConfig:
     seed: int = 0
     select_views: bool = True
     fuse_noisy_splat: bool = False
+    reuse_noisy_splat: bool = True
     device: str = "cpu"
     max_size: int | None = 512
     denoise: DenoiseSettings = field(default_factory=DenoiseSettings)
@@ -143,8 +153,9 @@ class PipelineConfig:
             raise ConfigError(f"must be at least 2, got {self.views}", key="views", expected="an integer >= 2")
         if self.rounds < 1:
             raise ConfigError(f"must be at least 1, got {self.rounds}", key="rounds", expected="an integer >= 1")
-        if self.denoise.passes < 1:
-            raise ConfigError(f"must be at least 1, got {self.denoise.passes}", key="denoise.passes")
+        if self.denoise.passes < 0:
+            raise ConfigError(f"must be at least 0, got {self.denoise.passes}", key="denoise.passes",
+                              expected="an integer >= 0 (0: one pass on the unmasked image)")
         if self.denoise.method not in DENOISE_METHODS:
             raise ConfigError(f"unknown method {self.denoise.method!r}", key="denoise.method",
                               expected=" or ".join(map(repr, DENOISE_METHODS)))
@@ -189,7 +200,8 @@ class PipelineConfig:
 #:   2000-iteration splat, with the fusion.
 #:
 #: All three keep the better-determined focal length and poses across rounds
-#: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`).
+#: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and, when a round keeps the previous round's
+#: poses, the previous round's noisy-photo splat (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md).
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         fuse_noisy_splat=True,

@@ -4,7 +4,8 @@ A stage gets the configuration objects its components run with: the round-1 deno
 `denoise.n2v.N2VConfig` (the preset named by `DenoiseSettings.n2v_preset` with the setting's
 overrides), the align stage the `mvgeo.align.AlignConfig`, the fuse and splat stages the
 `splat.train.TrainConfig`, the refine stage the `denoise.round2.Round2Config`, each with the few
-run-level values it needs (device, inference passes, K). What a stage runs is what its key hashes
+run-level values it needs (device, inference passes, K, and for the fuse stage of rounds >= 2
+`PipelineConfig.reuse_noisy_splat`). What a stage runs is what its key hashes
 (`eval.pipeline.stage.settings_json`): a changed preset default re-runs the stages that use it and
 the stages after them, and a setting a stage does not use is not in its key (round 2's loss does
 not re-run round 1).
@@ -39,7 +40,7 @@ if TYPE_CHECKING:
     from mvgeo.align import AlignConfig
     from splat.train import TrainConfig
 
-__all__ = ["ALIGN_PRESETS", "AlignStageSettings", "DenoiseStageSettings", "InputsStageSettings",
+__all__ = ["ALIGN_PRESETS", "AlignStageSettings", "DenoiseStageSettings", "FuseStageSettings", "InputsStageSettings",
            "RefineStageSettings", "RenderStageSettings", "RoundSettings", "SelectStageSettings",
            "SplatStageSettings", "align_config", "check_settings", "n2v_config", "round2_config",
            "round_settings", "stage_seed", "train_config"]
@@ -75,7 +76,7 @@ class DenoiseStageSettings:
 
     Attributes:
         n2v: the UNet's training configuration (its `method` is round 1's objective).
-        passes: inference maskings averaged per image.
+        passes: inference maskings averaged per image; 0: one pass on the unmasked image.
         device: torch device.
     """
 
@@ -90,7 +91,7 @@ class RefineStageSettings:
 
     Attributes:
         round2: the fine-tuning configuration (loss, steps).
-        passes: inference maskings averaged per image.
+        passes: inference maskings averaged per image; 0: one pass on the unmasked image.
         device: torch device.
     """
 
@@ -116,7 +117,7 @@ class AlignStageSettings:
 
 @dataclass(frozen=True)
 class SplatStageSettings:
-    """The splat stage, and the fuse stage (which trains a splat of the noisy photos).
+    """The splat stage.
 
     Attributes:
         train: the training configuration, seed included.
@@ -125,6 +126,22 @@ class SplatStageSettings:
 
     train: TrainConfig
     device: str
+
+
+@dataclass(frozen=True)
+class FuseStageSettings:
+    """The fuse stage (`PipelineConfig.fuse_noisy_splat`), which trains a splat of the noisy photos.
+
+    Attributes:
+        train: the noisy-photo splat's training configuration, seed included.
+        device: torch device.
+        reuse_noisy_splat: `PipelineConfig.reuse_noisy_splat`; None in round 1, which has no previous
+            round (so that changing it never re-runs round 1).
+    """
+
+    train: TrainConfig
+    device: str
+    reuse_noisy_splat: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -158,7 +175,7 @@ class RoundSettings:
     denoise: DenoiseStageSettings | None = None  # round 1
     select: SelectStageSettings | None = None  # rounds >= 2
     refine: RefineStageSettings | None = None  # rounds >= 2
-    fuse: SplatStageSettings | None = None  # with `PipelineConfig.fuse_noisy_splat`
+    fuse: FuseStageSettings | None = None  # with `PipelineConfig.fuse_noisy_splat`
 
 
 def _replace_given(cfg, **changes):
@@ -244,7 +261,8 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
     align = AlignStageSettings(align_config(config.align, seed=seed("align")),
                                reuse_intrinsics=config.align.reuse_intrinsics if later else None,
                                reuse_geometry=config.align.reuse_geometry if later else None)
-    fuse = SplatStageSettings(train_config(config.splat, seed=seed("fuse")), config.device) \
+    fuse = FuseStageSettings(train_config(config.splat, seed=seed("fuse")), config.device,
+                             reuse_noisy_splat=config.reuse_noisy_splat if later else None) \
         if config.fuse_noisy_splat else None
     return RoundSettings(
         index=r, align=align, fuse=fuse,

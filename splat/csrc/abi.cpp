@@ -54,7 +54,9 @@ const std::string& table() {
                                   SPLAT_SIGNATURE(splat_project_backward_f32) +
                                   SPLAT_SIGNATURE(splat_project_backward_f64) +
                                   SPLAT_SIGNATURE(splat_tiles_count_f32) + SPLAT_SIGNATURE(splat_tiles_count_f64) +
-                                  SPLAT_SIGNATURE(splat_tiles_fill_f32) + SPLAT_SIGNATURE(splat_tiles_fill_f64);
+                                  SPLAT_SIGNATURE(splat_tiles_fill_f32) + SPLAT_SIGNATURE(splat_tiles_fill_f64) +
+                                  SPLAT_SIGNATURE(splat_photometric_loss_f32) +
+                                  SPLAT_SIGNATURE(splat_photometric_loss_f64);
   return text;
 }
 

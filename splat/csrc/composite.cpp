@@ -5,7 +5,8 @@
 // The maths is the same as splat/composite.py::_composite_tiles_torch (the
 // reference the tests compare against) and as gsplat's rasterize_to_pixels:
 //   pixel (row, col) is evaluated at (col + 0.5, row + 0.5);
-//   sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with d = mean - pixel;
+//   sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with d = mean - pixel (evaluated per row as
+//   dx (a dx / 2 + b dy) + c dy^2 / 2, the same in both passes);
 //   alpha = min(alpha_max, opacity * exp(-sigma)); skipped when sigma < 0 or
 //   alpha < alpha_min; a pixel stops before the Gaussian that would bring the
 //   transmittance to <= transmittance_min.
@@ -136,12 +137,15 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t w
       for (int32_t r = bx.r0; r <= bx.r1; ++r) {
         const T py = T(row_lo + r) + T(0.5);
         const T dy = gk[1] - py;
+        // Row constants of sigma = dx (a dx / 2 + b dy) + c dy^2 / 2 (the same expression in the backward
+        // pass, so both make the same alpha decisions).
+        const T half_a = T(0.5) * gk[2], b_dy = gk[3] * dy, c_term = T(0.5) * gk[4] * dy * dy;
         for (int32_t cc = bx.c0; cc <= bx.c1; ++cc) {
           const int64_t p = int64_t(r) * tw + cc;
           if (done[p]) continue;
           const T px = T(col_lo + cc) + T(0.5);
           const T dx = gk[0] - px;
-          const T sigma = T(0.5) * (gk[2] * dx * dx + gk[4] * dy * dy) + gk[3] * dx * dy;
+          const T sigma = dx * (half_a * dx + b_dy) + c_term;
           if (sigma < T(0) || sigma > gk[6]) continue;
           const T alpha = std::min(alpha_max, gk[5] * std::exp(-sigma));
           if (alpha < alpha_min) continue;
@@ -215,19 +219,22 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
       const T* gk = &g[kStride * k];
       const int64_t j = begin + k;
       const T* col_k = colors + C * gaussian_ids[j];
-      // Sums over the box in registers (row-major pixel order, as a per-pixel loop would add them).
+      // Sums over the box in registers, row by row in row-major order (independent of the thread count).
       T gm0 = T(0), gm1 = T(0), gc0 = T(0), gc1 = T(0), gc2 = T(0), go = T(0);
       T* row = g_rows + j * (6 + C);  // this row belongs to this tile only; starts at zero
       T* gcol = row + 6;
       for (int32_t r = bx.r0; r <= bx.r1; ++r) {
         const T py = T(row_lo + r) + T(0.5);
         const T dy = gk[1] - py;
+        const T half_a = T(0.5) * gk[2], b_dy = gk[3] * dy, c_term = T(0.5) * gk[4] * dy * dy;
+        // Per-row sums of d_sigma, d_sigma dx and d_sigma dx^2; the row's dy enters once at its end.
+        T s0 = T(0), s1 = T(0), s2 = T(0);
         for (int32_t cc = bx.c0; cc <= bx.c1; ++cc) {
           const int64_t p = int64_t(r) * tw + cc;
           if (k >= stop[p]) continue;
           const T px = T(col_lo + cc) + T(0.5);
           const T dx = gk[0] - px;
-          const T sigma = T(0.5) * (gk[2] * dx * dx + gk[4] * dy * dy) + gk[3] * dx * dy;
+          const T sigma = dx * (half_a * dx + b_dy) + c_term;
           if (sigma < T(0) || sigma > gk[6]) continue;
           const T e = std::exp(-sigma);
           const T raw = gk[5] * e;
@@ -249,12 +256,16 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
           if (raw > alpha_max) continue;  // clamped: no gradient to opacity / sigma
           go += d_alpha * e;
           const T d_sigma = -alpha * d_alpha;
-          gc0 += d_sigma * T(0.5) * dx * dx;
-          gc1 += d_sigma * dx * dy;
-          gc2 += d_sigma * T(0.5) * dy * dy;
-          gm0 += d_sigma * (gk[2] * dx + gk[3] * dy);
-          gm1 += d_sigma * (gk[3] * dx + gk[4] * dy);
+          s0 += d_sigma;
+          s1 += d_sigma * dx;
+          s2 += d_sigma * dx * dx;
         }
+        // d sigma / d(a, b, c) = (dx^2 / 2, dx dy, dy^2 / 2); d sigma / d mean = (a dx + b dy, b dx + c dy).
+        gc0 += T(0.5) * s2;
+        gc1 += dy * s1;
+        gc2 += T(0.5) * dy * dy * s0;
+        gm0 += gk[2] * s1 + gk[3] * dy * s0;
+        gm1 += gk[3] * s1 + gk[4] * dy * s0;
       }
       row[0] = gm0;
       row[1] = gm1;

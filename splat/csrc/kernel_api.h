@@ -1,5 +1,5 @@
 // The C API of the splat CPU kernels: every function the Python side calls through ctypes
-// (splat/_cpu_kernel.py). composite.cpp, sh.cpp, projection.cpp and tiles.cpp include this header, so a definition that
+// (splat/_cpu_kernel.py). composite.cpp, sh.cpp, projection.cpp, tiles.cpp and ssim.cpp include this header, so a definition that
 // drifts from its declaration does not compile (two C-linkage functions of one name); abi.cpp
 // exports the ABI version and a signature table generated from these declarations, which the
 // Python side compares with its own table before the first call.
@@ -53,7 +53,11 @@
   extern "C" void splat_tiles_fill_##SUFFIX(int64_t n, const T* means2d, const T* extents, const T* depths, \
                                             const int32_t* visible, int64_t width, int64_t height,       \
                                             int64_t tile_size, int64_t tiles_x, int64_t tiles_y,         \
-                                            const int64_t* tile_offsets, int64_t* gaussian_ids);
+                                            const int64_t* tile_offsets, int64_t* gaussian_ids);     \
+  extern "C" void splat_photometric_loss_##SUFFIX(int64_t C, int64_t H, int64_t W, const T* rendered,   \
+                                                  const T* target, const double* taps, int64_t K,        \
+                                                  double c1, double c2, double ssim_weight, T* workspace, \
+                                                  double* out_terms, T* grad, int32_t num_threads);
 
 SPLAT_DECLARE_KERNELS(float, f32)
 SPLAT_DECLARE_KERNELS(double, f64)
