@@ -122,7 +122,9 @@ def main(argv: list[str]) -> int:
         f"`denoise-gs eval {SCENE} --methods denoise_gs_fused --seeds 1` per configuration: both rounds "
         "with the noisy-photo fusion, then held-out pose fitting and scoring against the clean test views. "
         "`pipeline min`: the stages' recorded time (the user's wait for `denoise-gs run`); `eval min`: "
-        "the whole evaluation. 2 shared CPU cores; the load column says how busy the machine was.\n\n"
+        "the whole evaluation. 2 shared CPU cores; the load column says how busy the machine was. "
+        "Goal: `default` at 504x378 with 17 views in 15 minutes or less. Before/after figures for the "
+        "changes that set these times, with their quality A/B runs: docs/bench/pipeline_schedule.md.\n\n"
         + md_table(["preset", "size", "training views", "pipeline min", "eval min", "PSNR", "SSIM", "LPIPS",
                     "load before -> after"], rows)
         + "\n### Per run\n" + details

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from denoise.images import image_to_tensor, images_to_tensors, tensor_to_image
-from denoise.inference import CLEAN_SIGMA, NoiseModel, denoise_images, predict_tiled
+from denoise.inference import CLEAN_SIGMA, MARGIN_PX, TILE_PX, NoiseModel, denoise_images, predict_tiled
 from denoise.losses import neighbor2neighbor_loss
 from denoise.model import N2VModel
 from denoise.n2v import N2VConfig, new_model, optimise_unet, train_n2v
@@ -131,8 +131,8 @@ def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, se
     return optimise_unet(model, config, step_loss, desc=config.method)
 
 
-def denoise_one_pass(model: N2VModel, images: Sequence[np.ndarray], *, tile_px: int = 256, margin_px: int = 48,
-                     clean_sigma: float = CLEAN_SIGMA) -> list[np.ndarray]:
+def denoise_one_pass(model: N2VModel, images: Sequence[np.ndarray], *, tile_px: int = TILE_PX,
+                     margin_px: int = MARGIN_PX, clean_sigma: float = CLEAN_SIGMA) -> list[np.ndarray]:
     """One pass of a non-blind network over each whole image (Neighbor2Neighbor, multi-view Noise2Noise).
 
     Images whose estimated noise is below `clean_sigma` are returned unchanged (clipped).
@@ -152,7 +152,7 @@ def denoise_one_pass(model: N2VModel, images: Sequence[np.ndarray], *, tile_px: 
 
 def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N2VConfig, *, passes: int = 8,
                         seed: int = 0, noise_sigma: float | Sequence[float] | None = None,
-                        tile_px: int = 256, margin_px: int = 48, clean_sigma: float = CLEAN_SIGMA,
+                        tile_px: int = TILE_PX, margin_px: int = MARGIN_PX, clean_sigma: float = CLEAN_SIGMA,
                         noise_model: NoiseModel = "auto") -> list[np.ndarray]:
     """Denoise `images` with a model trained by ``config.method``.
 

@@ -122,12 +122,11 @@ class PipelineConfig:
             docs/bench/pipeline_demo.md). `denoise-gs eval`'s `n2v_round1` and `denoise_gs` keep the
             paper's loop (off); `n2v_fused_round1` and `denoise_gs_fused` turn it on.
         reuse_noisy_splat: with `fuse_noisy_splat`, rounds >= 2 only (round 1's stage keys ignore it):
-            when the round's alignment of its views is the previous round's (cameras and cam_from_world
-            equal up to float64 round-off, the same points; `AlignSettings.reuse_geometry` hands it
-            over) and its noisy photos are the same, the fuse stage takes the previous round's renders
-            of the noisy-photo splat for its views instead of training a new one on a subset of the
-            same photos with the same start (the previous splat saw these views and more). Saves one
-            splat training per such round; False trains every round (`eval.pipeline.stages.fuse`,
+            when the round's noisy photos are the previous round's, the fuse stage takes the previous
+            round's renders of the noisy-photo splat for its views (each a reproduction of that
+            view's photo at its own optimised pose, trained on these views and more) instead of
+            training a new splat on the subset, whatever this round's alignment. Saves one splat
+            training per round; False trains every round (`eval.pipeline.stages.noisy_splat_reuse`,
             docs/bench/pipeline_schedule.md).
         device: torch device for the networks and the splatting ("cpu", "cuda").
         max_size: long side in pixels of the working images (`--max-size`): larger inputs are
@@ -200,8 +199,8 @@ class PipelineConfig:
 #:   2000-iteration splat, with the fusion.
 #:
 #: All three keep the better-determined focal length and poses across rounds
-#: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and, when a round keeps the previous round's
-#: poses, the previous round's noisy-photo splat (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md).
+#: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and the previous round's noisy-photo splat
+#: renders (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md).
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         fuse_noisy_splat=True,

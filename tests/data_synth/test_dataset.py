@@ -14,6 +14,7 @@ from data_synth import load_scene, parse_scene, render_scene
 from data_synth.scene_file import scene_to_toml
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
+from mvgeo.common.output import MANIFEST_NAME
 from mvgeo.sparse_model import read_sparse_model
 from tests.data_synth.conftest import TINY_SCENE, write_scene
 
@@ -29,8 +30,9 @@ strength = 0.2
 
 
 def _digest(folder: Path) -> dict[str, str]:
+    """sha256 of every data file; meta.json (timings) and the output manifest (creation time) excluded."""
     return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != "meta.json"}
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name not in ("meta.json", MANIFEST_NAME)}
 
 
 def test_layout_and_contents(tiny_scene_file, tmp_path):

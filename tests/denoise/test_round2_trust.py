@@ -12,6 +12,7 @@ from denoise.round2 import (
     joint_loss,
     refine_round2,
     render_trust_target,
+    spread_cells,
 )
 from denoise.unet import UNetConfig
 from mvgeo.common.errors import ConfigError
@@ -85,6 +86,47 @@ def test_blind_spot_loss_estimates_noise_plus_error(rng):
     # 48*48*3 = 6912 samples: the noise term's sampling std is sigma^2 sqrt(2/6912) ~ 1.7% of sigma^2,
     # plus clipping of the noisy image at 0/1 (few pixels in [0.1, 0.9]); 10% of sigma^2 is ~6 std.
     assert est == pytest.approx(sigma**2 + mse, abs=0.1 * sigma**2)
+
+
+def test_jinvariant_cells_equal_the_full_prediction_there(rng):
+    noisy = [add_noise(rng, smooth_scene(rng, 30, 35), 0.1)]
+    model = _tiny_model(rng, noisy)
+    y = _t(noisy[0]).float()
+    full = jinvariant_predict(model, y, generator=torch.Generator().manual_seed(5))
+    cells = [(0, 0), (3, 1), (4, 4)]
+    part = jinvariant_predict(model, y, cells=cells, generator=torch.Generator().manual_seed(5))
+    rows = torch.arange(30)[:, None] % 5
+    cols = torch.arange(35)[None, :] % 5
+    run = torch.zeros(30, 35, dtype=torch.bool)
+    for a, b in cells:
+        run |= (rows == a) & (cols == b)
+    # Bit for bit on the selected cells (each skipped pass still draws its replacements), NaN elsewhere.
+    assert torch.equal(part[..., run], full[..., run])
+    assert torch.isnan(part[..., ~run]).all() and not torch.isnan(full).any()
+
+
+def test_spread_cells_cover_every_grid_row_and_column():
+    five = spread_cells(5)
+    assert sorted(a for a, _ in five) == list(range(5)) and sorted(b for _, b in five) == list(range(5))
+    every = spread_cells(25)
+    assert len(set(every)) == 25
+    with pytest.raises(ValueError):
+        spread_cells(26)
+    with pytest.raises(ConfigError, match="guard_cells"):
+        Round2Config(guard_cells=0)
+
+
+def test_blind_spot_loss_on_a_fifth_of_the_cells_tracks_the_full_one(rng):
+    # The guard scores 5 of the 25 cells. On the same seed the subset mean is a sample of the full
+    # mean's per-pixel terms: 48*48*3/5 = 1382 values; their relative sampling std for the noise
+    # term is sqrt(2/1382) ~ 3.8%, so 15% is ~4 std.
+    sigma = 0.1
+    noisy = [add_noise(rng, smooth_scene(rng, 48, 48), sigma) for _ in range(2)]
+    model = _tiny_model(rng, noisy)
+    ys = [torch.from_numpy(n.transpose(2, 0, 1).copy()) for n in noisy]
+    full = blind_spot_loss(model, ys, seed=2)
+    part = blind_spot_loss(model, ys, seed=2, cells=spread_cells(5))
+    assert part == pytest.approx(full, rel=0.15)
 
 
 def test_refine_guard_reverts_when_targets_are_wrong(rng):
