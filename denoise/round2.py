@@ -226,13 +226,23 @@ def blind_spot_loss(model: N2VModel, noisy: Sequence[Tensor], *, seed: int = 0,
                     cells: Sequence[tuple[int, int]] | None = None) -> float:
     """Mean ``(y - f_J(y))^2`` over the views: the self-supervised estimate of ``sigma^2 + MSE`` vs clean.
 
-    `noisy` holds ``[3, H, W]`` tensors; `f_J` is `jinvariant_predict` with a fixed seed, so two
-    models are compared on the same replacements; `cells` restricts the mean to those grid
-    cells' pixels (the same for both models).
+    `noisy` holds ``[3, H, W]`` tensors; `f_J` is `jinvariant_predict` (stride
+    `JINVARIANT_STRIDE`) with a fixed seed, so two models are compared on the same replacements;
+    `cells` restricts the mean to those grid cells' pixels (the same for both models).
     """
     gen = torch.Generator(device=noisy[0].device).manual_seed(seed)
-    vals = [float(torch.nanmean((jinvariant_predict(model, y[None], cells=cells, generator=gen) - y[None]) ** 2))
-            for y in noisy]
+    vals = []
+    for y in noisy:
+        sq = (jinvariant_predict(model, y[None], cells=cells, generator=gen) - y[None]) ** 2
+        if cells is not None:  # the scored cells only; a NaN the network produces there stays NaN
+            h, w = y.shape[-2:]
+            rows = torch.arange(h, device=y.device)[:, None] % JINVARIANT_STRIDE
+            cols = torch.arange(w, device=y.device)[None, :] % JINVARIANT_STRIDE
+            scored = torch.zeros(h, w, dtype=torch.bool, device=y.device)
+            for a, b in cells:
+                scored |= (rows == a % JINVARIANT_STRIDE) & (cols == b % JINVARIANT_STRIDE)
+            sq = sq[..., scored]
+        vals.append(float(sq.mean()))
     return float(np.mean(vals))
 
 
@@ -294,7 +304,7 @@ def refine_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders: 
         cells = spread_cells(cfg.guard_cells)
         report.loss_before = blind_spot_loss(model, noisy_t, seed=seed + 1, cells=cells)
         report.loss_after = blind_spot_loss(tuned, noisy_t, seed=seed + 1, cells=cells)
-        if report.loss_after > report.loss_before:
+        if not report.loss_after <= report.loss_before:  # a NaN loss reverts too
             report.reverted = True
             return model, report
     return tuned, report

@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from mvgeo.image_filters import gaussian_kernel1d
 from mvgeo.image_metrics import SSIM_SIGMA_PX, SSIM_WINDOW_PX, ssim
@@ -60,11 +61,11 @@ def photometric_loss(rendered: torch.Tensor, target: torch.Tensor, *, ssim_weigh
 def _use_cpp(rendered: torch.Tensor, target: torch.Tensor, *, required: bool) -> bool:
     ok = (rendered.device.type == "cpu" and target.device.type == "cpu" and rendered.dim() == 3
           and rendered.shape == target.shape and rendered.dtype in (torch.float32, torch.float64)
-          and not target.requires_grad)
+          and target.dtype == rendered.dtype and not target.requires_grad)
     if not ok:
         if required:
-            raise ValueError("backend='cpp' needs (C, H, W) CPU float32/float64 tensors of one shape and a "
-                             "target without gradient, got "
+            raise ValueError("backend='cpp' needs (C, H, W) CPU float32/float64 tensors of one shape and dtype "
+                             "and a target without gradient, got "
                              f"{tuple(rendered.shape)} {rendered.dtype} {rendered.device} and "
                              f"{tuple(target.shape)} {target.dtype} {target.device}")
         return False
@@ -84,15 +85,16 @@ class _PhotometricLossCpp(torch.autograd.Function):
         from splat import _cpu_kernel
 
         x = rendered.detach().contiguous()
-        y = target.detach().to(x.dtype).contiguous()
+        y = target.detach().contiguous()
         l1, s, grad = _cpu_kernel.photometric_loss(
             x, y, taps=_TAPS, c1=_SSIM_C1, c2=_SSIM_C2, ssim_weight=ssim_weight,
-            need_grad=rendered.requires_grad, num_threads=num_threads)
+            need_grad=ctx.needs_input_grad[0], num_threads=num_threads)
         ctx.save_for_backward(grad if grad is not None else torch.empty(0))
         value = (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - s)
         return torch.tensor(value, dtype=rendered.dtype)
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_out):
         (grad,) = ctx.saved_tensors
         return grad * grad_out, None, None, None

@@ -122,8 +122,9 @@ TRAIN_PRESETS: dict[str, TrainConfig] = {
 
 
 #: The parts of the "optimize" stage in `TrainResult.timings_s` (keys "optimize/<name>"), seconds summed
-#: over the steps: "render" (pose composition and `GaussianModel.render`), "loss" (the photometric loss
-#: forward), "backward" (zeroing gradients and the backward pass through loss and render), "optimizer"
+#: over the steps: "render" (pose composition and `GaussianModel.render`), "loss" (the photometric loss;
+#: its C++ kernel computes the loss's gradient here too), "backward" (zeroing gradients and the backward
+#: pass through the render, plus the loss's own backward on the torch path), "optimizer"
 #: (learning-rate schedule and Adam step), "densify" (statistics and clone/split/prune; 0 when off),
 #: "bookkeeping" (view order, history with its PSNR, progress bar), "callback" (the caller's `on_step`).
 OPTIMIZE_SUBSTEPS = ("render", "loss", "backward", "optimizer", "densify", "bookkeeping", "callback")

@@ -113,14 +113,14 @@ class PipelineConfig:
         seed: master seed; each stage derives its own from (seed, round, stage).
         select_views: False = rounds >= 2 use every view (Table 2 ablation).
         fuse_noisy_splat: extension, not in the paper: each round's splat trains on the average of the
-            denoised photo and the render, at its view, of a splat trained on the *noisy* photos with
+            denoised photo and the render, at its view, of a splat trained on the *noisy* photos from
             the same alignment (`eval.pipeline.stages.fuse`). The two estimates of the clean image err
             differently (the denoiser removes fine texture; the splat of the noisy photos keeps it and
-            averages the noise across views), so their mean is better than either. Costs one more
-            splat training per round. On in every preset: on the scenes measured it raised the held-out
-            PSNR and lowered the LPIPS of the paper's loop (docs/bench/pipeline.md,
-            docs/bench/pipeline_demo.md). `denoise-gs eval`'s `n2v_round1` and `denoise_gs` keep the
-            paper's loop (off); `n2v_fused_round1` and `denoise_gs_fused` turn it on.
+            averages the noise across views), so their mean is better than either. Costs one more splat
+            training in round 1; later rounds reuse its renders (`reuse_noisy_splat`). On in every preset:
+            on the scenes measured it raised the held-out PSNR and lowered the LPIPS of the paper's loop
+            (docs/bench/pipeline.md, docs/bench/pipeline_demo.md). `denoise-gs eval`'s `n2v_round1` and
+            `denoise_gs` keep the paper's loop (off); `n2v_fused_round1` and `denoise_gs_fused` turn it on.
         reuse_noisy_splat: with `fuse_noisy_splat`, rounds >= 2 only (round 1's stage keys ignore it):
             when the round's noisy photos are the previous round's, the fuse stage takes the previous
             round's renders of the noisy-photo splat for its views (each a reproduction of that

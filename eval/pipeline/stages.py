@@ -42,7 +42,7 @@ from eval.pipeline.calibration import (
 )
 from eval.pipeline.hashing import file_sha256
 from eval.pipeline.stage import StageContext, StageFn
-from eval.pipeline.stage_settings import SplatStageSettings
+from eval.pipeline.stage_settings import FuseStageSettings, SplatStageSettings
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.align.stats import AlignStats
 from mvgeo.common.errors import DegenerateGeometryError
@@ -203,7 +203,7 @@ def _align_with_previous_calibration(align_images, files: list[Path], cfg, previ
     return res
 
 
-def _train_splat(images_dir: Path, align_dir: Path, s: SplatStageSettings):
+def _train_splat(images_dir: Path, align_dir: Path, s: SplatStageSettings | FuseStageSettings):
     """(training result, alignment's sparse model, view stems): a splat on `images_dir`'s views,
     initialised from the alignment in `align_dir`."""
     from splat.train import train_gaussians
@@ -272,6 +272,8 @@ def noisy_splat_reuse(views: Sequence[str], *, noisy_dir: Path, previous_noisy_d
     pose optimisation makes it. The previous round's splat saw every view of this round (the selected
     views are a subset) and more, so its renders average more noise than a new splat of the subset
     would. Reuse needs: a previous render of every view, and the same noisy image files (sha256).
+    In the pipeline both rounds read the same working copy of the photos, so the sha256 check guards
+    callers that pass other folders; the missing-render check is the one that can fire there.
 
     Args:
         views: this round's view stems.
@@ -302,7 +304,8 @@ def _recorded_geometry_choice(align_dir: Path) -> dict[str, object] | None:
 
 def fuse(ctx: StageContext) -> Mapping[str, object]:
     """Extension (`PipelineConfig.fuse_noisy_splat`): the round's denoised photos averaged with renders,
-    at their own (optimised) poses, of a splat trained on the *noisy* photos with the round's alignment.
+    at their own (optimised) poses, of a splat trained on the *noisy* photos (from the round's alignment,
+    or the previous round's splat reused, below).
 
     The splat of 12 noisy views keeps the scene's fine texture (the same in every view) and averages
     the noise (different in every view); the denoiser removes noise and texture alike. Their errors

