@@ -10,7 +10,7 @@ records them, held-out PSNR / SSIM / LPIPS, and the machine's load before and af
 
 Usage:
     .venv/bin/python benchmarks/bench_pipeline_speed.py [--configs=fast:256x192:12,default:504x378:17]
-        [--out=runs/bench_pipeline_speed]
+        [--out=runs/bench_pipeline_speed] [--summarise]
 
 `--configs` defaults to every combination of the `fast` and `default` presets, 256x192 and
 504x378, 12 and 17 training views (eight runs; hours on 2 cores). Output folders are kept, so an
@@ -62,11 +62,14 @@ def run_one(spec: str, out_root: Path) -> Path:
     return out
 
 
-def summarise(out_root: Path) -> tuple[list[list[object]], str]:
+def summarise(out_root: Path) -> tuple[list[list[object]], str, list[str]]:
+    """(table rows, per-run details, the configurations found) for every run under `out_root`."""
     rows: list[list[object]] = []
     details = ""
+    specs: list[str] = []
     for meta_path in sorted(out_root.glob("*.bench.json")):
         meta = json.loads(meta_path.read_text())
+        specs.append(meta["spec"])
         out = out_root / meta_path.name.removesuffix(".bench.json")
         preset, size, views = meta["spec"].split(":")
         if meta["returncode"] != 0:
@@ -81,7 +84,7 @@ def summarise(out_root: Path) -> tuple[list[list[object]], str]:
                      f"{run['psnr_db']:.2f}", f"{run['ssim']:.3f}", f"{run['lpips']:.3f}",
                      f"{meta['load_before']} -> {meta['load_after']}"])
         details += (f"\n**{preset}, {size}, {views} training views** ({meta['date']}; `denoise-gs "
-                    f"{meta['command'].split(' ', 1)[1] if ' ' in meta['command'] else meta['command']}`)\n\n")
+                    f"{meta['command']}`)\n\n")
         stage_rows = [[k, f"{v:.1f}", f"{100 * v / pipeline_s:.0f}%"] for k, v in stages.items()]
         details += md_table(["stage", "s", "share"], stage_rows)
         substeps = _splat_substeps(out)
@@ -90,7 +93,7 @@ def summarise(out_root: Path) -> tuple[list[list[object]], str]:
             details += "\nSplat trainer sub-steps per splat-training stage (seconds):\n\n"
             details += md_table(["sub-step", *substeps], [[k, *(f"{t.get(k, 0.0):.1f}" for t in substeps.values())]
                                                         for k in keys])
-    return rows, details
+    return rows, details, specs
 
 
 def _splat_substeps(out: Path) -> dict[str, dict[str, float]]:
@@ -112,19 +115,24 @@ def main(argv: list[str]) -> int:
     configs = cli_option("configs", ",".join(DEFAULT_CONFIGS)).split(",")
     out_root = Path(cli_option("out", str(ROOT / "runs" / "bench_pipeline_speed")))
     out_root.mkdir(parents=True, exist_ok=True)
-    for spec in configs:
-        print(f"[{time.strftime('%H:%M:%S')}] {spec} (load {_load()})", flush=True)
-        run_one(spec, out_root)
-    rows, details = summarise(out_root)
+    if "--summarise" not in argv:
+        for spec in configs:
+            print(f"[{time.strftime('%H:%M:%S')}] {spec} (load {_load()})", flush=True)
+            run_one(spec, out_root)
+    rows, details, found = summarise(out_root)
     body = (
         "Reproduce: `.venv/bin/python benchmarks/bench_pipeline_speed.py --configs="
-        f"{','.join(configs)}` (`make bench ONLY=pipeline_speed` runs all eight configurations).\n\n"
+        f"{','.join(found)}` (`make bench ONLY=pipeline_speed` runs all eight configurations; each run "
+        "is its own process, one after the other; `--summarise` rebuilds this page from the runs kept "
+        "under `--out`).\n\n"
         f"`denoise-gs eval {SCENE} --methods denoise_gs_fused --seeds 1` per configuration: both rounds "
         "with the noisy-photo fusion, then held-out pose fitting and scoring against the clean test views. "
         "`pipeline min`: the stages' recorded time (the user's wait for `denoise-gs run`); `eval min`: "
         "the whole evaluation. 2 shared CPU cores; the load column says how busy the machine was. "
         "Goal: `default` at 504x378 with 17 views in 15 minutes or less. Before/after figures for the "
-        "changes that set these times, with their quality A/B runs: docs/bench/pipeline_schedule.md.\n\n"
+        "changes that set these times, with their quality A/B runs: docs/bench/pipeline_schedule.md. "
+        "The held-out scores compare presets and sizes at one view count; across view counts the scenes "
+        "differ (`--scene-views` 14 or 20 spreads the cameras differently and holds out 2 or 3 views).\n\n"
         + md_table(["preset", "size", "training views", "pipeline min", "eval min", "PSNR", "SSIM", "LPIPS",
                     "load before -> after"], rows)
         + "\n### Per run\n" + details
