@@ -113,20 +113,21 @@ class PipelineConfig:
         seed: master seed; each stage derives its own from (seed, round, stage).
         select_views: False = rounds >= 2 use every view (Table 2 ablation).
         fuse_noisy_splat: extension, not in the paper: each round's splat trains on the average of the
-            denoised photo and the render, at its view, of a splat trained on the *noisy* photos from
+            denoised photo and the render, at its view, of a splat trained on the *noisy* photos with
             the same alignment (`eval.pipeline.stages.fuse`). The two estimates of the clean image err
             differently (the denoiser removes fine texture; the splat of the noisy photos keeps it and
-            averages the noise across views), so their mean is better than either. Costs one more splat
-            training in round 1; later rounds reuse its renders (`reuse_noisy_splat`). On in every preset:
-            on the scenes measured it raised the held-out PSNR and lowered the LPIPS of the paper's loop
-            (docs/bench/pipeline.md, docs/bench/pipeline_demo.md). `denoise-gs eval`'s `n2v_round1` and
-            `denoise_gs` keep the paper's loop (off); `n2v_fused_round1` and `denoise_gs_fused` turn it on.
+            averages the noise across views), so their mean is better than either. Costs one more
+            splat training per round. On in every preset: on the scenes measured it raised the held-out
+            PSNR and lowered the LPIPS of the paper's loop (docs/bench/pipeline.md,
+            docs/bench/pipeline_demo.md). `denoise-gs eval`'s `n2v_round1` and `denoise_gs` keep the
+            paper's loop (off); `n2v_fused_round1` and `denoise_gs_fused` turn it on.
         reuse_noisy_splat: with `fuse_noisy_splat`, rounds >= 2 only (round 1's stage keys ignore it):
-            when the round's noisy photos are the previous round's, the fuse stage takes the previous
-            round's renders of the noisy-photo splat for its views (each a reproduction of that
-            view's photo at its own optimised pose, trained on these views and more) instead of
-            training a new splat on the subset, whatever this round's alignment. Saves one splat
-            training per round; False trains every round (`eval.pipeline.stages.noisy_splat_reuse`,
+            when the round's alignment of its views is the previous round's (cameras and cam_from_world
+            equal up to float64 round-off, the same points; `AlignSettings.reuse_geometry` hands it
+            over) and its noisy photos are the same, the fuse stage takes the previous round's renders
+            of the noisy-photo splat for its views instead of training a new one on a subset of the
+            same photos with the same start (the previous splat saw these views and more). Saves one
+            splat training per such round; False trains every round (`eval.pipeline.stages.fuse`,
             docs/bench/pipeline_schedule.md).
         device: torch device for the networks and the splatting ("cpu", "cuda").
         max_size: long side in pixels of the working images (`--max-size`): larger inputs are
@@ -199,8 +200,8 @@ class PipelineConfig:
 #:   2000-iteration splat, with the fusion.
 #:
 #: All three keep the better-determined focal length and poses across rounds
-#: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and the previous round's noisy-photo splat
-#: renders (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md).
+#: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and, when a round keeps the previous round's
+#: poses, the previous round's noisy-photo splat (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md).
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         fuse_noisy_splat=True,

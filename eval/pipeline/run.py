@@ -5,7 +5,8 @@ splat (training with pose optimisation) -> render at every input pose. With
 `fuse_noisy_splat` (an extension), a fuse stage between align and splat
 averages each denoised photo with a render of a splat of the noisy photos, and
 the splat trains on those; in rounds >= 2 it reuses the previous round's renders
-of that splat when the noisy photos are the previous round's (`reuse_noisy_splat`).
+of that splat when the round's alignment and noisy photos are the previous
+round's (`reuse_noisy_splat`).
 Round r >= 2: select views from round r-1 (pose k-means, K = `views`, sharpest
 per cluster) -> refine (fine-tune the round r-1 UNet with the joint loss
 against round r-1's renders of the selected views, denoise them) -> align
@@ -118,10 +119,11 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
         fuse_inputs = {"noisy": working, "images": rd / "denoised", "align": rd / "align"}
         fuse_upstream: tuple[StageResult, ...] = (images, al)
         if settings.fuse.reuse_noisy_splat and previous is not None and "fuse" in previous.stages:
-            # What the previous round's noisy-photo splat was trained on and rendered
-            # (`eval.pipeline.stages.fuse` reuses its renders when the noisy photos are the same).
-            fuse_inputs.update(previous_noisy=working, previous_noisy_renders=previous.dir / "noisy_renders")
-            fuse_upstream += (previous.stages["fuse"],)
+            # What the previous round's noisy-photo splat was trained from and rendered
+            # (`eval.pipeline.stages.fuse` reuses its renders when this round's inputs are the same).
+            fuse_inputs.update(previous_align=previous.dir / "align", previous_noisy=working,
+                               previous_noisy_renders=previous.dir / "noisy_renders")
+            fuse_upstream += (previous.stages["align"], previous.stages["fuse"])
         fu = runner.run(StageSpec("fuse", rd, stages.fuse, ("fused", "noisy_renders"), inputs=fuse_inputs,
                                   upstream=fuse_upstream, settings=settings.fuse,
                                   seed=stage_seed(config.seed, r, "fuse"), code=stages.code.get("fuse", ())),

@@ -42,13 +42,13 @@ from eval.pipeline.calibration import (
 )
 from eval.pipeline.hashing import file_sha256
 from eval.pipeline.stage import StageContext, StageFn
-from eval.pipeline.stage_settings import FuseStageSettings, SplatStageSettings
+from eval.pipeline.stage_settings import SplatStageSettings
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.align.stats import AlignStats
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
-__all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "STAGE_CODE", "NoisySplatReuse",
+__all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "ROTATION_ATOL", "STAGE_CODE", "NoisySplatReuse",
            "PipelineStages", "align", "denoise", "fuse", "fuse_images", "noisy_splat_reuse", "product_stages",
            "refine", "render", "select", "splat"]
 
@@ -203,7 +203,7 @@ def _align_with_previous_calibration(align_images, files: list[Path], cfg, previ
     return res
 
 
-def _train_splat(images_dir: Path, align_dir: Path, s: SplatStageSettings | FuseStageSettings):
+def _train_splat(images_dir: Path, align_dir: Path, s: SplatStageSettings):
     """(training result, alignment's sparse model, view stems): a splat on `images_dir`'s views,
     initialised from the alignment in `align_dir`."""
     from splat.train import train_gaussians
@@ -248,6 +248,13 @@ def fuse_images(denoised: np.ndarray, render: np.ndarray, weight: float = FUSE_W
     return ((1.0 - weight) * denoised + weight * render).astype(np.float32)
 
 
+#: Largest difference between rotation-matrix entries of two cam_from_world that `noisy_splat_reuse`
+#: treats as the same pose. A handed-over pose goes through COLMAP's binary format once more, whose
+#: quaternion round trip changes entries by up to ~1e-15 (translations, intrinsics and points are stored
+#: as float64 and come back bit-exact); any re-estimated pose differs by many orders of magnitude more.
+ROTATION_ATOL = 1e-12
+
+
 @dataclass(frozen=True)
 class NoisySplatReuse:
     """Whether a round's fuse stage takes the previous round's noisy-photo renders (`noisy_splat_reuse`).
@@ -261,22 +268,32 @@ class NoisySplatReuse:
     reason: str
 
 
-def noisy_splat_reuse(views: Sequence[str], *, noisy_dir: Path, previous_noisy_dir: Path,
-                      previous_renders_dir: Path) -> NoisySplatReuse:
-    """Whether the previous round's noisy-photo renders serve this round's fuse stage.
+def _same_camera(a, b) -> bool:
+    return a.model == b.model and (a.width, a.height) == (b.width, b.height) and np.array_equal(a.params, b.params)
 
-    The fuse stage needs, for each view, a reproduction of *that* noisy photo by a splat of the noisy
-    photos, rendered at the view's own optimised pose: it is averaged pixel by pixel with the view's
-    denoised photo and with nothing else. Which frame, intrinsics or starting points the splat used
-    does not enter that average, as long as the render is registered to the photo, which the joint
-    pose optimisation makes it. The previous round's splat saw every view of this round (the selected
-    views are a subset) and more, so its renders average more noise than a new splat of the subset
-    would. Reuse needs: a previous render of every view, and the same noisy image files (sha256).
-    In the pipeline both rounds read the same working copy of the photos, so the sha256 check guards
-    callers that pass other folders; the missing-render check is the one that can fire there.
+
+def _same_pose(cam_from_world_a: np.ndarray, cam_from_world_b: np.ndarray) -> bool:
+    """(3, 4) cam_from_world each; equal translations, rotations within `ROTATION_ATOL`."""
+    a, b = np.asarray(cam_from_world_a, np.float64), np.asarray(cam_from_world_b, np.float64)
+    return bool(np.array_equal(a[:, 3], b[:, 3]) and np.abs(a[:, :3] - b[:, :3]).max() <= ROTATION_ATOL)
+
+
+def noisy_splat_reuse(views: Sequence[str], *, align_dir: Path, previous_align_dir: Path, noisy_dir: Path,
+                      previous_noisy_dir: Path, previous_renders_dir: Path) -> NoisySplatReuse:
+    """Whether the previous round's noisy-photo splat was trained from what this round's would be.
+
+    The previous round's fuse stage trained its splat on the noisy photos in `previous_noisy_dir` from
+    the alignment in `previous_align_dir` and rendered every view into `previous_renders_dir`. This
+    round's would train on `views` of `noisy_dir` from `align_dir`. Reuse needs: a previous render of
+    every view; the same noisy image files (sha256); every view's camera and cam_from_world in this
+    round's alignment equal to the previous round's (`_same_camera`, `_same_pose`); the same initial
+    points (points.npz `xyz` and `rgb`). The previous splat then started from the same cameras and
+    points and saw these views plus the previous round's others; its training settings are the
+    run's (`PipelineConfig.splat`), the same in every round but for the seed.
 
     Args:
         views: this round's view stems.
+        align_dir, previous_align_dir: align stage folders (`sparse/0/`, `points.npz`).
         noisy_dir, previous_noisy_dir: the noisy photos each round's fuse stage reads.
         previous_renders_dir: the previous round's `noisy_renders/`.
     """
@@ -288,7 +305,22 @@ def noisy_splat_reuse(views: Sequence[str], *, noisy_dir: Path, previous_noisy_d
     for v in views:
         if v not in noisy or v not in previous_noisy or file_sha256(noisy[v]) != file_sha256(previous_noisy[v]):
             return NoisySplatReuse(False, f"the noisy photo {v} differs from the previous round's")
-    return NoisySplatReuse(True, "the previous round's splat was trained on these noisy photos (and more)")
+    model = read_sparse_model(align_dir / "sparse" / "0")
+    previous = read_sparse_model(previous_align_dir / "sparse" / "0")
+    by_stem = {n.rsplit(".", 1)[0]: n for n in model.names}
+    previous_by_stem = {n.rsplit(".", 1)[0]: n for n in previous.names}
+    for v in views:
+        if v not in by_stem or v not in previous_by_stem:
+            return NoisySplatReuse(False, f"view {v} is not registered in both alignments")
+        n, pn = by_stem[v], previous_by_stem[v]
+        if not _same_camera(model.camera_of(n), previous.camera_of(pn)):
+            return NoisySplatReuse(False, f"the intrinsics of {v} differ from the previous round's")
+        if not _same_pose(model.image(n).cam_from_world, previous.image(pn).cam_from_world):
+            return NoisySplatReuse(False, f"the cam_from_world of {v} differs from the previous round's")
+    pts, previous_pts = np.load(align_dir / "points.npz"), np.load(previous_align_dir / "points.npz")
+    if not all(np.array_equal(pts[k], previous_pts[k]) for k in ("xyz", "rgb")):
+        return NoisySplatReuse(False, "the alignment's points differ from the previous round's")
+    return NoisySplatReuse(True, "the same noisy photos, cameras, poses and points as the previous round's splat")
 
 
 def _recorded_geometry_choice(align_dir: Path) -> dict[str, object] | None:
@@ -304,19 +336,18 @@ def _recorded_geometry_choice(align_dir: Path) -> dict[str, object] | None:
 
 def fuse(ctx: StageContext) -> Mapping[str, object]:
     """Extension (`PipelineConfig.fuse_noisy_splat`): the round's denoised photos averaged with renders,
-    at their own (optimised) poses, of a splat trained on the *noisy* photos (from the round's alignment,
-    or the previous round's splat reused, below).
+    at their own (optimised) poses, of a splat trained on the *noisy* photos with the round's alignment.
 
     The splat of 12 noisy views keeps the scene's fine texture (the same in every view) and averages
     the noise (different in every view); the denoiser removes noise and texture alike. Their errors
     differ, so the mean is better than either (CHANGELOG.md, 2026-11-22). `ctx.settings`: a
     `FuseStageSettings`.
 
-    Rounds >= 2 with `reuse_noisy_splat` (the runner then passes `previous_noisy` and
-    `previous_noisy_renders`): when `noisy_splat_reuse` finds the previous round's splat trained on the
-    same noisy photos, its renders of this round's views are copied (same bytes) instead of training a
-    new splat on a subset of them. The summary says which (`noisy_splat`: "reused" or "trained") and
-    why (`noisy_splat_reason`).
+    Rounds >= 2 with `reuse_noisy_splat` (the runner then passes `previous_align`, `previous_noisy` and
+    `previous_noisy_renders`): when `noisy_splat_reuse` finds the previous round's splat trained from
+    the same noisy photos, cameras, poses and points, its renders of this round's views are copied
+    (same bytes) instead of training a new splat on a subset of the same photos. The summary says which
+    (`noisy_splat`: "reused" or "trained") and why (`noisy_splat_reason`).
     """
     s = ctx.settings
     # The alignment's registered views, in its order (those the splat trains on).
@@ -328,8 +359,10 @@ def fuse(ctx: StageContext) -> Mapping[str, object]:
     elif previous is None:
         decision = NoisySplatReuse(False, "no previous round's noisy-photo renders were given")
     else:
-        decision = noisy_splat_reuse(stems, noisy_dir=ctx.inputs["noisy"],
-                                     previous_noisy_dir=ctx.inputs["previous_noisy"], previous_renders_dir=previous)
+        decision = noisy_splat_reuse(stems, align_dir=ctx.inputs["align"],
+                                     previous_align_dir=ctx.inputs["previous_align"],
+                                     noisy_dir=ctx.inputs["noisy"], previous_noisy_dir=ctx.inputs["previous_noisy"],
+                                     previous_renders_dir=previous)
     out_renders = ctx.work_dir / "noisy_renders"
     if decision.reused:
         out_renders.mkdir(parents=True)

@@ -1,6 +1,6 @@
 """Rounds >= 2 reuse the previous round's noisy-photo splat renders (`PipelineConfig.reuse_noisy_splat`):
-the decision (`eval.pipeline.stages.noisy_splat_reuse`) against hand-built inputs, and the real fuse
-stage in a two-round pipeline whose round 2 is handed round 1's alignment, or aligns anew."""
+the decision (`eval.pipeline.stages.noisy_splat_reuse`) against hand-built alignments, and the real fuse
+stage in a two-round pipeline whose round 2 is handed round 1's alignment, or not."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ import pytest
 
 from eval.pipeline import SplatSettings, preset, run_pipeline
 from eval.pipeline.stage_settings import round_settings
-from eval.pipeline.stages import fuse, fuse_images, noisy_splat_reuse
+from eval.pipeline.stages import ROTATION_ATOL, fuse, fuse_images, noisy_splat_reuse
 from eval.pipeline.views import read_views, write_views
+from mvgeo.camera import Camera
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 from tests.eval._tiny_stages import TinyStages, make_scene
 
@@ -26,6 +27,22 @@ PNG16_HALF_STEP = 0.5 / 65535
 def _rot_z(angle_rad: float) -> np.ndarray:
     c, s = np.cos(angle_rad), np.sin(angle_rad)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _write_align(folder, views, *, fx=50.0, tilt_rad=None, seed=0):
+    """An align stage folder: PINHOLE 48x40, view i at x = 0.1 i, turned by 0.05 i rad about z (plus
+    `tilt_rad[view]`), 20 points from `seed`."""
+    tilt_rad = tilt_rad or {}
+    images = []
+    for i, v in enumerate(views):
+        R = _rot_z(0.05 * i + tilt_rad.get(v, 0.0))
+        images.append(PosedImage(f"{v}.png", 1, np.hstack([R, [[-0.1 * i], [0.0], [0.0]]])))
+    rng = np.random.default_rng(seed)
+    xyz, rgb = rng.normal(size=(20, 3)) + [0, 0, 4], (rng.random((20, 3)) * 255).astype(np.uint8)
+    model = SparseModel({1: Camera("PINHOLE", 48, 40, [fx, fx, 24.0, 20.0])}, images, xyz, rgb)
+    write_sparse_model(folder / "sparse" / "0", model, binary=True)
+    np.savez(folder / "points.npz", xyz=xyz, rgb=rgb, conf=np.ones(len(xyz)))
+    return folder
 
 
 def _handed_over(previous, folder, views):
@@ -42,43 +59,68 @@ def _handed_over(previous, folder, views):
 
 @pytest.fixture
 def rounds(tmp_path):
-    """(previous noisy photos, previous renders) folders for the decision tests."""
+    """(previous align, previous noisy, previous renders, noisy) folders for the decision tests."""
     noisy = make_scene(tmp_path / "noisy", n=4)
+    prev_align = _write_align(tmp_path / "prev_align", VIEWS)
     renders = tmp_path / "renders"
     write_views(renders, {v: np.full((40, 48, 3), 0.25 * k, np.float32) for k, v in enumerate(VIEWS)})
-    return noisy, renders
+    return prev_align, noisy, renders
 
 
-def _decide(rounds, views=("view_001", "view_003"), noisy=None):
-    prev_noisy, renders = rounds
-    return noisy_splat_reuse(list(views), noisy_dir=prev_noisy if noisy is None else noisy,
-                             previous_noisy_dir=prev_noisy, previous_renders_dir=renders)
+def _decide(tmp_path, rounds, align, views=("view_001", "view_003"), noisy=None):
+    prev_align, prev_noisy, renders = rounds
+    return noisy_splat_reuse(list(views), align_dir=align, previous_align_dir=prev_align,
+                             noisy_dir=prev_noisy if noisy is None else noisy, previous_noisy_dir=prev_noisy,
+                             previous_renders_dir=renders)
 
 
-def test_reuse_when_the_noisy_photos_are_the_same(rounds):
-    decision = _decide(rounds)
+def test_reuse_when_the_alignment_is_handed_over(tmp_path, rounds):
+    views = ["view_001", "view_003"]
+    align = _handed_over(rounds[0], tmp_path / "align", views)
+    # The handed-over rotations are not bit-identical (quaternion round trip), only within the tolerance.
+    before, after = read_sparse_model(rounds[0] / "sparse" / "0"), read_sparse_model(align / "sparse" / "0")
+    diffs = [np.abs(before.image(f"{v}.png").cam_from_world - after.image(f"{v}.png").cam_from_world).max()
+             for v in views]
+    assert max(diffs) <= ROTATION_ATOL
+    decision = _decide(tmp_path, rounds, align, views)
     assert decision.reused, decision.reason
 
 
 @pytest.mark.parametrize(("change", "reason"), [
+    ("rotation", "cam_from_world of view_003"),
+    ("translation", "cam_from_world of view_001"),
+    ("intrinsics", "intrinsics of view_001"),
+    ("points", "points differ"),
     ("noisy", "noisy photo view_001"),
-    ("missing noisy", "noisy photo view_003"),
     ("unrendered view", "no noisy-photo render"),
 ])
-def test_no_reuse_when_a_photo_or_its_render_differs(tmp_path, rounds, change, reason):
+def test_no_reuse_when_an_input_of_the_splat_differs(tmp_path, rounds, change, reason):
+    views = ["view_001", "view_003"]
     noisy = None
-    if change == "noisy":
+    if change == "rotation":  # 1e-9 rad: far below any pose estimate's accuracy, still not a copy
+        align = _write_align(tmp_path / "align", VIEWS, tilt_rad={"view_003": 1e-9})
+    elif change == "translation":
+        align = _handed_over(rounds[0], tmp_path / "align", views)
+        model = read_sparse_model(align / "sparse" / "0")
+        im = model.image("view_001.png")
+        cfw = im.cam_from_world.copy()
+        cfw[0, 3] = np.nextafter(cfw[0, 3], 1.0)  # one ulp
+        images = [PosedImage(im.name, im.camera_id, cfw), model.image("view_003.png")]
+        write_sparse_model(align / "sparse" / "0", dataclasses.replace(model, images=images), binary=True)
+    elif change == "intrinsics":
+        align = _write_align(tmp_path / "align", VIEWS, fx=50.0 + 1e-9)
+    elif change == "points":
+        align = _write_align(tmp_path / "align", VIEWS, seed=1)
+    elif change == "noisy":
+        align = _handed_over(rounds[0], tmp_path / "align", views)
         noisy = tmp_path / "noisy2"
-        shutil.copytree(rounds[0], noisy)
+        shutil.copytree(rounds[1], noisy)
         img = read_views(noisy, ["view_001"])["view_001"]
         write_views(noisy, {"view_001": np.clip(img + 0.01, 0, 1)})
-    elif change == "missing noisy":
-        noisy = tmp_path / "noisy2"
-        shutil.copytree(rounds[0], noisy)
-        (noisy / "view_003.png").unlink()
     else:
-        (rounds[1] / "view_003.png").unlink()
-    decision = _decide(rounds, noisy=noisy)
+        align = _handed_over(rounds[0], tmp_path / "align", views)
+        (rounds[2] / "view_003.png").unlink()
+    decision = _decide(tmp_path, rounds, align, views, noisy=noisy)
     assert not decision.reused and reason in decision.reason
 
 
@@ -155,17 +197,16 @@ def test_round2_reuses_round1_noisy_renders(tmp_path, trainings):
                                    atol=PNG16_HALF_STEP + 1e-7)
 
 
-def test_reuse_whatever_round2_alignment(tmp_path, trainings):
-    # A new alignment (another frame, other poses) or a moved pose: each render is registered to its
-    # own photo, so round 1's renders still serve, and no second splat is trained.
+def test_no_reuse_when_round2_aligns_anew_or_the_pose_moved(tmp_path, trainings):
     res, _, scene = _run(tmp_path, "never", geometry="never")
     summary = res.rounds[1].stages["fuse"].summary
-    assert summary["noisy_splat"] == "reused", summary["noisy_splat_reason"]
-    assert trainings == [5]
+    assert summary["noisy_splat"] == "trained" and "differ" in summary["noisy_splat_reason"]
+    assert trainings == [5, 3]
     trainings.clear()
     res, _, _ = _run(tmp_path, "moved", perturb=True, scene=scene)
-    assert res.rounds[1].stages["fuse"].summary["noisy_splat"] == "reused"
-    assert trainings == [5]
+    summary = res.rounds[1].stages["fuse"].summary
+    assert summary["noisy_splat"] == "trained" and "cam_from_world" in summary["noisy_splat_reason"]
+    assert trainings == [5, 3]
 
 
 def test_setting_off_trains_and_changing_it_reruns_round2_fuse_only(tmp_path, trainings):
