@@ -26,26 +26,10 @@
 #include <vector>
 
 #include "kernel_api.h"
+#include "parallel.h"
 
 namespace {
 
-template <typename F>
-void parallel_tiles(int64_t num_tiles, int num_threads, F fn) {
-  if (num_threads <= 1 || num_tiles <= 1) {
-    for (int64_t t = 0; t < num_tiles; ++t) fn(t);
-    return;
-  }
-  std::atomic<int64_t> next{0};
-  auto worker = [&]() {
-    for (int64_t t = next.fetch_add(1); t < num_tiles; t = next.fetch_add(1)) fn(t);
-  };
-  std::vector<std::thread> pool;
-  int extra = num_threads - 1;
-  pool.reserve(extra);
-  for (int i = 0; i < extra; ++i) pool.emplace_back(worker);
-  worker();
-  for (auto& th : pool) th.join();
-}
 
 // Per-Gaussian record gathered per tile: [mx, my, a, b, c, o, skip_sigma].
 // skip_sigma = log(o / alpha_min) * (1 + 1e-4) + 1e-6: sigma above it gives alpha < alpha_min for sure, so the
@@ -115,7 +99,7 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t w
                   T* out_transmittance, int32_t* out_last, double alpha_min_d, double alpha_max_d,
                   double transmittance_min_d, int num_threads) {
   const T alpha_min = T(alpha_min_d), alpha_max = T(alpha_max_d), t_min = T(transmittance_min_d);
-  parallel_tiles(tiles_x * tiles_y, num_threads, [&](int64_t tile) {
+  splat_parallel::dynamic_for(tiles_x * tiles_y, num_threads, [&](int64_t tile) {
     const int64_t ty = tile / tiles_x, tx = tile % tiles_x;
     const int64_t begin = tile_offsets[tile], end = tile_offsets[tile + 1];
     const int64_t n = end - begin;
@@ -185,7 +169,7 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
                    const T* grad_transmittance, T* g_rows, double alpha_min_d, double alpha_max_d,
                    int num_threads) {
   const T alpha_min = T(alpha_min_d), alpha_max = T(alpha_max_d);
-  parallel_tiles(tiles_x * tiles_y, num_threads, [&](int64_t tile) {
+  splat_parallel::dynamic_for(tiles_x * tiles_y, num_threads, [&](int64_t tile) {
     const int64_t ty = tile / tiles_x, tx = tile % tiles_x;
     const int64_t begin = tile_offsets[tile], end = tile_offsets[tile + 1];
     const int64_t n = end - begin;

@@ -26,26 +26,10 @@
 #include <vector>
 
 #include "kernel_api.h"
+#include "parallel.h"
 
 namespace {
 
-template <typename F>
-void parallel_for(int64_t n, int num_threads, F fn) {
-  if (num_threads <= 1 || n <= 1) {
-    for (int64_t i = 0; i < n; ++i) fn(i);
-    return;
-  }
-  std::atomic<int64_t> next{0};
-  auto worker = [&]() {
-    for (int64_t i = next.fetch_add(1); i < n; i = next.fetch_add(1)) fn(i);
-  };
-  std::vector<std::thread> pool;
-  const int extra = int(std::min<int64_t>(num_threads, n)) - 1;
-  pool.reserve(extra);
-  for (int i = 0; i < extra; ++i) pool.emplace_back(worker);
-  worker();
-  for (auto& th : pool) th.join();
-}
 
 // Half-sample symmetric index of v in [0, n) (any v: the image is mirrored repeatedly).
 int64_t reflect(int64_t v, int64_t n) {
@@ -166,7 +150,7 @@ void loss_impl(int64_t C, int64_t H, int64_t W, const T* rendered, const T* targ
   std::vector<double> l1_rows(C * H, 0.0), ssim_rows(C * H, 0.0);
 
   // Pass 1: row-filter the five moment images; per-row L1 sums.
-  parallel_for(C * H, num_threads, [&](int64_t item) {
+  splat_parallel::dynamic_for(C * H, num_threads, [&](int64_t item) {
     const int64_t c = item / H, y = item % H;
     const T* xr = rendered + c * P + y * W;
     const T* yr = target + c * P + y * W;
@@ -186,7 +170,7 @@ void loss_impl(int64_t C, int64_t H, int64_t W, const T* rendered, const T* targ
   });
 
   // Pass 2: column-filter, SSIM per pixel, and the per-pixel derivatives of S by the moments.
-  parallel_for(C * H, num_threads, [&](int64_t item) {
+  splat_parallel::dynamic_for(C * H, num_threads, [&](int64_t item) {
     const int64_t c = item / H, y = item % H;
     std::vector<T> mom(5 * W);
     for (int64_t k = 0; k < 5; ++k) apply_col(fy, plane(c, k), &mom[k * W], y, W, /*out_row=*/0);
@@ -226,14 +210,14 @@ void loss_impl(int64_t C, int64_t H, int64_t W, const T* rendered, const T* targ
   if (grad == nullptr) return;
 
   // Pass 3: column adjoint of the three derivative planes (into planes 8..10).
-  parallel_for(C * H, num_threads, [&](int64_t item) {
+  splat_parallel::dynamic_for(C * H, num_threads, [&](int64_t item) {
     const int64_t c = item / H, y = item % H;
     for (int64_t k = 0; k < 3; ++k) apply_col(ay, plane(c, 5 + k), plane(c, 8 + k), y, W, y);
   });
 
   // Pass 4: row adjoint, then the gradient of the loss.
   const T g_l1 = T((1.0 - ssim_weight) / n_total), g_s = T(-ssim_weight / n_total);
-  parallel_for(C * H, num_threads, [&](int64_t item) {
+  splat_parallel::dynamic_for(C * H, num_threads, [&](int64_t item) {
     const int64_t c = item / H, y = item % H;
     std::vector<T> fa(W), fb(W), fd(W);
     apply_row(ax, plane(c, 8) + y * W, fa.data(), W);
