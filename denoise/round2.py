@@ -174,6 +174,17 @@ def spread_cells(count: int, stride: int = JINVARIANT_STRIDE) -> list[tuple[int,
     return order[:count]
 
 
+def cell_mask(h: int, w: int, cells: Sequence[tuple[int, int]], *, stride: int = JINVARIANT_STRIDE,
+              device: torch.device | str = "cpu") -> Tensor:
+    """``[h, w]`` bool: the pixels with ``(row % stride, col % stride)`` in `cells`."""
+    rows = torch.arange(h, device=device)[:, None] % stride
+    cols = torch.arange(w, device=device)[None, :] % stride
+    out = torch.zeros(h, w, dtype=torch.bool, device=device)
+    for a, b in cells:
+        out |= (rows == a % stride) & (cols == b % stride)
+    return out
+
+
 @torch.no_grad()
 def jinvariant_predict(model: N2VModel, x: Tensor, *, stride: int = JINVARIANT_STRIDE,
                        cells: Sequence[tuple[int, int]] | None = None, generator: torch.Generator | None = None,
@@ -203,13 +214,11 @@ def jinvariant_predict(model: N2VModel, x: Tensor, *, stride: int = JINVARIANT_S
     run = None if cells is None else {(int(a) % stride, int(b) % stride) for a, b in cells}
     model.unet.eval()
     b, c, h, w = x.shape
-    rows = torch.arange(h, device=x.device)[:, None] % stride
-    cols = torch.arange(w, device=x.device)[None, :] % stride
     out = torch.full_like(x, float("nan"))
     flat = x.reshape(b, c, h * w)
     for a in range(stride):
         for bb in range(stride):
-            mask = (rows == a) & (cols == bb)
+            mask = cell_mask(h, w, [(a, bb)], stride=stride, device=x.device)
             if not bool(mask.any()):
                 continue
             free = torch.nonzero(~mask.reshape(-1)).reshape(-1)
@@ -235,13 +244,7 @@ def blind_spot_loss(model: N2VModel, noisy: Sequence[Tensor], *, seed: int = 0,
     for y in noisy:
         sq = (jinvariant_predict(model, y[None], cells=cells, generator=gen) - y[None]) ** 2
         if cells is not None:  # the scored cells only; a NaN the network produces there stays NaN
-            h, w = y.shape[-2:]
-            rows = torch.arange(h, device=y.device)[:, None] % JINVARIANT_STRIDE
-            cols = torch.arange(w, device=y.device)[None, :] % JINVARIANT_STRIDE
-            scored = torch.zeros(h, w, dtype=torch.bool, device=y.device)
-            for a, b in cells:
-                scored |= (rows == a % JINVARIANT_STRIDE) & (cols == b % JINVARIANT_STRIDE)
-            sq = sq[..., scored]
+            sq = sq[..., cell_mask(*y.shape[-2:], cells, device=y.device)]
         vals.append(float(sq.mean()))
     return float(np.mean(vals))
 

@@ -232,7 +232,7 @@ def splat(ctx: StageContext) -> Mapping[str, object]:
                        SparseModel(sparse.cameras, optimised, sparse.points_xyz, sparse.points_rgb), binary=True)
     history = dataclasses.asdict(res.history) if dataclasses.is_dataclass(res.history) else res.history
     return {"views": stems, "train": _history_summary(history),
-            "timings_s": dict(getattr(res, "timings_s", {}) or {})}
+            "timings_s": dict(res.timings_s)}
 
 
 #: Weight of the noisy photos' render in `fuse` (the denoised photo gets 1 - FUSE_WEIGHT): the plain mean
@@ -328,7 +328,7 @@ def _recorded_geometry_choice(align_dir: Path) -> dict[str, object] | None:
     stats_file = align_dir / "align.json"
     if not stats_file.is_file():
         return None
-    choice = json.loads(stats_file.read_text()).get(GEOMETRY_KEY)  # annotations are top-level keys
+    choice = AlignStats.read(stats_file).annotations.get(GEOMETRY_KEY)
     if not isinstance(choice, Mapping):
         return None
     return {"used_previous": choice.get("used_previous"), "reason": choice.get("reason")}
@@ -379,7 +379,7 @@ def fuse(ctx: StageContext) -> Mapping[str, object]:
         cam_from_world = np.stack([np.asarray(m)[:3] for m in res.cam_from_world_optimized])
         renders = dict(zip(stems, render_views(res.model, cameras, cam_from_world), strict=True))
         write_views(out_renders, renders)
-        timings = dict(getattr(res, "timings_s", {}) or {})
+        timings = dict(res.timings_s)
     denoised = read_views(ctx.inputs["images"], stems)
     write_views(ctx.work_dir / "fused", {k: fuse_images(denoised[k], renders[k]) for k in stems})
     summary: dict[str, object] = {"views": stems, "weight": FUSE_WEIGHT,
