@@ -6,8 +6,8 @@ default `real`; only the table and its header).
 
 Sets (each on 12 training views, clean and with Gaussian noise sigma = 25/255 added, seed 0, saved as 8-bit PNG):
 - `temple`: ../shared/data/temple_sparse_ring (Middlebury, 640x480, calibrated `templeSR_par.txt`), 12 of its 16
-  views spread around the ring (`ring_pick`: the duplicate camera position is dropped, then repeatedly the view
-  whose two ring neighbours are closest);
+  views spread around the ring (`eval.real.split.ring_split`, the import's `--layout ring`: the duplicate camera
+  position is dropped, then repeatedly the view whose two ring neighbours are closest);
 - `dtu_spread`: ../shared/data/dtu_scan24 (384x384, `cameras.npz`), the 12 views of
   `eval.datasets.spread_split(49, 12, 4)` (20-40 deg between neighbours);
 - `dtu_cluster`: the same scan, the 12 training views of `eval.datasets.cluster_split` (about 11 deg apart);
@@ -48,6 +48,7 @@ from _common import ROOT, cli_option, md_table, write_fragment
 
 os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap's per-image log lines
 
+from eval.real.split import ring_split
 from mvgeo.align.api import AlignConfig, align_images  # imports cv2 before pycolmap
 from mvgeo.align.colmap_sfm import ColmapConfig, run_colmap
 from mvgeo.align.dense_stereo import DenseStereoConfig
@@ -85,27 +86,6 @@ class RealSet:
     add_noise: bool = True
 
 
-def ring_pick(centres: np.ndarray, k: int) -> list[int]:
-    """Indices of `k` views spread around a ring of camera centres (N, 3), in ring order.
-
-    The ring's plane is the centres' best-fit plane; a view at the same position as an earlier one is
-    dropped; then the view whose two neighbours around the ring are closest is dropped until `k` remain.
-    """
-    c = centres - centres.mean(axis=0)
-    _, _, vt = np.linalg.svd(c)
-    ang = np.arctan2(c @ vt[1], c @ vt[0])
-    keep = []
-    for v in range(len(c)):
-        if all(np.linalg.norm(centres[v] - centres[u]) > 1e-6 for u in keep):
-            keep.append(v)
-    keep.sort(key=lambda v: ang[v])
-    while len(keep) > k:
-        a = np.array([ang[v] for v in keep])
-        span = (np.roll(a, -1) - np.roll(a, 1)) % (2 * np.pi)  # neighbours' separation around each view
-        keep.pop(int(np.argmin(span)))
-    return keep
-
-
 def temple_set() -> RealSet | None:
     if not (TEMPLE / "templeSR_par.txt").is_file():
         return None
@@ -114,7 +94,7 @@ def temple_set() -> RealSet | None:
     vals = np.array([[float(x) for x in r[1:]] for r in rows])
     Ks, Rs, ts = vals[:, :9].reshape(-1, 3, 3), vals[:, 9:18].reshape(-1, 3, 3), vals[:, 18:21]
     centres = -np.einsum("nji,nj->ni", Rs, ts)
-    pick = ring_pick(centres, N_VIEWS)
+    pick, _ = ring_split(centres, N_VIEWS)  # the layout `denoise-gs dataset import --layout ring` writes
     K = np.median(Ks[pick], axis=0)
     K[0, 2] += 0.5  # Middlebury's projection uses OpenCV pixel centres (top-left at 0)
     K[1, 2] += 0.5

@@ -76,18 +76,42 @@ class GtAlignSettings:
     views: tuple[str, ...]
 
 
-def gt_align_inputs(dataset: DatasetFolder) -> dict[str, Path]:
-    """The dataset files `gt_align` reads (all of them enter its key by content)."""
+def gt_align_inputs(dataset: DatasetFolder, estimate: Path | None = None) -> dict[str, Path]:
+    """The files `gt_align` reads (all of them enter its key by content): the dataset's, and with
+    `estimate` (a pipeline round folder) that round's cameras and alignment points instead of depth maps."""
     inputs = {"sparse": dataset.root / "sparse" / "0", "images": dataset.root / "images",
               "split": dataset.root / "split.json"}
-    if (dataset.root / "depth").is_dir():
+    if estimate is not None:
+        inputs["estimate_sparse"] = Path(estimate) / "sparse" / "0"
+        inputs["estimate_points"] = Path(estimate) / "align" / "points.npz"
+    elif (dataset.root / "depth").is_dir():
         inputs["depth"] = dataset.root / "depth"
     return inputs
 
 
+def points_in_reference_frame(estimate_sparse: Path, estimate_points: Path, reference: SparseModel,
+                              views: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """A reconstruction's alignment points (`points.npz`: xyz, rgb) moved into the reference (ground-truth)
+    frame: the Sim(3) that registers its cameras `views` to the reference ones (`eval.heldout.register_sim3`,
+    Umeyama on the centres), inverted. Returns (xyz (N, 3) float64, rgb (N, 3) uint8)."""
+    from eval.heldout import register_sim3
+
+    est = read_sparse_model(estimate_sparse)
+    est_poses = {Path(n).stem: est.image(n).cam_from_world for n in est.names}
+    ref_poses = {Path(n).stem: reference.image(n).cam_from_world for n in reference.names}
+    est_from_ref, _ = register_sim3({s: est_poses[s] for s in views if s in est_poses},
+                                    {s: ref_poses[s] for s in views})
+    with np.load(estimate_points) as z:
+        xyz, rgb = np.asarray(z["xyz"], np.float64), np.asarray(z["rgb"], np.uint8)
+    # x_est = s R x_ref + t  =>  x_ref = R^T (x_est - t) / s
+    return (xyz - est_from_ref.t) @ est_from_ref.R / est_from_ref.scale, rgb
+
+
 def gt_align(dataset: DatasetFolder, ctx: StageContext) -> Mapping[str, object]:
-    """`align/` of (a) `3dgs_gt_poses`: `sparse/0` with the ground-truth cameras of the training views
-    (`ctx.settings`: `GtAlignSettings`) and `points.npz` with the initial points: back-projected
+    """`align/` of (a) `3dgs_gt_poses` and the `@gt_poses` variants: `sparse/0` with the ground-truth
+    cameras of the training views (`ctx.settings`: `GtAlignSettings`) and `points.npz` with the initial
+    points: for a variant (inputs `estimate_sparse`, `estimate_points`), its method's alignment points
+    moved into the ground-truth frame (`points_in_reference_frame`); for (a), back-projected
     ground-truth depth maps when the dataset ships `depth/` (an oracle initialisation, so the baseline
     is optimistic), else the ground-truth model's points.
 
@@ -99,7 +123,12 @@ def gt_align(dataset: DatasetFolder, ctx: StageContext) -> Mapping[str, object]:
     gt = read_sparse_model(ctx.inputs["sparse"])
     by_stem = {Path(n).stem: n for n in gt.names}
     images = [gt.image(by_stem[s]) for s in ctx.settings.views]
-    if "depth" in ctx.inputs:
+    source = "ground truth"
+    if "estimate_points" in ctx.inputs:
+        xyz, rgb = points_in_reference_frame(ctx.inputs["estimate_sparse"], ctx.inputs["estimate_points"], gt,
+                                             ctx.settings.views)
+        source = "the method's alignment, registered"
+    elif "depth" in ctx.inputs:
         xyz, rgb = points_from_depth(dataset.root, load_views(dataset.root, split="train"))
     elif len(gt.points_xyz):
         xyz, rgb = gt.points_xyz, gt.points_rgb
@@ -112,4 +141,4 @@ def gt_align(dataset: DatasetFolder, ctx: StageContext) -> Mapping[str, object]:
     write_sparse_model(out / "sparse" / "0", SparseModel(cameras, images), binary=True)
     np.savez(out / "points.npz", xyz=np.asarray(xyz, np.float64), rgb=np.asarray(rgb, np.uint8),
              conf=np.ones(len(xyz)))
-    return {"registered": len(images), "points": int(len(xyz)), "poses": "ground truth"}
+    return {"registered": len(images), "points": int(len(xyz)), "poses": "ground truth", "points_from": source}

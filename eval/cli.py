@@ -20,7 +20,7 @@ from pathlib import Path
 
 from eval.distributed import ClusterSettings, check_ray_address, ray_cluster
 from eval.evaluate import EvalConfig, evaluate_dataset, scene_dataset
-from eval.methods import METHODS
+from eval.methods import GT_POSES_SUFFIX, METHODS
 from eval.pipeline import PRESETS, preset, run_pipeline, validate_dataset_folder
 from eval.pipeline.config import DENOISE_METHODS, PipelineConfig
 from eval.pipeline.inputs import working_dataset
@@ -113,7 +113,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     device = str(resolve_device(args.device))
     kind, source = resolve_scene_source(args.scene)
     plan = _prepare_out(args, "denoise-gs eval", kind, source, EVAL_LAYOUT)
-    config = EvalConfig(methods=tuple(dict.fromkeys(args.methods)), seeds=args.seeds, preset=args.preset,
+    methods = list(args.methods)
+    if args.gt_pose_variants:
+        methods += [m + GT_POSES_SUFFIX for m in args.methods
+                    if m in METHODS and not METHODS[m].ground_truth_poses]
+    config = EvalConfig(methods=tuple(dict.fromkeys(methods)), seeds=args.seeds, preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
                         device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser)
     cluster = _cluster_settings(args, device)
@@ -275,7 +279,13 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seeds", type=positive_int, default=3, help="seeds per method (default 3)")
     ev.add_argument("--methods", nargs="+", default=["instantsplat", "nlm_instantsplat", "n2v_round1",
                                                      "denoise_gs"], metavar="METHOD",
-                    help="any of: " + "; ".join(f"{m.name}: {m.description}" for m in METHODS.values()))
+                    help="any of: " + "; ".join(f"{m.name}: {m.description}" for m in METHODS.values()
+                                                if m.gt_pose_variant_of is None)
+                    + f"; and METHOD{GT_POSES_SUFFIX} for any with estimated poses: the photos its splat trained "
+                      "on, splatted with the ground-truth cameras")
+    ev.add_argument("--gt-pose-variants", action="store_true",
+                    help=f"add METHOD{GT_POSES_SUFFIX} for each method given: the denoising's effect apart from "
+                         "the pose error")
     ev.add_argument("--preset", choices=sorted(PRESETS), default="default")
     ev.add_argument("--views", type=int_range(2), default=None,
                     help="K for rounds >= 2 (default min(12, training views))")

@@ -317,9 +317,9 @@ def save_heldout_renders(folder: Path, method: str, seed: int, renders: Mapping[
 
 def share_key(task: EvalTask) -> tuple[str, int, str]:
     """Tasks with equal keys write the same pipeline folder: (scene, seed, folder). The ablations key on
-    the folder whose round 1 they link (`EvalMethod.shares_round1_with`), so they run after it."""
-    m = task.method
-    return task.scene, task.seed, m.shares_round1_with or m.folder(task.config.denoiser)
+    the folder whose round 1 they link (`EvalMethod.shares_round1_with`), a `@gt_poses` variant on its
+    method's folder (`EvalMethod.runs_after`), so they run after it."""
+    return task.scene, task.seed, task.method.runs_after(task.config.denoiser)
 
 
 def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, scene: str,

@@ -7,7 +7,10 @@ the pipeline, which stages it runs, and the folder it runs in.
 - Denoise-GS (d), (e): `n2v_round1`, `denoise_gs`; the Table 3 round counts `rounds_1` ..
   `rounds_4`; the Table 2 ablations `ablate_no_selection`, `ablate_charbonnier`;
 - the extension `n2v_fused_round1`, `denoise_gs_fused` (`PipelineConfig.fuse_noisy_splat`);
-- the reference `oracle_clean`: (b) on the *clean* training photos, a perfect denoiser.
+- the reference `oracle_clean`: (b) on the *clean* training photos, a perfect denoiser;
+- `<method>@gt_poses` for every method with estimated poses: the photos its (last) splat trained on,
+  splatted again with the ground-truth cameras (`gt_pose_variant`), so that the denoising's effect is
+  seen apart from the method's pose error.
 
 Methods that differ only in their number of rounds share a folder (`EvalMethod.family`), so they
 reuse each other's completed rounds (the stage keys match); the ablations start from a link to
@@ -40,7 +43,8 @@ from eval.pipeline.stage_settings import SplatStageSettings, stage_seed, train_c
 from eval.pipeline.stages import STAGE_CODE
 from eval.pipeline.validate import DatasetFolder
 
-__all__ = ["METHODS", "EvalMethod", "Reconstruction", "reconstruct", "share_round1"]
+__all__ = ["GT_POSES_SUFFIX", "METHODS", "EvalMethod", "Reconstruction", "gt_pose_variant", "reconstruct",
+           "share_round1", "splat_photos"]
 
 
 # ----------------------------------------------------------------- how each method sets up the pipeline
@@ -115,6 +119,8 @@ class EvalMethod:
         ground_truth_poses: no alignment: the splat stage trains with the dataset's cameras, and the
             held-out views are rendered at their true poses.
         shares_round1_with: the family whose completed round 1 is linked in before the run.
+        gt_pose_variant_of: for `<method>@gt_poses` (`gt_pose_variant`), the method whose run it
+            splats again with the ground-truth cameras (run, or resumed, first).
     """
 
     name: str
@@ -126,6 +132,7 @@ class EvalMethod:
     takes_denoiser: bool = False
     ground_truth_poses: bool = False
     shares_round1_with: str | None = None
+    gt_pose_variant_of: EvalMethod | None = None
 
     def _renamed(self, denoiser: DenoiseMethod) -> bool:
         return self.takes_denoiser and denoiser != "n2v"
@@ -139,11 +146,53 @@ class EvalMethod:
 
     def folder(self, denoiser: DenoiseMethod = "n2v") -> str:
         """Its folder under `runs/<scene>/seed<k>/`."""
+        if self.gt_pose_variant_of is not None:
+            return self.gt_pose_variant_of.folder(denoiser) + GT_POSES_SUFFIX
         return f"{self.family}_{denoiser}" if self._renamed(denoiser) else self.family
 
+    def runs_after(self, denoiser: DenoiseMethod = "n2v") -> str:
+        """The folder whose run must be complete before this one starts (its own when none): the
+        ablations' linked round 1, a ground-truth-pose variant's method."""
+        if self.gt_pose_variant_of is not None:
+            return self.gt_pose_variant_of.runs_after(denoiser)
+        return self.shares_round1_with or self.folder(denoiser)
+
     def row_label(self, denoiser: DenoiseMethod = "n2v") -> str:
-        """Its name in the results: with the denoiser appended when it is not N2V (`n2v_round1+r2r`)."""
+        """Its name in the results: with the denoiser appended when it is not N2V (`n2v_round1+r2r`,
+        `n2v_round1+r2r@gt_poses`)."""
+        if self.gt_pose_variant_of is not None:
+            return self.gt_pose_variant_of.row_label(denoiser) + GT_POSES_SUFFIX
         return f"{self.name}+{denoiser}" if self._renamed(denoiser) else self.name
+
+
+#: The name suffix of a ground-truth-pose variant (`gt_pose_variant`).
+GT_POSES_SUFFIX = "@gt_poses"
+
+
+@dataclass(frozen=True)
+class _WithGtPosesSplat:
+    """A method's settings with the known-pose splat preset (a value: equal after pickling)."""
+
+    configure: Callable[[PipelineConfig], PipelineConfig]
+
+    def __call__(self, base: PipelineConfig) -> PipelineConfig:
+        cfg = self.configure(base)
+        return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, preset="gt_poses"))
+
+
+def gt_pose_variant(method: EvalMethod) -> EvalMethod:
+    """`<method>@gt_poses`: the photos `method`'s last splat trained on (its denoised photos, or the fused
+    ones), splatted with the ground-truth cameras and no pose learning, initialised from `method`'s own
+    alignment points moved into the ground-truth frame (`eval.baselines.gt_align`). Against the method's
+    own row it shows what its pose error costs; against `oracle_clean@gt_poses`, what its denoising
+    costs with the poses taken out."""
+    if method.ground_truth_poses or method.gt_pose_variant_of is not None:
+        raise ValueError(f"{method.name} has ground-truth poses already")
+    return dataclasses.replace(
+        method, name=method.name + GT_POSES_SUFFIX,
+        description=f"{method.description}; its photos splatted with the ground-truth cameras",
+        configure=_WithGtPosesSplat(method.configure), ground_truth_poses=True,
+        shares_round1_with=None, gt_pose_variant_of=method)
 
 
 def _registry(*methods: EvalMethod) -> dict[str, EvalMethod]:
@@ -151,7 +200,7 @@ def _registry(*methods: EvalMethod) -> dict[str, EvalMethod]:
 
 
 #: Every method, in the order the evaluation runs them (the ablations after the round 1 they share).
-METHODS: dict[str, EvalMethod] = _registry(
+_METHODS: dict[str, EvalMethod] = _registry(
     EvalMethod("3dgs_gt_poses", "3dgs_gt_poses", "(a) 3DGS on the noisy photos with ground-truth poses", 1,
                gt_poses_splat, ground_truth_poses=True),
     EvalMethod("instantsplat", "instantsplat", "(b) our alignment + splat on the noisy photos", 1, paper_loop,
@@ -172,6 +221,9 @@ METHODS: dict[str, EvalMethod] = _registry(
     EvalMethod("oracle_clean", "oracle_clean", "reference: (b) on the clean photos", 1, paper_loop,
                oracle_clean_stages),
 )
+#: ... then each one's ground-truth-pose variant (`gt_pose_variant`).
+METHODS: dict[str, EvalMethod] = {**_METHODS, **_registry(*(gt_pose_variant(m) for m in _METHODS.values()
+                                                            if not m.ground_truth_poses))}
 
 
 # ----------------------------------------------------------------- running one
@@ -217,13 +269,20 @@ def share_round1(src_run: Path, dst_run: Path) -> bool:
     return True
 
 
+def splat_photos(round_dir: Path) -> Path:
+    """The photos a pipeline round's splat trained on: `fused/` when the round fused, else `denoised/`."""
+    fused = Path(round_dir) / "fused"
+    return fused if fused.is_dir() else Path(round_dir) / "denoised"
+
+
 def _splat_on_ground_truth(stages: PipelineStages, config: PipelineConfig, dataset: DatasetFolder, inputs: Path,
-                           folder: Path) -> Reconstruction:
-    """(a): `gt_align` then the pipeline's splat stage on the noisy training photos in `inputs`, in
-    `folder/round1` (resumable like the pipeline's rounds)."""
+                           folder: Path, estimate: Path | None = None) -> Reconstruction:
+    """(a) and the `@gt_poses` variants: `gt_align` then the pipeline's splat stage on the photos in
+    `inputs`, in `folder/round1` (resumable like the pipeline's rounds). `estimate`: a round folder of
+    the method whose photos these are; its alignment points initialise the splat (`gt_align`)."""
     rd = folder / "round1"
     runner = StageRunner()
-    align_inputs = gt_align_inputs(dataset)
+    align_inputs = gt_align_inputs(dataset, estimate)
     al = runner.run(StageSpec("align", rd, functools.partial(gt_align, dataset), ("align",), inputs=align_inputs,
                               hashed_inputs=tuple(align_inputs), settings=GtAlignSettings(tuple(dataset.train)),
                               code=STAGE_CODE["splat"]), label="gt_poses/align")
@@ -239,7 +298,8 @@ def _splat_on_ground_truth(stages: PipelineStages, config: PipelineConfig, datas
 def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig, *, seed: int,
                 denoiser: DenoiseMethod, inputs: Path, seed_dir: Path) -> Reconstruction:
     """Run (or resume) `method` with `seed` on the noisy training photos in `inputs`, in
-    `seed_dir/<its folder>`.
+    `seed_dir/<its folder>`. A `@gt_poses` variant runs (or resumes) its method first; its seconds
+    are the method's plus its own splat's.
 
     Raises:
         Whatever the stages raise (`InputError`, `DegenerateGeometryError` for inputs the method
@@ -248,6 +308,12 @@ def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig
     config = method.pipeline_config(dataclasses.replace(base, seed=seed), denoiser)
     stages = method.stages(dataset)
     folder = seed_dir / method.folder(denoiser)
+    if method.gt_pose_variant_of is not None:
+        own = reconstruct(method.gt_pose_variant_of, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs,
+                          seed_dir=seed_dir)
+        rec = _splat_on_ground_truth(stages, config, dataset, splat_photos(own.round_dir), folder,
+                                     estimate=own.round_dir)
+        return dataclasses.replace(rec, seconds=own.seconds + rec.seconds)
     if method.ground_truth_poses:
         return _splat_on_ground_truth(stages, config, dataset, inputs, folder)
     if method.shares_round1_with is not None:

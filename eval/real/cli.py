@@ -44,9 +44,11 @@ def add_dataset_parser(sub: argparse._SubParsersAction) -> None:
                      help="hold out views 0, K, 2K, ... (LLFF's convention; default 8)")
     imp.add_argument("--test", type=positive_int, default=None, metavar="N",
                      help="hold out N views instead, midway between the training views")
-    imp.add_argument("--layout", choices=("spread", "cluster"), default="spread",
+    imp.add_argument("--layout", choices=("spread", "cluster", "ring"), default="spread",
                      help="spread (default): views over the capture's order; cluster: the most alike viewing "
-                          "directions, held-out views inside them (needs --test, default 4)")
+                          "directions, held-out views inside them (--test N, default 4); ring: an orbit, training "
+                          "views spread by angle around the cameras' ring (--views, default 12), held out the "
+                          "views between them (all, or --test N)")
     size = imp.add_mutually_exclusive_group()
     size.add_argument("--size", type=size_wh(min_px=8), default=None, metavar="WxH",
                       help="resize every image to WxH (area filter; intrinsics scaled exactly)")

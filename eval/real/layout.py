@@ -32,7 +32,7 @@ import numpy as np
 
 from eval.real.capture import Capture
 from eval.real.degrade import Degradation, parse_noise
-from eval.real.split import cluster_split, every_kth_split, spread_split
+from eval.real.split import cluster_split, every_kth_split, ring_split, spread_split
 from mvgeo.common.atomic import atomic_output_dir, atomic_write_text
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import InputError
@@ -57,13 +57,15 @@ class ImportConfig:
 
     Attributes:
         views: training views (spread over the candidates); None takes every non-held-out view
-            (`spread` layout) or 12 (`cluster`).
+            (`spread` layout) or 12 (`cluster`, `ring`).
         test_every: hold out views 0, K, 2K, ... (LLFF's convention; default 8 when neither this nor
             `test` is given with the `spread` layout).
         test: hold out this many views instead, midway between the training views (`spread`) or inside
             them (`cluster`, default 4).
-        layout: "spread" (views over the capture's order) or "cluster" (the most alike viewing
-            directions, `eval.real.split.cluster_split`).
+        layout: "spread" (views over the capture's order), "cluster" (the most alike viewing
+            directions, `eval.real.split.cluster_split`) or "ring" (an orbit: training views spread
+            by angle around the camera centres' ring, held out the views between them,
+            `eval.real.split.ring_split`).
         size_wh: output (width, height) in pixels; None keeps the source size (or `max_size_px`).
         max_size_px: downscale so that the longer side is at most this; None: no limit.
         noise: the declared degradation (`eval.real.degrade.parse_noise`).
@@ -108,8 +110,15 @@ def choose_split(capture: Capture, config: ImportConfig) -> tuple[list[int], lis
         dirs = np.array([v.cam_from_world[2, :3] for v in capture.views])
         tr, te = cluster_split(dirs, train, test)
         rule = {"layout": "cluster", "views": train, "test": test}
+    elif config.layout == "ring":
+        if config.test_every is not None:
+            raise InputError("--test-every does not apply to the ring layout", fix="use --test N")
+        train = 12 if config.views is None else config.views
+        centres = np.array([-v.cam_from_world[:3, :3].T @ v.cam_from_world[:3, 3] for v in capture.views])
+        tr, te = ring_split(centres, train, config.test)
+        rule = {"layout": "ring", "views": train, "test": len(te)}
     else:
-        raise InputError(f"unknown split layout {config.layout!r}", fix='use "spread" or "cluster"')
+        raise InputError(f"unknown split layout {config.layout!r}", fix='use "spread", "cluster" or "ring"')
     if len(tr) < 2 or not te:
         raise InputError(f"the split of {n} views leaves {len(tr)} training and {len(te)} held-out views",
                          fix="a dataset needs at least 2 training views and 1 held-out view")

@@ -7,7 +7,10 @@ Three rules, all deterministic:
 - `spread_split`: training views spread evenly over the index range,
   held-out views midway between them;
 - `cluster_split`: the most alike views (by viewing direction), with
-  held-out views inside the training views.
+  held-out views inside the training views;
+- `ring_split`: for an orbit (camera centres around the object, in any file
+  order), training views spread by angle around the ring, held out the views
+  between them.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import numpy as np
 
 from mvgeo.common.errors import InputError
 
-__all__ = ["cluster_split", "every_kth_split", "spread_split"]
+__all__ = ["cluster_split", "every_kth_split", "ring_order", "ring_split", "spread_split"]
 
 
 def every_kth_split(n: int, test_every: int, train: int | None = None) -> tuple[list[int], list[int]]:
@@ -116,3 +119,49 @@ def _surrounded(direction: np.ndarray, others: np.ndarray) -> bool:
     bearing = np.sort(np.arctan2(others @ e2, others @ e1))
     gaps = np.diff(np.concatenate([bearing, bearing[:1] + 2.0 * np.pi]))
     return bool(gaps.max() < np.radians(150.0))
+
+
+def ring_order(centres: np.ndarray) -> tuple[list[int], np.ndarray]:
+    """(views in ring order without repeated positions, angle of every view in radians) for camera
+    centres (N, 3) around a ring: the angle is taken in the centres' best-fit plane (the two leading
+    principal directions); a view at the position of an earlier one (within 1e-6 of the ring's
+    radius) is left out of the order."""
+    c = np.asarray(centres, np.float64) - np.mean(centres, axis=0)
+    _, _, vt = np.linalg.svd(c)
+    ang = np.arctan2(c @ vt[1], c @ vt[0])
+    tol = 1e-6 * max(float(np.linalg.norm(c, axis=1).max()), 1e-300)
+    order: list[int] = []
+    for v in range(len(c)):
+        if all(np.linalg.norm(c[v] - c[u]) > tol for u in order):
+            order.append(v)
+    order.sort(key=lambda v: ang[v])
+    return order, ang
+
+
+def ring_split(centres: np.ndarray, train: int, test: int | None = None) -> tuple[list[int], list[int]]:
+    """`train` views spread around a ring of camera centres (N, 3), and held-out views between them.
+
+    The training views: of the distinct positions in ring order (`ring_order`), the view whose two
+    neighbours around the ring are closest is dropped until `train` remain, so the gaps stay as even as
+    the capture allows and the ring stays closed. Held out: the dropped views (not the repeated
+    positions, which would be a training view seen again), all of them or `test` spread over them.
+
+    Raises:
+        InputError: fewer distinct positions than `train` + 1, or fewer candidates than `test`.
+    """
+    order, ang = ring_order(centres)
+    if train < 2 or train >= len(order):
+        raise InputError(f"a ring of {len(order)} distinct camera positions cannot give {train} training views "
+                         "and a held-out one", fix=f"ask for 2..{len(order) - 1} training views")
+    keep = list(order)
+    while len(keep) > train:
+        a = np.array([ang[v] for v in keep])
+        span = (np.roll(a, -1) - np.roll(a, 1)) % (2 * np.pi)  # the two neighbours' separation around each view
+        keep.pop(int(np.argmin(span)))
+    rest = [v for v in order if v not in keep]
+    if test is not None:
+        if test < 1 or test > len(rest):
+            raise InputError(f"the ring leaves {len(rest)} held-out candidates; cannot take {test}",
+                             fix=f"ask for 1..{len(rest)} held-out views")
+        rest = [rest[int(k)] for k in np.unique(np.round(np.linspace(0, len(rest) - 1, test)).astype(int))]
+    return sorted(keep), sorted(rest)

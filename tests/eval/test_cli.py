@@ -7,8 +7,9 @@ import shutil
 
 import pytest
 
+import eval.cli
 from eval.cli import main
-from tests.eval._tiny_stages import make_scene
+from tests.eval._tiny_stages import make_scene, tiny_dataset
 
 
 def _err(capsys) -> str:
@@ -52,7 +53,6 @@ def test_run_bad_values(tmp_path, capsys):
     (["--preset", "fast", "--no-fuse-noisy-splat"], ("auto", False)),
 ])
 def test_run_pipeline_flags(tmp_path, monkeypatch, flag, expected):
-    import eval.cli
 
     seen = {}
 
@@ -135,3 +135,24 @@ def test_eval_gt_poses_end_to_end(tmp_path, capsys):
     # held-out renders kept and shown next to the clean and noisy views
     assert sorted(p.name for p in (out / "heldout" / "llff_like").iterdir()) == ["3dgs_gt_poses", "_clean", "_noisy"]
     assert (out / "figures" / "heldout_llff_like.png").is_file()
+
+
+def test_gt_pose_variants_add_one_row_per_method_with_estimated_poses(tmp_path, monkeypatch):
+    import eval.evaluate
+
+    seen = {}
+
+    def record(dataset, out, config, **kw):
+        seen["methods"] = config.methods
+        return []
+
+    monkeypatch.setattr(eval.cli, "evaluate_dataset", record)
+    root = tiny_dataset(tmp_path / "data").root
+    shutil.copytree(root / "images", root / "clean")
+    code = main(["eval", str(root), "--out", str(tmp_path / "out"), "--seeds", "1", "--gt-pose-variants",
+                 "--methods", "3dgs_gt_poses", "instantsplat", "n2v_fused_round1"])
+    assert code == 0
+    assert seen["methods"] == ("3dgs_gt_poses", "instantsplat", "n2v_fused_round1", "instantsplat@gt_poses",
+                               "n2v_fused_round1@gt_poses")
+    assert [m.name for m in eval.evaluate.EvalConfig(methods=seen["methods"]).selected()][-2:] == [
+        "instantsplat@gt_poses", "n2v_fused_round1@gt_poses"]

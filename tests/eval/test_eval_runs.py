@@ -17,6 +17,7 @@ from eval.evaluate import EvalConfig, EvalTask, evaluate_dataset, run_task
 from eval.methods import METHODS
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
+from mvgeo.camera import Camera
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.sparse_model import read_sparse_model
 from tests.eval._tiny_stages import TinyStages, make_scene, tiny_dataset
@@ -93,6 +94,56 @@ def test_gt_poses_baseline_runs_the_pipeline_splat_stage(tmp_path, dataset, monk
     # Resumable like the pipeline: a second run reuses both stages.
     run_task(_task(dataset, tmp_path, "3dgs_gt_poses"))
     assert h.tiny.calls["splat"] == 1
+
+
+def test_a_gt_pose_variant_splats_its_methods_photos_with_the_true_cameras(tmp_path, dataset, monkeypatch):
+    h = Harness(monkeypatch)
+    row = run_task(_task(dataset, tmp_path, "n2v_round1@gt_poses"))
+    assert row.method == "n2v_round1@gt_poses" and not row.error
+    seed_dir = tmp_path / "out" / "runs" / "s" / "seed0"
+    own, rd = seed_dir / "n2v" / "round1", seed_dir / "n2v@gt_poses" / "round1"
+    # Its method ran first (its own splat with pose learning), then one more splat: known poses, the method's
+    # denoised photos, ground-truth cameras.
+    assert h.tiny.calls["align"] == 1 and h.tiny.calls["splat"] == 2
+    assert [s.train.optimize_poses for s in h.splat_settings] == [True, False]
+    assert (own / "point_cloud.ply").is_file() and (rd / "point_cloud.ply").is_file()
+    aligned = read_sparse_model(rd / "align" / "sparse" / "0")
+    gt = read_sparse_model(dataset.root / "sparse" / "0")
+    for n in aligned.names:
+        np.testing.assert_allclose(aligned.image(n).cam_from_world, gt.image(n).cam_from_world, atol=1e-12)
+    # Initial points: the method's alignment points in the ground-truth frame. The tiny alignment puts the
+    # training cameras at x = 0.1 i (i = 0..4), the ground truth at 0.1 (i + 1): a shift of 0.1 along x.
+    est_xyz = np.load(own / "align" / "points.npz")["xyz"]
+    np.testing.assert_allclose(np.load(rd / "align" / "points.npz")["xyz"], est_xyz + [0.1, 0.0, 0.0], atol=1e-9)
+    assert h.scored[-1]["est"] is None and h.scored[-1]["ply"] == rd / "point_cloud.ply"  # scored at the true poses
+    run_task(_task(dataset, tmp_path, "n2v_round1@gt_poses"))  # resumable: nothing runs again
+    assert h.tiny.calls["splat"] == 2 and h.tiny.calls["align"] == 1
+
+
+def test_points_move_into_the_reference_frame_by_the_camera_registration(tmp_path):
+    from eval.baselines import points_in_reference_frame
+    from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
+    from mvgeo.transforms import R_from_axis_angle, Sim3
+
+    rng = np.random.default_rng(3)
+    est_from_ref = Sim3(2.5, R_from_axis_angle(rng.normal(size=3)), rng.normal(size=3))
+    cam = Camera("PINHOLE", 40, 30, [30.0, 30.0, 20.0, 15.0])
+    ref_images, est_images = [], []
+    for i in range(5):  # non-collinear centres: Umeyama on the centres
+        R = R_from_axis_angle(0.3 * rng.normal(size=3))
+        t = rng.normal(size=3)
+        ref_images.append(PosedImage(f"v{i}.png", 1, np.hstack([R, t[:, None]])))
+        # the same camera in the estimated world: R_e = R R_s^T, t_e = s t - R_e t_s
+        R_e = R @ est_from_ref.R.T
+        est_images.append(PosedImage(f"v{i}.png", 1, np.hstack([R_e, (est_from_ref.scale * t
+                                                                      - R_e @ est_from_ref.t)[:, None]])))
+    write_sparse_model(tmp_path / "est", SparseModel({1: cam}, est_images), binary=True)
+    xyz_ref = rng.normal(size=(50, 3))
+    np.savez(tmp_path / "points.npz", xyz=est_from_ref.apply(xyz_ref), rgb=np.zeros((50, 3), np.uint8))
+    xyz, rgb = points_in_reference_frame(tmp_path / "est", tmp_path / "points.npz", SparseModel({1: cam}, ref_images),
+                                         tuple(f"v{i}" for i in range(5)))
+    np.testing.assert_allclose(xyz, xyz_ref, atol=1e-9)  # exact data: only rounding
+    assert rgb.dtype == np.uint8 and rgb.shape == (50, 3)
 
 
 def test_degenerate_geometry_becomes_a_failed_row(tmp_path, dataset, monkeypatch):

@@ -8,7 +8,7 @@ import pickle
 import pytest
 
 from eval.evaluate import EvalConfig
-from eval.methods import METHODS, EvalMethod
+from eval.methods import METHODS, EvalMethod, gt_pose_variant
 from eval.pipeline import preset
 from eval.pipeline.stages import DENOISE_OUTPUTS
 from eval.pipeline.validate import DatasetFolder
@@ -18,6 +18,8 @@ from mvgeo.common.errors import InputError
 NAMES = ("3dgs_gt_poses", "instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs", "ablate_no_selection",
          "ablate_charbonnier", "rounds_1", "rounds_2", "rounds_3", "rounds_4", "n2v_fused_round1",
          "denoise_gs_fused", "oracle_clean")
+#: ... then the ground-truth-pose variant of each method with estimated poses.
+VARIANTS = tuple(f"{n}@gt_poses" for n in NAMES if n != "3dgs_gt_poses")
 
 
 def _dataset(tmp_path) -> DatasetFolder:
@@ -25,9 +27,10 @@ def _dataset(tmp_path) -> DatasetFolder:
 
 
 def test_every_name_resolves_in_run_order():
-    assert tuple(METHODS) == NAMES  # the run order: each ablation after the Denoise-GS round 1 it links
+    # the run order: each ablation after the Denoise-GS round 1 it links, each variant after its method
+    assert tuple(METHODS) == NAMES + VARIANTS
     assert all(isinstance(m, EvalMethod) and m.name == name for name, m in METHODS.items())
-    assert EvalConfig(methods=NAMES).selected() == list(METHODS.values())
+    assert EvalConfig(methods=NAMES + VARIANTS).selected() == list(METHODS.values())
     assert [m.name for m in EvalConfig(methods=("denoise_gs", "ablate_charbonnier", "instantsplat")).selected()] \
         == ["instantsplat", "denoise_gs", "ablate_charbonnier"]
     with pytest.raises(InputError, match="magic"):
@@ -38,9 +41,10 @@ def test_every_name_resolves_in_run_order():
 
 def test_families_share_folders_and_rounds_n_configs():
     base = preset("fast", views=4)
-    assert {m.name for m in METHODS.values() if m.family == "n2v"} == {
+    own = [m for m in METHODS.values() if m.gt_pose_variant_of is None]
+    assert {m.name for m in own if m.family == "n2v"} == {
         "n2v_round1", "denoise_gs", "rounds_1", "rounds_2", "rounds_3", "rounds_4"}
-    assert {m.name for m in METHODS.values() if m.family == "n2v_fused"} == {"n2v_fused_round1", "denoise_gs_fused"}
+    assert {m.name for m in own if m.family == "n2v_fused"} == {"n2v_fused_round1", "denoise_gs_fused"}
     for n in (1, 2, 3, 4):
         cfg = METHODS[f"rounds_{n}"].pipeline_config(base)
         assert cfg.rounds == n and cfg == dataclasses.replace(METHODS["denoise_gs"].pipeline_config(base), rounds=n)
@@ -59,23 +63,41 @@ def test_families_share_folders_and_rounds_n_configs():
     gt = METHODS["3dgs_gt_poses"]
     assert gt.ground_truth_poses and gt.pipeline_config(base).splat.preset == "gt_poses"
     assert gt.pipeline_config(base).splat.iters == base.splat.iters
-    assert [m.name for m in METHODS.values() if m.ground_truth_poses] == ["3dgs_gt_poses"]
+    assert [m.name for m in METHODS.values() if m.ground_truth_poses] == ["3dgs_gt_poses", *VARIANTS]
+
+
+def test_a_gt_pose_variant_is_its_method_with_the_known_pose_splat():
+    base = preset("default", views=4)
+    for name in VARIANTS:
+        v, own = METHODS[name], METHODS[name.removesuffix("@gt_poses")]
+        assert v.gt_pose_variant_of == own and v.ground_truth_poses and v.rounds == own.rounds
+        d = "r2r" if own.rounds == 1 else "n2v"  # (other objectives run round 1 only)
+        cfg, own_cfg = v.pipeline_config(base, d), own.pipeline_config(base, d)
+        assert cfg.splat.preset == "gt_poses" and cfg.splat.iters == own_cfg.splat.iters
+        assert dataclasses.replace(cfg, splat=own_cfg.splat) == own_cfg  # only the splat preset differs
+        # after its method (the Ray chains), in a folder of its own, labelled after its method's row
+        assert v.runs_after(d) == own.runs_after(d) and v.folder(d) == own.folder(d) + "@gt_poses"
+        assert v.row_label(d) == own.row_label(d) + "@gt_poses"
+    with pytest.raises(ValueError, match="ground-truth poses"):
+        gt_pose_variant(METHODS["3dgs_gt_poses"])
 
 
 @pytest.mark.parametrize("name", ["fast", "default"])
 def test_only_the_fused_methods_fuse_whatever_the_preset(name):
     for m in METHODS.values():
         cfg = m.pipeline_config(preset(name))
-        assert cfg.fuse_noisy_splat == ("_fused" in m.name), m.name
+        assert cfg.fuse_noisy_splat == ("_fused" in m.name), m.name  # (a @gt_poses variant splats the fused photos)
         assert cfg.align.reuse_geometry == ("auto" if "_fused" in m.name else "never"), m.name
 
 
 def test_labels_and_folders():
     for m in METHODS.values():
-        assert m.row_label() == m.name and m.folder() == m.family and m.description
+        assert m.row_label() == m.name and m.description
+        assert m.folder() == (m.family + "@gt_poses" if m.gt_pose_variant_of else m.family)
     takes = {m.name for m in METHODS.values() if m.takes_denoiser}
-    assert takes == {"n2v_round1", "denoise_gs", "rounds_1", "rounds_2", "rounds_3", "rounds_4", "n2v_fused_round1",
-                     "denoise_gs_fused"}
+    own = {"n2v_round1", "denoise_gs", "rounds_1", "rounds_2", "rounds_3", "rounds_4", "n2v_fused_round1",
+           "denoise_gs_fused"}
+    assert takes == own | {f"{n}@gt_poses" for n in own}
     assert METHODS["n2v_fused_round1"].folder("r2r") == "n2v_fused_r2r"
     assert METHODS["nlm_instantsplat"].folder("r2r") == "nlm_instantsplat"
     with pytest.raises(InputError, match="round 1 only"):
@@ -87,6 +109,7 @@ def test_stage_sets_declare_what_they_write(tmp_path):
     """The baselines without a network declare `denoised/` alone; the N2V methods the checkpoint too."""
     ds = _dataset(tmp_path)
     classical = {"instantsplat", "nlm_instantsplat", "oracle_clean"}
+    classical |= {f"{n}@gt_poses" for n in classical}
     for m in METHODS.values():
         stages = m.stages(ds)
         assert stages.export is None, m.name  # the scores need no viewer files

@@ -254,13 +254,37 @@ def test_every_kth_split_is_llffs_protocol():
         every_kth_split(20, 1)
 
 
+def test_ring_split_keeps_the_ring_closed_whatever_the_file_order():
+    from eval.real.split import ring_split
+
+    rng = np.random.default_rng(5)
+    angles = np.deg2rad(np.arange(16) * 22.5)  # 16 views 22.5 deg apart ...
+    perm = rng.permutation(16)  # ... in a shuffled file order, on a tilted ring, one position repeated
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    centres = np.stack([np.cos(angles), np.sin(angles), np.zeros(16)], axis=1)[perm] @ R.T + [1.0, 2.0, 3.0]
+    centres = np.vstack([centres, centres[3]])
+    tr, te = ring_split(centres, 12)
+    assert len(tr) == 12 and 16 not in te and 16 not in tr  # the repeated position is neither
+    assert sorted(tr + te) == list(range(16))
+    ring_pos = {int(p): k for k, p in enumerate(perm)}  # file index -> position on the ring
+    gaps = np.diff(sorted(ring_pos[v] for v in tr) + [min(ring_pos[v] for v in tr) + 16])
+    assert gaps.max() == 2  # 4 views dropped from 16: never two neighbours, so no gap wider than 45 deg
+    # a held-out view lies between two training views
+    assert all((ring_pos[v] - 1) % 16 in {ring_pos[u] for u in tr} and (ring_pos[v] + 1) % 16 in
+               {ring_pos[u] for u in tr} for v in te)
+    tr2, te2 = ring_split(centres, 12, test=2)
+    assert tr2 == tr and len(te2) == 2 and set(te2) <= set(te)
+
+
 def test_split_options_that_cannot_work_are_refused_before_writing(tmp_path, rng):
     _write_par(tmp_path / "mb", rng, n=6)
     for kwargs, msg in [({"test": 1, "test_every": 3}, "either --test-every or --test"),
                         ({"views": 6, "test": 1}, "cannot split 6 views"),
                         ({"views": 5, "test_every": 3}, "leave 4 training candidates"),
                         ({"layout": "cluster", "test_every": 3}, "does not apply to the cluster"),
-                        ({"layout": "ring"}, "unknown split layout"),
+                        ({"layout": "orbit"}, "unknown split layout"),
+                        ({"layout": "ring", "test_every": 3}, "does not apply to the ring"),
+                        ({"layout": "ring", "views": 6}, "cannot give 6 training views"),
                         ({"seed": -1, "test": 1}, "--seed must be"),
                         ({"size_wh": (4, 4), "test": 1}, "at least 8x8")]:
         with pytest.raises(InputError, match=msg):
