@@ -106,7 +106,7 @@ def test_dtu_dataset_cluster_layout_and_unknown_layout(tmp_path):
     assert len(split["train"]) == 5 and split["test"] == ["000004.png"]  # the grid's centre
     assert json.loads((out / "meta.json").read_text())["split"]["layout"] == "cluster"
     with pytest.raises(InputError, match="layout"):
-        dtu_dataset(tmp_path / "dtu", tmp_path / "ds2", layout="ring")
+        dtu_dataset(tmp_path / "dtu", tmp_path / "ds2", layout="orbit")
     assert not (tmp_path / "ds2").exists()
 
 
