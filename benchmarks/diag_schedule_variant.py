@@ -1,7 +1,9 @@
 """`denoise-gs eval` with the `fast` preset changed: argv[1] = comma-separated variants, the rest the CLI's
 arguments. Variants: "reuse_off" (PipelineConfig.reuse_noisy_splat=False), "passes=N"
 (DenoiseSettings.passes), "handover" (rounds >= 2 keep the previous round's alignment whenever it holds
-every selected view: `choose_geometry`'s decision forced to the handover), "preset=NAME" (change that
+every selected view: `choose_geometry`'s decision forced to the handover), "no_stop"
+(PipelineConfig.stop_when_unrefined=False: a round whose refine kept the previous network still aligns and
+splats), "preset=NAME" (change that
 preset instead of `fast`; give the same name to `--preset`).
 
 Usage: .venv/bin/python benchmarks/diag_schedule_variant.py VARIANTS eval DATA --out OUT --preset fast ..."""
@@ -20,6 +22,8 @@ for v in variants:
         continue
     if v == "reuse_off":
         fast = dataclasses.replace(fast, reuse_noisy_splat=False)
+    elif v == "no_stop":
+        fast = dataclasses.replace(fast, stop_when_unrefined=False)
     elif v.startswith("passes="):
         fast = dataclasses.replace(fast, denoise=dataclasses.replace(fast.denoise, passes=int(v.split("=")[1])))
     elif v == "handover":

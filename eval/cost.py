@@ -297,7 +297,8 @@ def _run_point(job: _PointJob) -> CostPoint:
         _share_stages(out / "points" / "base", run_dir)
     _log.info("cost sweep: %s", p.name)
     res = run_pipeline(inputs, run_dir, p.config, stages=job.stages)
-    stage_s = {f"round{r.index}/{n}": float(s.seconds) for r in res.rounds for n, s in r.stages.items()}
+    ran = [*res.rounds, *([res.stopped] if res.stopped is not None else [])]
+    stage_s = {f"round{r.index}/{n}": float(s.seconds) for r in ran for n, s in r.stages.items()}
     final = res.rounds[-1]
     key = {"render": final.stages["render"].key, "pose_fit_iters": job.pose_fit_iters,
            "test": list(dataset.test)}

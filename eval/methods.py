@@ -49,14 +49,16 @@ __all__ = ["GT_POSES_SUFFIX", "METHODS", "EvalMethod", "Reconstruction", "gt_pos
 
 # ----------------------------------------------------------------- how each method sets up the pipeline
 def paper_loop(base: PipelineConfig) -> PipelineConfig:
-    """The paper's loop, whatever the preset says: no noisy-photo fusion, each round's own alignment."""
-    return dataclasses.replace(base, fuse_noisy_splat=False,
+    """The paper's loop, whatever the preset says: no noisy-photo fusion, each round's own alignment, every
+    round run."""
+    return dataclasses.replace(base, fuse_noisy_splat=False, stop_when_unrefined=False,
                                align=dataclasses.replace(base.align, reuse_geometry="never"))
 
 
 def fused_loop(base: PipelineConfig) -> PipelineConfig:
-    """The extension: each splat trains on the fused photos, and a round 2 whose own alignment pins the
-    views less well keeps round 1's geometry (`AlignSettings.reuse_geometry`)."""
+    """The extension: each splat trains on the fused photos, a round 2 whose own alignment pins the
+    views less well keeps round 1's geometry (`AlignSettings.reuse_geometry`); whether a round whose refine
+    kept the previous network ends the loop is the preset's (`PipelineConfig.stop_when_unrefined`)."""
     return dataclasses.replace(base, fuse_noisy_splat=True,
                                align=dataclasses.replace(base.align, reuse_geometry="auto"))
 
@@ -319,5 +321,6 @@ def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig
     if method.shares_round1_with is not None:
         share_round1(seed_dir / method.shares_round1_with, folder)
     res = run_pipeline(inputs, folder, config, stages=stages)
-    seconds = float(sum(st.seconds for rd in res.rounds for st in rd.stages.values()))
+    ran = [*res.rounds, *([res.stopped] if res.stopped is not None else [])]  # a stopped round's stages cost too
+    seconds = float(sum(st.seconds for rd in ran for st in rd.stages.values()))
     return Reconstruction(res.rounds[-1].dir, True, seconds)

@@ -129,6 +129,13 @@ class PipelineConfig:
             same photos with the same start (the previous splat saw these views and more). Saves one
             splat training per such round; False trains every round (`eval.pipeline.stages.fuse`,
             docs/bench/pipeline_schedule.md).
+        stop_when_unrefined: rounds >= 2: when a round's refine keeps the previous round's network
+            (round 2's blind-spot-loss guard, `denoise.round2.refine_round2`, found the fine-tuned one no
+            better), the loop stops after that stage and the previous round's reconstruction is the
+            result: the round would only align and splat again a subset (K views) of the previous
+            round's own photos. The guard reverts on most scenes measured, where the re-splat scored
+            below round 1 (docs/bench/pipeline_schedule.md, section 4). False runs every round
+            whatever the guard says (the paper's loop; `denoise-gs eval`'s `denoise_gs`, `rounds_N`).
         device: torch device for the networks and the splatting ("cpu", "cuda").
         max_size: long side in pixels of the working images (`--max-size`): larger inputs are
             downscaled once, with the area filter, before any stage (`eval.pipeline.inputs`);
@@ -142,6 +149,7 @@ class PipelineConfig:
     select_views: bool = True
     fuse_noisy_splat: bool = False
     reuse_noisy_splat: bool = True
+    stop_when_unrefined: bool = False
     device: str = "cpu"
     max_size: int | None = 512
     denoise: DenoiseSettings = field(default_factory=DenoiseSettings)
@@ -201,10 +209,11 @@ class PipelineConfig:
 #:
 #: All three keep the better-determined focal length and poses across rounds
 #: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and, when a round keeps the previous round's
-#: poses, the previous round's noisy-photo splat (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md).
+#: poses, the previous round's noisy-photo splat (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md),
+#: and stop after a round whose refine kept the previous network (`stop_when_unrefined`).
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
-        fuse_noisy_splat=True,
+        fuse_noisy_splat=True, stop_when_unrefined=True,
         denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40),
         # PREVIEW thins its cloud to 20k points; at 256x192 and 12 views the splat started from
         # every point (~60k) scored +0.5 dB / LPIPS -0.09..-0.17 held out for 15-40 % more splat time
@@ -212,9 +221,9 @@ PRESETS: dict[str, PipelineConfig] = {
         align=AlignSettings(preset="preview", points=100_000),
         splat=SplatSettings(preset="quick"),
     ),
-    "default": PipelineConfig(fuse_noisy_splat=True),
+    "default": PipelineConfig(fuse_noisy_splat=True, stop_when_unrefined=True),
     "best": PipelineConfig(
-        fuse_noisy_splat=True,
+        fuse_noisy_splat=True, stop_when_unrefined=True,
         denoise=DenoiseSettings(n2v_preset="n2v2", n2v_steps=1500, passes=8, round2_steps=400),
         align=AlignSettings(preset="default"),
         splat=SplatSettings(preset="instantsplat", iters=2000),

@@ -11,7 +11,7 @@ import numpy as np
 
 from eval.contact_sheet import contact_sheet
 from eval.pipeline.config import PipelineConfig
-from eval.pipeline.rounds import RoundResult
+from eval.pipeline.rounds import RoundResult, StoppedRound
 from eval.pipeline.stage import StageResult
 from eval.pipeline.views import view_files
 from mvgeo.common.atomic import atomic_write_text
@@ -72,7 +72,7 @@ def _size_lines(config: PipelineConfig, sizes: dict) -> list[str]:
 
 def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds: Sequence[RoundResult],
                  timings_s: dict[str, float], working: StageResult | None = None,
-                 exported: StageResult | None = None) -> tuple[Path, Path]:
+                 exported: StageResult | None = None, stopped: StoppedRound | None = None) -> tuple[Path, Path]:
     """Write `report.json`, `report.md` and `report_files/contact_round<N>.png`.
 
     Args:
@@ -83,13 +83,14 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
         timings_s: this invocation's seconds per stage (skipped stages absent) and `total`.
         working: the `inputs` stage (working images and their sizes), if it ran.
         exported: the `export` stage (scene.splat, view/, cameras/), if it ran.
+        stopped: the round the loop stopped in after its refine, if any (its stages are listed too).
 
     Returns:
         (report.json, report.md) paths.
     """
     stages = []
     selected: dict[str, list[str]] = {}
-    for rnd in rounds:
+    for rnd in [*rounds, *([stopped] if stopped is not None else [])]:
         for name, res in rnd.stages.items():
             stages.append({"round": rnd.index, "stage": name, "key": res.key, "skipped": res.skipped,
                            "seconds": round(res.seconds, 4), "summary": res.summary})
@@ -106,6 +107,8 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
         "stages": stages,
         "selected_views": selected,
         "rounds": [{"index": rnd.index, "dir": rnd.dir.name} for rnd in rounds],
+        "result_round": rounds[-1].index if rounds else None,
+        "stopped": None if stopped is None else {"round": stopped.index, "reason": stopped.reason},
         "contact_sheets": {f"round{k}": str(v.relative_to(out)) for k, v in sheets.items() if v is not None},
         "max_size": config.max_size,
         "image_sizes": sizes,
@@ -117,6 +120,8 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
     lines = ["# Denoise-GS run", "", f"- inputs: `{images_dir}`",
              f"- rounds: {config.rounds}, views kept for rounds >= 2: {config.views}, seed: {config.seed}, "
              f"device: {config.device}"]
+    if stopped is not None:
+        lines.append(f"- **{stopped.reason}**")
     lines += _size_lines(config, sizes)
     if exported is not None:
         lines += ["- scene: [`scene.splat`](scene.splat) (antimatter15 .splat, "

@@ -46,10 +46,10 @@ from eval.pipeline.hashing import hash_files
 from eval.pipeline.inputs import SIZES_FILE, WORKING_DIR, prepare_inputs
 from eval.pipeline.lock import output_lock
 from eval.pipeline.report import write_report
-from eval.pipeline.rounds import RoundResult
+from eval.pipeline.rounds import RoundResult, StoppedRound
 from eval.pipeline.stage import StageResult, StageRunner, StageSpec, code_digests
 from eval.pipeline.stage_settings import InputsStageSettings, RoundSettings, round_settings, stage_seed
-from eval.pipeline.stages import MODEL_FILE, PipelineStages, product_stages
+from eval.pipeline.stages import MODEL_FILE, PipelineStages, product_stages, refine_kept_previous
 from eval.pipeline.validate import validate_run_inputs
 from mvgeo.common.output import prepare_output, resumable_output_dir
 from mvgeo.common.timing import StageTimer
@@ -73,10 +73,12 @@ class PipelineResult:
 
     Attributes:
         out: the output folder.
-        rounds: per-round stage results.
+        rounds: per-round stage results of the rounds that ran to the end; the last one's
+            reconstruction is the result.
         timings_s: this invocation's seconds per stage (`roundN/stage`) and `total`;
             skipped stages are absent.
         report_json, report_md: the report files.
+        stopped: the round the loop stopped in (`PipelineConfig.stop_when_unrefined`), if any.
     """
 
     out: Path
@@ -84,6 +86,7 @@ class PipelineResult:
     timings_s: dict[str, float]
     report_json: Path
     report_md: Path
+    stopped: StoppedRound | None = None
 
 
 def _hash_stage_code(stages: PipelineStages) -> None:
@@ -178,6 +181,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     noisy_digest = hash_files(files.values())
     _hash_stage_code(stages)
     rounds: list[RoundResult] = []
+    stopped: StoppedRound | None = None
     with resumable_output_dir(plan), output_lock(out):
         # The working images (upright, long side <= max_size): every stage reads these, not the inputs.
         prep = runner.run(StageSpec(WORKING_DIR, out, prepare_inputs, (WORKING_DIR,), inputs={"noisy": images_dir},
@@ -209,6 +213,13 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
                 upstream=(sel, model_stage, prev.stages["render"]), settings=rs.refine,
                 seed=stage_seed(config.seed, r, "refine"), code=stages.code.get("refine", ())),
                 label=f"round{r}/refine")
+            kept, why = refine_kept_previous(ref.summary)
+            if kept and config.stop_when_unrefined:
+                stopped = StoppedRound(r, rd, {"select": sel, "refine": ref},
+                                       f"round {r} stopped after its refine: {why}; round {prev.index}'s "
+                                       "reconstruction is the result")
+                _log.info("%s", stopped.reason)
+                break
             scene = _scene_stages(runner, stages, rd, ref, config, rs, working=working, previous=prev)
             rounds.append(RoundResult(r, rd, {"select": sel, "refine": ref, **scene}))
         exported = None
@@ -220,6 +231,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
                         "sizes": working / SIZES_FILE},
                 upstream=(prep, last.stages["splat"]), code=stages.code.get("export", ())), label="export")
         report_json, report_md = write_report(out, images_dir=images_dir, config=config, rounds=rounds,
-                                              timings_s=timer.as_dict(), working=prep, exported=exported)
+                                              timings_s=timer.as_dict(), working=prep, exported=exported,
+                                              stopped=stopped)
     _log.info("report: %s", report_md)
-    return PipelineResult(out, rounds, timer.as_dict(), report_json, report_md)
+    return PipelineResult(out, rounds, timer.as_dict(), report_json, report_md, stopped)

@@ -460,6 +460,16 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
             "round2": json.loads(json.dumps(dataclasses.asdict(r2), default=float))}
 
 
+def refine_kept_previous(summary: Mapping[str, object]) -> tuple[bool, str]:
+    """(True when the refine stage whose summary this is kept the previous network, why in words): the
+    blind-spot-loss guard's decision as `refine` records it (False for a summary without one)."""
+    r2 = summary.get("round2")
+    if not isinstance(r2, Mapping) or not r2.get("reverted"):
+        return False, ""
+    return True, (f"the fine-tuned network did not lower the blind-spot loss ({float(r2['loss_before']):.6f} "
+                  f"before, {float(r2['loss_after']):.6f} after), so the previous network and images were kept")
+
+
 #: The code each product stage runs besides `eval/pipeline/stages.py`: all of `eval.pipeline` (views'
 #: PNG writing, calibration, stage settings) and the component packages it calls, each with the project
 #: packages those import (`splat` imports `denoise.losses`; `denoise` and `splat` import `mvgeo`).

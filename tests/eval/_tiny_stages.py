@@ -60,6 +60,9 @@ class TinyStages:
         #: When True, denoise writes the time into n2v_model.pt, as a checkpoint carrying a timestamp
         #: would: its outputs' bytes then differ from one run to the next.
         self.stamp_checkpoints = False
+        #: When True, refine reports that its guard kept the previous network (as `eval.pipeline.stages.refine`
+        #: records it), which ends the loop under `PipelineConfig.stop_when_unrefined`.
+        self.refine_keeps_previous = False
 
     def _enter(self, name: str) -> None:
         self.calls[name] += 1
@@ -138,7 +141,8 @@ class TinyStages:
         out = {n: 0.8 * cv2.GaussianBlur(noisy[n], (0, 0), 1.0) + 0.2 * renders[n] for n in names}
         write_views(ctx.work_dir / "denoised", out)
         (ctx.work_dir / "n2v_model.pt").write_text(json.dumps({"refined_from": ctx.inputs["model"].name}))
-        return {"views": names}
+        return {"views": names, "round2": {"reverted": self.refine_keeps_previous, "loss_before": 0.0125,
+                                           "loss_after": 0.0131 if self.refine_keeps_previous else 0.0120}}
 
     def fuse(self, ctx: StageContext):
         self._enter("fuse")

@@ -88,6 +88,8 @@ def test_only_the_fused_methods_fuse_whatever_the_preset(name):
         cfg = m.pipeline_config(preset(name))
         assert cfg.fuse_noisy_splat == ("_fused" in m.name), m.name  # (a @gt_poses variant splats the fused photos)
         assert cfg.align.reuse_geometry == ("auto" if "_fused" in m.name else "never"), m.name
+        # the paper's loop runs every round; the extension stops where the preset says (all presets: on)
+        assert cfg.stop_when_unrefined == ("_fused" in m.name), m.name
 
 
 def test_labels_and_folders():

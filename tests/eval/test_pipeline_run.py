@@ -61,6 +61,37 @@ def test_two_rounds_layout_report_and_selection(tmp_path, scene):
     assert not (out / LOCK_NAME).exists()
 
 
+@pytest.mark.parametrize("stop", [True, False])
+def test_a_round_whose_refine_kept_the_previous_network_ends_the_loop(tmp_path, scene, stop):
+    tiny = TinyStages()
+    tiny.refine_keeps_previous = True
+    out = tmp_path / "out"
+    res = run_pipeline(scene, out, dataclasses.replace(_cfg(rounds=3), stop_when_unrefined=stop), stages=tiny.stages())
+    report = json.loads(res.report_json.read_text())
+    if not stop:  # the paper's loop: every round runs whatever the guard says
+        assert [r.index for r in res.rounds] == [1, 2, 3] and res.stopped is None and report["stopped"] is None
+        assert tiny.calls["splat"] == 3
+        return
+    # Round 2 ran select and refine, then stopped: no second alignment or splat; round 1 is the result.
+    assert dict(tiny.calls) == {"denoise": 1, "align": 1, "splat": 1, "render": 1, "select": 1, "refine": 1}
+    assert [r.index for r in res.rounds] == [1] and res.stopped.index == 2
+    assert set(res.stopped.stages) == {"select", "refine"} and "0.012500 before, 0.013100 after" in res.stopped.reason
+    assert report["result_round"] == 1 and report["stopped"]["round"] == 2
+    assert {(s["round"], s["stage"]) for s in report["stages"]} >= {(2, "select"), (2, "refine")}  # its time counted
+    assert "round 2 stopped after its refine" in res.report_md.read_text()
+    assert not (out / "round2" / "point_cloud.ply").exists() and not (out / "round3").exists()
+    again = run_pipeline(scene, out, dataclasses.replace(_cfg(rounds=3), stop_when_unrefined=True),
+                         stages=tiny.stages())  # resumed: the same decision from the recorded refine
+    assert tiny.calls["refine"] == 1 and again.stopped.index == 2 and [r.index for r in again.rounds] == [1]
+
+
+def test_a_refine_that_improved_goes_on(tmp_path, scene):
+    tiny = TinyStages()
+    res = run_pipeline(scene, tmp_path / "out", dataclasses.replace(_cfg(rounds=2), stop_when_unrefined=True),
+                       stages=tiny.stages())
+    assert [r.index for r in res.rounds] == [1, 2] and res.stopped is None
+
+
 def test_rerun_skips_complete_stages(tmp_path, scene):
     tiny = TinyStages()
     out = tmp_path / "out"
