@@ -84,13 +84,19 @@ def pair_rotation_deviation(cam_from_world: np.ndarray, focal_px: np.ndarray, si
     return out
 
 
-def views_without_consistent_pair(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int) -> list[int]:
-    """Views that are in at least one checked pair and whose every checked pair is in `bad`.
+def views_cut_off(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int) -> list[int]:
+    """Views that are in at least one checked pair but are not linked to the main group of views through
+    pairs the result explains.
 
-    The result contradicts all the pairwise evidence such a view has, so its pose is not supported by
-    anything: however small the share of all matches its pairs hold (`AlignConfig.max_unexplained_fraction`
-    judges the reconstruction as a whole), it is not registered. Views in no checked pair are not judged
-    here (the pair graph's connectivity is checked elsewhere).
+    The pairs not in `bad` connect the views into groups; the main group is the one with the most views
+    (then the most matches on its pairs, then the lowest view index). Every other judged view is cut
+    off: the result contradicts every verified pair that links it, or its group, to the main group, so
+    its placement relative to the main group is not supported by its matches (a single view whose every
+    pair is contradicted, or a group hinged on contradicted pairs: a sparse orbit whose pair graph is a
+    chain can be bent at one view with every other pair explained). However small the share of all
+    matches those pairs hold (`AlignConfig.max_unexplained_fraction` judges the reconstruction as a
+    whole), such views are not registered. Views in no checked pair are not judged here (the pair
+    graph's connectivity is checked elsewhere).
 
     Args:
         checks: every checked pair (`pair_consistency`).
@@ -100,10 +106,28 @@ def views_without_consistent_pair(checks: Sequence[PairCheck], bad: Sequence[Pai
     Returns:
         Sorted view indices.
     """
-    n_pairs = np.zeros(n_views, dtype=int)
-    n_bad = np.zeros(n_views, dtype=int)
+    parent = list(range(n_views))
+
+    def root(v: int) -> int:
+        while parent[v] != v:
+            parent[v] = parent[parent[v]]
+            v = parent[v]
+        return v
+
+    bad_keys = {(c.i, c.j) for c in bad}
+    judged = np.zeros(n_views, dtype=bool)
     for c in checks:
-        n_pairs[[c.i, c.j]] += 1
-    for c in bad:
-        n_bad[[c.i, c.j]] += 1
-    return [int(v) for v in np.flatnonzero((n_pairs > 0) & (n_bad == n_pairs))]
+        judged[[c.i, c.j]] = True
+        if (c.i, c.j) not in bad_keys:
+            parent[root(c.i)] = root(c.j)
+    groups: dict[int, list[int]] = {}
+    for v in np.flatnonzero(judged):
+        groups.setdefault(root(int(v)), []).append(int(v))
+    if len(groups) <= 1:
+        return []
+    matches = dict.fromkeys(groups, 0)
+    for c in checks:
+        if (c.i, c.j) not in bad_keys:
+            matches[root(c.i)] += c.n_matches
+    main = max(groups, key=lambda g: (len(groups[g]), matches[g], -min(groups[g])))
+    return sorted(v for g, vs in groups.items() if g != main for v in vs)

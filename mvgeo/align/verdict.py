@@ -6,7 +6,9 @@ Four reasons to refuse a solution, checked in this order (`verdict`):
   `AlignConfig.consistency_px` Sampson distance, or a relative rotation more than `max_pair_rotation_deg`
   off the one the matches imply, `judge_pairs`) hold more than `max_unexplained_fraction` of all verified
   matches: the solution as a whole is wrong;
-- `views_unsupported`: every verified pair of a view is contradicted (`reject_unsupported_views`);
+- `views_unsupported`: views linked to the main group of views only by contradicted pairs, e.g. a view
+  whose every verified pair is contradicted, or a group hinged on them (`views_cut_off`,
+  `reject_unsupported_views`);
 - `positions_undetermined`: the bundle adjustment leaves a camera centre uncertain by more than
   `max_centre_std_ratio` times the median distance between neighbouring cameras;
 - `focal_undetermined`: no pair determined the focal and the bundle adjustment leaves it uncertain by more
@@ -21,7 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mvgeo.align.bundle import BundleResult
-from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_without_consistent_pair
+from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_cut_off
 from mvgeo.common.errors import DegenerateGeometryError
 
 __all__ = ["Reason", "Verdict", "centre_std_ratio", "judge_pairs", "loose_views", "mostly_unexplained", "verdict"]
@@ -125,7 +127,7 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
             + ("" if focal_determined else ", and no image pair determines the focal length")
             + (". The bundle adjustment is off: the dense alignment alone is this coarse; enable it (--ba)"
                if ba is None else ". Add views between the existing ones, or pass --intrinsics"))))
-    orphans = views_without_consistent_pair(checks, bad, len(names)) if config.reject_unsupported_views else []
+    orphans = views_cut_off(checks, bad, len(names)) if config.reject_unsupported_views else []
     if orphans:
         def pairs_of(v):
             return "; ".join(f"with {names[c.j if c.i == v else c.i]}: {c.explained_fraction:.0%} explained"
@@ -134,8 +136,9 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
                              for c in bad if v in (c.i, c.j))
         listing = ", ".join(f"{names[v]} ({pairs_of(v)})" for v in orphans)[:1500]
         reasons.append(Reason("views_unsupported", tuple(names[v] for v in orphans), (
-            f"the reconstruction contradicts every verified image pair of {len(orphans)} of {len(names)} views, "
-            f"so their poses are not supported by their matches: {listing}. Likely causes: too little overlap "
+            f"the reconstruction contradicts every verified image pair that links {len(orphans)} of {len(names)} "
+            f"views to the others, so their poses are not supported by their matches (their contradicted "
+            f"pairs: {listing}). Likely causes: too little overlap "
             "between these views and their neighbours (e.g. an orbit with large steps), or repeated or symmetric "
             "structure matched across the scene. Add views between the existing ones, or pass --allow-partial "
             "to register the others")))

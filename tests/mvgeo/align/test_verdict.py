@@ -88,7 +88,7 @@ def test_the_alignment_fails_naming_a_view_all_of_whose_pairs_contradict_it():
     err = v.error()
     assert isinstance(err, DegenerateGeometryError)
     msg = str(err)
-    assert "every verified image pair of 1 of 6 views" in msg and "view_005.png" in msg
+    assert "every verified image pair that links 1 of 6 views to the others" in msg and "view_005.png" in msg
     assert "with view_000.png: 5% explained, rotation 70 deg off" in msg and "--allow-partial" in msg
     # The switch: off, the result passes (the whole-result fraction is under its limit).
     assert _judge(RING + wrong, wrong, config=AlignConfig(reject_unsupported_views=False)).ok
@@ -104,7 +104,9 @@ def test_pairs_contradicted_names_the_views_of_the_failing_pairs():
     checks = [c for c in RING if (c.i, c.j) not in {(1, 2), (3, 4)}] + bad
     assert mostly_unexplained(checks, bad, 0.1)
     v = _judge(checks, bad)
-    assert [r.kind for r in v.reasons] == ["pairs_contradicted"]  # every view keeps a consistent pair
+    # every view keeps a consistent pair, but {2, 3} is linked to {0, 1, 4} only by the two contradicted pairs
+    assert [r.kind for r in v.reasons] == ["pairs_contradicted", "views_unsupported"]
+    assert v.reasons[1].views == ("view_002.png", "view_003.png")
     r = v.reasons[0]
     assert r.views == ("view_001.png", "view_002.png", "view_003.png", "view_004.png")
     assert "inconsistent with 2 of 5 verified image pairs (2000 of 5000 matches unexplained" in r.message
@@ -112,7 +114,8 @@ def test_pairs_contradicted_names_the_views_of_the_failing_pairs():
     assert "no image pair determines the focal length" not in r.message
     assert "no image pair determines the focal length" in _judge(checks, bad, focal_determined=False).reasons[0].message
     assert "enable it (--ba)" in r.message  # no bundle adjustment given
-    assert not _judge(checks, bad, config=AlignConfig(max_unexplained_fraction=0.5)).reasons
+    assert [r.kind for r in _judge(checks, bad, config=AlignConfig(max_unexplained_fraction=0.5)).reasons] == [
+        "views_unsupported"]
 
 
 def test_positions_undetermined_names_the_loose_views():
