@@ -129,19 +129,16 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
                if ba is None else ". Add views between the existing ones, or pass --intrinsics"))))
     orphans = views_cut_off(checks, bad, len(names)) if config.reject_unsupported_views else []
     if orphans:
-        def pairs_of(v):
-            return "; ".join(f"with {names[c.j if c.i == v else c.i]}: {c.explained_fraction:.0%} explained"
-                             + (f", rotation {c.rotation_deviation_deg:.0f} deg off"
-                                if c.rotation_deviation_deg > max_rot else "")
-                             for c in bad if v in (c.i, c.j))
-        listing = ", ".join(f"{names[v]} ({pairs_of(v)})" for v in orphans)[:1500]
+        cut = set(orphans)
+        links = [c for c in bad if (c.i in cut) != (c.j in cut)]  # the contradicted pairs to the main group
+        listing = (", ".join(names[v] for v in orphans) + "; their contradicted links: "
+                   + ", ".join(_pair_phrase(c, names, max_rot) for c in links))[:1500]
         reasons.append(Reason("views_unsupported", tuple(names[v] for v in orphans), (
             f"the reconstruction contradicts every verified image pair that links {len(orphans)} of {len(names)} "
-            f"views to the others, so their poses are not supported by their matches (their contradicted "
-            f"pairs: {listing}). Likely causes: too little overlap "
-            "between these views and their neighbours (e.g. an orbit with large steps), or repeated or symmetric "
-            "structure matched across the scene. Add views between the existing ones, or pass --allow-partial "
-            "to register the others")))
+            f"views to the others, so their poses are not supported by their matches ({listing}). Likely causes: "
+            "too little overlap between these views and their neighbours (e.g. an orbit with large steps), or "
+            "repeated or symmetric structure matched across the scene. Add views between the existing ones, or "
+            "pass --allow-partial to register the others")))
     loose = loose_views(ba, config.max_centre_std_ratio)
     if loose:
         ratio = centre_std_ratio(ba)

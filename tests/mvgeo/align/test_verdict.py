@@ -89,7 +89,7 @@ def test_the_alignment_fails_naming_a_view_all_of_whose_pairs_contradict_it():
     assert isinstance(err, DegenerateGeometryError)
     msg = str(err)
     assert "every verified image pair that links 1 of 6 views to the others" in msg and "view_005.png" in msg
-    assert "with view_000.png: 5% explained, rotation 70 deg off" in msg and "--allow-partial" in msg
+    assert "(view_000.png, view_005.png): 5% rotation 70 deg off its matches" in msg and "--allow-partial" in msg
     # The switch: off, the result passes (the whole-result fraction is under its limit).
     assert _judge(RING + wrong, wrong, config=AlignConfig(reject_unsupported_views=False)).ok
 
