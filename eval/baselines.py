@@ -91,27 +91,54 @@ def gt_align_inputs(dataset: DatasetFolder, estimate: Path | None = None) -> dic
 
 def points_in_reference_frame(estimate_sparse: Path, estimate_points: Path, reference: SparseModel,
                               views: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """A reconstruction's alignment points (`points.npz`: xyz, rgb) moved into the reference (ground-truth)
-    frame: the Sim(3) that registers its cameras `views` to the reference ones (`eval.heldout.register_sim3`,
-    Umeyama on the centres), inverted. Returns (xyz (N, 3) float64, rgb (N, 3) uint8)."""
+    """A reconstruction's alignment points (`points.npz`: xyz, rgb) placed in the reference (ground-truth)
+    frame along the reference cameras' rays. Returns (xyz (M, 3) float64, rgb (M, 3) uint8), M <= N.
+
+    Each point is seen by the reconstruction's own camera of the nearest view that sees it (in front,
+    inside the image) at a pixel and a depth; it goes on the reference camera's ray through that pixel
+    of that view, at that depth divided by the scale of the Sim(3) that registers the reconstruction's
+    cameras `views` to the reference ones (`eval.heldout.register_sim3`). So a point lands where the
+    true camera sees the image content the reconstruction put there, whatever the reconstruction's pose
+    and focal errors; only its depth keeps the reconstruction's error. (A single Sim(3) applied to the
+    points does not: a reconstruction with a focal a few percent off is distorted, and its points moved
+    by one similarity miss their pixels under the true cameras.) Points no view sees are dropped.
+    """
     from eval.heldout import register_sim3
 
     est = read_sparse_model(estimate_sparse)
-    est_poses = {Path(n).stem: est.image(n).cam_from_world for n in est.names}
-    ref_poses = {Path(n).stem: reference.image(n).cam_from_world for n in reference.names}
-    est_from_ref, _ = register_sim3({s: est_poses[s] for s in views if s in est_poses},
-                                    {s: ref_poses[s] for s in views})
+    by_stem = {Path(n).stem: n for n in est.names}
+    ref_by_stem = {Path(n).stem: n for n in reference.names}
+    used = [v for v in views if v in by_stem and v in ref_by_stem]
+    est_from_ref, _ = register_sim3({v: est.image(by_stem[v]).cam_from_world for v in used},
+                                    {v: reference.image(ref_by_stem[v]).cam_from_world for v in used})
     with np.load(estimate_points) as z:
         xyz, rgb = np.asarray(z["xyz"], np.float64), np.asarray(z["rgb"], np.uint8)
-    # x_est = s R x_ref + t  =>  x_ref = R^T (x_est - t) / s
-    return (xyz - est_from_ref.t) @ est_from_ref.R / est_from_ref.scale, rgb
+    best_depth = np.full(len(xyz), np.inf)
+    best_xyz = np.zeros_like(xyz)
+    for v in used:
+        cam_e, cfw_e = est.camera_of(by_stem[v]), np.asarray(est.image(by_stem[v]).cam_from_world)[:3]
+        ref_name = ref_by_stem[v]
+        cam_r, cfw_r = reference.camera_of(ref_name), np.asarray(reference.image(ref_name).cam_from_world)[:3]
+        p_cam = xyz @ cfw_e[:, :3].T + cfw_e[:, 3]
+        proj = cam_e.project(p_cam)
+        # pixel -> the reference image's pixel (same image; sizes may differ by a resize)
+        uv = proj.uv_px * [cam_r.width / cam_e.width, cam_r.height / cam_e.height]
+        rays = cam_r.unproject(uv)
+        seen = proj.valid & cam_e.in_image(proj.uv_px) & rays.valid & (p_cam[:, 2] > 0)
+        closer = seen & (p_cam[:, 2] < best_depth)
+        z_ref = p_cam[closer, 2] / est_from_ref.scale
+        x_cam = rays.rays_cam[closer] * z_ref[:, None]
+        best_xyz[closer] = (x_cam - cfw_r[:, 3]) @ cfw_r[:, :3]  # world = R^T (x_cam - t)
+        best_depth[closer] = p_cam[closer, 2]
+    keep = np.isfinite(best_depth)
+    return best_xyz[keep], rgb[keep]
 
 
 def gt_align(dataset: DatasetFolder, ctx: StageContext) -> Mapping[str, object]:
     """`align/` of (a) `3dgs_gt_poses` and the `@gt_poses` variants: `sparse/0` with the ground-truth
     cameras of the training views (`ctx.settings`: `GtAlignSettings`) and `points.npz` with the initial
     points: for a variant (inputs `estimate_sparse`, `estimate_points`), its method's alignment points
-    moved into the ground-truth frame (`points_in_reference_frame`); for (a), back-projected
+    placed on the ground-truth cameras' rays (`points_in_reference_frame`); for (a), back-projected
     ground-truth depth maps when the dataset ships `depth/` (an oracle initialisation, so the baseline
     is optimistic), else the ground-truth model's points.
 
