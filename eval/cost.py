@@ -251,7 +251,7 @@ def run_cost_sweep(dataset: DatasetFolder, out: Path, config: CostConfig, *,
         for job in jobs:  # here, before the tasks: points with the same images share the folder
             _inputs_folder(dataset, out / f"inputs{job.tag}", job.names)
         # A point linked to the base point's stages waits for it; a repeated point for its first run.
-        keys = [job.point.name for job in jobs]
+        keys = [(job.point.name,) for job in jobs]
         after = [tuple(sorted({*a, *((0,) if i and job.shares_base else ())}))
                  for i, (job, a) in enumerate(zip(jobs, chain_after(keys), strict=True))]
         return executor.run(_run_point, jobs, after=after, desc="cost sweep")

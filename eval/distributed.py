@@ -129,20 +129,23 @@ def check_ray_address(address: str) -> None:
                          fix="start the head with `ray start --head` and give the address it prints") from None
 
 
-def chain_after(keys: Sequence[Hashable]) -> list[tuple[int, ...]]:
-    """The task graph of units that share state by key: unit i waits for the previous unit with its key.
+def chain_after(keys: Sequence[Sequence[Hashable]]) -> list[tuple[int, ...]]:
+    """The task graph of units that share state by key: unit i waits for the previous unit with each of
+    its keys.
 
     Args:
-        keys: one key per unit, in the serial order (units with equal keys write the same folder).
+        keys: per unit, in the serial order, its keys (units with a common key write or read the same
+            folder).
 
     Returns:
-        For each unit, the indices of the units it must wait for (empty or one earlier index).
+        For each unit, the indices of the earlier units it must wait for (sorted, possibly empty).
     """
     last: dict[Hashable, int] = {}
     after = []
     for i, k in enumerate(keys):
-        after.append((last[k],) if k in last else ())
-        last[k] = i
+        after.append(tuple(sorted({last[x] for x in k if x in last})))
+        for x in k:
+            last[x] = i
     return after
 
 

@@ -71,7 +71,7 @@ if TYPE_CHECKING:
     from eval.distributed import RayExecutor
 
 __all__ = ["FAILED_RUN_ERRORS", "EvalConfig", "EvalTask", "copy_train_inputs", "evaluate_dataset", "run_task",
-           "scene_dataset", "score_reconstruction", "share_key"]
+           "scene_dataset", "score_reconstruction", "share_keys"]
 
 _log = logging.getLogger(__name__)
 
@@ -315,11 +315,12 @@ def save_heldout_renders(folder: Path, method: str, seed: int, renders: Mapping[
             write_views(folder / part, {n: read_image(files[n]) for n in dataset.test if n in files})
 
 
-def share_key(task: EvalTask) -> tuple[str, int, str]:
-    """Tasks with equal keys write the same pipeline folder: (scene, seed, folder). The ablations key on
-    the folder whose round 1 they link (`EvalMethod.shares_round1_with`), a `@gt_poses` variant on its
-    method's folder (`EvalMethod.runs_after`), so they run after it."""
-    return task.scene, task.seed, task.method.runs_after(task.config.denoiser)
+def share_keys(task: EvalTask) -> tuple[tuple[str, int, str], ...]:
+    """The pipeline folders a task writes or reads as (scene, seed, folder) keys; a task runs after the last
+    earlier task with any of its keys. The ablations key on the folder whose round 1 they link
+    (`EvalMethod.shares_round1_with`), a `@gt_poses` variant on its method's folder and its points'
+    method's (`EvalMethod.runs_after`), so they run after those."""
+    return tuple((task.scene, task.seed, f) for f in task.method.runs_after(task.config.denoiser))
 
 
 def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, scene: str,
@@ -331,7 +332,7 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     evaluation keeps what it measured).
 
     `executor` (`eval.distributed.ray_cluster`): the runs are Ray tasks, those of one folder
-    (`share_key`) in order, the others in parallel; the rows come back in the serial order (seeds,
+    (`share_keys`) in order, the others in parallel; the rows come back in the serial order (seeds,
     then methods), and `on_row` gets the finished ones in that order. None: one after another here.
 
     Raises:
@@ -363,7 +364,7 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
             if on_row is not None:
                 on_row([done[i] for i in sorted(done)])
 
-        return executor.run(run_task, tasks, after=chain_after([share_key(t) for t in tasks]),
+        return executor.run(run_task, tasks, after=chain_after([share_keys(t) for t in tasks]),
                             desc=f"eval {scene}", on_done=finished)
     rows: list[RunScores] = []
     for seed in range(config.seeds):

@@ -27,7 +27,7 @@ import eval.methods
 from eval.cli import main
 from eval.cost import CostConfig, run_cost_sweep
 from eval.distributed import ClusterSettings, RayExecutor, chain_after, check_ray_address, ray_cluster
-from eval.evaluate import EvalConfig, evaluate_dataset, share_key
+from eval.evaluate import EvalConfig, evaluate_dataset, share_keys
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.common.errors import InputError
@@ -114,18 +114,22 @@ def dataset(tmp_path) -> DatasetFolder:
 
 # ----------------------------------------------------------------- the task graph
 def test_chain_after_waits_for_the_previous_unit_of_a_key():
-    assert chain_after(["a", "b", "a", "c", "a", "b"]) == [(), (), (0,), (), (2,), (1,)]
+    assert chain_after([(k,) for k in "abacab"]) == [(), (), (0,), (), (2,), (1,)]
     assert chain_after([]) == []
+    # a unit with two keys waits for the last unit of each, and is then the last of both
+    assert chain_after([("a",), ("b",), ("a", "b"), ("a",), ("b",), ()]) == [(), (), (0, 1), (2,), (2,), ()]
 
 
-def test_share_key_chains_a_family_and_the_ablations_that_link_its_round1(tmp_path, dataset):
+def test_share_keys_chain_a_family_the_ablations_and_the_gt_pose_variants(tmp_path, dataset):
     cfg = EvalConfig(methods=("instantsplat",), seeds=1, preset="fast")
     tasks = [eval.evaluate.EvalTask("s", eval.methods.METHODS[m], seed, dataset, preset("fast"), tmp_path, tmp_path,
                                     cfg)
-             for seed in (0, 1) for m in ("instantsplat", "n2v_round1", "denoise_gs", "ablate_no_selection")]
-    after = chain_after([share_key(t) for t in tasks])
-    # seed 0: instantsplat alone; n2v_round1 -> denoise_gs -> ablate_no_selection; seed 1 likewise, apart.
-    assert after == [(), (), (1,), (2,), (), (), (5,), (6,)]
+             for seed in (0, 1) for m in ("instantsplat", "n2v_round1", "denoise_gs", "ablate_no_selection",
+                                          "n2v_round1@gt_poses")]
+    after = chain_after([share_keys(t) for t in tasks])
+    # seed 0: instantsplat alone; n2v_round1 -> denoise_gs -> ablate_no_selection; the variant after the last
+    # of its method's folder and after instantsplat (its points); seed 1 likewise, apart.
+    assert after == [(), (), (1,), (2,), (0, 3), (), (), (6,), (7,), (5, 8)]
 
 
 def rendezvous(item):
