@@ -2,7 +2,7 @@
 
 `denoise-gs eval --gt-pose-variants` runs each method and then its variant; when the methods' runs exist
 but their stage keys no longer match the code (an edit since), this script takes each method's finished
-round folder as it is and runs only the variant's two stages (`eval.baselines.gt_align`: `instantsplat`'s
+round folder as it is and runs only the variant's two stages (`eval.baselines.gt_align`: `oracle_clean`'s
 alignment points on the true cameras' rays; the pipeline's splat stage with the known-pose preset) into
 `EVAL_OUT/runs/SCENE/seed0/<folder>@gt_poses`, then scores it as `denoise-gs eval` does (true held-out poses,
 clean images). Prints one row per method.
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
 from eval.evaluate import EvalConfig, _score_scene
-from eval.methods import INSTANTSPLAT, METHODS, _splat_on_ground_truth, gt_pose_variant, splat_photos
+from eval.methods import METHODS, ORACLE_CLEAN, _splat_on_ground_truth, gt_pose_variant, splat_photos
 from eval.pipeline import preset
 from eval.pipeline.validate import validate_dataset_folder
 from mvgeo.sparse_model import read_sparse_model
@@ -41,9 +41,9 @@ gt = read_sparse_model(dataset.root / "sparse" / "0")
 print("| method | PSNR | SSIM | LPIPS |\n|---|---|---|---|", flush=True)
 for name in args.methods:
     own = METHODS[name]
-    variant = gt_pose_variant(own, INSTANTSPLAT)
+    variant = gt_pose_variant(own, ORACLE_CLEAN)
     round_dir = seed_dir / own.folder() / "round1"
-    points_dir = seed_dir / INSTANTSPLAT.folder() / "round1"  # every variant starts from the noisy photos' points
+    points_dir = seed_dir / ORACLE_CLEAN.folder() / "round1"  # every variant starts from the clean photos' points
     rec = _splat_on_ground_truth(variant.stages(dataset), variant.pipeline_config(base), dataset,
                                  splat_photos(round_dir), seed_dir / variant.folder(), estimate=points_dir)
     model = read_gaussian_ply(rec.round_dir / "point_cloud.ply", device="cpu")

@@ -43,7 +43,7 @@ from eval.pipeline.stage_settings import SplatStageSettings, stage_seed, train_c
 from eval.pipeline.stages import STAGE_CODE
 from eval.pipeline.validate import DatasetFolder
 
-__all__ = ["GT_POSES_SUFFIX", "INSTANTSPLAT", "METHODS", "EvalMethod", "Reconstruction", "gt_pose_variant",
+__all__ = ["GT_POSES_SUFFIX", "METHODS", "ORACLE_CLEAN", "EvalMethod", "Reconstruction", "gt_pose_variant",
            "reconstruct", "share_round1", "splat_photos"]
 
 
@@ -124,7 +124,7 @@ class EvalMethod:
         gt_pose_variant_of: for `<method>@gt_poses` (`gt_pose_variant`), the method whose run it
             splats again with the ground-truth cameras (run, or resumed, first).
         gt_pose_points_from: for `<method>@gt_poses`, the method whose alignment points initialise the
-            splat (the same for every variant: `instantsplat`, the noisy photos' alignment).
+            splat (the same for every variant: `oracle_clean`, the clean photos' alignment).
     """
 
     name: str
@@ -191,11 +191,12 @@ def gt_pose_variant(method: EvalMethod, points_from: EvalMethod) -> EvalMethod:
     """`<method>@gt_poses`: the photos `method`'s last splat trained on (its denoised photos, or the fused
     ones), splatted with the ground-truth cameras and no pose learning, initialised from `points_from`'s
     alignment points placed on the true cameras' rays (`eval.baselines.gt_align`). Every variant takes
-    the same points (`INSTANTSPLAT`'s: the noisy photos' alignment), so the variants differ only in their
-    photos: against `oracle_clean@gt_poses` a variant shows what its denoising costs with the poses taken
-    out. (Each method's own points made the comparison one of initialisations: with the poses held, a
-    splat cannot move a misplaced start in its iterations; on DTU scan24 the N2V photos scored 20.84 dB
-    from N2V's own alignment points and 22.79 dB from the noisy photos' ones.)"""
+    the same points (`ORACLE_CLEAN`'s: the clean photos' alignment, oracle information like the true
+    cameras), so the variants differ only in their photos: against `oracle_clean@gt_poses` a variant shows
+    what its denoising costs with the geometry taken out. (Each method's own points made the comparison
+    one of starts: with the poses held, a splat cannot move a misplaced start in its iterations; on DTU
+    scan24 the N2V photos scored 20.84 dB from N2V's own alignment points and 22.79 dB from the noisy
+    photos'. The noisy photos' points fail where the noisy photos do not align, e.g. DTU at sigma 50.)"""
     if method.ground_truth_poses or method.gt_pose_variant_of is not None:
         raise ValueError(f"{method.name} has ground-truth poses already")
     return dataclasses.replace(
@@ -205,9 +206,10 @@ def gt_pose_variant(method: EvalMethod, points_from: EvalMethod) -> EvalMethod:
         shares_round1_with=None, gt_pose_variant_of=method, gt_pose_points_from=points_from)
 
 
-#: (b), also the source of every ground-truth-pose variant's initial points (`gt_pose_variant`).
-INSTANTSPLAT = EvalMethod("instantsplat", "instantsplat", "(b) our alignment + splat on the noisy photos", 1,
-                          paper_loop, identity_stages)
+#: The reference on the clean photos, also the source of every ground-truth-pose variant's initial points
+#: (`gt_pose_variant`).
+ORACLE_CLEAN = EvalMethod("oracle_clean", "oracle_clean", "reference: (b) on the clean photos", 1, paper_loop,
+                          oracle_clean_stages)
 
 
 def _registry(*methods: EvalMethod) -> dict[str, EvalMethod]:
@@ -218,7 +220,8 @@ def _registry(*methods: EvalMethod) -> dict[str, EvalMethod]:
 _METHODS: dict[str, EvalMethod] = _registry(
     EvalMethod("3dgs_gt_poses", "3dgs_gt_poses", "(a) 3DGS on the noisy photos with ground-truth poses", 1,
                gt_poses_splat, ground_truth_poses=True),
-    INSTANTSPLAT,
+    EvalMethod("instantsplat", "instantsplat", "(b) our alignment + splat on the noisy photos", 1, paper_loop,
+               identity_stages),
     EvalMethod("nlm_instantsplat", "nlm_instantsplat", "(c) non-local means, then (b)", 1, paper_loop, nlm_stages),
     EvalMethod("n2v_round1", "n2v", "(d) Denoise-GS round 1 only", 1, paper_loop, takes_denoiser=True),
     EvalMethod("denoise_gs", "n2v", "(e) Denoise-GS, 2 rounds", 2, paper_loop, takes_denoiser=True),
@@ -232,11 +235,10 @@ _METHODS: dict[str, EvalMethod] = _registry(
                takes_denoiser=True),
     EvalMethod("denoise_gs_fused", "n2v_fused", "extension: (e) with the noisy-photo fusion", 2, fused_loop,
                takes_denoiser=True),
-    EvalMethod("oracle_clean", "oracle_clean", "reference: (b) on the clean photos", 1, paper_loop,
-               oracle_clean_stages),
+    ORACLE_CLEAN,
 )
 #: ... then each one's ground-truth-pose variant (`gt_pose_variant`).
-METHODS: dict[str, EvalMethod] = {**_METHODS, **_registry(*(gt_pose_variant(m, INSTANTSPLAT)
+METHODS: dict[str, EvalMethod] = {**_METHODS, **_registry(*(gt_pose_variant(m, ORACLE_CLEAN)
                                                             for m in _METHODS.values() if not m.ground_truth_poses))}
 
 

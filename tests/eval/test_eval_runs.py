@@ -102,7 +102,7 @@ def test_a_gt_pose_variant_splats_its_methods_photos_with_the_true_cameras(tmp_p
     assert row.method == "n2v_round1@gt_poses" and not row.error
     seed_dir = tmp_path / "out" / "runs" / "s" / "seed0"
     own, rd = seed_dir / "n2v" / "round1", seed_dir / "n2v@gt_poses" / "round1"
-    # Its method and instantsplat (the points) ran first (their own splats with pose learning), then one more
+    # Its method and oracle_clean (the points) ran first (their own splats with pose learning), then one more
     # splat: known poses, the method's denoised photos, ground-truth cameras.
     assert h.tiny.calls["align"] == 2 and h.tiny.calls["splat"] == 3
     assert [s.train.optimize_poses for s in h.splat_settings] == [True, True, False]
@@ -111,10 +111,10 @@ def test_a_gt_pose_variant_splats_its_methods_photos_with_the_true_cameras(tmp_p
     gt = read_sparse_model(dataset.root / "sparse" / "0")
     for n in aligned.names:
         np.testing.assert_allclose(aligned.image(n).cam_from_world, gt.image(n).cam_from_world, atol=1e-12)
-    # Initial points: instantsplat's alignment points on the true cameras' rays. The tiny alignment puts the
+    # Initial points: oracle_clean's alignment points on the true cameras' rays. The tiny alignment puts the
     # training cameras at x = 0.1 i (i = 0..4), the ground truth at 0.1 (i + 1) with the same intrinsics: each
     # point its cameras see moves by 0.1 along x; the ones none of them sees are dropped.
-    est_xyz = np.load(seed_dir / "instantsplat" / "round1" / "align" / "points.npz")["xyz"]
+    est_xyz = np.load(seed_dir / "oracle_clean" / "round1" / "align" / "points.npz")["xyz"]
     placed = np.load(rd / "align" / "points.npz")["xyz"]
     expected = est_xyz + [0.1, 0.0, 0.0]
     assert 10 <= len(placed) <= len(est_xyz)

@@ -71,17 +71,17 @@ def test_a_gt_pose_variant_is_its_method_with_the_known_pose_splat():
     for name in VARIANTS:
         v, own = METHODS[name], METHODS[name.removesuffix("@gt_poses")]
         assert v.gt_pose_variant_of == own and v.ground_truth_poses and v.rounds == own.rounds
-        assert v.gt_pose_points_from == METHODS["instantsplat"]  # the same initial points for every variant
+        assert v.gt_pose_points_from == METHODS["oracle_clean"]  # the same initial points for every variant
         d = "r2r" if own.rounds == 1 else "n2v"  # (other objectives run round 1 only)
         cfg, own_cfg = v.pipeline_config(base, d), own.pipeline_config(base, d)
         assert cfg.splat.preset == "gt_poses" and cfg.splat.iters == own_cfg.splat.iters
         assert dataclasses.replace(cfg, splat=own_cfg.splat) == own_cfg  # only the splat preset differs
         # after its method (the Ray chains), in a folder of its own, labelled after its method's row
-        assert v.runs_after(d) == tuple(dict.fromkeys(own.runs_after(d) + ("instantsplat",)))
+        assert v.runs_after(d) == tuple(dict.fromkeys(own.runs_after(d) + ("oracle_clean",)))
         assert v.folder(d) == own.folder(d) + "@gt_poses"
         assert v.row_label(d) == own.row_label(d) + "@gt_poses"
     with pytest.raises(ValueError, match="ground-truth poses"):
-        gt_pose_variant(METHODS["3dgs_gt_poses"], METHODS["instantsplat"])
+        gt_pose_variant(METHODS["3dgs_gt_poses"], METHODS["oracle_clean"])
 
 
 @pytest.mark.parametrize("name", ["fast", "default"])
