@@ -137,8 +137,9 @@ def points_in_reference_frame(estimate_sparse: Path, estimate_points: Path, refe
 def gt_align(dataset: DatasetFolder, ctx: StageContext) -> Mapping[str, object]:
     """`align/` of (a) `3dgs_gt_poses` and the `@gt_poses` variants: `sparse/0` with the ground-truth
     cameras of the training views (`ctx.settings`: `GtAlignSettings`) and `points.npz` with the initial
-    points: for a variant (inputs `estimate_sparse`, `estimate_points`), its method's alignment points
-    placed on the ground-truth cameras' rays (`points_in_reference_frame`); for (a), back-projected
+    points: for a variant (inputs `estimate_sparse`, `estimate_points`), the alignment points of its
+    points' method (`EvalMethod.gt_pose_points_from`) placed on the ground-truth cameras' rays
+    (`points_in_reference_frame`); for (a), back-projected
     ground-truth depth maps when the dataset ships `depth/` (an oracle initialisation, so the baseline
     is optimistic), else the ground-truth model's points.
 
@@ -154,7 +155,7 @@ def gt_align(dataset: DatasetFolder, ctx: StageContext) -> Mapping[str, object]:
     if "estimate_points" in ctx.inputs:
         xyz, rgb = points_in_reference_frame(ctx.inputs["estimate_sparse"], ctx.inputs["estimate_points"], gt,
                                              ctx.settings.views)
-        source = "the method's alignment, registered"
+        source = "another reconstruction's alignment, on the true cameras' rays"
     elif "depth" in ctx.inputs:
         xyz, rgb = points_from_depth(dataset.root, load_views(dataset.root, split="train"))
     elif len(gt.points_xyz):

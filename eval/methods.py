@@ -294,8 +294,8 @@ def splat_photos(round_dir: Path) -> Path:
 def _splat_on_ground_truth(stages: PipelineStages, config: PipelineConfig, dataset: DatasetFolder, inputs: Path,
                            folder: Path, estimate: Path | None = None) -> Reconstruction:
     """(a) and the `@gt_poses` variants: `gt_align` then the pipeline's splat stage on the photos in
-    `inputs`, in `folder/round1` (resumable like the pipeline's rounds). `estimate`: a round folder of
-    the method whose photos these are; its alignment points initialise the splat (`gt_align`)."""
+    `inputs`, in `folder/round1` (resumable like the pipeline's rounds). `estimate`: a pipeline round
+    folder whose alignment points initialise the splat (a variant's points' method; `gt_align`)."""
     rd = folder / "round1"
     runner = StageRunner()
     align_inputs = gt_align_inputs(dataset, estimate)
