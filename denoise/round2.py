@@ -46,6 +46,7 @@ from denoise.noise_level import estimate_noise_sigma_robust
 from denoise.patches import effective_patch_px, sample_patches
 from mvgeo.common.errors import ConfigError, InputError
 from mvgeo.common.progress import progress_bar
+from mvgeo.common.threads import torch_threads
 from mvgeo.image_metrics import ssim
 
 
@@ -77,6 +78,8 @@ class Round2Config:
             Both networks see the same cells and replacements, so the comparison is paired;
             at 504x378 a fifth still scores 1.4 million values on 12 views, and the guard
             costs 10 network passes per view instead of 50.
+        torch_threads: torch's intra-op CPU threads while fine-tuning (None: torch's setting); a
+            fixed count makes the result independent of the machine (`N2VConfig.torch_threads`).
     """
 
     w_low: float = 1.0
@@ -96,6 +99,7 @@ class Round2Config:
     trust_render: bool = True
     guard: bool = True
     guard_cells: int = 5
+    torch_threads: int | None = 2
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -107,6 +111,8 @@ class Round2Config:
                 raise ConfigError(f"must be >= 1, got {getattr(self, key)}", key=key)
         if self.loss not in ("joint", "charbonnier"):
             raise ConfigError(f"unknown loss {self.loss!r}", key="loss", expected="'joint' or 'charbonnier'")
+        if self.torch_threads is not None and self.torch_threads < 1:
+            raise ConfigError(f"must be >= 1 or None, got {self.torch_threads}", key="torch_threads")
         if not 1 <= self.guard_cells <= JINVARIANT_STRIDE**2:
             raise ConfigError(f"must be in 1..{JINVARIANT_STRIDE**2}, got {self.guard_cells}", key="guard_cells")
         if not (self.lr > 0 and self.blur_sigma > 0 and self.charbonnier_eps > 0):
@@ -363,7 +369,7 @@ def _finetune(model: N2VModel, noisy_t: list[Tensor], render_t: list[Tensor], cf
     opt = torch.optim.Adam(unet.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: lr_factor(s, steps=cfg.steps, warmup_frac=0.0, min_lr_frac=0.05))
-    with progress_bar(desc="round2", total=cfg.steps) as bar:
+    with torch_threads(cfg.torch_threads), progress_bar(desc="round2", total=cfg.steps) as bar:
         for _ in range(cfg.steps):
             noisy, render = sample_patches(noisy_t, patch_px=patch, batch_size=cfg.batch_size, rng=rng,
                                            paired=render_t)

@@ -203,8 +203,8 @@ def _cluster_settings(args: argparse.Namespace, device: str) -> ClusterSettings:
 WORKERS_HELP = ("runs at once: 1 (default) runs them one after another here; N > 1 starts a local Ray cluster "
                 "of N CPUs, one run per CPU (docs/cluster.md)")
 TASK_THREADS_HELP = ("with --workers or --ray-address: torch and compositor threads per run (default: the run's "
-                     "one CPU); N2V's training depends on torch's thread count, so its scores equal the serial "
-                     "run's only with that run's count, torch's default (the machine's cores)")
+                     "one CPU); the denoiser trains with its own fixed count (N2VConfig.torch_threads), so the "
+                     "scores are the serial run's with any value")
 RAY_ADDRESS_HELP = ("run on an existing Ray cluster instead: its head's host:port (as `ray start --head` prints), "
                     "or auto; the out folder must be at the same path on every node (docs/cluster.md)")
 

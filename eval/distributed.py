@@ -13,8 +13,9 @@ finds it in the stage cache; chains run in parallel. The output lock of each run
 
 Threads: each task gets `cpus_per_task` CPUs from Ray (1 by default) and runs with as many torch,
 compositor, BLAS and OpenCV threads (`mvgeo.common.threads`), so N tasks on N CPUs do not
-oversubscribe the cores; `ClusterSettings.task_threads` overrides the count (the serial run's count
-gives bit-identical scores: N2V's training depends on it). The workers get `OMP_WAIT_POLICY`
+oversubscribe the cores; `ClusterSettings.task_threads` overrides the count. The denoiser's training
+sets its own fixed count (`N2VConfig.torch_threads`, `Round2Config.torch_threads`), because its result
+depends on it: so a task's scores are the serial run's. The workers get `OMP_WAIT_POLICY`
 (docs/conventions.md, "Threads").
 
 Storage: the out folder must be at the same path on every node (docs/cluster.md); a task reads its
@@ -63,9 +64,9 @@ class ClusterSettings:
         cpus_per_task: CPUs Ray reserves for each task.
         gpus_per_task: GPUs Ray reserves for each task (a fraction shares one; 0: none).
         task_threads: torch, compositor, BLAS and OpenCV threads of each task; None: the CPUs Ray gave
-            it, so that tasks do not oversubscribe the cores. N2V training's result depends on torch's
-            thread count (the order of its parallel sums), so runs with N2V match a serial run's
-            scores only with that run's count (torch's default: the machine's cores).
+            it, so that tasks do not oversubscribe the cores. The denoiser's training keeps its own
+            fixed count (`N2VConfig.torch_threads`): its result depends on the count, the other
+            stages' do not.
     """
 
     workers: int = 1

@@ -46,6 +46,7 @@ from eval.pipeline.stage_settings import SplatStageSettings
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.align.stats import AlignStats
 from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.threads import torch_threads
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
 __all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "ROTATION_ATOL", "STAGE_CODE", "NoisySplatReuse",
@@ -99,8 +100,11 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
 
     s = ctx.settings
     noisy = read_views(ctx.inputs["noisy"])
-    model = train_with_method(list(noisy.values()), s.n2v, seed=ctx.seed, device=s.device)
-    out = denoise_with_method(model, list(noisy.values()), s.n2v, passes=s.passes, seed=ctx.seed)
+    # The training's fixed thread count for the inference too: the UNet's outputs differ in the last
+    # float bits between counts, enough to flip a PNG level now and then (N2VConfig.torch_threads).
+    with torch_threads(s.n2v.torch_threads):
+        model = train_with_method(list(noisy.values()), s.n2v, seed=ctx.seed, device=s.device)
+        out = denoise_with_method(model, list(noisy.values()), s.n2v, passes=s.passes, seed=ctx.seed)
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
     return {"views": list(noisy), "train": _history_summary(getattr(model, "history", None))}
@@ -444,7 +448,8 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     model = load_checkpoint(ctx.inputs["model"], device=s.device)
     # Trust target (the render only where it agrees with the photo within the noise) and the
     # blind-spot-loss guard: see denoise.round2.refine_round2.
-    model, r2 = refine_round2(model, list(noisy.values()), list(renders.values()), s.round2, seed=ctx.seed)
+    with torch_threads(s.round2.torch_threads):  # as in `denoise`: the result depends on the count
+        model, r2 = refine_round2(model, list(noisy.values()), list(renders.values()), s.round2, seed=ctx.seed)
     # Keep the observation blend (denoise.fusion) for the fine-tuned model too: most of round 1's
     # quality comes from it, and without it round 2 fell from 23.97 to 20.92 dB on the demo scene
     # (8 views, 192x144, sigma 25/255).
@@ -453,7 +458,8 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
         # up to the random maskings of inference), so a reverted round changes nothing.
         out = list(read_views(ctx.inputs["previous"], names).values())
     else:
-        out = denoise_images(model, list(noisy.values()), passes=s.passes, seed=ctx.seed, fuse=True)
+        with torch_threads(s.round2.torch_threads):
+            out = denoise_images(model, list(noisy.values()), passes=s.passes, seed=ctx.seed, fuse=True)
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
     return {"views": names, "train": _history_summary(getattr(model, "history", None)),

@@ -1,5 +1,6 @@
 """N2V training: schedule, loss, determinism, and that it really denoises."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -88,3 +89,28 @@ def test_n2v_denoises_smooth_scenes(rng):
     # Measured +4.0 dB with this seed (lr 1e-3, 200 steps); 3 dB leaves margin for BLAS /
     # thread-count differences while failing for an identity or a broken (self-copying) training.
     assert gain > 3.0, gain
+
+
+def test_training_threads_fix_the_network(rng):
+    """`torch_threads` fixes torch's thread count while training: the same weights whatever the caller's
+    count (a Ray task's 1 CPU, a workstation's cores), and the caller's count is restored. The control
+    (None: the caller's count) shows the count matters at this size: oneDNN's weight gradients sum
+    per-thread chunks."""
+    imgs = [add_noise(rng, smooth_scene(rng, 64, 64), 0.1) for _ in range(2)]
+    cfg = N2VConfig(unet=UNetConfig(width=16, depth=2), steps=4, batch_size=8, patch_px=64, torch_threads=2)
+    saved = torch.get_num_threads()
+
+    def weights(outer: int, config: N2VConfig) -> torch.Tensor:
+        torch.set_num_threads(outer)
+        try:
+            m = train_n2v(imgs, config, seed=0)
+            assert torch.get_num_threads() == outer
+        finally:
+            torch.set_num_threads(saved)
+        return torch.cat([p.detach().flatten() for p in m.unet.parameters()])
+
+    assert torch.equal(weights(1, cfg), weights(3, cfg))
+    free = dataclasses.replace(cfg, torch_threads=None)
+    assert not torch.equal(weights(1, free), weights(3, free))
+    with pytest.raises(ConfigError, match="torch_threads"):
+        N2VConfig(torch_threads=0)
