@@ -16,6 +16,7 @@ import torch
 
 from eval.lpips import lpips
 from mvgeo.common.errors import ShapeError
+from mvgeo.common.threads import torch_threads
 from mvgeo.image_metrics import psnr, ssim_per_image
 
 __all__ = ["ImageScores", "score_images"]
@@ -52,6 +53,12 @@ def _to_batch(img: np.ndarray, name: str) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32)).permute(2, 0, 1)[None]
 
 
+#: Torch's threads while scoring. LPIPS's network gives scores whose last float bits depend on the thread
+#: count (1.5e-8 between 1 and 2 threads, on 128x96 held-out views): one fixed count gives the same score
+#: on every machine and in every Ray task (docs/cluster.md). Cost: 0.21 s per 512x384 view, 0.16 s with 2.
+SCORING_THREADS = 1
+
+
 def score_images(preds: Sequence[np.ndarray], targets: Sequence[np.ndarray], *,
                  with_lpips: bool = True) -> ImageScores:
     """Score each `preds[i]` against `targets[i]`.
@@ -71,7 +78,7 @@ def score_images(preds: Sequence[np.ndarray], targets: Sequence[np.ndarray], *,
     if len(preds) != len(targets):
         raise ShapeError(f"preds and targets: {len(preds)} vs {len(targets)} images")
     p_db, s, lp = [], [], []
-    with torch.no_grad():
+    with torch.no_grad(), torch_threads(SCORING_THREADS):
         for i, (p, t) in enumerate(zip(preds, targets, strict=True)):
             pb, tb = _to_batch(p, f"preds[{i}]"), _to_batch(t, f"targets[{i}]")
             if pb.shape != tb.shape:

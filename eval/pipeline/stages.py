@@ -472,8 +472,11 @@ def refine_kept_previous(summary: Mapping[str, object]) -> tuple[bool, str]:
     r2 = summary.get("round2")
     if not isinstance(r2, Mapping) or not r2.get("reverted"):
         return False, ""
-    return True, (f"the fine-tuned network did not lower the blind-spot loss ({float(r2['loss_before']):.6f} "
-                  f"before, {float(r2['loss_after']):.6f} after), so the previous network and images were kept")
+    se = r2.get("loss_gain_se")
+    by = f", standard error of the difference {float(se):.2g}" if se is not None else ""
+    return True, (f"the fine-tuned network did not lower the blind-spot loss measurably "
+                  f"({float(r2['loss_before']):.6f} before, {float(r2['loss_after']):.6f} after{by}), so the "
+                  "previous network and images were kept")
 
 
 #: The code each product stage runs besides `eval/pipeline/stages.py`: all of `eval.pipeline` (views'

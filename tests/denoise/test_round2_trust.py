@@ -7,7 +7,9 @@ import torch
 from denoise.n2v import N2VConfig, train_n2v
 from denoise.round2 import (
     Round2Config,
+    blind_spot_blocks,
     blind_spot_loss,
+    guard_decision,
     jinvariant_predict,
     joint_loss,
     refine_round2,
@@ -194,3 +196,60 @@ def test_refine_round2_helps_with_a_good_render(rng):
                                              strict=True)])
     assert not rep.reverted and np.mean(rep.render_weight) > 0.5
     assert r2 > r1 + 0.5, (r1, r2)
+
+
+def test_guard_decision_is_a_paired_test():
+    rng = np.random.default_rng(0)
+    before = 0.01 + 1e-3 * rng.random((12, 5))
+    # The same losses: no gain, never kept; a NaN block keeps round 1.
+    assert guard_decision(before, before, 2.0)[0] is False
+    nan = before.copy()
+    nan[3, 2] = np.nan
+    assert guard_decision(before, nan, 0.0)[0] is False
+    # Pure noise around no change (std 1e-4 per block): the gain is within 2 standard errors.
+    noise = before + 1e-4 * rng.standard_normal(before.shape)
+    keep, gain, se = guard_decision(before, noise, 2.0)
+    d = (before - noise).ravel()
+    assert gain == pytest.approx(d.mean(), rel=1e-12) and se == pytest.approx(d.std(ddof=1) / np.sqrt(60), rel=1e-12)
+    assert abs(gain) < 2 * se and keep is False
+    # A consistent gain of 1e-4 with the same noise is kept; with z = 0 any positive gain is.
+    assert guard_decision(before, noise - 1e-4, 2.0)[0] is True
+    assert guard_decision(before, before - 1e-9, 0.0)[0] is True
+    # One block: no error estimate, any gain counts.
+    assert guard_decision(before[:1, :1], before[:1, :1] - 1e-9, 2.0) == (True, pytest.approx(1e-9), 0.0)
+    with pytest.raises(ConfigError, match="guard_z"):
+        Round2Config(guard_z=-1.0)
+
+
+def test_blind_spot_blocks_reference(rng):
+    """The block means against a direct computation, and `blind_spot_loss` as the old pooled mean: per view
+    the mean over every scored pixel of the union of the cells, then the mean over views."""
+    noisy = [add_noise(rng, smooth_scene(rng, 23, 31), 25 / 255) for _ in range(2)]
+    model = _tiny_model(rng, noisy)
+    ys = [torch.from_numpy(np.ascontiguousarray(n.transpose(2, 0, 1))) for n in noisy]
+    cells = spread_cells(5)
+    means, counts = blind_spot_blocks(model, ys, seed=3, cells=cells)
+    gen = torch.Generator().manual_seed(3)
+    pooled = []
+    for v, y in enumerate(ys):
+        sq = ((jinvariant_predict(model, y[None], cells=cells, generator=gen) - y[None]) ** 2)[0].numpy()
+        rows, cols = np.mgrid[:23, :31]
+        union = np.zeros((23, 31), bool)
+        for c, (a, b) in enumerate(cells):
+            m = (rows % 5 == a) & (cols % 5 == b)
+            union |= m
+            assert means[v, c] == pytest.approx(sq[:, m].mean(), rel=1e-6)
+            assert counts[v, c] == 3 * m.sum()
+        pooled.append(sq[:, union].mean())
+    assert blind_spot_loss(model, ys, seed=3, cells=cells) == pytest.approx(np.mean(pooled), rel=1e-6)
+
+
+def test_refine_guard_keeps_round1_when_finetuning_changes_nothing(rng):
+    """A fine-tuning too small to matter (lr 1e-9): the losses differ by noise only, and round 1 is kept,
+    so the pipeline can stop instead of paying a second round for the same images."""
+    clean = [smooth_scene(rng, 48, 48) for _ in range(2)]
+    noisy = [add_noise(rng, c, 25 / 255) for c in clean]
+    model = _tiny_model(rng, noisy)
+    out, rep = refine_round2(model, noisy, clean, Round2Config(steps=5, batch_size=2, patch_px=32, lr=1e-9), seed=0)
+    assert rep.reverted and out is model
+    assert abs(rep.loss_before - rep.loss_after) <= 2 * rep.loss_gain_se
