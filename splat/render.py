@@ -20,6 +20,7 @@ from splat.rasterize import RasterConfig
 #: with 2 threads.
 RENDER_TORCH_THREADS = 1
 
+
 def render_views(model: GaussianModel, cameras: list[Camera], cam_from_world: np.ndarray, *,
                  background: tuple[float, float, float] = (0.0, 0.0, 0.0), sh_degree: int | None = None,
                  config: RasterConfig | None = None) -> list[np.ndarray]:

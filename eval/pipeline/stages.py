@@ -448,17 +448,17 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     model = load_checkpoint(ctx.inputs["model"], device=s.device)
     # Trust target (the render only where it agrees with the photo within the noise) and the
     # blind-spot-loss guard: see denoise.round2.refine_round2.
-    with torch_threads(s.round2.torch_threads):  # as in `denoise`: the result depends on the count
+    # Fine-tuning and inference with round 2's fixed thread count, as in `denoise`: the result depends on it.
+    with torch_threads(s.round2.torch_threads):
         model, r2 = refine_round2(model, list(noisy.values()), list(renders.values()), s.round2, seed=ctx.seed)
-    # Keep the observation blend (denoise.fusion) for the fine-tuned model too: most of round 1's
-    # quality comes from it, and without it round 2 fell from 23.97 to 20.92 dB on the demo scene
-    # (8 views, 192x144, sigma 25/255).
-    if r2.reverted and "previous" in ctx.inputs:
-        # The guard kept the previous network: keep the previous round's images too (identical
-        # up to the random maskings of inference), so a reverted round changes nothing.
-        out = list(read_views(ctx.inputs["previous"], names).values())
-    else:
-        with torch_threads(s.round2.torch_threads):
+        # Keep the observation blend (denoise.fusion) for the fine-tuned model too: most of round 1's
+        # quality comes from it, and without it round 2 fell from 23.97 to 20.92 dB on the demo scene
+        # (8 views, 192x144, sigma 25/255).
+        if r2.reverted and "previous" in ctx.inputs:
+            # The guard kept the previous network: keep the previous round's images too (identical
+            # up to the random maskings of inference), so a reverted round changes nothing.
+            out = list(read_views(ctx.inputs["previous"], names).values())
+        else:
             out = denoise_images(model, list(noisy.values()), passes=s.passes, seed=ctx.seed, fuse=True)
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
 from mvgeo.camera import Camera
@@ -33,8 +32,9 @@ def _scene() -> GaussianModel:
     logits = torch.randn(N, generator=torch.Generator().manual_seed(0)) * 3
     a, b = (_with_threads(t, lambda: torch.sigmoid(logits)) for t in (1, 3))
     odd = (a != b).nonzero().flatten()
-    if len(odd) == 0:
-        pytest.skip("this torch computes sigmoid alike with 1 and 3 threads: no thread-dependent input to test with")
+    # The test's premise, a property of the locked torch (uv.lock): if a torch computes the sigmoid alike for
+    # every thread count, find the op that still differs and build the scene around it instead.
+    assert len(odd) > 0, "torch's sigmoid no longer depends on the thread count: this scene tests nothing"
     means, log_scales = p["means"].clone(), p["log_scales"].clone()
     means[odd] = torch.tensor([0.0, 0.0, -1.5])  # the camera is at z = -3, looking along +z
     log_scales[odd] = float(np.log(0.2))
