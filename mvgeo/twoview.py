@@ -56,7 +56,7 @@ from mvgeo.epipolar import (
     sampson_distance,
 )
 from mvgeo.ransac import RansacConfig, ransac
-from mvgeo.transforms import so3_exp
+from mvgeo.transforms import skew, so3_exp
 from mvgeo.triangulate import TriangulationCriteria, _two_view_in_front_pm, triangulate_two_view
 
 __all__ = [
@@ -238,37 +238,113 @@ def _tangent_basis(t: np.ndarray) -> np.ndarray:
     return np.stack([b1, np.cross(t, b1)], axis=1)
 
 
-def _refine(u1, u2, K1_fn, K2_fn, R0, t0, log_f0: float | None, noise_floor_px: float):
-    """LM on Sampson distances (pixels). Returns R, t, f (or None), rel_std of f (or None)."""
-    B = _tangent_basis(t0)
-    n_f = 0 if log_f0 is None else 1
+def _so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
+    """(3, 3) J_l with d exp(omega) = [J_l d omega]_x exp(omega) (series near 0)."""
+    th2 = float(omega @ omega)
+    W = skew(omega)
+    if th2 < 1e-10:
+        return np.eye(3) + 0.5 * W + W @ W / 6.0
+    th = np.sqrt(th2)
+    return np.eye(3) + (1.0 - np.cos(th)) / th2 * W + (th - np.sin(th)) / (th2 * th) * (W @ W)
 
-    def unpack(p):
-        R = so3_exp(p[n_f:n_f + 3]) @ R0
-        t = t0 + B @ p[n_f + 3:n_f + 5]
-        t = t / np.linalg.norm(t)
-        lf = None if log_f0 is None else log_f0 + p[0]
-        return R, t, lf
 
-    def F_of(p):
-        R, t, lf = unpack(p)
-        K1, K2 = K1_fn(lf), K2_fn(lf)
-        return np.linalg.inv(K2).T @ essential_from_pose(R, t) @ np.linalg.inv(K1)
+class _SampsonProblem:
+    """Signed Sampson distances (pixels) of matches under ``F = K2^-T [t]_x R K1^-1`` and their exact
+    Jacobian, for `_refine`'s parameters ``p = ([log-focal change], rotation increment (3), translation
+    increment in the tangent plane (2))``.
 
-    h1 = np.c_[u1, np.ones(len(u1))]  # built once: resid runs ~30x per pair (numerical Jacobian)
-    h2 = np.c_[u2, np.ones(len(u2))]
+    ``R = exp(w) R0``, ``t = (t0 + B b) / |t0 + B b|``; with a focal, ``K1 = K2 = K(f0 exp(p[0]))`` with the
+    principal point `principal_px`. The residual's derivative in F is analytic, and F's in p is analytic
+    (the left Jacobian of SO(3) for the rotation, the projection onto the unit sphere for t, and
+    ``d K^-1 / d log f = -(K^-1 with its last row zeroed)`` for the focal).
+    """
 
-    def resid(p):
-        F = F_of(p)
-        Fx1 = h1 @ F.T
-        Ftx2 = h2 @ F
-        num = np.sum(h2 * Fx1, axis=1)
+    def __init__(self, u1, u2, K1, K2, R0, t0, log_f0, principal_px):
+        self.h1 = np.c_[u1, np.ones(len(u1))]
+        self.h2 = np.c_[u2, np.ones(len(u2))]
+        self.R0, self.t0, self.B = R0, t0, _tangent_basis(t0)
+        self.log_f0, self.c = log_f0, principal_px
+        self.K1i, self.K2i = (None, None) if log_f0 is not None else (np.linalg.inv(K1), np.linalg.inv(K2))
+        self.n_f = 0 if log_f0 is None else 1
+        self._cache: tuple[bytes, tuple] | None = None
+
+    def unpack(self, p):
+        n_f = self.n_f
+        w = p[n_f:n_f + 3]
+        R = so3_exp(w) @ self.R0
+        tu = self.t0 + self.B @ p[n_f + 3:n_f + 5]
+        norm = float(np.linalg.norm(tu))
+        lf = None if self.log_f0 is None else self.log_f0 + p[0]
+        return w, R, tu / norm, norm, lf
+
+    def _Kinv(self, lf):
+        if lf is None:
+            return self.K1i, self.K2i
+        f = np.exp(lf)
+        Ki = np.array([[1.0 / f, 0.0, -self.c[0] / f], [0.0, 1.0 / f, -self.c[1] / f], [0.0, 0.0, 1.0]])
+        return Ki, Ki
+
+    def _eval(self, p):
+        key = p.tobytes()
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        w, R, t, norm, lf = self.unpack(p)
+        K1i, K2i = self._Kinv(lf)
+        E = skew(t) @ R
+        F = K2i.T @ E @ K1i
+        Fx1 = self.h1 @ F.T
+        Ftx2 = self.h2 @ F
+        num = np.sum(self.h2 * Fx1, axis=1)
         den = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
-        return num / np.maximum(den, 1e-300)  # signed Sampson distance (pixels)
+        den = np.maximum(den, 1e-300)
+        out = (w, R, t, norm, lf, K1i, K2i, E, Fx1, Ftx2, num, den)
+        self._cache = (key, out)
+        return out
 
-    p0 = np.zeros(n_f + 5)
-    sol = least_squares(resid, p0, method="lm", x_scale="jac", max_nfev=200)
-    R, t, lf = unpack(sol.x)
+    def residuals(self, p) -> np.ndarray:
+        *_, num, den = self._eval(p)
+        return num / den
+
+    def jacobian(self, p) -> np.ndarray:
+        w, R, t, norm, lf, K1i, K2i, E, Fx1, Ftx2, num, den = self._eval(p)
+        h1, h2 = self.h1, self.h2
+        # d r / d F_ij, (N, 3, 3): r = num / den, num = h2^T F h1, den^2 = (F h1)_0^2 + (F h1)_1^2
+        # + (F^T h2)_0^2 + (F^T h2)_1^2.
+        dnum = h2[:, :, None] * h1[:, None, :]
+        dden2 = np.zeros_like(dnum)
+        dden2[:, 0, :] += 2.0 * Fx1[:, 0, None] * h1
+        dden2[:, 1, :] += 2.0 * Fx1[:, 1, None] * h1
+        dden2[:, :, 0] += 2.0 * Ftx2[:, 0, None] * h2
+        dden2[:, :, 1] += 2.0 * Ftx2[:, 1, None] * h2
+        dr_dF = (dnum / den[:, None, None] - (num / (2.0 * den**3))[:, None, None] * dden2).reshape(len(h1), 9)
+        # d F / d p, (9, n_p).
+        dF = []
+        if lf is not None:
+            D = K1i.copy()
+            D[2] = 0.0
+            D = -D
+            dF.append(D.T @ E @ K1i + K2i.T @ E @ D)
+        Jl = _so3_left_jacobian(w)
+        tx = skew(t)
+        for k in range(3):
+            dF.append(K2i.T @ (tx @ skew(Jl[:, k]) @ R) @ K1i)
+        P = (np.eye(3) - np.outer(t, t)) / norm
+        for m in range(2):
+            dF.append(K2i.T @ (skew(P @ self.B[:, m]) @ R) @ K1i)
+        return dr_dF @ np.stack([d.reshape(9) for d in dF], axis=1)
+
+
+def _refine(u1, u2, K1, K2, R0, t0, noise_floor_px: float, *, log_f0: float | None = None,
+            principal_px: tuple[float, float] | None = None):
+    """LM on signed Sampson distances (pixels) with an exact Jacobian (`_SampsonProblem`).
+
+    Without `log_f0` the cameras are `K1`, `K2`; with it, both are ``K(exp(log f))`` with `principal_px`
+    and the log-focal is refined too. Returns R, t, f (or None), rel_std of f (or None).
+    """
+    prob = _SampsonProblem(u1, u2, K1, K2, R0, t0, log_f0, principal_px)
+    p0 = np.zeros(prob.n_f + 5)
+    sol = least_squares(prob.residuals, p0, jac=prob.jacobian, method="lm", x_scale="jac", max_nfev=200)
+    _, R, t, _, lf = prob.unpack(sol.x)
     rel_std = None
     if log_f0 is not None:
         J = sol.jac
@@ -299,7 +375,7 @@ def _finish(u1, u2, K1, K2, E, ransac_inliers, iterations, config, *, extra=None
     for _ in range(3 if config.refine else 0):
         if len(idx) < 6:
             break
-        R, t, _, _ = _refine(u1[idx], u2[idx], lambda _: K1, lambda _: K2, R, t, None, config.noise_floor_px)
+        R, t, _, _ = _refine(u1[idx], u2[idx], K1, K2, R, t, config.noise_floor_px)
         new = sampson_distance(fundamental_from_essential(essential_from_pose(R, t), K1, K2), u1, u2) < thr
         stable = np.array_equal(new, inliers)
         inliers = new
@@ -532,8 +608,8 @@ def estimate_relative_pose_uncalibrated(
     R, t, _, _ = pose_from_essential(E, x1, x2)
     f, rel_std = f0, np.inf
     if len(idx) >= 7:
-        R, t, f, rel_std = _refine(u1[idx], u2[idx], lambda lf: _K(np.exp(lf), c), lambda lf: _K(np.exp(lf), c),
-                                   R, t, float(np.log(f0)), config.noise_floor_px)
+        R, t, f, rel_std = _refine(u1[idx], u2[idx], None, None, R, t, config.noise_floor_px,
+                                   log_f0=float(np.log(f0)), principal_px=c)
     K = _K(f, c)
     E = essential_from_pose(R, t)
     out = _finish(u1, u2, K, K, E / np.linalg.norm(E), sampson_distance(fundamental_from_essential(E, K, K), u1, u2)

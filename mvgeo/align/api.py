@@ -97,7 +97,8 @@ def _bundle_stats(c: Candidate) -> BundleStats | None:
                        b.reproj_median_before_px, b.reproj_median_after_px, b.focal_log_std, b.solver,
                        centre_std_ratio(b),
                        None if r is None else [round(float(k), 4) for k in r[0]],
-                       None if r is None else [None if np.isnan(m) else round(float(m), 4) for m in r[1]])
+                       None if r is None else [None if np.isnan(m) else round(float(m), 4) for m in r[1]],
+                       b.readjusted)
 
 
 def _jsonable(x):

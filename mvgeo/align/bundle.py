@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -56,6 +56,10 @@ class BundleConfig:
         rel_tol: LM stops when a step lowers the cost by less than this fraction
             (on llff_like 1e-6 vs 1e-10 changed the rotation error by <0.01 %
             and halved the time).
+        readjust_min_gain: adjust once more when the adjusted poses triangulate at least this fraction
+            more tracks than the start did (`bundle_adjust`); 0 never. 5 %: on the real benchmark sets the
+            final candidates gain 0-3 % (temple 1889 -> 1889, DTU scan24 905 -> 905, 775 -> 781), starts a
+            degree off gain 7-22 %.
     """
 
     huber_px: float = 1.0
@@ -68,6 +72,7 @@ class BundleConfig:
     solver: str = "lm"
     max_iters: int = 20
     rel_tol: float = 1e-6
+    readjust_min_gain: float = 0.05
 
 
 @dataclass
@@ -93,6 +98,8 @@ class BundleResult:
     obs_view: np.ndarray | None = None
     obs_point: np.ndarray | None = None
     obs_uv: np.ndarray | None = None
+    #: The adjustment ran a second time on the tracks its first result triangulated (`bundle_adjust`).
+    readjusted: bool = False
 
 
 def build_tracks(matches: Sequence[tuple[int, int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -196,6 +203,14 @@ def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tup
                   ) -> BundleResult:
     """Refine poses and focals on feature tracks built from pairwise matches.
 
+    The tracks are triangulated from the given poses; a track whose triangulation fails there (too little
+    parallax, rays more than 3 deg apart: a start a degree off rejects good tracks) does not enter. When the
+    tracks triangulated again from the adjusted poses are at least `BundleConfig.readjust_min_gain` more,
+    the adjustment runs once more from its own result on them (COLMAP re-triangulates after each
+    adjustment for the same reason). Measured on llff_like, 6 views at 256x192: starts that differed by a
+    RANSAC outcome kept 369 or 419 tracks and ended 0.42 or 0.08 deg off; re-adjusted, 415-431 tracks and
+    0.07-0.09 deg.
+
     Args:
         cam_from_world: (N, 3, 4) initial poses.
         focal_px: (N,) initial focals (pixels at `size_wh`).
@@ -212,14 +227,30 @@ def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tup
     keep_track = length >= config.min_track_length
     stride = max(1, int(np.ceil(keep_track.sum() / config.max_points)))
     keep_track &= (np.cumsum(keep_track) % stride) == 0
-    # Multi-view triangulation of the kept tracks from the aligned poses.
     ids = np.flatnonzero(keep_track)
     remap = -np.ones(n_tracks, np.int64)
     remap[ids] = np.arange(len(ids))
     sel = keep_track[ot]
-    ov, ot, ouv = ov[sel], remap[ot[sel]], ouv[sel]
-    rays = np.zeros((n, len(ids), 3))
-    observed = np.zeros((n, len(ids)), bool)
+    tracks = (ov[sel], remap[ot[sel]], ouv[sel], len(ids))
+    first = _triangulated(cam_from_world, focal_px, c, n, tracks)
+    res = _adjust(cam_from_world, focal_px, c, n, first, config)
+    if config.readjust_min_gain > 0 and res.n_points >= 10:
+        again = _triangulated(res.cam_from_world, res.focal_px, c, n, tracks)
+        if len(again[3]) >= (1.0 + config.readjust_min_gain) * len(first[3]):
+            _log.info("bundle adjustment again: %d tracks triangulate from the adjusted poses, %d from the start",
+                      len(again[3]), len(first[3]))
+            res2 = _adjust(res.cam_from_world, res.focal_px, c, n, again, config)
+            res = replace(res2, reproj_rms_before_px=res.reproj_rms_before_px,
+                          reproj_median_before_px=res.reproj_median_before_px, readjusted=True)
+    return res
+
+
+def _triangulated(cam_from_world, focal_px, c, n, tracks):
+    """Multi-view triangulation of the tracks from the given poses: the valid tracks' observations
+    (view, point, uv) renumbered, and their points."""
+    ov, ot, ouv, n_ids = tracks
+    rays = np.zeros((n, n_ids, 3))
+    observed = np.zeros((n, n_ids), bool)
     rays[ov, ot, :2] = (ouv - c) / np.asarray(focal_px)[ov, None]
     rays[ov, ot, 2] = 1.0
     observed[ov, ot] = True
@@ -227,10 +258,14 @@ def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tup
     tri = triangulate_multiview(rays, cam_from_world, observed=observed, criteria=crit)
     good = tri.valid
     sel = good[ot]
-    remap = -np.ones(len(ids), np.int64)
+    remap = -np.ones(n_ids, np.int64)
     remap[good] = np.arange(good.sum())
-    ov, op, ouv = ov[sel], remap[ot[sel]], ouv[sel]
-    X0 = tri.points[good]
+    return ov[sel], remap[ot[sel]], ouv[sel], tri.points[good]
+
+
+def _adjust(cam_from_world, focal_px, c, n, observations, config: BundleConfig) -> BundleResult:
+    """One adjustment (LM or the scipy reference) of the poses, focal(s) and triangulated tracks."""
+    ov, op, ouv, X0 = observations
     P = len(X0)
     nf = 1 if config.shared_focal else n
     f_index = np.zeros(n, np.int64) if config.shared_focal else np.arange(n)

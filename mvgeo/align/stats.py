@@ -72,6 +72,8 @@ class BundleStats:
     #: per view, the scale that brought the global alignment's depth map onto the tracks, and its spread.
     dense_depth_scale: list[float] | None = None
     dense_depth_log_mad: list[float | None] | None = None
+    #: it ran a second time on the tracks its first result triangulated (`mvgeo.align.bundle.bundle_adjust`).
+    readjusted: bool = False
 
 
 @dataclass(frozen=True)

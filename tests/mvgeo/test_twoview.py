@@ -123,3 +123,51 @@ def test_pose_from_essential_equals_four_full_triangulations(rng):
         for a, b in zip(got, ref, strict=True):
             np.testing.assert_array_equal(a, b)
         assert rotation_error_deg(got[0], R) < 1.0
+
+
+def _sampson_scene(rng):
+    """Inlier matches of a generic pair and a start 1-3 deg / a few percent of focal away from the truth."""
+    from mvgeo.transforms import so3_exp
+
+    sc = make_two_view(rng, f=650.0, noise_px=0.5, outlier_ratio=0.0)
+    R0 = so3_exp(rng.normal(scale=0.03, size=3)) @ sc.R
+    t0 = sc.t + rng.normal(scale=0.05, size=3)
+    return sc, R0, t0 / np.linalg.norm(t0)
+
+
+def test_sampson_jacobian_matches_central_differences(rng):
+    """The refinement's exact Jacobian (F's derivative through the SO(3) left Jacobian, the unit-sphere
+    projection of t and d K^-1 / d log f) against central differences of the residuals, at random points."""
+    from scipy.optimize._numdiff import approx_derivative
+
+    for log_f0 in (None, np.log(600.0)):
+        sc, R0, t0 = _sampson_scene(rng)
+        prob = tv._SampsonProblem(sc.u1, sc.u2, sc.K, sc.K, R0, t0, log_f0, (W / 2, H / 2))
+        for _ in range(3):
+            p = rng.normal(scale=0.1, size=prob.n_f + 5)
+            J = prob.jacobian(p)
+            J_ref = approx_derivative(prob.residuals, p, method="3-point")
+            # Central differences are exact to O(h^2) ~ 1e-10 relative here; 1e-6 leaves room for rounding.
+            assert np.abs(J - J_ref).max() < 1e-6 * np.abs(J_ref).max()
+
+
+def test_refine_equals_numerical_jacobian_reference(rng):
+    """`_refine` (exact Jacobian) reaches the minimum that the same least squares with scipy's numerical
+    Jacobian reaches, for the calibrated and the shared-focal problem."""
+    from scipy.optimize import least_squares
+
+    c = (W / 2, H / 2)
+    for log_f0 in (None, np.log(560.0)):
+        sc, R0, t0 = _sampson_scene(rng)
+        R, t, f, rel_std = tv._refine(sc.u1, sc.u2, sc.K, sc.K, R0, t0, 0.5, log_f0=log_f0, principal_px=c)
+        prob = tv._SampsonProblem(sc.u1, sc.u2, sc.K, sc.K, R0, t0, log_f0, c)
+        ref = least_squares(prob.residuals, np.zeros(prob.n_f + 5), method="lm", x_scale="jac", max_nfev=2000,
+                            xtol=1e-12, ftol=1e-12)
+        _, R_ref, t_ref, _, lf_ref = prob.unpack(ref.x)
+        assert rotation_error_deg(R, R_ref) < 1e-5
+        assert translation_direction_error_deg(t, t_ref) < 1e-4
+        if log_f0 is None:
+            assert f is None and rel_std is None
+        else:
+            assert abs(f / np.exp(lf_ref) - 1) < 1e-6 and 0 < rel_std < 0.1
+            assert abs(f / 650.0 - 1) < 5 * rel_std + 1e-3  # and it is the right minimum

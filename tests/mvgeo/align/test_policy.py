@@ -347,11 +347,14 @@ def test_a_focal_far_off_is_re_estimated(llff6):
     gt = read_sparse_model(llff6 / "sparse" / "0")
     f_true = gt.camera_of(gt.names[0]).params[0]  # 208.9 px at 256x192
     files = list_images(llff6 / "images")
-    # 0.6 * 256 = 154 px, 26 % under the truth. Measured 2026-11-22: without the re-estimation the checks refuse
-    # the result (11 of 15 pairs inconsistent); with it, 207.1 px (0.9 % off). (The other start passes too, so
-    # it is off here to see the re-estimation alone.)
-    with pytest.raises(DegenerateGeometryError, match="inconsistent"):
-        align_images(files, dataclasses.replace(_focal_config(0.6, 0.0), second_start=False))
+    # 0.6 * 256 = 154 px, 26 % under the truth. Measured 2026-11-26: without the re-estimation the bundle
+    # adjustment (run twice: it re-triangulates) stops at 217.7 px, 4 % over, and the poses are 1.03 deg off;
+    # with it, 205.4 px (1.7 % under) and 0.11 deg. (The other start passes too, so it is off here to see the
+    # re-estimation alone.)
+    gt_poses = {n: np.asarray(gt.image(n).cam_from_world)[:3] for n in gt.names}
+    without = align_images(files, dataclasses.replace(_focal_config(0.6, 0.0), second_start=False))
+    assert len(without.stats.candidates) == 1
+    m_without = compare_poses(without.sparse_model.cam_from_world_by_name(), gt_poses)
     res = align_images(files, _focal_config(0.6, 0.1))
     cands = res.stats.candidates
     chosen = [c for c in cands if c.chosen]
@@ -359,11 +362,12 @@ def test_a_focal_far_off_is_re_estimated(llff6):
     assert cands[0].pairs_focal_px == pytest.approx(153.6)
     assert not res.stats.focal_determined_by_pairs  # carried over to the refocused pairs
     f = np.array([c.params[0] for c in res.sparse_model.cameras.values()])
-    assert np.all(np.abs(f / f_true - 1.0) < 0.03), f  # 3 %: three times the measured 0.9 %
+    assert np.all(np.abs(f / f_true - 1.0) < 0.05), f  # 5 %: three times the measured 1.7 %
     # (PREVIEW from the default pair focal: 0.35 deg)
-    gt_poses = {n: np.asarray(gt.image(n).cam_from_world)[:3] for n in gt.names}
     m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt_poses)
-    assert m.n_registered == 6 and m.median_rotation_deg < 0.5, m  # measured 0.08 deg
+    assert m.n_registered == 6 and m.median_rotation_deg < 0.5, m  # measured 0.11 deg
+    # The re-estimation is what brings it there: measured 9.5x better than without.
+    assert m.median_rotation_deg * 3 < m_without.median_rotation_deg
 
 
 def test_the_first_candidate_is_kept_when_the_refocused_one_fails(llff6, monkeypatch):
