@@ -212,7 +212,9 @@ def test_product_stages_except_alignment(tmp_path):
     tiny = TinyStages()
     real = product_stages()
     stages = dataclasses.replace(real, align=tiny.align)
-    cfg = dataclasses.replace(preset("fast", views=3), fuse_noisy_splat=False,
+    # stop_when_unrefined off: 3 fine-tuning steps do not lower the blind-spot loss measurably, and the
+    # `fast` preset would stop after round 2's refine; this test runs round 2's stages to the end.
+    cfg = dataclasses.replace(preset("fast", views=3), fuse_noisy_splat=False, stop_when_unrefined=False,
                               denoise=DenoiseSettings(n2v_preset="fast", n2v_steps=8, passes=1, round2_steps=3),
                               splat=SplatSettings(preset="quick", iters=5))
     res = run_pipeline(scene, tmp_path / "out", cfg, stages=stages)
@@ -221,9 +223,14 @@ def test_product_stages_except_alignment(tmp_path):
     selected = r2.stages["select"].summary["selected"]
     assert len(selected) == 3 and r2.stages["select"].summary["method"] == "kmeans+laplacian"
     assert sorted(p.stem for p in (r2.dir / "denoised").glob("*.png")) == sorted(selected)
-    # Round 2 fine-tunes the round-1 UNet: its loss history continues round 1's.
-    assert r2.stages["refine"].summary["train"]["loss"]["count"] == 11
-    assert len(load_checkpoint(r2.dir / "n2v_model.pt").history) == 11
+    # Round 2 fine-tunes the round-1 UNet: its loss history continues round 1's. The network it keeps is the
+    # fine-tuned one (11 steps of history) or, when the guard reverted it, round 1's (8).
+    from eval.pipeline.stages import refine_kept_previous
+
+    reverted, _ = refine_kept_previous(r2.stages["refine"].summary)
+    steps = 8 if reverted else 11
+    assert r2.stages["refine"].summary["train"]["loss"]["count"] == steps
+    assert len(load_checkpoint(r2.dir / "n2v_model.pt").history) == steps
     # The splat stage wrote a readable 3DGS PLY and the optimised poses; renders match the views.
     assert read_gaussian_ply(r2.dir / "point_cloud.ply").means.shape[0] > 0
     assert read_sparse_model(r2.dir / "sparse" / "0").names == [f"{n}.png" for n in sorted(selected)]

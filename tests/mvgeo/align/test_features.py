@@ -12,6 +12,8 @@ from mvgeo.align.features import (
     ImageFeatures,
     MatchSet,
     detect_and_match,
+    estimate_noise_sigma,
+    estimate_noise_sigma_reference,
     extract_features,
     match_features,
     match_features_reference,
@@ -88,7 +90,7 @@ def test_matched_pixels_of_a_shifted_crop_differ_by_the_shift():
     same scene points, so view j's pixel = view i's pixel - shift."""
     big = _textured(140, 180)
     a, b = big[10:106, 20:148], big[14:110, 27:155]  # b starts 7 columns and 4 rows later
-    cfg = ClassicalPairConfig(sift_features=1000, min_matches=10)
+    cfg = ClassicalPairConfig(sift_features=1000, min_matches=10, sensitive_below_noise=0.0)
     with ThreadPoolExecutor(2) as pool:
         ms = detect_and_match([a, b], [(0, 1)], cfg, pool)
     assert isinstance(ms, MatchSet) and not ms.sensitive and ms.image_hw == (96, 128)
@@ -117,7 +119,7 @@ def _fake_runs(monkeypatch, graphs):
 @pytest.mark.parametrize("case", ["connected", "fallback_connects", "fallback_worse", "fallback_tie_more_pairs",
                                   "fallback_tie_same_pairs", "fallback_off"])
 def test_sensitive_detection_only_when_the_match_graph_is_cut_and_kept_only_if_better(monkeypatch, case):
-    cfg = ClassicalPairConfig(fallback_sift=case != "fallback_off")
+    cfg = ClassicalPairConfig(fallback_sift=case != "fallback_off", sensitive_below_noise=0.0)
     images = [np.zeros((8, 8, 3), np.float32)] * 4
     pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
     default, sensitive = cfg.sift_contrast_threshold, cfg.fallback_contrast_threshold
@@ -138,3 +140,37 @@ def test_sensitive_detection_only_when_the_match_graph_is_cut_and_kept_only_if_b
     assert ms.sensitive == kept_sensitive
     assert sorted(ms.matches) == sorted(graphs[sensitive if kept_sensitive else default])
     assert sorted((f.i, f.j) for f in ms.failures) == sorted(set(pairs) - set(ms.matches))
+
+
+def test_noise_estimate_equals_the_explicit_sum_and_recovers_the_noise(rng):
+    """Immerkaer's estimate: the filter2D path against the explicit 3x3 sum; on a smooth image (a quadratic
+    ramp, to which the mask is blind) with Gaussian noise it recovers sigma (mean |N(0, s)| = s sqrt(2 / pi),
+    the mask's gain 6: exact in expectation; 10 % covers the sampling error of 60k pixels, ~1 %)."""
+    H, W = 240, 256
+    yy, xx = np.mgrid[0:H, 0:W] / 256.0
+    smooth = 0.3 + 0.2 * xx + 0.1 * yy**2
+    for sigma in (0.0, 0.01, 0.05):
+        img = (smooth + rng.normal(scale=sigma, size=(H, W))).astype(np.float32)
+        est = estimate_noise_sigma(img)
+        assert est == pytest.approx(estimate_noise_sigma_reference(img), rel=1e-5, abs=1e-7)
+        assert est == pytest.approx(sigma, rel=0.1, abs=1e-4)
+    rgb = np.repeat(smooth[..., None], 3, axis=2).astype(np.float32)
+    assert estimate_noise_sigma(rgb) < 1e-4  # a noise-free RGB image (through the gray conversion)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.03])
+def test_clean_images_get_the_sensitive_detection_from_the_start(monkeypatch, rng, sigma):
+    """Below `sensitive_below_noise` (3/255) one detection, with the fallback's settings; above it the
+    default detection (and no fallback: here its graph is connected)."""
+    cfg = ClassicalPairConfig()
+    H, W = 32, 32
+    yy, xx = np.mgrid[0:H, 0:W] / 32.0
+    base = np.repeat((0.4 + 0.2 * xx + 0.1 * yy)[..., None], 3, axis=2)
+    images = [(base + rng.normal(scale=sigma, size=base.shape)).astype(np.float32) for _ in range(3)]
+    pairs = [(0, 1), (0, 2), (1, 2)]
+    default, sensitive = cfg.sift_contrast_threshold, cfg.fallback_contrast_threshold
+    calls = _fake_runs(monkeypatch, {default: pairs, sensitive: pairs})
+    ms = detect_and_match(images, pairs, cfg, pool=None)
+    clean = sigma == 0.0
+    assert calls == ([sensitive] if clean else [default])
+    assert ms.sensitive == clean
