@@ -39,8 +39,9 @@ measured without ground truth, from each alignment's bundle adjustment:
 
 Before the figures: round r-1 must hold every selected view (else round r's
 own is kept); round r registering fewer of them than round r-1, or its
-alignment failing on a degenerate geometry, hands over round r-1's; an unknown
-figure (no bundle adjustment, fewer than 3 views) loses to a known one, and
+alignment failing on its geometry (refused as degenerate, or its photos no longer relating every view:
+`DisconnectedViewsError`, seen on DTU scan24 at sigma 50 after round 2's re-denoising), hands over
+round r-1's; an unknown figure (no bundle adjustment, fewer than 3 views) loses to a known one, and
 two unknown keep round r's own. The decision and its numbers go into align.json
 under `GEOMETRY_KEY` (`GeometryChoice`).
 """

@@ -45,7 +45,7 @@ from eval.pipeline.stage import StageContext, StageFn
 from eval.pipeline.stage_settings import SplatStageSettings
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.align.stats import AlignStats
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.errors import DegenerateGeometryError, DisconnectedViewsError
 from mvgeo.common.threads import torch_threads
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
@@ -140,14 +140,14 @@ def _align_keeping_better_geometry(align_images, files: list[Path], cfg, previou
                                    geometry_mode: str):
     """Rounds >= 2: this round's alignment (with `reuse_intrinsics`), or the previous round's restricted to
     this round's views when `choose_geometry` prefers it; the `GeometryChoice` goes into align.json."""
-    error: DegenerateGeometryError | None = None
+    error: DegenerateGeometryError | DisconnectedViewsError | None = None
     try:
         if intrinsics_mode == "never":
             res = align_images(files, cfg)
         else:
             res = _align_with_previous_calibration(align_images, files, cfg, previous, intrinsics_mode)
-    except DegenerateGeometryError as exc:  # e.g. the K views alone do not pin the cameras
-        res, error = None, exc
+    except (DegenerateGeometryError, DisconnectedViewsError) as exc:  # e.g. the K views alone do not pin
+        res, error = None, exc  # the cameras, or their re-denoised photos no longer relate every view
     prev_model = read_sparse_model(previous / "sparse" / "0")
     prev_stats = AlignStats.read(previous / "align.json")
     views = [Path(f).name for f in files]

@@ -50,8 +50,8 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         model: a `PointmapModel` (default: `ClassicalPointmapModel`).
 
     Raises:
-        InputError: too few/corrupt/duplicate/mixed-size images, a disconnected pair graph (names the images
-            that could not be connected).
+        InputError: too few/corrupt/duplicate/mixed-size images; `DisconnectedViewsError` (an `InputError`): a
+            disconnected pair graph (names the images that could not be connected).
         DegenerateGeometryError: no candidate solution is supported by the evidence (the reason names the
             views), or the alignment failed numerically.
     """

@@ -127,7 +127,7 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
         (the chosen candidate, a summary of every candidate in the order solved, the chosen one marked).
 
     Raises:
-        InputError: the pair graph is disconnected (without `allow_partial`).
+        DisconnectedViewsError: the pair graph is disconnected (without `allow_partial`; an `InputError`).
         DegenerateGeometryError: the chosen candidate is refused by its verdict, or the first start fails.
     """
     graph: PairGraph = pair_graph(inputs, pairs, config, timer)

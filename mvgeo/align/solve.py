@@ -25,7 +25,7 @@ from mvgeo.align.loops import pair_rotations, reject_by_loops
 from mvgeo.align.pairs import PairFailure, PairSet
 from mvgeo.align.stats import FailedPair, RejectedPair, Unregistered
 from mvgeo.align.verdict import Verdict, judge_pairs, verdict
-from mvgeo.common.errors import InputError
+from mvgeo.common.errors import DisconnectedViewsError
 from mvgeo.common.timing import StageTimer
 
 __all__ = ["Candidate", "PairGraph", "pair_graph", "solve"]
@@ -82,7 +82,7 @@ def pair_graph(inputs: AlignInputs, pairs: PairSet, config, timer: StageTimer, *
     """Loop check and connectivity (module docstring). `config`: `AlignConfig`.
 
     Raises:
-        InputError: the pairs do not connect the views (without `allow_partial`), naming them.
+        DisconnectedViewsError: the pairs do not connect the views (without `allow_partial`), naming them.
     """
     names = inputs.names
     failed = [FailedPair(names[f.i], names[f.j], f.reason) for f in pairs.failures]
@@ -100,7 +100,7 @@ def pair_graph(inputs: AlignInputs, pairs: PairSet, config, timer: StageTimer, *
         lost = [names[v] for c in comps[1:] for v in c]
         reasons = "; ".join(f"({names[f.i]}, {names[f.j]}): {f.reason}" for f in pairs.failures
                             if (f.i in main) != (f.j in main))[:2000]
-        raise InputError(
+        raise DisconnectedViewsError(
             f"the pair graph is disconnected: images {lost} could not be related to {[names[v] for v in main]}"
             + (f". Failed pairs: {reasons}" if reasons else ""),
             fix=("no two images could be related: check that they show one scene with enough overlap and texture"

@@ -64,6 +64,12 @@ class ConfigError(InputError):
         super().__init__(full, path=path, fix=fix)
 
 
+class DisconnectedViewsError(InputError):
+    """The images' pairs do not connect them all: the named views cannot be related to the others from
+    these images alone (an input problem for the user, exit code 2; a failed geometry for a caller that can
+    fall back on an earlier reconstruction)."""
+
+
 class ShapeError(DgsError, ValueError):
     """An array/tensor argument has the wrong shape (a programming error)."""
 

@@ -22,7 +22,7 @@ from eval.pipeline.stages import _align_keeping_better_geometry
 from mvgeo.align import AlignResult, write_align_result
 from mvgeo.align.bundle import bundle_adjust
 from mvgeo.camera import Camera
-from mvgeo.common.errors import ConfigError, DegenerateGeometryError
+from mvgeo.common.errors import ConfigError, DegenerateGeometryError, DisconnectedViewsError, InputError
 from mvgeo.sparse_model import PosedImage, SparseModel
 from tests.common.align_stats import align_stats, bundle_stats
 from tests.eval._tiny_stages import TinyStages, make_scene
@@ -210,17 +210,29 @@ def test_align_stage_hands_round1_geometry_to_round2(tmp_path, alignments):
     assert not paper.stats.annotations[GEOMETRY_KEY]["used_previous"]
 
 
-def test_align_stage_failure_falls_back_or_raises(tmp_path, alignments):
+@pytest.mark.parametrize("error", [DegenerateGeometryError("the views do not determine the cameras"),
+                                   DisconnectedViewsError("the pair graph is disconnected: the views do not "
+                                                          "determine the cameras")])
+def test_align_stage_failure_falls_back_or_raises(tmp_path, alignments, error):
+    """A round-2 alignment that fails on its geometry (refused, or its re-denoised photos no longer relate
+    every view: measured on DTU scan24 at sigma 50) hands over the previous round's cameras."""
     prev_dir = _write_previous(tmp_path / "prev", *alignments["round1_good"])
     files = [tmp_path / "round2" / v for v in SELECTED]
-    error = DegenerateGeometryError("the views do not determine the cameras")
     res = _align_keeping_better_geometry(_FakeAlign(error=error), files, None, prev_dir, "never", "auto")
     record = res.stats.annotations[GEOMETRY_KEY]
     assert record["used_previous"] and "do not determine" in record["current_error"]
-    with pytest.raises(DegenerateGeometryError):
+    with pytest.raises(type(error)):
         _align_keeping_better_geometry(_FakeAlign(error=error), files, None, prev_dir, "never", "never")
-    with pytest.raises(DegenerateGeometryError):
+    with pytest.raises(type(error)):
         _align_keeping_better_geometry(_FakeAlign(error=error), [*files, tmp_path / "round2" / "new.png"], None,
+                                       prev_dir, "never", "auto")
+
+
+def test_an_input_error_is_not_a_geometry_to_fall_back_from(tmp_path, alignments):
+    prev_dir = _write_previous(tmp_path / "prev", *alignments["round1_good"])
+    files = [tmp_path / "round2" / v for v in SELECTED]
+    with pytest.raises(InputError, match="identical"):
+        _align_keeping_better_geometry(_FakeAlign(error=InputError("images a and b are identical")), files, None,
                                        prev_dir, "never", "auto")
 
 
