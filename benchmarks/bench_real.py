@@ -254,16 +254,14 @@ def noise_seed_summary(rows: list[list], n_seeds: int) -> str:
     ref_time = {k[0]: np.mean([r[8] for r in v]) for k, v in groups.items() if k[1] == "pycolmap global"}
     out = []
     for (name, method), rs in groups.items():
-        reg = [int(r[2].split("/")[0]) for r in rs]
-        full = [r for r, k in zip(rs, reg, strict=True) if r[3] != "" and k == int(r[2].split("/")[1])]
+        full = [r for r in rs if r[3] != "" and r[2].split("/")[0] == r[2].split("/")[1]]  # every view registered
 
         def mean(col, rows=full):
             vals = [float(r[col]) for r in rows if r[col] != "" and np.isfinite(float(r[col]))]
             return float(np.mean(vals)) if vals else float("nan")
 
         t = float(np.mean([r[8] for r in rs]))
-        n_full = sum(k == int(r[2].split("/")[1]) for r, k in zip(rs, reg, strict=True))
-        out.append([name, method, f"{n_full}/{len(rs)}",
+        out.append([name, method, f"{len(full)}/{len(rs)}",
                     float(np.median([float(r[3]) for r in full])) if full else float("nan"), mean(3), mean(4),
                     mean(6), t, t / ref_time[name] if name in ref_time else float("nan")])
     return (f"\nNoisy rows of all {n_seeds} noise seeds (0..{n_seeds - 1}) together, per set and method: "

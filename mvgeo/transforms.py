@@ -36,6 +36,7 @@ __all__ = [
     "axis_angle_from_R",
     "so3_exp",
     "so3_log",
+    "so3_left_jacobian",
     "skew",
     "project_to_so3",
     "se3_exp",
@@ -228,6 +229,23 @@ def R_from_axis_angle(omega) -> np.ndarray:
     A, B, _ = _so3_coeffs(theta2)
     K = skew(omega)
     return np.eye(3) + A[..., None, None] * K + B[..., None, None] * (K @ K)
+
+
+def so3_left_jacobian(omega) -> np.ndarray:
+    """Left Jacobian of SO(3): ``exp(omega + d) = exp([J_l(omega) d]_x) exp(omega)`` to first order in ``d``;
+    ``J_l = I + B K + C K^2`` with `_so3_coeffs` (``K = [omega]_x``), the block V of `se3_exp`.
+
+    Args:
+        omega: (..., 3) rotation vectors, radians.
+
+    Returns:
+        (..., 3, 3) float64.
+    """
+    omega = _as_f64(omega, "omega")
+    check_shape(omega, ["*", 3], "omega")
+    _, B, C = _so3_coeffs(np.sum(omega * omega, axis=-1))
+    K = skew(omega)
+    return np.eye(3) + B[..., None, None] * K + C[..., None, None] * (K @ K)
 
 
 def axis_angle_from_R(R) -> np.ndarray:

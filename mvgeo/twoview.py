@@ -56,7 +56,7 @@ from mvgeo.epipolar import (
     sampson_distance,
 )
 from mvgeo.ransac import RansacConfig, ransac
-from mvgeo.transforms import skew, so3_exp
+from mvgeo.transforms import skew, so3_exp, so3_left_jacobian
 from mvgeo.triangulate import TriangulationCriteria, _two_view_in_front_pm, triangulate_two_view
 
 __all__ = [
@@ -238,16 +238,6 @@ def _tangent_basis(t: np.ndarray) -> np.ndarray:
     return np.stack([b1, np.cross(t, b1)], axis=1)
 
 
-def _so3_left_jacobian(omega: np.ndarray) -> np.ndarray:
-    """(3, 3) J_l with d exp(omega) = [J_l d omega]_x exp(omega) (series near 0)."""
-    th2 = float(omega @ omega)
-    W = skew(omega)
-    if th2 < 1e-10:
-        return np.eye(3) + 0.5 * W + W @ W / 6.0
-    th = np.sqrt(th2)
-    return np.eye(3) + (1.0 - np.cos(th)) / th2 * W + (th - np.sin(th)) / (th2 * th) * (W @ W)
-
-
 class _SampsonProblem:
     """Signed Sampson distances (pixels) of matches under ``F = K2^-T [t]_x R K1^-1`` and their exact
     Jacobian, for `_refine`'s parameters ``p = ([log-focal change], rotation increment (3), translation
@@ -324,7 +314,7 @@ class _SampsonProblem:
             D[2] = 0.0
             D = -D
             dF.append(D.T @ E @ K1i + K2i.T @ E @ D)
-        Jl = _so3_left_jacobian(w)
+        Jl = so3_left_jacobian(w)
         tx = skew(t)
         for k in range(3):
             dF.append(K2i.T @ (tx @ skew(Jl[:, k]) @ R) @ K1i)

@@ -241,21 +241,19 @@ def detect_and_match(images: Sequence[np.ndarray], pairs: Sequence[tuple[int, in
     """
     common = dict(n_features=config.sift_features, ratio=config.ratio, min_matches=config.min_matches)
     noise = float(np.median([estimate_noise_sigma(im) for im in images]))
-    if noise < config.sensitive_below_noise:
-        # Clean images: COLMAP-like detection from the start (the pre-blur and the higher contrast threshold
-        # are there to keep noise out of the keypoints).
+    # Clean images: COLMAP-like detection from the start (the pre-blur and the higher contrast threshold
+    # are there to keep noise out of the keypoints), and no second detection.
+    sensitive = noise < config.sensitive_below_noise
+    if sensitive:
         _log.info("image noise %.2g/255 < %.2g/255: COLMAP-like sensitive SIFT (contrast %.3g, blur %.2g px)",
                   noise * 255, config.sensitive_below_noise * 255, config.fallback_contrast_threshold,
                   config.fallback_blur_sigma_px)
-        feats, matches, fails = _detect_and_match_once(images, pairs, pool,
-                                                       contrast=config.fallback_contrast_threshold,
-                                                       blur=config.fallback_blur_sigma_px, **common)
-        return MatchSet(feats, matches, fails, True, tuple(images[0].shape[:2]))
-    feats, matches, fails = _detect_and_match_once(images, pairs, pool, contrast=config.sift_contrast_threshold,
-                                                   blur=config.sift_blur_sigma_px, **common)
-    sensitive = False
+        contrast, blur = config.fallback_contrast_threshold, config.fallback_blur_sigma_px
+    else:
+        contrast, blur = config.sift_contrast_threshold, config.sift_blur_sigma_px
+    feats, matches, fails = _detect_and_match_once(images, pairs, pool, contrast=contrast, blur=blur, **common)
     n_comp = len(components(len(images), list(matches)))
-    if config.fallback_sift and n_comp > 1:
+    if config.fallback_sift and not sensitive and n_comp > 1:
         alt = _detect_and_match_once(images, pairs, pool, contrast=config.fallback_contrast_threshold,
                                      blur=config.fallback_blur_sigma_px, **common)
         n_alt = len(components(len(images), list(alt[1])))

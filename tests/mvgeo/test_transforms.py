@@ -58,6 +58,24 @@ def test_so3_exp_log_match_scipy_over_all_angle_scales(rng):
     assert tf.R_from_axis_angle is tf.so3_exp and tf.axis_angle_from_R is tf.so3_log
 
 
+@pytest.mark.parametrize("angle", [0.0, 1e-6, 1e-3, 0.3, 2.5])
+def test_so3_left_jacobian_against_central_differences_and_se3_block(rng, angle):
+    """``d/dd exp(omega + d) exp(omega)^T`` at d = 0 is ``[J_l e_k]_x`` for each axis k (central differences,
+    h = 1e-6: error O(h^2) ~ 1e-12, far inside 1e-8); J_l is also se3_exp's translation block V."""
+    axis = rng.normal(size=3)
+    omega = angle * axis / np.linalg.norm(axis)
+    J = tf.so3_left_jacobian(omega)
+    h = 1e-6
+    R0 = tf.so3_exp(omega)
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        dR = (tf.so3_exp(omega + e) - tf.so3_exp(omega - e)) @ R0.T / (2 * h)
+        np.testing.assert_allclose(dR, tf.skew(J[:, k]), atol=1e-8)
+    v = rng.normal(size=3)
+    np.testing.assert_allclose(tf.se3_exp(np.concatenate([omega, v]))[:3, 3], J @ v, atol=1e-12)
+
+
 def test_so3_log_exactly_pi_and_identity():
     for axis in np.eye(3):
         R = tf.so3_exp(np.pi * axis)
