@@ -2,6 +2,7 @@
 and reused by `refocus`, the dense-pair selection, and the diagnosis of an undetermined focal."""
 
 import dataclasses
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 import mvgeo.align.classical_pairs as cp
 from mvgeo.align.api import PREVIEW
-from mvgeo.align.classical_pairs import ClassicalPointmapModel, _why_no_focal, select_dense_pairs
+from mvgeo.align.classical_pairs import ClassicalPointmapModel, _why_no_focal, consensus_focal, select_dense_pairs
 from mvgeo.align.graph import components
 from mvgeo.align.loops import rotation_angle_deg
 from mvgeo.align.pairs import PairSet, PointmapModel, RefocusableModel
@@ -50,11 +51,14 @@ def test_pair_set_holds_every_verified_pair_with_its_geometry(pairset4, views4, 
         assert max(p.pts_i.shape[:2]) == PREVIEW.pairwise.pointmap_size_px and np.all(p.conf_i >= 1)
         assert p.focal_i_px == pytest.approx(ps.focal_px * p.pts_i.shape[1] / W)
     assert [(i, j) for i, j, _ in ps.matches] == list(geo)
-    # The relative poses: unit translation, and close to the truth (noisy 256x192 views; measured 0.19-1.36 deg
-    # off with PREVIEW, seed 0).
+    # The relative poses: unit translation, and close to the truth at the true focal (noisy 256x192 views;
+    # measured 0.19-1.36 deg off with PREVIEW, seed 0). The pair stage's own focal here is the prior: one of
+    # the six pairs has a well-determined focal, too few to agree (`consensus_focal`).
     gt = read_sparse_model(llff6 / "sparse" / "0")
     T = [np.asarray(gt.image(n).cam_from_world)[:3] for n in views4[0]]
-    for (i, j), g in geo.items():
+    f_true = gt.camera_of(views4[0][0]).fx
+    at_truth = ClassicalPointmapModel(PREVIEW.pairwise, seed=0).refocus(views4[1], PAIRS, f_true)
+    for (i, j), g in {(g.i, g.j): g for g in at_truth.geometries}.items():
         assert len(g.matches_px) >= 15
         assert np.all((g.matches_px >= 0) & (g.matches_px <= [W, H, W, H]))
         R, t = g.cam_j_from_cam_i[:, :3], g.cam_j_from_cam_i[:, 3]
@@ -119,8 +123,9 @@ def test_dense_pair_selection_is_connected_and_top_k(rng):
 CFG = TwoViewConfig()
 
 
-def _rel(success: bool, h_ratio: float | None):
-    return SimpleNamespace(success=success, homography_ratio=h_ratio, focal_well_determined=False)
+def _rel(success: bool, h_ratio: float | None, focal_px: float | None = None):
+    return SimpleNamespace(success=success, homography_ratio=h_ratio, focal_well_determined=focal_px is not None,
+                           focal_px=focal_px)
 
 
 def test_focal_diagnosis_counts_each_cause_once():
@@ -139,3 +144,50 @@ def test_focal_diagnosis_names_only_the_causes_that_occur():
     why = _why_no_focal([_rel(True, 0.1)], CFG)
     assert why == "of the 1 pair tried, in 1 the focal is too uncertain (e.g. an object-centric orbit)"
     assert _why_no_focal([], CFG) == "no pair has enough matches to try"
+
+
+def test_focal_diagnosis_lists_well_determined_focals_that_do_not_agree():
+    why = _why_no_focal([_rel(True, 0.1, 398.4), _rel(True, 0.2, 153.0), _rel(True, 0.1)], CFG)
+    assert "2 well-determined focals (153, 398 px) too few to agree" in why
+    assert "in 1 the focal is too uncertain" in why
+
+
+def _consensus_reference(focals, n_tried, k, tol):
+    """The rule written out in plain Python: the focals within `tol` (log) of the median of all agree; they
+    decide when there are at least min(k, n_tried) of them and a strict majority."""
+    med = sorted(focals)[len(focals) // 2] if len(focals) % 2 else 0.5 * (
+        sorted(focals)[len(focals) // 2 - 1] + sorted(focals)[len(focals) // 2])
+    agree = sorted(f for f in focals if abs(math.log(f / med)) <= tol)
+    if len(agree) < min(k, n_tried) or 2 * len(agree) <= len(focals):
+        return None
+    m = len(agree)
+    return agree[m // 2] if m % 2 else 0.5 * (agree[m // 2 - 1] + agree[m // 2])
+
+
+@pytest.mark.parametrize("focals, n_tried, expected", [
+    # llff_like: ten pairs within 9 % of their median -> their median
+    ([398, 401, 403, 406, 410, 414, 419, 429, 438, 447], 10, 412.0),
+    ([139.3], 10, None),  # one pair (DTU scan24, truth 925 px): not a consensus
+    ([398, 274, 153], 10, None),  # three that disagree
+    ([407, 411, 425], 3, 411.0),  # three views: all three pairs agree
+    ([500.0], 1, 500.0),  # two views: the only pair decides
+    ([400, 410, 420, 150, 160], 10, 410.0),  # three agree, two outliers: a strict majority
+    ([400, 410, 150, 160], 10, None),  # two of four: no majority and fewer than three
+    ([], 10, None),
+])
+def test_consensus_focal_cases(focals, n_tried, expected):
+    got = consensus_focal(focals, n_tried, 3, 0.15)
+    assert got == expected
+    if focals:
+        assert got == _consensus_reference(focals, n_tried, 3, 0.15)
+
+
+def test_consensus_focal_matches_the_reference_on_random_sets():
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        n = int(rng.integers(1, 9))
+        focals = list(np.exp(rng.normal(6.0, rng.choice([0.05, 0.5]), n)))
+        n_tried = int(rng.integers(n, 11))
+        got = consensus_focal(focals, n_tried, 3, 0.15)
+        ref = _consensus_reference(focals, n_tried, 3, 0.15)
+        assert (got is None and ref is None) or got == pytest.approx(ref, rel=1e-12)
