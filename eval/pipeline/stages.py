@@ -45,11 +45,12 @@ from eval.pipeline.stage import StageContext, StageFn
 from eval.pipeline.stage_settings import SplatStageSettings
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.align.stats import AlignStats
-from mvgeo.common.errors import DegenerateGeometryError, DisconnectedViewsError
+from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, DisconnectedViewsError
 from mvgeo.common.threads import torch_threads
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
 __all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "ROTATION_ATOL", "STAGE_CODE", "NoisySplatReuse",
+           "as_pipeline_refusal",
            "PipelineStages", "align", "denoise", "fuse", "fuse_images", "noisy_splat_reuse", "product_stages",
            "refine", "render", "select", "splat"]
 
@@ -121,7 +122,10 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     mode = s.reuse_intrinsics or "never"
     previous = ctx.inputs.get("previous_align")
     if previous is None:
-        res = align_images(files, cfg)
+        try:
+            res = align_images(files, cfg)
+        except (AlignmentRefusedError, DisconnectedViewsError) as exc:
+            raise as_pipeline_refusal(exc) from exc
     else:
         res = _align_keeping_better_geometry(align_images, files, cfg, Path(previous), mode,
                                              s.reuse_geometry or "never")
@@ -134,6 +138,30 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     if GEOMETRY_KEY in res.stats.annotations:
         summary["geometry"] = res.stats.annotations[GEOMETRY_KEY]
     return summary
+
+
+def as_pipeline_refusal(exc: DegenerateGeometryError | DisconnectedViewsError):
+    """An alignment refusal as the pipeline reports it, with a fix for `denoise-gs run`.
+
+    `mvgeo align` suggests `--allow-partial`, `--intrinsics` or `--ba`, options the pipeline does not have: it
+    registers every photo or stops. Its fix names the photos to leave out (by stem: the input photos'
+    extensions may differ from the working PNGs') or what to add. Other errors come back unchanged.
+    """
+    stems = sorted(Path(v).stem for v in getattr(exc, "views", ()))
+    if isinstance(exc, DisconnectedViewsError):
+        return DisconnectedViewsError(exc.message, views=exc.views, path=exc.path, fix=(
+            f"leave the photos {stems} out of the input folder (no usable pair relates them to the others), or "
+            "add photos that overlap them" if stems else exc.fix))
+    if not isinstance(exc, AlignmentRefusedError):
+        return exc
+    if exc.kind in ("views_unsupported", "positions_undetermined") and stems:
+        fix = (f"leave the photos {stems} out of the input folder, or add photos between them and their "
+               "neighbours (`mvgeo align --allow-partial` on the photos registers the others and shows which)")
+    elif exc.kind == "focal_undetermined":
+        fix = "pass --allow-focal-prior to keep COLMAP's prior focal length, or add photos with more parallax"
+    else:
+        fix = "add photos between the existing ones (more overlap between neighbouring views)"
+    return exc.with_fix(fix)
 
 
 def _align_keeping_better_geometry(align_images, files: list[Path], cfg, previous: Path, intrinsics_mode: str,
@@ -156,7 +184,7 @@ def _align_keeping_better_geometry(align_images, files: list[Path], cfg, previou
                              current_error=None if error is None else str(error)[:500])
     if not choice.used_previous:
         if error is not None:
-            raise error
+            raise as_pipeline_refusal(error) from error
         res.stats.annotations[GEOMETRY_KEY] = choice.to_dict()
         return res
     return _previous_geometry(previous, prev_model, prev_stats, choice)

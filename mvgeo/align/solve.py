@@ -102,7 +102,7 @@ def pair_graph(inputs: AlignInputs, pairs: PairSet, config, timer: StageTimer, *
                             if (f.i in main) != (f.j in main))[:2000]
         raise DisconnectedViewsError(
             f"the pair graph is disconnected: images {lost} could not be related to {[names[v] for v in main]}"
-            + (f". Failed pairs: {reasons}" if reasons else ""),
+            + (f". Failed pairs: {reasons}" if reasons else ""), views=lost,
             fix=("no two images could be related: check that they show one scene with enough overlap and texture"
                  if len(main) < 2 else "add views that overlap the disconnected ones, or remove them; try --pairs "
                  "complete; or pass --allow-partial to register only the largest connected group"))

@@ -24,7 +24,7 @@ import numpy as np
 
 from mvgeo.align.bundle import BundleResult
 from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_cut_off
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.errors import AlignmentRefusedError
 
 __all__ = ["Reason", "Verdict", "centre_std_ratio", "judge_pairs", "loose_views", "mostly_unexplained", "verdict"]
 
@@ -33,11 +33,13 @@ REASON_KINDS = ("pairs_contradicted", "views_unsupported", "positions_undetermin
 
 @dataclass(frozen=True)
 class Reason:
-    """Why a solution is refused. kind: one of `REASON_KINDS`; views: the names concerned; message: for users."""
+    """Why a solution is refused. kind: one of `REASON_KINDS`; views: the names concerned; message: for users
+    (what is wrong and the likely causes); fix: what an `mvgeo align` user can do about it."""
 
     kind: str
     views: tuple[str, ...]
     message: str
+    fix: str = ""
 
 
 @dataclass(frozen=True)
@@ -50,9 +52,10 @@ class Verdict:
     def ok(self) -> bool:
         return not self.reasons
 
-    def error(self) -> DegenerateGeometryError:
+    def error(self) -> AlignmentRefusedError:
         """The first reason as the error `align_images` raises."""
-        return DegenerateGeometryError(self.reasons[0].message)
+        r = self.reasons[0]
+        return AlignmentRefusedError(r.message, kind=r.kind, views=r.views, fix=r.fix or None)
 
 
 def judge_pairs(cam_from_world: np.ndarray, focal_align_px: np.ndarray, size_wh: tuple[int, int],
@@ -125,8 +128,9 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
             f"{listing}). Likely causes: too little overlap between neighbouring views (e.g. an orbit with large "
             "steps), repeated or symmetric structure matched across the scene"
             + ("" if focal_determined else ", and no image pair determines the focal length")
-            + (". The bundle adjustment is off: the dense alignment alone is this coarse; enable it (--ba)"
-               if ba is None else ". Add views between the existing ones, or pass --intrinsics"))))
+            + (". The bundle adjustment is off: the dense alignment alone is this coarse" if ba is None else "")),
+            "enable the bundle adjustment (--ba)" if ba is None
+            else "add views between the existing ones, or pass the calibration with --intrinsics"))
     orphans = views_cut_off(checks, bad, len(names)) if config.reject_unsupported_views else []
     if orphans:
         cut = set(orphans)
@@ -137,8 +141,8 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
             f"the reconstruction contradicts every verified image pair that links {len(orphans)} of {len(names)} "
             f"views to the others, so their poses are not supported by their matches ({listing}). Likely causes: "
             "too little overlap between these views and their neighbours (e.g. an orbit with large steps), or "
-            "repeated or symmetric structure matched across the scene. Add views between the existing ones, or "
-            "pass --allow-partial to register the others")))
+            "repeated or symmetric structure matched across the scene"),
+            "add views between the existing ones, or pass --allow-partial to register the others"))
     loose = loose_views(ba, config.max_centre_std_ratio)
     if loose:
         ratio = centre_std_ratio(ba)
@@ -148,12 +152,12 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
             f"their camera centres are uncertain by more than {config.max_centre_std_ratio:g} times the "
             f"median distance between neighbouring cameras (standard deviation / that distance: {listing}). "
             "Likely cause: these views are linked to the others by tracks seen in two views only, so each "
-            "pair fixes a direction but not a distance (e.g. an orbit with large steps). Add views between "
-            "the existing ones, or pass --allow-partial to register the others")))
+            "pair fixes a direction but not a distance (e.g. an orbit with large steps)"),
+            "add views between the existing ones, or pass --allow-partial to register the others"))
     if not focal_determined and ba is not None and ba.focal_log_std > config.max_focal_log_std:
         why = f": {focal_undetermined_why}" if focal_undetermined_why else ""
         reasons.append(Reason("focal_undetermined", (), (
             f"the focal length is not determined by these views (no image pair determines it{why}; and the "
-            f"bundle adjustment leaves a relative uncertainty of {ba.focal_log_std:.0%}). Pass the calibration "
-            "with --intrinsics, or add views with more parallax")))
+            f"bundle adjustment leaves a relative uncertainty of {ba.focal_log_std:.0%})"),
+            "pass the calibration with --intrinsics, or add views with more parallax"))
     return Verdict(tuple(reasons))

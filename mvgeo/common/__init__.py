@@ -11,9 +11,11 @@ checks every module.
 
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.errors import (
+    AlignmentRefusedError,
     ConfigError,
     DegenerateGeometryError,
     DgsError,
+    DisconnectedViewsError,
     InputError,
     ShapeError,
     check_shape,
@@ -21,9 +23,11 @@ from mvgeo.common.errors import (
 from mvgeo.common.timing import StageTimer
 
 __all__ = [
+    "AlignmentRefusedError",
     "ConfigError",
     "DegenerateGeometryError",
     "DgsError",
+    "DisconnectedViewsError",
     "InputError",
     "ShapeError",
     "StageTimer",

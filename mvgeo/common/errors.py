@@ -67,7 +67,16 @@ class ConfigError(InputError):
 class DisconnectedViewsError(InputError):
     """The images' pairs do not connect them all: the named views cannot be related to the others from
     these images alone (an input problem for the user, exit code 2; a failed geometry for a caller that can
-    fall back on an earlier reconstruction)."""
+    fall back on an earlier reconstruction).
+
+    Args:
+        views: the names of the views left out (the ones not in the largest connected group).
+    """
+
+    def __init__(self, message: str, *, views: Sequence[str] = (), path: str | Path | None = None,
+                 fix: str | None = None):
+        self.views = tuple(views)
+        super().__init__(message, path=path, fix=fix)
 
 
 class ShapeError(DgsError, ValueError):
@@ -77,6 +86,25 @@ class ShapeError(DgsError, ValueError):
 class DegenerateGeometryError(DgsError):
     """The geometry admits no unique answer (e.g. zero baseline for triangulation,
     coincident points for Procrustes). Raised where a validity flag cannot carry it."""
+
+
+class AlignmentRefusedError(DegenerateGeometryError):
+    """The alignment's best solution is not supported by the evidence (`mvgeo.align.verdict`).
+
+    Args:
+        message: what is wrong and the likely causes.
+        kind: the reason's kind (`mvgeo.align.verdict.REASON_KINDS`).
+        views: the views concerned (empty when the reason concerns the whole reconstruction).
+        fix: what the user can do (depends on the command: a caller may raise it again with its own).
+    """
+
+    def __init__(self, message: str, *, kind: str, views: Sequence[str] = (), fix: str | None = None):
+        self.message, self.kind, self.views, self.fix = message, kind, tuple(views), fix
+        super().__init__(message + (f"\n  fix: {fix}" if fix else ""))
+
+    def with_fix(self, fix: str) -> AlignmentRefusedError:
+        """The same refusal with another fix."""
+        return AlignmentRefusedError(self.message, kind=self.kind, views=self.views, fix=fix)
 
 
 def check_shape(x, expected: Sequence[str | int], name: str = "array") -> None:

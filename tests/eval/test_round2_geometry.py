@@ -22,7 +22,13 @@ from eval.pipeline.stages import _align_keeping_better_geometry
 from mvgeo.align import AlignResult, write_align_result
 from mvgeo.align.bundle import bundle_adjust
 from mvgeo.camera import Camera
-from mvgeo.common.errors import ConfigError, DegenerateGeometryError, DisconnectedViewsError, InputError
+from mvgeo.common.errors import (
+    AlignmentRefusedError,
+    ConfigError,
+    DegenerateGeometryError,
+    DisconnectedViewsError,
+    InputError,
+)
 from mvgeo.sparse_model import PosedImage, SparseModel
 from tests.common.align_stats import align_stats, bundle_stats
 from tests.eval._tiny_stages import TinyStages, make_scene
@@ -212,7 +218,10 @@ def test_align_stage_hands_round1_geometry_to_round2(tmp_path, alignments):
 
 @pytest.mark.parametrize("error", [DegenerateGeometryError("the views do not determine the cameras"),
                                    DisconnectedViewsError("the pair graph is disconnected: the views do not "
-                                                          "determine the cameras")])
+                                                          "determine the cameras"),
+                                   AlignmentRefusedError("the positions of 1 of 5 views do not determine the "
+                                                         "cameras", kind="positions_undetermined", views=("b.png",),
+                                                         fix="pass --allow-partial")])
 def test_align_stage_failure_falls_back_or_raises(tmp_path, alignments, error):
     """A round-2 alignment that fails on its geometry (refused, or its re-denoised photos no longer relate
     every view: measured on DTU scan24 at sigma 50) hands over the previous round's cameras."""
@@ -221,8 +230,9 @@ def test_align_stage_failure_falls_back_or_raises(tmp_path, alignments, error):
     res = _align_keeping_better_geometry(_FakeAlign(error=error), files, None, prev_dir, "never", "auto")
     record = res.stats.annotations[GEOMETRY_KEY]
     assert record["used_previous"] and "do not determine" in record["current_error"]
-    with pytest.raises(type(error)):
+    with pytest.raises(type(error)) as info:
         _align_keeping_better_geometry(_FakeAlign(error=error), files, None, prev_dir, "never", "never")
+    assert "pass --allow-partial" not in str(info.value)  # the pipeline's fix (`as_pipeline_refusal`)
     with pytest.raises(type(error)):
         _align_keeping_better_geometry(_FakeAlign(error=error), [*files, tmp_path / "round2" / "new.png"], None,
                                        prev_dir, "never", "auto")

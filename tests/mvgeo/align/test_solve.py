@@ -12,7 +12,7 @@ from mvgeo.align.inputs import load_inputs
 from mvgeo.align.pairs import PairGeometry, PairSet
 from mvgeo.align.solve import pair_graph, solve
 from mvgeo.align.stats import RejectedPair, Unregistered
-from mvgeo.common.errors import InputError
+from mvgeo.common.errors import DisconnectedViewsError, InputError
 from mvgeo.common.timing import StageTimer
 from mvgeo.metrics import compare_poses, relative_pose_errors
 
@@ -89,6 +89,7 @@ def test_disconnected_graph_error_names_the_images(rng):
         align_images(_images(rng, 5), FAST, names=names, model=PairSetModel(preds))
     msg = str(info.value)
     assert "disconnected" in msg and "['v3.png', 'v4.png']" in msg and "--allow-partial" in msg
+    assert isinstance(info.value, DisconnectedViewsError) and info.value.views == ("v3.png", "v4.png")
 
 
 def test_allow_partial_registers_the_largest_group_and_lists_the_others(rng):

@@ -19,7 +19,7 @@ from mvgeo.align.verdict import (
     mostly_unexplained,
     verdict,
 )
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError
 from mvgeo.transforms import so3_exp
 
 from .synthetic import three_view_matches
@@ -113,7 +113,7 @@ def test_pairs_contradicted_names_the_views_of_the_failing_pairs():
     assert "(view_001.png, view_002.png): 20% rotation 40 deg off its matches" in r.message
     assert "no image pair determines the focal length" not in r.message
     assert "no image pair determines the focal length" in _judge(checks, bad, focal_determined=False).reasons[0].message
-    assert "enable it (--ba)" in r.message  # no bundle adjustment given
+    assert "bundle adjustment is off" in r.message and r.fix == "enable the bundle adjustment (--ba)"  # none given
     assert [r.kind for r in _judge(checks, bad, config=AlignConfig(max_unexplained_fraction=0.5)).reasons] == [
         "views_unsupported"]
 
@@ -144,8 +144,15 @@ def test_every_reason_is_reported_in_the_stated_order():
     assert [r.kind for r in v.reasons] == list(REASON_KINDS)
     assert [r.views for r in v.reasons] == [("view_000.png", "view_004.png", "view_005.png"), ("view_005.png",),
                                             ("view_000.png",), ()]
-    assert str(v.error()) == v.reasons[0].message
-    assert all(isinstance(r, Reason) and r.message for r in v.reasons)
+    err = v.error()  # the first reason, typed, with its views and its fix apart from the message
+    assert isinstance(err, AlignmentRefusedError) and isinstance(err, DegenerateGeometryError)
+    assert (err.kind, err.views, err.message, err.fix) == (v.reasons[0].kind, v.reasons[0].views,
+                                                           v.reasons[0].message, v.reasons[0].fix)
+    assert str(err) == f"{v.reasons[0].message}\n  fix: {v.reasons[0].fix}"
+    assert all(isinstance(r, Reason) and r.message and r.fix for r in v.reasons)
+    other = err.with_fix("remove view_000.png")
+    assert (other.kind, other.views, other.message) == (err.kind, err.views, err.message)
+    assert str(other).endswith("\n  fix: remove view_000.png")
 
 
 def test_judge_pairs_flags_unexplained_and_turned_pairs(rng):

@@ -1,0 +1,67 @@
+"""An alignment refusal inside the pipeline: the same error type, views and message as `mvgeo align`'s, with a
+fix `denoise-gs run` can follow (it has no --allow-partial / --intrinsics / --ba; it registers every photo or
+stops)."""
+
+import pytest
+
+import mvgeo.align
+from eval.pipeline.stage import StageContext
+from eval.pipeline.stage_settings import AlignStageSettings
+from eval.pipeline.stages import align, as_pipeline_refusal
+from mvgeo.align import AlignConfig
+from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, DisconnectedViewsError
+
+MVGEO_FIX = "add views between the existing ones, or pass --allow-partial to register the others"
+MESSAGE = "the reconstruction contradicts every verified image pair that links 1 of 12 views to the others"
+
+
+def _refused(kind: str, views=("000007.png",)):
+    return AlignmentRefusedError(MESSAGE, kind=kind, views=views, fix=MVGEO_FIX)
+
+
+@pytest.mark.parametrize("kind", ["views_unsupported", "positions_undetermined"])
+def test_views_to_leave_out_are_named_by_their_stems(kind):
+    out = as_pipeline_refusal(_refused(kind, ("000007.png", "000003.png")))
+    assert isinstance(out, AlignmentRefusedError) and isinstance(out, DegenerateGeometryError)
+    assert (out.kind, out.views, out.message) == (kind, ("000007.png", "000003.png"), MESSAGE)
+    assert out.fix.startswith("leave the photos ['000003', '000007'] out of the input folder")
+    assert "pass --allow-partial" not in str(out) and "mvgeo align --allow-partial" in out.fix
+
+
+def test_whole_reconstruction_reasons_get_the_pipeline_options():
+    assert "--allow-focal-prior" in as_pipeline_refusal(_refused("focal_undetermined", ())).fix
+    contradicted = as_pipeline_refusal(_refused("pairs_contradicted", ("a.png", "b.png")))
+    assert contradicted.fix.startswith("add photos between the existing ones")
+    assert "--intrinsics" not in str(contradicted) and "--allow-partial" not in str(contradicted)
+
+
+def test_disconnected_views_keep_their_type_and_path():
+    exc = DisconnectedViewsError("the pair graph is disconnected: images ['v3.png'] could not be related",
+                                 views=("v3.png",), path="photos", fix="... or pass --allow-partial")
+    out = as_pipeline_refusal(exc)
+    assert type(out) is DisconnectedViewsError and out.views == ("v3.png",) and str(out.path) == "photos"
+    assert out.message == exc.message and out.fix.startswith("leave the photos ['v3'] out of the input folder")
+    unnamed = DisconnectedViewsError("no two images could be related", fix="check the images")
+    assert as_pipeline_refusal(unnamed).fix == "check the images"
+
+
+def test_other_geometry_errors_pass_unchanged():
+    exc = DegenerateGeometryError("the alignment failed numerically")
+    assert as_pipeline_refusal(exc) is exc
+
+
+def test_the_round1_align_stage_raises_the_pipeline_refusal(tmp_path, monkeypatch):
+    (tmp_path / "images").mkdir()
+    for name in ("000003.png", "000007.png"):
+        (tmp_path / "images" / name).write_bytes(b"")
+
+    def refuse(files, cfg):
+        raise _refused("views_unsupported")
+
+    monkeypatch.setattr(mvgeo.align, "align_images", refuse)
+    ctx = StageContext("align", tmp_path / "work", {"images": tmp_path / "images"},
+                       AlignStageSettings(AlignConfig()), 0)
+    with pytest.raises(AlignmentRefusedError) as info:
+        align(ctx)
+    assert info.value.views == ("000007.png",) and info.value.fix.startswith("leave the photos ['000007']")
+    assert isinstance(info.value.__cause__, AlignmentRefusedError)  # mvgeo's own, chained
