@@ -50,9 +50,8 @@ from mvgeo.common.threads import torch_threads
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
 __all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "ROTATION_ATOL", "STAGE_CODE", "NoisySplatReuse",
-           "as_pipeline_refusal",
-           "PipelineStages", "align", "denoise", "fuse", "fuse_images", "noisy_splat_reuse", "product_stages",
-           "refine", "render", "select", "splat"]
+           "PipelineStages", "align", "as_pipeline_refusal", "denoise", "fuse", "fuse_images", "noisy_splat_reuse",
+           "product_stages", "refine", "render", "select", "splat"]
 
 #: The network a denoise or refine stage writes (round r >= 2 fine-tunes round r-1's).
 MODEL_FILE = "n2v_model.pt"

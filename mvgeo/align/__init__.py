@@ -13,13 +13,15 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
 
 1. `inputs`: the images checked, undistorted with known intrinsics, downscaled once (`AlignInputs`).
 2. `features` + `classical_pairs`: SIFT and putative matches, once per image and pair (`MatchSet`); each
-   pair's relative pose at one shared focal and dense pointmaps (`PairSet`, defined in `pairs` with the
-   `PointmapModel` protocol a learned DUSt3R/MASt3R wrapper can implement; `dense_pairs` holds the flows
-   and the triangulated pointmaps).
+   pair's relative pose at one shared focal (the one at least three pairs' focals agree on,
+   `consensus_focal`, else COLMAP's prior, re-estimated by `policy`) and dense pointmaps (`PairSet`,
+   defined in `pairs` with the `PointmapModel` protocol a learned DUSt3R/MASt3R wrapper can implement;
+   `dense_pairs` holds the flows and the triangulated pointmaps).
 3. `solve`: the pair graph (loop check `loops`, connectivity `graph`), then one candidate: initial poses
    (`init`: DUSt3R's chaining, or rotation averaging `rotation_averaging` then positions), DUSt3R's global
    alignment (`global_align`, objective in `alignment_objective`), bundle adjustment on every verified
-   pair's tracks (`bundle`, `bundle_lm`), and a `verdict` with typed reasons naming the views.
+   pair's tracks (`bundle`, `bundle_lm`), and a `verdict` with typed reasons naming the views (raised as
+   `mvgeo.common.errors.AlignmentRefusedError`: kind, views, message and fix).
 4. `policy`: which candidates are solved (focal re-estimation, pruning of contradicted pairs, the second
    start) and the one rule that chooses.
 5. `cloud`: depth maps recomputed by flow stereo with the final cameras (`dense_stereo`, `hole_fill`),
