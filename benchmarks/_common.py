@@ -68,3 +68,20 @@ def cli_option(key: str, default: str) -> str:
     """The value of `--key=VALUE` on this script's command line, or `default`."""
     vals = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith(f"--{key}=")]
     return vals[0] if vals else default
+
+
+def held_out_at_true_poses(round_dir: Path, dataset) -> dict[str, float]:
+    """Mean held-out PSNR / SSIM / LPIPS of a splat trained with the true cameras (`round_dir/point_cloud.ply`),
+    scored as `denoise-gs eval` scores its `@gt_poses` rows (true held-out poses, clean images).
+
+    Args:
+        dataset: the `DatasetFolder` it was trained from (its `sparse/0` holds the true cameras).
+    """
+    from eval.evaluate import EvalConfig, _score_scene
+    from mvgeo.sparse_model import read_sparse_model
+    from splat.ply import read_gaussian_ply
+
+    model = read_gaussian_ply(Path(round_dir) / "point_cloud.ply", device="cpu")
+    gt = read_sparse_model(dataset.root / "sparse" / "0")
+    per_view, _ = _score_scene(model, gt, None, dataset, EvalConfig())
+    return {key: sum(v[key] for v in per_view.values()) / len(per_view) for key in ("psnr_db", "ssim", "lpips")}

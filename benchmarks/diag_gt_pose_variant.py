@@ -16,13 +16,12 @@ import dataclasses
 import sys
 from pathlib import Path
 
+from _common import held_out_at_true_poses
+
 import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
-from eval.evaluate import EvalConfig, _score_scene
 from eval.methods import METHODS, ORACLE_CLEAN, _splat_on_ground_truth, gt_pose_variant, splat_photos
 from eval.pipeline import preset
 from eval.pipeline.validate import validate_dataset_folder
-from mvgeo.sparse_model import read_sparse_model
-from splat.ply import read_gaussian_ply
 
 ap = argparse.ArgumentParser()
 ap.add_argument("eval_out", type=Path)
@@ -37,7 +36,6 @@ seed_dir = args.eval_out / "runs" / scene / f"seed{args.seed}"
 base = preset("default", views=min(12, len(dataset.train)))
 base = dataclasses.replace(base, max_size=None, seed=args.seed,
                            splat=dataclasses.replace(base.splat, iters=args.splat_iters))
-gt = read_sparse_model(dataset.root / "sparse" / "0")
 print("| method | PSNR | SSIM | LPIPS |\n|---|---|---|---|", flush=True)
 for name in args.methods:
     own = METHODS[name]
@@ -46,8 +44,6 @@ for name in args.methods:
     points_dir = seed_dir / ORACLE_CLEAN.folder() / "round1"  # every variant starts from the clean photos' points
     rec = _splat_on_ground_truth(variant.stages(dataset), variant.pipeline_config(base), dataset,
                                  splat_photos(round_dir), seed_dir / variant.folder(), estimate=points_dir)
-    model = read_gaussian_ply(rec.round_dir / "point_cloud.ply", device="cpu")
-    per_view, _ = _score_scene(model, gt, None, dataset, EvalConfig())
-    m = {k: sum(v[k] for v in per_view.values()) / len(per_view) for k in ("psnr_db", "ssim", "lpips")}
+    m = held_out_at_true_poses(rec.round_dir, dataset)
     print(f"| {variant.name} | {m['psnr_db']:.2f} | {m['ssim']:.3f} | {m['lpips']:.3f} |", flush=True)
 sys.exit(0)

@@ -23,15 +23,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from _common import held_out_at_true_poses
 
 import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
-from eval.evaluate import EvalConfig, _score_scene
 from eval.methods import METHODS, ORACLE_CLEAN, _splat_on_ground_truth, gt_pose_variant
 from eval.pipeline import preset
 from eval.pipeline.validate import validate_dataset_folder
 from mvgeo.common.imageio import read_image, write_image
-from mvgeo.sparse_model import read_sparse_model
-from splat.ply import read_gaussian_ply
 
 ap = argparse.ArgumentParser()
 ap.add_argument("seed_dir", type=Path)
@@ -43,7 +41,6 @@ args = ap.parse_args()
 dataset = validate_dataset_folder(args.dataset)
 base = preset("default", views=min(12, len(dataset.train)))
 base = dataclasses.replace(base, max_size=None, seed=0, splat=dataclasses.replace(base.splat, iters=args.splat_iters))
-gt = read_sparse_model(dataset.root / "sparse" / "0")
 variant = gt_pose_variant(METHODS["instantsplat"], ORACLE_CLEAN)
 noisy_dir = args.seed_dir / "instantsplat" / "inputs"
 names = sorted(p.name for p in noisy_dir.glob("*.png"))
@@ -77,7 +74,5 @@ for k, kind in enumerate(args.kinds):
         write_image(folder / "photos" / name, np.clip(photo(kind, name, rng), 0.0, 1.0).astype(np.float32))
     rec = _splat_on_ground_truth(variant.stages(dataset), variant.pipeline_config(base), dataset, folder / "photos",
                                  folder / "run", estimate=args.seed_dir / ORACLE_CLEAN.folder() / "round1")
-    model = read_gaussian_ply(rec.round_dir / "point_cloud.ply", device="cpu")
-    per_view, _ = _score_scene(model, gt, None, dataset, EvalConfig())
-    m = {key: sum(v[key] for v in per_view.values()) / len(per_view) for key in ("psnr_db", "ssim", "lpips")}
+    m = held_out_at_true_poses(rec.round_dir, dataset)
     print(f"| {kind} | {m['psnr_db']:.2f} | {m['ssim']:.3f} | {m['lpips']:.3f} |", flush=True)

@@ -303,9 +303,9 @@ class ClassicalPointmapModel:
 
         Without intrinsics (`K_align` here, else the model's), the focal is found first (InstantSplat's
         focal averaging, done before the alignment): every pair's shared-focal relative pose, then the
-        focal the *well-determined* pair focals agree on (`RelativePoseResult.focal_well_determined`;
-        `consensus_focal`; object-centric rings are a critical configuration for two-view focal estimation) becomes one
-        calibration for the calibrated relative pose of every pair.
+        focal the *well-determined* pair focals agree on (`RelativePoseResult.focal_well_determined`,
+        `consensus_focal`; object-centric rings are a critical configuration for two-view focal estimation)
+        becomes one calibration for the calibrated relative pose of every pair.
 
         Args:
             images: N images (H, W, 3) float32 RGB at the alignment resolution.
