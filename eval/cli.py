@@ -243,19 +243,22 @@ def build_parser() -> argparse.ArgumentParser:
     add_common_args(parser)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    run = sub.add_parser("run", help="run the two-round pipeline on a folder of noisy images")
+    run = sub.add_parser("run", help="run the pipeline (denoise, align, splat; the N2V presets two rounds) on a "
+                                     "folder of noisy images")
     run.add_argument("images_dir", type=Path, help="folder of noisy images (PNG/JPEG/TIFF)")
     run.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP)
     run.add_argument("--preset", choices=sorted(PRESETS), default="default", help="settings preset")
     run.add_argument("--views", type=int_range(2), default=None,
                      help="K views kept for rounds >= 2 (default 12); needs at least K images")
-    run.add_argument("--rounds", type=positive_int, default=None, help="1 = round 1 only; default 2")
+    run.add_argument("--rounds", type=positive_int, default=None,
+                     help="1 = round 1 only; default: the preset's (1 with default and best, 2 with fast)")
     run.add_argument("--seed", type=seed, default=None, help="master seed (default 0)")
     run.add_argument("--device", default=None, help=DEVICE_HELP + "; default cpu")
     run.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
                      help=MAX_SIZE_HELP)
     run.add_argument("--denoiser", choices=DENOISE_METHODS, default=None,
-                     help="round 1's self-supervised objective on the UNet (default n2v; the others need --rounds 1)")
+                     help="round 1's self-supervised objective on the UNet (default: the preset's, r2r "
+                          "with default and best, n2v with fast; only n2v runs more than one round)")
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",
@@ -264,7 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--fuse-noisy-splat", action=argparse.BooleanOptionalAction, default=None,
                      help="extension, not in the paper: each round's splat trains on the mean of the denoised "
                           "photo and the render of a splat of the noisy photos (one more splat per round). "
-                          "Default: on with --preset default and best, off with fast; "
+                          "Default: the preset's (on with fast, off with default and best); "
                           "--no-fuse-noisy-splat runs the paper's loop")
     run.add_argument("--reuse-intrinsics", choices=("auto", "always", "never"), default=None,
                      help="rounds >= 2: auto (default) keeps the better-determined of the round's own focal "

@@ -58,7 +58,7 @@ def _set_splat(cfg: PipelineConfig, **kw) -> PipelineConfig:
 
 
 def _set_preset(cfg: PipelineConfig, name: object) -> PipelineConfig:
-    new = preset(str(name), views=cfg.views, rounds=2, seed=cfg.seed, device=cfg.device)
+    new = preset(str(name), views=cfg.views, seed=cfg.seed, device=cfg.device)  # the preset's own rounds
     return _set_align(new, max_focal_log_std=cfg.align.max_focal_log_std)  # keep the sweep's focal policy
 
 
@@ -74,7 +74,7 @@ KNOBS: dict[str, tuple[str, Callable[[PipelineConfig, object], PipelineConfig]]]
     "views": ("K views kept for round 2 (2 rounds)",
               lambda c, v: dataclasses.replace(c, views=int(v), rounds=2)),
     "train_views": ("number of noisy training images", lambda c, v: c),
-    "preset": ("pipeline preset (2 rounds)", _set_preset),
+    "preset": ("pipeline preset (its own rounds)", _set_preset),
 }
 
 #: The default sweep (values around the `fast` preset; each point is one pipeline run at the sweep's size).

@@ -120,7 +120,7 @@ class EvalConfig:
             raise InputError(f"unknown method(s) {unknown}", fix=f"choose from {', '.join(METHODS)}")
         if self.denoiser not in DENOISE_METHODS:
             raise InputError(f"unknown denoiser {self.denoiser!r}", fix=f"choose from {', '.join(DENOISE_METHODS)}")
-        multi_round = [m for m in self.methods if METHODS[m].rounds > 1]
+        multi_round = [m for m in self.methods if (METHODS[m].rounds or 1) > 1]
         if self.denoiser != "n2v" and multi_round:
             one_round = [m.name for m in METHODS.values() if m.rounds == 1]
             raise InputError(f"--denoiser {self.denoiser} runs round 1 only; these methods have more rounds: "

@@ -7,6 +7,7 @@ the pipeline, which stages it runs, and the folder it runs in.
 - Denoise-GS (d), (e): `n2v_round1`, `denoise_gs`; the Table 3 round counts `rounds_1` ..
   `rounds_4`; the Table 2 ablations `ablate_no_selection`, `ablate_charbonnier`;
 - the extension `n2v_fused_round1`, `denoise_gs_fused` (`PipelineConfig.fuse_noisy_splat`);
+- `product`: the preset exactly as `denoise-gs run` ships it (its denoiser, rounds and fusion);
 - the reference `oracle_clean`: (b) on the *clean* training photos, a perfect denoiser;
 - `<method>@gt_poses` for every method with estimated poses: the photos its (last) splat trained on,
   splatted again with the ground-truth cameras (`gt_pose_variant`), so that the denoising's effect is
@@ -49,9 +50,10 @@ __all__ = ["GT_POSES_SUFFIX", "METHODS", "ORACLE_CLEAN", "EvalMethod", "Reconstr
 
 # ----------------------------------------------------------------- how each method sets up the pipeline
 def paper_loop(base: PipelineConfig) -> PipelineConfig:
-    """The paper's loop, whatever the preset says: no noisy-photo fusion, each round's own alignment, every
-    round run."""
+    """The paper's loop, whatever the preset says: N2V (the methods that take `--denoiser` replace it), no
+    noisy-photo fusion, each round's own alignment, every round run."""
     return dataclasses.replace(base, fuse_noisy_splat=False, stop_when_unrefined=False,
+                               denoise=dataclasses.replace(base.denoise, method="n2v"),
                                align=dataclasses.replace(base.align, reuse_geometry="never"))
 
 
@@ -61,6 +63,11 @@ def fused_loop(base: PipelineConfig) -> PipelineConfig:
     kept the previous network ends the loop is the preset's (`PipelineConfig.stop_when_unrefined`)."""
     return dataclasses.replace(base, fuse_noisy_splat=True,
                                align=dataclasses.replace(base.align, reuse_geometry="auto"))
+
+
+def as_shipped(base: PipelineConfig) -> PipelineConfig:
+    """The preset as it is: its denoiser, rounds, fusion and geometry reuse (`denoise-gs run`'s settings)."""
+    return base
 
 
 def no_selection(base: PipelineConfig) -> PipelineConfig:
@@ -113,7 +120,7 @@ class EvalMethod:
         family: the folder it runs in under `runs/<scene>/seed<k>/`, shared by methods that differ
             only in `rounds` (they reuse each other's completed rounds).
         description: what it is, in a few words.
-        rounds: the pipeline's number of rounds.
+        rounds: the pipeline's number of rounds; None keeps the preset's (`product`).
         configure: the pipeline settings from the evaluation's base settings (`rounds` is set after).
         stages: the stage functions, given the dataset (`oracle_clean` reads its clean photos).
         takes_denoiser: round 1 trains the UNet, with `EvalConfig.denoiser`'s objective: other than
@@ -130,7 +137,7 @@ class EvalMethod:
     name: str
     family: str
     description: str
-    rounds: int
+    rounds: int | None
     configure: Callable[[PipelineConfig], PipelineConfig]
     stages: Callable[[DatasetFolder], PipelineStages] = product_eval_stages
     takes_denoiser: bool = False
@@ -144,10 +151,12 @@ class EvalMethod:
 
     def pipeline_config(self, base: PipelineConfig, denoiser: DenoiseMethod = "n2v") -> PipelineConfig:
         """The pipeline settings this method runs with, from the evaluation's `base`."""
-        cfg = dataclasses.replace(self.configure(base), rounds=self.rounds)
+        cfg = self.configure(base)
+        # Rounds and objective in one replace: the preset's objective may run one round only.
+        change = {} if self.rounds is None else {"rounds": self.rounds}
         if self.takes_denoiser:
-            cfg = dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, method=denoiser))
-        return cfg
+            change["denoise"] = dataclasses.replace(cfg.denoise, method=denoiser)
+        return dataclasses.replace(cfg, **change)
 
     def folder(self, denoiser: DenoiseMethod = "n2v") -> str:
         """Its folder under `runs/<scene>/seed<k>/`."""
@@ -235,6 +244,7 @@ _METHODS: dict[str, EvalMethod] = _registry(
                takes_denoiser=True),
     EvalMethod("denoise_gs_fused", "n2v_fused", "extension: (e) with the noisy-photo fusion", 2, fused_loop,
                takes_denoiser=True),
+    EvalMethod("product", "product", "the product: `denoise-gs run` with the preset as shipped", None, as_shipped),
     ORACLE_CLEAN,
 )
 #: ... then each one's ground-truth-pose variant (`gt_pose_variant`).

@@ -25,7 +25,7 @@ def test_run_missing_folder(tmp_path, capsys):
 
 def test_run_fewer_images_than_views(tmp_path, capsys):
     scene = make_scene(tmp_path / "images", n=4)
-    assert main(["run", str(scene), "--out", str(tmp_path / "out"), "--views", "6"]) == 2
+    assert main(["run", str(scene), "--out", str(tmp_path / "out"), "--views", "6", "--preset", "fast"]) == 2
     err = _err(capsys)
     assert "4 images but --views 6" in err and "--views 4" in err
     assert not (tmp_path / "out").exists()
@@ -46,8 +46,9 @@ def test_run_bad_values(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("flag", "expected"), [
-    ([], ("auto", True)),  # the default preset fuses
-    (["--reuse-intrinsics", "never"], ("never", True)),
+    ([], ("auto", False)),  # the default preset (one round of a non-blind denoiser) does not fuse
+    (["--fuse-noisy-splat"], ("auto", True)),
+    (["--reuse-intrinsics", "never"], ("never", False)),
     (["--no-fuse-noisy-splat"], ("auto", False)),
     (["--preset", "fast"], ("auto", True)),
     (["--preset", "fast", "--no-fuse-noisy-splat"], ("auto", False)),

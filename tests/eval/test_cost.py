@@ -31,7 +31,8 @@ def test_sweep_points_change_one_knob_at_a_time():
     assert pts[3].config.denoise.passes == 1 and pts[3].config.splat == base.splat
     assert pts[4].config.views == 2 and pts[4].config.rounds == 2
     assert pts[5].config == base and pts[5].train_views == 3
-    assert pts[6].config.splat.preset == "instantsplat" and pts[6].config.rounds == 2
+    assert pts[6].config.splat.preset == "instantsplat" and pts[6].config.rounds == preset("default").rounds
+    assert pts[6].config.denoise == preset("default").denoise and pts[6].config.views == 4
     pt = apply_knob(base, "align_points", 5000)
     assert pt.align.points == 5000 and pt.align.preset == base.align.preset and pt.splat == base.splat
     with pytest.raises(InputError, match="align.points"):  # a ConfigError naming the key

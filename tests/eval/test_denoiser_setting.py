@@ -83,10 +83,13 @@ def test_eval_refuses_multi_round_methods_with_another_denoiser():
 
 def test_run_cli_refuses_two_rounds_with_r2r_before_any_work(tmp_path, capsys):
     scene = make_scene(tmp_path / "images", n=3)
-    assert main(["run", str(scene), "--out", str(tmp_path / "o"), "--denoiser", "r2r"]) == 2
+    assert main(["run", str(scene), "--out", str(tmp_path / "o"), "--denoiser", "r2r", "--rounds", "2"]) == 2
     err = capsys.readouterr().err
     assert "round 1 only" in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
+    # the default preset's own objective is R2R: asking it for two rounds is refused the same way
+    assert main(["run", str(scene), "--out", str(tmp_path / "o"), "--rounds", "2"]) == 2
+    assert "round 1 only" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
 def test_results_rows_name_the_denoiser():

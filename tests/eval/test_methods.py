@@ -17,7 +17,7 @@ from mvgeo.common.errors import InputError
 #: The names the results and the documentation use (results.json / results.md rows).
 NAMES = ("3dgs_gt_poses", "instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs", "ablate_no_selection",
          "ablate_charbonnier", "rounds_1", "rounds_2", "rounds_3", "rounds_4", "n2v_fused_round1",
-         "denoise_gs_fused", "oracle_clean")
+         "denoise_gs_fused", "product", "oracle_clean")
 #: ... then the ground-truth-pose variant of each method with estimated poses.
 VARIANTS = tuple(f"{n}@gt_poses" for n in NAMES if n != "3dgs_gt_poses")
 
@@ -58,6 +58,15 @@ def test_families_share_folders_and_rounds_n_configs():
     for name in ("ablate_no_selection", "ablate_charbonnier"):
         assert METHODS[name].shares_round1_with == METHODS["denoise_gs"].family
     assert METHODS["instantsplat"].pipeline_config(base).rounds == 1
+
+
+@pytest.mark.parametrize("name", ["fast", "default", "best"])
+def test_product_runs_each_preset_as_shipped(name):
+    for rounds in (None, 1) if preset(name).denoise.method != "n2v" else (None, 1, 3):
+        base = preset(name, views=4, rounds=rounds)
+        assert METHODS["product"].pipeline_config(base) == base
+        assert METHODS["product"].pipeline_config(base, "neighbor2neighbor") == base  # --denoiser is not its
+    assert METHODS["product"].folder("r2r") == "product" and METHODS["product"].row_label("r2r") == "product"
     assert METHODS["oracle_clean"].pipeline_config(base) == METHODS["instantsplat"].pipeline_config(base)
     assert METHODS["oracle_clean"].family == "oracle_clean"  # (b)'s settings, its own folder
     gt = METHODS["3dgs_gt_poses"]
@@ -87,6 +96,8 @@ def test_a_gt_pose_variant_is_its_method_with_the_known_pose_splat():
 @pytest.mark.parametrize("name", ["fast", "default"])
 def test_only_the_fused_methods_fuse_whatever_the_preset(name):
     for m in METHODS.values():
+        if m.name.startswith("product"):
+            continue  # the preset's own settings (test_product_runs_each_preset_as_shipped)
         cfg = m.pipeline_config(preset(name))
         assert cfg.fuse_noisy_splat == ("_fused" in m.name), m.name  # (a @gt_poses variant splats the fused photos)
         assert cfg.align.reuse_geometry == ("auto" if "_fused" in m.name else "never"), m.name
