@@ -84,6 +84,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.reuse_intrinsics is not None:
         config = dataclasses.replace(config, align=dataclasses.replace(config.align,
                                                                        reuse_intrinsics=args.reuse_intrinsics))
+    if args.align_photos is not None:
+        config = dataclasses.replace(config, align=dataclasses.replace(config.align, photos=args.align_photos))
     config = dataclasses.replace(config, max_size=args.max_size)
     if args.denoiser is not None:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, method=args.denoiser))
@@ -273,6 +275,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="rounds >= 2: auto (default) keeps the better-determined of the round's own focal "
                           "estimate and the previous round's; always takes the previous round's; never "
                           "estimates anew each round (the paper's loop)")
+    run.add_argument("--align-photos", choices=("noisy_first", "denoised"), default=None,
+                     help="round 1's alignment input: the noisy photos, and the denoised ones where those are "
+                          "refused (noisy_first), or the denoised ones (the paper's). Default: the preset's "
+                          "(noisy_first with default and best, denoised with fast)")
     run.set_defaults(func=_cmd_run)
 
     ev = sub.add_parser("eval", help="score methods on a scene with ground truth")

@@ -51,10 +51,10 @@ __all__ = ["GT_POSES_SUFFIX", "METHODS", "ORACLE_CLEAN", "EvalMethod", "Reconstr
 # ----------------------------------------------------------------- how each method sets up the pipeline
 def paper_loop(base: PipelineConfig) -> PipelineConfig:
     """The paper's loop, whatever the preset says: N2V (the methods that take `--denoiser` replace it), no
-    noisy-photo fusion, each round's own alignment, every round run."""
+    noisy-photo fusion, the denoised photos aligned, each round's own alignment, every round run."""
     return dataclasses.replace(base, fuse_noisy_splat=False, stop_when_unrefined=False,
                                denoise=dataclasses.replace(base.denoise, method="n2v"),
-                               align=dataclasses.replace(base.align, reuse_geometry="never"))
+                               align=dataclasses.replace(base.align, reuse_geometry="never", photos="denoised"))
 
 
 def fused_loop(base: PipelineConfig) -> PipelineConfig:

@@ -23,6 +23,7 @@ DenoiseMethod = Literal["n2v", "neighbor2neighbor", "r2r"]
 DENOISE_METHODS: tuple[str, ...] = ("n2v", "neighbor2neighbor", "r2r")
 ReuseIntrinsics = Literal["auto", "always", "never"]
 ReuseGeometry = Literal["auto", "never"]
+AlignPhotos = Literal["denoised", "noisy_first"]
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,13 @@ class AlignSettings:
             uncertainty, no ground truth), when this round registers fewer of them, or when this
             round's alignment fails; "never" uses this round's own alignment (the paper's loop). See
             `eval.pipeline.calibration.choose_geometry`.
+        photos: round 1's alignment input: "denoised" (the paper's: the denoised photos) or "noisy_first"
+            (the noisy photos, and the denoised ones only where the noisy ones are refused). The splat
+            trains on the denoised photos either way. On DTU scan24 at sigma 25 the noisy photos align
+            at 0.32 deg against 0.45 for N2V's photos, and R2R's 29.5 dB photos were refused (one view's
+            matches contradicted: the clean-photo feature detector, chosen by their low noise, finds
+            features in the denoiser's texture); at sigma 50 the noisy photos are refused and N2V's
+            aligned (docs/bench/pipeline.md). Rounds >= 2 align the round's denoised photos.
     """
 
     preset: str = "default"
@@ -87,6 +95,7 @@ class AlignSettings:
     max_focal_log_std: float | None = None
     reuse_intrinsics: ReuseIntrinsics = "auto"
     reuse_geometry: ReuseGeometry = "auto"
+    photos: AlignPhotos = "denoised"
 
 
 @dataclass(frozen=True)
@@ -176,6 +185,9 @@ class PipelineConfig:
         if self.align.reuse_intrinsics not in ("auto", "always", "never"):
             raise ConfigError(f"unknown value {self.align.reuse_intrinsics!r}", key="align.reuse_intrinsics",
                               expected="'auto', 'always' or 'never'")
+        if self.align.photos not in ("denoised", "noisy_first"):
+            raise ConfigError(f"unknown value {self.align.photos!r}", key="align.photos",
+                              expected="'denoised' or 'noisy_first'")
         if self.align.reuse_geometry not in ("auto", "never"):
             raise ConfigError(f"unknown value {self.align.reuse_geometry!r}", key="align.reuse_geometry",
                               expected="'auto' or 'never'")
@@ -204,12 +216,13 @@ class PipelineConfig:
 #:   which its novel views are blurrier than those of a splat of the noisy photos (lower SSIM,
 #:   higher LPIPS).
 #: - `default`: round 1 only, with the UNet trained by Recorrupted-to-Recorrupted for 2000 steps instead
-#:   of N2V's 400; no fusion. On DTU scan24 (sigma 25/255) its photos are 29.5 dB against N2V's 25.8, and
-#:   splatted with the true cameras they score 24.93 / 0.806 / 0.134 against the N2V two-round product's
-#:   24.41 / 0.732 / 0.198 (PSNR / SSIM / LPIPS); fusing them with the noisy splat's render costs 0.4 dB
-#:   and 0.07 SSIM there, and round 2 fine-tunes a blind-spot network only, so a non-blind denoiser runs
-#:   one round (docs/bench/pipeline.md, "the default denoiser"). The paper's loop is
-#:   `--denoiser n2v --rounds 2` (`denoise-gs eval`'s `denoise_gs`, `denoise_gs_fused`).
+#:   of N2V's 400; no fusion; the alignment on the noisy photos first (`AlignSettings.photos`). On DTU
+#:   scan24 (sigma 25/255) its photos are 29.5 dB against N2V's 25.8, and splatted with the true cameras
+#:   they score 24.93 / 0.806 / 0.134 against the N2V two-round product's 24.41 / 0.732 / 0.198 (PSNR /
+#:   SSIM / LPIPS); fusing them with the noisy splat's render costs 0.4 dB and 0.07 SSIM there, and round
+#:   2 fine-tunes a blind-spot network only, so a non-blind denoiser runs one round (docs/bench/pipeline.md,
+#:   "the default denoiser"). The paper's loop is `--denoiser n2v --rounds 2` (`denoise-gs eval`'s
+#:   `denoise_gs`, `denoise_gs_fused`).
 #: - `best`: the `default` with a 2000-iteration splat (twice the time of its slowest stage). Not yet
 #:   measured on real photos; on `llff_like` a 2000-iteration splat after N2V gained nothing
 #:   (docs/bench/pipeline.md, "each preset end to end").
@@ -229,9 +242,11 @@ PRESETS: dict[str, PipelineConfig] = {
         splat=SplatSettings(preset="quick"),
     ),
     "default": PipelineConfig(rounds=1, stop_when_unrefined=True,
-                              denoise=DenoiseSettings(method="r2r", n2v_steps=2000)),
+                              denoise=DenoiseSettings(method="r2r", n2v_steps=2000),
+                              align=AlignSettings(photos="noisy_first")),
     "best": PipelineConfig(rounds=1, stop_when_unrefined=True,
                            denoise=DenoiseSettings(method="r2r", n2v_steps=2000),
+                           align=AlignSettings(photos="noisy_first"),
                            splat=SplatSettings(preset="instantsplat", iters=2000)),
 }
 

@@ -107,6 +107,8 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
     r = settings.index
     label = f"round{r}"
     inputs, upstream = {"images": rd / "denoised"}, (images,)
+    if settings.align.noisy_first:  # round 1: the noisy working photos, aligned first (AlignSettings.photos)
+        inputs["noisy"] = working
     if previous is not None:  # the previous round's calibration (eval.pipeline.calibration)
         inputs["previous_align"] = previous.dir / "align"
         upstream = (images, previous.stages["align"])

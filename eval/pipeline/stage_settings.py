@@ -108,11 +108,14 @@ class AlignStageSettings:
         align: the alignment configuration, seed included.
         reuse_intrinsics, reuse_geometry: `AlignSettings`' rules for rounds >= 2; None in round 1,
             which has no previous round (so that changing them never re-runs round 1).
+        noisy_first: round 1 with `AlignSettings.photos` "noisy_first": align the noisy photos, and the
+            denoised ones where those are refused (False: the denoised photos, as the paper).
     """
 
     align: AlignConfig
     reuse_intrinsics: ReuseIntrinsics | None = None
     reuse_geometry: ReuseGeometry | None = None
+    noisy_first: bool = False
 
 
 @dataclass(frozen=True)
@@ -260,7 +263,8 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
     later = r >= 2
     align = AlignStageSettings(align_config(config.align, seed=seed("align")),
                                reuse_intrinsics=config.align.reuse_intrinsics if later else None,
-                               reuse_geometry=config.align.reuse_geometry if later else None)
+                               reuse_geometry=config.align.reuse_geometry if later else None,
+                               noisy_first=not later and config.align.photos == "noisy_first")
     fuse = FuseStageSettings(train_config(config.splat, seed=seed("fuse")), config.device,
                              reuse_noisy_splat=config.reuse_noisy_splat if later else None) \
         if config.fuse_noisy_splat else None

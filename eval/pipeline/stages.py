@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import shutil
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -49,9 +50,11 @@ from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, 
 from mvgeo.common.threads import torch_threads
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
-__all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "ROTATION_ATOL", "STAGE_CODE", "NoisySplatReuse",
-           "PipelineStages", "align", "as_pipeline_refusal", "denoise", "fuse", "fuse_images", "noisy_splat_reuse",
-           "product_stages", "refine", "render", "select", "splat"]
+__all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "PHOTOS_KEY", "ROTATION_ATOL", "STAGE_CODE",
+           "NoisySplatReuse", "PipelineStages", "align", "as_pipeline_refusal", "denoise", "fuse", "fuse_images",
+           "noisy_splat_reuse", "product_stages", "refine", "render", "select", "splat"]
+
+_log = logging.getLogger(__name__)
 
 #: The network a denoise or refine stage writes (round r >= 2 fine-tunes round r-1's).
 MODEL_FILE = "n2v_model.pt"
@@ -110,9 +113,15 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     return {"views": list(noisy), "train": _history_summary(getattr(model, "history", None))}
 
 
+#: The align stage's record of which photos it aligned (`AlignSettings.photos`), in align.json.
+PHOTOS_KEY = "aligned_photos"
+
+
 def align(ctx: StageContext) -> Mapping[str, object]:
     """Pose-free alignment of the denoised images (`mvgeo.align`), written as `mvgeo align` writes it
-    (`ctx.settings`: `AlignStageSettings`)."""
+    (`ctx.settings`: `AlignStageSettings`). With `noisy_first` (round 1), the noisy photos
+    (`ctx.inputs["noisy"]`, under the denoised photos' names) are aligned first and the denoised ones only
+    where the noisy ones are refused."""
     from mvgeo.align import align_images, write_align_result
 
     s = ctx.settings
@@ -120,11 +129,25 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     files = list(view_files(ctx.inputs["images"]).values())
     mode = s.reuse_intrinsics or "never"
     previous = ctx.inputs.get("previous_align")
+    photos: dict[str, object] | None = None
     if previous is None:
-        try:
-            res = align_images(files, cfg)
-        except (AlignmentRefusedError, DisconnectedViewsError) as exc:
-            raise as_pipeline_refusal(exc) from exc
+        res = None
+        if s.noisy_first:
+            noisy = view_files(ctx.inputs["noisy"])
+            try:
+                res = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files])
+                photos = {"aligned": "noisy"}
+            except (AlignmentRefusedError, DisconnectedViewsError) as exc:
+                _log.warning("the noisy photos were refused by the alignment (%s); aligning the denoised ones",
+                             str(exc).splitlines()[0][:300])
+                photos = {"aligned": "denoised", "noisy_refused": str(exc).splitlines()[0][:1000]}
+        if res is None:
+            try:
+                res = align_images(files, cfg)
+            except (AlignmentRefusedError, DisconnectedViewsError) as exc:
+                raise as_pipeline_refusal(exc) from exc
+            photos = photos or {"aligned": "denoised"}
+        res.stats.annotations[PHOTOS_KEY] = photos
     else:
         res = _align_keeping_better_geometry(align_images, files, cfg, Path(previous), mode,
                                              s.reuse_geometry or "never")
@@ -136,6 +159,8 @@ def align(ctx: StageContext) -> Mapping[str, object]:
                "stats": json.loads(json.dumps(res.stats.to_json(), default=str))}
     if GEOMETRY_KEY in res.stats.annotations:
         summary["geometry"] = res.stats.annotations[GEOMETRY_KEY]
+    if photos is not None:
+        summary["photos"] = photos
     return summary
 
 

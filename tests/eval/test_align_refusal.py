@@ -65,3 +65,59 @@ def test_the_round1_align_stage_raises_the_pipeline_refusal(tmp_path, monkeypatc
         align(ctx)
     assert info.value.views == ("000007.png",) and info.value.fix.startswith("leave the photos ['000007']")
     assert isinstance(info.value.__cause__, AlignmentRefusedError)  # mvgeo's own, chained
+
+
+class _Stop(Exception):
+    """Ends the stage once the fake aligner has recorded its call (no result needs building)."""
+
+
+def _views(folder, names):
+    folder.mkdir()
+    for name in names:
+        (folder / name).write_bytes(b"")
+    return folder
+
+
+def test_noisy_first_aligns_the_noisy_photos_under_the_denoised_names(tmp_path, monkeypatch):
+    denoised = _views(tmp_path / "denoised", ("000003.png", "000007.png"))
+    noisy = _views(tmp_path / "noisy", ("000003.jpg", "000007.jpg"))  # the working photos may differ in type
+    calls = []
+
+    def record(files, cfg, names=None):
+        calls.append(([f.name for f in files], names))
+        raise _Stop
+
+    monkeypatch.setattr(mvgeo.align, "align_images", record)
+    ctx = StageContext("align", tmp_path / "work", {"images": denoised, "noisy": noisy},
+                       AlignStageSettings(AlignConfig(), noisy_first=True), 0)
+    with pytest.raises(_Stop):
+        align(ctx)
+    assert calls == [(["000003.jpg", "000007.jpg"], ["000003.png", "000007.png"])]
+
+
+@pytest.mark.parametrize("refusal", [_refused("views_unsupported"),
+                                     DisconnectedViewsError("disconnected", views=("000007.png",))])
+def test_noisy_first_falls_back_to_the_denoised_photos_and_reports_their_refusal(tmp_path, monkeypatch, refusal):
+    denoised = _views(tmp_path / "denoised", ("000003.png", "000007.png"))
+    noisy = _views(tmp_path / "noisy", ("000003.png", "000007.png"))
+    calls = []
+
+    def refuse_both(files, cfg, names=None):
+        calls.append(files[0].parent.name)
+        raise refusal if files[0].parent == noisy else _refused("positions_undetermined", ("000003.png",))
+
+    monkeypatch.setattr(mvgeo.align, "align_images", refuse_both)
+    ctx = StageContext("align", tmp_path / "work", {"images": denoised, "noisy": noisy},
+                       AlignStageSettings(AlignConfig(), noisy_first=True), 0)
+    with pytest.raises(AlignmentRefusedError) as info:
+        align(ctx)
+    assert calls == ["noisy", "denoised"]
+    # the denoised photos' refusal is the one raised, with the pipeline's fix
+    assert info.value.kind == "positions_undetermined" and info.value.fix.startswith("leave the photos ['000003']")
+    # without noisy_first the noisy photos are never read
+    calls.clear()
+    plain = StageContext("align", tmp_path / "work2", {"images": denoised, "noisy": noisy},
+                         AlignStageSettings(AlignConfig()), 0)
+    with pytest.raises(AlignmentRefusedError):
+        align(plain)
+    assert calls == ["denoised"]

@@ -52,6 +52,7 @@ def test_run_bad_values(tmp_path, capsys):
     (["--no-fuse-noisy-splat"], ("auto", False)),
     (["--preset", "fast"], ("auto", True)),
     (["--preset", "fast", "--no-fuse-noisy-splat"], ("auto", False)),
+    (["--preset", "fast", "--align-photos", "noisy_first"], ("auto", True)),
 ])
 def test_run_pipeline_flags(tmp_path, monkeypatch, flag, expected):
 
@@ -66,6 +67,8 @@ def test_run_pipeline_flags(tmp_path, monkeypatch, flag, expected):
         main(["run", str(make_scene(tmp_path / "images", n=4)), "--out", str(tmp_path / "out"), "--views", "4",
               *flag])
     assert (seen["config"].align.reuse_intrinsics, seen["config"].fuse_noisy_splat) == expected
+    assert seen["config"].align.photos == ("noisy_first" if "fast" not in flag or "noisy_first" in flag
+                                           else "denoised")
 
 
 def test_run_corrupt_image(tmp_path, capsys):

@@ -67,6 +67,14 @@ def test_product_runs_each_preset_as_shipped(name):
         assert METHODS["product"].pipeline_config(base) == base
         assert METHODS["product"].pipeline_config(base, "neighbor2neighbor") == base  # --denoiser is not its
     assert METHODS["product"].folder("r2r") == "product" and METHODS["product"].row_label("r2r") == "product"
+
+
+def test_the_paper_loop_aligns_the_denoised_photos_and_the_default_the_noisy_first():
+    base = preset("default", views=4)
+    assert base.align.photos == "noisy_first"
+    for name in ("instantsplat", "oracle_clean", "n2v_round1", "denoise_gs", "ablate_no_selection"):
+        assert METHODS[name].pipeline_config(base).align.photos == "denoised", name  # (b), oracle: their photos
+    assert METHODS["product"].pipeline_config(base).align.photos == "noisy_first"
     assert METHODS["oracle_clean"].pipeline_config(base) == METHODS["instantsplat"].pipeline_config(base)
     assert METHODS["oracle_clean"].family == "oracle_clean"  # (b)'s settings, its own folder
     gt = METHODS["3dgs_gt_poses"]
