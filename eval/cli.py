@@ -22,7 +22,7 @@ from eval.distributed import ClusterSettings, check_ray_address, ray_cluster
 from eval.evaluate import EvalConfig, evaluate_dataset, scene_dataset
 from eval.methods import GT_POSES_SUFFIX, METHODS
 from eval.pipeline import PRESETS, preset, run_pipeline, validate_dataset_folder
-from eval.pipeline.config import DENOISE_METHODS, PipelineConfig
+from eval.pipeline.config import ALIGN_PHOTOS, DENOISE_METHODS, PipelineConfig
 from eval.pipeline.inputs import working_dataset
 from eval.pipeline.lock import output_lock
 from eval.pipeline.validate import MIN_IMAGE_SIZE_PX
@@ -275,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="rounds >= 2: auto (default) keeps the better-determined of the round's own focal "
                           "estimate and the previous round's; always takes the previous round's; never "
                           "estimates anew each round (the paper's loop)")
-    run.add_argument("--align-photos", choices=("noisy_first", "denoised"), default=None,
+    run.add_argument("--align-photos", choices=ALIGN_PHOTOS, default=None,
                      help="round 1's alignment input: the noisy photos, and the denoised ones where those are "
                           "refused (noisy_first), or the denoised ones (the paper's). Default: the preset's "
                           "(noisy_first with default and best, denoised with fast)")

@@ -15,7 +15,7 @@ from typing import Literal
 
 from mvgeo.common.errors import ConfigError
 
-__all__ = ["PRESETS", "AlignSettings", "DenoiseSettings", "PipelineConfig", "SplatSettings", "preset"]
+__all__ = ["ALIGN_PHOTOS", "PRESETS", "AlignSettings", "DenoiseSettings", "PipelineConfig", "SplatSettings", "preset"]
 
 Round2Loss = Literal["joint", "charbonnier"]
 DenoiseMethod = Literal["n2v", "neighbor2neighbor", "r2r"]
@@ -24,6 +24,8 @@ DENOISE_METHODS: tuple[str, ...] = ("n2v", "neighbor2neighbor", "r2r")
 ReuseIntrinsics = Literal["auto", "always", "never"]
 ReuseGeometry = Literal["auto", "never"]
 AlignPhotos = Literal["denoised", "noisy_first"]
+#: The values of `AlignSettings.photos`.
+ALIGN_PHOTOS: tuple[str, ...] = ("denoised", "noisy_first")
 
 
 @dataclass(frozen=True)
@@ -185,7 +187,7 @@ class PipelineConfig:
         if self.align.reuse_intrinsics not in ("auto", "always", "never"):
             raise ConfigError(f"unknown value {self.align.reuse_intrinsics!r}", key="align.reuse_intrinsics",
                               expected="'auto', 'always' or 'never'")
-        if self.align.photos not in ("denoised", "noisy_first"):
+        if self.align.photos not in ALIGN_PHOTOS:
             raise ConfigError(f"unknown value {self.align.photos!r}", key="align.photos",
                               expected="'denoised' or 'noisy_first'")
         if self.align.reuse_geometry not in ("auto", "never"):
@@ -231,6 +233,9 @@ class PipelineConfig:
 #: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and, when a round keeps the previous round's
 #: poses, the previous round's noisy-photo splat (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md),
 #: and stop after a round whose refine kept the previous network (`stop_when_unrefined`).
+_R2R_ONE_ROUND = PipelineConfig(rounds=1, stop_when_unrefined=True,
+                                denoise=DenoiseSettings(method="r2r", n2v_steps=2000),
+                                align=AlignSettings(photos="noisy_first"))
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         fuse_noisy_splat=True, stop_when_unrefined=True,
@@ -241,13 +246,8 @@ PRESETS: dict[str, PipelineConfig] = {
         align=AlignSettings(preset="preview", points=100_000),
         splat=SplatSettings(preset="quick"),
     ),
-    "default": PipelineConfig(rounds=1, stop_when_unrefined=True,
-                              denoise=DenoiseSettings(method="r2r", n2v_steps=2000),
-                              align=AlignSettings(photos="noisy_first")),
-    "best": PipelineConfig(rounds=1, stop_when_unrefined=True,
-                           denoise=DenoiseSettings(method="r2r", n2v_steps=2000),
-                           align=AlignSettings(photos="noisy_first"),
-                           splat=SplatSettings(preset="instantsplat", iters=2000)),
+    "default": _R2R_ONE_ROUND,
+    "best": dataclasses.replace(_R2R_ONE_ROUND, splat=SplatSettings(preset="instantsplat", iters=2000)),
 }
 
 

@@ -129,25 +129,9 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     files = list(view_files(ctx.inputs["images"]).values())
     mode = s.reuse_intrinsics or "never"
     previous = ctx.inputs.get("previous_align")
-    photos: dict[str, object] | None = None
     if previous is None:
-        res = None
-        if s.noisy_first:
-            noisy = view_files(ctx.inputs["noisy"])
-            try:
-                res = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files])
-                photos = {"aligned": "noisy"}
-            except (AlignmentRefusedError, DisconnectedViewsError) as exc:
-                _log.warning("the noisy photos were refused by the alignment (%s); aligning the denoised ones",
-                             str(exc).splitlines()[0][:300])
-                photos = {"aligned": "denoised", "noisy_refused": str(exc).splitlines()[0][:1000]}
-        if res is None:
-            try:
-                res = align_images(files, cfg)
-            except (AlignmentRefusedError, DisconnectedViewsError) as exc:
-                raise as_pipeline_refusal(exc) from exc
-            photos = photos or {"aligned": "denoised"}
-        res.stats.annotations[PHOTOS_KEY] = photos
+        noisy = view_files(ctx.inputs["noisy"]) if s.noisy_first else None
+        res = _align_first_round(align_images, files, noisy, cfg)
     else:
         res = _align_keeping_better_geometry(align_images, files, cfg, Path(previous), mode,
                                              s.reuse_geometry or "never")
@@ -159,9 +143,31 @@ def align(ctx: StageContext) -> Mapping[str, object]:
                "stats": json.loads(json.dumps(res.stats.to_json(), default=str))}
     if GEOMETRY_KEY in res.stats.annotations:
         summary["geometry"] = res.stats.annotations[GEOMETRY_KEY]
-    if photos is not None:
-        summary["photos"] = photos
+    if PHOTOS_KEY in res.stats.annotations:
+        summary["photos"] = res.stats.annotations[PHOTOS_KEY]
     return summary
+
+
+def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] | None, cfg):
+    """Round 1: the noisy photos under the denoised photos' names when `noisy` is given (stem -> file), and
+    the denoised `files` where those are refused or not given; which ones in `PHOTOS_KEY`."""
+    photos: dict[str, object] = {"aligned": "denoised"}
+    if noisy is not None:
+        try:
+            res = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files])
+            res.stats.annotations[PHOTOS_KEY] = {"aligned": "noisy"}
+            return res
+        except (AlignmentRefusedError, DisconnectedViewsError) as exc:
+            reason = str(exc).splitlines()[0]
+            _log.warning("the noisy photos were refused by the alignment (%s); aligning the denoised ones",
+                         reason[:300])
+            photos["noisy_refused"] = reason[:1000]
+    try:
+        res = align_images(files, cfg)
+    except (AlignmentRefusedError, DisconnectedViewsError) as exc:
+        raise as_pipeline_refusal(exc) from exc
+    res.stats.annotations[PHOTOS_KEY] = photos
+    return res
 
 
 def as_pipeline_refusal(exc: DegenerateGeometryError | DisconnectedViewsError):
