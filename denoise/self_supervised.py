@@ -9,7 +9,12 @@ random patches, optimiser and learning-rate schedule, with another objective
   neighbour sub-image of a patch to the other, with the paper's regulariser; its
   weight ramps linearly from 0 to `N2VConfig.nb2nb_gamma` over the steps;
 - ``"r2r"`` (`denoise.r2r`): the network maps ``y + alpha z`` to ``y - z / alpha``; the
-  noise std of each image comes from `estimate_noise_sigma_pca` unless given.
+  noise std of each image comes from `estimate_noise_sigma_pca` on its unclipped patches
+  unless given (clipping at 0 and 1 hides noise: over all patches the estimate reads 22/255
+  on DTU photos with sigma 25/255, and about 10/255 on the temple's black background); at
+  inference pass k runs on the k-th of the square's 8 rotations / reflections of the
+  recorrupted image (`denoise.inference.dihedral`), an ensemble at no extra cost (DTU scan24,
+  sigma 25, 8 passes: 29.27 -> 29.38 dB).
 
 The model starts like N2V's, with the centre-cancelling head (`init_centre_cancelling`):
 it starts as a smoother that ignores each pixel's own value and learns how much of
@@ -30,7 +35,7 @@ import numpy as np
 import torch
 
 from denoise.images import image_to_tensor, images_to_tensors, tensor_to_image
-from denoise.inference import CLEAN_SIGMA, MARGIN_PX, TILE_PX, NoiseModel, denoise_images, predict_tiled
+from denoise.inference import CLEAN_SIGMA, MARGIN_PX, TILE_PX, NoiseModel, denoise_images, dihedral, predict_tiled
 from denoise.losses import neighbor2neighbor_loss
 from denoise.model import N2VModel
 from denoise.n2v import N2VConfig, new_model, optimise_unet, train_n2v
@@ -48,7 +53,7 @@ __all__ = ["denoise_one_pass", "denoise_with_method", "train_self_supervised", "
 
 def _sigmas(images: Sequence[np.ndarray], noise_sigma: float | Sequence[float] | None) -> list[float]:
     if noise_sigma is None:
-        return [estimate_noise_sigma_pca(im) for im in images]
+        return [estimate_noise_sigma_pca(im, exclude_clipped=True) for im in images]
     if np.isscalar(noise_sigma):
         return [float(noise_sigma)] * len(images)
     sig = [float(s) for s in noise_sigma]
@@ -80,7 +85,7 @@ def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, se
         seed: seeds the weights, the patches, the sub-sampling / recorruption noise.
         model: continue training this model instead of a new one.
         noise_sigma: ``"r2r"`` only: noise std per image (or one for all), ``[0, 1]`` units;
-            default: `estimate_noise_sigma_pca` of each image.
+            default: `estimate_noise_sigma_pca` of each image's unclipped patches.
         device: torch device of the training (the model is moved there and returned there).
 
     Returns:
@@ -159,7 +164,8 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
     - ``"n2v"``: `denoise.inference.denoise_images` (K maskings, centre-pixel fusion);
     - ``"neighbor2neighbor"``: one pass of the network on the whole image (`passes` unused);
     - ``"r2r"``: mean of the network over ``max(passes, 1)`` recorruptions ``y + alpha z_k``
-      (``z_k ~ N(0, sigma^2)``, sigma per image as in training).
+      (``z_k ~ N(0, sigma^2)``, sigma per image as in training), pass k on the ``k % 8``-th
+      rotation / reflection of the recorrupted image (`denoise.inference.dihedral`, undone after).
 
     Args:
         model: from `train_n2v` / `train_self_supervised` with this `config`.
@@ -167,7 +173,7 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
         config: the training config (its ``method`` and ``r2r_alpha``).
         passes: see above.
         seed: seeds the maskings / recorruptions.
-        noise_sigma: ``"r2r"``: noise std per image or one for all (default: estimated);
+        noise_sigma: ``"r2r"``: noise std per image or one for all (default: estimated as in training);
             ``"n2v"``: the fusion's noise std (see `denoise_images`).
         tile_px, margin_px: tiling (`denoise.inference.predict_tiled`).
         clean_sigma: images whose estimated noise is below this are returned unchanged.
@@ -198,8 +204,10 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
                 continue
             k = max(passes, 1)
             y = torch.zeros_like(x)
-            for _ in range(k):
+            for d in range(k):
                 z = torch.randn(x.shape, generator=gen, device=device, dtype=x.dtype)
-                y += predict_tiled(model, x + config.r2r_alpha * sig[i] * z, tile_px=tile_px, margin_px=margin_px)
+                pred = predict_tiled(model, dihedral(x + config.r2r_alpha * sig[i] * z, d), tile_px=tile_px,
+                                     margin_px=margin_px)
+                y += dihedral(pred, d, inverse=True)
             out.append(tensor_to_image(y[0] / k, like=img))
     return out

@@ -166,3 +166,27 @@ def test_cli_method_flag(tmp_path, rng):
     assert report["method"] == "neighbor2neighbor" and len(list((out / "images").iterdir())) == 2
     with pytest.raises(SystemExit):
         main(["n2v", str(src), "--out", str(tmp_path / "o2"), "--method", "bogus"])
+
+
+def test_r2r_inference_matches_dihedral_reference(rng):
+    # denoise_with_method's R2R inference against the obvious loop: pass k recorrupts with the k-th
+    # draw of the seeded generator, runs the network on the (k % 8)-th rotation / reflection, undoes
+    # it; the output is the mean. 10 passes cover all 8 transforms and wrap around.
+    from denoise.inference import dihedral
+    from denoise.noise_level import estimate_noise_sigma_pca
+
+    noisy = [add_noise(rng, smooth_scene(rng, 20, 28), 0.1) for _ in range(2)]
+    cfg = N2VConfig(unet=UNetConfig(width=4, depth=2), steps=3, batch_size=2, patch_px=16, method="r2r")
+    model = train_self_supervised(noisy, cfg, seed=0)
+    got = denoise_with_method(model, noisy, cfg, passes=10, seed=3)
+    gen = torch.Generator().manual_seed(3)
+    for img, out in zip(noisy, got, strict=True):
+        sigma = estimate_noise_sigma_pca(img, exclude_clipped=True)
+        x = torch.from_numpy(img).permute(2, 0, 1)[None].float()
+        acc = torch.zeros_like(x)
+        with torch.no_grad():
+            for k in range(10):
+                z = torch.randn(x.shape, generator=gen)
+                acc += dihedral(model.apply(dihedral(x + cfg.r2r_alpha * sigma * z, k)), k, inverse=True)
+        ref = (acc[0] / 10).clamp(0, 1).permute(1, 2, 0).numpy()
+        np.testing.assert_allclose(out, ref, atol=1e-5)  # float32 sums in another order

@@ -113,3 +113,23 @@ def test_pca_estimate_ignores_channel_correlated_texture(rng):
     assert estimate_noise_sigma_pca(np.full((40, 40, 3), 0.3)) == 0.0
     with pytest.raises(ValueError, match="patch_px"):
         estimate_noise_sigma_pca(img, patch_px=1)
+
+
+def test_pca_estimate_without_the_clipped_patches(rng):
+    # A dark half (true value 0.02) and a mid-grey half, white noise sigma 0.1, clipped to [0, 1] as a
+    # camera writes it: in the dark half most values clip at 0 and hold far less noise. The estimate
+    # over all patches is pulled low; the unclipped patches (the grey half, 100x200 px, ~19k 75-D
+    # patches: eigenvalue spread ~ sqrt(75/19k) = 6 %) give sigma within 8 %.
+    sigma = 0.1
+    clean = np.full((200, 200, 3), 0.5)
+    clean[:100] = 0.02
+    img = np.clip(clean + sigma * rng.standard_normal(clean.shape), 0.0, 1.0)
+    assert estimate_noise_sigma_pca(img) < 0.85 * sigma
+    assert abs(estimate_noise_sigma_pca(img, exclude_clipped=True) / sigma - 1) < 0.08
+    # Too few unclipped patches (all but a 5-row strip clipped: 196 of the 300 needed): all patches count.
+    almost_black = np.clip(np.where(np.arange(200)[:, None, None] < 195, 0.0, 0.5)
+                           + sigma * rng.standard_normal(clean.shape), 0.0, 1.0)
+    assert estimate_noise_sigma_pca(almost_black, exclude_clipped=True) == estimate_noise_sigma_pca(almost_black)
+    # Unclipped images: the option changes nothing.
+    grey = 0.5 + 0.05 * rng.standard_normal((64, 64, 3))
+    assert estimate_noise_sigma_pca(grey, exclude_clipped=True) == estimate_noise_sigma_pca(grey)
