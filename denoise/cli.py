@@ -76,7 +76,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
     config = n2v_preset(args.preset, **overrides, method=args.method)
     timer = StageTimer()
     with timer.stage("train"):
-        model = train_with_method(images, config, seed=args.seed, device=device)
+        model = train_with_method(images, config, seed=args.seed, device=device, noise_model=args.noise_model)
     with timer.stage("denoise"):
         out = denoise_with_method(model, images, config, passes=args.passes, seed=args.seed,
                                   noise_model=args.noise_model)
@@ -135,8 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="self-supervised objective on the same UNet: n2v (blind spot), neighbor2neighbor, "
                         "or r2r (recorrupted-to-recorrupted, noise level estimated per image)")
     p.add_argument("--noise-model", choices=NOISE_MODELS, default="auto",
-                   help="noise level for the centre-pixel fusion: one per image (constant: Gaussian noise), a "
-                        "per-intensity curve (signal-dependent, Poisson-Gaussian noise), or auto (per image)")
+                   help="noise level for n2v's centre-pixel fusion and r2r's recorruption: one per image "
+                        "(constant: Gaussian noise), a per-intensity curve (signal-dependent, Poisson-Gaussian "
+                        "noise), or auto (the curve where shot noise dominates, per image)")
     p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--device", default="cpu", help=DEVICE_HELP + " (training and inference); default cpu")
     p.set_defaults(func=_cmd_n2v)

@@ -11,7 +11,9 @@ random patches, optimiser and learning-rate schedule, with another objective
 - ``"r2r"`` (`denoise.r2r`): the network maps ``y + alpha z`` to ``y - z / alpha``; the
   noise std of each image comes from `estimate_noise_sigma_pca` on its unclipped patches
   unless given (clipping at 0 and 1 hides noise: over all patches the estimate reads 22/255
-  on DTU photos with sigma 25/255, and about 10/255 on the temple's black background); at
+  on DTU photos with sigma 25/255, and about 10/255 on the temple's black background), or,
+  where shot noise dominates, per pixel from the image's noise curve (`r2r_noise_std`;
+  a constant std under-recorrupts the bright pixels and over-recorrupts the dark ones); at
   inference pass k runs on the k-th of the square's 8 rotations / reflections of the
   recorrupted image (`denoise.inference.dihedral`), an ensemble at no extra cost (DTU scan24,
   sigma 25, 8 passes: 29.27 -> 29.38 dB).
@@ -35,25 +37,66 @@ import numpy as np
 import torch
 
 from denoise.images import image_to_tensor, images_to_tensors, tensor_to_image
-from denoise.inference import CLEAN_SIGMA, MARGIN_PX, TILE_PX, NoiseModel, denoise_images, dihedral, predict_tiled
+from denoise.inference import (
+    CLEAN_SIGMA,
+    MARGIN_PX,
+    NOISE_MODELS,
+    TILE_PX,
+    NoiseModel,
+    denoise_images,
+    dihedral,
+    predict_tiled,
+)
 from denoise.losses import neighbor2neighbor_loss
 from denoise.model import N2VModel
 from denoise.n2v import N2VConfig, new_model, optimise_unet, train_n2v
 from denoise.neighbor2neighbor import neighbour_choice, neighbour_subsample
-from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_pca
+from denoise.noise_level import estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_pca
 from denoise.patches import effective_patch_px, sample_patches
 from denoise.r2r import recorrupt
+from mvgeo.common.deps import cv2
 from mvgeo.common.errors import InputError
 from mvgeo.common.progress import progress
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["denoise_one_pass", "denoise_with_method", "train_self_supervised", "train_with_method"]
+__all__ = ["denoise_one_pass", "denoise_with_method", "r2r_noise_std", "train_self_supervised", "train_with_method"]
 
 
-def _sigmas(images: Sequence[np.ndarray], noise_sigma: float | Sequence[float] | None) -> list[float]:
+#: Gaussian blur (px) of the noisy image that stands in for the clean intensity where a
+#: noise curve is evaluated: it cuts the noise about 7x (1 / (2 sqrt(pi) * 2)) while
+#: keeping the shading that the variance follows.
+INTENSITY_BLUR_PX = 2.0
+
+
+def r2r_noise_std(img: np.ndarray, *, noise_model: NoiseModel = "auto") -> float | torch.Tensor:
+    """The noise std that R2R recorrupts `img` with: one number, or a per-pixel map.
+
+    Args:
+        img: ``(H, W, 3)`` RGB (or gray) in ``[0, 1]``.
+        noise_model: ``"constant"``: `estimate_noise_sigma_pca` of the unclipped patches;
+            ``"curve"``: the image's `NoiseCurve` evaluated at its `INTENSITY_BLUR_PX`
+            Gaussian blur; ``"auto"``: the curve where its signal-dependent term dominates at
+            the median intensity (``gain * median > floor``: shot noise), else the constant
+            (the rule of `denoise.inference.fusion_noise_sigma`).
+
+    Returns:
+        A float, or a ``[C, H, W]`` float32 tensor (``[0, 1]`` units).
+    """
+    if noise_model not in NOISE_MODELS:
+        raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {noise_model!r}")
+    if noise_model != "constant":
+        curve = estimate_noise_curve(img)
+        if noise_model == "curve" or curve.gain * float(np.median(img)) > curve.floor:
+            blurred = cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32), (0, 0), INTENSITY_BLUR_PX)
+            return curve.sigma_at(image_to_tensor(blurred.reshape(img.shape)))
+    return estimate_noise_sigma_pca(img, exclude_clipped=True)
+
+
+def _sigmas(images: Sequence[np.ndarray], noise_sigma: float | Sequence[float] | None,
+            noise_model: NoiseModel) -> list[float | torch.Tensor]:
     if noise_sigma is None:
-        return [estimate_noise_sigma_pca(im, exclude_clipped=True) for im in images]
+        return [r2r_noise_std(im, noise_model=noise_model) for im in images]
     if np.isscalar(noise_sigma):
         return [float(noise_sigma)] * len(images)
     sig = [float(s) for s in noise_sigma]
@@ -62,21 +105,29 @@ def _sigmas(images: Sequence[np.ndarray], noise_sigma: float | Sequence[float] |
     return sig
 
 
+def _describe(sig: float | torch.Tensor) -> str:
+    if isinstance(sig, torch.Tensor):
+        return f"{255 * float(sig.median()):.1f} (median of a map)"
+    return f"{255 * sig:.1f}"
+
+
 def train_with_method(images: Sequence[np.ndarray], config: N2VConfig, *, seed: int = 0,
-                      model: N2VModel | None = None, device: str | torch.device = "cpu") -> N2VModel:
+                      model: N2VModel | None = None, device: str | torch.device = "cpu",
+                      noise_model: NoiseModel = "auto") -> N2VModel:
     """Train the UNet with ``config.method``: `denoise.n2v.train_n2v` or `train_self_supervised`.
 
-    Arguments as `train_n2v`; apply the result with `denoise_with_method` and the same `config`.
+    Arguments as `train_n2v` (`noise_model`: R2R only); apply the result with
+    `denoise_with_method` and the same `config` and `noise_model`.
     """
     if config.method == "n2v":
         return train_n2v(images, config, seed=seed, model=model, device=device)
-    return train_self_supervised(images, config, seed=seed, model=model, device=device)
+    return train_self_supervised(images, config, seed=seed, model=model, device=device, noise_model=noise_model)
 
 
 def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, seed: int = 0,
                           model: N2VModel | None = None,
                           noise_sigma: float | Sequence[float] | None = None,
-                          device: str | torch.device = "cpu") -> N2VModel:
+                          device: str | torch.device = "cpu", noise_model: NoiseModel = "auto") -> N2VModel:
     """Train the UNet with Neighbor2Neighbor or Recorrupted-to-Recorrupted (``config.method``).
 
     Args:
@@ -85,8 +136,9 @@ def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, se
         seed: seeds the weights, the patches, the sub-sampling / recorruption noise.
         model: continue training this model instead of a new one.
         noise_sigma: ``"r2r"`` only: noise std per image (or one for all), ``[0, 1]`` units;
-            default: `estimate_noise_sigma_pca` of each image's unclipped patches.
+            default: `r2r_noise_std` of each image with `noise_model`.
         device: torch device of the training (the model is moved there and returned there).
+        noise_model: ``"r2r"`` only, when `noise_sigma` is not given (see `r2r_noise_std`).
 
     Returns:
         The trained `N2VModel` (eval mode, on `device`, ``blind_spot=False``), per-step losses in
@@ -113,10 +165,12 @@ def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, se
     normed = [((t - mean) / std).to(device) for t in tensors]
     paired = None
     if config.method == "r2r":
-        sig = _sigmas(images, noise_sigma)
-        _log.info("r2r noise std per image (/255): %s", " ".join(f"{255 * s:.1f}" for s in sig))
-        # Per-image std in normalised units, as a (broadcast, not copied) map cropped with the patches.
-        paired = [(s / std).to(device).expand(3, *t.shape[-2:]) for s, t in zip(sig, tensors, strict=True)]
+        sig = _sigmas(images, noise_sigma, noise_model)
+        _log.info("r2r noise std per image (/255): %s", " ".join(_describe(s) for s in sig))
+        # Per-image std in normalised units, as a map cropped with the patches (a constant one is
+        # broadcast, not copied).
+        paired = [(torch.as_tensor(s, dtype=torch.float32) / std).to(device).expand(3, *t.shape[-2:])
+                  for s, t in zip(sig, tensors, strict=True)]
     unet = model.unet
 
     def step_loss(step: int) -> torch.Tensor:
@@ -164,7 +218,7 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
     - ``"n2v"``: `denoise.inference.denoise_images` (K maskings, centre-pixel fusion);
     - ``"neighbor2neighbor"``: one pass of the network on the whole image (`passes` unused);
     - ``"r2r"``: mean of the network over ``max(passes, 1)`` recorruptions ``y + alpha z_k``
-      (``z_k ~ N(0, sigma^2)``, sigma per image as in training), pass k on the ``k % 8``-th
+      (``z_k ~ N(0, sigma^2)``, sigma per image or pixel as in training), pass k on the ``k % 8``-th
       rotation / reflection of the recorrupted image (`denoise.inference.dihedral`, undone after).
 
     Args:
@@ -177,7 +231,8 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
             ``"n2v"``: the fusion's noise std (see `denoise_images`).
         tile_px, margin_px: tiling (`denoise.inference.predict_tiled`).
         clean_sigma: images whose estimated noise is below this are returned unchanged.
-        noise_model: ``"n2v"`` only (see `denoise_images`).
+        noise_model: ``"n2v"``: the fusion's (see `denoise_images`); ``"r2r"``: the
+            recorruption's, as in training (see `r2r_noise_std`).
 
     Returns:
         Denoised images, float32 in ``[0, 1]``, each in the layout of its input.
@@ -193,7 +248,7 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
         return denoise_one_pass(model, images, tile_px=tile_px, margin_px=margin_px, clean_sigma=clean_sigma)
     device = next(model.unet.parameters()).device
     gen = torch.Generator(device=device).manual_seed(seed)
-    sig = _sigmas(images, noise_sigma)
+    sig = [torch.as_tensor(s, dtype=torch.float32).to(device) for s in _sigmas(images, noise_sigma, noise_model)]
     model.unet.eval()
     out = []
     with torch.no_grad():

@@ -11,7 +11,7 @@ from denoise.losses import neighbor2neighbor_loss
 from denoise.n2v import N2VConfig, train_n2v
 from denoise.neighbor2neighbor import NEIGHBOUR_PAIRS, neighbour_choice, neighbour_subsample
 from denoise.r2r import recorrupt
-from denoise.self_supervised import denoise_with_method, train_self_supervised, train_with_method
+from denoise.self_supervised import denoise_with_method, r2r_noise_std, train_self_supervised, train_with_method
 from denoise.unet import UNetConfig
 from mvgeo.common.errors import ConfigError, InputError, ShapeError
 from mvgeo.common.imageio import write_image
@@ -168,20 +168,53 @@ def test_cli_method_flag(tmp_path, rng):
         main(["n2v", str(src), "--out", str(tmp_path / "o2"), "--method", "bogus"])
 
 
-def test_r2r_inference_matches_dihedral_reference(rng):
-    # denoise_with_method's R2R inference against the obvious loop: pass k recorrupts with the k-th
-    # draw of the seeded generator, runs the network on the (k % 8)-th rotation / reflection, undoes
-    # it; the output is the mean. 10 passes cover all 8 transforms and wrap around.
-    from denoise.inference import dihedral
-    from denoise.noise_level import estimate_noise_sigma_pca
+def _poisson_gaussian(rng, img, gain, floor_std):
+    return np.clip(gain * rng.poisson(img / gain) + floor_std * rng.standard_normal(img.shape), 0, 1).astype(np.float32)
 
-    noisy = [add_noise(rng, smooth_scene(rng, 20, 28), 0.1) for _ in range(2)]
+
+def test_r2r_noise_std_follows_the_noise_model(rng):
+    # Gaussian noise: "auto" gives one number near the true std; shot noise (gain 0.01, floor 2/255):
+    # a per-pixel map near the true std sqrt(gain * x + floor^2) at the clean intensity. 15% on the
+    # median relative error: the curve is fitted from 8 intensity bins of one 96x96 image and
+    # evaluated at a 2-px blur of the noisy image (edges move the blur off the clean value).
+    clean = smooth_scene(rng, 96, 96)
+    sigma = r2r_noise_std(add_noise(rng, clean, 0.1))
+    assert isinstance(sigma, float) and abs(sigma - 0.1) < 0.01
+    gain, floor_std = 0.01, 2 / 255
+    noisy = _poisson_gaussian(rng, clean, gain, floor_std)
+    sig_map = r2r_noise_std(noisy)
+    assert isinstance(sig_map, torch.Tensor) and sig_map.shape == (3, 96, 96)
+    truth = np.sqrt(gain * clean + floor_std**2).transpose(2, 0, 1)
+    assert np.median(np.abs(sig_map.numpy() / truth - 1)) < 0.15
+    assert isinstance(r2r_noise_std(noisy, noise_model="constant"), float)
+    assert isinstance(r2r_noise_std(add_noise(rng, clean, 0.1), noise_model="curve"), torch.Tensor)
+    with pytest.raises(ValueError, match="noise_model"):
+        r2r_noise_std(noisy, noise_model="poisson")
+
+
+@pytest.mark.parametrize("noise_model", ["constant", "curve"])
+def test_r2r_inference_matches_dihedral_reference(rng, noise_model):
+    # denoise_with_method's R2R inference against the obvious loop: pass k recorrupts with the k-th
+    # draw of the seeded generator (scaled by the image's std, or by its per-pixel map from the
+    # noise curve at the 2-px blur), runs the network on the (k % 8)-th rotation / reflection,
+    # undoes it; the output is the mean. 10 passes cover all 8 transforms and wrap around.
+    import cv2
+
+    from denoise.inference import dihedral
+    from denoise.noise_level import estimate_noise_curve, estimate_noise_sigma_pca
+
+    noisy = [_poisson_gaussian(rng, smooth_scene(rng, 20, 28), 0.01, 0.02) for _ in range(2)]
     cfg = N2VConfig(unet=UNetConfig(width=4, depth=2), steps=3, batch_size=2, patch_px=16, method="r2r")
-    model = train_self_supervised(noisy, cfg, seed=0)
-    got = denoise_with_method(model, noisy, cfg, passes=10, seed=3)
+    model = train_self_supervised(noisy, cfg, seed=0, noise_model=noise_model)
+    got = denoise_with_method(model, noisy, cfg, passes=10, seed=3, noise_model=noise_model)
     gen = torch.Generator().manual_seed(3)
     for img, out in zip(noisy, got, strict=True):
-        sigma = estimate_noise_sigma_pca(img, exclude_clipped=True)
+        if noise_model == "constant":
+            sigma = estimate_noise_sigma_pca(img, exclude_clipped=True)
+        else:
+            curve = estimate_noise_curve(img)
+            mu = np.clip(cv2.GaussianBlur(img, (0, 0), 2.0), 0, 1)
+            sigma = torch.from_numpy(np.sqrt(np.maximum(curve.gain * mu + curve.floor, 0))).permute(2, 0, 1)
         x = torch.from_numpy(img).permute(2, 0, 1)[None].float()
         acc = torch.zeros_like(x)
         with torch.no_grad():
