@@ -106,8 +106,9 @@ def _sigmas(images: Sequence[np.ndarray], noise_sigma: float | Sequence[float] |
 
 
 def _describe(sig: float | torch.Tensor) -> str:
+    """``24.9`` for one std, ``~18.2`` for the median of a per-pixel map (``/255``)."""
     if isinstance(sig, torch.Tensor):
-        return f"{255 * float(sig.median()):.1f} (median of a map)"
+        return f"~{255 * float(sig.median()):.1f}"
     return f"{255 * sig:.1f}"
 
 
@@ -166,7 +167,8 @@ def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, se
     paired = None
     if config.method == "r2r":
         sig = _sigmas(images, noise_sigma, noise_model)
-        _log.info("r2r noise std per image (/255): %s", " ".join(_describe(s) for s in sig))
+        _log.info("r2r noise std per image (/255; ~: median of a per-pixel map): %s",
+                  " ".join(_describe(s) for s in sig))
         # Per-image std in normalised units, as a map cropped with the patches (a constant one is
         # broadcast, not copied).
         paired = [(torch.as_tensor(s, dtype=torch.float32) / std).to(device).expand(3, *t.shape[-2:])
