@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
+import logging
 import os
 import shutil
 from collections.abc import Callable
@@ -43,9 +45,12 @@ from eval.pipeline.config import DenoiseMethod
 from eval.pipeline.stage_settings import SplatStageSettings, stage_seed, train_config
 from eval.pipeline.stages import STAGE_CODE
 from eval.pipeline.validate import DatasetFolder
+from mvgeo.common.errors import DegenerateGeometryError, DisconnectedViewsError
 
 __all__ = ["GT_POSES_SUFFIX", "METHODS", "ORACLE_CLEAN", "EvalMethod", "Reconstruction", "gt_pose_variant",
            "reconstruct", "share_round1", "splat_photos"]
+
+_log = logging.getLogger(__name__)
 
 
 # ----------------------------------------------------------------- how each method sets up the pipeline
@@ -321,6 +326,22 @@ def _splat_on_ground_truth(stages: PipelineStages, config: PipelineConfig, datas
     return Reconstruction(rd, False, float(al.seconds + sp.seconds))
 
 
+def _denoised_before_refusal(method: EvalMethod, config: PipelineConfig, folder: Path,
+                             err: DegenerateGeometryError | DisconnectedViewsError) -> Reconstruction:
+    """A `@gt_poses` variant's photos when its method's own alignment refused them: round 1's completed
+    `denoised/` (what its splat would have trained on). The variant needs the photos, not the method's
+    poses, so a scene whose photos the method cannot align (the temple ring at sigma 25) still shows
+    what its denoising does with the true cameras. Re-raises `err` where round 1 did not get that far, or
+    where the splat would have trained on fused photos (they need the noisy photos' splat)."""
+    rd = folder / "round1"
+    record = rd / "stages" / "denoise.json"
+    if config.fuse_noisy_splat or not record.is_file() or (rd / "stages" / "splat.json").is_file():
+        raise err
+    _log.warning("%s: its alignment refused the photos (%s); the ground-truth-pose variant splats round 1's "
+                 "denoised photos", method.name, str(err).split(":")[0])
+    return Reconstruction(rd, True, float(json.loads(record.read_text())["seconds"]))
+
+
 def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig, *, seed: int,
                 denoiser: DenoiseMethod, inputs: Path, seed_dir: Path) -> Reconstruction:
     """Run (or resume) `method` with `seed` on the noisy training photos in `inputs`, in
@@ -335,8 +356,12 @@ def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig
     stages = method.stages(dataset)
     folder = seed_dir / method.folder(denoiser)
     if method.gt_pose_variant_of is not None:
-        own = reconstruct(method.gt_pose_variant_of, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs,
-                          seed_dir=seed_dir)
+        try:
+            own = reconstruct(method.gt_pose_variant_of, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs,
+                              seed_dir=seed_dir)
+        except (DegenerateGeometryError, DisconnectedViewsError) as err:
+            own = _denoised_before_refusal(method.gt_pose_variant_of, config, seed_dir / method.gt_pose_variant_of
+                                           .folder(denoiser), err)
         points = own if method.gt_pose_points_from in (None, method.gt_pose_variant_of) else reconstruct(
             method.gt_pose_points_from, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs, seed_dir=seed_dir)
         rec = _splat_on_ground_truth(stages, config, dataset, splat_photos(own.round_dir), folder,

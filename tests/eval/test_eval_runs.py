@@ -18,7 +18,7 @@ from eval.methods import METHODS
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.camera import Camera
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError
 from mvgeo.sparse_model import read_sparse_model
 from tests.eval._tiny_stages import TinyStages, make_scene, tiny_dataset
 
@@ -122,6 +122,30 @@ def test_a_gt_pose_variant_splats_its_methods_photos_with_the_true_cameras(tmp_p
     assert h.scored[-1]["est"] is None and h.scored[-1]["ply"] == rd / "point_cloud.ply"  # scored at the true poses
     run_task(_task(dataset, tmp_path, "n2v_round1@gt_poses"))  # resumable: nothing runs again
     assert h.tiny.calls["splat"] == 3 and h.tiny.calls["align"] == 2
+
+
+def test_a_gt_pose_variant_splats_the_denoised_photos_its_method_could_not_align(tmp_path, dataset, monkeypatch):
+    # The method's alignment refuses its photos (as the temple ring at sigma 25 does): the method's row fails,
+    # its variant still splats round 1's denoised photos with the true cameras from oracle_clean's points.
+    h = Harness(monkeypatch)
+    tiny_align = h.tiny.align
+
+    def align(ctx):
+        if "oracle_clean" not in str(ctx.work_dir):
+            raise AlignmentRefusedError("the reconstruction is inconsistent with 2 of 3 verified image pairs",
+                                        kind="pairs_contradicted")
+        return tiny_align(ctx)
+
+    monkeypatch.setattr(h.tiny, "align", align)
+    assert run_task(_task(dataset, tmp_path, "n2v_round1")).error.startswith("AlignmentRefusedError")
+    row = run_task(_task(dataset, tmp_path, "n2v_round1@gt_poses"))
+    assert row.method == "n2v_round1@gt_poses" and not row.error
+    seed_dir = tmp_path / "out" / "runs" / "s" / "seed0"
+    own, rd = seed_dir / "n2v" / "round1", seed_dir / "n2v@gt_poses" / "round1"
+    assert not (own / "point_cloud.ply").exists() and (rd / "point_cloud.ply").is_file()
+    assert h.tiny.calls["denoise"] == 1  # round 1's denoised photos, from the stage cache
+    assert [s.train.optimize_poses for s in h.splat_settings] == [True, False]  # oracle_clean's, the variant's
+    assert h.scored[-1]["est"] is None and h.scored[-1]["ply"] == rd / "point_cloud.ply"
 
 
 def _ring_of_cameras(rng, est_from_ref, n=5):
