@@ -89,6 +89,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     config = dataclasses.replace(config, max_size=args.max_size)
     if args.denoiser is not None:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, method=args.denoiser))
+    if args.keep_noisy is not None:
+        config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, keep_noisy=args.keep_noisy))
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
@@ -261,6 +263,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--denoiser", choices=DENOISE_METHODS, default=None,
                      help="round 1's self-supervised objective on the UNet (default: the preset's, r2r "
                           "with default and best, n2v with fast; only n2v runs more than one round)")
+    run.add_argument("--keep-noisy", type=float, default=None, metavar="K",
+                     help="fraction of the noisy photo kept in round 1's photos, (1 - K) * denoised + K * noisy, "
+                          "0 <= K < 1 (the splat averages the noise across views, not the blur). Default: the "
+                          "preset's")
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",

@@ -43,6 +43,10 @@ class DenoiseSettings:
         round2_preset: name of a `denoise` round-2 fine-tuning preset.
         round2_steps: fine-tuning steps; None keeps the preset's.
         round2_loss: "joint" (the paper's loss) or "charbonnier" (Table 2 ablation).
+        keep_noisy: fraction k of the noisy photo kept in round 1's photos, ``(1 - k) * denoised +
+            k * noisy`` (in ``[0, 1)``; 0: the denoiser's output). The splat averages independent noise
+            across views but keeps a denoiser's blur, so photos with a little unbiased noise left can
+            splat sharper (docs/bench/pipeline.md, "keeping some of the noisy photo").
     """
 
     n2v_preset: str = "default"
@@ -52,6 +56,7 @@ class DenoiseSettings:
     round2_preset: str = "default"
     round2_steps: int | None = None
     round2_loss: Round2Loss = "joint"
+    keep_noisy: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -181,6 +186,9 @@ class PipelineConfig:
         if self.denoise.method != "n2v" and self.rounds >= 2:
             raise ConfigError(f"{self.denoise.method} runs round 1 only: round 2 fine-tunes a blind-spot (N2V) "
                               f"network", key="denoise.method", fix="use --rounds 1, or --denoiser n2v")
+        if not 0.0 <= self.denoise.keep_noisy < 1.0:
+            raise ConfigError(f"must be in [0, 1), got {self.denoise.keep_noisy}", key="denoise.keep_noisy",
+                              expected="a fraction of the noisy photo, 0 <= k < 1")
         if self.denoise.round2_loss not in ("joint", "charbonnier"):
             raise ConfigError(f"unknown loss {self.denoise.round2_loss!r}", key="denoise.round2_loss",
                               expected="'joint' or 'charbonnier'")

@@ -78,11 +78,13 @@ class DenoiseStageSettings:
         n2v: the UNet's training configuration (its `method` is round 1's objective).
         passes: inference maskings averaged per image; 0: one pass on the unmasked image.
         device: torch device.
+        keep_noisy: fraction of the noisy photo in the written photos (`DenoiseSettings.keep_noisy`).
     """
 
     n2v: N2VConfig
     passes: int
     device: str
+    keep_noisy: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -272,7 +274,7 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
         index=r, align=align, fuse=fuse,
         splat=SplatStageSettings(train_config(config.splat, seed=seed("splat")), config.device),
         render=RenderStageSettings(config.device),
-        denoise=None if later else DenoiseStageSettings(n2v_config(d), d.passes, config.device),
+        denoise=None if later else DenoiseStageSettings(n2v_config(d), d.passes, config.device, d.keep_noisy),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
         refine=RefineStageSettings(round2_config(d), d.passes, config.device) if later else None)
 

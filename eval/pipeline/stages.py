@@ -97,7 +97,8 @@ def _history_summary(history: object) -> dict[str, object]:
 
 def denoise(ctx: StageContext) -> Mapping[str, object]:
     """Round 1: train the UNet on all noisy images with `n2v.method`, denoise them all
-    (`ctx.settings`: `DenoiseStageSettings`)."""
+    (`ctx.settings`: `DenoiseStageSettings`); with `keep_noisy` k, `denoised/` holds
+    ``(1 - k) * network output + k * noisy photo``."""
     from denoise.model import save_checkpoint
     from denoise.self_supervised import denoise_with_method, train_with_method
 
@@ -108,6 +109,8 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     with torch_threads(s.n2v.torch_threads):
         model = train_with_method(list(noisy.values()), s.n2v, seed=ctx.seed, device=s.device)
         out = denoise_with_method(model, list(noisy.values()), s.n2v, passes=s.passes, seed=ctx.seed)
+    if s.keep_noisy > 0:
+        out = [(1.0 - s.keep_noisy) * d + s.keep_noisy * y for d, y in zip(out, noisy.values(), strict=True)]
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
     return {"views": list(noisy), "train": _history_summary(getattr(model, "history", None))}

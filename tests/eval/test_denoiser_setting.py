@@ -103,3 +103,37 @@ def test_results_rows_name_the_denoiser():
     assert (METHODS["n2v_round1"].folder("r2r"), METHODS["n2v_round1"].folder("n2v")) == ("n2v_r2r", "n2v")
     assert METHODS["n2v_round1"].pipeline_config(preset("fast"), "r2r").denoise.method == "r2r"
     assert METHODS["instantsplat"].pipeline_config(preset("fast"), "r2r").denoise.method == "n2v"
+
+
+def test_keep_noisy_blends_the_noisy_photo_back_in(tmp_path):
+    # The stage with keep_noisy k writes (1 - k) * the network's output + k * the noisy photo: against the
+    # same seeded stage with k = 0 and the formula (8-bit PNGs: one level of rounding).
+    rng = np.random.default_rng(1)
+    clean = np.clip(rng.random((1, 1, 3)) * 0.6 + 0.2 + np.zeros((40, 48, 3)), 0, 1).astype(np.float32)
+    noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
+    write_views(tmp_path / "noisy", noisy)
+    outs = {}
+    for k in (0.0, 0.3):
+        settings = DenoiseStageSettings(n2v_config(DenoiseSettings(n2v_preset="fast", n2v_steps=5, method="r2r")),
+                                        passes=1, device="cpu", keep_noisy=k)
+        work = tmp_path / f"work{k}"
+        work.mkdir()
+        denoise(StageContext(name="denoise", work_dir=work, inputs={"noisy": tmp_path / "noisy"},
+                             settings=settings, seed=0))
+        outs[k] = read_views(work / "denoised")
+    noisy_read = read_views(tmp_path / "noisy")
+    for name in noisy:
+        expected = 0.7 * outs[0.0][name] + 0.3 * noisy_read[name]
+        assert np.abs(outs[0.3][name] - expected).max() <= 1.01 / 255
+        assert np.abs(outs[0.3][name] - outs[0.0][name]).max() > 5 / 255  # the blend changed the photos
+
+
+def test_keep_noisy_is_validated_and_reaches_the_stage(tmp_path, capsys):
+    with pytest.raises(ConfigError, match="denoise.keep_noisy"):
+        dataclasses.replace(preset("default"), denoise=dataclasses.replace(preset("default").denoise, keep_noisy=1.0))
+    cfg = preset("default")
+    assert round_settings(cfg, 1).denoise.keep_noisy == cfg.denoise.keep_noisy
+    scene = make_scene(tmp_path / "images", n=3)
+    assert main(["run", str(scene), "--out", str(tmp_path / "o"), "--keep-noisy", "-0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "denoise.keep_noisy" in err and "Traceback" not in err and not (tmp_path / "o").exists()
