@@ -36,6 +36,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from denoise.clipping import clipped_sides, undo_clipping_bias
 from denoise.images import image_to_tensor, images_to_tensors, tensor_to_image
 from denoise.inference import (
     CLEAN_SIGMA,
@@ -214,7 +215,7 @@ def denoise_one_pass(model: N2VModel, images: Sequence[np.ndarray], *, tile_px: 
 def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N2VConfig, *, passes: int = 8,
                         seed: int = 0, noise_sigma: float | Sequence[float] | None = None,
                         tile_px: int = TILE_PX, margin_px: int = MARGIN_PX, clean_sigma: float = CLEAN_SIGMA,
-                        noise_model: NoiseModel = "auto") -> list[np.ndarray]:
+                        noise_model: NoiseModel = "auto", undo_clipping: bool = True) -> list[np.ndarray]:
     """Denoise `images` with a model trained by ``config.method``.
 
     - ``"n2v"``: `denoise.inference.denoise_images` (K maskings, centre-pixel fusion);
@@ -235,6 +236,10 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
         clean_sigma: images whose estimated noise is below this are returned unchanged.
         noise_model: ``"n2v"``: the fusion's (see `denoise_images`); ``"r2r"``: the
             recorruption's, as in training (see `r2r_noise_std`).
+        undo_clipping: ``"r2r"`` and ``"neighbor2neighbor"``: map each output through the inverse of
+            the clipped-noise mean (`denoise.clipping.undo_clipping_bias`, with the std of
+            `r2r_noise_std` or `noise_sigma`) on the sides where the noisy photo is clipped: the
+            networks estimate the mean of the clipped photo, which is biased near 0 and 1.
 
     Returns:
         Denoised images, float32 in ``[0, 1]``, each in the layout of its input.
@@ -246,11 +251,12 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
             raise InputError("n2v's fusion takes one noise_sigma for all images")
         return denoise_images(model, images, passes=passes, seed=seed, tile_px=tile_px, margin_px=margin_px,
                               clean_sigma=clean_sigma, noise_sigma=noise_sigma, noise_model=noise_model)
-    if config.method == "neighbor2neighbor":
-        return denoise_one_pass(model, images, tile_px=tile_px, margin_px=margin_px, clean_sigma=clean_sigma)
     device = next(model.unet.parameters()).device
-    gen = torch.Generator(device=device).manual_seed(seed)
     sig = [torch.as_tensor(s, dtype=torch.float32).to(device) for s in _sigmas(images, noise_sigma, noise_model)]
+    if config.method == "neighbor2neighbor":
+        out = denoise_one_pass(model, images, tile_px=tile_px, margin_px=margin_px, clean_sigma=clean_sigma)
+        return _undo_clipping(images, out, sig, clean_sigma) if undo_clipping else out
+    gen = torch.Generator(device=device).manual_seed(seed)
     model.unet.eval()
     out = []
     with torch.no_grad():
@@ -267,4 +273,19 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
                                      margin_px=margin_px)
                 y += dihedral(pred, d, inverse=True)
             out.append(tensor_to_image(y[0] / k, like=img))
-    return out
+    return _undo_clipping(images, out, sig, clean_sigma) if undo_clipping else out
+
+
+def _undo_clipping(noisy: Sequence[np.ndarray], out: list[np.ndarray], sigmas: Sequence[torch.Tensor],
+                   clean_sigma: float) -> list[np.ndarray]:
+    """`undo_clipping_bias` on each denoised image, on the sides its noisy photo is clipped; images
+    returned unchanged as clean (noise below `clean_sigma`) stay so."""
+    fixed = []
+    for img, den, sigma in zip(noisy, out, sigmas, strict=True):
+        low, high = clipped_sides(img)
+        if not (low or high) or estimate_noise_sigma(img) < clean_sigma:
+            fixed.append(den)
+            continue
+        x = undo_clipping_bias(image_to_tensor(den).to(sigma.device), sigma, low=low, high=high)
+        fixed.append(tensor_to_image(x, like=den))
+    return fixed

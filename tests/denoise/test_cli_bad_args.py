@@ -66,9 +66,9 @@ def test_n2v_cli_trains_on_the_given_device(noisy, tmp_path, monkeypatch):
     """`--device` reaches the training (it used to be ignored)."""
     seen = []
 
-    def recording(images, config, *, seed, device):
+    def recording(images, config, *, seed, device, noise_model):
         seen.append(torch.device(device))
-        return train_with_method(images, config, seed=seed, device=device)
+        return train_with_method(images, config, seed=seed, device=device, noise_model=noise_model)
 
     monkeypatch.setattr(denoise.cli, "train_with_method", recording)
     assert main(["n2v", str(noisy), "--out", str(tmp_path / "out"), "--steps", "2", "--passes", "1",
