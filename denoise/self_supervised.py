@@ -20,7 +20,7 @@ random patches, optimiser and learning-rate schedule, with another objective
 
 Both non-blind methods estimate the mean of the clipped noisy photo; `denoise_with_method` maps
 their outputs back through the clipped-noise model (`denoise.clipping`) where the photo is clipped
-(DTU sigma 25: 29.46 -> 30.54 dB; the temple's black background: 26.75 -> 28.39 dB).
+(DTU sigma 25: 29.46 -> 30.54 dB; the temple ring at sigma 25: 26.75 -> 28.36 dB).
 
 The model starts like N2V's, with the centre-cancelling head (`init_centre_cancelling`):
 it starts as a smoother that ignores each pixel's own value and learns how much of
