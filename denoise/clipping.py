@@ -48,6 +48,13 @@ def _bounds(x: Tensor, sigma: Tensor, low: bool, high: bool) -> tuple[Tensor, Te
     return a, b
 
 
+def _mean_and_slope(x: Tensor, sigma: Tensor, low: bool, high: bool) -> tuple[Tensor, Tensor]:
+    """``f(x)`` and ``f'(x) = Phi(b) - Phi(a)`` (`sigma` already a tensor)."""
+    a, b = _bounds(x, sigma, low, high)
+    cdf_a, cdf_b = torch.special.ndtr(a), torch.special.ndtr(b)
+    return x * (cdf_b - cdf_a) + sigma * (_phi(a) - _phi(b)) + (1.0 - cdf_b), cdf_b - cdf_a
+
+
 def clipped_mean(x: Tensor, sigma: float | Tensor, *, low: bool = True, high: bool = True) -> Tensor:
     """``E[clip(x + n, 0, 1)]`` for ``n ~ N(0, sigma^2)`` (each side clipped only if `low` / `high`).
 
@@ -55,10 +62,7 @@ def clipped_mean(x: Tensor, sigma: float | Tensor, *, low: bool = True, high: bo
         x: clean values, any shape (float).
         sigma: noise std, a number or a tensor broadcastable to `x` (``> 0``).
     """
-    sigma = torch.as_tensor(sigma, dtype=x.dtype, device=x.device).clamp_min(1e-6)
-    a, b = _bounds(x, sigma, low, high)
-    cdf_a, cdf_b = torch.special.ndtr(a), torch.special.ndtr(b)
-    return x * (cdf_b - cdf_a) + sigma * (_phi(a) - _phi(b)) + (1.0 - cdf_b)
+    return _mean_and_slope(x, torch.as_tensor(sigma, dtype=x.dtype, device=x.device).clamp_min(1e-6), low, high)[0]
 
 
 def undo_clipping_bias(mean: Tensor, sigma: float | Tensor, *, low: bool = True, high: bool = True) -> Tensor:
@@ -81,9 +85,8 @@ def undo_clipping_bias(mean: Tensor, sigma: float | Tensor, *, low: bool = True,
     x = mean.clone()
     lo, hi = -6.0 * s, 1.0 + 6.0 * s  # f is flat beyond: Newton steps there would overshoot
     for _ in range(NEWTON_ITERS):
-        a, b = _bounds(x, s, low, high)
-        slope = (torch.special.ndtr(b) - torch.special.ndtr(a)).clamp_min(1e-4)
-        x = torch.minimum(torch.maximum(x - (clipped_mean(x, s, low=low, high=high) - mean) / slope, lo), hi)
+        fx, slope = _mean_and_slope(x, s, low, high)
+        x = torch.minimum(torch.maximum(x - (fx - mean) / slope.clamp_min(1e-4), lo), hi)
     return x.clamp(0.0, 1.0)
 
 

@@ -34,7 +34,7 @@ from denoise.fusion import fuse_with_observation
 from denoise.images import image_to_tensor, tensor_to_image
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
-from denoise.noise_level import estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_pca
+from denoise.noise_level import NoiseCurve, estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_pca
 from mvgeo.common.errors import check_shape
 from mvgeo.common.progress import progress
 
@@ -67,14 +67,24 @@ def fusion_noise_sigma(img: np.ndarray, prior_mean: Tensor, *, noise_model: Nois
     Returns:
         A float, or a ``[1, 3, H, W]`` tensor.
     """
+    curve = signal_dependent_curve(img, noise_model)
+    return estimate_noise_sigma_pca(img) if curve is None else curve.sigma_at(prior_mean)
+
+
+def signal_dependent_curve(img: np.ndarray, noise_model: NoiseModel) -> NoiseCurve | None:
+    """The image's `NoiseCurve` where `noise_model` asks for one, else None (use one std): always for
+    ``"curve"``, never for ``"constant"``; for ``"auto"`` where the curve's signal-dependent term
+    dominates at the image's median intensity (``gain * median > floor``, e.g. shot noise).
+
+    Raises:
+        ValueError: unknown `noise_model`.
+    """
     if noise_model not in NOISE_MODELS:
         raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {noise_model!r}")
     if noise_model == "constant":
-        return estimate_noise_sigma_pca(img)
+        return None
     curve = estimate_noise_curve(img)
-    if noise_model == "curve" or curve.gain * float(np.median(img)) > curve.floor:
-        return curve.sigma_at(prior_mean)
-    return estimate_noise_sigma_pca(img)
+    return curve if noise_model == "curve" or curve.gain * float(np.median(img)) > curve.floor else None
 
 
 def tile_starts(n: int, core: int) -> list[int]:

@@ -45,18 +45,18 @@ from denoise.images import image_to_tensor, images_to_tensors, tensor_to_image
 from denoise.inference import (
     CLEAN_SIGMA,
     MARGIN_PX,
-    NOISE_MODELS,
     TILE_PX,
     NoiseModel,
     denoise_images,
     dihedral,
     predict_tiled,
+    signal_dependent_curve,
 )
 from denoise.losses import neighbor2neighbor_loss
 from denoise.model import N2VModel
 from denoise.n2v import N2VConfig, new_model, optimise_unet, train_n2v
 from denoise.neighbor2neighbor import neighbour_choice, neighbour_subsample
-from denoise.noise_level import estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_pca
+from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_pca
 from denoise.patches import effective_patch_px, sample_patches
 from denoise.r2r import recorrupt
 from mvgeo.common.deps import cv2
@@ -82,20 +82,17 @@ def r2r_noise_std(img: np.ndarray, *, noise_model: NoiseModel = "auto") -> float
         noise_model: ``"constant"``: `estimate_noise_sigma_pca` of the unclipped patches;
             ``"curve"``: the image's `NoiseCurve` evaluated at its `INTENSITY_BLUR_PX`
             Gaussian blur; ``"auto"``: the curve where its signal-dependent term dominates at
-            the median intensity (``gain * median > floor``: shot noise), else the constant
-            (the rule of `denoise.inference.fusion_noise_sigma`).
+            the median intensity (`denoise.inference.signal_dependent_curve`, the N2V fusion's
+            rule), else the constant.
 
     Returns:
         A float, or a ``[C, H, W]`` float32 tensor (``[0, 1]`` units).
     """
-    if noise_model not in NOISE_MODELS:
-        raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {noise_model!r}")
-    if noise_model != "constant":
-        curve = estimate_noise_curve(img)
-        if noise_model == "curve" or curve.gain * float(np.median(img)) > curve.floor:
-            blurred = cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32), (0, 0), INTENSITY_BLUR_PX)
-            return curve.sigma_at(image_to_tensor(blurred.reshape(img.shape)))
-    return estimate_noise_sigma_pca(img, exclude_clipped=True)
+    curve = signal_dependent_curve(img, noise_model)
+    if curve is None:
+        return estimate_noise_sigma_pca(img, exclude_clipped=True)
+    blurred = cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32), (0, 0), INTENSITY_BLUR_PX)
+    return curve.sigma_at(image_to_tensor(blurred.reshape(img.shape)))
 
 
 def _sigmas(images: Sequence[np.ndarray], noise_sigma: float | Sequence[float] | None,
@@ -256,10 +253,14 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
         return denoise_images(model, images, passes=passes, seed=seed, tile_px=tile_px, margin_px=margin_px,
                               clean_sigma=clean_sigma, noise_sigma=noise_sigma, noise_model=noise_model)
     device = next(model.unet.parameters()).device
-    sig = [torch.as_tensor(s, dtype=torch.float32).to(device) for s in _sigmas(images, noise_sigma, noise_model)]
+
+    def sigmas() -> list[torch.Tensor]:
+        return [torch.as_tensor(s, dtype=torch.float32).to(device) for s in _sigmas(images, noise_sigma, noise_model)]
+
     if config.method == "neighbor2neighbor":
         out = denoise_one_pass(model, images, tile_px=tile_px, margin_px=margin_px, clean_sigma=clean_sigma)
-        return _undo_clipping(images, out, sig, clean_sigma) if undo_clipping else out
+        return _undo_clipping(images, out, sigmas(), clean_sigma) if undo_clipping else out
+    sig = sigmas()
     gen = torch.Generator(device=device).manual_seed(seed)
     model.unet.eval()
     out = []

@@ -360,8 +360,8 @@ def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig
             own = reconstruct(method.gt_pose_variant_of, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs,
                               seed_dir=seed_dir)
         except (DegenerateGeometryError, DisconnectedViewsError) as err:
-            own = _denoised_before_refusal(method.gt_pose_variant_of, config, seed_dir / method.gt_pose_variant_of
-                                           .folder(denoiser), err)
+            own_method = method.gt_pose_variant_of
+            own = _denoised_before_refusal(own_method, config, seed_dir / own_method.folder(denoiser), err)
         points = own if method.gt_pose_points_from in (None, method.gt_pose_variant_of) else reconstruct(
             method.gt_pose_points_from, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs, seed_dir=seed_dir)
         rec = _splat_on_ground_truth(stages, config, dataset, splat_photos(own.round_dir), folder,

@@ -46,7 +46,7 @@ class DenoiseSettings:
         keep_noisy: fraction k of the noisy photo kept in round 1's photos, ``(1 - k) * denoised +
             k * noisy`` (in ``[0, 1)``; 0: the denoiser's output). The splat averages independent noise
             across views but keeps a denoiser's blur, so photos with a little unbiased noise left can
-            splat sharper (docs/bench/pipeline.md, "keeping some of the noisy photo").
+            splat sharper (measured trade in docs/bench/pipeline.md, "the clipping bias undone").
     """
 
     n2v_preset: str = "default"
