@@ -59,7 +59,9 @@ def fusion_noise_sigma(img: np.ndarray, prior_mean: Tensor, *, noise_model: Nois
     Args:
         img: the noisy image (numpy, as given to `denoise_images`).
         prior_mean: ``[1, 3, H, W]`` blind-spot prediction (where a curve is evaluated).
-        noise_model: ``"constant"``: one std (`estimate_noise_sigma_pca`); ``"curve"``: a
+        noise_model: ``"constant"``: one std (`estimate_noise_sigma_pca` of the unclipped patches:
+            over all patches, clipping at 0 / 1 reads the noise low, 22/255 for a true 25/255 on
+            the DTU photos, about 10/255 on the temple's black background); ``"curve"``: a
             per-pixel std from the image's `NoiseCurve` at `prior_mean`; ``"auto"``: the curve
             when its signal-dependent term dominates at the image's median intensity
             (``gain * median > floor``, e.g. shot noise), else the constant.
@@ -68,7 +70,7 @@ def fusion_noise_sigma(img: np.ndarray, prior_mean: Tensor, *, noise_model: Nois
         A float, or a ``[1, 3, H, W]`` tensor.
     """
     curve = signal_dependent_curve(img, noise_model)
-    return estimate_noise_sigma_pca(img) if curve is None else curve.sigma_at(prior_mean)
+    return estimate_noise_sigma_pca(img, exclude_clipped=True) if curve is None else curve.sigma_at(prior_mean)
 
 
 def signal_dependent_curve(img: np.ndarray, noise_model: NoiseModel) -> NoiseCurve | None:

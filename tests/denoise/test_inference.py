@@ -215,9 +215,23 @@ def test_auto_noise_model_picks_per_image(rng):
     clean = np.stack([xx, yy, 0.5 * xx + 0.3 * yy], 2) * 0.8 + 0.1
     mu = torch.from_numpy(clean.transpose(2, 0, 1).copy())[None]
     gauss = clean + 0.05 * rng.standard_normal(clean.shape)
-    assert fusion_noise_sigma(gauss, mu) == estimate_noise_sigma_pca(gauss)
+    assert fusion_noise_sigma(gauss, mu) == estimate_noise_sigma_pca(gauss, exclude_clipped=True)
     shot = 0.01 * rng.poisson(clean / 0.01) + 2 / 255 * rng.standard_normal(clean.shape)
     torch.testing.assert_close(fusion_noise_sigma(shot, mu), estimate_noise_curve(shot).sigma_at(mu))
-    assert fusion_noise_sigma(gauss, mu, noise_model="constant") == estimate_noise_sigma_pca(gauss)
+    constant = fusion_noise_sigma(gauss, mu, noise_model="constant")
+    assert constant == estimate_noise_sigma_pca(gauss, exclude_clipped=True)
     with pytest.raises(ValueError, match="noise_model"):
         fusion_noise_sigma(gauss, mu, noise_model="poisson")
+
+
+def test_fusion_noise_sigma_reads_the_unclipped_noise(rng):
+    # Half the image black, as the temple's background: clipping at 0 removes half the noise there, and an
+    # estimate over all patches reads the level low; the fusion needs the std of the unclipped noise (25/255).
+    yy, xx = np.mgrid[:128, :128] / 128
+    clean = np.stack([xx, yy, 0.5 * xx + 0.3 * yy], 2) * 0.6 + 0.2
+    clean[:, :64] = 0.0
+    noisy = np.clip(clean + 25 / 255 * rng.standard_normal(clean.shape), 0, 1)
+    mu = torch.from_numpy(clean.transpose(2, 0, 1).copy())[None]
+    sigma = fusion_noise_sigma(noisy, mu, noise_model="constant")
+    assert abs(sigma * 255 - 25) < 1.5  # 16k unclipped 5x5 patches: the estimate's spread is well under 1/255
+    assert estimate_noise_sigma_pca(noisy) * 255 < 22  # what the fusion used before
