@@ -113,7 +113,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         out = [(1.0 - s.keep_noisy) * d + s.keep_noisy * y for d, y in zip(out, noisy.values(), strict=True)]
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
-    return {"views": list(noisy), "train": _history_summary(getattr(model, "history", None))}
+    return {"views": list(noisy), "train": _history_summary(model.history)}
 
 
 #: The align stage's record of which photos it aligned (`AlignSettings.photos`), in align.json.
@@ -523,7 +523,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
             out = denoise_images(model, list(noisy.values()), passes=s.passes, seed=ctx.seed, fuse=True)
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
-    return {"views": names, "train": _history_summary(getattr(model, "history", None)),
+    return {"views": names, "train": _history_summary(model.history),
             "round2": json.loads(json.dumps(dataclasses.asdict(r2), default=float))}
 
 
