@@ -18,6 +18,17 @@ sets its own fixed count (`N2VConfig.torch_threads`, `Round2Config.torch_threads
 depends on it: so a task's scores are the serial run's. The workers get `OMP_WAIT_POLICY`
 (docs/conventions.md, "Threads").
 
+Code: the workers must run the driver's code. A Ray worker imports what its setup hook needs (`eval`,
+`mvgeo`) before Ray puts the driver's working folder first on its `sys.path`, and everything else
+after: by default the first from wherever a bare interpreter finds them (the installed or editable
+copy), the rest from the driver's working folder. A run started from a folder other than the
+installed checkout thus mixed two versions of the code, and its scores differed from the serial
+run's. The workers therefore import the project's packages from the folders the driver imports them
+from: `PYTHONPATH` puts those first from the start (`worker_env`), the setup hook then keeps them
+first whatever Ray adds (`_ProjectFinder`), and every task checks the source digests of the
+project's packages against the driver's before it runs (`_check_code`), so a node with other code
+at that path fails its task instead of returning other scores.
+
 Storage: the out folder must be at the same path on every node (docs/cluster.md); a task reads its
 inputs from it and writes its run folder there, so it is the only state the tasks share.
 
@@ -27,6 +38,9 @@ Ray is imported only when a cluster is used: the serial path (`--workers 1`) nev
 from __future__ import annotations
 
 import contextlib
+import importlib.abc
+import importlib.machinery
+import importlib.util
 import logging
 import os
 import re
@@ -41,7 +55,8 @@ from typing import Any
 from mvgeo.common.errors import InputError
 from mvgeo.common.progress import progress_bar
 
-__all__ = ["ClusterSettings", "RayExecutor", "chain_after", "check_ray_address", "ray_cluster"]
+__all__ = ["PROJECT_PACKAGES", "ClusterSettings", "RayExecutor", "chain_after", "check_ray_address", "project_code",
+           "project_roots", "ray_cluster", "worker_env"]
 
 _log = logging.getLogger(__name__)
 
@@ -50,6 +65,9 @@ LOCAL_OBJECT_STORE_BYTES = 256 * 1024**2
 
 #: Seconds to wait for a TCP connection to `--ray-address` before refusing it.
 ADDRESS_TIMEOUT_S = 3.0
+
+#: The project's top-level packages (pyproject.toml): a task imports each from the driver's source.
+PROJECT_PACKAGES = ("data_synth", "denoise", "eval", "mvgeo", "splat")
 
 
 @dataclass(frozen=True)
@@ -158,11 +176,14 @@ def _task_threads() -> int:
     return max(1, int(cpus))
 
 
-def _run_unit(fn: Callable[[Any], Any], item: Any, threads: int | None, *after: Any) -> Any:
-    """One Ray task: `fn(item)` with `threads` threads (None: the task's CPUs). `after` (the results of
-    the units it waits for) only orders it in the graph."""
+def _run_unit(fn: Callable[[Any], Any], item: Any, threads: int | None, code: Mapping[str, str], *after: Any
+              ) -> Any:
+    """One Ray task: `fn(item)` with `threads` threads (None: the task's CPUs), after checking that the
+    worker imports the driver's `code` (`_check_code`). `after` (the results of the units it waits for)
+    only orders it in the graph."""
     from mvgeo.common.threads import native_threads, torch_threads
 
+    _check_code(code)
     threads = threads or _task_threads()
     with torch_threads(threads), native_threads(threads):
         return fn(item)
@@ -183,10 +204,94 @@ def _driver_logging() -> tuple[dict[str, int], str, str | None]:
     return levels, fmt, datefmt
 
 
+def _package_parent(name: str) -> str | None:
+    """The folder this process imports the package `name` from (its package folder's parent), found
+    without importing it; None when it has no package folder."""
+    module = sys.modules.get(name)
+    folders = getattr(module, "__path__", None) if module is not None else None
+    if folders is None:
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, ValueError):
+            spec = None
+        folders = spec.submodule_search_locations if spec is not None else None
+    if not folders:
+        return None
+    return os.path.dirname(os.path.abspath(next(iter(folders))))
+
+
+def project_roots() -> list[str]:
+    """The folders this process imports the project's packages (`PROJECT_PACKAGES`) from, unique, in order."""
+    return list(dict.fromkeys(p for p in map(_package_parent, PROJECT_PACKAGES) if p is not None))
+
+
+def project_code() -> dict[str, str]:
+    """Package name -> source digest (`eval.pipeline.hashing.source_digest`, cached per process) of
+    every project package this process can import: what `_check_code` compares in each task."""
+    from eval.pipeline.hashing import source_digest
+
+    return {name: source_digest(name) for name in PROJECT_PACKAGES if _package_parent(name) is not None}
+
+
+def _check_code(driver: Mapping[str, str]) -> None:
+    """Raise `InputError` when this process's project packages differ from the driver's digests `driver`.
+
+    Why: a worker that imports another checkout (or a node with other code at the checkout's path)
+    would return other code's scores under the driver's run, with nothing in the results to show it.
+    """
+    mine = project_code()
+    differ = sorted(n for n, digest in driver.items() if mine.get(n) != digest)
+    if differ:
+        where = ", ".join(f"{n} from {_package_parent(n) or 'nowhere'}" for n in differ)
+        raise InputError(f"the Ray worker on {socket.gethostname()} imports other code than the driver: {where}",
+                         fix="run the same checkout at the same path on every node (docs/cluster.md)")
+
+
+def worker_env() -> dict[str, str]:
+    """Environment variables of the Ray workers.
+
+    `PYTHONPATH`: `project_roots()`, then this process's own `PYTHONPATH`, so that what a worker
+    imports before its setup hook runs is the driver's code (module docstring, "Code"); on a
+    multi-node cluster the checkout is at the same path on every node (docs/cluster.md).
+    `OMP_WAIT_POLICY` (this process's, else PASSIVE), no progress bars, no usage statistics.
+    """
+    inherited = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    return {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE"), "DGS_NO_PROGRESS": "1",
+            "RAY_USAGE_STATS_ENABLED": "0",
+            "PYTHONPATH": os.pathsep.join(dict.fromkeys([*project_roots(), *inherited]))}
+
+
+class _ProjectFinder(importlib.abc.MetaPathFinder):
+    """Finds the project's top-level packages in `roots` only (their submodules follow the package).
+
+    Ray puts the driver's working folder in front of a worker's `sys.path` after the setup hook; a
+    checkout there would otherwise shadow the driver's packages not yet imported (module docstring).
+    """
+
+    def __init__(self, roots: Sequence[str]):
+        self.roots = list(roots)
+
+    def find_spec(self, name: str, path: Sequence[str] | None = None, target: object = None
+                  ) -> importlib.machinery.ModuleSpec | None:
+        if path is not None or name not in PROJECT_PACKAGES:
+            return None
+        return importlib.machinery.PathFinder.find_spec(name, self.roots)
+
+
+def _import_project_from(roots: Sequence[str]) -> None:
+    """Make this process import the project's top-level packages from `roots` (a `_ProjectFinder`
+    first on `sys.meta_path`, replacing an earlier one)."""
+    sys.meta_path[:] = [f for f in sys.meta_path if not isinstance(f, _ProjectFinder)]
+    if roots:
+        sys.meta_path.insert(0, _ProjectFinder(roots))
+
+
 def _setup_worker(driver_logging: tuple[dict[str, int], str, str | None],
-                  worker_setup: Callable[[], None] | None) -> None:
-    """Run once in every Ray worker process before its first task: the driver's log levels and format
-    (the runs' messages reach the console, through Ray, as in the serial path), then `worker_setup`."""
+                  worker_setup: Callable[[], None] | None, roots: Sequence[str] = ()) -> None:
+    """Run once in every Ray worker process before its first task: the project's packages from the
+    driver's folders `roots` (`_import_project_from`), the driver's log levels and format (the runs'
+    messages reach the console, through Ray, as in the serial path), then `worker_setup`."""
+    _import_project_from(roots)
     levels, fmt, datefmt = driver_logging
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter(fmt, datefmt))
@@ -231,9 +336,10 @@ class RayExecutor:
         remote = ray.remote(_run_unit).options(num_cpus=self.settings.cpus_per_task,
                                                num_gpus=self.settings.gpus_per_task, max_retries=0)
         fn_ref = ray.put(fn)
+        code = project_code()
         refs = []
         for item, deps in zip(items, after, strict=True):
-            refs.append(remote.remote(fn_ref, item, self.settings.task_threads, *(refs[d] for d in deps)))
+            refs.append(remote.remote(fn_ref, item, self.settings.task_threads, code, *(refs[d] for d in deps)))
         index = {ref: i for i, ref in enumerate(refs)}
         done: dict[int, Any] = {}
         pending = list(refs)
@@ -277,7 +383,8 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
     - a Ray already initialised in this process (a notebook, a test) is used as it is and left so.
 
     `worker_setup` runs once in every worker process before its first task (after the driver's log
-    level is applied there).
+    level is applied there). The workers import the project's packages from the folders this process
+    imports them from (`worker_env`, `_setup_worker`; module docstring, "Code").
 
     Raises:
         InputError: the cluster cannot be started or reached.
@@ -296,12 +403,12 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
         return
     if settings.address is not None:
         check_ray_address(settings.address)
-    env = {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE"), "DGS_NO_PROGRESS": "1",
-           "RAY_USAGE_STATS_ENABLED": "0"}
+    env = worker_env()
     driver_logging = _driver_logging()
+    roots = project_roots()
 
     def setup_hook() -> None:  # a named function: Ray labels the hook with its __name__
-        _setup_worker(driver_logging, worker_setup)
+        _setup_worker(driver_logging, worker_setup, roots)
 
     runtime_env = {"env_vars": env, "worker_process_setup_hook": setup_hook}
     kwargs: dict[str, Any] = {"include_dashboard": False, "runtime_env": runtime_env,

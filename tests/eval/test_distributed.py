@@ -4,14 +4,15 @@ path's, no shared stage computed twice, and the refused `--workers` / `--ray-add
 The fast tests share one local cluster of 2 CPUs (module fixture). Its workers run the small real
 stages of the pipeline tests in place of the product's (installed by the cluster's worker setup, as
 `Harness` in test_eval_runs.py does in-process), and every stage call is logged to a file so that
-calls in the worker processes can be counted."""
+calls in the worker processes can be counted. The real evaluation on Ray is in
+test_distributed_real.py: `ray_cluster` runs on a Ray already initialised in the process, which here
+would be this module's cluster with those stages and a fake scorer."""
 
 from __future__ import annotations
 
 import collections
 import dataclasses
 import functools
-import json
 import math
 import os
 import socket
@@ -285,24 +286,3 @@ def test_cli_refuses_bad_cluster_options(tmp_path, capsys, command, extra, messa
     extra = [a.replace("CLOSED", f"127.0.0.1:{_closed_port()}") for a in extra]
     assert_refused(main, [command, "llff_like", "--out", tmp_path / "O", *extra], capsys, inputs=[images],
                    watch=[tmp_path], message=message)
-
-
-# ----------------------------------------------------------------- a real evaluation
-@pytest.mark.slow
-@pytest.mark.timeout(1800)
-def test_real_eval_with_two_workers_scores_as_serial(tmp_path):
-    """Two seeds of a real evaluation at a tiny size, serially and with `--workers 2`: identical scores.
-
-    The serial process runs with torch's default threads and each task with one; the N2V training sets
-    its own fixed count (`N2VConfig.torch_threads`), which makes its network the same in both."""
-    args = ["eval", "llff_like", "--preset", "fast", "--size", "128x96", "--scene-views", "8", "--splat-iters",
-            "60", "--seeds", "2", "--methods", "nlm_instantsplat", "n2v_round1"]
-    assert main([*args, "--out", str(tmp_path / "serial")]) == 0
-    assert main([*args, "--out", str(tmp_path / "ray"), "--workers", "2"]) == 0
-    serial = json.loads((tmp_path / "serial" / "results.json").read_text())["runs"]
-    ray = json.loads((tmp_path / "ray" / "results.json").read_text())["runs"]
-    keys = ("scene", "method", "seed", "psnr_db", "ssim", "lpips", "rot_err_deg", "ate", "per_view", "error")
-    assert [{k: r[k] for k in keys} for r in ray] == [{k: r[k] for k in keys} for r in serial]
-    assert [(r["method"], r["seed"]) for r in ray] == [(m, s) for s in (0, 1) for m in ("nlm_instantsplat",
-                                                                                      "n2v_round1")]
-    assert any(r["psnr_db"] is not None for r in ray)  # something was scored, not only failed rows
