@@ -100,10 +100,11 @@ def test_noisy_first_aligns_the_noisy_photos_under_the_denoised_names(tmp_path, 
 def test_noisy_first_falls_back_to_the_denoised_photos_and_reports_their_refusal(tmp_path, monkeypatch, refusal):
     denoised = _views(tmp_path / "denoised", ("000003.png", "000007.png"))
     noisy = _views(tmp_path / "noisy", ("000003.png", "000007.png"))
-    calls = []
+    calls, thresholds = [], []
 
     def refuse_both(files, cfg, names=None):
         calls.append(files[0].parent.name)
+        thresholds.append(cfg.pairwise.sensitive_below_noise)
         raise refusal if files[0].parent == noisy else _refused("positions_undetermined", ("000003.png",))
 
     monkeypatch.setattr(mvgeo.align, "align_images", refuse_both)
@@ -112,12 +113,17 @@ def test_noisy_first_falls_back_to_the_denoised_photos_and_reports_their_refusal
     with pytest.raises(AlignmentRefusedError) as info:
         align(ctx)
     assert calls == ["noisy", "denoised"]
+    # the noisy photos with the configured detector rule, the denoised ones after them never with the
+    # clean-photo (sensitive) detection from the start (`denoised_photos_config`)
+    default = AlignConfig().pairwise.sensitive_below_noise
+    assert default > 0 and thresholds == [default, 0.0]
     # the denoised photos' refusal is the one raised, with the pipeline's fix
     assert info.value.kind == "positions_undetermined" and info.value.fix.startswith("leave the photos ['000003']")
     # without noisy_first the noisy photos are never read
     calls.clear()
+    thresholds.clear()
     plain = StageContext("align", tmp_path / "work2", {"images": denoised, "noisy": noisy},
                          AlignStageSettings(AlignConfig()), 0)
     with pytest.raises(AlignmentRefusedError):
         align(plain)
-    assert calls == ["denoised"]
+    assert calls == ["denoised"] and thresholds == [default]  # e.g. the oracle's clean photos
