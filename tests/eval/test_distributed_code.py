@@ -2,9 +2,9 @@
 driver imports the project from come first on the workers' path, the setup hook keeps them first
 whatever Ray puts in front later, and a task with other code than the driver's is refused.
 
-Measured before the fix: a driver started from /work/wt22 with the project installed (editable) from
-/work/main ran `eval` and `mvgeo` in its workers from /work/main and `denoise` and `splat` from
-/work/wt22, so the Ray rows of `denoise-gs eval --workers 2` came from a mix of two checkouts."""
+Why: without this, a driver started from one checkout with the project installed (editable) from another
+ran `eval` and `mvgeo` in its workers from the installed copy and `denoise` and `splat` from the driver's
+folder, so the Ray rows of `denoise-gs eval --workers 2` came from a mix of two checkouts."""
 
 from __future__ import annotations
 
