@@ -236,7 +236,8 @@ def real_clean_views(data_dir: Path, scene: str, *, views: int = 12, crop_px: in
 
 def run_real(scene: str, data_dir: Path, *, views: int, crop_px: int, steps: int | None, sigma_8bit: float,
              seed: int, skip_bm3d: bool, classical_rows: bool = True, device: str = "cpu",
-             out_dir: Path = REAL_OUT) -> dict:
+             out_dir: Path = REAL_OUT, methods: tuple[str, ...] = ("n2v", "neighbor2neighbor", "r2r"),
+             lr: float | None = None) -> dict:
     """All methods on one scene; returns the rows (also written to `out_dir`/<scene>.json)."""
     import json
     from dataclasses import replace
@@ -250,9 +251,10 @@ def run_real(scene: str, data_dir: Path, *, views: int, crop_px: int, steps: int
     noisy = [np.clip(c + sigma * rng.standard_normal(c.shape), 0, 1).astype(np.float32) for c in clean]
     rows = [{"method": "noisy input", "psnr": scores(noisy, clean)[0], "ssim": scores(noisy, clean)[1],
              "train_s": 0.0, "s_per_image": 0.0, "note": ""}]
-    base = n2v_preset("default") if steps is None else n2v_preset("default", steps=steps)
+    overrides = {k: v for k, v in (("steps", steps), ("lr", lr)) if v is not None}
+    base = n2v_preset("default", **overrides)
     est = [255 * estimate_noise_sigma_pca(n) for n in noisy]
-    for method in ("n2v", "neighbor2neighbor", "r2r"):
+    for method in methods:
         cfg = replace(base, method=method)
         t = time.perf_counter()
         model = train_with_method(noisy, cfg, seed=seed, device=device)
@@ -282,7 +284,7 @@ def run_real(scene: str, data_dir: Path, *, views: int, crop_px: int, steps: int
         rows.append({"method": name, "psnr": p, "ssim": q, "train_s": 0.0, "s_per_image": dt, "note": how})
         print(scene, rows[-1], flush=True)
     result = {"scene": scene, "views": names, "crop_px": crop_px, "sigma_8bit": sigma_8bit, "seed": seed,
-              "steps": base.steps, "rows": rows, "load": list(os.getloadavg()),
+              "steps": base.steps, "lr": base.lr, "rows": rows, "load": list(os.getloadavg()),
               "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cpu": _cpu_name(),
               "device": _device_name(device)}
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -320,6 +322,9 @@ def main_real(argv: list[str]) -> None:
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--crop", type=int, default=192)
     ap.add_argument("--steps", type=int, default=None, help="training steps of every UNet method (default: preset)")
+    ap.add_argument("--lr", type=float, default=None, help="peak learning rate of every UNet method (default: preset)")
+    ap.add_argument("--methods", nargs="+", default=["n2v", "neighbor2neighbor", "r2r"],
+                    choices=["n2v", "neighbor2neighbor", "r2r"], help="UNet objectives to train")
     ap.add_argument("--sigma", type=float, default=25.0, help="noise std, 8-bit units")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--skip-bm3d", action="store_true")
@@ -333,7 +338,8 @@ def main_real(argv: list[str]) -> None:
     for scene in args.scene or REAL_SCENES:
         run_real(scene, args.data, views=args.views, crop_px=args.crop, steps=args.steps,
                  sigma_8bit=args.sigma, seed=args.seed, skip_bm3d=args.skip_bm3d,
-                 classical_rows=not args.no_classical, device=args.device, out_dir=args.out_dir)
+                 classical_rows=not args.no_classical, device=args.device, out_dir=args.out_dir,
+                 methods=tuple(args.methods), lr=args.lr)
 
 
 def multiview_inputs(data_dir: Path, *, views: int, sigma_8bit: float, seed: int) -> dict:
@@ -478,13 +484,13 @@ def _sweep_table(runs: list[dict]) -> str:
     for r in runs:
         for x in r["rows"][1:]:
             name = x["method"].split(" (")[0]
-            groups.setdefault((r["scene"], r["steps"], name), []).append(x)
+            groups.setdefault((r["scene"], r["steps"], r.get("lr", n2v_preset("default").lr), name), []).append(x)
     rows = []
-    for (scene, steps, name), xs in sorted(groups.items()):
+    for (scene, steps, lr, name), xs in sorted(groups.items()):
         p = [x["psnr"] for x in xs]
-        rows.append([scene, steps, name, len(xs), f"{np.mean(p):.2f}", f"{min(p):.2f}-{max(p):.2f}",
+        rows.append([scene, steps, f"{lr:g}", name, len(xs), f"{np.mean(p):.2f}", f"{min(p):.2f}-{max(p):.2f}",
                      f"{np.mean([x['ssim'] for x in xs]):.3f}", f"{np.mean([x['train_s'] for x in xs]):.0f}"])
-    return md_table(["scene", "steps", "method", "seeds", "PSNR mean", "PSNR range", "SSIM mean",
+    return md_table(["scene", "steps", "lr", "method", "seeds", "PSNR mean", "PSNR range", "SSIM mean",
                      "training s"], rows)
 
 
