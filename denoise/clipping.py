@@ -27,7 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["MIN_CLIPPED_FRACTION", "clipped_mean", "clipped_sides", "undo_clipping_bias"]
+__all__ = ["DARK_CLIPPED_BLUR_PX", "DARK_CLIPPED_MIN_LOCAL", "MIN_CLIPPED_FRACTION", "clipped_mean", "clipped_sides",
+           "dark_clipped_fraction", "undo_clipping_bias"]
 
 #: A side of a photo counts as clipped when at least this fraction of its values sit exactly on it.
 #: Unclipped noise puts no value exactly on 0 or 1 (8-bit: only where x is within half a level of it
@@ -35,6 +36,12 @@ __all__ = ["MIN_CLIPPED_FRACTION", "clipped_mean", "clipped_sides", "undo_clippi
 MIN_CLIPPED_FRACTION = 1e-3
 
 NEWTON_ITERS = 30
+
+#: `dark_clipped_fraction`: the neighbourhood (Gaussian std, px) whose share of values at 0 is read...
+DARK_CLIPPED_BLUR_PX = 4.0
+#: ... and the share above which a pixel lies in a dark clipped region. Over black (x = 0) half of the
+#: values of Gaussian noise land on 0; at x = sigma 16 %, at x = 2 sigma 2 %.
+DARK_CLIPPED_MIN_LOCAL = 0.4
 
 
 def _phi(t: Tensor) -> Tensor:
@@ -95,3 +102,28 @@ def clipped_sides(noisy: np.ndarray, *, min_fraction: float = MIN_CLIPPED_FRACTI
     of its values exactly on that side."""
     arr = np.asarray(noisy)
     return bool(np.mean(arr <= 0.0) >= min_fraction), bool(np.mean(arr >= 1.0) >= min_fraction)
+
+
+def dark_clipped_fraction(noisy: np.ndarray, *, blur_px: float = DARK_CLIPPED_BLUR_PX,
+                          min_local: float = DARK_CLIPPED_MIN_LOCAL) -> float:
+    """Fraction of a noisy photo's pixels that lie in a dark clipped region: in some channel, at least
+    `min_local` of the values in their neighbourhood (Gaussian weights of std `blur_px`) are exactly 0.
+
+    Such a region is black (or nearly) under noise clipped at 0: a black background, a shadow. Scattered
+    zeros in dark texture (values a few noise std above 0) stay below `min_local`. Measured on the real
+    sets at sigma 25/255: the temple ring's photos 0.47-0.72 (their black background), DTU scan24's 0.00-0.11
+    (mean 0.03; its clipped values are mostly blown highlights, at 1).
+
+    Args:
+        noisy: ``(H, W, C)`` or ``(H, W)`` photo in ``[0, 1]``.
+    """
+    import cv2
+
+    arr = np.asarray(noisy, dtype=np.float32)
+    zeros = (arr <= 0.0).astype(np.float32)
+    local = cv2.GaussianBlur(zeros, (0, 0), blur_px, borderType=cv2.BORDER_REFLECT)
+    local = local.reshape(arr.shape)
+    dark = local >= min_local
+    if dark.ndim == 3:
+        dark = dark.any(axis=2)
+    return float(dark.mean())

@@ -18,9 +18,9 @@ from mvgeo.common.errors import ConfigError
 __all__ = ["ALIGN_PHOTOS", "PRESETS", "AlignSettings", "DenoiseSettings", "PipelineConfig", "SplatSettings", "preset"]
 
 Round2Loss = Literal["joint", "charbonnier"]
-DenoiseMethod = Literal["n2v", "neighbor2neighbor", "r2r"]
+DenoiseMethod = Literal["n2v", "neighbor2neighbor", "r2r", "auto"]
 #: The values of `DenoiseSettings.method`.
-DENOISE_METHODS: tuple[str, ...] = ("n2v", "neighbor2neighbor", "r2r")
+DENOISE_METHODS: tuple[str, ...] = ("n2v", "neighbor2neighbor", "r2r", "auto")
 ReuseIntrinsics = Literal["auto", "always", "never"]
 ReuseGeometry = Literal["auto", "never"]
 AlignPhotos = Literal["denoised", "noisy_first"]
@@ -35,8 +35,11 @@ class DenoiseSettings:
     Attributes:
         n2v_preset: name of a `denoise` N2V preset for round 1.
         method: round 1's self-supervised objective on the same UNet (`denoise.n2v.N2VConfig.method`):
-            "n2v" (default, the paper's), "neighbor2neighbor" or "r2r" (docs/bench/denoise_real.md).
-            Rounds >= 2 fine-tune a blind-spot network, so the other two run with `rounds=1` only.
+            "n2v" (default, the paper's), "neighbor2neighbor", "r2r" (docs/bench/denoise_real.md), or
+            "auto": R2R, or Neighbor2Neighbor where a large share of the noisy photos lies in dark
+            clipped regions, where R2R's recorruption does not hold (`denoise.self_supervised.
+            choose_objective`). Rounds >= 2 fine-tune a blind-spot network, so the others run with
+            `rounds=1` only.
         n2v_steps: training steps; None keeps the preset's.
         passes: inference maskings averaged per image (the paper's K); 0 runs one pass on the
             unmasked image (`denoise.inference.denoise_images`).
@@ -234,19 +237,21 @@ class PipelineConfig:
 #:   they score 24.93 / 0.806 / 0.134 against the N2V two-round product's 24.41 / 0.732 / 0.198 (PSNR /
 #:   SSIM / LPIPS); fusing them with the noisy splat's render costs 0.4 dB and 0.07 SSIM there, and round
 #:   2 fine-tunes a blind-spot network only, so a non-blind denoiser runs one round (docs/bench/pipeline.md,
-#:   "the default denoiser"). The paper's loop is `--denoiser n2v --rounds 2` (`denoise-gs eval`'s
-#:   `denoise_gs`, `denoise_gs_fused`).
-#: - `best`: the `default` with a 2000-iteration splat (twice the time of its slowest stage). Not yet
-#:   measured on real photos; on `llff_like` a 2000-iteration splat after N2V gained nothing
-#:   (docs/bench/pipeline.md, "each preset end to end").
+#:   "the default denoiser"). Photos with large black clipped regions (more than a fifth of their area)
+#:   train Neighbor2Neighbor instead (`DenoiseSettings.method="auto"`): on the temple ring's black
+#:   background R2R's recorruption does not hold (its photos 27.1 dB against 34.3). The paper's loop is
+#:   `--denoiser n2v --rounds 2` (`denoise-gs eval`'s `denoise_gs`, `denoise_gs_fused`).
+#: - `best`: the `default` with a 2000-iteration splat (about twice the splat's time). On DTU scan24 at
+#:   sigma 25, three seeds: 25.06 / 0.792 / 0.152 against `default`'s 24.87 / 0.792 / 0.166 held out
+#:   (docs/bench/pipeline.md); on `llff_like` a 2000-iteration splat after N2V gained nothing.
 #:
 #: With rounds >= 2, all three keep the better-determined focal length and poses across rounds
 #: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and, when a round keeps the previous round's
 #: poses, the previous round's noisy-photo splat (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md),
 #: and stop after a round whose refine kept the previous network (`stop_when_unrefined`).
-_R2R_ONE_ROUND = PipelineConfig(rounds=1, stop_when_unrefined=True,
-                                denoise=DenoiseSettings(method="r2r", n2v_steps=2000),
-                                align=AlignSettings(photos="noisy_first"))
+_ONE_ROUND = PipelineConfig(rounds=1, stop_when_unrefined=True,
+                            denoise=DenoiseSettings(method="auto", n2v_steps=2000),
+                            align=AlignSettings(photos="noisy_first"))
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         fuse_noisy_splat=True, stop_when_unrefined=True,
@@ -257,8 +262,8 @@ PRESETS: dict[str, PipelineConfig] = {
         align=AlignSettings(preset="preview", points=100_000),
         splat=SplatSettings(preset="quick"),
     ),
-    "default": _R2R_ONE_ROUND,
-    "best": dataclasses.replace(_R2R_ONE_ROUND, splat=SplatSettings(preset="instantsplat", iters=2000)),
+    "default": _ONE_ROUND,
+    "best": dataclasses.replace(_ONE_ROUND, splat=SplatSettings(preset="instantsplat", iters=2000)),
 }
 
 

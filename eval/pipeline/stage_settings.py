@@ -79,12 +79,15 @@ class DenoiseStageSettings:
         passes: inference maskings averaged per image; 0: one pass on the unmasked image.
         device: torch device.
         keep_noisy: fraction of the noisy photo in the written photos (`DenoiseSettings.keep_noisy`).
+        choose_objective: `n2v.method` is replaced by `denoise.self_supervised.choose_objective`'s choice
+            for the photos (`DenoiseSettings.method="auto"`; `n2v.method` is then "r2r").
     """
 
     n2v: N2VConfig
     passes: int
     device: str
     keep_noisy: float = 0.0
+    choose_objective: bool = False
 
 
 @dataclass(frozen=True)
@@ -199,7 +202,8 @@ def n2v_config(settings: DenoiseSettings) -> N2VConfig:
     if settings.n2v_preset not in N2V_PRESETS:
         raise ConfigError(f"unknown N2V preset {settings.n2v_preset!r}", key="denoise.n2v_preset",
                           expected=" | ".join(N2V_PRESETS))
-    return _replace_given(N2V_PRESETS[settings.n2v_preset], steps=settings.n2v_steps, method=settings.method)
+    method = "r2r" if settings.method == "auto" else settings.method  # "auto": chosen in the stage
+    return _replace_given(N2V_PRESETS[settings.n2v_preset], steps=settings.n2v_steps, method=method)
 
 
 def round2_config(settings: DenoiseSettings) -> Round2Config:
@@ -274,7 +278,8 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
         index=r, align=align, fuse=fuse,
         splat=SplatStageSettings(train_config(config.splat, seed=seed("splat")), config.device),
         render=RenderStageSettings(config.device),
-        denoise=None if later else DenoiseStageSettings(n2v_config(d), d.passes, config.device, d.keep_noisy),
+        denoise=None if later else DenoiseStageSettings(n2v_config(d), d.passes, config.device, d.keep_noisy,
+                                                               choose_objective=d.method == "auto"),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
         refine=RefineStageSettings(round2_config(d), d.passes, config.device) if later else None)
 

@@ -100,20 +100,25 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     (`ctx.settings`: `DenoiseStageSettings`); with `keep_noisy` k, `denoised/` holds
     ``(1 - k) * network output + k * noisy photo``."""
     from denoise.model import save_checkpoint
-    from denoise.self_supervised import denoise_with_method, train_with_method
+    from denoise.self_supervised import choose_objective, denoise_with_method, train_with_method
 
     s = ctx.settings
     noisy = read_views(ctx.inputs["noisy"])
+    n2v, chosen = s.n2v, {}
+    if s.choose_objective:
+        choice = choose_objective(list(noisy.values()))
+        n2v = dataclasses.replace(n2v, method=choice.method)
+        chosen = {"objective": choice.method, "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
     # The training's fixed thread count for the inference too: the UNet's outputs differ in the last
     # float bits between counts, enough to flip a PNG level now and then (N2VConfig.torch_threads).
-    with torch_threads(s.n2v.torch_threads):
-        model = train_with_method(list(noisy.values()), s.n2v, seed=ctx.seed, device=s.device)
-        out = denoise_with_method(model, list(noisy.values()), s.n2v, passes=s.passes, seed=ctx.seed)
+    with torch_threads(n2v.torch_threads):
+        model = train_with_method(list(noisy.values()), n2v, seed=ctx.seed, device=s.device)
+        out = denoise_with_method(model, list(noisy.values()), n2v, passes=s.passes, seed=ctx.seed)
     if s.keep_noisy > 0:
         out = [(1.0 - s.keep_noisy) * d + s.keep_noisy * y for d, y in zip(out, noisy.values(), strict=True)]
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
-    return {"views": list(noisy), "train": _history_summary(model.history)}
+    return {"views": list(noisy), "train": _history_summary(model.history), **chosen}
 
 
 #: The align stage's record of which photos it aligned (`AlignSettings.photos`), in align.json.

@@ -75,3 +75,45 @@ def test_the_non_blind_methods_undo_the_bias_where_the_photo_is_clipped(rng, met
         ref = undo_clipping_bias(torch.from_numpy(r).permute(2, 0, 1), sigma, low=True, high=False)
         np.testing.assert_allclose(f, ref.permute(1, 2, 0).numpy(), atol=1e-6)
         assert np.mean(f[:, :16]) < np.mean(r[:, :16])  # the black band got darker
+
+
+def _photo(clean: np.ndarray, sigma: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.clip(clean + sigma * rng.standard_normal(clean.shape), 0.0, 1.0).astype(np.float32)
+
+
+def test_dark_clipped_fraction_reads_black_regions_not_dark_texture():
+    from denoise.clipping import dark_clipped_fraction
+
+    sigma = 25 / 255
+    half_black = np.zeros((96, 128, 3), np.float32)
+    half_black[:, 64:] = 0.6
+    # Half the pixels are black: all of them read as dark clipped but a border about the blur's width
+    # (4 px of 64) where the neighbourhood reaches the bright half.
+    assert 0.44 < dark_clipped_fraction(_photo(half_black, sigma, 0)) <= 0.5
+    # Values one or two noise std above black put 16 % / 2 % of their values on 0: not a black region.
+    for level in (sigma, 2 * sigma):
+        assert dark_clipped_fraction(_photo(np.full((64, 64, 3), level, np.float32), sigma, 1)) == 0.0
+    # Blown highlights (clipped at 1) are not dark.
+    assert dark_clipped_fraction(_photo(np.ones((64, 64, 3), np.float32), sigma, 2)) == 0.0
+    # Gray photos (H, W) as well as colour.
+    assert dark_clipped_fraction(_photo(np.zeros((32, 32), np.float32), sigma, 3)) == 1.0
+
+
+def test_choose_objective_switches_to_neighbor2neighbor_on_black_backgrounds():
+    from denoise.self_supervised import MAX_DARK_CLIPPED_FOR_R2R, choose_objective
+    from mvgeo.common.errors import InputError
+
+    sigma = 25 / 255
+    scene = np.full((64, 96, 3), 0.5, np.float32)
+    assert choose_objective([_photo(scene, sigma, k) for k in range(3)]).method == "r2r"
+    black_background = scene.copy()
+    black_background[:, :60] = 0.0  # 62 % of the area black, as the temple ring's photos
+    choice = choose_objective([_photo(black_background, sigma, k) for k in range(3)])
+    assert choice.method == "neighbor2neighbor" and choice.dark_clipped_fraction > MAX_DARK_CLIPPED_FOR_R2R
+    # The rule is the mean over the photos against the threshold.
+    small = scene.copy()
+    small[:, :10] = 0.0  # about 9 %
+    assert choose_objective([_photo(small, sigma, 5)]).method == "r2r"
+    with pytest.raises(InputError):
+        choose_objective([])

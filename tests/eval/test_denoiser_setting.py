@@ -137,3 +137,25 @@ def test_keep_noisy_is_validated_and_reaches_the_stage(tmp_path, capsys):
     assert main(["run", str(scene), "--out", str(tmp_path / "o"), "--keep-noisy", "-0.1"]) == 2
     err = capsys.readouterr().err
     assert "denoise.keep_noisy" in err and "Traceback" not in err and not (tmp_path / "o").exists()
+
+
+def test_auto_chooses_the_objective_from_the_photos_in_the_stage(tmp_path):
+    # `default` ships "auto": R2R in the config, the stage choosing for the photos it gets.
+    assert preset("default").denoise.method == "auto"
+    settings = round_settings(preset("default"), 1).denoise
+    assert settings.choose_objective and settings.n2v.method == "r2r"
+    assert not round_settings(_with_method(preset("default"), "r2r"), 1).denoise.choose_objective
+    with pytest.raises(ConfigError, match="round 1 only"):
+        _with_method(preset("fast", rounds=2), "auto")
+    rng = np.random.default_rng(0)
+    clean = np.full((40, 48, 3), 0.6, np.float32)
+    clean[:, :30] = 0.0  # a black background over most of the photo
+    noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
+    write_views(tmp_path / "noisy", noisy)
+    small = DenoiseStageSettings(n2v_config(DenoiseSettings(n2v_preset="fast", n2v_steps=5, method="auto")),
+                                 passes=1, device="cpu", choose_objective=True)
+    ctx = StageContext(name="denoise", work_dir=tmp_path / "work", inputs={"noisy": tmp_path / "noisy"},
+                       settings=small, seed=0)
+    (tmp_path / "work").mkdir()
+    summary = denoise(ctx)
+    assert summary["objective"] == "neighbor2neighbor" and summary["dark_clipped_fraction"] > 0.5
