@@ -261,8 +261,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
                      help=MAX_SIZE_HELP)
     run.add_argument("--denoiser", choices=DENOISE_METHODS, default=None,
-                     help="round 1's self-supervised objective on the UNet (default: the preset's, r2r "
-                          "with default and best, n2v with fast; only n2v runs more than one round)")
+                     help="round 1's self-supervised objective on the UNet (default: the preset's: auto with "
+                          "default and best, R2R unless a fifth of the photos is black and clipped, then "
+                          "neighbor2neighbor; n2v with fast; only n2v runs more than one round)")
     run.add_argument("--keep-noisy", type=float, default=None, metavar="K",
                      help="fraction of the noisy photo kept in round 1's photos, (1 - K) * denoised + K * noisy, "
                           "0 <= K < 1 (the splat averages the noise across views, not the blur). Default: the "

@@ -1,0 +1,84 @@
+"""The denoising objectives on a dataset's whole training photos, by region: where the noise is clipped at
+black (or white), and elsewhere.
+
+Trains the `default` preset's UNet (2000 steps) with one objective on the noisy training photos of a dataset
+folder (`images/`, `clean/`, `split.json`), as the pipeline's denoise stage does (`train_with_method`, then
+`denoise_with_method` with its defaults: 8 passes, the clipped-noise inverse), writes the photos to OUT, and
+prints PSNR / SSIM against `clean/` over the whole photos and PSNR over two regions: pixels whose 4-px
+neighbourhood has at least 40 % of its values clipped (at 0 or 1, in some channel) and the rest. Also the
+share of the area that is dark and clipped (`denoise.clipping.dark_clipped_fraction`, what
+`denoise.self_supervised.choose_objective` reads).
+
+Usage: .venv/bin/python benchmarks/diag_objective_photos.py DATASET OUT r2r|neighbor2neighbor|n2v [--seed N]
+       .venv/bin/python benchmarks/diag_objective_photos.py DATASET OUT score   (photos already in OUT)
+"""
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
+from denoise.clipping import DARK_CLIPPED_BLUR_PX, DARK_CLIPPED_MIN_LOCAL, dark_clipped_fraction
+from denoise.n2v import n2v_preset
+from denoise.self_supervised import denoise_with_method, train_with_method
+from eval.pipeline.views import read_views, write_views
+from mvgeo.common.deps import cv2
+from mvgeo.image_metrics import ssim
+
+STEPS = 2000
+
+
+def _ssim(a: np.ndarray, b: np.ndarray) -> float:
+    import torch
+
+    t = lambda x: torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1), dtype=np.float64))[None]  # noqa: E731
+    return float(ssim(t(a), t(b)))
+
+
+def _psnr(err: np.ndarray) -> float:
+    return float(-10 * np.log10(np.mean(err)))
+
+
+def score(dataset: Path, photos: dict[str, np.ndarray]) -> dict[str, float]:
+    noisy, clean = read_views(dataset / "images"), read_views(dataset / "clean")
+    rows = []
+    for name, out in photos.items():
+        y, c = noisy[name], clean[name]
+        clipped = ((y <= 0) | (y >= 1)).astype(np.float32)
+        region = (cv2.GaussianBlur(clipped, (0, 0), DARK_CLIPPED_BLUR_PX) >= DARK_CLIPPED_MIN_LOCAL).any(axis=2)
+        err = np.mean((out.astype(np.float64) - c) ** 2, axis=2)
+        rows.append([_psnr(err), _ssim(out, c), _psnr(err[region]) if region.any() else np.nan,
+                     _psnr(err[~region]), float(region.mean()), dark_clipped_fraction(y)])
+    m = np.nanmean(np.array(rows), axis=0)
+    return dict(zip(["psnr", "ssim", "psnr_clipped_regions", "psnr_elsewhere", "clipped_area", "dark_clipped_area"],
+                    (float(v) for v in m), strict=True))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("method", choices=["r2r", "neighbor2neighbor", "n2v", "score"])
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    train = json.loads((args.dataset / "split.json").read_text())["train"]
+    stems = [Path(n).stem for n in train]
+    if args.method != "score":
+        noisy = read_views(args.dataset / "images")
+        images = [noisy[s] for s in stems]
+        cfg = replace(n2v_preset("default", steps=STEPS), method=args.method)
+        model = train_with_method(images, cfg, seed=args.seed)
+        out = denoise_with_method(model, images, cfg, passes=8, seed=args.seed)
+        write_views(args.out, dict(zip(stems, out, strict=True)))
+    photos = read_views(args.out)
+    print(json.dumps({"dataset": str(args.dataset), "photos": str(args.out), "method": args.method,
+                      **score(args.dataset, {s: photos[s] for s in stems})}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
