@@ -117,7 +117,7 @@ def dark_clipped_fraction(noisy: np.ndarray, *, blur_px: float = DARK_CLIPPED_BL
     Args:
         noisy: ``(H, W, C)`` or ``(H, W)`` photo in ``[0, 1]``.
     """
-    import cv2
+    from mvgeo.common.deps import cv2
 
     arr = np.asarray(noisy, dtype=np.float32)
     zeros = (arr <= 0.0).astype(np.float32)
