@@ -19,7 +19,7 @@ import numpy as np
 from denoise.inference import NOISE_MODELS
 from denoise.model import save_checkpoint
 from denoise.n2v import METHODS, N2V_PRESETS, n2v_preset
-from denoise.self_supervised import denoise_with_method, train_with_method
+from denoise.self_supervised import choose_objective, denoise_with_method, train_with_method
 from denoise.view_selection import select_views
 from mvgeo.common.argtypes import nonneg_int, positive_int, seed
 from mvgeo.common.atomic import atomic_output_dir, atomic_write_text
@@ -73,7 +73,13 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px; N2V needs at least "
                              f"{MIN_SIDE_PX}x{MIN_SIDE_PX}", path=f, fix="remove it from the folder")
     overrides = {} if args.steps is None else {"steps": args.steps}
-    config = n2v_preset(args.preset, **overrides, method=args.method)
+    chosen = {}
+    method = args.method
+    if method == "auto":
+        choice = choose_objective(images)
+        method = choice.method
+        chosen = {"objective_rule": "auto", "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
+    config = n2v_preset(args.preset, **overrides, method=method)
     timer = StageTimer()
     with timer.stage("train"):
         model = train_with_method(images, config, seed=args.seed, device=device, noise_model=args.noise_model)
@@ -91,7 +97,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
             "steps": config.steps,
             "passes": args.passes, "noise_model": args.noise_model, "seed": args.seed,
             "final_loss": float(np.mean(model.history[-20:])),
-            "timing_s": timer.as_dict()}, indent=2))
+            "timing_s": timer.as_dict(), **chosen}, indent=2))
     _log.info("wrote %d denoised images, model.pt and contact_sheet.png to %s", len(out), args.out)
     return 0
 
@@ -131,9 +137,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the preset's)")
     p.add_argument("--passes", type=nonneg_int, default=8, help="random maskings averaged; 0 = one unmasked pass")
     p.add_argument("--preset", choices=sorted(N2V_PRESETS), default="default", help="training preset")
-    p.add_argument("--method", choices=METHODS, default="n2v",
+    p.add_argument("--method", choices=(*METHODS, "auto"), default="n2v",
                    help="self-supervised objective on the same UNet: n2v (blind spot), neighbor2neighbor, "
-                        "or r2r (recorrupted-to-recorrupted, noise level estimated per image)")
+                        "r2r (recorrupted-to-recorrupted, noise level estimated per image), or auto (r2r, or "
+                        "neighbor2neighbor where more than a fifth of the photos is black and clipped: R2R's "
+                        "recorruption fails there; what `denoise-gs run` uses by default)")
     p.add_argument("--noise-model", choices=NOISE_MODELS, default="auto",
                    help="noise level for n2v's centre-pixel fusion and r2r's recorruption: one per image "
                         "(constant: Gaussian noise), a per-intensity curve (signal-dependent, Poisson-Gaussian "

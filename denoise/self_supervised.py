@@ -26,9 +26,10 @@ R2R's construction needs additive Gaussian noise: ``y + alpha z`` and ``y - z / 
 given the clean image only when ``y - x`` is Gaussian. Over a black region the photo's noise is clipped
 at 0 (half its values are 0) and the target's noise depends on the input's: there R2R's network learns
 something between denoising and the identity (on the temple ring at sigma 25 it passed the noise
-through in the green and blue channels of the black background: std 9-13/255 after the network against
-1.2-1.5/255 for Neighbor2Neighbor's). Neighbor2Neighbor's target is the other neighbour sub-image, whose
-noise is independent of the input's whatever its distribution. `choose_objective` picks between them
+through in the green and blue channels of the black background: std 9-13/255 out of the network
+against 1.2-1.5/255 out of Neighbor2Neighbor's, before the clipped-noise inverse). Neighbor2Neighbor's
+target is the other neighbour sub-image, whose noise is independent of the input's whatever its
+distribution. `choose_objective` picks between them
 from the photos: Neighbor2Neighbor where a large share of them lies in dark clipped regions
 (`denoise.clipping.dark_clipped_fraction`), R2R otherwise.
 
@@ -47,6 +48,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -82,7 +84,7 @@ __all__ = ["MAX_DARK_CLIPPED_FOR_R2R", "ObjectiveChoice", "choose_objective", "d
 #: `choose_objective`: R2R while at most this share of the photos' area (mean over the photos) lies in
 #: dark clipped regions. Measured at sigma 25/255, 2000 steps, whole photos (PSNR of the denoised
 #: training photos against the clean ones): DTU scan24 (0.03) R2R 30.52 dB, Neighbor2Neighbor 29.89;
-#: the temple ring (0.61) R2R 27.12, Neighbor2Neighbor 34.29 (dark clipped regions 26.3 against 39.8 dB,
+#: the temple ring (0.60) R2R 27.12, Neighbor2Neighbor 34.29 (dark clipped regions 26.3 against 39.8 dB,
 #: the rest 28.9 against 31.0). With those per-region errors the two break even near 0.05 of the area;
 #: 0.2 switches only where the evidence is overwhelming (DTU at sigma 50 reads 0.06 and keeps R2R).
 MAX_DARK_CLIPPED_FOR_R2R = 0.2
@@ -143,7 +145,7 @@ class ObjectiveChoice:
         dark_clipped_fraction: mean over the photos of `denoise.clipping.dark_clipped_fraction`.
     """
 
-    method: str
+    method: Literal["r2r", "neighbor2neighbor"]
     dark_clipped_fraction: float
 
 

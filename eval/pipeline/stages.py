@@ -96,8 +96,9 @@ def _history_summary(history: object) -> dict[str, object]:
 
 
 def denoise(ctx: StageContext) -> Mapping[str, object]:
-    """Round 1: train the UNet on all noisy images with `n2v.method`, denoise them all
-    (`ctx.settings`: `DenoiseStageSettings`); with `keep_noisy` k, `denoised/` holds
+    """Round 1: train the UNet on all noisy images with `n2v.method` (with `choose_objective`, the one
+    `denoise.self_supervised.choose_objective` picks for them, recorded in the summary as `objective`),
+    denoise them all (`ctx.settings`: `DenoiseStageSettings`); with `keep_noisy` k, `denoised/` holds
     ``(1 - k) * network output + k * noisy photo``."""
     from denoise.model import save_checkpoint
     from denoise.self_supervised import choose_objective, denoise_with_method, train_with_method

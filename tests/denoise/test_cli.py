@@ -86,3 +86,19 @@ def test_select_cli(tmp_path, rng, capsys):
     (img_dir / "03.png").unlink()
     assert main(["select", str(sparse), "--images", str(img_dir)]) == 2
     assert "03.png" in capsys.readouterr().err
+
+
+def test_n2v_cli_auto_method_chooses_from_the_photos(tmp_path):
+    rng = np.random.default_rng(3)
+    src = tmp_path / "noisy"
+    src.mkdir()
+    for k in range(2):
+        clean = np.full((40, 48, 3), 0.6)
+        clean[:, :30] = 0.0  # a black background over most of the photo
+        write_image(src / f"v{k}.png", np.clip(clean + 0.1 * rng.standard_normal(clean.shape), 0, 1))
+    out = tmp_path / "out"
+    assert main(["n2v", str(src), "--out", str(out), "--steps", "3", "--passes", "1", "--preset", "fast",
+                 "--method", "auto"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["method"] == "neighbor2neighbor" and report["objective_rule"] == "auto"
+    assert report["dark_clipped_fraction"] > 0.5

@@ -96,8 +96,9 @@ def test_dark_clipped_fraction_reads_black_regions_not_dark_texture():
         assert dark_clipped_fraction(_photo(np.full((64, 64, 3), level, np.float32), sigma, 1)) == 0.0
     # Blown highlights (clipped at 1) are not dark.
     assert dark_clipped_fraction(_photo(np.ones((64, 64, 3), np.float32), sigma, 2)) == 0.0
-    # Gray photos (H, W) as well as colour.
-    assert dark_clipped_fraction(_photo(np.zeros((32, 32), np.float32), sigma, 3)) == 1.0
+    # Gray photos (H, W) as well as colour. All black: the local share of zeros is about 0.5 everywhere;
+    # over 20 noise seeds a few pixels' neighbourhoods fell under 0.4 (fraction 0.947-1.0).
+    assert dark_clipped_fraction(_photo(np.zeros((32, 32), np.float32), sigma, 3)) > 0.9
 
 
 def test_choose_objective_switches_to_neighbor2neighbor_on_black_backgrounds():
@@ -111,9 +112,12 @@ def test_choose_objective_switches_to_neighbor2neighbor_on_black_backgrounds():
     black_background[:, :60] = 0.0  # 62 % of the area black, as the temple ring's photos
     choice = choose_objective([_photo(black_background, sigma, k) for k in range(3)])
     assert choice.method == "neighbor2neighbor" and choice.dark_clipped_fraction > MAX_DARK_CLIPPED_FOR_R2R
-    # The rule is the mean over the photos against the threshold.
+    # The rule is the mean over the photos against the threshold: one black-background photo among three
+    # plain ones reads about 0.15.
+    mixed = [_photo(black_background, sigma, 4)] + [_photo(scene, sigma, k) for k in range(5, 8)]
+    assert choose_objective(mixed).method == "r2r" and 0.1 < choose_objective(mixed).dark_clipped_fraction < 0.2
     small = scene.copy()
-    small[:, :10] = 0.0  # about 9 %
+    small[:, :10] = 0.0  # 10 of 96 columns black: about 7.5 % once the blur's border is off
     assert choose_objective([_photo(small, sigma, 5)]).method == "r2r"
     with pytest.raises(InputError):
         choose_objective([])

@@ -28,7 +28,8 @@ def test_cuda_image_and_gradients_match_the_cpu_kernels():
     ref_rgb, ref_grads = _render_and_grads(params, cam, K, W, H, "cpu", "cpp")
     rgb, grads = _render_and_grads(params, cam, K, W, H, "cuda", "torch")
     # float64 on both sides, different summation order: measured 1.3e-15 (colour) and 2.3e-15 (relative
-    # gradients) on an H100; 1e-9 leaves room for other GPUs' reductions and still catches any real error.
-    assert (rgb - ref_rgb).abs().max() < 1e-9
+    # gradients) on an H100. 1e-11 / 1e-10 leave four orders of magnitude for other GPUs' reductions and
+    # still catch a path that drops to float32 (errors of 1e-7 and more).
+    assert (rgb - ref_rgb).abs().max() < 1e-11
     for g, ref in zip(grads, ref_grads, strict=True):
-        assert ((g - ref).abs().max() / (ref.abs().max() + 1e-30)) < 1e-7
+        assert ((g - ref).abs().max() / (ref.abs().max() + 1e-30)) < 1e-10
