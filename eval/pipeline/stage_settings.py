@@ -194,6 +194,10 @@ def _replace_given(cfg, **changes):
 def n2v_config(settings: DenoiseSettings) -> N2VConfig:
     """Round 1's `N2VConfig`: the preset `settings.n2v_preset` with `n2v_steps` and `method` applied.
 
+    `method="auto"` gives R2R's config: the objective is chosen from the photos in the denoise stage
+    (`DenoiseStageSettings.choose_objective`); a caller that trains without the stage chooses it itself
+    (`denoise.self_supervised.choose_objective`).
+
     Raises:
         ConfigError: unknown preset name.
     """
