@@ -29,9 +29,8 @@ something between denoising and the identity (on the temple ring at sigma 25 it 
 through in the green and blue channels of the black background: std 9-13/255 out of the network
 against 1.2-1.5/255 out of Neighbor2Neighbor's, before the clipped-noise inverse). Neighbor2Neighbor's
 target is the other neighbour sub-image, whose noise is independent of the input's whatever its
-distribution. `choose_objective` picks between them
-from the photos: Neighbor2Neighbor where a large share of them lies in dark clipped regions
-(`denoise.clipping.dark_clipped_fraction`), R2R otherwise.
+distribution. `choose_objective` picks between them from the photos: Neighbor2Neighbor where a large
+share of them lies in dark clipped regions (`denoise.clipping.dark_clipped_fraction`), R2R otherwise.
 
 The model starts like N2V's, with the centre-cancelling head (`init_centre_cancelling`):
 it starts as a smoother that ignores each pixel's own value and learns how much of

@@ -77,10 +77,9 @@ def test_ray_cluster_hands_the_workers_the_drivers_folder(monkeypatch):
     monkeypatch.setattr(ray, "is_initialized", lambda: False)
     monkeypatch.setattr(eval.distributed, "_connected", connected)
     with ray_cluster(ClusterSettings(workers=2)):
-        pass
-    env = seen["runtime_env"]["env_vars"]
+        env = seen["runtime_env"]["env_vars"]
+        hook = seen["runtime_env"]["worker_process_setup_hook"]
     assert env["PYTHONPATH"].split(os.pathsep)[0] == _driver_folder()
-    hook = seen["runtime_env"]["worker_process_setup_hook"]
     assert [_driver_folder()] in [cell.cell_contents for cell in hook.__closure__]  # the roots it installs
 
 
