@@ -126,7 +126,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                         device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser)
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
-    with resumable_output_dir(plan), output_lock(out), ray_cluster(cluster) as executor:
+    with (resumable_output_dir(plan), output_lock(out),
+          ray_cluster(cluster, preload=("eval.evaluate",)) as executor):
         name, folder = scene_dataset(kind, source, out, size_wh=args.size, views=args.scene_views)
         validate_dataset_folder(folder)
         dataset = validate_dataset_folder(working_dataset(folder, out, args.max_size))
@@ -180,7 +181,8 @@ def _cmd_cost(args: argparse.Namespace) -> int:
     config = CostConfig(base=base, grid=grid, pose_fit_iters=args.pose_fit_iters)
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
-    with resumable_output_dir(plan), output_lock(out), ray_cluster(cluster) as executor:
+    with (resumable_output_dir(plan), output_lock(out),
+          ray_cluster(cluster, preload=("eval.cost",)) as executor):
         name, folder = scene_dataset(kind, source, out, size_wh=args.size if kind != "dataset" else None,
                                      views=args.scene_views if kind != "dataset" else None)
         dataset = validate_dataset_folder(folder)

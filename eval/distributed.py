@@ -176,6 +176,16 @@ def _task_threads() -> int:
     return max(1, int(cpus))
 
 
+def _warm_worker(modules: Sequence[str], code: Mapping[str, str]) -> int:
+    """A worker's first task, submitted as the cluster starts (`RayExecutor.start_workers`): the worker
+    process starts and imports `modules` (and computes the project's source digests `_check_code` compares)
+    while the driver prepares the runs; returns its process id."""
+    for name in modules:
+        importlib.import_module(name)
+    _check_code(code)
+    return os.getpid()
+
+
 def _run_unit(fn: Callable[[Any], Any], item: Any, threads: int | None, code: Mapping[str, str], *after: Any
               ) -> Any:
     """One Ray task: `fn(item)` with `threads` threads (None: the task's CPUs), after checking that the
@@ -307,6 +317,29 @@ class RayExecutor:
 
     def __init__(self, settings: ClusterSettings):
         self.settings = settings
+        self._warming: list[Any] = []
+
+    def start_workers(self, slots: int, modules: Sequence[str]) -> list[Any]:
+        """Start `slots` worker processes now, each importing `modules`, without waiting for them.
+
+        Ray starts a worker process when a task first needs one, and the first task then waits for the
+        process to start and import torch and the project (about 9-13 s for two workers on 2 loaded cores,
+        docs/bench/ray.md). Submitted with the runs' own resources, these tasks start the workers while
+        the driver still prepares the runs, and Ray reuses the same processes for the runs. A warm-up that
+        fails is ignored: the run on that worker then fails with its own error.
+
+        Returns:
+            The warm-up tasks' object refs; each gives its worker's process id.
+        """
+        import ray
+
+        if slots < 1:
+            return []
+        remote = ray.remote(_warm_worker).options(num_cpus=self.settings.cpus_per_task,
+                                                  num_gpus=self.settings.gpus_per_task, max_retries=0)
+        code = project_code()
+        self._warming = [remote.remote(tuple(modules), code) for _ in range(slots)]
+        return list(self._warming)
 
     def run(self, fn: Callable[[Any], Any], items: Sequence[Any], *, after: Sequence[Sequence[int]] | None = None,
             desc: str = "tasks", on_done: Callable[[Mapping[int, Any]], None] | None = None) -> list[Any]:
@@ -372,8 +405,8 @@ def _get(ray: Any, ref: Any) -> Any:
 
 
 @contextlib.contextmanager
-def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] | None = None
-                ) -> Iterator[RayExecutor | None]:
+def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] | None = None,
+                preload: Sequence[str] = ()) -> Iterator[RayExecutor | None]:
     """Connect to Ray for the block: None for the serial path, else an executor on the cluster.
 
     - `settings.workers > 1`: starts a local cluster of that many CPUs (no dashboard, node address
@@ -385,6 +418,10 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
     `worker_setup` runs once in every worker process before its first task (after the driver's log
     level is applied there). The workers import the project's packages from the folders this process
     imports them from (`worker_env`, `_setup_worker`; module docstring, "Code").
+
+    `preload`: modules the tasks import (e.g. "eval.evaluate"). On a cluster this call starts, or one
+    it connects to, one worker per task slot is started as soon as the cluster is up and imports them
+    (`RayExecutor.start_workers`), so that the workers' start overlaps the driver's preparation.
 
     Raises:
         InputError: the cluster cannot be started or reached.
@@ -399,7 +436,7 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
     import ray
 
     if ray.is_initialized():
-        yield RayExecutor(settings)
+        yield _executor(ray, settings, preload)
         return
     if settings.address is not None:
         check_ray_address(settings.address)
@@ -414,14 +451,22 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
     kwargs: dict[str, Any] = {"include_dashboard": False, "runtime_env": runtime_env,
                               "logging_level": logging.WARNING, "log_to_driver": True}
     if settings.address is not None:
-        with _connected(ray, {**kwargs, "address": settings.address}, settings, None) as executor:
+        with _connected(ray, {**kwargs, "address": settings.address}, settings, None, preload) as executor:
             yield executor
         return
     # Short path: Ray's Unix sockets live in it (at most 107 bytes).
     temp_dir = tempfile.mkdtemp(prefix="dgs-ray-")
     kwargs.update(num_cpus=settings.workers, object_store_memory=LOCAL_OBJECT_STORE_BYTES, _temp_dir=temp_dir)
-    with _loopback_only(), _connected(ray, kwargs, settings, temp_dir) as executor:
+    with _loopback_only(), _connected(ray, kwargs, settings, temp_dir, preload) as executor:
         yield executor
+
+
+def _executor(ray: Any, settings: ClusterSettings, preload: Sequence[str]) -> RayExecutor:
+    """The executor on the connected cluster, its workers started now when `preload` names modules."""
+    executor = RayExecutor(settings)
+    if preload:
+        executor.start_workers(int(ray.cluster_resources().get("CPU", 0) // settings.cpus_per_task), preload)
+    return executor
 
 
 @contextlib.contextmanager
@@ -448,9 +493,10 @@ _CLUSTER_VAR = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 
 
 @contextlib.contextmanager
-def _connected(ray: Any, kwargs: dict[str, Any], settings: ClusterSettings, temp_dir: str | None
-               ) -> Iterator[RayExecutor]:
-    """`ray.init(**kwargs)` for the block, then `ray.shutdown()` and `temp_dir` removed."""
+def _connected(ray: Any, kwargs: dict[str, Any], settings: ClusterSettings, temp_dir: str | None,
+               preload: Sequence[str] = ()) -> Iterator[RayExecutor]:
+    """`ray.init(**kwargs)` for the block (with a worker per task slot started when `preload` names
+    modules), then `ray.shutdown()` and `temp_dir` removed."""
     try:
         ray.init(**kwargs)
     except BaseException as exc:
@@ -468,7 +514,7 @@ def _connected(ray: Any, kwargs: dict[str, Any], settings: ClusterSettings, temp
         if cpus < settings.cpus_per_task:
             raise InputError(f"the Ray cluster has {cpus:g} CPUs, fewer than one task needs "
                              f"({settings.cpus_per_task})", fix="join worker nodes, or use --workers")
-        yield RayExecutor(settings)
+        yield _executor(ray, settings, preload)
     finally:
         ray.shutdown()
         if temp_dir is not None:

@@ -187,6 +187,30 @@ def test_executor_raises_a_task_error_as_its_own_type(cluster):
         ex.run(rendezvous, [("a", "", ""), ("b", "fail", ""), ("c", "", "")])
 
 
+PROBE = "tests.eval._warm_probe"
+
+
+def probe_seen(_item):
+    """(worker process id, whether the warm-up's module is imported in it)."""
+    import sys
+
+    return os.getpid(), PROBE in sys.modules
+
+
+def test_started_workers_import_the_preload_and_run_the_tasks(cluster):
+    import ray
+
+    ex, _ = cluster
+    assert ex.start_workers(0, (PROBE,)) == []
+    warm = set(ray.get(ex.start_workers(2, (PROBE,))))
+    seen = ex.run(probe_seen, range(6))
+    assert {pid for pid, _ in seen} & warm  # the tasks run in the processes the warm-up started
+    assert all(imported for pid, imported in seen if pid in warm)  # which imported the preload
+    with pytest.raises(ModuleNotFoundError):  # a module that does not exist: the warm-up's own error
+        ray.get(ex.start_workers(1, ("tests.eval._no_such_module",)))
+    assert ex.run(probe_seen, [0])  # ... and the workers keep running the tasks
+
+
 # ----------------------------------------------------------------- eval and cost: Ray vs serial
 def test_eval_on_ray_gives_the_serial_rows(cluster, dataset, tmp_path, monkeypatch):
     ex, log = cluster
