@@ -109,8 +109,7 @@ def main() -> int:
         ratio = ray_s / serial_s
         table.append([f"`{name}`: {' '.join(SWEEPS[name])}", f"{serial_s:.1f}", f"{ray_s:.1f}", f"**{ratio:.2f}x**",
                       "met" if ratio <= GOAL_RATIO else "missed", f"{ray_s - serial_s / 2:.1f}", _verdict(diff)])
-        scores += [[name, f"{r['method']}, seed {r['seed']}", r["psnr_db"], s["psnr_db"], r["lpips"], s["lpips"],
-                    r["rot_err_deg"], s["rot_err_deg"]] for r, s in zip(ray, serial, strict=True)]
+        scores += [_score_row(name, r, s) for r, s in zip(ray, serial, strict=True)]
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     body = f"""Command (serial, then with `--workers 2`; fresh out folders):
 `.venv/bin/denoise-gs {' '.join(ARGS)} SWEEP --out OUT [--workers 2]`
@@ -135,6 +134,16 @@ Peak RSS of a serial process (one run at a time: about one task's memory): {rss:
     path = write_fragment("ray", "Evaluation on Ray: --workers 2 against the serial path", body)
     print(path.read_text())
     return 1 if failed else 0
+
+
+def _score_row(name: str, ray: dict, serial: dict) -> list:
+    """A row of the scores table; a failed run shows its error's type (both paths' errors are compared)."""
+    if ray.get("error") or serial.get("error"):
+        def kind(row: dict) -> str:
+            return f"failed: {str(row['error']).split(':', 1)[0]}" if row.get("error") else "scored"
+        return [name, f"{ray['method']}, seed {ray['seed']}", kind(ray), kind(serial), "", "", "", ""]
+    return [name, f"{ray['method']}, seed {ray['seed']}", ray["psnr_db"], serial["psnr_db"], ray["lpips"],
+            serial["lpips"], ray["rot_err_deg"], serial["rot_err_deg"]]
 
 
 def _verdict(diff: dict[str, float]) -> str:

@@ -1,0 +1,70 @@
+"""Verified pairs and accuracy of `mvgeo align` against its pair-verification settings, on the real sets of
+bench_real.py (issue 21, "the match graph at least as dense as COLMAP's exhaustive matching").
+
+Variants: `base` (the defaults: Sampson threshold 1 px at the alignment resolution, at least 20 putative
+matches); `thr1.5` / `thr2` (threshold 1.5 / 2 px); `thr2_m15` (2 px and 15 putative matches). Sets: DTU scan24
+cluster (clean and sigma 25 noise seeds 0..N-1), temple ring (clean), DTU scan24 spread (clean and noisy).
+
+Usage: .venv/bin/python benchmarks/diag_match_density.py [VARIANTS] [NOISE_SEEDS]
+(e.g. `base,thr2 3`; one line per set, noise draw and variant: registered views, verified pairs, bundle-adjustment
+tracks, rotation error median / max in degrees, ATE over scene scale, seconds).
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import bench_real as B
+
+from mvgeo.align.api import AlignConfig, align_images
+from mvgeo.common.imageio import list_images
+from mvgeo.metrics import compare_poses
+
+
+def variant(threshold_px: float, min_matches: int) -> AlignConfig:
+    pw = B.OURS.pairwise
+    two_view = replace(pw.two_view, ransac=replace(pw.two_view.ransac, threshold_px=threshold_px))
+    return replace(B.OURS, pairwise=replace(pw, two_view=two_view, min_matches=min_matches))
+
+
+VARIANTS = {"base": (1.0, 20), "thr1.5": (1.5, 20), "thr2": (2.0, 20), "thr2_m15": (2.0, 15)}
+
+
+def main() -> None:
+    names = sys.argv[1].split(",") if len(sys.argv) > 1 else list(VARIANTS)
+    seeds = int(sys.argv[2]) if len(sys.argv) > 2 else 3
+    sets = [s for s in (B.dtu_set("cluster"), B.temple_set(), B.dtu_set("spread")) if s is not None]
+    if not sets:
+        print("no real set found in ../shared/data")
+        return
+    work = Path(tempfile.mkdtemp(prefix="match_density_"))
+    for s in sets:
+        draws = [(False, 0)] + ([] if s.name.startswith("temple") else [(True, k) for k in range(seeds)])
+        for noisy, seed in draws:
+            folder = B.prepare(s, work, noisy, seed)
+            paths = [p for p in list_images(folder) if p.name in s.gt]
+            label = f"{s.name:22s} {f'noisy{seed}' if noisy else 'clean':7s}"
+            for name in names:
+                t = time.perf_counter()
+                try:
+                    r = align_images(paths, variant(*VARIANTS[name]))
+                except Exception as exc:  # report, keep going
+                    sec = time.perf_counter() - t
+                    print(f"{label} {name:9s} failed: {type(exc).__name__} ({sec:.1f} s)", flush=True)
+                    continue
+                sec = time.perf_counter() - t
+                m = compare_poses(r.sparse_model.cam_from_world_by_name(), s.gt)
+                ba = r.stats.bundle_adjustment
+                rot = f"{m.median_rotation_deg:.3f} / {m.rotation_deg.max():.3f} deg"
+                ate = m.ate.rmse / B.scene_scale(s.gt)
+                print(f"{label} {name:9s} registered {m.n_registered:2d}, pairs {r.stats.n_pairs_verified:2d}, "
+                      f"tracks {ba.n_points if ba else 0:5d}, rot {rot}, ATE/scale {ate:.4f}, "
+                      f"{sec:.1f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
