@@ -323,8 +323,8 @@ class RayExecutor:
         """Start `slots` worker processes now, each importing `modules`, without waiting for them.
 
         Ray starts a worker process when a task first needs one, and the first task then waits for the
-        process to start and import torch and the project (about 9-13 s for two workers on 2 loaded cores,
-        docs/bench/ray.md). Submitted with the runs' own resources, these tasks start the workers while
+        process to start and import torch and the project (2.8-2.9 s for two workers on 2 idle cores,
+        9-13 s under load; docs/cluster.md). Submitted with the runs' own resources, these tasks start the workers while
         the driver still prepares the runs, and Ray reuses the same processes for the runs. A warm-up that
         fails is ignored: the run on that worker then fails with its own error.
 
@@ -419,9 +419,10 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
     level is applied there). The workers import the project's packages from the folders this process
     imports them from (`worker_env`, `_setup_worker`; module docstring, "Code").
 
-    `preload`: modules the tasks import (e.g. "eval.evaluate"). On a cluster this call starts, or one
-    it connects to, one worker per task slot is started as soon as the cluster is up and imports them
-    (`RayExecutor.start_workers`), so that the workers' start overlaps the driver's preparation.
+    `preload`: modules the tasks import (e.g. "eval.evaluate"). When it names any, one worker per task
+    slot of the cluster (started, connected to or already initialised) is started as soon as the
+    cluster is up and imports them (`RayExecutor.start_workers`), so that the workers' start overlaps
+    the driver's preparation.
 
     Raises:
         InputError: the cluster cannot be started or reached.
