@@ -120,6 +120,10 @@ def main() -> int:
     args = ap.parse_args()
     train = json.loads((args.dataset / "split.json").read_text())["train"]
     stems = [Path(n).stem for n in train]
+    if args.sigma is not None and args.method != "bm3d":
+        ap.error("--sigma is for bm3d only")
+    if args.dihedral != 1 and (args.method != "neighbor2neighbor" or not 1 <= args.dihedral <= 8):
+        ap.error("--dihedral K: neighbor2neighbor only, 1 <= K <= 8")
     if args.method == "bm3d":
         if args.sigma is None:
             ap.error("bm3d needs --sigma (the true noise std, in /255)")

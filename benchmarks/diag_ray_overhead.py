@@ -4,8 +4,8 @@ preparation (the built-in scene rendered, as `denoise-gs eval llff_like --size 2
 first four tasks (each imports `eval.evaluate`, as a run does; without the preload the worker processes
 start and import torch and the project only now), four more tasks, shutdown.
 
-Usage: .venv/bin/python benchmarks/diag_ray_overhead.py [ROUNDS] (alternates the two ways; one line of
-seconds each)."""
+Usage: .venv/bin/python benchmarks/diag_ray_overhead.py [ROUNDS] (the two ways in turn, the first of each round
+alternating; one line of seconds each)."""
 
 import os
 import sys
@@ -43,8 +43,9 @@ def once(preload: tuple[str, ...]) -> str:
 def main() -> None:
     rounds = int(sys.argv[1]) if len(sys.argv) > 1 else 1
     print(f"imports {time.perf_counter() - t0:.1f} s", flush=True)
-    for _ in range(rounds):
-        for preload in ((), ("eval.evaluate",)):
+    ways = [(), ("eval.evaluate",)]
+    for r in range(rounds):
+        for preload in ways if r % 2 == 0 else ways[::-1]:  # neither way always goes first
             print(once(preload), flush=True)
 
 

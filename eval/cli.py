@@ -102,6 +102,11 @@ def _allow_focal_prior(config):
     return dataclasses.replace(config, align=dataclasses.replace(config.align, max_focal_log_std=FOCAL_PRIOR_OK))
 
 
+#: Modules a run of `denoise-gs eval` / a point of `denoise-gs cost` imports: the Ray workers import them
+#: as the cluster starts (`eval.distributed.ray_cluster`).
+EVAL_PRELOAD = ("eval.evaluate",)
+COST_PRELOAD = ("eval.cost",)
+
 #: Top-level entries `denoise-gs eval` / `cost` write in their folder (`prepare_output(layout=...)`):
 #: a folder holding only these, e.g. one `make demo` primed with `inputs/` and `runs/`, is resumed.
 EVAL_LAYOUT = ("inputs", "runs", "data", "heldout", "figures", "results.json", "results.md")
@@ -127,7 +132,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
     with (resumable_output_dir(plan), output_lock(out),
-          ray_cluster(cluster, preload=("eval.evaluate",)) as executor):
+          ray_cluster(cluster, preload=EVAL_PRELOAD, tasks=len(config.methods) * config.seeds) as executor):
         name, folder = scene_dataset(kind, source, out, size_wh=args.size, views=args.scene_views)
         validate_dataset_folder(folder)
         dataset = validate_dataset_folder(working_dataset(folder, out, args.max_size))
@@ -177,12 +182,12 @@ def _cmd_cost(args: argparse.Namespace) -> int:
     base = dataclasses.replace(base, max_size=None)  # the sweep scores against clean images at their own size
     if not args.strict_focal:
         base = _allow_focal_prior(base)
-    sweep_points(base, grid)  # bad values fail here, before any compute
+    points = sweep_points(base, grid)  # bad values fail here, before any compute
     config = CostConfig(base=base, grid=grid, pose_fit_iters=args.pose_fit_iters)
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
     with (resumable_output_dir(plan), output_lock(out),
-          ray_cluster(cluster, preload=("eval.cost",)) as executor):
+          ray_cluster(cluster, preload=COST_PRELOAD, tasks=len(points)) as executor):
         name, folder = scene_dataset(kind, source, out, size_wh=args.size if kind != "dataset" else None,
                                      views=args.scene_views if kind != "dataset" else None)
         dataset = validate_dataset_folder(folder)

@@ -56,7 +56,7 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.progress import progress_bar
 
 __all__ = ["PROJECT_PACKAGES", "ClusterSettings", "RayExecutor", "chain_after", "check_ray_address", "project_code",
-           "project_roots", "ray_cluster", "worker_env"]
+           "project_roots", "ray_cluster", "warm_slots", "worker_env"]
 
 _log = logging.getLogger(__name__)
 
@@ -323,10 +323,13 @@ class RayExecutor:
         """Start `slots` worker processes now, each importing `modules`, without waiting for them.
 
         Ray starts a worker process when a task first needs one, and the first task then waits for the
-        process to start and import torch and the project (2.8-2.9 s for two workers on 2 idle cores,
-        9-13 s under load; docs/cluster.md). Submitted with the runs' own resources, these tasks start the workers while
-        the driver still prepares the runs, and Ray reuses the same processes for the runs. A warm-up that
-        fails is ignored: the run on that worker then fails with its own error.
+        process to start and import torch and the project (docs/cluster.md, "One machine"). Submitted
+        with the runs' own resources, these tasks start the workers while the driver still prepares the
+        runs, and Ray reuses the same processes for the runs: the resources go through `.options()`, as
+        the runs' do (a `num_gpus` given to `ray.remote` itself would make Ray start a fresh process for
+        every GPU task). A warm-up that fails is not waited for: the run on that worker then fails with
+        its own error. The refs are kept until the executor goes, so Ray does not report a failed
+        warm-up as an unhandled error while the cluster runs.
 
         Returns:
             The warm-up tasks' object refs; each gives its worker's process id.
@@ -406,7 +409,7 @@ def _get(ray: Any, ref: Any) -> Any:
 
 @contextlib.contextmanager
 def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] | None = None,
-                preload: Sequence[str] = ()) -> Iterator[RayExecutor | None]:
+                preload: Sequence[str] = (), tasks: int | None = None) -> Iterator[RayExecutor | None]:
     """Connect to Ray for the block: None for the serial path, else an executor on the cluster.
 
     - `settings.workers > 1`: starts a local cluster of that many CPUs (no dashboard, node address
@@ -420,9 +423,10 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
     imports them from (`worker_env`, `_setup_worker`; module docstring, "Code").
 
     `preload`: modules the tasks import (e.g. "eval.evaluate"). When it names any, one worker per task
-    slot of the cluster (started, connected to or already initialised) is started as soon as the
-    cluster is up and imports them (`RayExecutor.start_workers`), so that the workers' start overlaps
-    the driver's preparation.
+    slot of the cluster (started, connected to or already initialised; `warm_slots`), and no more than
+    `tasks` (the number of runs to come, when known), is started as soon as the cluster is up and
+    imports them (`RayExecutor.start_workers`), so that the workers' start overlaps the driver's
+    preparation.
 
     Raises:
         InputError: the cluster cannot be started or reached.
@@ -437,7 +441,7 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
     import ray
 
     if ray.is_initialized():
-        yield _executor(ray, settings, preload)
+        yield _executor(ray, settings, preload, tasks)
         return
     if settings.address is not None:
         check_ray_address(settings.address)
@@ -452,21 +456,31 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
     kwargs: dict[str, Any] = {"include_dashboard": False, "runtime_env": runtime_env,
                               "logging_level": logging.WARNING, "log_to_driver": True}
     if settings.address is not None:
-        with _connected(ray, {**kwargs, "address": settings.address}, settings, None, preload) as executor:
+        with _connected(ray, {**kwargs, "address": settings.address}, settings, None, preload, tasks) as executor:
             yield executor
         return
     # Short path: Ray's Unix sockets live in it (at most 107 bytes).
     temp_dir = tempfile.mkdtemp(prefix="dgs-ray-")
     kwargs.update(num_cpus=settings.workers, object_store_memory=LOCAL_OBJECT_STORE_BYTES, _temp_dir=temp_dir)
-    with _loopback_only(), _connected(ray, kwargs, settings, temp_dir, preload) as executor:
+    with _loopback_only(), _connected(ray, kwargs, settings, temp_dir, preload, tasks) as executor:
         yield executor
 
 
-def _executor(ray: Any, settings: ClusterSettings, preload: Sequence[str]) -> RayExecutor:
+def warm_slots(resources: Mapping[str, float], settings: ClusterSettings, tasks: int | None = None) -> int:
+    """How many tasks of `settings`' shape the cluster's `resources` (`ray.cluster_resources()`) run at
+    once, limited by its CPUs and, for GPU tasks, its GPUs; at most `tasks` when given."""
+    slots = int(resources.get("CPU", 0) // settings.cpus_per_task)
+    if settings.gpus_per_task > 0:
+        # 1e-9: a fraction 1/N of a GPU, N times, is the whole GPU despite rounding
+        slots = min(slots, int(resources.get("GPU", 0) / settings.gpus_per_task + 1e-9))
+    return max(0, slots if tasks is None else min(slots, tasks))
+
+
+def _executor(ray: Any, settings: ClusterSettings, preload: Sequence[str], tasks: int | None) -> RayExecutor:
     """The executor on the connected cluster, its workers started now when `preload` names modules."""
     executor = RayExecutor(settings)
     if preload:
-        executor.start_workers(int(ray.cluster_resources().get("CPU", 0) // settings.cpus_per_task), preload)
+        executor.start_workers(warm_slots(ray.cluster_resources(), settings, tasks), preload)
     return executor
 
 
@@ -495,7 +509,7 @@ _CLUSTER_VAR = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 
 @contextlib.contextmanager
 def _connected(ray: Any, kwargs: dict[str, Any], settings: ClusterSettings, temp_dir: str | None,
-               preload: Sequence[str] = ()) -> Iterator[RayExecutor]:
+               preload: Sequence[str] = (), tasks: int | None = None) -> Iterator[RayExecutor]:
     """`ray.init(**kwargs)` for the block (with a worker per task slot started when `preload` names
     modules), then `ray.shutdown()` and `temp_dir` removed."""
     try:
@@ -515,7 +529,7 @@ def _connected(ray: Any, kwargs: dict[str, Any], settings: ClusterSettings, temp
         if cpus < settings.cpus_per_task:
             raise InputError(f"the Ray cluster has {cpus:g} CPUs, fewer than one task needs "
                              f"({settings.cpus_per_task})", fix="join worker nodes, or use --workers")
-        yield _executor(ray, settings, preload)
+        yield _executor(ray, settings, preload, tasks)
     finally:
         ray.shutdown()
         if temp_dir is not None:

@@ -27,7 +27,7 @@ import eval.evaluate
 import eval.methods
 from eval.cli import main
 from eval.cost import CostConfig, run_cost_sweep
-from eval.distributed import ClusterSettings, RayExecutor, chain_after, check_ray_address, ray_cluster
+from eval.distributed import ClusterSettings, RayExecutor, chain_after, check_ray_address, ray_cluster, warm_slots
 from eval.evaluate import EvalConfig, evaluate_dataset, share_keys
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
@@ -198,17 +198,42 @@ def probe_seen(_item):
 
 
 def test_started_workers_import_the_preload_and_run_the_tasks(cluster):
+    """The module's workers exist already (earlier tests): this checks that the warm-up runs in the
+    processes the runs then use and imports there; starting fresh processes is Ray's part."""
     import ray
 
     ex, _ = cluster
     assert ex.start_workers(0, (PROBE,)) == []
+    before = ex.run(probe_seen, range(4))
+    assert not any(imported for _, imported in before)  # nothing imported the probe yet
     warm = set(ray.get(ex.start_workers(2, (PROBE,))))
     seen = ex.run(probe_seen, range(6))
-    assert {pid for pid, _ in seen} & warm  # the tasks run in the processes the warm-up started
+    assert {pid for pid, _ in seen} & warm  # the tasks run in the processes the warm-up ran in
     assert all(imported for pid, imported in seen if pid in warm)  # which imported the preload
-    with pytest.raises(ModuleNotFoundError):  # a module that does not exist: the warm-up's own error
-        ray.get(ex.start_workers(1, ("tests.eval._no_such_module",)))
-    assert ex.run(probe_seen, [0])  # ... and the workers keep running the tasks
+    failed = ex.start_workers(1, ("tests.eval._no_such_module",))
+    assert ex.run(probe_seen, [0])[0][0] > 0  # a failed warm-up is not waited for: the runs go on
+    with pytest.raises(ModuleNotFoundError):  # (its own error, had anyone asked)
+        ray.get(failed)
+
+
+@pytest.mark.parametrize("resources, settings, tasks, slots", [
+    ({"CPU": 5.0}, ClusterSettings(workers=2, cpus_per_task=2), None, 2),
+    ({"CPU": 5.0}, ClusterSettings(workers=2, cpus_per_task=2), 1, 1),  # no more than the runs
+    ({"CPU": 64.0, "GPU": 4.0}, ClusterSettings(address="h:1", gpus_per_task=1.0), None, 4),  # GPUs decide
+    ({"CPU": 3.0, "GPU": 1.0}, ClusterSettings(workers=3, gpus_per_task=1 / 3), None, 3),  # shared GPU
+    ({"CPU": 2.0}, ClusterSettings(workers=2, gpus_per_task=0.5), None, 0),  # GPU tasks, no GPU
+])
+def test_warm_slots_counts_the_tasks_the_cluster_runs_at_once(resources, settings, tasks, slots):
+    assert warm_slots(resources, settings, tasks) == slots
+
+
+def test_the_cli_preloads_modules_that_exist():
+    import importlib
+
+    from eval.cli import COST_PRELOAD, EVAL_PRELOAD
+
+    for name in EVAL_PRELOAD + COST_PRELOAD:
+        assert importlib.import_module(name).__name__ == name
 
 
 # ----------------------------------------------------------------- eval and cost: Ray vs serial

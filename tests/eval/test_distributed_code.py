@@ -68,20 +68,20 @@ def test_ray_cluster_hands_the_workers_the_drivers_folder(monkeypatch):
     seen: dict = {}
 
     @contextlib.contextmanager
-    def connected(ray_module, kwargs, settings, temp_dir, preload):
-        seen.update(kwargs, preload=preload)
+    def connected(ray_module, kwargs, settings, temp_dir, preload, tasks):
+        seen.update(kwargs, preload=preload, tasks=tasks)
         if temp_dir is not None:
             os.rmdir(temp_dir)
         yield None
 
     monkeypatch.setattr(ray, "is_initialized", lambda: False)
     monkeypatch.setattr(eval.distributed, "_connected", connected)
-    with ray_cluster(ClusterSettings(workers=2), preload=("eval.evaluate",)):
+    with ray_cluster(ClusterSettings(workers=2), preload=("eval.evaluate",), tasks=3):
         env = seen["runtime_env"]["env_vars"]
         hook = seen["runtime_env"]["worker_process_setup_hook"]
     assert env["PYTHONPATH"].split(os.pathsep)[0] == _driver_folder()
     assert [_driver_folder()] in [cell.cell_contents for cell in hook.__closure__]  # the roots it installs
-    assert seen["preload"] == ("eval.evaluate",)  # the workers to start, handed to the connection
+    assert (seen["preload"], seen["tasks"]) == (("eval.evaluate",), 3)  # the workers to start, handed on
 
 
 def test_the_setup_keeps_the_drivers_packages_ahead_of_a_checkout_put_first_on_the_path(tmp_path):
