@@ -15,10 +15,14 @@ rotations / reflections of each photo before the inverse, in place of the one pa
 The printout also gives the output's mean and median where the clean photo is black (at most 1/255, in
 /255): the background level a splat of these photos inherits.
 
+`--width W` / `--batch B` train a wider UNet (first-level channels, the preset's 16) or on larger batches
+(the preset's 8 patches of 64 px) with the same steps and schedule: what the network's size buys.
+
 `bm3d` is the classical reference on the same photos: BM3D (`bm3d.bm3d_rgb`, one thread) given the true
 noise std `--sigma` (in /255), photo by photo.
 
 Usage: .venv/bin/python benchmarks/diag_objective_photos.py DATASET OUT r2r|neighbor2neighbor|n2v [--seed N]
+           [--width W] [--batch B]
        .venv/bin/python benchmarks/diag_objective_photos.py DATASET OUT bm3d --sigma 25
        .venv/bin/python benchmarks/diag_objective_photos.py DATASET OUT score   (photos already in OUT)
 """
@@ -117,6 +121,8 @@ def main() -> int:
     ap.add_argument("--sigma", type=float, default=None, help="bm3d: the true noise std, in /255")
     ap.add_argument("--checkpoint", type=Path, default=None, help="a trained model to use instead of training")
     ap.add_argument("--dihedral", type=int, default=1, help="neighbor2neighbor: passes over the 8 dihedral views")
+    ap.add_argument("--width", type=int, default=None, help="the UNet's first-level channels (preset: 16)")
+    ap.add_argument("--batch", type=int, default=None, help="training patches per step (preset: 8)")
     args = ap.parse_args()
     train = json.loads((args.dataset / "split.json").read_text())["train"]
     stems = [Path(n).stem for n in train]
@@ -124,6 +130,10 @@ def main() -> int:
         ap.error("--sigma is for bm3d only")
     if args.dihedral != 1 and (args.method != "neighbor2neighbor" or not 1 <= args.dihedral <= 8):
         ap.error("--dihedral K: neighbor2neighbor only, 1 <= K <= 8")
+    if (args.width is not None or args.batch is not None) and (args.method in ("bm3d", "score") or args.checkpoint):
+        ap.error("--width / --batch set the network to train: not with bm3d, score or --checkpoint")
+    if any(v is not None and v < 1 for v in (args.width, args.batch)):
+        ap.error("--width and --batch must be at least 1")
     if args.method == "bm3d":
         if args.sigma is None:
             ap.error("bm3d needs --sigma (the true noise std, in /255)")
@@ -132,6 +142,10 @@ def main() -> int:
         noisy = read_views(args.dataset / "images")
         images = [noisy[s] for s in stems]
         cfg = replace(n2v_preset("default", steps=STEPS), method=args.method)
+        if args.width is not None:
+            cfg = replace(cfg, unet=replace(cfg.unet, width=args.width))
+        if args.batch is not None:
+            cfg = replace(cfg, batch_size=args.batch)
         model = load_checkpoint(args.checkpoint) if args.checkpoint else train_with_method(images, cfg, seed=args.seed)
         if args.dihedral > 1 and args.method == "neighbor2neighbor":
             out = _dihedral_n2n(model, images, args.dihedral)

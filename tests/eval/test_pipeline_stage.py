@@ -261,3 +261,14 @@ def test_file_hashes_against_hashlib(tmp_path):
     for rel in ("sub/z.txt", "sub/.hidden/h.txt", ".top.txt", "a.txt"):
         (tmp_path / rel).write_text(rel)
     assert [p.relative_to(tmp_path).as_posix() for p in tree_files(tmp_path)] == ["a.txt", "big.bin", "sub/z.txt"]
+
+
+def test_the_best_preset_trains_the_wide_unet():
+    """`best` is `default` with the wide UNet (width 32) and the longer splat; `default` keeps width 16."""
+    from denoise.n2v import N2V_PRESETS
+
+    best, default = round_settings(preset("best"), 1), round_settings(preset("default"), 1)
+    assert best.denoise.n2v.unet.width == N2V_PRESETS["wide"].unet.width == 32
+    assert default.denoise.n2v.unet.width == N2V_PRESETS["default"].unet.width == 16
+    assert dataclasses.replace(best.denoise.n2v, unet=default.denoise.n2v.unet) == default.denoise.n2v
+    assert best.splat.train.iters == 2000 != default.splat.train.iters

@@ -1,0 +1,114 @@
+"""The default denoiser against the UNet's width, batch, patch size and training length, on whole real photos.
+
+Trains the `default` preset's UNet (`denoise.n2v.n2v_preset("default")`: width 16, 4 levels, 8 patches of
+64 px per step, lr 1e-3 on a cosine schedule) with one objective on a dataset's noisy training photos, as
+the pipeline's denoise stage does (`train_with_method`, then `denoise_with_method` with 8 passes and the
+clipped-noise inverse), changing one setting at a time, and scores the photos against `clean/` (PSNR,
+SSIM over the whole photos). Made for a GPU, where each run takes 20-80 s; on 2 CPU cores one run of the
+default takes about 10 minutes (`benchmarks/diag_objective_photos.py --width/--batch` is the same training
+on one configuration, and writes its photos).
+
+Usage: python benchmarks/diag_denoise_capacity.py DATA_ROOT OUT.json [--device cuda] [--runs NAME,...]
+(DATA_ROOT holds the dataset folders named in RUNS, e.g. `runs/real` with `dtu24_cluster12_s25`,
+`dtu24_cluster12_pg`, `temple_ring_s25` as imported in docs/bench/pipeline.md; each needs `images/`,
+`clean/` and `split.json`; only the training views are read.) Writes OUT.json after each run.
+"""
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+#: name -> (dataset folder, objective, width, steps, batch, patch px, seed). The objective is what the
+#: `default` preset's "auto" rule picks for the dataset (R2R on DTU, Neighbor2Neighbor on the temple).
+RUNS: dict[str, tuple[str, str, int, int, int, int, int]] = {
+    "dtu_base": ("dtu24_cluster12_s25", "r2r", 16, 2000, 8, 64, 0),
+    "dtu_base_seed1": ("dtu24_cluster12_s25", "r2r", 16, 2000, 8, 64, 1),
+    "dtu_w24_b16": ("dtu24_cluster12_s25", "r2r", 24, 2000, 16, 64, 0),
+    "dtu_w32": ("dtu24_cluster12_s25", "r2r", 32, 2000, 8, 64, 0),
+    "dtu_w32_seed1": ("dtu24_cluster12_s25", "r2r", 32, 2000, 8, 64, 1),
+    "dtu_b32": ("dtu24_cluster12_s25", "r2r", 16, 2000, 32, 64, 0),
+    "dtu_p128": ("dtu24_cluster12_s25", "r2r", 16, 2000, 8, 128, 0),
+    "dtu_w32_b32": ("dtu24_cluster12_s25", "r2r", 32, 2000, 32, 64, 0),
+    "dtu_w32_b16_4k": ("dtu24_cluster12_s25", "r2r", 32, 4000, 16, 64, 0),
+    "dtu_w48_b16_p128_4k": ("dtu24_cluster12_s25", "r2r", 48, 4000, 16, 128, 0),
+    "pg_base": ("dtu24_cluster12_pg", "r2r", 16, 2000, 8, 64, 0),
+    "pg_w32": ("dtu24_cluster12_pg", "r2r", 32, 2000, 8, 64, 0),
+    "pg_w32_b16_4k": ("dtu24_cluster12_pg", "r2r", 32, 4000, 16, 64, 0),
+    "temple_base": ("temple_ring_s25", "neighbor2neighbor", 16, 2000, 8, 64, 0),
+    "temple_b32": ("temple_ring_s25", "neighbor2neighbor", 16, 2000, 32, 64, 0),
+    "temple_w32_b16": ("temple_ring_s25", "neighbor2neighbor", 32, 2000, 16, 64, 0),
+    "temple_w32_b16_4k": ("temple_ring_s25", "neighbor2neighbor", 32, 4000, 16, 64, 0),
+}
+
+
+def _load(folder: Path) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    from mvgeo.common.imageio import read_image
+
+    train = json.loads((folder / "split.json").read_text())["train"]
+    noisy = [np.asarray(read_image(folder / "images" / n), dtype=np.float32) for n in train]
+    clean = [np.asarray(read_image(folder / "clean" / n), dtype=np.float64) for n in train]
+    return noisy, clean
+
+
+def _scores(photos: list[np.ndarray], clean: list[np.ndarray]) -> tuple[float, float]:
+    import torch
+
+    from mvgeo.image_metrics import ssim
+
+    def t(x: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1), dtype=np.float64))[None]
+
+    psnr = [-10 * np.log10(np.mean((p.astype(np.float64) - c) ** 2)) for p, c in zip(photos, clean, strict=True)]
+    return float(np.mean(psnr)), float(np.mean([float(ssim(t(p), t(c))) for p, c in zip(photos, clean, strict=True)]))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("data_root", type=Path)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--runs", default=",".join(RUNS), help="comma-separated names of RUNS")
+    args = ap.parse_args()
+    names = [n for n in args.runs.split(",") if n]
+    unknown = [n for n in names if n not in RUNS]
+    if unknown:
+        ap.error(f"unknown runs {unknown}; known: {', '.join(RUNS)}")
+    missing = sorted({RUNS[n][0] for n in names if not (args.data_root / RUNS[n][0] / "split.json").is_file()})
+    if missing:
+        ap.error(f"no dataset {missing} under {args.data_root} (import them as docs/bench/pipeline.md shows)")
+
+    import torch
+
+    from denoise.n2v import n2v_preset
+    from denoise.self_supervised import denoise_with_method, train_with_method
+
+    rows, cache = [], {}
+    for name in names:
+        folder, method, width, steps, batch, patch, seed = RUNS[name]
+        if folder not in cache:
+            cache[folder] = _load(args.data_root / folder)
+        noisy, clean = cache[folder]
+        base = n2v_preset("default", steps=steps)
+        cfg = replace(base, method=method, unet=replace(base.unet, width=width), batch_size=batch, patch_px=patch,
+                      torch_threads=None if args.device != "cpu" else base.torch_threads)
+        t0 = time.perf_counter()
+        model = train_with_method(noisy, cfg, seed=seed, device=args.device)
+        if args.device.startswith("cuda"):
+            torch.cuda.synchronize()
+        train_s = time.perf_counter() - t0
+        psnr, ssim = _scores(denoise_with_method(model, noisy, cfg, passes=8, seed=seed), clean)
+        row = dict(name=name, dataset=folder, method=method, width=width, steps=steps, batch=batch, patch=patch,
+                   seed=seed, psnr=round(psnr, 3), ssim=round(ssim, 4), train_s=round(train_s, 1))
+        print(row, flush=True)
+        rows.append(row)
+        args.out.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
