@@ -2,11 +2,14 @@
 bench_real.py (issue 21, "the match graph at least as dense as COLMAP's exhaustive matching").
 
 Variants: `base` (the defaults: Sampson threshold 1 px at the alignment resolution, at least 20 putative
-matches); `thr1.5` / `thr2` (threshold 1.5 / 2 px); `thr2_m15` (2 px and 15 putative matches). Sets: DTU scan24
-cluster (clean and sigma 25 noise seeds 0..N-1), temple ring (clean), DTU scan24 spread (clean and noisy).
+matches, at least 12 inliers); `m20_i15` (the previous defaults: 15 inliers); `m15_i12` / `m15_i15` (15
+putative matches, 12 / 15 inliers); with 20 matches and 15 inliers, `thr1.5` / `thr2` (threshold 1.5 / 2 px);
+`thr2_m15` (2 px, 15 matches, 15 inliers).
+Sets: DTU scan24 cluster (clean and sigma 25 noise seeds 0..N-1), temple ring (clean), DTU scan24 spread (clean
+and noisy).
 
 Usage: .venv/bin/python benchmarks/diag_match_density.py [VARIANTS] [NOISE_SEEDS]
-(e.g. `base,thr2 3`; one line per set, noise draw and variant: registered views, verified pairs, bundle-adjustment
+(e.g. `m20_i15,base 6`; one line per set, noise draw and variant: registered views, verified pairs, bundle-adjustment
 tracks, rotation error median / max in degrees, ATE over scene scale, seconds).
 """
 
@@ -25,13 +28,19 @@ from mvgeo.common.imageio import list_images
 from mvgeo.metrics import compare_poses
 
 
-def variant(threshold_px: float, min_matches: int) -> AlignConfig:
+def variant(threshold_px: float, min_matches: int, min_inliers: int | None = None) -> AlignConfig:
+    """`bench_real.OURS` with the pair verification's Sampson threshold, putative-match floor and inlier
+    floor (None: the defaults'; it sets both `TwoViewConfig.min_inliers` and the sensitive-SIFT floor)."""
     pw = B.OURS.pairwise
     two_view = replace(pw.two_view, ransac=replace(pw.two_view.ransac, threshold_px=threshold_px))
+    if min_inliers is not None:
+        two_view = replace(two_view, min_inliers=min_inliers)
+        pw = replace(pw, fallback_min_inliers=min_inliers)
     return replace(B.OURS, pairwise=replace(pw, two_view=two_view, min_matches=min_matches))
 
 
-VARIANTS = {"base": (1.0, 20), "thr1.5": (1.5, 20), "thr2": (2.0, 20), "thr2_m15": (2.0, 15)}
+VARIANTS = {"base": (1.0, 20, 12), "m20_i15": (1.0, 20, 15), "m15_i12": (1.0, 15, 12), "m15_i15": (1.0, 15, 15),
+            "thr1.5": (1.5, 20, 15), "thr2": (2.0, 20, 15), "thr2_m15": (2.0, 15, 15)}
 
 
 def main() -> None:
