@@ -9,12 +9,17 @@ default takes about 10 minutes (`benchmarks/diag_objective_photos.py --width/--b
 on one configuration, and writes its photos).
 
 Usage: python benchmarks/diag_denoise_capacity.py DATA_ROOT OUT.json [--device cuda] [--runs NAME,...]
+       [--time-steps N]
 (DATA_ROOT holds the dataset folders named in RUNS, e.g. `runs/real` with `dtu24_cluster12_s25`,
 `dtu24_cluster12_pg`, `temple_ring_s25` as imported in docs/bench/pipeline.md; each needs `images/`,
-`clean/` and `split.json`; only the training views are read.) Writes OUT.json after each run.
+`clean/` and `split.json`; only the training views are read.) Writes OUT.json (device, torch, date, command,
+rows) after each run. `--time-steps N` only times N training steps of each run (seconds per step, no
+scores): what a setting costs on this device, e.g. `--device cpu --time-steps 30` on the 2-core machine.
+The first run on a GPU includes CUDA's start-up (about 5 s).
 """
 
 import argparse
+import datetime
 import json
 import sys
 import time
@@ -73,11 +78,16 @@ def main() -> int:
     ap.add_argument("out", type=Path)
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--runs", default=",".join(RUNS), help="comma-separated names of RUNS")
+    ap.add_argument("--time-steps", type=int, default=0, help="only time this many training steps per run")
     args = ap.parse_args()
     names = [n for n in args.runs.split(",") if n]
     unknown = [n for n in names if n not in RUNS]
-    if unknown:
-        ap.error(f"unknown runs {unknown}; known: {', '.join(RUNS)}")
+    if not names or unknown or len(set(names)) != len(names):
+        ap.error(f"--runs: names of RUNS, each once (got {args.runs!r}); known: {', '.join(RUNS)}")
+    if args.time_steps < 0:
+        ap.error("--time-steps must be >= 0")
+    if not args.out.parent.is_dir():
+        ap.error(f"no folder {args.out.parent} for {args.out.name}")
     missing = sorted({RUNS[n][0] for n in names if not (args.data_root / RUNS[n][0] / "split.json").is_file()})
     if missing:
         ap.error(f"no dataset {missing} under {args.data_root} (import them as docs/bench/pipeline.md shows)")
@@ -87,13 +97,19 @@ def main() -> int:
     from denoise.n2v import n2v_preset
     from denoise.self_supervised import denoise_with_method, train_with_method
 
-    rows, cache = [], {}
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        ap.error(f"--device {args.device}: torch sees no CUDA device")
+    device_name = torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else "cpu"
+    record = {"device": device_name, "torch": torch.__version__,
+              "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+              "command": " ".join(["python", *sys.argv]), "rows": []}
+    cache = {}
     for name in names:
         folder, method, width, steps, batch, patch, seed = RUNS[name]
         if folder not in cache:
             cache[folder] = _load(args.data_root / folder)
         noisy, clean = cache[folder]
-        base = n2v_preset("default", steps=steps)
+        base = n2v_preset("default", steps=args.time_steps or steps)
         cfg = replace(base, method=method, unet=replace(base.unet, width=width), batch_size=batch, patch_px=patch,
                       torch_threads=None if args.device != "cpu" else base.torch_threads)
         t0 = time.perf_counter()
@@ -101,12 +117,16 @@ def main() -> int:
         if args.device.startswith("cuda"):
             torch.cuda.synchronize()
         train_s = time.perf_counter() - t0
-        psnr, ssim = _scores(denoise_with_method(model, noisy, cfg, passes=8, seed=seed), clean)
         row = dict(name=name, dataset=folder, method=method, width=width, steps=steps, batch=batch, patch=patch,
-                   seed=seed, psnr=round(psnr, 3), ssim=round(ssim, 4), train_s=round(train_s, 1))
+                   seed=seed)
+        if args.time_steps:
+            row["s_per_step"] = round(train_s / args.time_steps, 4)
+        else:
+            psnr, ssim = _scores(denoise_with_method(model, noisy, cfg, passes=8, seed=seed), clean)
+            row.update(psnr=round(psnr, 3), ssim=round(ssim, 4), train_s=round(train_s, 1))
         print(row, flush=True)
-        rows.append(row)
-        args.out.write_text(json.dumps(rows, indent=1))
+        record["rows"].append(row)
+        args.out.write_text(json.dumps(record, indent=1))
     return 0
 
 

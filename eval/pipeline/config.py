@@ -242,11 +242,12 @@ class PipelineConfig:
 #:   background R2R's recorruption does not hold (its photos 27.1 dB against 34.3). The paper's loop is
 #:   `--denoiser n2v --rounds 2` (`denoise-gs eval`'s `denoise_gs`, `denoise_gs_fused`).
 #: - `best`: the `default` with a 2000-iteration splat (about twice the splat's time) and the UNet at width
-#:   32 (`denoise.n2v.N2V_PRESETS["wide"]`, 1.4x the denoiser's CPU training time). The longer splat, on
-#:   DTU scan24 at sigma 25, three seeds: 25.06 / 0.792 / 0.152 against `default`'s 24.87 / 0.792 / 0.166
-#:   held out; the wider UNet's photos there are 31.13 dB / 0.856 SSIM against 30.52 / 0.837 and splat with
-#:   the true cameras to 25.34 / 0.811 / 0.142 against 25.26 / 0.805 / 0.157 (docs/bench/pipeline.md);
-#:   on `llff_like` a 2000-iteration splat after N2V gained nothing.
+#:   32 (`denoise.n2v.N2V_PRESETS["wide"]`, about 2.3x the denoiser's CPU time per training step; every method
+#:   that trains the UNet under `best` trains it at width 32). The longer splat alone, on DTU scan24 at
+#:   sigma 25, three seeds: 25.06 / 0.792 / 0.152 against `default`'s 24.87 / 0.792 / 0.166 held out; with the
+#:   wider UNet, seed 0: 25.36 / 0.804 / 0.135 against 25.13 / 0.794 / 0.154 (its photos 31.13 dB / 0.856
+#:   SSIM against 30.52 / 0.837; docs/bench/pipeline.md); on `llff_like` a 2000-iteration splat after N2V
+#:   gained nothing.
 #:
 #: With rounds >= 2, all three keep the better-determined focal length and poses across rounds
 #: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and, when a round keeps the previous round's

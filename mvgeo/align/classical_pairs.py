@@ -76,9 +76,9 @@ class ClassicalPairConfig:
         fallback_min_inliers: the relative-pose inlier minimum in the fallback run.
             12, as in the default run (`two_view`'s): the weak pairs that close
             temple_sparse_ring's ring have 21-24 inliers. The wrong pairs the weaker
-            keypoints admit (on temple, one of 17 inliers, 51 deg off) are left to the loop
-            check and the per-pair checks after the alignment, which need accurate pair
-            poses: hence `fallback_refine`.
+            keypoints admit (on temple, one of 17 inliers, 51 deg off; measured at a floor of 15)
+            are left to the loop check and the per-pair checks after the alignment, which need
+            accurate pair poses: hence `fallback_refine`.
         fallback_refine: the fallback run refines each pair's relative pose on its inliers
             (`TwoViewConfig.refine`, also the default run's setting). On temple_sparse_ring (known
             intrinsics, 640 px, contrast 0.01) the correct pairs' unrefined USAC_MAGSAC rotations were
@@ -87,8 +87,8 @@ class ClassicalPairConfig:
         fallback_blur_sigma_px: see `fallback_sift`.
         sensitive_below_noise: images whose median estimated noise (`features.estimate_noise_sigma`, gray,
             [0, 1] units) is below this are detected with the fallback's COLMAP-like settings from the start
-            (0: never). Clean DTU scan24 (2.1/255): 40 verified pairs instead of 30, 0.25 deg median
-            rotation error, max 0.60, ATE 0.0067 (default detection 0.27, 0.74, 0.0084); clean temple
+            (0: never). Clean DTU scan24 (2.1/255), at a 15-inlier floor: 40 verified pairs instead of 30,
+            0.25 deg median rotation error, max 0.60, ATE 0.0067 (default detection 0.27, 0.74, 0.0084); clean temple
             (0.4/255) gets the result its fallback gave, without the first detection. N2V-denoised photos
             (4.5/255) keep the default detection: with the COLMAP-like one, one of three was 1.0 deg off
             (0.30 with the default).
@@ -102,8 +102,9 @@ class ClassicalPairConfig:
             pycolmap's exhaustive matching on clean DTU scan24 (43 pairs, 40 with 15 inliers) with the same
             accuracy, and on six sigma-25 draws 28-33 pairs (26-31 with 15) with the mean median / max
             rotation error 0.377 / 0.924 deg and ATE 0.0120 (0.394 / 0.943, 0.0122); temple and the
-            synthetic orbit unchanged. Also lowering `min_matches` to 15 refused the synthetic orbit
-            (`benchmarks/diag_match_density.py m20_i15,base 6`, docs/bench/real.md). Default backend: OpenCV's
+            synthetic orbit unchanged; the loop check rejects 0-1 more pair per set. Also lowering
+            `min_matches` to 15 refused the synthetic orbit (`benchmarks/diag_match_density.py
+            m20_i15,base,m15_i12 6`, docs/bench/real.md). Default backend: OpenCV's
             USAC_MAGSAC (measured ~40x faster than our numpy LO-MSAC, same
             accuracy; ``backend="own"`` selects ours), followed by the LM refinement
             of each pair's pose on its inliers and the re-selection of the inliers
