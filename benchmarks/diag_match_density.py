@@ -58,6 +58,24 @@ def _object_ring(work: Path):
     return sorted(list_images(d / "images")), read_sparse_model(d / "sparse" / "0").cam_from_world_by_name()
 
 
+def _report(label: str, name: str, paths: list[Path], gt: dict) -> None:
+    """Align `paths` with variant `name` and print one line: registered, pairs, tracks, errors, seconds."""
+    t = time.perf_counter()
+    try:
+        r = align_images(paths, variant(*VARIANTS[name]))
+    except Exception as exc:  # report, keep going
+        print(f"{label} {name:9s} failed: {type(exc).__name__}: {str(exc)[:100]} ({time.perf_counter() - t:.1f} s)",
+              flush=True)
+        return
+    sec = time.perf_counter() - t
+    m = compare_poses(r.sparse_model.cam_from_world_by_name(), gt)
+    ba = r.stats.bundle_adjustment
+    rot = f"{m.median_rotation_deg:.3f} / {m.rotation_deg.max():.3f} deg"
+    ate = m.ate.rmse / B.scene_scale(gt)
+    print(f"{label} {name:9s} registered {m.n_registered:2d}, pairs {r.stats.n_pairs_verified:2d}, "
+          f"tracks {ba.n_points if ba else 0:5d}, rot {rot}, ATE/scale {ate:.4f}, {sec:.1f} s", flush=True)
+
+
 def main() -> None:
     names = sys.argv[1].split(",") if len(sys.argv) > 1 else list(VARIANTS)
     unknown = [n for n in names if n not in VARIANTS]
@@ -68,17 +86,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="match_density_"))
     paths, gt = _object_ring(work)
     for name in names:
-        t = time.perf_counter()
-        try:
-            r = align_images(paths, variant(*VARIANTS[name]))
-        except Exception as exc:  # report, keep going
-            print(f"{'object_ring (synthetic)':30s} {name:9s} failed: {type(exc).__name__}: {str(exc)[:100]}",
-                  flush=True)
-            continue
-        m = compare_poses(r.sparse_model.cam_from_world_by_name(), gt)
-        print(f"{'object_ring (synthetic)':30s} {name:9s} registered {m.n_registered:2d}, pairs "
-              f"{r.stats.n_pairs_verified:2d}, rot {m.median_rotation_deg:.3f} / {m.rotation_deg.max():.3f} deg, "
-              f"{time.perf_counter() - t:.1f} s", flush=True)
+        _report(f"{'object_ring (synthetic)':30s}", name, paths, gt)
     if not sets:
         print("no real set found in ../shared/data")
         return
@@ -87,23 +95,8 @@ def main() -> None:
         for noisy, seed in draws:
             folder = B.prepare(s, work, noisy, seed)
             paths = [p for p in list_images(folder) if p.name in s.gt]
-            label = f"{s.name:22s} {f'noisy{seed}' if noisy else 'clean':7s}"
             for name in names:
-                t = time.perf_counter()
-                try:
-                    r = align_images(paths, variant(*VARIANTS[name]))
-                except Exception as exc:  # report, keep going
-                    sec = time.perf_counter() - t
-                    print(f"{label} {name:9s} failed: {type(exc).__name__} ({sec:.1f} s)", flush=True)
-                    continue
-                sec = time.perf_counter() - t
-                m = compare_poses(r.sparse_model.cam_from_world_by_name(), s.gt)
-                ba = r.stats.bundle_adjustment
-                rot = f"{m.median_rotation_deg:.3f} / {m.rotation_deg.max():.3f} deg"
-                ate = m.ate.rmse / B.scene_scale(s.gt)
-                print(f"{label} {name:9s} registered {m.n_registered:2d}, pairs {r.stats.n_pairs_verified:2d}, "
-                      f"tracks {ba.n_points if ba else 0:5d}, rot {rot}, ATE/scale {ate:.4f}, "
-                      f"{sec:.1f} s", flush=True)
+                _report(f"{s.name:22s} {f'noisy{seed}' if noisy else 'clean':7s}", name, paths, s.gt)
 
 
 if __name__ == "__main__":
