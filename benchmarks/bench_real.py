@@ -1,10 +1,12 @@
 """Real photographs: `mvgeo align` vs pycolmap incremental and global mapping, on identical image files.
 
 Usage: `python benchmarks/bench_real.py [--data=DIR[,DIR...]] [--sets=temple,dtu_spread,dtu_cluster,data]
-[--noise=clean,noisy] [--noise-seeds=N] [--methods=ours,ours_intr,incremental,global] [--out=NAME]` (writes
-docs/bench/NAME.md, default `real`; only the table and its header). `--noise-seeds=N` (default 6) runs the
-noisy variant with noise seeds 0..N-1 and adds a table of the noisy rows per set and method over the seeds:
-one draw of the noise moves the pose errors by more than the methods differ.
+[--noise=clean,noisy] [--noise-seeds=N] [--methods=ours,ours_intr,incremental,global] [--out=NAME] [--exif]`
+(writes docs/bench/NAME.md, default `real`; only the table and its header). `--noise-seeds=N` (default 6) runs
+the noisy variant with noise seeds 0..N-1 and adds a table of the noisy rows per set and method over the seeds:
+one draw of the noise moves the pose errors by more than the methods differ. `--exif` writes every image with
+the EXIF 35 mm-equivalent focal length a camera would record for the set's calibration (camera photos carry
+it; the shared sets' PNGs do not), which both `mvgeo align` and pycolmap read as their starting focal.
 
 Sets (each on 12 training views, clean and with Gaussian noise sigma = 25/255 added, seeds 0..N-1, saved as 8-bit PNG):
 - `temple`: ../shared/data/temple_sparse_ring (Middlebury, 640x480, calibrated `templeSR_par.txt`), 12 of its 16
@@ -54,7 +56,7 @@ from eval.real.split import ring_split
 from mvgeo.align.api import AlignConfig, align_images  # imports cv2 before pycolmap
 from mvgeo.align.colmap_sfm import ColmapConfig, run_colmap
 from mvgeo.align.dense_stereo import DenseStereoConfig
-from mvgeo.align.intrinsics import read_intrinsics
+from mvgeo.align.intrinsics import FULL_FRAME_DIAGONAL_MM, read_intrinsics
 from mvgeo.camera import Camera
 from mvgeo.common.imageio import list_images, read_image, write_image
 from mvgeo.metrics import compare_poses
@@ -138,9 +140,10 @@ def folder_set(folder: Path) -> RealSet | None:
     return RealSet(folder.name, [src / n for n in names], gt, ref.camera_of(names[0]).K, add_noise=clean)
 
 
-def prepare(s: RealSet, work: Path, noisy: bool, seed: int = 0) -> Path:
-    """A folder with exactly the set's 12 image files (8-bit PNG; noisy: sigma 25/255 added with `seed`)."""
-    tag = f"noisy{seed}" if noisy else "clean"
+def prepare(s: RealSet, work: Path, noisy: bool, seed: int = 0, exif_35mm: int | None = None) -> Path:
+    """A folder with exactly the set's 12 image files (8-bit PNG; noisy: sigma 25/255 added with `seed`);
+    with `exif_35mm`, the same pixels carry that EXIF FocalLengthIn35mmFilm (`exif_focal_35mm_of`)."""
+    tag = (f"noisy{seed}" if noisy else "clean") + ("" if exif_35mm is None else f"_exif{exif_35mm}")
     out = work / f"{s.name.replace(' ', '_').replace('(', '').replace(')', '')}_{tag}"
     out.mkdir(parents=True)
     rng = np.random.default_rng(seed)
@@ -150,7 +153,21 @@ def prepare(s: RealSet, work: Path, noisy: bool, seed: int = 0) -> Path:
             write_image(out / f.name, np.clip(img + rng.normal(0.0, SIGMA_8BIT / 255.0, img.shape), 0.0, 1.0))
         else:
             shutil.copy(f, out / f.name)
+        if exif_35mm is not None:
+            from PIL import Image
+
+            exif = Image.Exif()
+            exif.get_ifd(0x8769)[0xA405] = int(exif_35mm)  # Exif IFD, FocalLengthIn35mmFilm
+            with Image.open(out / f.name) as im:
+                im.load()
+                im.save(out / f.name, exif=exif.tobytes())
     return out
+
+
+def exif_focal_35mm_of(K: np.ndarray, wh: tuple[int, int]) -> int:
+    """The FocalLengthIn35mmFilm a camera writes for calibration `K` at image size `wh`: the same diagonal
+    field of view on a 36 x 24 mm frame, in whole millimetres (the tag is an integer)."""
+    return int(round(float(K[0, 0]) * FULL_FRAME_DIAGONAL_MM / float(np.hypot(*wh))))
 
 
 def write_cameras_txt(K: np.ndarray, wh: tuple[int, int], path: Path) -> Path:
@@ -286,6 +303,7 @@ def main() -> int:
     methods = [m for m in METHODS if m in opt("methods", ",".join(METHODS)).split(",")]
     out_name = opt("out", "real")
     n_seeds = int(opt("noise-seeds", "6"))
+    exif = "--exif" in sys.argv
     sets: list[RealSet] = []
     missing = []
     found = [(temple_set, "temple", TEMPLE), (lambda: dtu_set("spread"), "dtu_spread", DTU),
@@ -317,13 +335,16 @@ def main() -> int:
             cams_txt = write_cameras_txt(s.K, wh, work / f"cams_{si}")
             f_ref = float(s.K[0, 0])
             variants = [(v, seed) for v in noise for seed in (range(n_seeds) if v == "noisy" else [0])]
+            f35 = exif_focal_35mm_of(s.K, wh) if exif else None
             for variant, seed in variants:
                 if variant == "noisy" and not s.add_noise and "clean" in noise:
                     continue
-                folder = prepare(s, work, variant == "noisy", seed)
+                folder = prepare(s, work, variant == "noisy", seed, f35)
                 label = f"{s.name}, {variant}" if s.add_noise else s.name
                 if variant == "noisy" and seed:
                     label += f" (noise seed {seed})"
+                if f35 is not None:
+                    label += f", EXIF {f35} mm"
                 order = methods[k % len(methods):] + methods[:k % len(methods)]
                 k += 1
                 for m in order:
@@ -352,6 +373,11 @@ def main() -> int:
             "reference centres to their centroid. `ours` is `mvgeo align` without the dense stereo (poses and "
             "sparse points, as the mappers return); `pairs` is verified pairs / all pairs; `tracks` the bundle "
             "adjustment's tracks (ours) or the model's points (pycolmap). See the script's docstring.\n\n")
+    if exif:
+        body += ("`--exif`: every image file carries the EXIF FocalLengthIn35mmFilm a camera would write for the "
+                 "set's calibration (whole millimetres, named in the set column; the same pixels); `ours` starts "
+                 "its pairs there (`AlignConfig.exif_focal`) and pycolmap's image reader takes it as its prior "
+                 "focal.\n\n")
     body += md_table(["set", "method", "registered", "rot med (deg)", "rot max (deg)", "transl dir (deg)",
                       "ATE / scale", "focal err %", "time (s)", "pairs", "tracks", "note"], rows)
     if n_seeds > 1:

@@ -50,6 +50,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="thinning to --points: most confident point per pixel cell of each view (default) "
                         "or per voxel")
     a.add_argument("--intrinsics", type=Path, help="COLMAP cameras.txt or mrcal .cameramodel of these images")
+    a.add_argument("--exif-focal", action=argparse.BooleanOptionalAction, default=True,
+                   help="without --intrinsics, start at the photos' EXIF 35 mm-equivalent focal length when they all "
+                        "carry the same one (default: on; align.json 'focal_prior')")
     a.add_argument("--allow-partial", action="store_true",
                    help="if some images cannot be connected, register the largest connected group and list "
                         "the others in align.json 'unregistered' (default: fail naming them)")
@@ -97,15 +100,17 @@ def _align(args: argparse.Namespace) -> int:
                                               pixel_stride=args.align_stride),
                       points_budget=args.points, bundle_adjust=args.ba, allow_partial=args.allow_partial,
                       downsample=args.downsample, dense_stereo=DenseStereoConfig(enabled=args.dense_stereo),
-                      hole_fill=HoleFillConfig(enabled=args.hole_fill), initial_poses=args.initial_poses)
+                      hole_fill=HoleFillConfig(enabled=args.hole_fill), initial_poses=args.initial_poses,
+                      exif_focal=args.exif_focal)
     result = align_images(paths, cfg, intrinsics=intr)
     write_align_result(plan, result)
     s = result.stats
     if s.unregistered:
         print(f"warning: {len(s.unregistered)} images not registered: {[u.name for u in s.unregistered]}",
               file=sys.stderr)
+    prior = f", focal prior {s.focal_prior.focal_35mm:g} mm ({s.focal_prior.source})" if s.focal_prior else ""
     print(f"aligned {s.n_registered}/{s.n_images} images ({s.n_pairs_ok}/{s.n_pairs} pairs, {s.initial_poses} "
-          f"start, {len(s.candidates)} candidate(s)), {s.n_points} points, "
+          f"start, {len(s.candidates)} candidate(s){prior}), {s.n_points} points, "
           f"loss {s.init_loss:.4g} -> {s.final_loss:.4g}, {s.timings_s['total']:.1f} s -> {args.out}")
     return 0
 

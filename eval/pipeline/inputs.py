@@ -6,7 +6,8 @@ filter (each output pixel the mean of the input pixels it covers: no aliasing of
 texture), and written as a 16-bit PNG into `OUT/inputs/`; smaller inputs are copied unchanged
 (8-bit values survive 16-bit PNG exactly). `OUT/inputs/sizes.json` keeps each view's input and
 working size, so the final cameras can also be written at the input resolution
-(`eval.pipeline.publish`).
+(`eval.pipeline.publish`), and the photo's EXIF 35 mm-equivalent focal length (`focal_35mm`, null
+without one), which the PNGs do not carry: the alignment starts at it (`working_focal_prior`).
 """
 
 from __future__ import annotations
@@ -20,10 +21,10 @@ import numpy as np
 from eval.pipeline.stage import StageContext
 from eval.pipeline.views import view_files, write_views
 from mvgeo.common.errors import InputError
-from mvgeo.common.imageio import read_image
+from mvgeo.common.imageio import exif_focal_35mm, read_image
 
 __all__ = ["SIZES_FILE", "WORKING_DIR", "prepare_inputs", "read_sizes", "resize_area",
-           "working_dataset", "working_size"]
+           "working_dataset", "working_focal_prior", "working_size"]
 
 #: Folder of the working images inside OUT, and the sizes file inside it.
 WORKING_DIR = "inputs"
@@ -63,7 +64,8 @@ def prepare_inputs(ctx: StageContext) -> Mapping[str, object]:
         img = read_image(path)
         size = working_size(img.shape[1], img.shape[0], max_size)
         images[stem] = resize_area(img, size)
-        sizes[stem] = {"input": [img.shape[1], img.shape[0]], "working": list(size)}
+        sizes[stem] = {"input": [img.shape[1], img.shape[0]], "working": list(size),
+                       "focal_35mm": exif_focal_35mm(path)}
     write_views(out, images)
     (out / SIZES_FILE).write_text(json.dumps(sizes, indent=2) + "\n")
     resized = sorted(s for s, v in sizes.items() if v["input"] != v["working"])
@@ -83,6 +85,24 @@ def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int]]]:
     except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
         raise InputError(f"cannot read the working sizes ({exc})", path=path,
                          fix="re-run with --force to rebuild OUT/inputs") from exc
+
+
+def working_focal_prior(working_dir: str | Path):
+    """The alignment's focal prior from the input photos' EXIF (`mvgeo.align.intrinsics.common_focal_prior`
+    over `sizes.json`'s `focal_35mm`), or (None, why not). A `sizes.json` written before it recorded the
+    EXIF focal gives none.
+
+    Raises:
+        InputError: a missing or malformed `sizes.json`.
+    """
+    from mvgeo.align.intrinsics import common_focal_prior
+
+    path = Path(working_dir) / SIZES_FILE
+    read_sizes(path)  # the same checks as every reader of the file
+    raw = json.loads(path.read_text())
+    stems = sorted(raw)
+    values = [raw[k].get("focal_35mm") for k in stems]
+    return common_focal_prior([None if v is None else float(v) for v in values], stems)
 
 
 def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -> Path:

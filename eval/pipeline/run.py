@@ -106,7 +106,8 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
     r >= 2; `working`: the working images, which the fuse stage reads)."""
     r = settings.index
     label = f"round{r}"
-    inputs, upstream = {"images": rd / "denoised"}, (images,)
+    # `working`: the prepare stage's sizes.json carries the input photos' EXIF focal (the align stage's prior).
+    inputs, upstream = {"images": rd / "denoised", "working": working}, (images,)
     if settings.align.noisy_first:  # round 1: the noisy working photos, aligned first (AlignSettings.photos)
         inputs["noisy"] = working
     if previous is not None:  # the previous round's calibration (eval.pipeline.calibration)

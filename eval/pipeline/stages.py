@@ -22,6 +22,7 @@ function imports what it calls when it runs, not when this module is imported.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import shutil
@@ -42,6 +43,7 @@ from eval.pipeline.calibration import (
     restricted_ratios,
 )
 from eval.pipeline.hashing import file_sha256
+from eval.pipeline.inputs import working_focal_prior
 from eval.pipeline.stage import StageContext, StageFn
 from eval.pipeline.stage_settings import SplatStageSettings
 from eval.pipeline.views import read_views, view_files, write_views
@@ -135,6 +137,10 @@ def align(ctx: StageContext) -> Mapping[str, object]:
 
     s = ctx.settings
     cfg = s.align
+    if "working" in ctx.inputs and cfg.exif_focal:  # the input photos' EXIF focal: the working PNGs lack it
+        prior, _ = working_focal_prior(ctx.inputs["working"])
+        if prior is not None:
+            align_images = functools.partial(align_images, focal_prior=prior)
     files = list(view_files(ctx.inputs["images"]).values())
     mode = s.reuse_intrinsics or "never"
     previous = ctx.inputs.get("previous_align")

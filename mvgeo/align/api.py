@@ -21,24 +21,26 @@ from mvgeo.align.cloud import DenseCloud, dense_cloud
 from mvgeo.align.config import DEFAULT, PREVIEW, AlignConfig
 from mvgeo.align.graph import make_pairs
 from mvgeo.align.inputs import load_inputs
+from mvgeo.align.intrinsics import FocalPrior, choose_focal_prior
 from mvgeo.align.pairs import PairSet, PointmapModel
 from mvgeo.align.policy import choose_solution
 from mvgeo.align.result import AlignResult
 from mvgeo.align.solve import Candidate
-from mvgeo.align.stats import AlignStats, BundleStats, CandidateSummary, InconsistentPair
+from mvgeo.align.stats import AlignStats, BundleStats, CandidateSummary, FocalPriorStats, InconsistentPair
 from mvgeo.align.verdict import centre_std_ratio
 from mvgeo.align.writer import write_align_result
 from mvgeo.camera import Camera
+from mvgeo.common.errors import InputError
 from mvgeo.common.threads import native_threads
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel
 
-__all__ = ["AlignConfig", "AlignResult", "PREVIEW", "align_images", "write_align_result"]
+__all__ = ["AlignConfig", "AlignResult", "FocalPrior", "PREVIEW", "align_images", "write_align_result"]
 
 
 def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignConfig = DEFAULT, *,
                  names: Sequence[str] | None = None, intrinsics: Camera | None = None,
-                 model: PointmapModel | None = None) -> AlignResult:
+                 model: PointmapModel | None = None, focal_prior: FocalPrior | None = None) -> AlignResult:
     """Pose-free reconstruction of a few views: pairwise pointmaps, DUSt3R global alignment, bundle adjustment.
 
     Args:
@@ -48,6 +50,9 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         intrinsics: known camera (at the input size, any supported model): images are undistorted and the
             focal is fixed instead of estimated.
         model: a `PointmapModel` (default: `ClassicalPointmapModel`).
+        focal_prior: without `intrinsics`, the focal length the default model's pairs start at (e.g. the
+            EXIF focal of the photos these images were made from); default: the image files' common EXIF
+            focal (`AlignConfig.exif_focal`), if any. The bundle adjustment refines it.
 
     Raises:
         InputError: too few/corrupt/duplicate/mixed-size images; `DisconnectedViewsError` (an `InputError`): a
@@ -59,8 +64,16 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         timer = StageTimer()
         with timer.stage("load"):
             inputs = load_inputs(images, names=names, intrinsics=intrinsics, max_size_px=config.max_size_px)
+        prior, no_prior = choose_focal_prior(images, known_intrinsics=inputs.intrinsics is not None,
+                                             given=focal_prior, read_exif=config.exif_focal)
         if model is None:
-            model = ClassicalPointmapModel(config.pairwise, K_align=inputs.K_align, seed=config.seed)
+            model = ClassicalPointmapModel(config.pairwise, K_align=inputs.K_align, seed=config.seed,
+                                           focal_prior_px=None if prior is None else prior.focal_px(inputs.align_wh))
+        elif focal_prior is not None:
+            raise InputError("a focal prior was given with a custom pair model, which would not use it",
+                             fix="pass the prior to the model itself, or leave focal_prior out")
+        elif prior is not None:
+            prior, no_prior = None, "a custom pair model finds its own focal"
         pair_list = make_pairs(len(inputs), config.pairs)
         with timer.stage("pairwise"):
             pairs = model.predict_pairs(inputs.small, pair_list)
@@ -69,7 +82,11 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
                             chosen.pairs.matches, config, timer, chosen.graph.grid_to_align)
         sparse = _sparse_model(chosen, cloud)
         stats = _stats(chosen, candidates, pairs, len(pair_list), len(inputs), sparse, cloud, config, timer)
+        stats = dataclasses.replace(stats, focal_prior_unavailable=no_prior, focal_prior=None if prior is None else
+                                    FocalPriorStats(prior.source, round(prior.focal_35mm, 3),
+                                                    round(prior.focal_px(inputs.input_wh), 2)))
         return AlignResult(sparse, cloud.xyz, cloud.rgb, cloud.conf, stats)
+
 
 
 def _sparse_model(c: Candidate, cloud: DenseCloud) -> SparseModel:

@@ -263,13 +263,19 @@ class ClassicalPointmapModel:
         K_align: optional known intrinsics per image, (N, 3, 3) at the alignment
             resolution (undistorted images); None estimates a shared focal from the pairs.
         seed: RANSAC seed (deterministic results).
+        focal_prior_px: without `K_align`, the shared focal (alignment pixels) the pairs start at, e.g. the
+            photos' EXIF focal (`mvgeo.align.intrinsics.exif_focal_prior`): the pair focals' consensus is
+            then not computed. None: the consensus, else `ClassicalPairConfig.focal_prior`.
     """
 
     def __init__(self, config: ClassicalPairConfig = ClassicalPairConfig(), *, K_align: np.ndarray | None = None,
-                 seed: int = 0):
+                 seed: int = 0, focal_prior_px: float | None = None):
+        if focal_prior_px is not None and not (np.isfinite(focal_prior_px) and focal_prior_px > 0):
+            raise ValueError(f"focal_prior_px must be a positive number of pixels, got {focal_prior_px}")
         self.config = config
         self.K_align = None if K_align is None else np.asarray(K_align, np.float64)
         self.seed = seed
+        self.focal_prior_px = None if focal_prior_px is None else float(focal_prior_px)
         self._matched: tuple[tuple, MatchSet] | None = None  # (images and pairs key, MatchSet) of the last `match`
 
     @property
@@ -313,7 +319,8 @@ class ClassicalPointmapModel:
         focal averaging, done before the alignment): every pair's shared-focal relative pose, then the
         focal the *well-determined* pair focals agree on (`RelativePoseResult.focal_well_determined`,
         `consensus_focal`; object-centric rings are a critical configuration for two-view focal estimation)
-        becomes one calibration for the calibrated relative pose of every pair.
+        becomes one calibration for the calibrated relative pose of every pair. With `focal_prior_px` (the
+        photos' EXIF focal) that focal is used instead, without the pair focals.
 
         Args:
             images: N images (H, W, 3) float32 RGB at the alignment resolution.
@@ -328,8 +335,14 @@ class ClassicalPointmapModel:
         K = self.K_align if K_align is None else np.asarray(K_align, np.float64)
         determined, why = True, ""
         with self._pool() as pool:
-            if K is None:
+            if K is None and self.focal_prior_px is not None:
+                f, determined = self.focal_prior_px, False
+                why = ("the pairs were computed at the focal length prior (the photos' EXIF focal), not from "
+                       "their own focal estimates")
+                _log.info("shared focal %.1f px: the focal length prior", f)
+            elif K is None:
                 f, determined, why = self.shared_focal(images, ms, pool)
+            if K is None:
                 Ha, Wa = images[0].shape[:2]
                 K = np.repeat(np.array([[[f, 0, Wa / 2.0], [0, f, Ha / 2.0], [0, 0, 1]]]), len(images), axis=0)
             rels, fails = self._relative_poses(ms, K, two_view, pool)

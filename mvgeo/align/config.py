@@ -95,6 +95,11 @@ class AlignConfig:
         hole_fill: with the dense stereo, wide holes of a view's depth map (textureless surfaces) are
             filled by harmonic interpolation of the inverse depth, at low confidence
             (`mvgeo.align.hole_fill`); align.json `dense_stereo.fraction_filled`.
+        exif_focal: without known intrinsics, image files whose EXIF carries one 35 mm-equivalent focal
+            length (`mvgeo.align.intrinsics.exif_focal_prior`; every phone and most cameras write it) start the
+            pairs at that focal instead of the pair focals' consensus or COLMAP's prior 1.2 max(W, H); the
+            bundle adjustment still refines it, and re-estimates the pairs when it moves more than
+            `refocus_min_change` (True). align.json `focal_prior`.
     """
 
     max_size_px: int = 640
@@ -127,7 +132,7 @@ class AlignConfig:
     second_start: bool = True
     max_candidates: int = 8
     hole_fill: HoleFillConfig = field(default_factory=HoleFillConfig)
-
+    exif_focal: bool = True
 
     def __post_init__(self) -> None:
         if self.downsample not in ("pixel", "voxel"):

@@ -1,15 +1,25 @@
-"""Known calibration for `mvgeo align --intrinsics`: COLMAP cameras.txt or mrcal .cameramodel.
+"""Known calibration for `mvgeo align --intrinsics`, and the focal length prior the photos' EXIF gives.
 
-Both become a `mvgeo.camera.Camera` in our pixel convention (mrcal's
-principal point is shifted by +0.5, docs/conventions.md). Images are
-undistorted with OpenCV before the alignment, which then sees a PINHOLE camera
-with the same fx, fy, cx, cy.
+`read_intrinsics`: a COLMAP cameras.txt or an mrcal .cameramodel becomes a `mvgeo.camera.Camera` in our
+pixel convention (mrcal's principal point is shifted by +0.5, docs/conventions.md). Images are
+undistorted with OpenCV before the alignment, which then sees a PINHOLE camera with the same fx, fy, cx, cy.
+
+`exif_focal_prior`: without a calibration, the 35 mm-equivalent focal length cameras write into EXIF
+(FocalLengthIn35mmFilm) is the alignment's starting focal, as COLMAP's image reader uses it. A
+35 mm-equivalent focal gives the same diagonal field of view on a 36 x 24 mm frame, so in pixels it is
+``f35 * hypot(W, H) / hypot(36, 24)`` at any image size (resizing keeps it; cropping does not); exact
+for 3:2 photos (``f35 * W / 36``); pycolmap 4's image reader computes the same prior from the same tag
+(tests/common/test_exif_focal.py). The rule of thumb ``f35 / 35 * max(W, H)`` is 1.1 % under it for 4:3
+photos and 2.8 % over it for 3:2 ones.
 """
 
 from __future__ import annotations
 
+import logging
 import shutil
 import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +27,16 @@ import numpy as np
 from mvgeo.camera import Camera
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import InputError
+from mvgeo.common.imageio import exif_focal_35mm
 from mvgeo.sparse_model import read_sparse_model
+
+__all__ = ["FULL_FRAME_DIAGONAL_MM", "FocalPrior", "choose_focal_prior", "common_focal_prior", "exif_focal_prior",
+           "opencv_distortion", "read_intrinsics", "undistort_image"]
+
+_log = logging.getLogger(__name__)
+
+#: The diagonal of the 36 x 24 mm frame a 35 mm-equivalent focal length refers to.
+FULL_FRAME_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
 
 _MRCAL_TO_COLMAP = {"LENSMODEL_PINHOLE": 0, "LENSMODEL_OPENCV4": 4, "LENSMODEL_OPENCV5": 5, "LENSMODEL_OPENCV8": 8}
 
@@ -103,3 +122,72 @@ def undistort_image(image: np.ndarray, camera: Camera) -> np.ndarray:
     K_cv[0, 2] -= 0.5  # OpenCV pixel centres at integers
     K_cv[1, 2] -= 0.5
     return cv2.undistort(image, K_cv, dist, None, K_cv)
+
+
+@dataclass(frozen=True)
+class FocalPrior:
+    """A starting focal length for the alignment, as a 35 mm-equivalent (so it holds at any image size).
+
+    Attributes:
+        focal_35mm: millimetres on a 36 x 24 mm frame.
+        source: where it comes from: "exif" (the photos' FocalLengthIn35mmFilm) or "given".
+    """
+
+    focal_35mm: float
+    source: str = "given"
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.focal_35mm) and self.focal_35mm > 0):
+            raise ValueError(f"focal_35mm must be a positive number of millimetres, got {self.focal_35mm}")
+
+    def focal_px(self, size_wh: tuple[int, int]) -> float:
+        """The focal length in pixels of an image of `size_wh` (W, H): the same diagonal field of view."""
+        return float(self.focal_35mm * np.hypot(*size_wh) / FULL_FRAME_DIAGONAL_MM)
+
+
+def exif_focal_prior(paths: Sequence[str | Path], *, max_rel_spread: float = 0.01) -> tuple[FocalPrior | None, str]:
+    """The photos' common EXIF 35 mm-equivalent focal length, or (None, why not) (`common_focal_prior`)."""
+    return common_focal_prior([exif_focal_35mm(p) for p in paths], [Path(p).name for p in paths],
+                              max_rel_spread=max_rel_spread)
+
+
+def common_focal_prior(focal_35mm: Sequence[float | None], names: Sequence[str], *, max_rel_spread: float = 0.01
+                       ) -> tuple[FocalPrior | None, str]:
+    """One EXIF focal prior from the photos' 35 mm-equivalent focal lengths (None: the photo has none), or
+    (None, why not).
+
+    The alignment assumes one camera: the prior is given only when every photo carries one and the values
+    agree within `max_rel_spread` of their median (a zoom that changed between photos, or photos from
+    several cameras, give none). Photos without EXIF (PNG exports, the benchmark sets) give none.
+    """
+    if not len(focal_35mm):
+        return None, "no photos"
+    missing = [n for n, v in zip(names, focal_35mm, strict=True) if v is None]
+    if missing:
+        why = (f"{len(missing)} of {len(focal_35mm)} photos have no EXIF 35 mm-equivalent focal length"
+               + (f" (e.g. {missing[0]})" if len(missing) < len(focal_35mm) else ""))
+        return None, why
+    f = np.asarray(focal_35mm, np.float64)
+    med = float(np.median(f))
+    if np.max(np.abs(f / med - 1.0)) > max_rel_spread:
+        why = (f"the photos' EXIF 35 mm-equivalent focal lengths differ ({f.min():g}-{f.max():g} mm: a zoom "
+               "that changed between photos, or several cameras); one shared focal is estimated instead")
+        _log.warning("no focal prior from EXIF: %s", why)
+        return None, why
+    return FocalPrior(med, "exif"), ""
+
+
+def choose_focal_prior(images: Sequence, *, known_intrinsics: bool, given: FocalPrior | None, read_exif: bool
+                       ) -> tuple[FocalPrior | None, str]:
+    """The focal prior `mvgeo.align.align_images` starts its pairs at, or (None, why not): none with known
+    intrinsics; `given` when given; else the image files' common EXIF focal (`exif_focal_prior`) when
+    `read_exif` (`AlignConfig.exif_focal`) and the images are files."""
+    if known_intrinsics:
+        return None, "the intrinsics are known"
+    if given is not None:
+        return given, ""
+    if not read_exif:
+        return None, "EXIF focal lengths not read (AlignConfig.exif_focal off)"
+    if not all(isinstance(x, (str, Path)) for x in images):
+        return None, "the images were given as arrays (no EXIF)"
+    return exif_focal_prior(list(images))

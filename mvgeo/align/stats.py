@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["AlignStats", "BundleStats", "CandidateSummary", "DenseStereoStats", "FailedPair", "InconsistentPair",
-           "RejectedPair", "Unregistered"]
+__all__ = ["AlignStats", "BundleStats", "CandidateSummary", "DenseStereoStats", "FailedPair", "FocalPriorStats",
+           "InconsistentPair", "RejectedPair", "Unregistered"]
 
 
 @dataclass(frozen=True)
@@ -42,6 +42,21 @@ class Unregistered:
 
     name: str
     reason: str
+
+
+@dataclass(frozen=True)
+class FocalPriorStats:
+    """The focal length the pairs started at without known intrinsics, where not COLMAP's generic prior.
+
+    Attributes:
+        source: "exif" (the photos' FocalLengthIn35mmFilm) or "given" (`align_images(focal_prior=...)`).
+        focal_35mm: the 35 mm-equivalent focal length (mm).
+        focal_px: the same at the input size (pixels).
+    """
+
+    source: str
+    focal_35mm: float
+    focal_px: float
 
 
 @dataclass(frozen=True)
@@ -150,6 +165,9 @@ class AlignStats:
     mean_confidence: float
     timings_s: dict[str, float]
     config: dict[str, Any]
+    #: None: no prior (known intrinsics, or photos without one EXIF focal: `focal_prior_unavailable` says why).
+    focal_prior: FocalPriorStats | None = None
+    focal_prior_unavailable: str = ""
     annotations: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
@@ -164,11 +182,15 @@ class AlignStats:
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> AlignStats:
         """The inverse of `to_json` (keys that are not fields become annotations)."""
-        names = {f.name for f in dataclasses.fields(cls)} - {"annotations"}
-        missing = names - set(data)
+        fields = [f for f in dataclasses.fields(cls) if f.name != "annotations"]
+        names = {f.name for f in fields}
+        # Fields with a default were added later: an older align.json without them still reads.
+        required = {f.name for f in fields if f.default is dataclasses.MISSING
+                    and f.default_factory is dataclasses.MISSING}
+        missing = required - set(data)
         if missing:
             raise KeyError(f"align.json lacks {sorted(missing)}")
-        kw = {k: data[k] for k in names}
+        kw = {k: data[k] for k in names if k in data}
         kw["failed_pairs"] = [FailedPair(**x) for x in kw["failed_pairs"]]
         kw["pairs_rejected_by_loops"] = [RejectedPair(**x) for x in kw["pairs_rejected_by_loops"]]
         kw["unregistered"] = [Unregistered(**x) for x in kw["unregistered"]]
@@ -178,6 +200,8 @@ class AlignStats:
             kw["bundle_adjustment"] = BundleStats(**kw["bundle_adjustment"])
         if kw["dense_stereo"] is not None:
             kw["dense_stereo"] = DenseStereoStats(**kw["dense_stereo"])
+        if kw.get("focal_prior") is not None:
+            kw["focal_prior"] = FocalPriorStats(**kw["focal_prior"])
         return cls(**kw, annotations={k: v for k, v in data.items() if k not in names})
 
     def write(self, path: Path) -> None:

@@ -99,6 +99,32 @@ def apply_exif_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(ops.get(int(orientation), ops[1])(img))
 
 
+#: EXIF tags: the Exif sub-IFD pointer of IFD0, and FocalLengthIn35mmFilm (SHORT, millimetres; 0 = unknown).
+_EXIF_IFD, _FOCAL_35MM = 0x8769, 0xA405
+
+
+def exif_focal_35mm(path: str | Path) -> float | None:
+    """The photo's 35 mm-equivalent focal length in mm (EXIF FocalLengthIn35mmFilm), or None.
+
+    Read with Pillow from the file's header (JPEG, PNG eXIf, TIFF, WebP), in the Exif sub-IFD where the
+    standard puts it or in IFD0 where some writers do. None when the file has no such tag, says 0
+    ("unknown"), or cannot be parsed: a photo without it is not an error.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            value = exif.get_ifd(_EXIF_IFD).get(_FOCAL_35MM, exif.get(_FOCAL_35MM))
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError, KeyError, TypeError):
+        return None
+    try:
+        mm = float(value[0] if isinstance(value, tuple) else value)
+    except (TypeError, ValueError, IndexError):
+        return None
+    return mm if np.isfinite(mm) and mm > 0 else None
+
+
 def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
     """Read an 8/16-bit image as float32 RGB in [0, 1], shape (H, W, 3).
 

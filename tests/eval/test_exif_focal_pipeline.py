@@ -1,0 +1,75 @@
+"""`denoise-gs run` keeps the input photos' EXIF focal: the working PNGs do not carry it, so the inputs stage
+records it in sizes.json and every align stage starts its pairs there (`mvgeo.align.intrinsics`)."""
+
+import json
+
+import numpy as np
+import pytest
+
+import mvgeo.align
+from eval.pipeline.inputs import SIZES_FILE, prepare_inputs, working_focal_prior
+from eval.pipeline.stage import StageContext
+from eval.pipeline.stage_settings import AlignStageSettings, InputsStageSettings
+from eval.pipeline.stages import align
+from mvgeo.align import AlignConfig
+from mvgeo.align.intrinsics import FocalPrior
+from mvgeo.common.errors import InputError
+
+Image = pytest.importorskip("PIL.Image")
+
+
+def _photos(folder, focal_35mm, size_wh=(64, 48)):
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for k, f35 in enumerate(focal_35mm):
+        exif = Image.Exif()
+        if f35 is not None:
+            exif.get_ifd(0x8769)[0xA405] = f35
+        pixels = rng.integers(0, 256, (size_wh[1], size_wh[0], 3), dtype=np.uint8)
+        Image.fromarray(pixels).save(folder / f"{k:03d}.jpg", quality=95, exif=exif.tobytes())
+    return folder
+
+
+def _prepare(tmp_path, photos, max_size=32):
+    ctx = StageContext("inputs", tmp_path / "out", {"noisy": photos}, InputsStageSettings(max_size, "x"), 0)
+    prepare_inputs(ctx)
+    return tmp_path / "out" / "inputs"
+
+
+def test_the_inputs_stage_records_each_photos_exif_focal(tmp_path):
+    working = _prepare(tmp_path, _photos(tmp_path / "photos", [26, 26, None]))
+    sizes = json.loads((working / SIZES_FILE).read_text())
+    assert [sizes[s]["focal_35mm"] for s in ("000", "001", "002")] == [26.0, 26.0, None]
+    assert sizes["000"]["working"] == [32, 24]  # downscaled: the 35 mm-equivalent holds at any size
+    prior, why = working_focal_prior(working)
+    assert prior is None and "1 of 3" in why
+
+
+def test_the_align_stage_starts_at_the_photos_exif_focal(tmp_path, monkeypatch):
+    working = _prepare(tmp_path, _photos(tmp_path / "photos", [26, 26]))
+    assert working_focal_prior(working) == (FocalPrior(26.0, "exif"), "")
+    denoised = tmp_path / "denoised"
+    denoised.mkdir()
+    for name in ("000.png", "001.png"):
+        (denoised / name).write_bytes(b"")
+    calls = []
+
+    class Stop(Exception):
+        pass
+
+    def record(files, cfg, names=None, **kw):
+        calls.append(kw)
+        raise Stop
+
+    monkeypatch.setattr(mvgeo.align, "align_images", record)
+    inputs = {"images": denoised, "working": working}
+    with pytest.raises(Stop):
+        align(StageContext("align", tmp_path / "w1", inputs, AlignStageSettings(AlignConfig()), 0))
+    with pytest.raises(Stop):  # switched off: no prior passed
+        align(StageContext("align", tmp_path / "w2", inputs, AlignStageSettings(AlignConfig(exif_focal=False)), 0))
+    assert calls == [{"focal_prior": FocalPrior(26.0, "exif")}, {}]
+
+
+def test_a_missing_sizes_file_is_named(tmp_path):
+    with pytest.raises(InputError, match="working sizes"):
+        working_focal_prior(tmp_path)
