@@ -9,12 +9,16 @@ default takes about 10 minutes (`benchmarks/diag_objective_photos.py --width/--b
 on one configuration, and writes its photos).
 
 Usage: python benchmarks/diag_denoise_capacity.py DATA_ROOT OUT.json [--device cuda] [--runs NAME,...]
-       [--time-steps N]
+       [--time-steps N] [--passes K[,K...]] [--repeat N]
 (DATA_ROOT holds the dataset folders named in RUNS, e.g. `runs/real` with `dtu24_cluster12_s25`,
 `dtu24_cluster12_pg`, `temple_ring_s25` as imported in docs/bench/pipeline.md; each needs `images/`,
 `clean/` and `split.json`; only the training views are read.) Writes OUT.json (device, torch, date, command,
 rows) after each run. `--time-steps N` only times N training steps of each run (seconds per step, no
 scores): what a setting costs on this device, e.g. `--device cpu --time-steps 30` on the 2-core machine.
+`--passes` (default 8, the pipeline's) scores each trained network with each number of inference passes
+(recorruptions for R2R; the first is `psnr`/`ssim`, the others `psnr_pK`/`ssim_pK`). `--repeat N` trains
+each run N times (rows carry `rep`): on a GPU the same seed does not give the same network, and a rare run
+diverges. Each row also records the training loss's maximum and the median of its last 50 steps.
 The first run on a GPU includes CUDA's start-up (about 5 s).
 """
 
@@ -41,7 +45,13 @@ RUNS: dict[str, tuple[str, str, int, int, int, int, int]] = {
     "dtu_w32_b32": ("dtu24_cluster12_s25", "r2r", 32, 2000, 32, 64, 0),
     "dtu_w32_b16_4k": ("dtu24_cluster12_s25", "r2r", 32, 4000, 16, 64, 0),
     "dtu_w48_b16_p128_4k": ("dtu24_cluster12_s25", "r2r", 48, 4000, 16, 128, 0),
+    "dtu_w32_1000": ("dtu24_cluster12_s25", "r2r", 32, 1000, 8, 64, 0),
+    "dtu_w32_1500": ("dtu24_cluster12_s25", "r2r", 32, 1500, 8, 64, 0),
+    "dtu_w32_1000_seed1": ("dtu24_cluster12_s25", "r2r", 32, 1000, 8, 64, 1),
+    "dtu_w32_1500_seed1": ("dtu24_cluster12_s25", "r2r", 32, 1500, 8, 64, 1),
     "pg_base": ("dtu24_cluster12_pg", "r2r", 16, 2000, 8, 64, 0),
+    "pg_w32_1000": ("dtu24_cluster12_pg", "r2r", 32, 1000, 8, 64, 0),
+    "pg_w32_1500": ("dtu24_cluster12_pg", "r2r", 32, 1500, 8, 64, 0),
     "pg_w32": ("dtu24_cluster12_pg", "r2r", 32, 2000, 8, 64, 0),
     "pg_w32_b16_4k": ("dtu24_cluster12_pg", "r2r", 32, 4000, 16, 64, 0),
     "temple_base": ("temple_ring_s25", "neighbor2neighbor", 16, 2000, 8, 64, 0),
@@ -79,7 +89,17 @@ def main() -> int:
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--runs", default=",".join(RUNS), help="comma-separated names of RUNS")
     ap.add_argument("--time-steps", type=int, default=0, help="only time this many training steps per run")
+    ap.add_argument("--passes", default="8", help="inference passes to score, comma-separated (default 8)")
+    ap.add_argument("--repeat", type=int, default=1, help="train each run this many times (default 1)")
     args = ap.parse_args()
+    if args.repeat < 1:
+        ap.error("--repeat must be >= 1")
+    try:
+        passes = [int(k) for k in args.passes.split(",")]
+    except ValueError:
+        passes = []
+    if not passes or min(passes) < 1:
+        ap.error(f"--passes: positive integers, comma-separated (got {args.passes!r})")
     names = [n for n in args.runs.split(",") if n]
     unknown = [n for n in names if n not in RUNS]
     if not names or unknown or len(set(names)) != len(names):
@@ -104,7 +124,7 @@ def main() -> int:
               "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
               "command": " ".join(["python", *sys.argv]), "rows": []}
     cache = {}
-    for name in names:
+    for name, rep in [(n, r) for n in names for r in range(args.repeat)]:
         folder, method, width, steps, batch, patch, seed = RUNS[name]
         if folder not in cache:
             cache[folder] = _load(args.data_root / folder)
@@ -118,12 +138,18 @@ def main() -> int:
             torch.cuda.synchronize()
         train_s = time.perf_counter() - t0
         row = dict(name=name, dataset=folder, method=method, width=width, steps=steps, batch=batch, patch=patch,
-                   seed=seed)
+                   seed=seed, **({"rep": rep} if args.repeat > 1 else {}))
+        loss = np.asarray(model.history, np.float64)
+        if len(loss):
+            row.update(loss_max=round(float(loss.max()), 4), loss_last50=round(float(np.median(loss[-50:])), 4))
         if args.time_steps:
             row["s_per_step"] = round(train_s / args.time_steps, 4)
         else:
-            psnr, ssim = _scores(denoise_with_method(model, noisy, cfg, passes=8, seed=seed), clean)
-            row.update(psnr=round(psnr, 3), ssim=round(ssim, 4), train_s=round(train_s, 1))
+            for k, n_passes in enumerate(passes):
+                psnr, ssim = _scores(denoise_with_method(model, noisy, cfg, passes=n_passes, seed=seed), clean)
+                tag = "" if k == 0 else f"_p{n_passes}"
+                row.update({f"psnr{tag}": round(psnr, 3), f"ssim{tag}": round(ssim, 4)})
+            row.update(passes=passes[0], train_s=round(train_s, 1))
         print(row, flush=True)
         record["rows"].append(row)
         args.out.write_text(json.dumps(record, indent=1))
