@@ -1,7 +1,8 @@
 """Real photographs: `mvgeo align` vs pycolmap incremental and global mapping, on identical image files.
 
 Usage: `python benchmarks/bench_real.py [--data=DIR[,DIR...]] [--sets=temple,dtu_spread,dtu_cluster,data]
-[--noise=clean,noisy] [--noise-seeds=N] [--methods=ours,ours_intr,incremental,global] [--out=NAME] [--exif]`
+[--noise=clean,noisy] [--noise-seeds=N] [--methods=ours,ours_noexif,ours_intr,incremental,global] [--out=NAME]
+[--exif]`
 (writes docs/bench/NAME.md, default `real`; only the table and its header). `--noise-seeds=N` (default 6) runs
 the noisy variant with noise seeds 0..N-1 and adds a table of the noisy rows per set and method over the seeds:
 one draw of the noise moves the pose errors by more than the methods differ. `--exif` writes every image with
@@ -22,9 +23,11 @@ Missing sets are named and skipped; with none, the script says so and exits 0.
 
 Methods, alternated (the order rotates from one variant to the next), all in this one process:
 `ours` = `mvgeo align` defaults without the final dense stereo (poses + sparse points: the product pycolmap's
-mappers make); `ours --intrinsics` = the same with the known calibration (a COLMAP cameras.txt written from the
-set's calibration, read by `mvgeo.align.intrinsics.read_intrinsics`); `pycolmap incremental` and
-`pycolmap global` (`mvgeo.align.colmap_sfm.run_colmap`: CPU SIFT, exhaustive matching, one SIMPLE_RADIAL camera).
+mappers make); `ours_noexif` (`ours, EXIF off`) = the same with `AlignConfig.exif_focal` off (with `--exif`:
+what the EXIF focal buys, in the same run); `ours --intrinsics` = the same with the known calibration (a COLMAP
+cameras.txt written from the set's calibration, read by `mvgeo.align.intrinsics.read_intrinsics`); `pycolmap
+incremental` and `pycolmap global` (`mvgeo.align.colmap_sfm.run_colmap`: CPU SIFT, exhaustive matching, one
+SIMPLE_RADIAL camera).
 
 Columns: registered / total; rotation error median and max over all pairs of registered views (relative
 rotations, `mvgeo.metrics.compare_poses`: free of the gauge); translation-direction error median; ATE RMSE of
@@ -44,7 +47,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -258,7 +261,9 @@ def colmap_verified_pairs(folder: Path, names: list[str], min_inliers: int = 15)
             db.close()
 
 
-METHODS = ("ours", "ours_intr", "global", "incremental")
+METHODS = ("ours", "ours_noexif", "ours_intr", "global", "incremental")
+#: Without --methods: `ours_noexif` is `ours` on images without EXIF, so only asked for with --exif.
+DEFAULT_METHODS = ("ours", "ours_intr", "global", "incremental")
 
 
 def noise_seed_summary(rows: list[list], n_seeds: int) -> str:
@@ -300,7 +305,7 @@ def main() -> int:
 
     which = opt("sets", "temple,dtu_spread,dtu_cluster,data").split(",")
     noise = opt("noise", "clean,noisy").split(",")
-    methods = [m for m in METHODS if m in opt("methods", ",".join(METHODS)).split(",")]
+    methods = [m for m in METHODS if m in opt("methods", ",".join(DEFAULT_METHODS)).split(",")]
     out_name = opt("out", "real")
     n_seeds = int(opt("noise-seeds", "6"))
     exif = "--exif" in sys.argv
@@ -350,6 +355,9 @@ def main() -> int:
                 for m in order:
                     if m == "ours":
                         r = run_ours(label, "ours", folder, s.gt, f_ref, None, OURS)
+                    elif m == "ours_noexif":
+                        r = run_ours(label, "ours, EXIF off", folder, s.gt, f_ref, None,
+                                     replace(OURS, exif_focal=False))
                     elif m == "ours_intr":
                         r = run_ours(label, "ours --intrinsics", folder, s.gt, f_ref, cams_txt, OURS)
                     else:

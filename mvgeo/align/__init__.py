@@ -13,8 +13,9 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
 
 1. `inputs`: the images checked, undistorted with known intrinsics, downscaled once (`AlignInputs`).
 2. `features` + `classical_pairs`: SIFT and putative matches, once per image and pair (`MatchSet`); each
-   pair's relative pose at one shared focal (the one at least three pairs' focals agree on,
-   `consensus_focal`, else COLMAP's prior, re-estimated by `policy`) and dense pointmaps (`PairSet`,
+   pair's relative pose at one shared focal (the photos' common EXIF 35 mm-equivalent focal,
+   `intrinsics.exif_focal_prior`; else the one at least three pairs' focals agree on, `consensus_focal`;
+   else COLMAP's prior; re-estimated by `policy` when the adjustment moves it) and dense pointmaps (`PairSet`,
    defined in `pairs` with the `PointmapModel` protocol a learned DUSt3R/MASt3R wrapper can implement;
    `dense_pairs` holds the flows and the triangulated pointmaps).
 3. `solve`: the pair graph (loop check `loops`, connectivity `graph`), then one candidate: initial poses
@@ -28,8 +29,9 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
    co-visibility pruning and thinning (`scene`).
 6. `stats` (`AlignStats`, align.json) and `writer`.
 
-Also: `intrinsics` (known calibration, undistortion), `colmap_sfm` (the pycolmap reference, `mvgeo colmap`),
-`translation_averaging` (global positioning of the cameras from the tracks). Options: `config.AlignConfig`.
+Also: `intrinsics` (known calibration, undistortion, the EXIF focal prior), `colmap_sfm` (the pycolmap
+reference, `mvgeo colmap`), `translation_averaging` (global positioning of the cameras from the tracks).
+Options: `config.AlignConfig`.
 """
 
 import importlib
@@ -37,11 +39,11 @@ import importlib
 #: Public name -> the module that defines it. Imported on first use (PEP 562), so that `mvgeo.align.stats`
 #: or `mvgeo.align.pairs` can be imported without loading torch, OpenCV and pycolmap.
 _EXPORTS = {"PREVIEW": "config", "AlignConfig": "config", "AlignResult": "result", "AlignStats": "stats",
-            "PairFailure": "pairs", "PairGeometry": "pairs", "PairPrediction": "pairs", "PairSet": "pairs",
-            "PointmapModel": "pairs", "align_images": "api", "write_align_result": "writer"}
+            "FocalPrior": "intrinsics", "PairFailure": "pairs", "PairGeometry": "pairs", "PairPrediction": "pairs",
+            "PairSet": "pairs", "PointmapModel": "pairs", "align_images": "api", "write_align_result": "writer"}
 
-__all__ = ["PREVIEW", "AlignConfig", "AlignResult", "AlignStats", "PairFailure", "PairGeometry", "PairPrediction",
-           "PairSet", "PointmapModel", "align_images", "write_align_result"]
+__all__ = ["PREVIEW", "AlignConfig", "AlignResult", "AlignStats", "FocalPrior", "PairFailure", "PairGeometry",
+           "PairPrediction", "PairSet", "PointmapModel", "align_images", "write_align_result"]
 
 
 def __getattr__(name: str):
