@@ -159,11 +159,15 @@ def prepare(s: RealSet, work: Path, noisy: bool, seed: int = 0, exif_35mm: int |
         if exif_35mm is not None:
             from PIL import Image
 
+            before = read_image(out / f.name)
             exif = Image.Exif()
             exif.get_ifd(0x8769)[0xA405] = int(exif_35mm)  # Exif IFD, FocalLengthIn35mmFilm
             with Image.open(out / f.name) as im:
                 im.load()
                 im.save(out / f.name, exif=exif.tobytes())
+            if not np.array_equal(read_image(out / f.name), before):  # e.g. a JPEG re-encoded, 16 bits cut to 8
+                raise SystemExit(f"--exif: re-saving {f.name} with Pillow changed its pixels; --exif needs 8-bit "
+                                 "PNG images (the shared sets' are)")
     return out
 
 

@@ -281,32 +281,43 @@ class DivergenceGuard:
     """Tells a diverging training run (`N2VConfig.divergence_guard`, `optimise_unet`).
 
     The losses are taken in windows of `window` steps. A window whose median is more than `factor` times
-    the lowest window median so far, or a non-finite loss, is a divergence. The median of a window, not
-    one step's loss, so that one hard batch is none. The last partial window is judged by `finish`.
+    the lowest positive window median so far, or a non-finite loss, is a divergence. The median of a
+    window, not one step's loss, so that one hard batch is none (`finish` judges a short last stretch of
+    steps together with the window before it). `factor` 3 leaves room for Neighbor2Neighbor, whose loss rises
+    by design as its regulariser's weight ramps up (1.25-1.5x the lowest at the default weight 2).
     """
 
     def __init__(self, *, window: int = 50, factor: float = 3.0):
         self.window, self.factor = window, factor
         self.best = math.inf
         self.losses: list[float] = []
+        self.last: list[float] = []
 
     def check(self, loss: float) -> bool:
         """Record one step's loss; True at a divergence."""
         self.losses.append(loss)
         if math.isfinite(loss) and len(self.losses) < self.window:
             return False
-        return self.finish()
+        window, self.losses = self.losses, []
+        self.last = window
+        return self._diverged(window)
 
     def finish(self) -> bool:
-        """Judge the losses not judged yet; True at a divergence."""
-        if not self.losses:
+        """Judge the steps after the last full window: alone when they are at least half a window, else
+        with that window (so that one hard last batch is no divergence); True at a divergence."""
+        tail, self.losses = self.losses, []
+        if not tail:
             return False
-        finite = all(map(math.isfinite, self.losses))
-        median = float(np.median(self.losses)) if finite else math.inf
-        self.losses = []
-        if not finite or median > self.factor * self.best:
+        return self._diverged(tail if 2 * len(tail) >= self.window else self.last + tail)
+
+    def _diverged(self, losses: list[float]) -> bool:
+        if not all(map(math.isfinite, losses)):
             return True
-        self.best = min(self.best, median)
+        median = float(np.median(losses))
+        if median > self.factor * self.best:
+            return True
+        if median > 0:  # a zero median (no loss pixels) sets no scale
+            self.best = min(self.best, median)
         return False
 
 
@@ -339,8 +350,8 @@ def optimise_unet(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[in
         if attempt == MAX_RESTARTS:
             raise TrainingDivergedError(
                 f"the {desc} training diverged at step {at} even at learning rate {lr:.3g} ({config.lr:.3g} "
-                f"halved {MAX_RESTARTS} times): check the images (non-finite or constant values?), or lower "
-                "N2VConfig.lr")
+                f"halved {MAX_RESTARTS} times): check the images (near-constant photos, or a noise level far "
+                "from the one the objective assumes); from Python, a lower N2VConfig.lr")
         _log.warning("the %s training diverged at step %d (learning rate %.3g): starting again at %.3g",
                      desc, at, lr, lr * 0.5)
         unet.load_state_dict(start)
@@ -360,6 +371,7 @@ def _train(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[int], tor
         opt, lambda s: lr_factor(s, steps=config.steps, warmup_frac=config.warmup_frac,
                                  min_lr_frac=config.min_lr_frac))
     guard = DivergenceGuard() if config.divergence_guard else None
+    skipped = 0
     with torch_threads(config.torch_threads), progress_bar(desc=desc, total=config.steps) as bar:
         for step in range(config.steps):
             loss = loss_at_step(step)
@@ -369,9 +381,13 @@ def _train(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[int], tor
                 loss.backward()
                 opt.step()
                 model.history.append(value)
+            else:
+                skipped += 1
             sched.step()
             bar.update(1)
             bar.set_postfix(loss=f"{value:.4f}")
             if guard is not None and guard.check(value):
                 return step
+    if skipped:
+        _log.warning("the %s training skipped %d of %d steps whose loss was not finite", desc, skipped, config.steps)
     return config.steps - 1 if guard is not None and guard.finish() else None

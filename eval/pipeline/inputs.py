@@ -13,6 +13,7 @@ without one), which the PNGs do not carry: the alignment starts at it (`working_
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -101,8 +102,15 @@ def working_focal_prior(working_dir: str | Path):
     read_sizes(path)  # the same checks as every reader of the file
     raw = json.loads(path.read_text())
     stems = sorted(raw)
-    values = [raw[k].get("focal_35mm") for k in stems]
-    return common_focal_prior([None if v is None else float(v) for v in values], stems)
+    values = []
+    for k in stems:
+        v = raw[k].get("focal_35mm")
+        if v is not None and not (isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                                  and v > 0):
+            raise InputError(f"view {k!r}: focal_35mm must be a positive number of millimetres or null, got {v!r}",
+                             path=path, fix="re-run with --force to rebuild OUT/inputs")
+        values.append(None if v is None else float(v))
+    return common_focal_prior(values, stems)
 
 
 def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -> Path:

@@ -137,10 +137,13 @@ def align(ctx: StageContext) -> Mapping[str, object]:
 
     s = ctx.settings
     cfg = s.align
+    no_prior = ""
     if "working" in ctx.inputs and cfg.exif_focal:  # the input photos' EXIF focal: the working PNGs lack it
-        prior, _ = working_focal_prior(ctx.inputs["working"])
+        prior, no_prior = working_focal_prior(ctx.inputs["working"])
         if prior is not None:
             align_images = functools.partial(align_images, focal_prior=prior)
+        else:
+            _log.info("no focal prior from the input photos' EXIF: %s", no_prior)
     files = list(view_files(ctx.inputs["images"]).values())
     mode = s.reuse_intrinsics or "never"
     previous = ctx.inputs.get("previous_align")
@@ -150,6 +153,8 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     else:
         res = _align_keeping_better_geometry(align_images, files, cfg, Path(previous), mode,
                                              s.reuse_geometry or "never")
+    if no_prior and res.stats.focal_prior is None and not res.stats.known_intrinsics:
+        res.stats.focal_prior_unavailable = f"the input photos: {no_prior}"  # not the working PNGs'
     out = ctx.work_dir / "align"
     write_align_result(out, res)  # sparse/0/*.bin, points.ply, align.json
     np.savez(out / "points.npz", xyz=np.asarray(res.points_xyz, np.float64),

@@ -50,9 +50,10 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         intrinsics: known camera (at the input size, any supported model): images are undistorted and the
             focal is fixed instead of estimated.
         model: a `PointmapModel` (default: `ClassicalPointmapModel`).
-        focal_prior: without `intrinsics`, the focal length the default model's pairs start at (e.g. the
-            EXIF focal of the photos these images were made from); default: the image files' common EXIF
-            focal (`AlignConfig.exif_focal`), if any. The bundle adjustment refines it.
+        focal_prior: the focal length the default model's pairs start at (e.g. the EXIF focal of the photos
+            these images were made from; ignored when `intrinsics` is given); default: the image files' common
+            EXIF focal (`AlignConfig.exif_focal`), if any. The bundle adjustment refines it; kept within
+            `AlignConfig.refocus_min_change`, it counts as determining the focal.
 
     Raises:
         InputError: too few/corrupt/duplicate/mixed-size images; `DisconnectedViewsError` (an `InputError`): a

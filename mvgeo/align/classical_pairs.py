@@ -337,8 +337,8 @@ class ClassicalPointmapModel:
         with self._pool() as pool:
             if K is None and self.focal_prior_px is not None:
                 f, determined = self.focal_prior_px, False
-                why = ("the pairs were computed at the focal length prior (the photos' EXIF focal), not from "
-                       "their own focal estimates")
+                why = ("the pairs started at the focal length prior (the photos' EXIF focal, or the one given), "
+                       "and the bundle adjustment moved the focal away from it")
                 _log.info("shared focal %.1f px: the focal length prior", f)
             elif K is None:
                 f, determined, why = self.shared_focal(images, ms, pool)
@@ -352,7 +352,8 @@ class ClassicalPointmapModel:
             preds, dense_fails = self._dense_pairs(images, K, rels, pool)
         return PairSet(preds, sorted(list(ms.failures) + fails + dense_fails, key=lambda f: (f.i, f.j)), geometries,
                        focal_determined=determined, focal_px=float(np.median(K[:, 0, 0])),
-                       focal_undetermined_why=why, sensitive_features=ms.sensitive)
+                       focal_undetermined_why=why, sensitive_features=ms.sensitive,
+                       focal_prior_px=self.focal_prior_px if self.K_align is None and K_align is None else None)
 
     def _relative_poses(self, ms: MatchSet, K: np.ndarray, two_view: TwoViewConfig, pool: Executor):
         def relative(ij):

@@ -43,8 +43,9 @@ class AlignConfig:
         max_pair_rotation_deg: a pair whose relative rotation in the result is more than this off the
             one its inlier matches imply is inconsistent too (0: off). Catches wrong rotations of pairs
             whose epipolar geometry is nearly ambiguous (narrow field of view, few matches).
-        max_focal_log_std: without known intrinsics and without any pair that determines the focal, the
-            bundle adjustment must: a log-focal standard deviation above this (0.05) fails the alignment.
+        max_focal_log_std: without known intrinsics, without any pair that determines the focal and without a
+            focal prior (EXIF) the adjustment keeps within `refocus_min_change`, the bundle adjustment must
+            determine it: a log-focal standard deviation above this (0.05) fails the alignment.
         max_centre_std_ratio: a view whose camera centre the bundle adjustment leaves uncertain (largest
             standard deviation with the other cameras held, `mvgeo.align.bundle_lm.camera_centre_std`) by
             more than this fraction (1.0) of the median distance between neighbouring cameras fails the

@@ -117,6 +117,9 @@ class PairSet:
         focal_px: the one focal length (alignment pixels) the pair geometry assumed, or None when each pair
             estimated its own (DUSt3R) or the intrinsics were given per view.
         focal_undetermined_why: why the pairs do not determine the focal (a phrase for the error message).
+        focal_prior_px: the focal length prior (alignment pixels, e.g. the photos' EXIF focal) the pairs
+            started from, or None. A bundle adjustment that keeps the focal within
+            `AlignConfig.refocus_min_change` of it counts as determining the focal (`mvgeo.align.solve`).
         sensitive_features: the model re-detected features with a more sensitive detector to connect the
             pair graph (`ClassicalPairConfig.fallback_sift`).
     """
@@ -128,6 +131,7 @@ class PairSet:
     focal_px: float | None = None
     focal_undetermined_why: str = ""
     sensitive_features: bool = False
+    focal_prior_px: float | None = None
 
     @property
     def matches(self) -> list[tuple[int, int, np.ndarray]]:

@@ -106,7 +106,8 @@ def _refocused(c: Candidate, inputs: AlignInputs, pair_list: Sequence[tuple[int,
         again = model.refocus(inputs.small, pair_list, f_ba)
     # Whether the pairs determine the focal does not change with the focal they are computed at.
     again = replace(again, focal_determined=c.graph.pairs.focal_determined,
-                    focal_undetermined_why=c.graph.pairs.focal_undetermined_why)
+                    focal_undetermined_why=c.graph.pairs.focal_undetermined_why,
+                    focal_prior_px=c.graph.pairs.focal_prior_px)
     return solve(pair_graph(inputs, again, config, timer, refocused=c.graph.refocused + 1), c.start, config, timer)
 
 

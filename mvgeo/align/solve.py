@@ -193,8 +193,14 @@ def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: Al
     thr = config.consistency_px * (1.0 if ba is not None else max(s, 1.0))
     checks, bad = judge_pairs(res.cam_from_world, res.focal_px * s, inputs.align_wh, evidence, threshold_px=thr,
                               min_explained=config.min_pair_explained, max_rotation_deg=config.max_pair_rotation_deg)
+    # A focal prior (EXIF) the bundle adjustment keeps within `refocus_min_change` determines the focal as
+    # well as agreeing pairs do: the data do not contradict it.
+    prior = pairs.focal_prior_px
+    prior_kept = (prior is not None and ba is not None
+                  and abs(float(np.log(np.median(ba.focal_px) / prior))) <= config.refocus_min_change)
     judged = verdict(checks, bad, inputs.names, ba=ba,
-                     focal_determined=pairs.focal_determined or inputs.intrinsics is not None,
-                     focal_undetermined_why=pairs.focal_undetermined_why, config=config)
+                     focal_determined=pairs.focal_determined or inputs.intrinsics is not None or prior_kept,
+                     focal_undetermined_why=pairs.focal_undetermined_why, config=config,
+                     focal_prior_used=prior is not None)
     return Candidate(start, graph, inputs, pairs, res, ba, rescale, align_cfg, checks, bad, list(dropped or []),
                      list(graph.unregistered) + list(unregistered or []), judged)

@@ -11,8 +11,8 @@ Four reasons to refuse a solution, checked in this order (`verdict`):
   `reject_unsupported_views`);
 - `positions_undetermined`: the bundle adjustment leaves a camera centre uncertain by more than
   `max_centre_std_ratio` times the median distance between neighbouring cameras;
-- `focal_undetermined`: no pair determined the focal and the bundle adjustment leaves it uncertain by more
-  than `max_focal_log_std`.
+- `focal_undetermined`: neither a pair nor a focal prior the adjustment keeps (EXIF) determined the focal, and
+  the bundle adjustment leaves it uncertain by more than `max_focal_log_std`.
 """
 
 from __future__ import annotations
@@ -114,8 +114,9 @@ def _pair_phrase(c: PairCheck, names, max_rot: float) -> str:
 
 
 def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequence[str], *, ba: BundleResult | None,
-            focal_determined: bool, focal_undetermined_why: str, config) -> Verdict:
-    """Every reason (module docstring) to refuse a solution. `config`: `AlignConfig`."""
+            focal_determined: bool, focal_undetermined_why: str, config, focal_prior_used: bool = False) -> Verdict:
+    """Every reason (module docstring) to refuse a solution. `config`: `AlignConfig`; `focal_prior_used`: the
+    pairs started at a focal prior (EXIF), named in the `focal_undetermined` fix."""
     reasons = []
     max_rot = config.max_pair_rotation_deg
     if mostly_unexplained(checks, bad, config.max_unexplained_fraction):
@@ -159,5 +160,7 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
         reasons.append(Reason("focal_undetermined", (), (
             f"the focal length is not determined by these views (no image pair determines it{why}; and the "
             f"bundle adjustment leaves a relative uncertainty of {ba.focal_log_std:.0%})"),
-            "pass the calibration with --intrinsics, or add views with more parallax"))
+            "pass the calibration with --intrinsics, or add views with more parallax"
+            + ("; if the photos' EXIF focal length is wrong (e.g. cropped photos), --no-exif-focal ignores it"
+               if focal_prior_used else "")))
     return Verdict(tuple(reasons))

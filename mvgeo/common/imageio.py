@@ -110,13 +110,18 @@ def exif_focal_35mm(path: str | Path) -> float | None:
     standard puts it or in IFD0 where some writers do. None when the file has no such tag, says 0
     ("unknown"), or cannot be parsed: a photo without it is not an error.
     """
+    import warnings
+
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path) as im:
-            exif = im.getexif()
-            value = exif.get_ifd(_EXIF_IFD).get(_FOCAL_35MM, exif.get(_FOCAL_35MM))
-    except (OSError, UnidentifiedImageError, ValueError, SyntaxError, KeyError, TypeError):
+        with warnings.catch_warnings():  # Pillow's pixel-count guard: only the header is read here
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                exif = im.getexif()
+                value = exif.get_ifd(_EXIF_IFD).get(_FOCAL_35MM, exif.get(_FOCAL_35MM))
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError, KeyError, TypeError,
+            Image.DecompressionBombError):  # over ~179 MP Pillow refuses to open: no prior, as without EXIF
         return None
     try:
         mm = float(value[0] if isinstance(value, tuple) else value)

@@ -92,3 +92,19 @@ def test_the_prior_in_pixels_is_pycolmaps(tmp_path):
         # COLMAP's diagonal is 43.27 mm, hypot(36, 24) = 43.2666 here: 8e-5 apart
         assert cam.params[0] == pytest.approx(FocalPrior(35.0).focal_px(wh), rel=1e-4)
     assert set(cams) == {(600, 400), (480, 360)}
+
+
+def test_photos_too_large_for_pillows_guard_give_none(tmp_path, monkeypatch):
+    """Pillow refuses to open images above `MAX_IMAGE_PIXELS` (about 179 MP by default, e.g. 200 MP phone
+    photos), and warns above half of it; the EXIF read gives no prior then, as without EXIF, and no warning."""
+    import warnings
+
+    path = _save(tmp_path / "big.jpg", 26, size_wh=(40, 30))
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 500)  # 1200 px: over twice the limit
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert exif_focal_35mm(path) is None
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)  # 1200 px: over the limit, under twice it
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert exif_focal_35mm(path) == 26.0

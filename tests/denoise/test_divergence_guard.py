@@ -2,13 +2,14 @@
 does not diverge is unchanged to the bit (`denoise.n2v.DivergenceGuard`, `optimise_unet`)."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
 from denoise.model import N2VModel
-from denoise.n2v import MAX_RESTARTS, DivergenceGuard, N2VConfig, TrainingDivergedError, optimise_unet
+from denoise.n2v import MAX_RESTARTS, DivergenceGuard, N2VConfig, TrainingDivergedError, lr_factor, optimise_unet
 from denoise.self_supervised import denoise_with_method, train_with_method
 from denoise.unet import UNet, UNetConfig
 
@@ -27,9 +28,14 @@ def test_the_guard_judges_window_medians():
     assert _feed(DivergenceGuard(window=50), falling[:100] + [10.0] * 50) == [149]
     # a non-finite loss is at once
     assert _feed(DivergenceGuard(window=50), falling[:10] + [math.nan]) == [10]
-    # the last, partial window
+    # the steps after the last full window: half a window or more alone, fewer with the window before
     g = DivergenceGuard(window=50)
-    assert _feed(g, falling[:100] + [10.0] * 20) == [] and g.finish()
+    assert _feed(g, falling[:100] + [10.0] * 30) == [] and g.finish()
+    g = DivergenceGuard(window=50)
+    assert _feed(g, falling[:119] + [100.0]) == [] and not g.finish()  # one hard last batch
+    assert not DivergenceGuard(window=50).finish()
+    # a zero median (e.g. no loss pixels) sets no scale for later windows
+    assert _feed(DivergenceGuard(window=50), [0.0] * 50 + falling[:100]) == []
 
 
 def _images():
@@ -62,12 +68,49 @@ def test_a_diverging_training_starts_again_at_half_the_rate(method, caplog):
     assert _psnr(out, clean) > _psnr(noisy, clean) + 1.0  # measured 23.3 dB against 20.8 dB
 
 
-def test_a_run_that_does_not_diverge_is_unchanged_to_the_bit():
+def _reference_loop(model: N2VModel, config: N2VConfig, loss_at_step) -> N2VModel:
+    """The training loop without any guard, written out: Adam, the warm-up and cosine schedule, one step per
+    loss (the slow obvious reference of `optimise_unet` for runs that do not diverge)."""
+    opt = torch.optim.Adam(model.unet.parameters(), lr=config.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(
+        s, steps=config.steps, warmup_frac=config.warmup_frac, min_lr_frac=config.min_lr_frac))
+    model.unet.train()
+    for step in range(config.steps):
+        loss = loss_at_step(step)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        model.history.append(loss.item())
+    model.unet.eval()
+    return model
+
+
+@pytest.mark.parametrize("steps", [300, 123])  # 123: a last, partial window
+def test_a_run_that_does_not_diverge_is_unchanged_to_the_bit(steps):
     noisy, _ = _images()
-    on = train_with_method(noisy, _config("r2r", 1e-3, True), seed=0)
-    off = train_with_method(noisy, _config("r2r", 1e-3, False), seed=0)
-    assert on.history == off.history
+    on = train_with_method(noisy, replace(_config("r2r", 1e-3, True), steps=steps), seed=0)
+    off = train_with_method(noisy, replace(_config("r2r", 1e-3, False), steps=steps), seed=0)
+    assert on.history == off.history and len(on.history) == steps
     for a, b in zip(on.unet.state_dict().values(), off.unet.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    # and both are the plain loop's: the same patches and recorruptions from the same seeds
+    torch.manual_seed(0)
+    cfg = N2VConfig(unet=UNetConfig(width=4, depth=1), steps=steps, lr=1e-3, torch_threads=1)
+    x = torch.rand(4, 3, 16, 16, generator=torch.Generator().manual_seed(1))
+    models = []
+    for run in (optimise_unet, None):
+        torch.manual_seed(0)
+        model = N2VModel(UNet(cfg.unet), mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0))
+        gen = torch.Generator().manual_seed(2)
+
+        def loss_at_step(step: int, model=model, gen=gen) -> torch.Tensor:
+            noise = torch.randn(x.shape, generator=gen) * 0.1
+            return torch.mean((model.unet(x + noise) - x) ** 2)
+
+        models.append(run(model, cfg, loss_at_step, desc="test") if run else _reference_loop(model, cfg, loss_at_step))
+    assert models[0].history == models[1].history
+    for a, b in zip(models[0].unet.parameters(), models[1].unet.parameters(), strict=True):
         assert torch.equal(a, b)
 
 

@@ -13,7 +13,7 @@ from eval.pipeline.stage_settings import AlignStageSettings, InputsStageSettings
 from eval.pipeline.stages import align
 from mvgeo.align import AlignConfig
 from mvgeo.align.intrinsics import FocalPrior
-from mvgeo.common.errors import InputError
+from mvgeo.common.errors import DisconnectedViewsError, InputError
 
 Image = pytest.importorskip("PIL.Image")
 
@@ -73,3 +73,35 @@ def test_the_align_stage_starts_at_the_photos_exif_focal(tmp_path, monkeypatch):
 def test_a_missing_sizes_file_is_named(tmp_path):
     with pytest.raises(InputError, match="working sizes"):
         working_focal_prior(tmp_path)
+
+
+def test_noisy_first_aligns_with_the_prior_too(tmp_path, monkeypatch):
+    working = _prepare(tmp_path, _photos(tmp_path / "photos", [35, 35]))
+    denoised = tmp_path / "denoised"
+    denoised.mkdir()
+    for name in ("000.png", "001.png"):
+        (denoised / name).write_bytes(b"")
+    calls = []
+
+    def refuse(files, cfg, names=None, **kw):
+        calls.append((files[0].parent.name, kw))
+        raise DisconnectedViewsError("disconnected", views=("001.png",))
+
+    monkeypatch.setattr(mvgeo.align, "align_images", refuse)
+    ctx = StageContext("align", tmp_path / "w", {"images": denoised, "noisy": working, "working": working},
+                       AlignStageSettings(AlignConfig(), noisy_first=True), 0)
+    with pytest.raises(DisconnectedViewsError):
+        align(ctx)
+    prior = {"focal_prior": FocalPrior(35.0, "exif")}
+    assert calls == [("inputs", prior), ("denoised", prior)]  # the noisy photos, then the denoised ones
+
+
+@pytest.mark.parametrize("bad", ["26", -1, 0, [26], True, float("nan")])
+def test_a_malformed_focal_in_sizes_json_is_named(tmp_path, bad):
+    working = _prepare(tmp_path, _photos(tmp_path / "photos", [26, 26]))
+    sizes = json.loads((working / SIZES_FILE).read_text())
+    sizes["001"]["focal_35mm"] = bad
+    (working / SIZES_FILE).write_text(json.dumps(sizes))
+    with pytest.raises(InputError, match="focal_35mm") as info:
+        working_focal_prior(working)
+    assert info.value.path == working / SIZES_FILE and "--force" in info.value.fix

@@ -10,7 +10,7 @@ from mvgeo.align.api import PREVIEW, align_images
 from mvgeo.align.classical_pairs import ClassicalPointmapModel
 from mvgeo.align.intrinsics import FULL_FRAME_DIAGONAL_MM, FocalPrior
 from mvgeo.align.stats import AlignStats
-from mvgeo.common.errors import InputError
+from mvgeo.common.errors import AlignmentRefusedError, InputError
 from mvgeo.common.imageio import list_images, read_image
 from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
@@ -89,3 +89,19 @@ def test_an_older_align_json_without_the_prior_still_reads(llff6_preview):
     assert back.focal_prior is None and back.focal_prior_unavailable == "" and "focal_prior" not in back.annotations
     with pytest.raises(KeyError, match="n_images"):
         AlignStats.from_json({k: v for k, v in data.items() if k != "n_images"})
+
+
+def test_a_prior_the_adjustment_keeps_determines_the_focal(llff6_exif):
+    """With a focal-uncertainty limit no adjustment meets, the pairs' own focal (not determined on llff6:
+    too few agreeing pairs) is refused; the EXIF prior, kept by the adjustment within 10 %, is not."""
+    folder, _, _ = llff6_exif
+    strict = dataclasses.replace(PREVIEW, seed=0, max_focal_log_std=1e-9)
+    with pytest.raises(AlignmentRefusedError) as info:
+        align_images(list_images(folder), dataclasses.replace(strict, exif_focal=False))
+    assert info.value.kind == "focal_undetermined" and "--no-exif-focal" not in info.value.fix
+    res = align_images(list_images(folder), strict)
+    assert res.stats.focal_prior is not None and res.stats.n_registered == 6
+    # a prior far from what the adjustment finds (2x) is not kept: refused, and the fix names the EXIF
+    with pytest.raises(AlignmentRefusedError) as info:
+        align_images(list_images(folder), strict, focal_prior=FocalPrior(56.0))
+    assert info.value.kind == "focal_undetermined" and "--no-exif-focal" in info.value.fix
