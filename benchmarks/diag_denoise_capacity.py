@@ -142,6 +142,8 @@ def main() -> int:
         loss = np.asarray(model.history, np.float64)
         if len(loss):
             row.update(loss_max=round(float(loss.max()), 4), loss_last50=round(float(np.median(loss[-50:])), 4))
+        if model.restarts:  # the divergence guard restarted the training (its losses: the last run's)
+            row["restarts"] = model.restarts
         if args.time_steps:
             row["s_per_step"] = round(train_s / args.time_steps, 4)
         else:

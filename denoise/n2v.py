@@ -333,7 +333,8 @@ def optimise_unet(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[in
 
     With `config.divergence_guard`, a run the `DivergenceGuard` finds diverging starts again from the
     weights it started from, at half the learning rate and with a new optimiser (the batches continue
-    from where they were), up to `MAX_RESTARTS` times; `model.history` then holds the last run's losses.
+    from where they were), up to `MAX_RESTARTS` times; `model.history` then holds the last run's losses and
+    `model.restarts` the step and learning rate of each abandoned run.
     A run that does not diverge is unchanged to the bit.
 
     Raises:
@@ -356,6 +357,7 @@ def optimise_unet(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[in
                      desc, at, lr, lr * 0.5)
         unet.load_state_dict(start)
         del model.history[n_history:]
+        model.restarts.append({"step": int(at), "lr": float(lr)})
         lr *= 0.5
     unet.eval()
     return model

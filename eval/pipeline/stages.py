@@ -121,7 +121,8 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         out = [(1.0 - s.keep_noisy) * d + s.keep_noisy * y for d, y in zip(out, noisy.values(), strict=True)]
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
-    return {"views": list(noisy), "train": _history_summary(model.history), **chosen}
+    restarts = {"training_restarts": model.restarts} if model.restarts else {}  # a diverged training, restarted
+    return {"views": list(noisy), "train": _history_summary(model.history), **chosen, **restarts}
 
 
 #: The align stage's record of which photos it aligned (`AlignSettings.photos`), in align.json.

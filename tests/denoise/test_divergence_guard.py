@@ -64,6 +64,7 @@ def test_a_diverging_training_starts_again_at_half_the_rate(method, caplog):
     good = train_with_method(noisy, _config(method, 0.03, True), seed=0)
     assert "diverged" in caplog.text and "starting again at 0.015" in caplog.text
     assert len(good.history) == 300 and np.median(good.history[-50:]) < 1.0  # measured 0.41 / 0.23
+    assert [r["lr"] for r in good.restarts] == [0.03, 0.015] and not bad.restarts
     out = denoise_with_method(good, noisy, _config(method, 0.03, True), passes=2, seed=0)
     assert _psnr(out, clean) > _psnr(noisy, clean) + 1.0  # measured 23.3 dB against 20.8 dB
 
