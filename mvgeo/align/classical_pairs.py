@@ -333,10 +333,10 @@ class ClassicalPointmapModel:
             two_view = replace(two_view, min_inliers=max(two_view.min_inliers, cfg.fallback_min_inliers),
                                refine=two_view.refine or cfg.fallback_refine)
         K = self.K_align if K_align is None else np.asarray(K_align, np.float64)
-        determined, why = True, ""
+        determined, why, prior_px = True, "", None
         with self._pool() as pool:
             if K is None and self.focal_prior_px is not None:
-                f, determined = self.focal_prior_px, False
+                f, determined, prior_px = self.focal_prior_px, False, self.focal_prior_px
                 why = ("the pairs started at the focal length prior (the photos' EXIF focal, or the one given), "
                        "and the bundle adjustment moved the focal away from it")
                 _log.info("shared focal %.1f px: the focal length prior", f)
@@ -353,7 +353,7 @@ class ClassicalPointmapModel:
         return PairSet(preds, sorted(list(ms.failures) + fails + dense_fails, key=lambda f: (f.i, f.j)), geometries,
                        focal_determined=determined, focal_px=float(np.median(K[:, 0, 0])),
                        focal_undetermined_why=why, sensitive_features=ms.sensitive,
-                       focal_prior_px=self.focal_prior_px if self.K_align is None and K_align is None else None)
+                       focal_prior_px=prior_px)
 
     def _relative_poses(self, ms: MatchSet, K: np.ndarray, two_view: TwoViewConfig, pool: Executor):
         def relative(ij):

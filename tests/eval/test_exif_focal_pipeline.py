@@ -55,7 +55,7 @@ def test_the_align_stage_starts_at_the_photos_exif_focal(tmp_path, monkeypatch):
     calls = []
 
     class Stop(Exception):
-        pass
+        """Ends the stage once the fake aligner has recorded its call (no result needs building)."""
 
     def record(files, cfg, names=None, **kw):
         calls.append(kw)
