@@ -22,11 +22,12 @@ from mvgeo.align.config import DEFAULT, PREVIEW, AlignConfig
 from mvgeo.align.graph import make_pairs
 from mvgeo.align.inputs import load_inputs
 from mvgeo.align.intrinsics import FocalPrior, choose_focal_prior
+from mvgeo.align.locate import Located
 from mvgeo.align.pairs import PairSet, PointmapModel
 from mvgeo.align.policy import choose_solution
 from mvgeo.align.result import AlignResult
 from mvgeo.align.solve import Candidate
-from mvgeo.align.stats import AlignStats, BundleStats, CandidateSummary, FocalPriorStats, InconsistentPair
+from mvgeo.align.stats import AlignStats, BundleStats, CandidateSummary, FocalPriorStats, InconsistentPair, LocatedView
 from mvgeo.align.verdict import centre_std_ratio
 from mvgeo.align.writer import write_align_result
 from mvgeo.camera import Camera
@@ -107,6 +108,11 @@ def _sparse_model(c: Candidate, cloud: DenseCloud) -> SparseModel:
     return SparseModel(cameras, posed, cloud.xyz, cloud.rgb)
 
 
+def _located_view(names: Sequence[str], x: Located, outcome: str) -> LocatedView:
+    deg = None if np.isnan(x.rotation_deg) else round(x.rotation_deg, 3)
+    return LocatedView(names[x.view], x.n_inliers, deg, x.n_points, outcome)
+
+
 def _bundle_stats(c: Candidate) -> BundleStats | None:
     if c.ba is None:
         return None
@@ -147,5 +153,9 @@ def _stats(c: Candidate, candidates: list[CandidateSummary], pairs: PairSet, n_p
         pairs_inconsistent=[InconsistentPair(names[k.i], names[k.j], round(k.explained_fraction, 3),
                                              None if np.isnan(k.rotation_deviation_deg)
                                              else round(k.rotation_deviation_deg, 2)) for k in c.bad],
+        views_located_by_points=[_located_view(names, x, outcome) for x, outcome in
+                                 [(x, "re-posed") for x in c.relocated]
+                                 + [(x, "kept" if x.ok else "placed elsewhere" if x.placed_elsewhere
+                                     else "not located") for x in c.located]],
         n_points=int(len(cloud.xyz)), mean_confidence=float(cloud.conf.mean()) if len(cloud.conf) else float("nan"),
         timings_s=timer.as_dict(), config=_jsonable(dataclasses.asdict(config)))

@@ -353,7 +353,7 @@ class ClassicalPointmapModel:
         return PairSet(preds, sorted(list(ms.failures) + fails + dense_fails, key=lambda f: (f.i, f.j)), geometries,
                        focal_determined=determined, focal_px=float(np.median(K[:, 0, 0])),
                        focal_undetermined_why=why, sensitive_features=ms.sensitive,
-                       focal_prior_px=prior_px)
+                       focal_prior_px=prior_px, features=tuple(ms.features))
 
     def _relative_poses(self, ms: MatchSet, K: np.ndarray, two_view: TwoViewConfig, pool: Executor):
         def relative(ij):

@@ -54,6 +54,11 @@ class AlignConfig:
         reject_unsupported_views: a view all of whose verified pairs are inconsistent with the result
             (`mvgeo.align.checks.views_without_consistent_pair`) fails the alignment, or with
             `allow_partial` is left out, whatever share of the matches its pairs hold (True).
+        locate_cut_off_views: before refusing such views (with the bundle adjustment and a pair model with
+            features), try to locate each by PnP on points the main group's explained pairs triangulate at
+            the solution's poses (`mvgeo.align.locate`): a view PnP places within 3 deg of the solution
+            (at least 15 inliers) is supported by three-view evidence its weak pairs could not give, and
+            is kept. align.json `views_located_by_points`.
         points_budget: maximum number of output points (200 000; confidence-aware thinning).
         downsample: how the cloud is thinned to `points_budget`: "pixel" (default), the most confident
             point per pixel cell of each view (the density the views see), or "voxel", the most
@@ -115,6 +120,7 @@ class AlignConfig:
     max_focal_log_std: float = 0.05
     max_centre_std_ratio: float = 1.0
     reject_unsupported_views: bool = True
+    locate_cut_off_views: bool = True
     points_budget: int = 200_000
     downsample: str = "pixel"
     covisibility_rel_tol: float = 0.03

@@ -16,11 +16,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
 from mvgeo.common.errors import ShapeError, check_shape
+
+if TYPE_CHECKING:
+    from mvgeo.align.features import ImageFeatures
 
 
 @dataclass
@@ -122,6 +125,9 @@ class PairSet:
             `AlignConfig.refocus_min_change` of it counts as determining the focal (`mvgeo.align.solve`).
         sensitive_features: the model re-detected features with a more sensitive detector to connect the
             pair graph (`ClassicalPairConfig.fallback_sift`).
+        features: per view, the keypoints and descriptors the matches came from
+            (`mvgeo.align.features.ImageFeatures`, alignment pixels), or None (a model without sparse
+            features). The verdict's guided re-check matches them again under a solution's geometry.
     """
 
     predictions: list[PairPrediction]
@@ -132,6 +138,7 @@ class PairSet:
     focal_undetermined_why: str = ""
     sensitive_features: bool = False
     focal_prior_px: float | None = None
+    features: tuple[ImageFeatures, ...] | None = None
 
     @property
     def matches(self) -> list[tuple[int, int, np.ndarray]]:
@@ -150,7 +157,8 @@ class PairSet:
             self,
             predictions=[replace(p, i=new[p.i], j=new[p.j]) for p in self.predictions if p.i in new and p.j in new],
             failures=[replace(f, i=new[f.i], j=new[f.j]) for f in self.failures if f.i in new and f.j in new],
-            geometries=[replace(g, i=new[g.i], j=new[g.j]) for g in self.geometries if g.i in new and g.j in new])
+            geometries=[replace(g, i=new[g.i], j=new[g.j]) for g in self.geometries if g.i in new and g.j in new],
+            features=None if self.features is None else tuple(self.features[v] for v in keep))
 
 
 @runtime_checkable

@@ -18,7 +18,9 @@ generation ends when no candidate calls for one:
    connected (with `allow_partial`: keeping the largest connected group, and also leaving out the views
    whose positions the tracks do not determine); once, or three times with `allow_partial`. It is still
    judged against every verified pair, the dropped ones included;
-4. second start (`second_start`), once: a candidate that contradicts its pairs as a whole
+4. relocation (`mvgeo.align.solve.relocate`): a candidate whose verdict cuts off views that PnP on the main
+   group's points places confidently elsewhere (`mvgeo.align.locate`) is adjusted again from that pose, once;
+5. second start (`second_start`), once: a candidate that contradicts its pairs as a whole
    (`max_unexplained_fraction`: a wrong minimum, not one weak view) is solved from the other start on its
    unpruned graph; and when the first start's candidates are exhausted with accepted ones whose focal still
    moves after `MAX_REFOCUS` re-estimations, the other start is solved on the first pair graph (one weak
@@ -45,7 +47,7 @@ from mvgeo.align.graph import components
 from mvgeo.align.init import choose_start, other_start
 from mvgeo.align.inputs import AlignInputs
 from mvgeo.align.pairs import PairSet, PointmapModel, RefocusableModel
-from mvgeo.align.solve import Candidate, PairGraph, pair_graph, solve
+from mvgeo.align.solve import Candidate, PairGraph, pair_graph, relocate, solve
 from mvgeo.align.stats import CandidateSummary, Unregistered
 from mvgeo.align.verdict import loose_views, mostly_unexplained
 from mvgeo.common.errors import DegenerateGeometryError, InputError
@@ -165,6 +167,8 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
                     or not isinstance(model, RefocusableModel)):
                 # Pairs at the right focal (or no way to recompute them): prune, then the other start.
                 makers = [lambda c=c: _pruned(c, config, timer)] if prunes[id(c)] < max_prunes else []
+                if not c.relocated and any(x.placed_elsewhere for x in c.located):
+                    makers.insert(0, lambda c=c: relocate(c, config, timer))
                 if (config.second_start and not second_tried and c.start == first and not c.dropped
                         and mostly_unexplained(c.checks, c.bad, config.max_unexplained_fraction)):
                     second_tried = True

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["AlignStats", "BundleStats", "CandidateSummary", "DenseStereoStats", "FailedPair", "FocalPriorStats",
-           "InconsistentPair", "RejectedPair", "Unregistered"]
+           "InconsistentPair", "LocatedView", "RejectedPair", "Unregistered"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +68,21 @@ class InconsistentPair:
     j: str
     explained_fraction: float
     rotation_deviation_deg: float | None
+
+
+@dataclass(frozen=True)
+class LocatedView:
+    """A view cut off from the main group by contradicted pairs, checked by PnP on the main group's points
+    (`mvgeo.align.locate`): PnP inliers, its rotation's angle from the solution's (deg; None: no pose), the
+    points it matched against, and the outcome: "kept" (PnP agrees with the solution), "re-posed" (PnP put
+    it elsewhere; the chosen solution was adjusted again from there, `mvgeo.align.solve.relocate`),
+    "placed elsewhere" (so, not re-posed), "not located" (too few PnP inliers: refused as before)."""
+
+    name: str
+    n_inliers: int
+    rotation_deg: float | None
+    n_points: int
+    outcome: str
 
 
 @dataclass(frozen=True)
@@ -168,6 +183,7 @@ class AlignStats:
     #: None: no prior (known intrinsics, or photos without one EXIF focal: `focal_prior_unavailable` says why).
     focal_prior: FocalPriorStats | None = None
     focal_prior_unavailable: str = ""
+    views_located_by_points: list[LocatedView] = field(default_factory=list)
     annotations: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
@@ -200,6 +216,7 @@ class AlignStats:
             kw["bundle_adjustment"] = BundleStats(**kw["bundle_adjustment"])
         if kw["dense_stereo"] is not None:
             kw["dense_stereo"] = DenseStereoStats(**kw["dense_stereo"])
+        kw["views_located_by_points"] = [LocatedView(**x) for x in kw.get("views_located_by_points", [])]
         if kw.get("focal_prior") is not None:
             kw["focal_prior"] = FocalPriorStats(**kw["focal_prior"])
         return cls(**kw, annotations={k: v for k, v in data.items() if k not in names})

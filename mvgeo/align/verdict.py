@@ -8,7 +8,8 @@ Four reasons to refuse a solution, checked in this order (`verdict`):
   matches: the solution as a whole is wrong;
 - `views_unsupported`: views linked to the main group of views only by contradicted pairs, e.g. a view
   whose every verified pair is contradicted, or a group hinged on them (`views_cut_off`,
-  `reject_unsupported_views`);
+  `reject_unsupported_views`), unless PnP on the main group's points puts the view where the solution
+  does (`mvgeo.align.locate`, `locate_cut_off_views`);
 - `positions_undetermined`: the bundle adjustment leaves a camera centre uncertain by more than
   `max_centre_std_ratio` times the median distance between neighbouring cameras;
 - `focal_undetermined`: neither a pair nor a focal prior the adjustment keeps (EXIF) determined the focal, and
@@ -114,9 +115,11 @@ def _pair_phrase(c: PairCheck, names, max_rot: float) -> str:
 
 
 def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequence[str], *, ba: BundleResult | None,
-            focal_determined: bool, focal_undetermined_why: str, config, focal_prior_used: bool = False) -> Verdict:
+            focal_determined: bool, focal_undetermined_why: str, config, focal_prior_used: bool = False,
+            located_views: Sequence[int] = ()) -> Verdict:
     """Every reason (module docstring) to refuse a solution. `config`: `AlignConfig`; `focal_prior_used`: the
-    pairs started at a focal prior (EXIF), named in the `focal_undetermined` fix."""
+    pairs started at a focal prior (EXIF), named in the `focal_undetermined` fix; `located_views`: views the
+    main group's points locate where the solution puts them (`mvgeo.align.locate`), not refused as cut off."""
     reasons = []
     max_rot = config.max_pair_rotation_deg
     if mostly_unexplained(checks, bad, config.max_unexplained_fraction):
@@ -133,6 +136,7 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
             "enable the bundle adjustment (--ba)" if ba is None
             else "add views between the existing ones, or pass the calibration with --intrinsics"))
     orphans = views_cut_off(checks, bad, len(names)) if config.reject_unsupported_views else []
+    orphans = [v for v in orphans if v not in set(located_views)]
     if orphans:
         cut = set(orphans)
         links = [c for c in bad if (c.i in cut) != (c.j in cut)]  # the contradicted pairs to the main group

@@ -83,10 +83,11 @@ def test_a_given_prior_applies_to_arrays_and_a_custom_model_refuses_it(llff6):
 
 def test_an_older_align_json_without_the_prior_still_reads(llff6_preview):
     data = llff6_preview.stats.to_json()
-    for key in ("focal_prior", "focal_prior_unavailable"):
+    for key in ("focal_prior", "focal_prior_unavailable", "views_located_by_points"):
         data.pop(key)
     back = AlignStats.from_json(data)
     assert back.focal_prior is None and back.focal_prior_unavailable == "" and "focal_prior" not in back.annotations
+    assert back.views_located_by_points == []
     with pytest.raises(KeyError, match="n_images"):
         AlignStats.from_json({k: v for k, v in data.items() if k != "n_images"})
 

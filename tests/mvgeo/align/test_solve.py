@@ -9,12 +9,14 @@ import pytest
 from mvgeo.align.api import AlignConfig, align_images
 from mvgeo.align.global_align import GlobalAlignConfig
 from mvgeo.align.inputs import load_inputs
+from mvgeo.align.locate import Located
 from mvgeo.align.pairs import PairGeometry, PairSet
-from mvgeo.align.solve import pair_graph, solve
+from mvgeo.align.solve import pair_graph, relocate, solve
 from mvgeo.align.stats import RejectedPair, Unregistered
 from mvgeo.common.errors import DisconnectedViewsError, InputError
 from mvgeo.common.timing import StageTimer
 from mvgeo.metrics import compare_poses, relative_pose_errors
+from mvgeo.transforms import so3_exp
 
 from .synthetic import PairSetModel, look_at, make_matches, make_pairs, make_views
 
@@ -135,3 +137,27 @@ def test_a_solve_is_judged_against_every_verified_pair_of_its_views_dropped_ones
     assert (2, 4) not in {(g.i, g.j) for g in pruned.pairs.geometries}
     assert sorted((c.i, c.j) for c in pruned.checks) == sorted(pairs)  # still judged on (2, 4)
     assert pruned.dropped == [("v2.png", "v4.png")] and pruned.verdict.ok
+
+
+def test_relocate_adjusts_again_from_the_pose_pnp_found(rng):
+    """A candidate whose view 4 sits 30 deg off, with a PnP that places it (`Located.placed_elsewhere`) where it
+    belongs: `relocate` adjusts again from there and the view comes back; without such a view it does nothing."""
+    poses, depths = make_views(5)
+    pairs = [(0, 1), (1, 2), (0, 2), (2, 3), (1, 3), (3, 4), (2, 4)]
+    matches = make_matches(poses, depths, FOCAL, pairs)
+    ps = PairSet(make_pairs(poses, depths, FOCAL, rng, pairs=pairs), [],
+                 [PairGeometry(i, j, uv) for i, j, uv in matches], focal_determined=True)
+    cfg = replace(FAST, loop_check=False)
+    graph = pair_graph(_inputs(rng, 5), ps, cfg, StageTimer())
+    good = solve(graph, "chain", cfg, StageTimer())
+    assert relocate(good, cfg, StageTimer()) is None
+    wrong = good.result.cam_from_world.copy()
+    wrong[4, :, :3] = so3_exp(np.array([0.0, np.radians(30.0), 0.0])) @ wrong[4, :, :3]
+    pnp = Located(4, 100, 30.0, 500, cam_from_world=good.result.cam_from_world[4])
+    assert pnp.placed_elsewhere and not pnp.ok
+    bent = replace(good, result=replace(good.result, cam_from_world=wrong), located=[pnp])
+    back = relocate(bent, cfg, StageTimer())
+    assert back is not None and back.relocated == [pnp] and back.verdict.ok
+    names = [f"v{k}.png" for k in range(5)]
+    m = compare_poses(dict(zip(names, back.result.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
+    assert m.rotation_deg.max() < 0.01

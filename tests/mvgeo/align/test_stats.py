@@ -13,6 +13,7 @@ from mvgeo.align.stats import (
     DenseStereoStats,
     FailedPair,
     InconsistentPair,
+    LocatedView,
     RejectedPair,
     Unregistered,
 )
@@ -39,6 +40,8 @@ def _stats(**changes) -> AlignStats:
         pairs_dropped_as_inconsistent=[["a.png", "c.png"]], pair_consistency_min=0.62,
         pairs_inconsistent=[InconsistentPair("a.png", "c.png", 0.4, 12.5), InconsistentPair("b.png", "c.png", 0.3,
                                                                                              None)],
+        views_located_by_points=[LocatedView("c.png", 154, 63.8, 4000, "re-posed"),
+                                 LocatedView("c.png", 113, 0.11, 4100, "kept")],
         n_points=5000, mean_confidence=4.5, timings_s={"load": 0.1, "total": 2.0},
         config={"max_size_px": 320, "pairs": {"kind": "complete"}, "seed": 0},
         annotations={"geometry_round": 2, "calibration": {"source": "reused"}})

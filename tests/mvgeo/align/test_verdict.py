@@ -94,6 +94,19 @@ def test_the_alignment_fails_naming_a_view_all_of_whose_pairs_contradict_it():
     assert _judge(RING + wrong, wrong, config=AlignConfig(reject_unsupported_views=False)).ok
 
 
+def test_a_view_the_main_groups_points_locate_is_not_refused():
+    """`located_views` (`mvgeo.align.locate`: PnP on the main group's points agrees with the solution) lifts the
+    cut-off refusal for those views only."""
+    wrong = [PairCheck(0, 5, 40, 0.9, 28.0), PairCheck(4, 5, 30, 0.98, 12.0)]
+    assert not _judge(RING + wrong, wrong).ok
+    ok = verdict(RING + wrong, wrong, NAMES, ba=None, focal_determined=True, focal_undetermined_why="",
+                 config=AlignConfig(), located_views=[5])
+    assert ok.ok
+    other = verdict(RING + wrong, wrong, NAMES, ba=None, focal_determined=True, focal_undetermined_why="",
+                    config=AlignConfig(), located_views=[3])
+    assert [r.views for r in other.reasons] == [("view_005.png",)]
+
+
 def test_one_consistent_pair_is_enough():
     wrong = [PairCheck(4, 5, 30, 0.23, 72.0)]
     assert _judge(RING + [PairCheck(0, 5, 40, 0.9, 1.0)] + wrong, wrong).ok
