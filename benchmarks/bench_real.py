@@ -222,6 +222,10 @@ def run_ours(label, method, folder: Path, gt, f_ref, intrinsics_txt: Path | None
         note.append("sensitive SIFT")
     if st.pairs_rejected_by_loops:
         note.append(f"{len(st.pairs_rejected_by_loops)} pairs rejected by loops")
+    for outcome in ("kept", "re-posed"):
+        views = [v.name for v in st.views_located_by_points if v.outcome == outcome]
+        if views:
+            note.append(f"{outcome} by PnP: {', '.join(views)}")
     if st.pairs_dropped_as_inconsistent:
         note.append(f"{len(st.pairs_dropped_as_inconsistent)} pairs dropped")
     if ba is not None:

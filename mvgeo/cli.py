@@ -109,6 +109,10 @@ def _align(args: argparse.Namespace) -> int:
         print(f"warning: {len(s.unregistered)} images not registered: {[u.name for u in s.unregistered]}",
               file=sys.stderr)
     prior = f", focal prior {s.focal_prior.focal_35mm:g} mm ({s.focal_prior.source})" if s.focal_prior else ""
+    moved = [v.name for v in s.views_located_by_points if v.outcome == "re-posed"]
+    if moved:
+        print(f"note: {moved} re-posed where PnP on the other views' points puts them (align.json "
+              "views_located_by_points)", file=sys.stderr)
     print(f"aligned {s.n_registered}/{s.n_images} images ({s.n_pairs_ok}/{s.n_pairs} pairs, {s.initial_poses} "
           f"start, {len(s.candidates)} candidate(s){prior}), {s.n_points} points, "
           f"loss {s.init_loss:.4g} -> {s.final_loss:.4g}, {s.timings_s['total']:.1f} s -> {args.out}")

@@ -22,9 +22,11 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
    (`init`: DUSt3R's chaining, or rotation averaging `rotation_averaging` then positions), DUSt3R's global
    alignment (`global_align`, objective in `alignment_objective`), bundle adjustment on every verified
    pair's tracks (`bundle`, `bundle_lm`), and a `verdict` with typed reasons naming the views (raised as
-   `mvgeo.common.errors.AlignmentRefusedError`: kind, views, message and fix).
-4. `policy`: which candidates are solved (focal re-estimation, pruning of contradicted pairs, the second
-   start) and the one rule that chooses.
+   `mvgeo.common.errors.AlignmentRefusedError`: kind, views, message and fix). Views the verdict would
+   cut off (every link contradicted) are first located by PnP on points the main group triangulates from
+   guided matches (`locate`, `guided`).
+4. `policy`: which candidates are solved (focal re-estimation, re-posing views PnP places elsewhere
+   (`solve.relocate`), pruning of contradicted pairs, the second start) and the one rule that chooses.
 5. `cloud`: depth maps recomputed by flow stereo with the final cameras (`dense_stereo`, `hole_fill`),
    co-visibility pruning and thinning (`scene`).
 6. `stats` (`AlignStats`, align.json) and `writer`.

@@ -18,8 +18,9 @@ generation ends when no candidate calls for one:
    connected (with `allow_partial`: keeping the largest connected group, and also leaving out the views
    whose positions the tracks do not determine); once, or three times with `allow_partial`. It is still
    judged against every verified pair, the dropped ones included;
-4. relocation (`mvgeo.align.solve.relocate`): a candidate whose verdict cuts off views that PnP on the main
-   group's points places confidently elsewhere (`mvgeo.align.locate`) is adjusted again from that pose, once;
+4. relocation (`mvgeo.align.solve.relocate`), before pruning: a candidate whose verdict cuts off views that
+   PnP on the main group's points places confidently elsewhere (`mvgeo.align.locate`), and locates all the
+   others where the candidate has them, is adjusted again from the PnP poses, once;
 5. second start (`second_start`), once: a candidate that contradicts its pairs as a whole
    (`max_unexplained_fraction`: a wrong minimum, not one weak view) is solved from the other start on its
    unpruned graph; and when the first start's candidates are exhausted with accepted ones whose focal still
@@ -72,6 +73,13 @@ def _focal_consistent(c: Candidate, config) -> bool:
 
 def _rank(c: Candidate, config) -> tuple:
     return (c.verdict.ok, _focal_consistent(c, config), c.explained_fraction)
+
+
+def _relocatable(c: Candidate) -> bool:
+    """PnP places some of `c`'s cut-off views elsewhere and locates the rest where `c` has them: re-posing can
+    lift the refusal (a view PnP cannot locate would still be cut off). Once per lineage."""
+    return (not c.relocated and any(x.placed_elsewhere for x in c.located)
+            and all(x.ok or x.placed_elsewhere for x in c.located))
 
 
 def _pruned(c: Candidate, config, timer: StageTimer) -> Candidate | None:
@@ -167,7 +175,7 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
                     or not isinstance(model, RefocusableModel)):
                 # Pairs at the right focal (or no way to recompute them): prune, then the other start.
                 makers = [lambda c=c: _pruned(c, config, timer)] if prunes[id(c)] < max_prunes else []
-                if not c.relocated and any(x.placed_elsewhere for x in c.located):
+                if _relocatable(c):
                     makers.insert(0, lambda c=c: relocate(c, config, timer))
                 if (config.second_start and not second_tried and c.start == first and not c.dropped
                         and mostly_unexplained(c.checks, c.bad, config.max_unexplained_fraction)):

@@ -14,6 +14,7 @@ import mvgeo.align.solve as solve_mod
 from mvgeo.align.api import PREVIEW, AlignConfig, align_images
 from mvgeo.align.checks import PairCheck
 from mvgeo.align.global_align import GlobalAlignConfig
+from mvgeo.align.locate import Located
 from mvgeo.align.pairs import PairSet
 from mvgeo.align.policy import choose_solution
 from mvgeo.align.solve import Candidate
@@ -413,3 +414,21 @@ def test_the_first_candidate_is_kept_when_the_refocused_one_fails(llff6, monkeyp
     assert cands[0].chosen and cands[0].reasons == [] and not cands[0].refocused
     assert cands[1].error.startswith("stand-in failure") and not cands[1].chosen
     assert res.stats.n_registered == 6
+
+
+def test_relocation_is_tried_only_when_it_can_lift_the_refusal():
+    """Every cut-off view must be located (where the candidate has it, or elsewhere with a pose), and one
+    elsewhere; once per lineage. Measured on the clean temple ring: the chained start cut off seven views, PnP
+    placed two elsewhere and none of the other five, and re-posing the two was refused (a wasted candidate)."""
+    pose = np.eye(3, 4)
+    here, there, lost = Located(1, 80, 0.2, 900), Located(2, 80, 30.0, 900, pose), Located(3, 0, float("nan"), 900)
+    assert here.ok and there.placed_elsewhere and not lost.ok and not lost.placed_elsewhere
+
+    def cand(located, relocated=()):
+        return SimpleNamespace(located=list(located), relocated=list(relocated))
+
+    assert policy._relocatable(cand([there])) and policy._relocatable(cand([here, there]))
+    assert not policy._relocatable(cand([here]))  # nothing to move
+    assert not policy._relocatable(cand([there, lost]))  # view 3 would stay cut off
+    assert not policy._relocatable(cand([there], relocated=[there]))  # once
+    assert not Located(2, 80, 30.0, 900).placed_elsewhere  # no pose to move it to
