@@ -25,7 +25,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mvgeo.align.checks import PairCheck
 from mvgeo.align.guided import fundamental_from_pose, guided_matches
+from mvgeo.align.pairs import Keypoints
 from mvgeo.common.deps import cv2
 
 __all__ = ["LOCATE_MAX_ROTATION_DEG", "LOCATE_MIN_INLIERS", "Located", "locate_cut_off", "locate_view",
@@ -77,8 +79,8 @@ def _K(f: float, W: int, H: int) -> np.ndarray:
     return np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
 
 
-def main_group_points(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int], features: Sequence,
-                      pairs: Sequence[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+def main_group_points(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int],
+                      features: Sequence[Keypoints], pairs: Sequence[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
     """Points triangulated from guided matches of `pairs` at the solution's poses, with their descriptors.
 
     Args:
@@ -119,7 +121,7 @@ def main_group_points(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh:
 
 
 def locate_view(view: int, cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int],
-                features: Sequence, points: np.ndarray, point_desc: np.ndarray) -> Located:
+                features: Sequence[Keypoints], points: np.ndarray, point_desc: np.ndarray) -> Located:
     """PnP of `view` on `points` (`main_group_points`), compared with its solution pose.
 
     Args:
@@ -162,8 +164,9 @@ def locate_view(view: int, cam_from_world: np.ndarray, focal_px: np.ndarray, siz
                    np.concatenate([R, np.asarray(tvec, np.float64).reshape(3, 1)], axis=1))
 
 
-def locate_cut_off(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int], features: Sequence,
-                   checks: Sequence, bad: Sequence, cut_off: Sequence[int]) -> list[Located]:
+def locate_cut_off(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int],
+                   features: Sequence[Keypoints], checks: Sequence[PairCheck], bad: Sequence[PairCheck],
+                   cut_off: Sequence[int]) -> list[Located]:
     """`locate_view` for every view in `cut_off` (`mvgeo.align.checks.views_cut_off`), on the points of the
     explained pairs (`checks` less `bad`) among the other views that include one of the view's checked
     partners (the part of the scene the view shares with the main group)."""

@@ -16,14 +16,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from mvgeo.common.errors import ShapeError, check_shape
-
-if TYPE_CHECKING:
-    from mvgeo.align.features import ImageFeatures
 
 
 @dataclass
@@ -103,6 +100,15 @@ class PairGeometry:
             check_shape(self.cam_j_from_cam_i, [3, 4], "cam_j_from_cam_i")
 
 
+class Keypoints(Protocol):
+    """One view's keypoints as the alignment's later stages read them: `uv_px` (K, 2) pixels (our convention)
+    and `root()` (K, D) unit-norm descriptors (RootSIFT for `mvgeo.align.features.ImageFeatures`)."""
+
+    uv_px: np.ndarray
+
+    def root(self) -> np.ndarray: ...
+
+
 @dataclass(frozen=True)
 class PairSet:
     """Everything a `PointmapModel` knows about the image pairs (the pair stage's result).
@@ -125,9 +131,9 @@ class PairSet:
             `AlignConfig.refocus_min_change` of it counts as determining the focal (`mvgeo.align.solve`).
         sensitive_features: the model re-detected features with a more sensitive detector to connect the
             pair graph (`ClassicalPairConfig.fallback_sift`).
-        features: per view, the keypoints and descriptors the matches came from
-            (`mvgeo.align.features.ImageFeatures`, alignment pixels), or None (a model without sparse
-            features). The verdict's guided re-check matches them again under a solution's geometry.
+        features: per view, the keypoints and descriptors the matches came from (`Keypoints`, e.g.
+            `mvgeo.align.features.ImageFeatures`; alignment pixels), or None (a model without sparse
+            features). `mvgeo.align.locate` matches them again to locate a view the verdict cuts off.
     """
 
     predictions: list[PairPrediction]
@@ -138,7 +144,7 @@ class PairSet:
     focal_undetermined_why: str = ""
     sensitive_features: bool = False
     focal_prior_px: float | None = None
-    features: tuple[ImageFeatures, ...] | None = None
+    features: tuple[Keypoints, ...] | None = None
 
     @property
     def matches(self) -> list[tuple[int, int, np.ndarray]]:
