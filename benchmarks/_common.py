@@ -55,11 +55,12 @@ def md_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_fragment(name: str, title: str, body: str) -> Path:
-    """Write docs/bench/<name>.md: a section with the command that reproduces it."""
+def write_fragment(name: str, title: str, body: str, reproduce: str | None = None) -> Path:
+    """Write docs/bench/<name>.md: a section with the command that reproduces it (`reproduce`, default
+    `make bench ONLY=<name>`; a script's run with options under another name says so)."""
     path = ROOT / "docs" / "bench" / f"{name}.md"
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = f"## {title}\n\nReproduce: `make bench ONLY={name}`\n\n{body.rstrip()}\n"
+    text = f"## {title}\n\nReproduce: {reproduce or f'`make bench ONLY={name}`'}\n\n{body.rstrip()}\n"
     path.write_text(text)
     return path
 

@@ -403,7 +403,8 @@ def main() -> int:
                  "66): " + ", ".join(f"{a}: {b}" for a, b in pair_counts) + "\n")
     if missing:
         body += "\nMissing (skipped): " + ", ".join(sorted(set(missing))) + "\n"
-    print(write_fragment(out_name, "Real photographs: mvgeo align vs pycolmap incremental and global", body))
+    print(write_fragment(out_name, "Real photographs: mvgeo align vs pycolmap incremental and global", body,
+                         None if out_name == "real" else "the command below (`benchmarks/bench_real.py`)"))
     return 0
 
 
