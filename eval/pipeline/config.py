@@ -94,9 +94,10 @@ class AlignSettings:
             trains on the denoised photos either way. On DTU scan24 at sigma 25 the noisy photos align
             at 0.32 deg against 0.45 for N2V's photos, and R2R's 29.5 dB photos were refused (one view's
             matches contradicted: the clean-photo feature detector, chosen by their low noise, finds
-            features in the denoiser's texture); at sigma 50 the noisy photos are refused and N2V's
-            aligned (docs/bench/pipeline.md). After the noisy photos, the denoised ones are matched with
-            the noisy photos' detector (`eval.pipeline.stages.denoised_photos_config`): R2R's photos at
+            features in the denoiser's texture); at sigma 50 the noisy photos were refused and N2V's
+            aligned, until views cut off by contradicted pairs were located by PnP (`mvgeo.align.locate`):
+            they align at 0.91 deg now (docs/bench/pipeline.md). After the noisy photos, the denoised ones
+            are matched with the noisy photos' detector (`eval.pipeline.stages.denoised_photos_config`): R2R's photos at
             sigma 50 align so (1.1 deg) and were refused with the clean-photo one. Rounds >= 2 align the
             round's denoised photos.
     """
