@@ -11,7 +11,7 @@ from mvgeo.align.global_align import GlobalAlignConfig
 from mvgeo.align.inputs import load_inputs
 from mvgeo.align.locate import Located
 from mvgeo.align.pairs import PairGeometry, PairSet
-from mvgeo.align.solve import pair_graph, relocate, solve
+from mvgeo.align.solve import main_group_change_deg, pair_graph, relocate, solve
 from mvgeo.align.stats import RejectedPair, Unregistered
 from mvgeo.common.errors import DisconnectedViewsError, InputError
 from mvgeo.common.timing import StageTimer
@@ -161,3 +161,16 @@ def test_relocate_adjusts_again_from_the_pose_pnp_found(rng):
     names = [f"v{k}.png" for k in range(5)]
     m = compare_poses(dict(zip(names, back.result.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
     assert m.rotation_deg.max() < 0.01
+
+
+def test_main_group_change_is_the_largest_turn_of_a_relative_rotation_among_the_unmoved_views():
+    before = np.stack([np.eye(3, 4)] * 4)
+    after = before.copy()
+    after[3, :, :3] = so3_exp(np.array([0.0, 0.0, np.radians(40.0)]))  # the moved view: not counted
+    assert main_group_change_deg(before, after, {3}) == pytest.approx(0.0, abs=1e-9)
+    after[1, :, :3] = so3_exp(np.array([np.radians(4.0), 0.0, 0.0]))
+    assert main_group_change_deg(before, after, {3}) == pytest.approx(4.0)
+    # A rotation of the whole frame changes no relative rotation.
+    turned = before.copy()
+    turned[:, :, :3] = np.einsum("nij,jk->nik", after[:, :, :3], so3_exp(np.array([0.3, -0.2, 0.1])).T)
+    assert main_group_change_deg(after, turned, set()) == pytest.approx(0.0, abs=1e-6)
