@@ -58,7 +58,9 @@ class AlignConfig:
             features), try to locate each by PnP on points the main group's explained pairs triangulate at
             the solution's poses (`mvgeo.align.locate`): a view PnP places within 3 deg of the solution
             (at least 15 inliers) is supported by three-view evidence its weak pairs could not give, and
-            is kept. align.json `views_located_by_points`.
+            is kept; views PnP places confidently elsewhere are re-posed there and the candidate adjusted
+            again (`mvgeo.align.solve.relocate`; not kept if that turns the other views' relative rotations
+            by more than 3 deg). align.json `views_located_by_points`.
         points_budget: maximum number of output points (200 000; confidence-aware thinning).
         downsample: how the cloud is thinned to `points_budget`: "pixel" (default), the most confident
             point per pixel cell of each view (the density the views see), or "voxel", the most
