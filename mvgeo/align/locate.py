@@ -27,6 +27,7 @@ import numpy as np
 
 from mvgeo.align.checks import PairCheck
 from mvgeo.align.guided import fundamental_from_pose, guided_matches
+from mvgeo.align.loops import rotation_angle_deg
 from mvgeo.align.pairs import Keypoints
 from mvgeo.common.deps import cv2
 
@@ -165,8 +166,7 @@ def locate_view(view: int, cam_from_world: np.ndarray, focal_px: np.ndarray, siz
     if not ok or inliers is None:
         return Located(view, 0, float("nan"), P)
     R = cv2.Rodrigues(rvec)[0]
-    cos = (np.trace(R @ cam_from_world[view][:, :3].T) - 1.0) / 2.0
-    return Located(view, len(inliers), float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))), P,
+    return Located(view, len(inliers), rotation_angle_deg(R @ cam_from_world[view][:, :3].T), P,
                    np.concatenate([R, np.asarray(tvec, np.float64).reshape(3, 1)], axis=1))
 
 
@@ -179,8 +179,8 @@ def locate_cut_off(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tu
     most verified matches, each triangulated once for all the views."""
     cut = set(cut_off)
     bad_keys = {(c.i, c.j) for c in bad}
-    good = sorted(((c.i, c.j) for c in checks if (c.i, c.j) not in bad_keys and c.i not in cut and c.j not in cut),
-                  key=lambda ij: -next(c.n_matches for c in checks if (c.i, c.j) == ij))
+    good = [(c.i, c.j) for c in sorted(checks, key=lambda c: -c.n_matches)
+            if (c.i, c.j) not in bad_keys and c.i not in cut and c.j not in cut]
     chosen = {}
     for v in cut_off:
         partners = {c.j if c.i == v else c.i for c in checks if v in (c.i, c.j)} - cut

@@ -136,7 +136,8 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
             "enable the bundle adjustment (--ba)" if ba is None
             else "add views between the existing ones, or pass the calibration with --intrinsics"))
     orphans = views_cut_off(checks, bad, len(names)) if config.reject_unsupported_views else []
-    orphans = [v for v in orphans if v not in set(located_views)]
+    located = set(located_views)
+    orphans = [v for v in orphans if v not in located]
     if orphans:
         cut = set(orphans)
         links = [c for c in bad if (c.i in cut) != (c.j in cut)]  # the contradicted pairs to the main group
