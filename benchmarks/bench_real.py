@@ -1,7 +1,8 @@
 """Real photographs: `mvgeo align` vs pycolmap incremental and global mapping, on identical image files.
 
 Usage: `python benchmarks/bench_real.py [--data=DIR[,DIR...]] [--sets=temple,dtu_spread,dtu_cluster,data]
-[--noise=clean,noisy] [--noise-seeds=N] [--methods=ours,ours_noexif,ours_intr,incremental,global] [--out=NAME]
+[--noise=clean,noisy] [--noise-seeds=N] [--methods=ours,ours_noexif,ours_intr,ours_partial,incremental,global]
+[--out=NAME]
 [--exif]`
 (writes docs/bench/NAME.md, default `real`; only the table and its header). `--noise-seeds=N` (default 6) runs
 the noisy variant with noise seeds 0..N-1 and adds a table of the noisy rows per set and method over the seeds:
@@ -25,7 +26,10 @@ Methods, alternated (the order rotates from one variant to the next), all in thi
 `ours` = `mvgeo align` defaults without the final dense stereo (poses + sparse points: the product pycolmap's
 mappers make); `ours_noexif` (`ours, EXIF off`) = the same with `AlignConfig.exif_focal` off (with `--exif`:
 what the EXIF focal buys, in the same run); `ours --intrinsics` = the same with the known calibration (a COLMAP
-cameras.txt written from the set's calibration, read by `mvgeo.align.intrinsics.read_intrinsics`); `pycolmap
+cameras.txt written from the set's calibration, read by `mvgeo.align.intrinsics.read_intrinsics`);
+`ours_partial` (`ours --allow-partial`) = the defaults with `AlignConfig.allow_partial`: where the pairs do not
+connect every view, or the verdict would cut views off, the largest group is registered and the others are named
+(the note column), as the mappers return partial models; `pycolmap
 incremental` and `pycolmap global` (`mvgeo.align.colmap_sfm.run_colmap`: CPU SIFT, exhaustive matching, one
 SIMPLE_RADIAL camera).
 
@@ -228,10 +232,17 @@ def run_ours(label, method, folder: Path, gt, f_ref, intrinsics_txt: Path | None
             note.append(f"{outcome} by PnP: {', '.join(views)}")
     if st.pairs_dropped_as_inconsistent:
         note.append(f"{len(st.pairs_dropped_as_inconsistent)} pairs dropped")
+    if st.unregistered:
+        note.append("left out: " + ", ".join(f"{u.name} ({_short_reason(u.reason)})" for u in st.unregistered))
     if ba is not None:
         note.append(f"reproj {ba.reproj_rms_after_px:.2g} px")
     return metrics_row(label, method, res.sparse_model.cam_from_world_by_name(), gt, f, f_ref, sec,
                        f"{st.n_pairs_verified}/{st.n_pairs}", "" if ba is None else ba.n_points, "; ".join(note))
+
+
+def _short_reason(reason: str) -> str:
+    return ("not connected" if "not connected" in reason else "inconsistent pairs" if "inconsistent" in reason
+            else "position undetermined" if "not determined" in reason else reason[:40])
 
 
 def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref):
@@ -269,7 +280,7 @@ def colmap_verified_pairs(folder: Path, names: list[str], min_inliers: int = 15)
             db.close()
 
 
-METHODS = ("ours", "ours_noexif", "ours_intr", "global", "incremental")
+METHODS = ("ours", "ours_noexif", "ours_intr", "ours_partial", "global", "incremental")
 #: Without --methods: `ours_noexif` is `ours` on images without EXIF, so only asked for with --exif.
 DEFAULT_METHODS = ("ours", "ours_intr", "global", "incremental")
 
@@ -285,20 +296,23 @@ def noise_seed_summary(rows: list[list], n_seeds: int) -> str:
     out = []
     for (name, method), rs in groups.items():
         full = [r for r in rs if r[3] != "" and r[2].split("/")[0] == r[2].split("/")[1]]  # every view registered
+        posed = [r for r in rs if r[3] != ""]  # a model (for a partial one, the errors of its registered views)
 
-        def mean(col, rows=full):
+        def mean(col, rows=posed):
             vals = [float(r[col]) for r in rows if r[col] != "" and np.isfinite(float(r[col]))]
             return float(np.mean(vals)) if vals else float("nan")
 
         t = float(np.mean([r[8] for r in rs]))
-        out.append([name, method, f"{len(full)}/{len(rs)}",
-                    float(np.median([float(r[3]) for r in full])) if full else float("nan"), mean(3), mean(4),
+        views = float(np.mean([int(r[2].split("/")[0]) for r in rs]))
+        out.append([name, method, f"{len(full)}/{len(rs)}", views,
+                    float(np.median([float(r[3]) for r in posed])) if posed else float("nan"), mean(3), mean(4),
                     mean(6), t, t / ref_time[name] if name in ref_time else float("nan")])
     return (f"\nNoisy rows of all {n_seeds} noise seeds (0..{n_seeds - 1}) together, per set and method: "
-            "`full` = seeds with every view registered; the error columns are over those seeds (median and mean "
-            "of the per-seed median rotation error, mean of the per-seed max and ATE); time over all seeds, and "
-            "its ratio to pycolmap global's mean time in this run.\n\n"
-            + md_table(["set (noisy)", "method", "full", "rot med: median", "rot med: mean", "rot max: mean",
+            "`full` = seeds with every view registered; `views` = registered views, mean over the seeds; the "
+            "error columns are over the seeds with a model, of its registered views (median and mean of the "
+            "per-seed median rotation error, mean of the per-seed max and ATE); time over all seeds, and its "
+            "ratio to pycolmap global's mean time in this run.\n\n"
+            + md_table(["set (noisy)", "method", "full", "views", "rot med: median", "rot med: mean", "rot max: mean",
                         "ATE / scale: mean", "time (s): mean", "time / global"], out))
 
 
@@ -368,6 +382,9 @@ def main() -> int:
                                      replace(OURS, exif_focal=False))
                     elif m == "ours_intr":
                         r = run_ours(label, "ours --intrinsics", folder, s.gt, f_ref, cams_txt, OURS)
+                    elif m == "ours_partial":
+                        r = run_ours(label, "ours --allow-partial", folder, s.gt, f_ref, None,
+                                     replace(OURS, allow_partial=True))
                     else:
                         r = run_pycolmap(label, m, folder, s.gt, f_ref)
                     rows.append(r)

@@ -30,10 +30,13 @@ generation ends when no candidate calls for one:
    (truth 925 px) through re-estimations whose results each explained 86-89 % of the matches and were not
    refused; the chained start settles at 929 px, 0.28 deg, 99.3 % explained.
 
-Selection rule: the candidate with the highest (accepted by its verdict, self-consistent focal, fraction of
-all verified matches explained). If that candidate is not accepted, `align_images` raises its verdict's
-first reason. A successor that fails outright (e.g. refocused pairs that no longer connect the views) is
-recorded and skipped.
+Selection rule: the candidate with the highest (accepted by its verdict, self-consistent focal, views
+registered, fraction of all verified matches explained). The views count only with `allow_partial`, where a
+pruned candidate may leave views out: an accepted candidate that keeps a view (e.g. one PnP located where the
+candidate has it) wins over its pruning that drops it, whatever the pruning explains (measured on noisy DTU
+scan24, noise seed 0: 12 views at 0.30 deg against 11). If the chosen candidate is not accepted,
+`align_images` raises its verdict's first reason. A successor that fails outright (e.g. refocused pairs that
+no longer connect the views) is recorded and skipped.
 """
 
 from __future__ import annotations
@@ -72,7 +75,7 @@ def _focal_consistent(c: Candidate, config) -> bool:
 
 
 def _rank(c: Candidate, config) -> tuple:
-    return (c.verdict.ok, _focal_consistent(c, config), c.explained_fraction)
+    return (c.verdict.ok, _focal_consistent(c, config), len(c.inputs), c.explained_fraction)
 
 
 def _relocatable(c: Candidate) -> bool:

@@ -135,6 +135,33 @@ def test_an_accepted_candidate_outranks_a_refused_one_that_explains_more(monkeyp
     assert chosen.start == "averaged" and [s.chosen for s in summaries] == [False, True]
 
 
+def test_among_accepted_candidates_more_registered_views_outrank_explained():
+    """With `allow_partial` a pruning may leave views out: the accepted candidate that keeps them wins over one
+    that explains more of fewer views' matches; acceptance and a self-consistent focal still come first."""
+    config = AlignConfig(allow_partial=True)
+
+    def cand(n_views, explained, ok=True):
+        return SimpleNamespace(verdict=Verdict(() if ok else (Reason("views_unsupported", (), "no"),)),
+                               inputs=_Sized(n_views), pairs=_pairs(), ba=None, bundle_focal_px=None,
+                               explained_fraction=explained)
+
+    full, pruned, refused = cand(12, 0.990), cand(11, 0.998), cand(12, 1.0, ok=False)
+    ranked = sorted([pruned, refused, full], key=lambda c: policy._rank(c, config), reverse=True)
+    assert ranked == [full, pruned, refused]
+
+
+class _Sized:
+    """Inputs of `n` views with no intrinsics (what `_rank` reads)."""
+
+    intrinsics = None
+
+    def __init__(self, n):
+        self.n = n
+
+    def __len__(self):
+        return self.n
+
+
 def test_a_weak_view_gets_no_second_start(monkeypatch):
     """One unsupported view is weak data, not a wrong minimum: the other start is not tried."""
     script = _Script(monkeypatch, {("chain", False): dict(explained=0.95, reasons=("views_unsupported",)),
