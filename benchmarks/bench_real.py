@@ -1,9 +1,8 @@
 """Real photographs: `mvgeo align` vs pycolmap incremental and global mapping, on identical image files.
 
 Usage: `python benchmarks/bench_real.py [--data=DIR[,DIR...]] [--sets=temple,dtu_spread,dtu_cluster,data]
-[--noise=clean,noisy] [--noise-seeds=N] [--methods=ours,ours_noexif,ours_intr,ours_partial,incremental,global]
-[--out=NAME]
-[--exif]`
+[--noise=clean,noisy] [--noise-seeds=N]
+[--methods=ours,ours_noexif,ours_intr,ours_partial,ours_chain,ours_averaged,incremental,global] [--out=NAME] [--exif]`
 (writes docs/bench/NAME.md, default `real`; only the table and its header). `--noise-seeds=N` (default 6) runs
 the noisy variant with noise seeds 0..N-1 and adds a table of the noisy rows per set and method over the seeds:
 one draw of the noise moves the pose errors by more than the methods differ. `--exif` writes every image with
@@ -29,7 +28,9 @@ what the EXIF focal buys, in the same run); `ours --intrinsics` = the same with 
 cameras.txt written from the set's calibration, read by `mvgeo.align.intrinsics.read_intrinsics`);
 `ours_partial` (`ours --allow-partial`) = the defaults with `AlignConfig.allow_partial`: where the pairs do not
 connect every view, or the verdict would cut views off, the largest group is registered and the others are named
-(the note column), as the mappers return partial models; `pycolmap
+(the note column), as the mappers return partial models; `ours_chain` / `ours_averaged` (`ours --initial-poses
+chain|averaged`) = the defaults with that start first (the other start still follows where the first contradicts
+its pairs); `pycolmap
 incremental` and `pycolmap global` (`mvgeo.align.colmap_sfm.run_colmap`: CPU SIFT, exhaustive matching, one
 SIMPLE_RADIAL camera).
 
@@ -280,7 +281,8 @@ def colmap_verified_pairs(folder: Path, names: list[str], min_inliers: int = 15)
             db.close()
 
 
-METHODS = ("ours", "ours_noexif", "ours_intr", "ours_partial", "global", "incremental")
+METHODS = ("ours", "ours_noexif", "ours_intr", "ours_partial", "ours_chain", "ours_averaged", "global",
+           "incremental")
 #: Without --methods: `ours_noexif` is `ours` on images without EXIF, so only asked for with --exif.
 DEFAULT_METHODS = ("ours", "ours_intr", "global", "incremental")
 
@@ -382,6 +384,10 @@ def main() -> int:
                                      replace(OURS, exif_focal=False))
                     elif m == "ours_intr":
                         r = run_ours(label, "ours --intrinsics", folder, s.gt, f_ref, cams_txt, OURS)
+                    elif m in ("ours_chain", "ours_averaged"):
+                        start = m.split("_")[1]
+                        r = run_ours(label, f"ours --initial-poses {start}", folder, s.gt, f_ref, None,
+                                     replace(OURS, initial_poses=start))
                     elif m == "ours_partial":
                         r = run_ours(label, "ours --allow-partial", folder, s.gt, f_ref, None,
                                      replace(OURS, allow_partial=True))

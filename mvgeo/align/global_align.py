@@ -49,6 +49,7 @@ from mvgeo.align.alignment_objective import (
 from mvgeo.align.graph import components, maximum_spanning_tree
 from mvgeo.align.pairs import PairPrediction
 from mvgeo.align.pointmap_geometry import (
+    PNP_REFINE_POINTS,
     AlignInit,
     pair_similarities,
     pixel_rays,
@@ -134,10 +135,6 @@ class GlobalAlignResult:
 
 # --------------------------------------------------------------------------- initialisation
 
-
-#: The LM refinement of each view's initial PnP pose uses at most this many pixels, evenly spread
-#: (all 12k of a 128 x 96 pointmap took ~18 ms per view; 3000 ~4 ms; it only starts the alignment).
-PNP_REFINE_POINTS = 3000
 
 
 def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], *,

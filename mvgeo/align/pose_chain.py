@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from mvgeo.align.pairs import PairPrediction
-from mvgeo.align.pointmap_geometry import AlignInit, pair_similarities
+from mvgeo.align.pointmap_geometry import PNP_REFINE_POINTS, AlignInit, pair_similarities
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError
 
@@ -45,7 +45,8 @@ def pair_pose_from_pointmap(p: PairPrediction, focal_j_px: float) -> tuple[np.nd
     okp, rvec, tvec = cv2.solvePnP(obj, uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
     if not okp:
         return None
-    rvec, tvec = cv2.solvePnPRefineLM(obj, uv, K, None, rvec, tvec)
+    sub = np.linspace(0, len(obj) - 1, min(len(obj), PNP_REFINE_POINTS)).round().astype(int)
+    rvec, tvec = cv2.solvePnPRefineLM(obj[sub], uv[sub], K, None, rvec, tvec)
     return cv2.Rodrigues(rvec)[0], tvec.reshape(3)
 
 
