@@ -46,12 +46,15 @@ def choose_start(initial_poses: str, pairs: PairSet, n_views: int) -> str:
     The "auto" rule: DUSt3R's chaining first, the averaged start (rotation averaging, then global positioning)
     as the second start where the first contradicts its pairs as a whole or its focal keeps drifting
     (`mvgeo.align.policy`, `AlignConfig.second_start`). Measured each start alone (docs/bench/align.md,
-    `benchmarks/diag_align_init.py`): the averaged start was the more accurate on six of seven scenes
-    (llff_like 0.011 against 0.018 deg, hard_tinybaseline 0.020 against 3.3 deg, temple 12/12 against 5/12
-    views, ...), but on object_ring's 21 training views (15-30 deg steps) it returned every view with a
-    median error of 3.0 deg and an ATE of 0.35 m on the 3 m ring, and no check refused it, where the chained
-    start is refused naming the view its tracks do not pin. A named refusal is preferred to a wrong model,
-    so chaining stays first until the verdict catches that bend.
+    `benchmarks/diag_align_init.py`): the averaged start is the more accurate on most synthetic scenes
+    (llff_like 0.011 against 0.014 deg; with `allow_partial`, object_ring 12/12 against 9/12 views and the
+    temple 12/12 against 6/12)
+    and saves the chained candidate on the temple ring (1.9 s against 2.8 s), and the object_ring bend that
+    once kept it second (21 views at 3.0 deg, unrefused) is now refused from either start. But first on ten
+    noise draws of DTU scan24 (`bench_real.py --methods=ours_averaged`, docs/bench/real_partial_draws.md) it
+    returned one draw with a view 10.6 deg off that no check refused (two of its four pairs explained it:
+    one of them, 96 matches, is itself 10 deg off), where chaining first is right on all ten. A named
+    refusal or a right model is preferred to a faster wrong one, so chaining stays first.
     """
     del pairs, n_views
     return "chain" if initial_poses == "auto" else initial_poses
