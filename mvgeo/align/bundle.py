@@ -57,7 +57,7 @@ class BundleConfig:
             iterations of an IRLS Huber adjustment lower the cost linearly, by 1e-5 to 1e-6 each
             (DTU scan24: 10 of its 20 iterations); stopping at 1e-5 instead of 1e-6 moved the
             median rotation error by at most 0.0005 deg on DTU scan24 (clean and noisy), the temple
-            ring, llff_like (3, 6 and 12 views) and object_ring, and took 5-9 % off `mvgeo align`'s
+            ring, llff_like (3, 6 and 12 views) and object_ring, and took 1-6 % off `mvgeo align`'s
             time (1e-6 against 1e-10 on llff_like: < 0.01 % of the error, half the time).
         readjust_min_gain: adjust once more when the adjusted poses triangulate at least this fraction
             more tracks than the start did (`bundle_adjust`); 0 never. 5 %: on the real benchmark sets the
