@@ -48,13 +48,15 @@ def choose_start(initial_poses: str, pairs: PairSet, n_views: int) -> str:
     (`mvgeo.align.policy`, `AlignConfig.second_start`). Measured each start alone (docs/bench/align.md,
     `benchmarks/diag_align_init.py`): the averaged start is the more accurate on most synthetic scenes
     (llff_like 0.011 against 0.014 deg; with `allow_partial`, object_ring 12/12 against 9/12 views and the
-    temple 12/12 against 6/12)
-    and saves the chained candidate on the temple ring (1.9 s against 2.8 s), and the object_ring bend that
-    once kept it second (21 views at 3.0 deg, unrefused) is now refused from either start. But first on ten
-    noise draws of DTU scan24 (`bench_real.py --methods=ours_averaged`, docs/bench/real_partial_draws.md) it
-    returned one draw with a view 10.6 deg off that no check refused (two of its four pairs explained it:
-    one of them, 96 matches, is itself 10 deg off), where chaining first is right on all ten. A named
-    refusal or a right model is preferred to a faster wrong one, so chaining stays first.
+    temple 12/12 against 6/12) and saves the chained candidate on the temple ring (1.9 s against 2.8 s). But
+    it returns wrong models no check refuses where chaining is refused or right: on object_ring's 21 training
+    views at 256x192 (24-view ring, 15-30 deg steps) all 21 views at a median of 1.2-3.0 deg, max 15-16 deg
+    (which of refused and accepted it gives there flips with small changes of its own start: the global
+    positioning's tolerance, the PnP pixels), where chaining is refused naming the views; and first on ten
+    noise draws of DTU scan24 (`bench_real.py --methods=ours_averaged`, docs/bench/real_partial_draws.md)
+    one draw with a view 10.6 deg off (two of its four pairs explained it: one of them, 96 matches, is itself
+    10 deg off), where chaining first is right on all ten. A named refusal or a right model is preferred to
+    a faster wrong one, so chaining stays first.
     """
     del pairs, n_views
     return "chain" if initial_poses == "auto" else initial_poses
