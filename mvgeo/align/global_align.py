@@ -136,7 +136,6 @@ class GlobalAlignResult:
 # --------------------------------------------------------------------------- initialisation
 
 
-
 def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], *,
                             focal_init_px: np.ndarray) -> AlignInit:
     """DUSt3R's MST initialisation (see the module docstring).

@@ -23,6 +23,7 @@ __all__ = ["PNP_REFINE_POINTS", "AlignInit", "pair_similarities", "pixel_rays", 
 #: (all 12k of a 128 x 96 pointmap took ~18 ms per view; 3000 ~4 ms; it only starts the alignment).
 PNP_REFINE_POINTS = 3000
 
+
 def weighted_umeyama(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Confidence-weighted Procrustes with scale: (s, R, t) with dst ~ s R src + t (mvgeo.transforms.umeyama).
 

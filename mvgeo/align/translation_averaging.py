@@ -43,10 +43,11 @@ from mvgeo.common.errors import DegenerateGeometryError, InputError, check_shape
 
 #: Lower bound of the scales d (GLOMAP bounds them the same way); the centres have RMS radius 1.
 _MIN_SCALE = 1e-5
-#: Damped solves per LM iteration before the iteration counts as converged (the damping grows 4x per
-#: rejected step, as `mvgeo.align.bundle_lm.solve_lm` does). Growing it until 1e16 instead took up to 19
-#: solves (0.1 s on the temple ring) at a point no step improves.
-_MAX_TRIES = 10
+#: Damped solves per LM iteration before the iteration counts as converged. A rejected step raises the
+#: damping to at least 1e-4 and then 4x per try, so the last try damps by at least 1e-4 * 4^13 ~ 7e3 times
+#: H's diagonal: no step down to that length lowers the cost. Growing it from where it stood until 1e16
+#: instead took 18 solves (0.1 s) on the temple ring's converged second round.
+_MAX_TRIES = 14
 
 __all__ = ["GlobalPositioningConfig", "GlobalPositioningResult", "global_positions", "observation_rays"]
 
@@ -144,6 +145,7 @@ class _Problem:
         self.v, self.ov, self.op = rays, obs_view, obs_point
         self.n, self.p, self.k = n_views, n_points, len(rays)
         self.gauge_w = np.sqrt(max(self.k, 1))
+        self.pairs: tuple[np.ndarray, np.ndarray] | None = None  # `_track_pairs`, made by the first step
 
     def split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n3, p3 = 3 * self.n, 3 * self.p
@@ -240,39 +242,60 @@ class _Normal:
         return np.r_[np.diag(self.h_cc) + np.repeat(self.cc_diag, 3), np.repeat(self.xx, 3), self.dd]
 
 
+def _track_pairs(op: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """(k, l): every ordered pair of observations of the same point, itself included (sum over points of
+    m_p^2 pairs): where a point's Schur term lands in the reduced camera system."""
+    order = np.argsort(op, kind="stable")
+    m = np.bincount(op, minlength=n_points)
+    first = np.cumsum(m) - m  # each point's first position in `order`
+    m_k = m[op[order]]
+    kk = np.repeat(np.arange(len(op)), m_k)
+    offset = np.arange(len(kk)) - np.repeat(np.cumsum(m_k) - m_k, m_k)
+    ll = first[op[order][kk]] + offset
+    return order[kk], order[ll]
+
+
 def _damped_step(nq: _Normal, lam: float, D: np.ndarray, free: np.ndarray) -> np.ndarray:
     """The step of ``(H + lam diag(D)) step = b``: the scales eliminated (1 x 1 each; fixed ones, `free`
     False, held), then the points (3 x 3 each), then a dense (3N, 3N) solve; `_damped_step_sparse` is the
-    same solve on the sparse matrices."""
+    same solve on the sparse matrices. A point's Schur term is added per pair of its observations
+    (`_track_pairs`), so the work grows with the observations, not with views x points."""
     pb = nq.problem
     n, P, ov, op = pb.n, pb.p, pb.ov, pb.op
     m3n = 3 * n
     Dc, Dx, Dd = D[:m3n], D[m3n:m3n + 3 * P].reshape(P, 3), D[m3n + 3 * P:]
     a = np.where(free, 1.0 / (nq.dd + lam * Dd), 0.0)  # (K,) inverse of each scale's damped entry
     q = a * nq.wd * nq.wd  # the coupling's outer products u u^T enter with this factor
-    uu = nq.u[:, :, None] * nq.u[:, None, :]  # (K, 3, 3)
-    quu = q[:, None, None] * uu
+    quu = q[:, None, None] * (nq.u[:, :, None] * nq.u[:, None, :])  # (K, 3, 3)
     eye = np.eye(3)
     # Centre blocks (dense, with the gauge term) and point blocks, scales eliminated.
-    S_cc = nq.h_cc + np.diag(lam * Dc)
+    S = nq.h_cc + np.diag(lam * Dc)
     blk = np.zeros((n, 3, 3))
     np.add.at(blk, ov, nq.wd2[:, None, None] * eye - quu)
     idx = 3 * np.arange(n)[:, None] + np.arange(3)
-    S_cc[idx[:, :, None], idx[:, None, :]] += blk
+    S[idx[:, :, None], idx[:, None, :]] += blk
     V = nq.xx[:, None, None] * eye + lam * Dx[:, :, None] * eye  # damped diagonal per point
     np.add.at(V, op, -quu)
-    # Centre-point blocks, (P, 3N, 3) dense: each observation's view n holds -w d^2 I + q u u^T.
-    W = np.zeros((P, n, 3, 3))
-    np.add.at(W, (op, ov), -nq.wd2[:, None, None] * eye + quu)
-    W = W.reshape(P, m3n, 3)
+    Vinv = np.linalg.inv(V)
+    # Each observation's centre-point block (symmetric): -w d^2 I + q u u^T in rows C_n, columns X_p.
+    B = -nq.wd2[:, None, None] * eye + quu
     coup = (a * nq.b_d * nq.wd)[:, None] * nq.u  # (K, 3): the scales' right-hand side carried over
     rhs_c = nq.b_c + np.stack([np.bincount(ov, coup[:, k], minlength=n) for k in range(3)], axis=1).ravel()
     rhs_x = nq.b_x - np.stack([np.bincount(op, coup[:, k], minlength=P) for k in range(3)], axis=1)
-    Vinv = np.linalg.inv(V)
-    Y = W @ Vinv  # (P, 3N, 3)
-    S = S_cc - np.transpose(Y, (1, 0, 2)).reshape(m3n, -1) @ np.transpose(W, (1, 0, 2)).reshape(m3n, -1).T
-    dC = np.linalg.solve(S, rhs_c - np.einsum("pij,pj->i", Y, rhs_x))
-    dX = np.einsum("pij,pj->pi", Vinv, rhs_x - np.einsum("pji,j->pi", W, dC))
+    Y = B @ Vinv[op]  # (K, 3, 3)
+    if pb.pairs is None:
+        pb.pairs = _track_pairs(op, P)
+    kk, ll = pb.pairs
+    contrib = Y[kk] @ B[ll]  # (pairs, 3, 3) into block (ov[k], ov[l])
+    rows = (3 * ov[kk])[:, None, None] + np.arange(3)[None, :, None]
+    cols = (3 * ov[ll])[:, None, None] + np.arange(3)[None, None, :]
+    S -= np.bincount((rows * m3n + cols).ravel(), contrib.ravel(), minlength=m3n * m3n).reshape(m3n, m3n)
+    yr = np.einsum("kij,kj->ki", Y, rhs_x[op])
+    rhs = rhs_c - np.stack([np.bincount(ov, yr[:, k], minlength=n) for k in range(3)], axis=1).ravel()
+    dC = np.linalg.solve(S, rhs)
+    bc = np.einsum("kij,kj->ki", B, dC.reshape(n, 3)[ov])  # B symmetric: B^T dC_n
+    sum_bc = np.stack([np.bincount(op, bc[:, k], minlength=P) for k in range(3)], axis=1)
+    dX = np.einsum("pij,pj->pi", Vinv, rhs_x - sum_bc)
     dd = a * (nq.b_d - nq.wd * np.sum(nq.u * (dX[op] - dC.reshape(n, 3)[ov]), axis=1))
     return np.r_[dC, dX.ravel(), dd]
 
@@ -318,8 +341,8 @@ def _lm(problem: _Problem, z: np.ndarray, config: GlobalPositioningConfig) -> tu
                 z, decrease = z_new, (cost - new_cost) / max(cost, 1e-300)
                 cost, lam = new_cost, max(lam / 3.0, 1e-12)
                 break
-            lam *= 4.0
-        else:  # no step lowers the cost, down to steps ~4^10 times shorter: a minimum to working precision
+            lam = max(lam * 4.0, 1e-4)
+        else:  # no step lowers the cost, down to heavily damped ones: a minimum to working precision
             return z, iterations, True
         if decrease < config.rel_tol:
             converged = True

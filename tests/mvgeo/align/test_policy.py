@@ -148,6 +148,11 @@ def test_among_accepted_candidates_more_registered_views_outrank_explained():
     full, pruned, refused = cand(12, 0.990), cand(11, 0.998), cand(12, 1.0, ok=False)
     ranked = sorted([pruned, refused, full], key=lambda c: policy._rank(c, config), reverse=True)
     assert ranked == [full, pruned, refused]
+    # a focal the adjustment moved far from the pairs' (not self-consistent) ranks below fewer views
+    drifting = cand(12, 0.999)
+    drifting.pairs, drifting.bundle_focal_px = _pairs(focal_px=500.0), 800.0
+    ranked = sorted([drifting, pruned], key=lambda c: policy._rank(c, config), reverse=True)
+    assert ranked == [pruned, drifting]
 
 
 class _Sized:

@@ -181,7 +181,7 @@ def test_a_prior_is_confirmed_only_by_an_adjustment_of_pairs_computed_at_it():
     adjustment within 10 % of it. Pairs re-estimated at an adjusted focal mean an adjustment already moved the
     focal away from the prior; one that drifts back near it (the noisy temple ring: 1516 -> 1302 -> 1373 px,
     9.7 % from the truth) does not confirm it."""
-    change = np.log(1.1)  # `AlignConfig.refocus_min_change` is 0.1 (log): exact bounds need no float luck
+    change = 0.1  # `AlignConfig.refocus_min_change`; |log(1373 / 1516)| = 0.099: within it
     assert prior_confirmed(1516.0, 1516.0, 1400.0, change)
     assert not prior_confirmed(1516.0, 1516.0, 1516.0 / 1.2, change)  # moved 20 %: the data contradict it
     assert not prior_confirmed(1516.0, 1302.0, 1373.0, change)  # re-estimated pairs, back within 10 %

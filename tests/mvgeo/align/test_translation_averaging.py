@@ -234,11 +234,17 @@ def test_matches_scipy_least_squares_on_the_same_cost():
     np.testing.assert_allclose(_centres(res.cam_from_world), ref.x[:3 * problem.n].reshape(-1, 3), atol=1e-8)
 
 
+@pytest.mark.parametrize("duplicate", [False, True])
 @pytest.mark.parametrize("lam", [0.0, 1e-4, 10.0])
-def test_block_step_equals_the_sparse_reference(lam):
-    """`_damped_step` (blocks, the points eliminated densely) against `_damped_step_sparse` (scipy.sparse
-    products of the Jacobian), at a state off the optimum with IRLS weights and some scales held."""
+def test_block_step_equals_the_sparse_reference(lam, duplicate):
+    """`_damped_step` (blocks, each point's Schur term added per pair of its observations) against
+    `_damped_step_sparse` (scipy.sparse products of the Jacobian), at a state off the optimum with IRLS
+    weights and some scales held; also with observations repeated (a track seeing one view twice)."""
     _, problem, _ = _small_problem(5)
+    if duplicate:
+        rep = np.arange(0, problem.k, 7)
+        problem = _Problem(np.r_[problem.v, problem.v[rep]], np.r_[problem.ov, problem.ov[rep]],
+                           np.r_[problem.op, problem.op[rep]], problem.n, problem.p)
     rng = np.random.default_rng(1)
     z = np.r_[rng.normal(size=3 * problem.n + 3 * problem.p), rng.uniform(0.5, 2.0, problem.k)]
     r, _ = problem.residuals(z)
@@ -255,3 +261,4 @@ def test_block_step_equals_the_sparse_reference(lam):
     sw = np.r_[np.repeat(np.sqrt(wt), 3), np.ones(4)]
     J = (diags(sw) @ problem.jacobian(z)).toarray()
     np.testing.assert_allclose(nq.diagonal(), np.sum(J * J, axis=0), rtol=1e-12, atol=1e-12)
+
