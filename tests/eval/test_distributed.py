@@ -135,14 +135,17 @@ def test_share_keys_chain_a_family_the_ablations_and_the_gt_pose_variants(tmp_pa
 
 def rendezvous(item):
     """(name, start, end, met): "wait" waits (up to 120 s) for the file `flag` that "signal" writes, so
-    it ends only if both ran at once; "fail" raises; anything else returns at once."""
+    it ends only if both ran at once; "fail" raises; anything else returns at once. "signal" reports the
+    time just before it writes the flag (taken after, another process could see the flag and end first)."""
     name, action, flag = item
     start = time.time()
     met = None
     if action == "fail":
         raise KeyError(f"no action for {name}")
-    if action == "signal":
+    if action == "signal":  # its end is taken before the flag exists: "wait" can only see it later
+        end = time.time()
         Path(flag).write_text(name)
+        return name, start, end, met
     if action == "wait":
         while not (met := Path(flag).is_file()) and time.time() - start < 120:
             time.sleep(0.05)
