@@ -9,29 +9,29 @@ those that happen to fall in the band do. Measured on DTU scan24 with sigma 25/2
 apart, `benchmarks/bench_real.py` noise seed 0): 58-360 guided matches per pair under the solution, within
 5 % of the count under the reference cameras, against 16-108 with its rotation turned by 10 deg.
 
-`guided_matches` counts for one hypothesis; `mvgeo.align.checks.guided_recheck` compares two.
+`mvgeo.align.locate` triangulates the main group's points from guided matches under the solution's poses.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from mvgeo.epipolar import essential_from_pose, fundamental_from_essential
+
 __all__ = ["fundamental_from_pose", "guided_matches", "guided_matches_reference"]
 
 
 def fundamental_from_pose(R_j_from_i: np.ndarray, t_j_from_i: np.ndarray, K_i: np.ndarray, K_j: np.ndarray
                           ) -> np.ndarray:
-    """(3, 3) F with x_j^T F x_i = 0 for pixels (homogeneous, our convention) of views i and j.
+    """(3, 3) unit-norm F with x_j^T F x_i = 0 for pixels (homogeneous, our convention) of views i and j
+    (`mvgeo.epipolar.fundamental_from_essential` of `essential_from_pose`); zero for a zero translation.
 
     Args:
         R_j_from_i, t_j_from_i: (3, 3), (3,) cam_j_from_cam_i.
         K_i, K_j: (3, 3) intrinsics.
     """
-    t = np.asarray(t_j_from_i, np.float64).reshape(3)
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    F = np.linalg.inv(K_j).T @ tx @ np.asarray(R_j_from_i, np.float64) @ np.linalg.inv(K_i)
-    n = np.linalg.norm(F)
-    return F / n if n > 0 else F
+    E = essential_from_pose(R_j_from_i, np.asarray(t_j_from_i, np.float64).reshape(3))
+    return fundamental_from_essential(E, K_i, K_j) if np.linalg.norm(E) > 0 else np.zeros((3, 3))
 
 
 def _band_candidates(F: np.ndarray, uv_i: np.ndarray, uv_j: np.ndarray, band_px: float, chunk: int
