@@ -79,12 +79,14 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         pair_list = make_pairs(len(inputs), config.pairs)
         with timer.stage("pairwise"):
             pairs = model.predict_pairs(inputs.small, pair_list)
-        chosen, candidates = choose_solution(inputs, pairs, pair_list, model, config, timer)
+        chosen, candidates, contradicted = choose_solution(inputs, pairs, pair_list, model, config, timer)
         cloud = dense_cloud(chosen.inputs, chosen.result, chosen.ba, [(p.i, p.j) for p in chosen.pairs.predictions],
                             chosen.pairs.matches, config, timer, chosen.graph.grid_to_align)
         sparse = _sparse_model(chosen, cloud)
         stats = _stats(chosen, candidates, pairs, len(pair_list), len(inputs), sparse, cloud, config, timer)
-        stats = dataclasses.replace(stats, focal_prior_unavailable=no_prior, focal_prior=None if prior is None else
+        stats = dataclasses.replace(stats, chain_start_contradicted=None if contradicted is None else
+                                    round(contradicted, 4),
+                                    focal_prior_unavailable=no_prior, focal_prior=None if prior is None else
                                     FocalPriorStats(prior.source, round(prior.focal_35mm, 3),
                                                     round(prior.focal_px(inputs.input_wh), 2)))
         return AlignResult(sparse, cloud.xyz, cloud.rgb, cloud.conf, stats)

@@ -24,42 +24,113 @@ from dataclasses import replace
 
 import numpy as np
 
-from mvgeo.align.global_align import GlobalAlignConfig, focal_estimates
+from mvgeo.align.global_align import GlobalAlignConfig, focal_estimates, init_from_spanning_tree
 from mvgeo.align.loops import pair_rotations
 from mvgeo.align.pairs import PairPrediction, PairSet
 from mvgeo.align.pointmap_geometry import AlignInit, pair_similarities, valid_pointmap_pixels
 from mvgeo.align.pose_chain import pair_pose_from_pointmap
-from mvgeo.align.rotation_averaging import average_rotations, init_from_averaged_rotations
+from mvgeo.align.rotation_averaging import (
+    average_rotations,
+    init_from_averaged_rotations,
+    relative_rotation_residuals_deg,
+)
 from mvgeo.align.translation_averaging import global_positions
 from mvgeo.common.errors import DegenerateGeometryError
 
-__all__ = ["STARTS", "choose_start", "init_from_positions", "initial_values", "other_start"]
+__all__ = ["CHAIN_MAX_CONTRADICTED", "STARTS", "chain_contradicted_fraction", "choose_start", "init_from_positions",
+           "initial_values", "other_start", "pair_relative_rotations"]
 
 _log = logging.getLogger(__name__)
 
 STARTS = ("chain", "averaged")
 
 
-def choose_start(initial_poses: str, pairs: PairSet, n_views: int) -> str:
+#: The "auto" rule's limit on the fraction of the verified pairs the chained start contradicts
+#: (`chain_contradicted_fraction`): above it the averaged start goes first. Measured
+#: (`benchmarks/diag_chain_start.py`, docs/bench/align.md): the temple ring 0.89 (its chained candidate is
+#: refused, 68 deg off); at most 0.48 on every other real and synthetic scene (object_ring 0.48,
+#: hard_repetitive 0.44, noisy DTU scan24 0.11-0.15, llff_like 0).
+CHAIN_MAX_CONTRADICTED = 2.0 / 3.0
+
+
+def choose_start(initial_poses: str, chain_contradicted: float | None = None) -> str:
     """The first start: `initial_poses` itself unless "auto".
 
-    The "auto" rule: DUSt3R's chaining first, the averaged start (rotation averaging, then global positioning)
-    as the second start where the first contradicts its pairs as a whole or its focal keeps drifting
-    (`mvgeo.align.policy`, `AlignConfig.second_start`). Measured each start alone (docs/bench/align.md,
-    `benchmarks/diag_align_init.py`): the averaged start is the more accurate on most synthetic scenes
-    (llff_like 0.011 against 0.014 deg; with `allow_partial`, object_ring 12/12 against 9/12 views and the
-    temple 12/12 against 6/12) and saves the chained candidate on the temple ring (1.9 s against 2.8 s). But
-    it returns wrong models no check refuses where chaining is refused or right: on object_ring's 21 training
-    views at 256x192 (24-view ring, 15-30 deg steps) all 21 views at a median of 1.2-3.0 deg, max 15-16 deg
-    (which of refused and accepted it gives there flips with small changes of its own start: the global
-    positioning's tolerance, the PnP pixels), where chaining is refused naming the views; and first on ten
-    noise draws of DTU scan24 (`bench_real.py --methods=ours_averaged`, docs/bench/real_partial_draws.md)
-    one draw with a view 10.6 deg off (two of its four pairs explained it: one of them, 96 matches, is itself
-    10 deg off), where chaining first is right on all ten. A named refusal or a right model is preferred to
-    a faster wrong one, so chaining stays first.
+    The "auto" rule: DUSt3R's chaining first, unless the chained start contradicts most of the pairs
+    (`chain_contradicted`, the fraction of the verified pairs whose own relative rotation is more than
+    `AlignConfig.max_pair_rotation_deg` from the chained start's, above `CHAIN_MAX_CONTRADICTED`): the
+    averaged start (rotation averaging, then global positioning) goes first then. The other start is the
+    second start where the first contradicts its pairs as a whole or its focal keeps drifting
+    (`mvgeo.align.policy`, `AlignConfig.second_start`).
+
+    Why chaining first: measured each start alone (docs/bench/align.md, `benchmarks/diag_align_init.py`), the
+    averaged start is the more accurate on most synthetic scenes (llff_like 0.011 against 0.014 deg; with
+    `allow_partial`, object_ring 12/12 against 9/12 views and the temple 12/12 against 6/12). But it returns
+    wrong models no check refuses where chaining is refused or right: on object_ring's 21 training views at
+    256x192 (24-view ring, 15-30 deg steps) all 21 views at a median of 1.2-3.0 deg, max 15-16 deg (which of
+    refused and accepted it gives there flips with small changes of its own start: the global positioning's
+    tolerance, the PnP pixels), where chaining is refused naming the views; on its 28 training views of 32
+    accepted with a view 22 deg off, where chaining is right (0.41 deg); and first on ten noise draws of DTU
+    scan24 (`bench_real.py --methods=ours_averaged`, docs/bench/real_partial_draws.md) one draw with a view
+    10.6 deg off (two of its four pairs explained it: one of them, 96 matches, is itself 10 deg off), where
+    chaining first is right on all ten. A named refusal or a right model is preferred to a faster wrong one.
+
+    Why the exception: a chained start that contradicts most pairs is a wrong Procrustes compounded along the
+    tree, which neither the global alignment (it moves the rotations by about a degree) nor the bundle
+    adjustment recovers from: on the temple ring its candidate is refused after both, 68 deg off, and
+    solving it cost 0.8 s of a 2.8 s alignment before the averaged start (1.0 deg) was solved anyway. Where
+    chaining is kept first the chained start contradicts at most half of the pairs, and the pairs it
+    contradicts are often themselves wrong (repeated texture).
+
+    Args:
+        initial_poses: "auto", "chain" or "averaged".
+        chain_contradicted: `chain_contradicted_fraction` of the chained start, or None (not measured:
+            chaining first).
     """
-    del pairs, n_views
-    return "chain" if initial_poses == "auto" else initial_poses
+    if initial_poses != "auto":
+        return initial_poses
+    if chain_contradicted is not None and chain_contradicted > CHAIN_MAX_CONTRADICTED:
+        return "averaged"
+    return "chain"
+
+
+def chain_contradicted_fraction(cam_from_world: np.ndarray, rotations: dict[tuple[int, int], np.ndarray],
+                                max_pair_rotation_deg: float) -> float:
+    """Fraction of the pairs whose own relative rotation is more than `max_pair_rotation_deg` from the one the
+    poses imply (`rotation_averaging.relative_rotation_residuals_deg`); NaN without pairs.
+
+    Args:
+        cam_from_world: (N, 3, 4) poses (a start's initial values).
+        rotations: (i, j) -> (3, 3) cam_j_from_cam_i rotation of each verified pair (`pair_relative_rotations`).
+    """
+    if not rotations:
+        return float("nan")
+    off = relative_rotation_residuals_deg(np.asarray(cam_from_world, np.float64)[:, :, :3], rotations)
+    return float(np.mean([d > max_pair_rotation_deg for d in off.values()]))
+
+
+def pair_relative_rotations(pairs: PairSet, K_align: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+    """cam_j_from_cam_i rotation of every pair: the pair model's own relative pose where it has one
+    (`PairGeometry.cam_j_from_cam_i`), else from the pair's matches or pointmap (`loops.pair_rotations`).
+
+    Args:
+        pairs: the `PairSet`; K_align: (N, 3, 3) intrinsics at the alignment resolution (for the pairs
+            without a pose).
+
+    Returns:
+        (i, j) with i < j -> (3, 3).
+    """
+    rel: dict[tuple[int, int], np.ndarray] = {}
+    for g in pairs.geometries:
+        if g.cam_j_from_cam_i is not None:
+            R = np.asarray(g.cam_j_from_cam_i, np.float64)[:, :3]
+            rel[(g.i, g.j) if g.i < g.j else (g.j, g.i)] = R if g.i < g.j else R.T
+    rest = [(g.i, g.j, g.matches_px) for g in pairs.geometries if g.cam_j_from_cam_i is None]
+    preds = [p for p in pairs.predictions if (min(p.i, p.j), max(p.i, p.j)) not in rel]
+    if rest or preds:
+        more, _ = pair_rotations(rest, K_align, preds)
+        rel.update({k: v for k, v in more.items() if k not in rel})
+    return rel
 
 
 def other_start(start: str) -> str:
@@ -79,16 +150,20 @@ def initial_values(start: str, pairs: PairSet, sizes_hw: Sequence[tuple[int, int
         align: the configured `GlobalAlignConfig`; grid_to_align: alignment pixels per grid pixel.
 
     Returns:
-        (config, init): init None lets `global_align` initialise itself (config.init says how).
+        (config, init): the chained start's values are DUSt3R's (`global_align.init_from_spanning_tree`); init
+        None lets `global_align` initialise itself (config.init says how).
+
+    Raises:
+        DegenerateGeometryError: the chained start cannot chain or pose a view.
     """
-    if start == "chain":
-        return replace(align, init="procrustes"), None
-    align = replace(align, init="pair_poses")
     n = len(sizes_hw)
     f = focal_init_px if focal_init_px is not None else focal_estimates(pairs.predictions, n)
     if focal_init_px is None and align.shared_focal:
         f = np.full(n, float(np.exp(np.mean(np.log(f)))))
     f = np.asarray(f, float)
+    if start == "chain":
+        return replace(align, init="procrustes"), init_from_spanning_tree(pairs.predictions, sizes_hw, focal_init_px=f)
+    align = replace(align, init="pair_poses")
     W, H = align_wh
     K = np.array([[[fv * grid_to_align, 0.0, W / 2.0], [0.0, fv * grid_to_align, H / 2.0], [0.0, 0.0, 1.0]]
                   for fv in f])

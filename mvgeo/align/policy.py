@@ -4,7 +4,8 @@ A candidate is one start solved on one pair graph (`mvgeo.align.solve`). Candida
 order, at most `AlignConfig.max_candidates` in all; each candidate adds the successors it calls for, and
 generation ends when no candidate calls for one:
 
-1. the first start (`mvgeo.align.init.choose_start`) on the pair graph;
+1. the first start (`mvgeo.align.init.choose_start`; for "auto" it measures the chained start's initial values
+   against the pairs, and those values are reused when chaining goes first) on the pair graph;
 2. focal re-estimation: without known intrinsics, a candidate whose bundle adjustment moved the shared
    focal by more than `refocus_min_change` (log) from the focal its pairs assumed is not self-consistent:
    the pair geometry is computed again at the adjusted focal from the same features and matches
@@ -48,10 +49,19 @@ from dataclasses import replace
 import numpy as np
 
 from mvgeo.align.graph import components
-from mvgeo.align.init import choose_start, other_start
+from mvgeo.align.init import chain_contradicted_fraction, choose_start, other_start, pair_relative_rotations
 from mvgeo.align.inputs import AlignInputs
 from mvgeo.align.pairs import PairSet, PointmapModel, RefocusableModel
-from mvgeo.align.solve import Candidate, PairGraph, pair_graph, relocate, solve
+from mvgeo.align.solve import (
+    Candidate,
+    PairGraph,
+    StartValues,
+    pair_graph,
+    pairs_K_align,
+    relocate,
+    solve,
+    start_values,
+)
 from mvgeo.align.stats import CandidateSummary, Unregistered
 from mvgeo.align.verdict import loose_views, mostly_unexplained
 from mvgeo.common.errors import DegenerateGeometryError, InputError
@@ -133,20 +143,39 @@ def _summary(c: Candidate) -> CandidateSummary:
                             reasons=[r.kind for r in c.verdict.reasons])
 
 
+def _first_start(graph: PairGraph, config, timer: StageTimer) -> tuple[str, float | None, StartValues | None]:
+    """(first start, the fraction of the pairs the chained start contradicts or None, the chained start's
+    initial values when it goes first): `choose_start`'s rule on the graph."""
+    if config.initial_poses != "auto":
+        return choose_start(config.initial_poses), None, None
+    with timer.stage("global_align"):
+        chain = start_values(graph, "chain", config)
+        rotations = pair_relative_rotations(graph.pairs, pairs_K_align(graph.inputs, graph.pairs))
+        contradicted = chain_contradicted_fraction(chain.init.cam_from_world, rotations,
+                                                   config.max_pair_rotation_deg)
+    first = choose_start("auto", contradicted)
+    if first != "chain":
+        _log.warning("the chained start contradicts %.0f %% of the pairs' relative rotations (by more than %g "
+                     "deg): the %s start goes first", 100 * contradicted, config.max_pair_rotation_deg, first)
+    return first, contradicted, chain if first == "chain" else None
+
+
 def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tuple[int, int]], model: PointmapModel,
-                    config, timer: StageTimer) -> tuple[Candidate, list[CandidateSummary]]:
+                    config, timer: StageTimer) -> tuple[Candidate, list[CandidateSummary], float | None]:
     """Generate candidates and choose one (module docstring). `config`: `AlignConfig`.
 
     Returns:
-        (the chosen candidate, a summary of every candidate in the order solved, the chosen one marked).
+        (the chosen candidate, a summary of every candidate in the order solved, the chosen one marked;
+        the fraction of the pairs the chained start contradicts, which chose the first start; None unless
+        "auto").
 
     Raises:
         DisconnectedViewsError: the pair graph is disconnected (without `allow_partial`; an `InputError`).
         DegenerateGeometryError: the chosen candidate is refused by its verdict, or the first start fails.
     """
     graph: PairGraph = pair_graph(inputs, pairs, config, timer)
-    first = choose_start(config.initial_poses, graph.pairs, len(graph.inputs))
-    done: list[Candidate] = [solve(graph, first, config, timer)]
+    first, contradicted, values = _first_start(graph, config, timer)
+    done: list[Candidate] = [solve(graph, first, config, timer, values=values)]
     summaries = [_summary(done[0])]
     pending = [done[0]]
     prunes: dict[int, int] = {id(done[0]): 0}
@@ -213,4 +242,4 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
     _log.info("candidates: %s; chose %d", [(s.start, s.reasons, s.explained_fraction) for s in summaries], position)
     if not chosen.verdict.ok:
         raise chosen.verdict.error()
-    return chosen, summaries
+    return chosen, summaries, contradicted

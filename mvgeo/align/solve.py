@@ -25,13 +25,14 @@ from mvgeo.align.inputs import AlignInputs
 from mvgeo.align.locate import LOCATE_MAX_ROTATION_DEG, Located, locate_cut_off
 from mvgeo.align.loops import pair_rotations, reject_by_loops, rotation_angle_deg
 from mvgeo.align.pairs import PairFailure, PairSet
+from mvgeo.align.pointmap_geometry import AlignInit
 from mvgeo.align.stats import FailedPair, RejectedPair, Unregistered
 from mvgeo.align.verdict import Verdict, judge_pairs, verdict
 from mvgeo.common.errors import DisconnectedViewsError
 from mvgeo.common.timing import StageTimer
 
-__all__ = ["Candidate", "PairGraph", "adjust_and_judge", "main_group_change_deg", "pair_graph", "prior_confirmed",
-           "relocate", "solve"]
+__all__ = ["Candidate", "PairGraph", "StartValues", "adjust_and_judge", "main_group_change_deg", "pair_graph",
+           "pairs_K_align", "prior_confirmed", "relocate", "solve", "start_values"]
 
 _log = logging.getLogger(__name__)
 
@@ -60,15 +61,21 @@ class PairGraph:
         return self.inputs.align_wh[0] / self.pairs.predictions[0].pts_i.shape[1]
 
 
+def pairs_K_align(inputs: AlignInputs, pairs: PairSet) -> np.ndarray:
+    """(N, 3, 3) intrinsics at the alignment resolution: the known ones, else the pairs' focal estimates
+    (pointmap pixels -> alignment pixels) with the principal point at the centre."""
+    if inputs.K_align is not None:
+        return inputs.K_align
+    preds = pairs.predictions
+    Hp, Wp = preds[0].pts_i.shape[:2]
+    s = inputs.align_wh[0] / Wp
+    return np.array([[[f, 0, Wp * s / 2.0], [0, f, Hp * s / 2.0], [0, 0, 1]]
+                     for f in focal_estimates(preds, len(inputs)) * s])
+
+
 def _loop_check(inputs: AlignInputs, pairs: PairSet, config) -> tuple[PairSet, list[tuple[tuple[int, int], int, int]]]:
-    preds, n = pairs.predictions, len(inputs)
-    K_align = inputs.K_align
-    if K_align is None:  # the pairs' focal estimates, pointmap pixels -> alignment pixels
-        Hp, Wp = preds[0].pts_i.shape[:2]
-        s = inputs.align_wh[0] / Wp
-        K_align = np.array([[[f, 0, Wp * s / 2.0], [0, f, Hp * s / 2.0], [0, 0, 1]]
-                            for f in focal_estimates(preds, n) * s])
-    rel, weight = pair_rotations(pairs.matches, K_align, preds)
+    preds = pairs.predictions
+    rel, weight = pair_rotations(pairs.matches, pairs_K_align(inputs, pairs), preds)
     loop = reject_by_loops(rel, weight, max_loop_deg=config.max_loop_deg)
     if not loop.removed:
         return pairs, []
@@ -166,26 +173,61 @@ class Candidate:
         return None if self.ba is None else float(np.median(self.ba.focal_px))
 
 
-def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: AlignInputs | None = None,
-          pairs: PairSet | None = None, dropped: list[tuple[str, str]] | None = None,
-          unregistered: list[Unregistered] | None = None) -> Candidate:
-    """Global alignment from `start`, bundle adjustment, verdict. `inputs`/`pairs` default to the graph's
-    (a pruned candidate passes fewer); `config`: `AlignConfig`."""
+@dataclass(frozen=True)
+class StartValues:
+    """One start's global-alignment config and initial values (`mvgeo.align.init.initial_values`).
+
+    Attributes:
+        start: "chain" or "averaged"; align_config: the global alignment's config for it.
+        init: the initial values, or None (`global_align` initialises itself, as `align_config.init` says).
+        focal_init_px: (N,) known focals on the pointmap grid, or None (estimated from the pairs).
+    """
+
+    start: str
+    align_config: GlobalAlignConfig
+    init: AlignInit | None
+    focal_init_px: np.ndarray | None
+
+
+def start_values(graph: PairGraph, start: str, config, *, inputs: AlignInputs | None = None,
+                 pairs: PairSet | None = None) -> StartValues:
+    """`start`'s initial values on the graph's views and pairs (or the given ones). `config`: `AlignConfig`.
+
+    Raises:
+        DegenerateGeometryError: the start cannot pose a view.
+    """
     inputs = graph.inputs if inputs is None else inputs
     pairs = graph.pairs if pairs is None else pairs
-    n, s = len(inputs), graph.grid_to_align
+    n = len(inputs)
     Hp, Wp = pairs.predictions[0].pts_i.shape[:2]
-    sizes = [(Hp, Wp)] * n
     focal_init = None
     align_cfg = config.align
     if inputs.intrinsics is not None:  # known calibration: fx at the pointmap grid (square pixels assumed)
         W0, H0 = inputs.input_wh
         focal_init = np.full(n, 0.5 * (inputs.intrinsics.fx * Wp / W0 + inputs.intrinsics.fy * Hp / H0))
         align_cfg = replace(align_cfg, optimize_focal=False)
+    align_cfg, init = initial_values(start, pairs, [(Hp, Wp)] * n, focal_init, align_cfg, graph.grid_to_align,
+                                     inputs.align_wh)
+    return StartValues(start, align_cfg, init, focal_init)
+
+
+def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: AlignInputs | None = None,
+          pairs: PairSet | None = None, dropped: list[tuple[str, str]] | None = None,
+          unregistered: list[Unregistered] | None = None, values: StartValues | None = None) -> Candidate:
+    """Global alignment from `start`, bundle adjustment, verdict. `inputs`/`pairs` default to the graph's
+    (a pruned candidate passes fewer); `values`: `start`'s initial values on exactly these views and pairs
+    when already computed (`start_values`); `config`: `AlignConfig`."""
+    inputs = graph.inputs if inputs is None else inputs
+    pairs = graph.pairs if pairs is None else pairs
+    Hp, Wp = pairs.predictions[0].pts_i.shape[:2]
     with timer.stage("global_align"):
-        align_cfg, init = initial_values(start, pairs, sizes, focal_init, align_cfg, s, inputs.align_wh)
-        res = global_align(pairs.predictions, sizes, config=align_cfg, focal_init_px=focal_init, init=init)
-    return adjust_and_judge(graph, start, res, align_cfg, config, timer, inputs=inputs, pairs=pairs,
+        if values is None:
+            values = start_values(graph, start, config, inputs=inputs, pairs=pairs)
+        elif values.start != start:
+            raise ValueError(f"initial values of the {values.start} start given for the {start} start")
+        res = global_align(pairs.predictions, [(Hp, Wp)] * len(inputs), config=values.align_config,
+                           focal_init_px=values.focal_init_px, init=values.init)
+    return adjust_and_judge(graph, start, res, values.align_config, config, timer, inputs=inputs, pairs=pairs,
                             dropped=dropped, unregistered=unregistered)
 
 

@@ -184,6 +184,9 @@ class AlignStats:
     focal_prior: FocalPriorStats | None = None
     focal_prior_unavailable: str = ""
     views_located_by_points: list[LocatedView] = field(default_factory=list)
+    #: `initial_poses` "auto": the fraction of the verified pairs whose relative rotation the chained start
+    #: contradicts, which chose the first start (`mvgeo.align.init.choose_start`); else None.
+    chain_start_contradicted: float | None = None
     annotations: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:

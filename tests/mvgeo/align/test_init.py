@@ -1,16 +1,19 @@
 """`mvgeo.align.init`: the rule that picks the first start, and each start's initial values (exact on exact
 pointmaps), with the pair-pose chaining where rotation averaging fails."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 import mvgeo.align.init as init_mod
 from mvgeo.align.global_align import GlobalAlignConfig, global_align
-from mvgeo.align.init import STARTS, choose_start, initial_values, other_start
+from mvgeo.align.init import STARTS, chain_contradicted_fraction, choose_start, initial_values, other_start
 from mvgeo.align.pairs import PairGeometry, PairSet
 from mvgeo.align.pose_chain import init_from_pair_poses
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.metrics import compare_poses
+from mvgeo.transforms import R_from_axis_angle
 
 from .synthetic import make_matches, make_pairs, make_views
 
@@ -22,20 +25,68 @@ def _pair_set(preds, matches=()):
 
 
 def test_the_first_start_rule():
-    ps = _pair_set([])
-    assert choose_start("auto", ps, 5) == "chain"  # chaining first; the policy may add the averaged start
+    limit = init_mod.CHAIN_MAX_CONTRADICTED
+    assert choose_start("auto") == "chain"  # not measured: chaining first
+    assert choose_start("auto", limit) == "chain" and choose_start("auto", float("nan")) == "chain"
+    assert choose_start("auto", limit + 0.01) == "averaged"  # the chained start contradicts most pairs
     for start in STARTS:
-        assert choose_start(start, ps, 5) == start
+        for measured in (None, 0.0, 1.0):
+            assert choose_start(start, measured) == start  # a configured start is never overridden
         assert other_start(start) != start and other_start(other_start(start)) == start
     assert set(STARTS) == {"chain", "averaged"}
 
 
-def test_the_chain_start_lets_the_alignment_chain_the_pointmaps(rng):
+def test_the_chained_start_contradicts_the_pairs_it_turns_past_the_limit(rng):
+    poses, _ = make_views(5)
+    R = poses[:, :, :3]
+    exact = {(i, j): R[j] @ R[i].T for i in range(5) for j in range(i + 1, 5)}
+    assert chain_contradicted_fraction(poses, exact, 10.0) == 0.0
+    assert np.isnan(chain_contradicted_fraction(poses, {}, 10.0))
+    # Turn 6 of the 10 pairs by 8, 9.5, 11, ... 15.5 deg: 4 of them past 10 deg, 6 past 9 deg.
+    turned = dict(exact)
+    for k, key in enumerate(sorted(exact)[:6]):
+        axis = rng.normal(size=3)
+        turned[key] = R_from_axis_angle(axis / np.linalg.norm(axis) * np.radians(8.0 + 1.5 * k)) @ exact[key]
+    assert chain_contradicted_fraction(poses, turned, 10.0) == pytest.approx(0.4)
+    assert chain_contradicted_fraction(poses, turned, 9.0) == pytest.approx(0.5)
+    assert chain_contradicted_fraction(poses, turned, 7.9) == pytest.approx(0.6)
+
+
+def test_pair_relative_rotations_take_the_models_pose_else_the_matches(rng):
     poses, depths = make_views(4)
     preds = make_pairs(poses, depths, FOCAL, rng)
-    cfg, init = initial_values("chain", _pair_set(preds), [d.shape for d in depths], None,
-                               GlobalAlignConfig(init="pair_poses"), 1.0, (32, 24))
-    assert cfg.init == "procrustes" and init is None
+    matches = {(i, j): uv for i, j, uv in make_matches(poses, depths, FOCAL, [(p.i, p.j) for p in preds])}
+    R = poses[:, :, :3]
+    keys = sorted(matches)
+    K = np.repeat(np.array([[[FOCAL, 0, 16.0], [0, FOCAL, 12.0], [0, 0, 1]]]), 4, axis=0)
+    marker = R_from_axis_angle(np.array([0.0, 0.0, 0.3]))  # a pose the model reports, not the true one
+    geoms = [PairGeometry(i, j, matches[(i, j)], np.c_[marker, np.zeros(3)] if k == 0 else None)
+             for k, (i, j) in enumerate(keys)]
+    rel = init_mod.pair_relative_rotations(PairSet(preds, [], geoms, focal_determined=True), K)
+    assert set(rel) == {(min(p.i, p.j), max(p.i, p.j)) for p in preds}
+    np.testing.assert_allclose(rel[keys[0]], marker)  # the model's own pose, as given
+    for i, j in keys[1:]:  # from the exact matches
+        np.testing.assert_allclose(rel[(i, j)], R[j] @ R[i].T, atol=1e-6)
+    flipped = [PairGeometry(keys[0][1], keys[0][0], matches[keys[0]][:, [2, 3, 0, 1]], np.c_[marker.T, np.zeros(3)])]
+    rel = init_mod.pair_relative_rotations(PairSet([], [], flipped, focal_determined=True), K)
+    np.testing.assert_allclose(rel[keys[0]], marker)  # stored as (i < j): transposed back
+
+
+def test_the_chain_start_is_dusts_spanning_tree_chaining(rng):
+    """The chained start's values are `init_from_spanning_tree`'s (exact on exact pointmaps), and the
+    alignment from them is the alignment that initialises itself by chaining."""
+    poses, depths = make_views(4)
+    preds = make_pairs(poses, depths, FOCAL, rng)
+    sizes = [d.shape for d in depths]
+    cfg, init = initial_values("chain", _pair_set(preds), sizes, None, GlobalAlignConfig(init="pair_poses"), 1.0,
+                               (32, 24))
+    assert cfg.init == "procrustes"
+    names = [str(k) for k in range(4)]
+    m = compare_poses(dict(zip(names, init.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
+    assert m.median_rotation_deg < 0.01 and m.ate.rmse < 1e-3
+    given = global_align(preds, sizes, config=replace(cfg, iters=5), init=init)
+    itself = global_align(preds, sizes, config=replace(cfg, iters=5))
+    np.testing.assert_array_equal(given.cam_from_world, itself.cam_from_world)
 
 
 def test_the_averaged_start_is_exact_on_exact_pointmaps_and_tracks(rng, caplog):

@@ -9,6 +9,7 @@ import pytest
 
 import mvgeo.align.classical_pairs as classical_pairs
 import mvgeo.align.global_align as ga
+import mvgeo.align.init as init_mod
 import mvgeo.align.policy as policy
 import mvgeo.align.solve as solve_mod
 from mvgeo.align.api import PREVIEW, AlignConfig, align_images
@@ -98,8 +99,11 @@ class _Refocusable:
 def _choose(config=None, model=None, pairs=None):
     # The chain start first, so that the scripted second start is the averaged one (the "auto" rule's own
     # choice is `test_init.py::test_the_first_start_rule`).
-    return choose_solution(_Inputs(), pairs or _pairs(), [(0, 1), (0, 2), (1, 2)], model or _Refocusable(),
-                           config or AlignConfig(initial_poses="chain"), StageTimer())
+    chosen, summaries, disagreement = choose_solution(_Inputs(), pairs or _pairs(), [(0, 1), (0, 2), (1, 2)],
+                                                      model or _Refocusable(),
+                                                      config or AlignConfig(initial_poses="chain"), StageTimer())
+    assert disagreement is None  # measured only for "auto"
+    return chosen, summaries
 
 
 def test_an_accepted_first_candidate_is_the_only_one(monkeypatch):
@@ -110,6 +114,26 @@ def test_an_accepted_first_candidate_is_the_only_one(monkeypatch):
     script.calls.clear()
     chosen, _ = _choose(AlignConfig(initial_poses="averaged"))  # the configured start is the first
     assert script.calls == [("averaged", False)] and chosen.start == "averaged"
+
+
+@pytest.mark.parametrize("contradicted, first", [(0.4, "chain"), (0.9, "averaged")])
+def test_auto_measures_the_chained_start_and_reuses_it(monkeypatch, contradicted, first):
+    """"auto": the chained start's initial values are measured against the pairs (`init.choose_start`); where
+    chaining goes first the same values are solved (not computed twice), else the averaged start is first."""
+    script = _Script(monkeypatch, {("chain", False): dict(explained=0.99), ("averaged", False): dict(explained=0.99)})
+    made, given = [], []
+    chain = solve_mod.StartValues("chain", GlobalAlignConfig(), SimpleNamespace(cam_from_world=None), None)
+    monkeypatch.setattr(policy, "start_values", lambda graph, start, config: made.append(start) or chain)
+    monkeypatch.setattr(policy, "pairs_K_align", lambda inputs, pairs: None)
+    monkeypatch.setattr(policy, "pair_relative_rotations", lambda pairs, K: {})
+    monkeypatch.setattr(policy, "chain_contradicted_fraction", lambda cams, rotations, limit: contradicted)
+    real_solve = script.solve
+    monkeypatch.setattr(policy, "solve", lambda *a, **kw: given.append(kw.get("values")) or real_solve(*a, **kw))
+    chosen, summaries, measured = choose_solution(_Inputs(), _pairs(), [(0, 1), (0, 2), (1, 2)], _Refocusable(),
+                                                  AlignConfig(), StageTimer())
+    assert made == ["chain"] and measured == contradicted
+    assert script.calls == [(first, False)] and chosen.start == first
+    assert given == [chain if first == "chain" else None]
 
 
 def test_a_contradicted_first_start_is_solved_from_the_other_start(monkeypatch):
@@ -322,7 +346,7 @@ def flipped_chaining(monkeypatch):
         return dataclasses.replace(init, cam_from_world=cams, pair_sim=ga.pair_similarities(
             preds, sizes_hw, cams, init.depth, init.focal_px))
 
-    monkeypatch.setattr(ga, "init_from_spanning_tree", flipped)
+    monkeypatch.setattr(init_mod, "init_from_spanning_tree", flipped)  # where the chained start is made
     return calls
 
 
