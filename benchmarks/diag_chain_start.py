@@ -53,7 +53,7 @@ def _row(scene: str, paths: list[Path], gt: dict, cfg: AlignConfig) -> list:
     try:
         graph = pair_graph(inputs, pairs, cfg, timer)
     except Exception as exc:  # report, keep going
-        return [scene, "", "", f"no pair graph: {type(exc).__name__}"[:60], ""]
+        return [scene, "", "", f"no pair graph: {type(exc).__name__}"[:60], "", ""]
     chain = start_values(graph, "chain", cfg)
     rotations = pair_relative_rotations(graph.pairs, pairs_K_align(graph.inputs, graph.pairs))
     frac = chain_contradicted_fraction(chain.init.cam_from_world, rotations, cfg.max_pair_rotation_deg)

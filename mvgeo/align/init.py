@@ -48,8 +48,8 @@ STARTS = ("chain", "averaged")
 #: The "auto" rule's limit on the fraction of the verified pairs the chained start contradicts
 #: (`chain_contradicted_fraction`): above it the averaged start goes first. Measured
 #: (`benchmarks/diag_chain_start.py`, docs/bench/align.md): the temple ring 0.89 (its chained candidate is
-#: refused, 68 deg off); at most 0.48 on every other real and synthetic scene (object_ring 0.48,
-#: hard_repetitive 0.44, noisy DTU scan24 0.11-0.15, llff_like 0).
+#: refused, 68 deg off); at most 0.50 on every other real and synthetic scene (object_ring 0.50,
+#: hard_repetitive 0.44, hard_tinybaseline 0.27, DTU scan24 0-0.15, llff_like 0).
 CHAIN_MAX_CONTRADICTED = 2.0 / 3.0
 
 
