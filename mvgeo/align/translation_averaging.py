@@ -361,7 +361,35 @@ def _lud_init(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_v
     a fixed number of alternations of (a) the weighted least squares in (C, X) for fixed d, X eliminated per
     track, leaving an (N, N) system per axis whose null space (a common translation) is fixed by a centroid
     term, (b) ``d_k = max(1, v_k . w_k)``, (c) the IRLS weights ``1 / |r_k|`` of the unsquared norm.
+
+    The incidence products are sums per view, per point and per (view, point) (`np.bincount`; the last (N, P)
+    dense): tested equal to `_lud_init_reference`'s scipy.sparse products, which took 0.18 s of 2.7 s on the
+    temple ring's averaged start.
     """
+    k = len(rays)
+    cell = obs_view * n_points + obs_point
+    d, weight = np.ones(k), np.ones(k)
+    for _ in range(iterations):
+        wb = weight[:, None] * (d[:, None] * rays)
+        w_view = np.bincount(obs_view, weight, minlength=n_views)
+        w_point = np.bincount(obs_point, weight, minlength=n_points)
+        # r = X[p] - C[n] - d v: the normal equations' (C, C) block is diag(w_view), the (C, X) block -M.
+        M = np.bincount(cell, weight, minlength=n_views * n_points).reshape(n_views, n_points)
+        S = np.diag(w_view) - (M / w_point) @ M.T + np.full((n_views, n_views), weight.sum() / (k * n_views))
+        BWb = np.stack([np.bincount(obs_point, wb[:, c], minlength=n_points) for c in range(3)], axis=1)
+        AWb = -np.stack([np.bincount(obs_view, wb[:, c], minlength=n_views) for c in range(3)], axis=1)
+        C = np.linalg.solve(S, AWb + M @ (BWb / w_point[:, None]))
+        X = (BWb + M.T @ C) / w_point[:, None]
+        w = X[obs_point] - C[obs_view]
+        d = np.maximum(1.0, np.sum(w * rays, axis=1))
+        r = np.linalg.norm(w - d[:, None] * rays, axis=1)
+        weight = 1.0 / np.maximum(r, 1e-6 * max(float(np.median(r)), 1e-300))
+    return C, X
+
+
+def _lud_init_reference(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_views: int, n_points: int,
+              iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """`_lud_init` with every product a scipy.sparse product of the incidence matrices (the tests' reference)."""
     k = len(rays)
     A = coo_matrix((-np.ones(k), (np.arange(k), obs_view)), shape=(k, n_views)).tocsr()  # r = B X + A C - d v
     B = coo_matrix((np.ones(k), (np.arange(k), obs_point)), shape=(k, n_points)).tocsr()

@@ -15,6 +15,7 @@ from mvgeo.align.translation_averaging import (
     _damped_step_sparse,
     _loss,
     _lud_init,
+    _lud_init_reference,
     _Normal,
     _Problem,
     global_positions,
@@ -262,3 +263,21 @@ def test_block_step_equals_the_sparse_reference(lam, duplicate):
     J = (diags(sw) @ problem.jacobian(z)).toarray()
     np.testing.assert_allclose(nq.diagonal(), np.sum(J * J, axis=0), rtol=1e-12, atol=1e-12)
 
+
+
+@pytest.mark.parametrize("duplicate", [False, True])
+def test_lud_start_equals_the_sparse_reference(duplicate):
+    """`_lud_init` (per-view and per-(view, point) sums) against `_lud_init_reference` (scipy.sparse incidence
+    products): the same alternations, so the same centres and points to rounding; also with observations
+    repeated (a track seeing one view twice adds to one (view, point) cell)."""
+    _, problem, _ = _small_problem(5)
+    if duplicate:
+        rep = np.arange(0, problem.k, 7)
+        problem = _Problem(np.r_[problem.v, problem.v[rep]], np.r_[problem.ov, problem.ov[rep]],
+                           np.r_[problem.op, problem.op[rep]], problem.n, problem.p)
+    for iterations in (1, 20):
+        C, X = _lud_init(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
+        C_ref, X_ref = _lud_init_reference(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
+        # Centres of RMS radius ~1; 20 IRLS reweightings amplify rounding by at most a few orders.
+        np.testing.assert_allclose(C, C_ref, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(X, X_ref, rtol=0, atol=1e-9 * max(1.0, np.abs(X_ref).max()))
