@@ -60,8 +60,9 @@ def _parser() -> argparse.ArgumentParser:
                         "with relative rotations 11 deg off (docs/bench/real_partial_draws.md)")
     a.add_argument("--initial-poses", choices=["auto", "chain", "averaged"], default="auto",
                    help="how the poses are initialised: DUSt3R's chaining of the pairs' pointmaps, rotation "
-                        "averaging then positions from the tracks (GLOMAP's approach), or 'auto' (the stated rule, "
-                        "mvgeo.align.init.choose_start; default)")
+                        "averaging then positions from the tracks (GLOMAP's approach), or 'auto' (default: chaining "
+                        "first unless the chained start contradicts most pairs' relative rotations; "
+                        "mvgeo.align.init.choose_start)")
     add_common_args(a)
 
     c = sub.add_parser("colmap", help="pycolmap SfM (CPU SIFT, exhaustive matching) into the same layout")

@@ -98,7 +98,8 @@ class AlignConfig:
             pairs' pointmaps chained along the maximum spanning tree by Procrustes), "averaged" (GLOMAP's
             approach: rotation averaging over every verified pair, then the camera centres by global
             positioning on the feature tracks; the pair-pose chaining where that fails) or "auto" (the
-            stated rule, `mvgeo.align.init.choose_start`: chaining first, averaged second).
+            stated rule, `mvgeo.align.init.choose_start`: chaining first, averaged second, unless the chained
+            start contradicts most of the pairs' relative rotations).
         second_start: when a candidate contradicts its pairs as a whole (`max_unexplained_fraction`), solve
             once more from the other initialisation and let the selection rule choose (True).
         max_candidates: at most this many candidate solutions (starts, focal re-estimations, prunings)
