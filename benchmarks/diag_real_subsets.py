@@ -16,8 +16,11 @@ median and max over the view pairs, ATE over the scene scale, seconds), plus whi
 and the fraction of pairs its chained start contradicts (`mvgeo.align.init.choose_start`). A summary counts,
 per method, the sets with every view, the sets with a view more than 5 deg off, and the time ratio.
 
-Run: `.venv/bin/python benchmarks/diag_real_subsets.py [--sets=dtu,temple] [--draws=6] [--out=real_subsets]`
-(writes docs/bench/NAME.md).
+With `--partial`, `mvgeo align --allow-partial` runs too (the largest group it can connect and verify, as
+pycolmap returns partial models).
+
+Run: `.venv/bin/python benchmarks/diag_real_subsets.py [--sets=dtu,temple] [--draws=6] [--partial]
+[--out=real_subsets]` (writes docs/bench/NAME.md).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import bench_real as br
@@ -88,20 +92,22 @@ def _temple_sets() -> list[br.RealSet]:
     return sets
 
 
-def _ours(label: str, folder: Path, s: br.RealSet) -> list:
+def _ours(label: str, folder: Path, s: br.RealSet, partial: bool = False) -> list:
     paths = [p for p in list_images(folder) if p.name in s.gt]
+    method = "ours --allow-partial" if partial else "ours"
     t = time.perf_counter()
     try:
-        res = align_images(paths, br.OURS)
+        res = align_images(paths, replace(br.OURS, allow_partial=partial))
     except Exception as exc:  # report, keep going
-        return [label, "ours", f"0/{len(s.gt)}", "", "", "", time.perf_counter() - t, "",
+        return [label, method, f"0/{len(s.gt)}", "", "", "", time.perf_counter() - t, "",
                 f"failed: {type(exc).__name__}: {str(exc)[:90]}".replace("|", "/")]
     sec = time.perf_counter() - t
     m = compare_poses(res.sparse_model.cam_from_world_by_name(), s.gt)
     st = res.stats
     frac = "" if st.chain_start_contradicted is None else f"{st.chain_start_contradicted:.2f}"
-    return [label, "ours", f"{m.n_registered}/{m.n_ref}", m.median_rotation_deg, float(m.rotation_deg.max()),
-            m.ate.rmse / br.scene_scale(s.gt), sec, frac, f"{st.initial_poses} start, {len(st.candidates)} candidates"]
+    return [label, method, f"{m.n_registered}/{m.n_ref}", m.median_rotation_deg, float(m.rotation_deg.max()),
+            m.ate.rmse / br.scene_scale(s.gt) if m.ate is not None else float("nan"), sec, frac,
+            f"{st.initial_poses} start, {len(st.candidates)} candidates"]
 
 
 def _global(label: str, folder: Path, s: br.RealSet) -> list:
@@ -114,6 +120,7 @@ def main() -> int:
     which = cli_option("sets", "dtu,temple").split(",")
     draws = int(cli_option("draws", "6"))
     out = cli_option("out", "real_subsets")
+    partial = "--partial" in sys.argv
     sets = (_dtu_sets(draws) if "dtu" in which else []) + (_temple_sets() if "temple" in which else [])
     if not sets:
         print("no shared data found: nothing to run")
@@ -125,12 +132,14 @@ def main() -> int:
             for noisy in (False, True):
                 folder = br.prepare(s, Path(tmp) / f"set{k}", noisy, k, br.exif_focal_35mm_of(s.K, wh))
                 label = f"{s.name}, " + ("sigma 25/255" if noisy else "clean")
-                pair = [_ours(label, folder, s), _global(label, folder, s)]
-                rows += pair if (k + noisy) % 2 == 0 else pair[::-1]  # alternate which runs first
-                for r in rows[-2:]:
-                    print(r, file=sys.stderr, flush=True)
+                runs = ["ours", "global"] + (["partial"] if partial else [])
+                for run in runs if (k + noisy) % 2 == 0 else runs[::-1]:  # alternate which runs first
+                    rows.append(_global(label, folder, s) if run == "global" else
+                                _ours(label, folder, s, partial=run == "partial"))
+                    print(rows[-1], file=sys.stderr, flush=True)
     summary = []
-    for method in ("ours", "pycolmap global"):
+    methods = ["ours", "pycolmap global"] + (["ours --allow-partial"] if partial else [])
+    for method in methods:
         mine = [r for r in rows if r[1] == method]
         full = sum(r[2].split("/")[0] == r[2].split("/")[1] for r in mine)
         views = sum(int(r[2].split("/")[0]) for r in mine)
@@ -148,8 +157,9 @@ def main() -> int:
             + "\n\n" + md_table(["method", "sets with every view", "views registered", "sets with a view > 5 deg off",
                                  "time (s), all",
                                  "time / pycolmap global"], summary))
+    flags = " --partial" if partial else ""
     print(write_fragment(out, "Real photographs: many view sets of the shared captures", body,
-                         f"`python benchmarks/diag_real_subsets.py --sets={','.join(which)} --draws={draws} "
+                         f"`python benchmarks/diag_real_subsets.py --sets={','.join(which)} --draws={draws}{flags} "
                          f"--out={out}`"))
     return 0
 
