@@ -49,7 +49,8 @@ _MIN_SCALE = 1e-5
 #: instead took 18 solves (0.1 s) on the temple ring's converged second round.
 _MAX_TRIES = 14
 
-__all__ = ["GlobalPositioningConfig", "GlobalPositioningResult", "global_positions", "observation_rays"]
+__all__ = ["LUD_DENSE_MAX_CELLS", "GlobalPositioningConfig", "GlobalPositioningResult", "global_positions",
+           "observation_rays"]
 
 
 @dataclass(frozen=True)
@@ -350,6 +351,11 @@ def _lm(problem: _Problem, z: np.ndarray, config: GlobalPositioningConfig) -> tu
     return z, iterations, converged
 
 
+#: `_lud_init` forms the (views, points) block densely up to this many cells (32 MB in float64; 100 views x
+#: 30000 tracks is 3e6), the sparse products beyond.
+LUD_DENSE_MAX_CELLS = 4_000_000
+
+
 def _lud_init(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_views: int, n_points: int,
               iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """Centres (N, 3) and points (P, 3) of the LUD problem, the start of the BATA refinement.
@@ -364,8 +370,10 @@ def _lud_init(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_v
 
     The incidence products are sums per view, per point and per (view, point) (`np.bincount`; the last (N, P)
     dense): tested equal to `_lud_init_reference`'s scipy.sparse products, which took 0.18 s of 2.7 s on the
-    temple ring's averaged start.
+    temple ring's averaged start. Above `LUD_DENSE_MAX_CELLS` view-point cells the sparse products are used.
     """
+    if n_views * n_points > LUD_DENSE_MAX_CELLS:
+        return _lud_init_reference(rays, obs_view, obs_point, n_views, n_points, iterations)
     k = len(rays)
     cell = obs_view * n_points + obs_point
     d, weight = np.ones(k), np.ones(k)

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from mvgeo.align.translation_averaging import (
     _MIN_SCALE,
+    LUD_DENSE_MAX_CELLS,
     GlobalPositioningConfig,
     _damped_step,
     _damped_step_sparse,
@@ -275,9 +276,26 @@ def test_lud_start_equals_the_sparse_reference(duplicate):
         rep = np.arange(0, problem.k, 7)
         problem = _Problem(np.r_[problem.v, problem.v[rep]], np.r_[problem.ov, problem.ov[rep]],
                            np.r_[problem.op, problem.op[rep]], problem.n, problem.p)
+    assert problem.n * problem.p <= LUD_DENSE_MAX_CELLS  # the dense path is the one tested here
     for iterations in (1, 20):
         C, X = _lud_init(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
         C_ref, X_ref = _lud_init_reference(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
         # Centres of RMS radius ~1; 20 IRLS reweightings amplify rounding by at most a few orders.
         np.testing.assert_allclose(C, C_ref, rtol=0, atol=1e-9)
         np.testing.assert_allclose(X, X_ref, rtol=0, atol=1e-9 * max(1.0, np.abs(X_ref).max()))
+
+
+def test_lud_start_above_the_dense_limit_uses_the_sparse_products(monkeypatch):
+    import mvgeo.align.translation_averaging as ta
+
+    _, problem, _ = _small_problem(5)
+    args = (problem.v, problem.ov, problem.op, problem.n, problem.p, 5)
+    calls = []
+    real = ta._lud_init_reference
+    monkeypatch.setattr(ta, "_lud_init_reference", lambda *a: calls.append(1) or real(*a))
+    ta._lud_init(*args)
+    assert not calls
+    monkeypatch.setattr(ta, "LUD_DENSE_MAX_CELLS", problem.n * problem.p - 1)
+    C, X = ta._lud_init(*args)
+    assert calls == [1]
+    np.testing.assert_array_equal(C, real(*args)[0])
