@@ -150,7 +150,7 @@ def _summary(c: Candidate) -> CandidateSummary:
 
 def _first_start(graph: PairGraph, config, timer: StageTimer) -> tuple[str, float | None, StartValues | None]:
     """(first start, the fraction of the pairs the chained start contradicts or None, the chained start's
-    initial values when it goes first): `choose_start`'s rule on the graph."""
+    initial values on the graph or None): `choose_start`'s rule on the graph."""
     if config.initial_poses != "auto":
         return choose_start(config.initial_poses), None, None
     with timer.stage("global_align"):
@@ -162,7 +162,7 @@ def _first_start(graph: PairGraph, config, timer: StageTimer) -> tuple[str, floa
     if first != "chain":
         _log.warning("the chained start contradicts %.0f %% of the pairs' relative rotations (by more than %g "
                      "deg): the %s start goes first", 100 * contradicted, config.max_pair_rotation_deg, first)
-    return first, contradicted, chain if first == "chain" else None
+    return first, contradicted, chain
 
 
 def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tuple[int, int]], model: PointmapModel,
@@ -179,8 +179,12 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
         DegenerateGeometryError: the chosen candidate is refused by its verdict, or the first start fails.
     """
     graph: PairGraph = pair_graph(inputs, pairs, config, timer)
-    first, contradicted, values = _first_start(graph, config, timer)
-    done: list[Candidate] = [solve(graph, first, config, timer, values=values)]
+    first, contradicted, chain = _first_start(graph, config, timer)
+
+    def values(g: PairGraph, start: str) -> StartValues | None:  # the chained start measured on `graph`, reused
+        return chain if start == "chain" and g is graph else None
+
+    done: list[Candidate] = [solve(graph, first, config, timer, values=values(graph, first))]
     summaries = [_summary(done[0])]
     pending = [done[0]]
     prunes: dict[int, int] = {id(done[0]): 0}
@@ -204,7 +208,8 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
                 break
             second_tried = True
             root = done[0]
-            makers = [lambda root=root: solve(root.graph, other_start(root.start), config, timer)]
+            makers = [lambda root=root: solve(root.graph, other_start(root.start), config, timer,
+                                              values=values(root.graph, other_start(root.start)))]
             c = root
         else:
             c = pending.pop(0)
@@ -217,7 +222,8 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
                 if (config.second_start and not second_tried and c.start == first and not c.dropped
                         and mostly_unexplained(c.checks, c.bad, config.max_unexplained_fraction)):
                     second_tried = True
-                    makers.append(lambda c=c: solve(c.graph, other_start(c.start), config, timer))
+                    makers.append(lambda c=c: solve(c.graph, other_start(c.start), config, timer,
+                                                    values=values(c.graph, other_start(c.start))))
             else:  # the pairs assumed a focal the bundle adjustment rejects: recompute them first
                 makers = [lambda c=c: _refocused(c, inputs, pair_list, model, config, timer)]
         for make in makers:

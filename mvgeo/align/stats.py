@@ -185,7 +185,8 @@ class AlignStats:
     focal_prior_unavailable: str = ""
     views_located_by_points: list[LocatedView] = field(default_factory=list)
     #: `initial_poses` "auto": the fraction of the verified pairs whose relative rotation the chained start
-    #: contradicts, which chose the first start (`mvgeo.align.init.choose_start`); else None.
+    #: contradicts, which chose the first start (`mvgeo.align.init.choose_start`; NaN: no pair has a
+    #: rotation); else None.
     chain_start_contradicted: float | None = None
     annotations: dict[str, Any] = field(default_factory=dict)
 

@@ -49,8 +49,7 @@ _MIN_SCALE = 1e-5
 #: instead took 18 solves (0.1 s) on the temple ring's converged second round.
 _MAX_TRIES = 14
 
-__all__ = ["LUD_DENSE_MAX_CELLS", "GlobalPositioningConfig", "GlobalPositioningResult", "global_positions",
-           "observation_rays"]
+__all__ = ["GlobalPositioningConfig", "GlobalPositioningResult", "global_positions", "observation_rays"]
 
 
 @dataclass(frozen=True)
@@ -351,11 +350,6 @@ def _lm(problem: _Problem, z: np.ndarray, config: GlobalPositioningConfig) -> tu
     return z, iterations, converged
 
 
-#: `_lud_init` forms the (views, points) block densely up to this many cells (32 MB in float64; 100 views x
-#: 30000 tracks is 3e6), the sparse products beyond.
-LUD_DENSE_MAX_CELLS = 4_000_000
-
-
 def _lud_init(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_views: int, n_points: int,
               iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """Centres (N, 3) and points (P, 3) of the LUD problem, the start of the BATA refinement.
@@ -368,50 +362,27 @@ def _lud_init(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_v
     track, leaving an (N, N) system per axis whose null space (a common translation) is fixed by a centroid
     term, (b) ``d_k = max(1, v_k . w_k)``, (c) the IRLS weights ``1 / |r_k|`` of the unsquared norm.
 
-    The incidence products are sums per view, per point and per (view, point) (`np.bincount`; the last (N, P)
-    dense): tested equal to `_lud_init_reference`'s scipy.sparse products, which took 0.18 s of 2.7 s on the
-    temple ring's averaged start. Above `LUD_DENSE_MAX_CELLS` view-point cells the sparse products are used.
+    The incidence products are sums per view and per point (`np.bincount`) and one sparse (views, points)
+    matrix of the weights, instead of the four scipy.sparse incidence products of the textbook form
+    (`tests/mvgeo/align/test_translation_averaging.py::_lud_init_reference`, tested equal; 0.18 s of 2.7 s on
+    the temple ring's averaged start, 3-6x slower than this at 100-400 views).
     """
-    if n_views * n_points > LUD_DENSE_MAX_CELLS:
-        return _lud_init_reference(rays, obs_view, obs_point, n_views, n_points, iterations)
     k = len(rays)
-    cell = obs_view * n_points + obs_point
     d, weight = np.ones(k), np.ones(k)
     for _ in range(iterations):
         wb = weight[:, None] * (d[:, None] * rays)
         w_view = np.bincount(obs_view, weight, minlength=n_views)
         w_point = np.bincount(obs_point, weight, minlength=n_points)
-        # r = X[p] - C[n] - d v: the normal equations' (C, C) block is diag(w_view), the (C, X) block -M.
-        M = np.bincount(cell, weight, minlength=n_views * n_points).reshape(n_views, n_points)
-        S = np.diag(w_view) - (M / w_point) @ M.T + np.full((n_views, n_views), weight.sum() / (k * n_views))
+        # r = X[p] - C[n] - d v: the normal equations' (C, C) block is diag(w_view), the (C, X) block -M
+        # (a repeated observation adds to its (view, point) cell: the COO -> CSR conversion sums them).
+        M = coo_matrix((weight, (obs_view, obs_point)), shape=(n_views, n_points)).tocsr()
+        M_by_point = M @ diags(1.0 / w_point)
+        S = (np.diag(w_view) - (M_by_point @ M.T).toarray()
+             + np.full((n_views, n_views), weight.sum() / (k * n_views)))
         BWb = np.stack([np.bincount(obs_point, wb[:, c], minlength=n_points) for c in range(3)], axis=1)
         AWb = -np.stack([np.bincount(obs_view, wb[:, c], minlength=n_views) for c in range(3)], axis=1)
-        C = np.linalg.solve(S, AWb + M @ (BWb / w_point[:, None]))
+        C = np.linalg.solve(S, AWb + M_by_point @ BWb)
         X = (BWb + M.T @ C) / w_point[:, None]
-        w = X[obs_point] - C[obs_view]
-        d = np.maximum(1.0, np.sum(w * rays, axis=1))
-        r = np.linalg.norm(w - d[:, None] * rays, axis=1)
-        weight = 1.0 / np.maximum(r, 1e-6 * max(float(np.median(r)), 1e-300))
-    return C, X
-
-
-def _lud_init_reference(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_views: int, n_points: int,
-              iterations: int) -> tuple[np.ndarray, np.ndarray]:
-    """`_lud_init` with every product a scipy.sparse product of the incidence matrices (the tests' reference)."""
-    k = len(rays)
-    A = coo_matrix((-np.ones(k), (np.arange(k), obs_view)), shape=(k, n_views)).tocsr()  # r = B X + A C - d v
-    B = coo_matrix((np.ones(k), (np.arange(k), obs_point)), shape=(k, n_points)).tocsr()
-    d, weight = np.ones(k), np.ones(k)
-    for _ in range(iterations):
-        b = d[:, None] * rays
-        W = diags(weight)
-        w_point = np.bincount(obs_point, weight, minlength=n_points)
-        AWB = (A.T @ W @ B).tocsr()
-        S = (A.T @ W @ A).toarray() - (AWB @ diags(1.0 / w_point) @ AWB.T).toarray()
-        S += np.full((n_views, n_views), weight.sum() / (k * n_views))
-        BWb = B.T @ (weight[:, None] * b)
-        C = np.linalg.solve(S, A.T @ (weight[:, None] * b) - AWB @ (BWb / w_point[:, None]))
-        X = (BWb - AWB.T @ C) / w_point[:, None]
         w = X[obs_point] - C[obs_view]
         d = np.maximum(1.0, np.sum(w * rays, axis=1))
         r = np.linalg.norm(w - d[:, None] * rays, axis=1)

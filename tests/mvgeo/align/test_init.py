@@ -42,7 +42,7 @@ def test_the_chained_start_contradicts_the_pairs_it_turns_past_the_limit(rng):
     exact = {(i, j): R[j] @ R[i].T for i in range(5) for j in range(i + 1, 5)}
     assert chain_contradicted_fraction(poses, exact, 10.0) == 0.0
     assert np.isnan(chain_contradicted_fraction(poses, {}, 10.0))
-    # Turn 6 of the 10 pairs by 8, 9.5, 11, ... 15.5 deg: 4 of them past 10 deg, 6 past 9 deg.
+    # Turn 6 of the 10 pairs by 8, 9.5, 11, ... 15.5 deg: 4 of them past 10 deg, 5 past 9 deg, 6 past 7.9.
     turned = dict(exact)
     for k, key in enumerate(sorted(exact)[:6]):
         axis = rng.normal(size=3)
@@ -72,21 +72,33 @@ def test_pair_relative_rotations_take_the_models_pose_else_the_matches(rng):
     np.testing.assert_allclose(rel[keys[0]], marker)  # stored as (i < j): transposed back
 
 
-def test_the_chain_start_is_dusts_spanning_tree_chaining(rng):
-    """The chained start's values are `init_from_spanning_tree`'s (exact on exact pointmaps), and the
-    alignment from them is the alignment that initialises itself by chaining."""
+@pytest.mark.parametrize("known", [False, True])
+@pytest.mark.parametrize("shared_focal", [False, True])
+def test_the_chain_start_is_dusts_spanning_tree_chaining(rng, known, shared_focal):
+    """The chained start's values are `init_from_spanning_tree`'s at the focal the alignment would use (the
+    known one; else the pairs' estimates, one geometric mean with a shared focal), so the alignment from them
+    is the alignment that initialises itself by chaining; exact on exact pointmaps at the true focal."""
     poses, depths = make_views(4)
     preds = make_pairs(poses, depths, FOCAL, rng)
+    for k, p in enumerate(preds):  # pair focal estimates 0 and 8 % off: each focal rule gives other values
+        p.focal_i_px = p.focal_j_px = FOCAL * (1.0 + 0.08 * (k % 2))
     sizes = [d.shape for d in depths]
-    cfg, init = initial_values("chain", _pair_set(preds), sizes, None, GlobalAlignConfig(init="pair_poses"), 1.0,
-                               (32, 24))
+    focal = np.full(4, FOCAL) if known else None
+    align = GlobalAlignConfig(init="pair_poses", shared_focal=shared_focal, optimize_focal=not known)
+    cfg, init = initial_values("chain", _pair_set(preds), sizes, focal, align, 1.0, (32, 24))
     assert cfg.init == "procrustes"
-    names = [str(k) for k in range(4)]
-    m = compare_poses(dict(zip(names, init.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
-    assert m.median_rotation_deg < 0.01 and m.ate.rmse < 1e-3
-    given = global_align(preds, sizes, config=replace(cfg, iters=5), init=init)
-    itself = global_align(preds, sizes, config=replace(cfg, iters=5))
+    given = global_align(preds, sizes, config=replace(cfg, iters=5), focal_init_px=focal, init=init)
+    itself = global_align(preds, sizes, config=replace(cfg, iters=5), focal_init_px=focal)
     np.testing.assert_array_equal(given.cam_from_world, itself.cam_from_world)
+    np.testing.assert_array_equal(given.focal_px, itself.focal_px)
+    if known:
+        np.testing.assert_array_equal(init.focal_px, FOCAL)
+        names = [str(k) for k in range(4)]
+        m = compare_poses(dict(zip(names, init.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
+        assert m.median_rotation_deg < 0.01 and m.ate.rmse < 1e-3
+    elif shared_focal:
+        np.testing.assert_allclose(init.focal_px, init.focal_px[0])
+        assert FOCAL < init.focal_px[0] < 1.08 * FOCAL
 
 
 def test_the_averaged_start_is_exact_on_exact_pointmaps_and_tracks(rng, caplog):

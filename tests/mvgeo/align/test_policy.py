@@ -19,7 +19,7 @@ from mvgeo.align.locate import Located
 from mvgeo.align.pairs import PairSet
 from mvgeo.align.policy import choose_solution
 from mvgeo.align.solve import Candidate
-from mvgeo.align.stats import Unregistered
+from mvgeo.align.stats import AlignStats, Unregistered
 from mvgeo.align.verdict import Reason, Verdict
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.common.imageio import list_images
@@ -116,11 +116,15 @@ def test_an_accepted_first_candidate_is_the_only_one(monkeypatch):
     assert script.calls == [("averaged", False)] and chosen.start == "averaged"
 
 
-@pytest.mark.parametrize("contradicted, first", [(0.4, "chain"), (0.9, "averaged")])
-def test_auto_measures_the_chained_start_and_reuses_it(monkeypatch, contradicted, first):
-    """"auto": the chained start's initial values are measured against the pairs (`init.choose_start`); where
-    chaining goes first the same values are solved (not computed twice), else the averaged start is first."""
-    script = _Script(monkeypatch, {("chain", False): dict(explained=0.99), ("averaged", False): dict(explained=0.99)})
+@pytest.mark.parametrize("contradicted, first, first_ok", [(0.4, "chain", True), (0.9, "averaged", True),
+                                                         (0.9, "averaged", False)])
+def test_auto_measures_the_chained_start_and_reuses_it(monkeypatch, contradicted, first, first_ok):
+    """"auto": the chained start's initial values are measured against the pairs (`init.choose_start`) once, and
+    solved wherever the chained start is solved on that graph: first, or as the second start after a
+    contradicted averaged start."""
+    refused = dict(explained=0.6, reasons=("pairs_contradicted",), mostly=True)
+    script = _Script(monkeypatch, {("chain", False): dict(explained=0.99),
+                                   ("averaged", False): dict(explained=0.99) if first_ok else refused})
     made, given = [], []
     chain = solve_mod.StartValues("chain", GlobalAlignConfig(), SimpleNamespace(cam_from_world=None), None)
     monkeypatch.setattr(policy, "start_values", lambda graph, start, config: made.append(start) or chain)
@@ -132,8 +136,12 @@ def test_auto_measures_the_chained_start_and_reuses_it(monkeypatch, contradicted
     chosen, summaries, measured = choose_solution(_Inputs(), _pairs(), [(0, 1), (0, 2), (1, 2)], _Refocusable(),
                                                   AlignConfig(), StageTimer())
     assert made == ["chain"] and measured == contradicted
-    assert script.calls == [(first, False)] and chosen.start == first
-    assert given == [chain if first == "chain" else None]
+    if first_ok:
+        assert script.calls == [(first, False)] and chosen.start == first
+        assert given == [chain if first == "chain" else None]
+    else:
+        assert script.calls == [("averaged", False), ("chain", False)] and chosen.start == "chain"
+        assert given == [None, chain]
 
 
 def test_a_contradicted_first_start_is_solved_from_the_other_start(monkeypatch):
@@ -371,6 +379,7 @@ def test_a_failed_chained_start_is_replaced_by_the_averaged_start(llff6, flipped
     chosen = [c for c in cands if c.chosen]
     assert len(chosen) == 1 and chosen[0].start == "averaged" and chosen[0].reasons == []
     assert res.stats.initial_poses == "averaged"
+    assert res.stats.chain_start_contradicted is None  # a configured start: nothing measured
     gt = read_sparse_model(llff6 / "sparse" / "0")
     m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt.cam_from_world_by_name())
     # PREVIEW from the default start: 0.35 deg; 1 deg leaves room for the other start.
@@ -402,6 +411,8 @@ def test_no_other_candidate_when_the_first_start_passes(llff6_preview):
     assert [(c.start, c.chosen, c.reasons, c.refocused) for c in stats.candidates] == [
         ("chain", False, [], False), ("chain", True, [], True)]
     assert stats.initial_poses == "chain"
+    assert 0.0 <= stats.chain_start_contradicted <= init_mod.CHAIN_MAX_CONTRADICTED  # measured by "auto"
+    assert AlignStats.from_json(stats.to_json()).chain_start_contradicted == stats.chain_start_contradicted
     first, c = stats.candidates
     assert abs(np.log(first.bundle_focal_px / first.pairs_focal_px)) > 0.1
     assert abs(np.log(c.bundle_focal_px / c.pairs_focal_px)) <= 0.1

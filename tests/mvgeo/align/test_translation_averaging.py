@@ -5,18 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
-from scipy.sparse import diags
+from scipy.sparse import coo_matrix, diags
 from scipy.spatial.transform import Rotation
 
 from mvgeo.align.translation_averaging import (
     _MIN_SCALE,
-    LUD_DENSE_MAX_CELLS,
     GlobalPositioningConfig,
     _damped_step,
     _damped_step_sparse,
     _loss,
     _lud_init,
-    _lud_init_reference,
     _Normal,
     _Problem,
     global_positions,
@@ -266,36 +264,44 @@ def test_block_step_equals_the_sparse_reference(lam, duplicate):
 
 
 
+def _lud_init_reference(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_views: int, n_points: int,
+                        iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """`_lud_init` in its textbook form: the (C, X) normal equations from the sparse incidence matrices A (views)
+    and B (points) of r = B X + A C - d v, X eliminated per track."""
+    k = len(rays)
+    A = coo_matrix((-np.ones(k), (np.arange(k), obs_view)), shape=(k, n_views)).tocsr()  # r = B X + A C - d v
+    B = coo_matrix((np.ones(k), (np.arange(k), obs_point)), shape=(k, n_points)).tocsr()
+    d, weight = np.ones(k), np.ones(k)
+    for _ in range(iterations):
+        b = d[:, None] * rays
+        W = diags(weight)
+        w_point = np.bincount(obs_point, weight, minlength=n_points)
+        AWB = (A.T @ W @ B).tocsr()
+        S = (A.T @ W @ A).toarray() - (AWB @ diags(1.0 / w_point) @ AWB.T).toarray()
+        S += np.full((n_views, n_views), weight.sum() / (k * n_views))
+        BWb = B.T @ (weight[:, None] * b)
+        C = np.linalg.solve(S, A.T @ (weight[:, None] * b) - AWB @ (BWb / w_point[:, None]))
+        X = (BWb - AWB.T @ C) / w_point[:, None]
+        w = X[obs_point] - C[obs_view]
+        d = np.maximum(1.0, np.sum(w * rays, axis=1))
+        r = np.linalg.norm(w - d[:, None] * rays, axis=1)
+        weight = 1.0 / np.maximum(r, 1e-6 * max(float(np.median(r)), 1e-300))
+    return C, X
+
+
 @pytest.mark.parametrize("duplicate", [False, True])
 def test_lud_start_equals_the_sparse_reference(duplicate):
-    """`_lud_init` (per-view and per-(view, point) sums) against `_lud_init_reference` (scipy.sparse incidence
-    products): the same alternations, so the same centres and points to rounding; also with observations
-    repeated (a track seeing one view twice adds to one (view, point) cell)."""
+    """`_lud_init` (per-view and per-point sums, one sparse (view, point) matrix) against `_lud_init_reference`
+    (the incidence products): the same alternations, so the same centres and points to rounding; also with
+    observations repeated (a track seeing one view twice adds to one (view, point) cell)."""
     _, problem, _ = _small_problem(5)
     if duplicate:
         rep = np.arange(0, problem.k, 7)
         problem = _Problem(np.r_[problem.v, problem.v[rep]], np.r_[problem.ov, problem.ov[rep]],
                            np.r_[problem.op, problem.op[rep]], problem.n, problem.p)
-    assert problem.n * problem.p <= LUD_DENSE_MAX_CELLS  # the dense path is the one tested here
     for iterations in (1, 20):
         C, X = _lud_init(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
         C_ref, X_ref = _lud_init_reference(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
         # Centres of RMS radius ~1; 20 IRLS reweightings amplify rounding by at most a few orders.
         np.testing.assert_allclose(C, C_ref, rtol=0, atol=1e-9)
         np.testing.assert_allclose(X, X_ref, rtol=0, atol=1e-9 * max(1.0, np.abs(X_ref).max()))
-
-
-def test_lud_start_above_the_dense_limit_uses_the_sparse_products(monkeypatch):
-    import mvgeo.align.translation_averaging as ta
-
-    _, problem, _ = _small_problem(5)
-    args = (problem.v, problem.ov, problem.op, problem.n, problem.p, 5)
-    calls = []
-    real = ta._lud_init_reference
-    monkeypatch.setattr(ta, "_lud_init_reference", lambda *a: calls.append(1) or real(*a))
-    ta._lud_init(*args)
-    assert not calls
-    monkeypatch.setattr(ta, "LUD_DENSE_MAX_CELLS", problem.n * problem.p - 1)
-    C, X = ta._lud_init(*args)
-    assert calls == [1]
-    np.testing.assert_array_equal(C, real(*args)[0])
