@@ -4,7 +4,7 @@ what each start gives when solved alone.
 For each scene: the pair graph of `mvgeo align` (defaults), the chained start's initial values
 (`mvgeo.align.init.initial_values`), the fraction of the verified pairs whose own relative rotation is more than
 `AlignConfig.max_pair_rotation_deg` from the chained start's (`chain_contradicted_fraction`, the rule's
-measure; `CHAIN_MAX_CONTRADICTED` is its limit) and the median angle; then one candidate from each start
+measure; `CHAIN_MAX_CONTRADICTED` is its limit) and the median of those angles; then one candidate from each start
 (`mvgeo.align.solve.solve`: global alignment, bundle adjustment, verdict; no pruning, no second start) with its
 verdict and its rotation error against ground truth (median / max over the view pairs, deg).
 
@@ -32,7 +32,7 @@ from _common import md_table
 from mvgeo.align.classical_pairs import ClassicalPointmapModel
 from mvgeo.align.config import AlignConfig
 from mvgeo.align.graph import make_pairs
-from mvgeo.align.init import CHAIN_MAX_CONTRADICTED, chain_contradicted_fraction, pair_relative_rotations
+from mvgeo.align.init import chain_contradicted_fraction, choose_start, pair_relative_rotations
 from mvgeo.align.inputs import load_inputs
 from mvgeo.align.intrinsics import choose_focal_prior
 from mvgeo.align.rotation_averaging import relative_rotation_residuals_deg
@@ -69,8 +69,7 @@ def _row(scene: str, paths: list[Path], gt: dict, cfg: AlignConfig) -> list:
         m = compare_poses(dict(zip(c.inputs.names, c.result.cam_from_world, strict=True)), gt)
         verdict = "accepted" if c.verdict.ok else "refused (" + ", ".join(r.kind for r in c.verdict.reasons) + ")"
         out.append(f"{verdict}; {m.median_rotation_deg:.2f} / {float(m.rotation_deg.max()):.1f} deg")
-    first = "averaged" if frac > CHAIN_MAX_CONTRADICTED else "chain"
-    return [scene, f"{frac:.2f}", f"{med:.1f}", *out, first]
+    return [scene, f"{frac:.2f}", f"{med:.1f}", *out, choose_start("auto", frac)]
 
 
 def _synth(spec: str, work: Path):

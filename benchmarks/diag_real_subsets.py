@@ -14,7 +14,8 @@ Each set clean and with Gaussian noise sigma 25/255 (noise seed = draw), every i
 a camera would write (as `bench_real.py --exif`). Columns as `bench_real.py` (registered, rotation error
 median and max over the view pairs, ATE over the scene scale, seconds), plus which start `mvgeo align` chose
 and the fraction of pairs its chained start contradicts (`mvgeo.align.init.choose_start`). A summary counts,
-per method, the sets with every view, the sets with a view more than 5 deg off, and the time ratio.
+per method, the sets with every view, the views registered, the sets with a view more than 5 deg off (a
+relative rotation between two registered views more than 5 deg from the reference's), and the time ratio.
 
 With `--partial`, `mvgeo align --allow-partial` runs too (the largest group it can connect and verify, as
 pycolmap returns partial models).

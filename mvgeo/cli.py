@@ -57,7 +57,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="if some images cannot be connected, register the largest connected group and list "
                         "the others in align.json 'unregistered' (default: fail naming them). The group is checked "
                         "only by its own pairs: on weak sets (noisy, 20-40 deg apart) 2 of 10 draws came back "
-                        "with relative rotations 11 deg off, and the noisy temple ring's 16 views 21 deg off "
+                        "with relative rotations 11 deg off, and the noisy temple ring's 16 views up to 21 deg off "
                         "(docs/bench/real_partial_draws.md, real_subsets.md)")
     a.add_argument("--initial-poses", choices=["auto", "chain", "averaged"], default="auto",
                    help="how the poses are initialised: DUSt3R's chaining of the pairs' pointmaps, rotation "

@@ -47,9 +47,10 @@ STARTS = ("chain", "averaged")
 
 #: The "auto" rule's limit on the fraction of the verified pairs the chained start contradicts
 #: (`chain_contradicted_fraction`): above it the averaged start goes first. Measured
-#: (`benchmarks/diag_chain_start.py`, docs/bench/align.md): the temple ring 0.89 (its chained candidate is
-#: refused, 68 deg off); at most 0.50 on every other real and synthetic scene (object_ring 0.50,
-#: hard_repetitive 0.44, hard_tinybaseline 0.27, DTU scan24 0-0.15, llff_like 0).
+#: (`benchmarks/diag_chain_start.py`, docs/bench/align.md): the temple ring 0.88 (its chained candidate is
+#: refused, 68 deg off); at most 0.50 on every other real and synthetic scene at the defaults (object_ring
+#: 0.50, hard_repetitive 0.44, hard_tinybaseline 0.27, DTU scan24 0-0.39, llff_like 0); 0.56-0.62 on the
+#: noisy temple's groups that `allow_partial` keeps (docs/bench/real_subsets.md).
 CHAIN_MAX_CONTRADICTED = 2.0 / 3.0
 
 
