@@ -63,28 +63,28 @@ def _dtu_sets(draws: int) -> list[br.RealSet]:
 
 
 def _temple_sets() -> list[br.RealSet]:
-    whole = br.temple_set()
-    if whole is None:
+    from eval.real.middlebury import read_middlebury
+
+    if not (br.TEMPLE / "templeSR_par.txt").is_file():
         print(f"note: {br.TEMPLE} missing, temple skipped", file=sys.stderr)
         return []
-    rows = [ln.split() for ln in (br.TEMPLE / "templeSR_par.txt").read_text().splitlines()[1:]
-            if len(ln.split()) == 22]
-    names = [r[0] for r in rows]
-    vals = np.array([[float(x) for x in r[1:]] for r in rows])
-    Rs, ts = vals[:, 9:18].reshape(-1, 3, 3), vals[:, 18:21]
-    C = -np.einsum("nji,nj->ni", Rs, ts)
+    views = read_middlebury(br.TEMPLE).views
+    cams = np.stack([v.cam_from_world[:3] for v in views])
+    C = -np.einsum("nji,nj->ni", cams[:, :, :3], cams[:, :, 3])
     centre = C.mean(axis=0)
-    # Order the views around the ring by azimuth about the ring's axis (the normal of the centres' best plane).
+    # Order the views around the ring by azimuth about the ring's axis (the normal of the centres' best plane);
+    # views at one position (the ring has a duplicate) in file order.
     axis = np.linalg.svd(C - centre)[2][2]
     e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(axis, e1)
-    ring = np.argsort(np.arctan2((C - centre) @ e2, (C - centre) @ e1)).tolist()
-    imgs = br.TEMPLE if list(br.TEMPLE.glob("*.png")) else br.TEMPLE / "images"
+    azimuth = np.round(np.arctan2((C - centre) @ e2, (C - centre) @ e1), 3)
+    ring = np.lexsort((np.arange(len(views)), azimuth)).tolist()
 
     def make(label, pick):
-        gt = {names[v]: np.hstack([Rs[v], ts[v][:, None]]) for v in pick}
-        return br.RealSet(f"temple, {label}", [imgs / names[v] for v in sorted(pick)], gt, whole.K)
+        gt = {views[v].image_path.name: cams[v] for v in pick}
+        K = np.median(np.stack([views[v].camera.K for v in pick]), axis=0)
+        return br.RealSet(f"temple, {label}", [views[v].image_path for v in sorted(pick)], gt, K)
 
     n = len(ring)
     sets = [make(f"all {n}", ring)]
