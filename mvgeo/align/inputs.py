@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import hashlib
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -55,7 +57,10 @@ def _read(images: Sequence[Path] | Sequence[np.ndarray], names: Sequence[str] | 
         raise InputError(f"need at least 2 images, got {len(images)}", fix="add more views of the scene")
     if all(isinstance(x, (str, Path)) for x in images):
         paths = [Path(x) for x in images]
-        arrays = [read_image(p) for p in paths]
+        # Decoding and the float conversion release the GIL: one thread per core. `map` returns in order
+        # and raises the first unreadable file's error in file order, as the serial loop did.
+        with ThreadPoolExecutor(max_workers=max(1, min(len(paths), os.cpu_count() or 1))) as pool:
+            arrays = list(pool.map(read_image, paths))
         names = list(names) if names is not None else [p.name for p in paths]
     else:
         arrays = [np.asarray(x, np.float32) for x in images]

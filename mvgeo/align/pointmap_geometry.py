@@ -61,17 +61,26 @@ def valid_pointmap_pixels(C: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 def pair_similarities(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], cam_from_world: np.ndarray,
                       depth: Sequence[np.ndarray], focal_px: np.ndarray) -> list[tuple[float, np.ndarray, np.ndarray]]:
-    """Each pair's similarity (s, R, t): pair frame -> world, by weighted Procrustes against the posed depth maps."""
+    """Each pair's similarity (s, R, t): pair frame -> world, by weighted Procrustes against the posed depth maps.
+
+    Each view's posed depth map (world points, (H, W, 3)) is computed once and shared by its pairs.
+    """
+    posed: dict[int, np.ndarray] = {}
+
+    def world_points(v: int) -> np.ndarray:
+        if v not in posed:
+            H, W = sizes_hw[v]
+            R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
+            posed[v] = (pixel_rays(H, W, float(focal_px[v])) * depth[v][..., None] - t) @ R  # R^T (x - t)
+        return posed[v]
+
     pair_sim = []
     for p in preds:
         src, dst, w = [], [], []
         for v, P, C in ((p.i, p.pts_i, p.conf_i), (p.j, p.pts_j, p.conf_j)):
             ok = valid_pointmap_pixels(C, P)
-            H, W = sizes_hw[v]
-            R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
-            x_cam = pixel_rays(H, W, float(focal_px[v])) * depth[v][..., None]
             src.append(P[ok].astype(np.float64))
-            dst.append((x_cam[ok] - t) @ R)  # R^T (x - t)
+            dst.append(world_points(v)[ok])
             w.append(np.log(C[ok]))
         pair_sim.append(weighted_umeyama(np.concatenate(src), np.concatenate(dst), np.concatenate(w)))
     return pair_sim

@@ -8,14 +8,17 @@ keeping the most confident point per voxel.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 
 def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarray], conf: Sequence[np.ndarray],
                       cam_from_world: np.ndarray, K: Sequence[np.ndarray], *, rel_depth_tol: float = 0.03,
-                      consistency_rel_tol: float = 0.0, free_space_rel_tol: float = 0.0) -> list[np.ndarray]:
+                      consistency_rel_tol: float = 0.0, free_space_rel_tol: float = 0.0,
+                      workers: int | None = None) -> list[np.ndarray]:
     """Per view, a (H, W) bool mask of the pixels to keep.
 
     A pixel p of view n is dropped when it projects inside view m (m != n) to
@@ -42,10 +45,11 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
         free_space_rel_tol: with > 0, p is also dropped when some other view sees *through* it:
             z_m(p) < (1 - free_space_rel_tol) * depth_m[q] (a free-space violation, as in
             visibility-based depth-map fusion; 0: off).
+        workers: threads over the views (default: one per core); the masks do not depend on it.
     """
     n = len(pts_world)
-    keep = [np.ones(d.shape, bool) for d in depth]
-    for a in range(n):
+
+    def keep_view(a: int) -> np.ndarray:
         P = pts_world[a].reshape(-1, 3)
         ca = conf[a].reshape(-1)
         drop = np.zeros(len(P), bool)
@@ -76,8 +80,11 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
             if free_space_rel_tol > 0:
                 drop[idx[z[idx] < (1.0 - free_space_rel_tol) * db]] = True
         drop |= seen & ~confirmed
-        keep[a] = ~drop.reshape(depth[a].shape)
-    return keep
+        return ~drop.reshape(depth[a].shape)
+
+    # Views are independent and numpy releases the GIL in the per-pixel work: one thread per core.
+    with ThreadPoolExecutor(max_workers=max(1, min(n, workers or os.cpu_count() or 1))) as pool:
+        return list(pool.map(keep_view, range(n)))
 
 
 def voxel_downsample_by_confidence(points: np.ndarray, conf: np.ndarray, budget: int) -> np.ndarray:

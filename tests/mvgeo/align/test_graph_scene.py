@@ -121,3 +121,65 @@ def test_pixel_downsample_keeps_the_best_point_per_cell_and_meets_the_budget():
             assert len(sel) >= 0.9 * min(budget, n_pixels), (budget, len(sel))
     top = pixel_downsample_by_confidence(view, row, col, conf, 2)  # fewer points than views
     assert set(conf[top]) <= set(np.sort(conf)[-50:])  # each is its view's best: among the top scores
+
+
+def _covisibility_reference(pts, depth, conf, cams, Ks, rel_tol, cons_tol, free_tol):
+    """`covisibility_keep`'s docstring, pixel by pixel (slow, obvious)."""
+    keep = []
+    for a in range(len(pts)):
+        H, W = depth[a].shape
+        k = np.ones((H, W), bool)
+        for r in range(H):
+            for c in range(W):
+                drop, confirmed, seen = False, False, False
+                for b in range(len(pts)):
+                    if b == a:
+                        continue
+                    x = cams[b][:, :3] @ pts[a][r, c] + cams[b][:, 3]
+                    if not x[2] > 0:
+                        continue
+                    u = Ks[b][0, 0] * x[0] / x[2] + Ks[b][0, 2]
+                    v = Ks[b][1, 1] * x[1] / x[2] + Ks[b][1, 2]
+                    Hb, Wb = depth[b].shape
+                    if not (0 <= u < Wb and 0 <= v < Hb):
+                        continue
+                    db, cb = depth[b][int(np.floor(v)), int(np.floor(u))], conf[b][int(np.floor(v)), int(np.floor(u))]
+                    if abs(x[2] - db) < rel_tol * db and (cb > conf[a][r, c] or (cb == conf[a][r, c] and b < a)):
+                        drop = True
+                    if cons_tol > 0:
+                        confirmed |= bool(abs(x[2] - db) < cons_tol * db)
+                        seen |= bool(np.isfinite(db) and db > 0)
+                    if free_tol > 0 and x[2] < (1.0 - free_tol) * db:
+                        drop = True
+                k[r, c] = not (drop or (seen and not confirmed))
+        keep.append(k)
+    return keep
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_covisibility_matches_the_pixel_loop_with_any_number_of_threads(rng, workers):
+    """Four views of a bumpy surface from nearby cameras, ties in confidence included: the vectorised,
+    threaded masks equal the pixel-by-pixel reference, for one thread or several."""
+    from mvgeo.transforms import R_from_axis_angle
+
+    H, W, f = 9, 12, 10.0
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    cams, pts, depth, conf = [], [], [], []
+    for _ in range(4):
+        R = R_from_axis_angle(rng.normal(0, 0.05, 3))
+        t = rng.normal(0, 0.1, 3)
+        cams.append(np.concatenate([R, t[:, None]], 1))
+        d = 2.0 + 0.1 * rng.standard_normal((H, W))
+        d[rng.random((H, W)) < 0.1] = np.nan  # missing depth, as hole-free stereo leaves
+        x_cam = pixel_rays(H, W, f) * d[..., None]
+        pts.append((x_cam - t) @ R)  # R^T (x - t)
+        depth.append(d)
+        conf.append(rng.integers(1, 4, (H, W)).astype(float))  # small integers: ties happen
+    cams = np.stack(cams)
+    args = (pts, depth, conf, cams, [K] * 4)
+    for tols in [(0.03, 0.0, 0.0), (0.03, 0.05, 0.05)]:
+        got = covisibility_keep(*args, rel_depth_tol=tols[0], consistency_rel_tol=tols[1],
+                                free_space_rel_tol=tols[2], workers=workers)
+        want = _covisibility_reference(*args, *tols)
+        assert all(np.array_equal(g, w) for g, w in zip(got, want, strict=True))
+        assert 0 < sum(int(g.sum()) for g in got) < 4 * H * W  # some dropped, some kept: the test can fail
