@@ -32,7 +32,8 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
 6. `stats` (`AlignStats`, align.json) and `writer`.
 
 Also: `intrinsics` (known calibration, undistortion, the EXIF focal prior), `colmap_sfm` (the pycolmap
-reference, `mvgeo colmap`), `translation_averaging` (global positioning of the cameras from the tracks).
+reference, `mvgeo colmap`), `translation_averaging` (global positioning of the cameras from the tracks;
+its LUD start in `lud`).
 Options: `config.AlignConfig`.
 """
 

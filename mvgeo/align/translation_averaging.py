@@ -20,8 +20,9 @@ ones, and it is bounded, so a wrong match costs at most 1.
   residuals ``sqrt(K) * mean(C)`` (3) and ``sqrt(K) * (mean |C - mean(C)|^2 - 1)`` fix it: the centroid of the
   centres at the origin and their RMS distance from it at 1. Every solution can be moved onto that slice,
   so these residuals are zero at the optimum and do not bias it; they make the normal equations full rank.
-- Start: the LUD solution (`_lud_init`), which cannot collapse and resists wrong matches; "random" starts
-  from uniform positions in [-1, 1]^3 (seeded) as GLOMAP does, and needs many more iterations.
+- Start: the LUD solution (`mvgeo.align.lud.lud_positions`), which cannot collapse and resists wrong
+  matches; "random" starts from uniform positions in [-1, 1]^3 (seeded) as GLOMAP does, and needs many more
+  iterations.
 - Two rounds: after the first solve, observations behind their camera or more than `max_residual_deg` off
   their ray are dropped (then tracks with fewer than 2 views), and the problem is solved again from there.
 - The linear system: the scales are eliminated in closed form (each touches one residual), then the points
@@ -39,6 +40,7 @@ from scipy.sparse import coo_matrix, diags
 
 from mvgeo.align.bundle import build_tracks
 from mvgeo.align.graph import components
+from mvgeo.align.lud import lud_positions
 from mvgeo.common.errors import DegenerateGeometryError, InputError, check_shape
 
 #: Lower bound of the scales d (GLOMAP bounds them the same way); the centres have RMS radius 1.
@@ -70,7 +72,7 @@ class GlobalPositioningConfig:
             the observations to their track's mean ray (what the rotations alone explain) is at least this
             many times the median residual angle of the solution (a pure rotation leaves both at the noise
             level: about 1.4x apart for 2-view tracks; a real baseline leaves parallax/noise, tens or more).
-        init: "lud" (`_lud_init`) or "random" (uniform in [-1, 1]^3, seeded).
+        init: "lud" (`mvgeo.align.lud.lud_positions`) or "random" (uniform in [-1, 1]^3, seeded).
         init_iterations: reweighting iterations of the LUD start.
         seed: of the random start.
     """
@@ -350,46 +352,6 @@ def _lm(problem: _Problem, z: np.ndarray, config: GlobalPositioningConfig) -> tu
     return z, iterations, converged
 
 
-def _lud_init(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_views: int, n_points: int,
-              iterations: int) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (N, 3) and points (P, 3) of the LUD problem, the start of the BATA refinement.
-
-    LUD (Ozyesil & Singer 2015, "least unsquared deviations", here camera-to-point): minimise
-    ``sum_k |X_p - C_n - d_k v_k|`` subject to ``d_k >= 1``. The bound keeps the solution from collapsing
-    onto one point (which the scale-free BATA cost cannot prevent from a poor start) and the unsquared norm
-    limits the pull of wrong observations. The problem is convex; a start needs no exact solution, so it runs
-    a fixed number of alternations of (a) the weighted least squares in (C, X) for fixed d, X eliminated per
-    track, leaving an (N, N) system per axis whose null space (a common translation) is fixed by a centroid
-    term, (b) ``d_k = max(1, v_k . w_k)``, (c) the IRLS weights ``1 / |r_k|`` of the unsquared norm.
-
-    The incidence products are sums per view and per point (`np.bincount`) and one sparse (views, points)
-    matrix of the weights, instead of the four scipy.sparse incidence products of the textbook form
-    (`tests/mvgeo/align/test_translation_averaging.py::_lud_init_reference`, tested equal; 0.18 s of 2.7 s on
-    the temple ring's averaged start, 3-6x slower than this at 100-400 views).
-    """
-    k = len(rays)
-    d, weight = np.ones(k), np.ones(k)
-    for _ in range(iterations):
-        wb = weight[:, None] * (d[:, None] * rays)
-        w_view = np.bincount(obs_view, weight, minlength=n_views)
-        w_point = np.bincount(obs_point, weight, minlength=n_points)
-        # r = X[p] - C[n] - d v: the normal equations' (C, C) block is diag(w_view), the (C, X) block -M
-        # (a repeated observation adds to its (view, point) cell: the COO -> CSR conversion sums them).
-        M = coo_matrix((weight, (obs_view, obs_point)), shape=(n_views, n_points)).tocsr()
-        M_by_point = M @ diags(1.0 / w_point)
-        S = (np.diag(w_view) - (M_by_point @ M.T).toarray()
-             + np.full((n_views, n_views), weight.sum() / (k * n_views)))
-        BWb = np.stack([np.bincount(obs_point, wb[:, c], minlength=n_points) for c in range(3)], axis=1)
-        AWb = -np.stack([np.bincount(obs_view, wb[:, c], minlength=n_views) for c in range(3)], axis=1)
-        C = np.linalg.solve(S, AWb + M_by_point @ BWb)
-        X = (BWb + M.T @ C) / w_point[:, None]
-        w = X[obs_point] - C[obs_view]
-        d = np.maximum(1.0, np.sum(w * rays, axis=1))
-        r = np.linalg.norm(w - d[:, None] * rays, axis=1)
-        weight = 1.0 / np.maximum(r, 1e-6 * max(float(np.median(r)), 1e-300))
-    return C, X
-
-
 def _check_views(n_views: int, obs_view: np.ndarray, obs_point: np.ndarray, stage: str) -> None:
     counts = np.bincount(obs_view, minlength=n_views)
     if np.any(counts == 0):
@@ -451,7 +413,7 @@ def global_positions(R_cam_from_world: np.ndarray, K: np.ndarray, matches: Seque
     rays = observation_rays(R, Kf, ov, ouv)
     P = len(track_ids)
     if config.init == "lud":
-        C0, X0 = _lud_init(rays, ov, op, n, P, config.init_iterations)
+        C0, X0 = lud_positions(rays, ov, op, n, P, config.init_iterations)
         centroid = C0.mean(axis=0)
         radius = np.sqrt(np.mean(np.sum((C0 - centroid) ** 2, axis=1)))
         C0, X0 = (C0 - centroid) / radius, (X0 - centroid) / radius

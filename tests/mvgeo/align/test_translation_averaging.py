@@ -8,13 +8,13 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix, diags
 from scipy.spatial.transform import Rotation
 
+from mvgeo.align.lud import lud_positions
 from mvgeo.align.translation_averaging import (
     _MIN_SCALE,
     GlobalPositioningConfig,
     _damped_step,
     _damped_step_sparse,
     _loss,
-    _lud_init,
     _Normal,
     _Problem,
     global_positions,
@@ -216,7 +216,7 @@ def test_matches_scipy_least_squares_on_the_same_cost():
     """
     res, problem, _ = _small_problem(5)
     config = GlobalPositioningConfig()
-    C0, X0 = _lud_init(problem.v, problem.ov, problem.op, problem.n, problem.p, 50)
+    C0, X0 = lud_positions(problem.v, problem.ov, problem.op, problem.n, problem.p, 50)
     w0 = X0[problem.op] - C0[problem.ov]
     z0 = np.r_[C0.ravel(), X0.ravel(), np.maximum(np.sum(problem.v * w0, 1) / np.sum(w0 * w0, 1), _MIN_SCALE)]
 
@@ -264,9 +264,9 @@ def test_block_step_equals_the_sparse_reference(lam, duplicate):
 
 
 
-def _lud_init_reference(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_views: int, n_points: int,
+def _lud_reference(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_views: int, n_points: int,
                         iterations: int) -> tuple[np.ndarray, np.ndarray]:
-    """`_lud_init` in its textbook form: the (C, X) normal equations from the sparse incidence matrices A (views)
+    """`lud_positions` in its textbook form: the (C, X) normal equations from the sparse incidence matrices A (views)
     and B (points) of r = B X + A C - d v, X eliminated per track."""
     k = len(rays)
     A = coo_matrix((-np.ones(k), (np.arange(k), obs_view)), shape=(k, n_views)).tocsr()  # r = B X + A C - d v
@@ -291,7 +291,7 @@ def _lud_init_reference(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.nd
 
 @pytest.mark.parametrize("duplicate", [False, True])
 def test_lud_start_equals_the_sparse_reference(duplicate):
-    """`_lud_init` (per-view and per-point sums, one sparse (view, point) matrix) against `_lud_init_reference`
+    """`lud_positions` (per-view and per-point sums, one sparse (view, point) matrix) against `_lud_reference`
     (the incidence products): the same alternations, so the same centres and points to rounding; also with
     observations repeated (a track seeing one view twice adds to one (view, point) cell)."""
     _, problem, _ = _small_problem(5)
@@ -300,8 +300,8 @@ def test_lud_start_equals_the_sparse_reference(duplicate):
         problem = _Problem(np.r_[problem.v, problem.v[rep]], np.r_[problem.ov, problem.ov[rep]],
                            np.r_[problem.op, problem.op[rep]], problem.n, problem.p)
     for iterations in (1, 20):
-        C, X = _lud_init(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
-        C_ref, X_ref = _lud_init_reference(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
+        C, X = lud_positions(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
+        C_ref, X_ref = _lud_reference(problem.v, problem.ov, problem.op, problem.n, problem.p, iterations)
         # Centres of RMS radius ~1; 20 IRLS reweightings amplify rounding by at most a few orders.
         np.testing.assert_allclose(C, C_ref, rtol=0, atol=1e-9)
         np.testing.assert_allclose(X, X_ref, rtol=0, atol=1e-9 * max(1.0, np.abs(X_ref).max()))
