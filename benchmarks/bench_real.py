@@ -210,6 +210,10 @@ def failed_row(label, method, exc: Exception, sec: float, pairs=""):
     return [label, method, "0/12", "", "", "", "", "", sec, pairs, "", msg[:220]]
 
 
+#: (row label, method, {stage: seconds}) of every run that returned a model: `stage_table`'s input.
+STAGES: list[tuple[str, str, dict[str, float]]] = []
+
+
 def run_ours(label, method, folder: Path, gt, f_ref, intrinsics_txt: Path | None, config: AlignConfig):
     paths = [p for p in list_images(folder) if p.name in gt]
     t = time.perf_counter()
@@ -220,6 +224,7 @@ def run_ours(label, method, folder: Path, gt, f_ref, intrinsics_txt: Path | None
         return failed_row(label, method, exc, time.perf_counter() - t)
     sec = time.perf_counter() - t
     st = res.stats
+    STAGES.append((label, method, {k: v for k, v in st.timings_s.items() if k != "total"}))
     f = float(np.median([c.fx for c in res.sparse_model.cameras.values()]))
     ba = st.bundle_adjustment
     note = [f"{st.initial_poses} start, {len(st.candidates)} candidate(s)"]
@@ -254,6 +259,7 @@ def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref):
     except Exception as exc:
         return failed_row(label, f"pycolmap {mapper}", exc, time.perf_counter() - t)
     sec = time.perf_counter() - t
+    STAGES.append((label, f"pycolmap {mapper}", {k: v for k, v in col.stats["timings_s"].items() if k != "total"}))
     f = float(np.median([c.fx for c in col.sparse_model.cameras.values()]))
     return metrics_row(label, f"pycolmap {mapper}", col.sparse_model.cam_from_world_by_name(), gt, f, f_ref, sec,
                        tracks=int(col.stats["n_points"]))
@@ -316,6 +322,26 @@ def noise_seed_summary(rows: list[list], n_seeds: int) -> str:
             "ratio to pycolmap global's mean time in this run.\n\n"
             + md_table(["set (noisy)", "method", "full", "views", "rot med: median", "rot med: mean", "rot max: mean",
                         "ATE / scale: mean", "time (s): mean", "time / global"], out))
+
+
+def stage_table(stages: list[tuple[str, str, dict[str, float]]]) -> str:
+    """Per set, clean or noisy, and method: the mean seconds of each stage over the runs that returned a model
+    (ours: `AlignStats.timings_s`; pycolmap: `run_colmap`'s), in the order the stages ran."""
+    groups: dict[tuple[str, str], list[dict[str, float]]] = {}
+    for label, method, t in stages:
+        key = label.split(" (noise seed")[0].split(", EXIF")[0]
+        groups.setdefault((key, method), []).append(t)
+    rows = []
+    for (key, method), ts in groups.items():
+        names = list(dict.fromkeys(k for t in ts for k in t))
+        means = {k: float(np.mean([t.get(k, 0.0) for t in ts])) for k in names}
+        rows.append([key, method, len(ts), sum(means.values()), ", ".join(f"{k} {v:.2f}" for k, v in means.items())])
+    return ("\nWhere the time goes: per set and method, the mean seconds of each stage over the runs with a model "
+            "(`runs`). Ours (`AlignStats.timings_s`): `pairwise` is SIFT, matching, the relative poses and the "
+            "dense pairwise pointmaps on a thread per core; `global_align` the start's initial values and the "
+            "DUSt3R alignment; the later stages run on one core. pycolmap (`run_colmap`): `features` and "
+            "`matching` on every core, `mapping` the mapper.\n\n"
+            + md_table(["set", "method", "runs", "stages (s)", "per stage (s)"], rows))
 
 
 def main() -> int:
@@ -421,6 +447,8 @@ def main() -> int:
                       "ATE / scale", "focal err %", "time (s)", "pairs", "tracks", "note"], rows)
     if n_seeds > 1:
         body += noise_seed_summary(rows, n_seeds)
+    if STAGES:
+        body += stage_table(STAGES)
     if pair_counts:
         body += ("\nVerified pairs of pycolmap's exhaustive matching (two-view geometries with >= 15 inliers, of "
                  "66): " + ", ".join(f"{a}: {b}" for a, b in pair_counts) + "\n")
