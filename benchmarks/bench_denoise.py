@@ -17,6 +17,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -565,9 +566,10 @@ def write_real_doc() -> Path:
             "true 25/255). Crops keep the runs short; they are the same for every method. Classical methods "
             "get the TRUE sigma (an oracle advantage). Times are wall-clock on machines shared with other "
             "jobs: compare them as rough ratios only.\n\n"
-            "CAREamics N2V2 is not in the tables: adding `careamics` (0.3.5) to the `bench` group resolves "
-            "torchvision 0.26.0, which pins torch 2.11.0 (from 2.15.0) and numpy 2.4.6 (from 2.5.5); the "
-            "dependency rule forbids changing torch / numpy, so it was not added.\n\n"
+            "CAREamics N2V2 is measured against the product's UNet in docs/bench/denoise_careamics.md "
+            "(`bench_denoise.py careamics`): careamics 0.3.5 pins torch < 2.14 and numpy <= 2.4.6, below the "
+            "project's, so it runs in its own environment (`bash tools/setup_careamics.sh`), not in the "
+            "`bench` group.\n\n"
             + "\n\n".join(parts) + "\n\n" + READING)
     path = ROOT_DOCS / "denoise_real.md"
     text = ("## Denoising on real photos: N2V vs Neighbor2Neighbor, R2R, multi-view N2N, wavelet, BM3D\n\n"
@@ -619,8 +621,107 @@ READING = """### Reading (runs of 2026-11-25)
 ROOT_DOCS = Path(__file__).resolve().parents[1] / "docs" / "bench"
 
 
+CAREAMICS_PY = Path(__file__).resolve().parents[1] / ".venv-careamics" / "bin" / "python"
+
+
+def run_careamics(scene: str, data_dir: Path, *, views: int, crop_px: int, steps: Sequence[int], sigma_8bit: float,
+                  seed: int, peer_steps: Sequence[int], threads: int = 2) -> list[list]:
+    """The product's denoisers against CAREamics N2V2 (`careamics_peer.py`, its own environment) on one scene:
+    the same crops, noise draw, batch and patch size, `threads` torch threads each (training and inference);
+    our R2R trains each of `steps` steps (our N2V2 the first), CAREamics each of `peer_steps`. Rows: set,
+    method, PSNR, gain, SSIM, training s, s / image, parameters, note."""
+    import subprocess
+
+    from denoise.self_supervised import denoise_with_method, train_with_method
+    from mvgeo.common.threads import torch_threads
+
+    clean, _ = real_clean_views(data_dir, scene, views=views, crop_px=crop_px)
+    rng = np.random.default_rng(seed)
+    noisy = [np.clip(c + sigma_8bit / 255 * rng.standard_normal(c.shape), 0, 1).astype(np.float32) for c in clean]
+    p0, q0 = scores(noisy, clean)
+    rows = [[scene, "noisy input", p0, 0.0, q0, 0.0, 0.0, "", ""]]
+    ours = [("n2v2", "n2v", steps[0], "UNet N2V2 (the `n2v2` preset: blur-pool, no top skip, median replacement; "
+                                      "K=8)")]
+    ours += [("default", "r2r", n, "UNet R2R (the product's choice for photos; K=8 recorruptions)") for n in steps]
+    for preset, method, n, note in ours:
+        cfg = n2v_preset(preset, steps=n, method=method, torch_threads=threads)
+        t = time.perf_counter()
+        model = train_with_method(noisy, cfg, seed=seed)
+        train_s = time.perf_counter() - t
+        with torch_threads(threads):
+            t = time.perf_counter()
+            outs = denoise_with_method(model, noisy, cfg, passes=PASSES, seed=seed)
+            per = (time.perf_counter() - t) / len(noisy)
+        p, q = scores(outs, clean)
+        n_params = sum(x.numel() for x in model.unet.parameters())
+        rows.append([scene, f"ours: {note.split(' (')[0]}, {n} steps", p, p - p0, q, train_s, per, n_params, note])
+        print(rows[-1], flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        inp, out = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
+        np.savez(inp, noisy=np.stack(noisy))
+        cfg = n2v_preset("default")
+        for n in peer_steps:
+            cmd = [str(CAREAMICS_PY), str(Path(__file__).with_name("careamics_peer.py")), str(inp), str(out),
+                   "--steps", str(n), "--batch", str(cfg.batch_size), "--patch", str(cfg.patch_px),
+                   "--seed", str(seed), "--threads", str(threads)]
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            res = np.load(out)
+            outs = [np.clip(x, 0, 1) for x in res["denoised"]]
+            p, q = scores(outs, clean)
+            rows.append([scene, f"CAREamics N2V2, {n} steps", p, p - p0, q, float(res["train_s"]),
+                         float(res["predict_s"]) / len(noisy), int(res["n_params"]),
+                         f"{res['versions']}; `create_n2v_config(use_n2v2=True)` defaults, output clipped to [0, 1]"])
+            print(rows[-1], flush=True)
+    return rows
+
+
+def main_careamics(argv: list[str]) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(description="the product's denoisers against CAREamics N2V2 on the real photos")
+    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    ap.add_argument("--scene", choices=REAL_SCENES, action="append")
+    ap.add_argument("--steps", default="400,2000", help="our R2R's training steps, comma-separated (N2V2: the "
+                    "first); 400: the `default` N2V preset's, 2000: the pipeline `default` preset's")
+    ap.add_argument("--sigma", type=float, default=25.0, help="noise std, 8-bit units")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--peer-steps", default="400", help="CAREamics' training steps, comma-separated")
+    args = ap.parse_args(argv)
+    if not args.data.is_dir():
+        print(f"real data folder {args.data} is missing: nothing to benchmark (it lives beside the project)")
+        return
+    if not CAREAMICS_PY.is_file():
+        print(f"{CAREAMICS_PY} is missing: run `bash tools/setup_careamics.sh` first")
+        sys.exit(2)
+    torch.set_num_threads(2)
+    rows = []
+    for scene in args.scene or REAL_SCENES:
+        rows += run_careamics(scene, args.data, views=12, crop_px=192,
+                              steps=[int(x) for x in args.steps.split(",")], sigma_8bit=args.sigma,
+                              seed=args.seed, peer_steps=[int(x) for x in args.peer_steps.split(",")])
+    load = os.getloadavg()
+    cmd = "python benchmarks/bench_denoise.py careamics " + " ".join(argv)
+    body = (f"Machine: {_cpu_name()}, {os.cpu_count()} cores; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; "
+            f"load average at the end {load[0]:.1f} / {load[1]:.1f} (1 / 5 min).\n\n"
+            f"The 12 views of each set as docs/bench/denoise_real.md (192 px centre crops), Gaussian noise sigma "
+            f"{args.sigma:g}/255 (seed {args.seed}, clipped to [0, 1]); every method trains on batches of 8 patches "
+            f"of 64 px of the noisy crops alone (our R2R {args.steps.replace(',', ' and ')} steps: the "
+            "`default` N2V preset's and the pipeline `default` preset's budget; our N2V2 the first; CAREamics "
+            f"{args.peer_steps.replace(',', ' and ')} steps), with 2 torch threads (training and inference), in "
+            "turn on the same machine; CAREamics in its own environment (`bash tools/setup_careamics.sh`: "
+            "careamics 0.3.5 pins torch < 2.14 and numpy <= 2.4.6, below the project's), its N2V2 with the "
+            "library's defaults (its UNet, optimiser, schedule, augmentation and validation patches). PSNR (dB) "
+            "/ SSIM against the clean crops, mean over the views.\n\n"
+            + md_table(["set", "method", "PSNR", "gain", "SSIM", "training s", "s / image", "parameters", "note"],
+                       rows))
+    print(write_fragment("denoise_careamics", "Denoising on real photos: the product's UNet against CAREamics N2V2",
+                         body, f"`bash tools/setup_careamics.sh && .venv/bin/{cmd.strip()}`"))
+
+
 if __name__ == "__main__":
-    if len(sys.argv) > 1 and sys.argv[1] == "report":
+    if len(sys.argv) > 1 and sys.argv[1] == "careamics":
+        main_careamics(sys.argv[2:])
+    elif len(sys.argv) > 1 and sys.argv[1] == "report":
         print(write_real_doc().read_text())
     elif len(sys.argv) > 1 and sys.argv[1] == "real":
         main_real(sys.argv[2:])
