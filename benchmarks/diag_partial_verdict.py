@@ -41,7 +41,7 @@ from _common import cli_option, md_table, write_fragment
 
 import mvgeo.align.api as api
 from mvgeo.align.graph import components
-from mvgeo.common.imageio import list_images, read_image
+from mvgeo.common.imageio import list_images
 from mvgeo.metrics import compare_poses
 
 
@@ -91,29 +91,25 @@ def main() -> int:
     api.choose_solution = observed
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for k, s in enumerate(sets):
-            wh = read_image(s.files[0]).shape[1::-1]
-            for noisy in (False, True):
-                folder = br.prepare(s, Path(tmp) / f"set{k}", noisy, k, br.exif_focal_35mm_of(s.K, wh))
-                paths = [p for p in list_images(folder) if p.name in s.gt]
-                label = f"{s.name}, " + ("sigma 25/255" if noisy else "clean")
-                for partial in (True, False):
-                    method = "--allow-partial" if partial else "defaults"
-                    chosen.clear()
-                    try:
-                        res = api.align_images(paths, replace(br.OURS, allow_partial=partial))
-                    except Exception as exc:  # report, keep going
-                        rows.append([label, method, f"0/{len(s.gt)}", "", f"refused: {type(exc).__name__}"]
-                                    + [""] * 10)
-                        print(rows[-1][:5], file=sys.stderr, flush=True)
-                        continue
-                    est = res.sparse_model.cam_from_world_by_name()
-                    m = compare_poses(est, s.gt)
-                    worst = float(m.rotation_deg.max())
-                    rows.append([label, method, f"{m.n_registered}/{m.n_ref}", worst,
-                                 "**wrong**" if worst > 5.0 else "right"]
-                                + _statistics(chosen["candidate"], est, s.gt))
-                    print(rows[-1], file=sys.stderr, flush=True)
+        for s, _, _, folder, label in drs.prepared(sets, Path(tmp)):
+            paths = [p for p in list_images(folder) if p.name in s.gt]
+            for partial in (True, False):
+                method = "--allow-partial" if partial else "defaults"
+                chosen.clear()
+                try:
+                    res = api.align_images(paths, replace(br.OURS, allow_partial=partial))
+                except Exception as exc:  # report, keep going
+                    rows.append([label, method, f"0/{len(s.gt)}", "", f"refused: {type(exc).__name__}"]
+                                + [""] * 10)
+                    print(rows[-1][:5], file=sys.stderr, flush=True)
+                    continue
+                est = res.sparse_model.cam_from_world_by_name()
+                m = compare_poses(est, s.gt)
+                worst = float(m.rotation_deg.max())
+                rows.append([label, method, f"{m.n_registered}/{m.n_ref}", worst,
+                             "**wrong**" if worst > 5.0 else "right"]
+                            + _statistics(chosen["candidate"], est, s.gt))
+                print(rows[-1], file=sys.stderr, flush=True)
     cpu = subprocess.run("lscpu | grep 'Model name'", shell=True, capture_output=True, text=True).stdout.strip()
     body = (f"Machine: {cpu.split(':', 1)[-1].strip()}, {os.cpu_count()} cores; "
             f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. Columns: the script's docstring; `wrong` = a "

@@ -31,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -93,6 +94,16 @@ def _temple_sets() -> list[br.RealSet]:
     return sets
 
 
+def prepared(sets: list[br.RealSet], work: Path) -> Iterator[tuple[br.RealSet, int, bool, Path, str]]:
+    """Each set clean and noisy (noise seed = the set's index), as image files in `work` with the EXIF focal
+    a camera would write: (set, index, noisy, folder, label)."""
+    for k, s in enumerate(sets):
+        wh = read_image(s.files[0]).shape[1::-1]
+        for noisy in (False, True):
+            folder = br.prepare(s, work / f"set{k}", noisy, k, br.exif_focal_35mm_of(s.K, wh))
+            yield s, k, noisy, folder, f"{s.name}, " + ("sigma 25/255" if noisy else "clean")
+
+
 def _ours(label: str, folder: Path, s: br.RealSet, partial: bool = False) -> list:
     paths = [p for p in list_images(folder) if p.name in s.gt]
     method = "ours --allow-partial" if partial else "ours"
@@ -128,16 +139,12 @@ def main() -> int:
         return 0
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for k, s in enumerate(sets):
-            wh = read_image(s.files[0]).shape[1::-1]
-            for noisy in (False, True):
-                folder = br.prepare(s, Path(tmp) / f"set{k}", noisy, k, br.exif_focal_35mm_of(s.K, wh))
-                label = f"{s.name}, " + ("sigma 25/255" if noisy else "clean")
-                runs = ["ours", "global"] + (["partial"] if partial else [])
-                for run in runs if (k + noisy) % 2 == 0 else runs[::-1]:  # alternate which runs first
-                    rows.append(_global(label, folder, s) if run == "global" else
-                                _ours(label, folder, s, partial=run == "partial"))
-                    print(rows[-1], file=sys.stderr, flush=True)
+        for s, k, noisy, folder, label in prepared(sets, Path(tmp)):
+            runs = ["ours", "global"] + (["partial"] if partial else [])
+            for run in runs if (k + noisy) % 2 == 0 else runs[::-1]:  # alternate which runs first
+                rows.append(_global(label, folder, s) if run == "global" else
+                            _ours(label, folder, s, partial=run == "partial"))
+                print(rows[-1], file=sys.stderr, flush=True)
     summary = []
     methods = ["ours", "pycolmap global"] + (["ours --allow-partial"] if partial else [])
     for method in methods:
