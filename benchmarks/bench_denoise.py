@@ -215,6 +215,13 @@ REAL_SCENES = ("dtu_scan24", "temple_sparse_ring")
 REAL_OUT = Path(__file__).resolve().parents[1] / "out" / "bench_denoise_real"
 
 
+def gaussian_noisy(clean: Sequence[np.ndarray], sigma_8bit: float, seed: int) -> list[np.ndarray]:
+    """The clean images with Gaussian noise of std `sigma_8bit` / 255 (one generator seeded `seed`, drawn in
+    order), clipped to [0, 1], float32."""
+    rng = np.random.default_rng(seed)
+    return [np.clip(c + sigma_8bit / 255 * rng.standard_normal(c.shape), 0, 1).astype(np.float32) for c in clean]
+
+
 def real_clean_views(data_dir: Path, scene: str, *, views: int = 12, crop_px: int = 192) -> tuple[list, list[str]]:
     """`views` views spread over the set, centre-cropped to `crop_px` (the object is centred in both sets)."""
     from mvgeo.common.errors import InputError
@@ -248,8 +255,7 @@ def run_real(scene: str, data_dir: Path, *, views: int, crop_px: int, steps: int
 
     clean, names = real_clean_views(data_dir, scene, views=views, crop_px=crop_px)
     sigma = sigma_8bit / 255
-    rng = np.random.default_rng(seed)
-    noisy = [np.clip(c + sigma * rng.standard_normal(c.shape), 0, 1).astype(np.float32) for c in clean]
+    noisy = gaussian_noisy(clean, sigma_8bit, seed)
     rows = [{"method": "noisy input", "psnr": scores(noisy, clean)[0], "ssim": scores(noisy, clean)[1],
              "train_s": 0.0, "s_per_image": 0.0, "note": ""}]
     overrides = {k: v for k, v in (("steps", steps), ("lr", lr)) if v is not None}
@@ -358,8 +364,7 @@ def multiview_inputs(data_dir: Path, *, views: int, sigma_8bit: float, seed: int
     cams_all = dtu_cameras(folder / "cameras.npz", len(files))
     idx = cluster_split(np.stack([c[1][2, :3] for c in cams_all]), views, 1)[0]
     clean = [read_image(files[i]) for i in idx]
-    rng = np.random.default_rng(seed)
-    noisy = [np.clip(c + sigma_8bit / 255 * rng.standard_normal(c.shape), 0, 1).astype(np.float32) for c in clean]
+    noisy = gaussian_noisy(clean, sigma_8bit, seed)
     K = np.stack([cams_all[i][0] for i in idx])
     cams = np.stack([cams_all[i][1] for i in idx])
     nbrs = neighbour_views(cams, neighbours=2, max_angle_deg=60.0)
@@ -636,8 +641,7 @@ def run_careamics(scene: str, data_dir: Path, *, views: int, crop_px: int, steps
     from mvgeo.common.threads import torch_threads
 
     clean, _ = real_clean_views(data_dir, scene, views=views, crop_px=crop_px)
-    rng = np.random.default_rng(seed)
-    noisy = [np.clip(c + sigma_8bit / 255 * rng.standard_normal(c.shape), 0, 1).astype(np.float32) for c in clean]
+    noisy = gaussian_noisy(clean, sigma_8bit, seed)
     p0, q0 = scores(noisy, clean)
     rows = [[scene, "noisy input", p0, 0.0, q0, 0.0, 0.0, "", ""]]
     ours = [("n2v2", "n2v", steps[0], "UNet N2V2 (the `n2v2` preset: blur-pool, no top skip, median replacement; "
@@ -664,7 +668,9 @@ def run_careamics(scene: str, data_dir: Path, *, views: int, crop_px: int, steps
             cmd = [str(CAREAMICS_PY), str(Path(__file__).with_name("careamics_peer.py")), str(inp), str(out),
                    "--steps", str(n), "--batch", str(cfg.batch_size), "--patch", str(cfg.patch_px),
                    "--seed", str(seed), "--threads", str(threads)]
-            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            done = subprocess.run(cmd, capture_output=True, text=True)
+            if done.returncode != 0:
+                raise RuntimeError(f"careamics_peer.py failed ({done.returncode}): {done.stderr[-2000:]}")
             res = np.load(out)
             outs = [np.clip(x, 0, 1) for x in res["denoised"]]
             p, q = scores(outs, clean)

@@ -210,11 +210,12 @@ def failed_row(label, method, exc: Exception, sec: float, pairs=""):
     return [label, method, "0/12", "", "", "", "", "", sec, pairs, "", msg[:220]]
 
 
-#: (row label, method, {stage: seconds}) of every run that returned a model: `stage_table`'s input.
-STAGES: list[tuple[str, str, dict[str, float]]] = []
+#: (row label, method, {stage: seconds}) of one run that returned a model: `stage_table`'s input.
+StageTimes = tuple[str, str, dict[str, float]]
 
 
-def run_ours(label, method, folder: Path, gt, f_ref, intrinsics_txt: Path | None, config: AlignConfig):
+def run_ours(label, method, folder: Path, gt, f_ref, intrinsics_txt: Path | None, config: AlignConfig,
+             stages: list[StageTimes] | None = None):
     paths = [p for p in list_images(folder) if p.name in gt]
     t = time.perf_counter()
     try:
@@ -224,7 +225,8 @@ def run_ours(label, method, folder: Path, gt, f_ref, intrinsics_txt: Path | None
         return failed_row(label, method, exc, time.perf_counter() - t)
     sec = time.perf_counter() - t
     st = res.stats
-    STAGES.append((label, method, {k: v for k, v in st.timings_s.items() if k != "total"}))
+    if stages is not None:
+        stages.append((label, method, {k: v for k, v in st.timings_s.items() if k != "total"}))
     f = float(np.median([c.fx for c in res.sparse_model.cameras.values()]))
     ba = st.bundle_adjustment
     note = [f"{st.initial_poses} start, {len(st.candidates)} candidate(s)"]
@@ -251,7 +253,7 @@ def _short_reason(reason: str) -> str:
             else "position undetermined" if "not determined" in reason else reason[:40])
 
 
-def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref):
+def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref, stages: list[StageTimes] | None = None):
     names = sorted(gt)
     t = time.perf_counter()
     try:
@@ -259,7 +261,8 @@ def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref):
     except Exception as exc:
         return failed_row(label, f"pycolmap {mapper}", exc, time.perf_counter() - t)
     sec = time.perf_counter() - t
-    STAGES.append((label, f"pycolmap {mapper}", {k: v for k, v in col.stats["timings_s"].items() if k != "total"}))
+    if stages is not None:
+        stages.append((label, f"pycolmap {mapper}", {k: v for k, v in col.stats["timings_s"].items() if k != "total"}))
     f = float(np.median([c.fx for c in col.sparse_model.cameras.values()]))
     return metrics_row(label, f"pycolmap {mapper}", col.sparse_model.cam_from_world_by_name(), gt, f, f_ref, sec,
                        tracks=int(col.stats["n_points"]))
@@ -324,7 +327,7 @@ def noise_seed_summary(rows: list[list], n_seeds: int) -> str:
                         "ATE / scale: mean", "time (s): mean", "time / global"], out))
 
 
-def stage_table(stages: list[tuple[str, str, dict[str, float]]]) -> str:
+def stage_table(stages: list[StageTimes]) -> str:
     """Per set, clean or noisy, and method: the mean seconds of each stage over the runs that returned a model
     (ours: `AlignStats.timings_s`; pycolmap: `run_colmap`'s), in the order the stages ran."""
     groups: dict[tuple[str, str], list[dict[str, float]]] = {}
@@ -381,7 +384,7 @@ def main() -> int:
         print("no real image set is available (../shared/data missing and no --data): nothing to benchmark")
         return 0
     load0 = os.getloadavg()
-    rows, pair_counts = [], []
+    rows, pair_counts, stages = [], [], []
     k = 0
     with tempfile.TemporaryDirectory(prefix="bench-real-") as tmp:
         work = Path(tmp)
@@ -404,21 +407,21 @@ def main() -> int:
                 k += 1
                 for m in order:
                     if m == "ours":
-                        r = run_ours(label, "ours", folder, s.gt, f_ref, None, OURS)
+                        r = run_ours(label, "ours", folder, s.gt, f_ref, None, OURS, stages)
                     elif m == "ours_noexif":
                         r = run_ours(label, "ours, EXIF off", folder, s.gt, f_ref, None,
-                                     replace(OURS, exif_focal=False))
+                                     replace(OURS, exif_focal=False), stages)
                     elif m == "ours_intr":
-                        r = run_ours(label, "ours --intrinsics", folder, s.gt, f_ref, cams_txt, OURS)
+                        r = run_ours(label, "ours --intrinsics", folder, s.gt, f_ref, cams_txt, OURS, stages)
                     elif m in ("ours_chain", "ours_averaged"):
                         start = m.split("_")[1]
                         r = run_ours(label, f"ours --initial-poses {start}", folder, s.gt, f_ref, None,
-                                     replace(OURS, initial_poses=start))
+                                     replace(OURS, initial_poses=start), stages)
                     elif m == "ours_partial":
                         r = run_ours(label, "ours --allow-partial", folder, s.gt, f_ref, None,
-                                     replace(OURS, allow_partial=True))
+                                     replace(OURS, allow_partial=True), stages)
                     else:
-                        r = run_pycolmap(label, m, folder, s.gt, f_ref)
+                        r = run_pycolmap(label, m, folder, s.gt, f_ref, stages)
                     rows.append(r)
                     print(r, file=sys.stderr, flush=True)
                 if "--no-colmap-pairs" not in sys.argv:
@@ -447,8 +450,8 @@ def main() -> int:
                       "ATE / scale", "focal err %", "time (s)", "pairs", "tracks", "note"], rows)
     if n_seeds > 1:
         body += noise_seed_summary(rows, n_seeds)
-    if STAGES:
-        body += stage_table(STAGES)
+    if stages:
+        body += stage_table(stages)
     if pair_counts:
         body += ("\nVerified pairs of pycolmap's exhaustive matching (two-view geometries with >= 15 inliers, of "
                  "66): " + ", ".join(f"{a}: {b}" for a, b in pair_counts) + "\n")

@@ -10,7 +10,7 @@ __all__ = ["lud_positions"]
 
 
 def lud_positions(rays: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, n_views: int, n_points: int,
-              iterations: int) -> tuple[np.ndarray, np.ndarray]:
+                  iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """Centres (N, 3) and points (P, 3) of the LUD problem, the start of the BATA refinement.
 
     LUD (Ozyesil & Singer 2015, "least unsquared deviations", here camera-to-point): minimise
