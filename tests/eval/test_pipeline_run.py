@@ -247,8 +247,9 @@ def test_changed_component_default_reruns_its_stage(tmp_path, scene, monkeypatch
     tiny = TinyStages()
     out = tmp_path / "out"
     run_pipeline(scene, out, _cfg(rounds=1), stages=tiny.stages())
-    quick = splat.train.TRAIN_PRESETS["quick"]
-    monkeypatch.setitem(splat.train.TRAIN_PRESETS, "quick", dataclasses.replace(quick, iters=quick.iters + 1))
+    used = _cfg(rounds=1).splat.preset
+    shipped = splat.train.TRAIN_PRESETS[used]
+    monkeypatch.setitem(splat.train.TRAIN_PRESETS, used, dataclasses.replace(shipped, iters=shipped.iters + 1))
     tiny2 = TinyStages()
     run_pipeline(scene, out, _cfg(rounds=1), stages=tiny2.stages())
     assert dict(tiny2.calls) == {"splat": 1, "render": 1}

@@ -192,7 +192,7 @@ def test_round_settings_are_the_component_configs():
     r1, r2 = round_settings(cfg, 1), round_settings(cfg, 2)
     assert r1.denoise.n2v == dataclasses.replace(N2V_PRESETS["fast"], method="n2v")
     assert r1.denoise.passes == cfg.denoise.passes and r1.render.device == cfg.device
-    assert r1.splat.train == dataclasses.replace(TRAIN_PRESETS["quick"], seed=r1.splat.train.seed)
+    assert r1.splat.train == dataclasses.replace(TRAIN_PRESETS["instantsplat"], seed=r1.splat.train.seed)
     assert r1.splat.train.seed != r2.splat.train.seed != r2.align.align.seed  # each stage its own seed
     assert (r1.align.reuse_intrinsics, r1.align.reuse_geometry) == (None, None)
     assert (r2.align.reuse_intrinsics, r2.align.reuse_geometry) == ("auto", "auto")
