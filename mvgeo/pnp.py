@@ -22,7 +22,39 @@ from mvgeo.common.errors import ShapeError, check_shape
 from mvgeo.ransac import RansacConfig
 from mvgeo.transforms import R_from_axis_angle, se3_exp, skew
 
-__all__ = ["PnPConfig", "AbsolutePoseResult", "estimate_absolute_pose", "refine_pose_lm", "LMResult"]
+__all__ = ["PnPConfig", "AbsolutePoseResult", "estimate_absolute_pose", "refine_pose_lm", "LMResult", "sqpnp",
+           "sqpnp_ransac"]
+
+
+def sqpnp(obj: np.ndarray, uv_cv: np.ndarray, K_cv: np.ndarray) -> tuple[bool, np.ndarray | None, np.ndarray | None]:
+    """`cv2.solvePnP` with SQPnP: ``(ok, rvec, tvec)``, ``(False, None, None)`` where OpenCV rejects the points.
+
+    SQPnP asserts (OpenCV 5.0.0: ``point_coordinate_variance >= POINT_VARIANCE_THRESHOLD``) instead of
+    failing when the points nearly coincide; that is a degenerate input, not an error of the caller.
+
+    Args:
+        obj: (N, 3) float64 world points; uv_cv: (N, 2) float64 pixels in OpenCV's convention (centres at
+            integers); K_cv: (3, 3) intrinsics in that convention.
+    """
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj, uv_cv, K_cv, None, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return False, None, None
+    return bool(ok), rvec, tvec
+
+
+def sqpnp_ransac(obj: np.ndarray, uv_cv: np.ndarray, K_cv: np.ndarray, *, reprojection_px: float, iterations: int,
+                 confidence: float) -> tuple[bool, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """`cv2.solvePnPRansac` with SQPnP: ``(ok, rvec, tvec, inliers)``; ``(False, None, None, None)`` where
+    OpenCV rejects the points (SQPnP's assertion on nearly coinciding points, as `sqpnp`; met on a real
+    set where many keypoints matched one triangulated point). Arguments as `sqpnp`, plus RANSAC's."""
+    try:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, uv_cv, K_cv, None, reprojectionError=reprojection_px,
+                                                     iterationsCount=iterations, confidence=confidence,
+                                                     flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return False, None, None, None
+    return bool(ok), rvec, tvec, inliers
 
 
 @dataclass(frozen=True)

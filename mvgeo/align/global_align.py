@@ -60,6 +60,7 @@ from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.progress import progress_bar
 from mvgeo.common.threads import torch_threads
+from mvgeo.pnp import sqpnp
 from mvgeo.transforms import quat_from_R
 from mvgeo.transforms_torch import R_from_quat
 
@@ -194,7 +195,7 @@ def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[
         uv_cv = np.stack([cols, rows], axis=1).astype(np.float64)  # OpenCV pixel centres at integers (= ours - 0.5)
         K_cv = np.array([[focal_init_px[v], 0, W / 2.0 - 0.5], [0, focal_init_px[v], H / 2.0 - 0.5], [0, 0, 1]])
         obj = pts_world[v][ok]
-        okp, rvec, tvec = cv2.solvePnP(obj, uv_cv, K_cv, None, flags=cv2.SOLVEPNP_SQPNP)
+        okp, rvec, tvec = sqpnp(obj, uv_cv, K_cv)
         if not okp:
             raise DegenerateGeometryError(f"view {v}: PnP on its chained pointmap failed")
         sub = np.linspace(0, len(obj) - 1, min(len(obj), PNP_REFINE_POINTS)).round().astype(int)

@@ -30,6 +30,7 @@ from mvgeo.align.guided import fundamental_from_pose, guided_matches
 from mvgeo.align.loops import rotation_angle_deg
 from mvgeo.align.pairs import Keypoints
 from mvgeo.common.deps import cv2
+from mvgeo.pnp import sqpnp_ransac
 
 __all__ = ["LOCATE_MAX_ROTATION_DEG", "LOCATE_MIN_INLIERS", "Located", "locate_cut_off", "locate_view",
            "main_group_points"]
@@ -160,9 +161,9 @@ def locate_view(view: int, cam_from_world: np.ndarray, focal_px: np.ndarray, siz
     W, H = size_wh
     K_cv = _K(focal_px[view], W, H)
     K_cv[:2, 2] -= 0.5  # OpenCV's pixel centres are at integers, ours at +0.5
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        points[best[keep]].astype(np.float64), (fv.uv_px[keep] - 0.5).astype(np.float64), K_cv, None,
-        reprojectionError=REPROJ_PX, iterationsCount=PNP_ITERATIONS, confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+    ok, rvec, tvec, inliers = sqpnp_ransac(points[best[keep]].astype(np.float64),
+                                           (fv.uv_px[keep] - 0.5).astype(np.float64), K_cv,
+                                           reprojection_px=REPROJ_PX, iterations=PNP_ITERATIONS, confidence=0.999)
     if not ok or inliers is None:
         return Located(view, 0, float("nan"), P)
     R = cv2.Rodrigues(rvec)[0]

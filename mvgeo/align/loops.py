@@ -38,6 +38,7 @@ import numpy as np
 
 from mvgeo.common.deps import cv2
 from mvgeo.epipolar import _hartley, project_to_essential
+from mvgeo.pnp import sqpnp
 from mvgeo.twoview import pose_from_essential
 
 #: A loop of three pairs is consistent when its rotation is within this angle of the identity (degrees).
@@ -180,7 +181,7 @@ def rotation_from_pointmap(pts_j_in_i: np.ndarray, conf_j: np.ndarray, focal_j_p
         return None
     uv = np.stack([cols, rows], axis=1).astype(np.float64)  # OpenCV pixel centres at integers
     K = np.array([[focal_j_px, 0, W / 2.0 - 0.5], [0, focal_j_px, H / 2.0 - 0.5], [0, 0, 1]])
-    okp, rvec, _ = cv2.solvePnP(pts_j_in_i[ok].astype(np.float64), uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    okp, rvec, _ = sqpnp(pts_j_in_i[ok].astype(np.float64), uv, K)
     return cv2.Rodrigues(rvec)[0] if okp else None
 
 

@@ -26,6 +26,7 @@ from mvgeo.align.pairs import PairPrediction
 from mvgeo.align.pointmap_geometry import PNP_REFINE_POINTS, AlignInit, pair_similarities
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.pnp import sqpnp
 
 
 def _valid(C: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -42,7 +43,7 @@ def pair_pose_from_pointmap(p: PairPrediction, focal_j_px: float) -> tuple[np.nd
     uv = np.stack([cols, rows], axis=1).astype(np.float64)  # OpenCV pixel centres at integers
     K = np.array([[focal_j_px, 0, W / 2.0 - 0.5], [0, focal_j_px, H / 2.0 - 0.5], [0, 0, 1]])
     obj = p.pts_j[ok].astype(np.float64)
-    okp, rvec, tvec = cv2.solvePnP(obj, uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    okp, rvec, tvec = sqpnp(obj, uv, K)
     if not okp:
         return None
     sub = np.linspace(0, len(obj) - 1, min(len(obj), PNP_REFINE_POINTS)).round().astype(int)

@@ -2,11 +2,12 @@
 
 import cv2
 import numpy as np
+import pytest
 
 from mvgeo import transforms as tf
 from mvgeo.camera import Camera
 from mvgeo.metrics import rotation_error_deg
-from mvgeo.pnp import _residuals, estimate_absolute_pose, refine_pose_lm
+from mvgeo.pnp import _residuals, estimate_absolute_pose, refine_pose_lm, sqpnp, sqpnp_ransac
 
 CAM = Camera("OPENCV", 640, 480, np.array([500, 505, 320, 240, -0.1, 0.01, 0.001, -0.001]))
 
@@ -64,3 +65,39 @@ def test_robust_pnp_with_outliers(rng):
     junk = rng.uniform(0, [640, 480], (50, 2))
     res = estimate_absolute_pose(junk, Xw[:50], CAM)
     assert not res.success and np.all(np.isfinite(res.cam_from_world))
+
+
+def _nearly_coinciding(rng, n_same: int, n_other: int):
+    """`n_same` world points within 1e-9 of one another plus `n_other` spread ones, their pixels (OpenCV's
+    convention) and K: SQPnP's variance assertion fires on the coinciding ones."""
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    obj = np.vstack([np.tile([0.1, 0.2, 3.0], (n_same, 1)) + rng.normal(0, 1e-9, (n_same, 3)),
+                     rng.normal(0, 1, (n_other, 3)) + [0, 0, 5]])
+    x = obj @ K.T
+    return obj, x[:, :2] / x[:, 2:] + rng.normal(0, 0.5, (len(obj), 2)), K
+
+
+def test_sqpnp_fails_instead_of_raising_on_coinciding_points():
+    obj, uv, K = _nearly_coinciding(np.random.default_rng(0), 10, 0)
+    with pytest.raises(cv2.error):  # what OpenCV does with them (5.0.0)
+        cv2.solvePnP(obj, uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    assert sqpnp(obj, uv, K) == (False, None, None)
+
+
+def test_sqpnp_ransac_fails_instead_of_raising_on_coinciding_points():
+    """Mostly coinciding points (as when many keypoints match one triangulated point, seen on the temple
+    ring): `mvgeo.align.locate` then finds no pose instead of failing the whole alignment."""
+    obj, uv, K = _nearly_coinciding(np.random.default_rng(0), 20, 1)
+    cv2.setRNGSeed(0)  # OpenCV's RANSAC sampling: this draw raises with seed 0 (5.0.0)
+    with pytest.raises(cv2.error):
+        cv2.solvePnPRansac(obj, uv, K, None, reprojectionError=4.0, iterationsCount=200, confidence=0.999,
+                           flags=cv2.SOLVEPNP_SQPNP)
+    cv2.setRNGSeed(0)
+    kw = dict(reprojection_px=4.0, iterations=200, confidence=0.999)
+    assert sqpnp_ransac(obj, uv, K, **kw) == (False, None, None, None)
+    # On spread points it is OpenCV's result: the identity pose the pixels were made with.
+    good, uv_good, _ = _nearly_coinciding(np.random.default_rng(2), 0, 30)
+    ok, rvec, tvec, inliers = sqpnp_ransac(good, uv_good, K, **kw)
+    assert ok and len(inliers) >= 25
+    np.testing.assert_allclose(rvec.ravel(), 0.0, atol=1e-2)
+    np.testing.assert_allclose(tvec.ravel(), 0.0, atol=2e-2)
