@@ -24,6 +24,7 @@ from _common import cli_option
 from mvgeo.align.classical_pairs import ClassicalPairConfig, ClassicalPointmapModel  # imports cv2 first
 from mvgeo.align.graph import components
 from mvgeo.align.guided import fundamental_from_pose
+from mvgeo.align.loops import rotation_angle_deg
 from mvgeo.common.imageio import read_image
 from mvgeo.epipolar import sampson_distance
 from mvgeo.sparse_model import read_sparse_model
@@ -55,10 +56,7 @@ for i, j in pairs:
     F = fundamental_from_pose(R, Tj[:, 3] - R @ Ti[:, 3], K[i], K[j])
     n_ok = 0 if m is None else int((sampson_distance(F, *ms.pixels(i, j)) < 1.0).sum())
     g = verified.get((i, j))
-    err = ""
-    if g is not None:
-        cos = (np.trace(g.cam_j_from_cam_i[:, :3].T @ R) - 1.0) / 2.0
-        err = f"{np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))):.1f}"
+    err = "" if g is None else f"{rotation_angle_deg(g.cam_j_from_cam_i[:, :3].T @ R):.1f}"
     print(f"| {Path(names[i]).stem}-{Path(names[j]).stem} | {0 if m is None else len(m)} | {n_ok} | "
           f"{'' if g is None else len(g.matches_px)} | {err} | {why.get((i, j), '')[:80]} |")
 comps = components(len(names), list(verified))

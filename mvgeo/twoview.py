@@ -442,9 +442,9 @@ def estimate_relative_pose(uv1_px, uv2_px, K1, K2, *, config: TwoViewConfig | No
                                            threshold=thr / f_mean, maxIters=config.ransac.max_iterations)
             if E is None or mask is None or E.ndim != 2 or E.shape[1] != 3 or E.shape[0] % 3:
                 return None
-            cands = [project_to_essential(E[k:k + 3]) for k in range(0, E.shape[0], 3)]
-            best = max(cands, key=lambda c: int(explained(c).sum()))
-            return best, explained(best), mask.ravel().astype(bool)
+            cands = [(Ek, explained(Ek)) for Ek in (project_to_essential(E[k:k + 3]) for k in range(0, E.shape[0], 3))]
+            best, best_inliers = max(cands, key=lambda c: int(c[1].sum()))
+            return best, best_inliers, mask.ravel().astype(bool)
 
         usac = opencv_essential(np.arange(n), cv2.USAC_MAGSAC)
         if usac is None:
@@ -507,8 +507,9 @@ def estimate_fundamental(uv1_px, uv2_px, *, config: TwoViewConfig | None = None)
             # As in `estimate_relative_pose`: USAC's model does not explain its own consensus set; refit it.
             F8 = fundamental_8point(u1[consensus], u2[consensus])
             F8 = F8 / np.linalg.norm(F8)
-            if (sampson_distance(F8, u1, u2) < thr).sum() > inliers.sum():
-                F, inliers = F8, sampson_distance(F8, u1, u2) < thr
+            inliers8 = sampson_distance(F8, u1, u2) < thr
+            if inliers8.sum() > inliers.sum():
+                F, inliers = F8, inliers8
         return F, inliers, 0
     h1, h2 = np.c_[u1, np.ones(n)], np.c_[u2, np.ones(n)]
     res = ransac(
