@@ -56,7 +56,7 @@ DEMO_DATA := $(DEMO_OUT)/llff_like
 DEMO_EVAL := $(DEMO_OUT)/eval
 demo: $(STAMP)
 	test -f $(DEMO_DATA)/split.json || $(VENV)/bin/data-synth render llff_like --out $(DEMO_DATA) --size $(DEMO_SIZE) --views $(DEMO_VIEWS)
-	$(PY) -c "from pathlib import Path; from eval.evaluate import copy_train_inputs; from eval.pipeline import validate_dataset_folder; copy_train_inputs(validate_dataset_folder(Path('$(DEMO_DATA)')), Path('$(DEMO_EVAL)/inputs/llff_like'))"
+	$(PY) -m eval.prime_demo $(DEMO_DATA) $(DEMO_EVAL)
 	$(VENV)/bin/denoise-gs run $(DEMO_EVAL)/inputs/llff_like --out $(DEMO_EVAL)/runs/llff_like/seed0/n2v_fused --preset fast --views $(DEMO_K) --seed 0 --allow-focal-prior --max-size 0
 	$(VENV)/bin/denoise-gs eval $(DEMO_DATA) --out $(DEMO_EVAL) --preset fast --seeds 1 --views $(DEMO_K) \
 		--methods instantsplat denoise_gs_fused

@@ -28,7 +28,7 @@ from mvgeo.common.deps import cv2
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import list_images, read_image, write_image
-from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file
+from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file, write_file_record
 from mvgeo.common.timing import StageTimer
 
 _log = logging.getLogger(__name__)
@@ -106,7 +106,8 @@ def _cmd_select(args: argparse.Namespace) -> int:
     from mvgeo.sparse_model import read_sparse_model
 
     if args.out:
-        prepare_output_file(args.out, inputs=[args.sparse_dir, args.images], overwrite=args.overwrite)
+        prepare_output_file(args.out, command="denoise select", inputs=[args.sparse_dir, args.images],
+                            overwrite=args.overwrite, example_name="selection.json")
     model = read_sparse_model(args.sparse_dir)
     images_dir = Path(args.images)
     poses, paths = {}, {}
@@ -121,6 +122,7 @@ def _cmd_select(args: argparse.Namespace) -> int:
     text = json.dumps(sel.to_json_dict(), indent=2)
     if args.out:
         atomic_write_text(args.out, text + "\n")
+        write_file_record(args.out, "denoise select")
     print(text)
     return 0
 
@@ -155,7 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--k", type=positive_int, default=12, help="number of views to select (k >= N keeps all)")
     s.add_argument("--seed", type=seed, default=0)
     s.add_argument("--out", default=None, help="also write the JSON to this file (a new file; not a folder)")
-    s.add_argument("--overwrite", action="store_true", help="replace the --out file when it exists")
+    s.add_argument("--overwrite", action="store_true",
+                   help="replace the --out file when this command wrote it and it is unchanged "
+                        "(nothing else is ever replaced)")
     s.set_defaults(func=_cmd_select)
     return parser
 

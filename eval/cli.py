@@ -107,21 +107,14 @@ def _allow_focal_prior(config):
 EVAL_PRELOAD = ("eval.evaluate",)
 COST_PRELOAD = ("eval.cost",)
 
-#: Top-level entries `denoise-gs eval` / `cost` write in their folder (`prepare_output(layout=...)`):
-#: a folder holding only these, e.g. one `make demo` primed with `inputs/` and `runs/`, is resumed.
-EVAL_LAYOUT = ("inputs", "runs", "data", "heldout", "figures", "results.json", "results.md")
-COST_LAYOUT = ("inputs*", "points", "data", "figures", "results.json", "results.md")
-
-
-def _prepare_out(args: argparse.Namespace, command: str, kind: str, source: Path | str, layout: tuple[str, ...]):
-    return prepare_output(args.out, command=command, inputs=[source if kind != "builtin" else None], resume=True,
-                          layout=layout)
+def _prepare_out(args: argparse.Namespace, command: str, kind: str, source: Path | str):
+    return prepare_output(args.out, command=command, inputs=[source if kind != "builtin" else None], resume=True)
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     device = str(resolve_device(args.device))
     kind, source = resolve_scene_source(args.scene)
-    plan = _prepare_out(args, "denoise-gs eval", kind, source, EVAL_LAYOUT)
+    plan = _prepare_out(args, "denoise-gs eval", kind, source)
     methods = list(args.methods)
     if args.gt_pose_variants:
         methods += [m + GT_POSES_SUFFIX for m in args.methods
@@ -176,7 +169,7 @@ def _cmd_cost(args: argparse.Namespace) -> int:
 
     device = str(resolve_device(args.device))
     kind, source = resolve_scene_source(args.scene)
-    plan = _prepare_out(args, "denoise-gs cost", kind, source, COST_LAYOUT)
+    plan = _prepare_out(args, "denoise-gs cost", kind, source)
     grid = _parse_grid(args.grid, args.knobs)
     base = preset(args.preset, rounds=args.rounds, views=args.views, seed=args.seed, device=device)
     base = dataclasses.replace(base, max_size=None)  # the sweep scores against clean images at their own size

@@ -31,10 +31,12 @@ import numpy as np
 
 from eval.distributed import chain_after
 from eval.pipeline import PipelineConfig, PipelineStages, preset, run_pipeline
+from eval.pipeline.run import RUN_COMMAND
 from eval.pipeline.stage_settings import check_settings
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import InputError
+from mvgeo.common.output import write_manifest
 
 if TYPE_CHECKING:
     from eval.distributed import RayExecutor
@@ -201,6 +203,7 @@ def _share_stages(src: Path, dst: Path) -> None:
     for rd in sorted(src.glob("round*")):
         shutil.copytree(rd, tmp / rd.name, copy_function=link,
                         ignore=lambda d, names: [n for n in names if n.startswith(".")])
+    write_manifest(tmp, RUN_COMMAND, record_files=False)  # a run folder: `run_pipeline` resumes into it
     os.replace(tmp, dst)
 
 

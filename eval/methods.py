@@ -42,10 +42,12 @@ from eval.baselines import (
 )
 from eval.pipeline import PipelineConfig, PipelineStages, StageRunner, StageSpec, product_stages, run_pipeline
 from eval.pipeline.config import DenoiseMethod
+from eval.pipeline.run import RUN_COMMAND
 from eval.pipeline.stage_settings import SplatStageSettings, stage_seed, train_config
 from eval.pipeline.stages import STAGE_CODE
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.common.errors import DegenerateGeometryError, DisconnectedViewsError
+from mvgeo.common.output import read_manifest, write_manifest
 
 __all__ = ["GT_POSES_SUFFIX", "METHODS", "ORACLE_CLEAN", "EvalMethod", "Reconstruction", "gt_pose_variant",
            "reconstruct", "share_round1", "splat_photos"]
@@ -297,6 +299,8 @@ def share_round1(src_run: Path, dst_run: Path) -> bool:
     shutil.copytree(src, tmp, copy_function=link,
                     ignore=lambda d, names: [n for n in names if n.startswith(".")])
     os.replace(tmp, dst)
+    if read_manifest(dst_run) is None:  # the run folder is ours: `denoise-gs run` resumes into it
+        write_manifest(dst_run, RUN_COMMAND, record_files=False)
     return True
 
 
@@ -337,9 +341,12 @@ def _denoised_before_refusal(method: EvalMethod, config: PipelineConfig, folder:
     record = rd / "stages" / "denoise.json"
     if config.fuse_noisy_splat or not record.is_file() or (rd / "stages" / "splat.json").is_file():
         raise err
+    done = json.loads(record.read_text())
+    if done.get("pending") or not isinstance(done.get("seconds"), int | float):  # a commit that was cut short
+        raise err
     _log.warning("%s: its alignment refused the photos (%s); the ground-truth-pose variant splats round 1's "
                  "denoised photos", method.name, str(err).split(":")[0])
-    return Reconstruction(rd, True, float(json.loads(record.read_text())["seconds"]))
+    return Reconstruction(rd, True, float(done["seconds"]))
 
 
 def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig, *, seed: int,

@@ -34,7 +34,7 @@ from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import write_image
-from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file
+from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file, write_file_record
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 from splat.dataset import load_views, points_from_depth, read_point_cloud_ply
@@ -156,9 +156,11 @@ def _export(args) -> int:
         index = export_html(model, plan, sparse=sparse)
         print(f"viewer of {model.num_gaussians} Gaussians -> {index} (open it in a browser; no network needed)")
         return 0
-    out = prepare_output_file(args.out, inputs=inputs, overwrite=args.overwrite)
+    out = prepare_output_file(args.out, command="splat export", inputs=inputs, overwrite=args.overwrite,
+                              example_name=f"scene.{fmt}")
     model, _ = _model_and_cameras(args)
     export_model(model, fmt, out)
+    write_file_record(out, "splat export")
     print(f"{model.num_gaussians} Gaussians -> {args.out} ({fmt}, {out.stat().st_size} bytes)")
     return 0
 
@@ -202,7 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--format", choices=("ply", "splat", "spz", "html"), default=None,
                     help="default: from --out's suffix; html writes a folder with index.html")
     ex.add_argument("--out", required=True, help="output file (a folder for html)")
-    ex.add_argument("--overwrite", action="store_true", help="replace an existing --out written by this command")
+    ex.add_argument("--overwrite", action="store_true",
+                    help="replace an existing --out written by this command and unchanged since (nothing else is "
+                         "ever replaced)")
     ex.add_argument("--cameras", default=None,
                     help="html only: COLMAP model whose cameras are drawn (default: MODEL/sparse/0 if present)")
     ex.set_defaults(func=_export)

@@ -6,12 +6,20 @@ any computation, what may happen at `--out`:
 - nothing there, or an empty folder: the output is written there;
 - a folder holding a previous output of the same command, recognised by the
   manifest `OUT/.denoise-gs-output.json` that every command writes (command
-  name, package version, creation time): replaced with `overwrite=True`
-  (`--overwrite`), or, for the commands that resume inside their folder
-  (`resume=True`: `denoise-gs run`, `eval`, `cost`), reused;
-- anything else (a non-empty folder we did not write, a file, a broken
+  name, package version, creation time and, for the commands that write their
+  folder at once, every file and folder they wrote with its size, modification
+  time and SHA-256): replaced with `overwrite=True` (`--overwrite`) only while it
+  holds nothing but those files, unchanged; or, for the commands that resume
+  inside their folder (`resume=True`: `denoise-gs run`, `eval`, `cost`, whose
+  stages record their own files), reused;
+- anything else (a non-empty folder without our manifest, a previous output
+  holding files the command did not write or changed since, a file, a broken
   symbolic link, an output of another command) is refused with `InputError`
   naming the path and the fix.
+
+A single output file (`prepare_output_file`) is replaced with `overwrite=True`
+only when the hidden record beside it (`write_file_record`) says this command
+wrote it and its content is unchanged.
 
 It also refuses an `--out` that is, contains or lies inside an input (symbolic
 links and `..` resolved), and one whose nearest existing parent cannot be
@@ -28,10 +36,12 @@ This module imports only the standard library.
 from __future__ import annotations
 
 import contextlib
-import fnmatch
+import hashlib
 import json
 import os
+import re
 import shutil
+import stat
 import tempfile
 import time
 from collections.abc import Iterable, Iterator
@@ -50,9 +60,12 @@ __all__ = [
     "OutputPlan",
     "as_output_plan",
     "prepare_output",
+    "file_record_path",
+    "foreign_entries",
     "prepare_output_file",
     "read_manifest",
     "resumable_output_dir",
+    "write_file_record",
     "write_manifest",
 ]
 
@@ -62,6 +75,9 @@ MANIFEST_NAME = ".denoise-gs-output.json"
 #: file (left by a run that was killed) counts as empty.
 LOCK_NAME = ".denoise-gs.lock"
 MANIFEST_FORMAT = 1
+#: Temporary entries `mvgeo.common.atomic` creates inside an empty `--out` (removed unless the process
+#: is killed).
+_TEMP_NAME = re.compile(r"\.tmp-[0-9a-f]{8}")
 
 #: `--out` / `--overwrite` help texts of the commands that replace their output folder.
 OUT_HELP = ("output folder: a new or empty one (written there; `.` works only when the current folder is "
@@ -87,8 +103,6 @@ class OutputPlan:
         overwrite: a previous output may be replaced.
         resume: the command resumes inside the folder instead of replacing it.
         inputs: the resolved input paths (checked again when the output is committed).
-        layout: for resumable commands, name patterns of the entries the command writes; a
-            folder holding only such entries (and no manifest) counts as a previous output.
     """
 
     out: Path
@@ -98,7 +112,6 @@ class OutputPlan:
     overwrite: bool = False
     resume: bool = False
     inputs: tuple[Path, ...] = ()
-    layout: tuple[str, ...] = ()
 
 
 def _version() -> str:
@@ -110,11 +123,67 @@ def _version() -> str:
         return "0+unknown"
 
 
-def write_manifest(folder: str | Path, command: str) -> Path:
-    """Write `folder/.denoise-gs-output.json`: ``{"command", "version", "created_utc", "format"}``."""
-    path = Path(folder) / MANIFEST_NAME
-    data = {"command": command, "version": _version(),
-            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "format": MANIFEST_FORMAT}
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _file_entry(path: Path) -> dict[str, object]:
+    st = path.lstat()
+    if stat.S_ISLNK(st.st_mode):
+        return {"link": os.readlink(path)}
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": _file_sha256(path)}
+
+
+def _same_file(path: Path, entry: object) -> bool:
+    """`path` is still the file `entry` (`_file_entry`) describes: same link target, or same size and
+    (same modification time, or else same SHA-256)."""
+    if not isinstance(entry, dict):
+        return False
+    st = path.lstat()
+    if "link" in entry:
+        return stat.S_ISLNK(st.st_mode) and os.readlink(path) == entry["link"]
+    if not stat.S_ISREG(st.st_mode) or st.st_size != entry.get("size"):
+        return False
+    return st.st_mtime_ns == entry.get("mtime_ns") or _file_sha256(path) == entry.get("sha256")
+
+
+def _tree(folder: Path) -> tuple[list[str], list[str]]:
+    """(folders, files and links) under `folder`, relative POSIX paths, the manifest and lock left out."""
+    dirs, files = [], []
+    for root, subdirs, names in os.walk(folder):
+        rel_root = Path(root).relative_to(folder)
+        for d in list(subdirs):
+            if os.path.islink(os.path.join(root, d)):  # a link to a folder is an entry, not walked
+                subdirs.remove(d)
+                names.append(d)
+            else:
+                dirs.append((rel_root / d).as_posix())
+        for n in names:
+            rel = (rel_root / n).as_posix()
+            if rel not in (MANIFEST_NAME, LOCK_NAME) and not rel.startswith(f"{MANIFEST_NAME}.tmp-"):
+                files.append(rel)
+    return sorted(dirs), sorted(files)
+
+
+def write_manifest(folder: str | Path, command: str, *, record_files: bool = True) -> Path:
+    """Write `folder/.denoise-gs-output.json`: ``{"command", "version", "created_utc", "format"}`` and,
+    with `record_files`, ``"dirs"`` (every folder under `folder`) and ``"files"`` (every file or link:
+    size, modification time and SHA-256, or the link's target), what `--overwrite` may replace later.
+    The resumable commands write it without files when they open their folder (their stages record
+    what they write)."""
+    folder = Path(folder)
+    path = folder / MANIFEST_NAME
+    data: dict[str, object] = {"command": command, "version": _version(),
+                               "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                               "format": MANIFEST_FORMAT}
+    if record_files:
+        dirs, files = _tree(folder)
+        data["dirs"] = dirs
+        data["files"] = {rel: _file_entry(folder / rel) for rel in files}
     tmp = path.with_name(f"{MANIFEST_NAME}.tmp-{os.getpid()}")
     try:
         tmp.write_text(json.dumps(data, indent=2) + "\n")
@@ -122,6 +191,20 @@ def write_manifest(folder: str | Path, command: str) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+def foreign_entries(folder: str | Path, manifest: dict) -> list[str] | None:
+    """What under `folder` its manifest does not account for: files and folders it does not list and
+    listed files that changed (relative paths, sorted); None when the manifest lists no files."""
+    files, dirs = manifest.get("files"), manifest.get("dirs")
+    if not isinstance(files, dict) or not isinstance(dirs, list):
+        return None
+    folder = Path(folder)
+    found_dirs, found_files = _tree(folder)
+    known_dirs = set(dirs)
+    out = [d + "/" for d in found_dirs if d not in known_dirs]
+    out += [f for f in found_files if f not in files or not _same_file(folder / f, files[f])]
+    return sorted(out)
 
 
 def read_manifest(folder: str | Path) -> dict | None:
@@ -205,7 +288,7 @@ def _is_cwd_or_ancestor(path: Path) -> bool:
 
 
 def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path | None] = (),
-                   overwrite: bool = False, resume: bool = False, layout: Iterable[str] = ()) -> OutputPlan:
+                   overwrite: bool = False, resume: bool = False) -> OutputPlan:
     """Check `out` against the output policy (module docstring) before any work; create nothing.
 
     Args:
@@ -214,9 +297,6 @@ def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path
         inputs: every input file or folder of the command (None entries are skipped).
         overwrite: a previous output of `command` at `out` may be replaced (`--overwrite`).
         resume: the command resumes inside `out` (a previous output is reused, never replaced).
-        layout: resumable commands only: name patterns (`fnmatch`) of the entries the command
-            writes at the top of `out`; a folder without manifest holding only such entries is
-            taken as a previous output (e.g. one written before manifests existed).
 
     Returns:
         The plan for `atomic_output_dir` / `resumable_output_dir`.
@@ -232,7 +312,6 @@ def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path
                          fix="remove the link or choose another --out")
     path = _resolve(out)
     resolved_inputs = _check_inputs(out, path, inputs)
-    layout = tuple(layout)
     state: OutputState
     if os.path.lexists(path) and not path.is_dir():
         raise InputError("--out exists and is not a folder", path=out,
@@ -254,10 +333,12 @@ def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path
         elif manifest is not None:
             raise InputError(f"--out holds the output of `{manifest['command']}`, not of `{command}`", path=out,
                              fix="choose another --out (a new or empty folder)")
-        elif resume and layout and all(any(fnmatch.fnmatchcase(n, pat) for pat in layout) for n in entries):
-            state = "previous"
         else:
             shown = ", ".join(repr(n) for n in sorted(entries)[:3]) + (", ..." if len(entries) > 3 else "")
+            if all(_TEMP_NAME.fullmatch(n) for n in entries):
+                raise InputError(f"--out holds only the temporary folder of an interrupted run ({shown})", path=out,
+                                 fix="delete it yourself if no command is writing to --out now, or choose another "
+                                     "--out; nothing was changed")
             raise InputError(f"--out is a folder that holds files `{command}` did not write ({shown})", path=out,
                              fix="choose a new or empty folder for --out; nothing was changed")
         if state == "previous" and not resume:
@@ -269,11 +350,23 @@ def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path
                 raise InputError("--out is the current folder (or holds it); a previous output there cannot be "
                                  "replaced while it is in use", path=out,
                                  fix="run the command from another folder (e.g. `cd ..`), or choose another --out")
+            foreign = foreign_entries(path, manifest)
+            if foreign is None:
+                raise InputError(f"--out holds an output of `{command}` whose manifest does not list its files "
+                                 "(written by an older version), so what else it holds cannot be told", path=out,
+                                 fix="check the folder and delete it yourself, or choose another --out; nothing "
+                                     "was changed")
+            if foreign:
+                shown = ", ".join(repr(n) for n in foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+                raise InputError(f"--out holds a previous output of `{command}` and {len(foreign)} entr"
+                                 f"{'y' if len(foreign) == 1 else 'ies'} it did not write or that changed since "
+                                 f"({shown})", path=out,
+                                 fix="move them out of --out, or choose another --out; nothing was changed")
         # Replacing renames `path` inside its parent; writing into an empty or resumed folder creates
         # entries inside `path` itself.
         _check_writable(path.parent if state == "previous" and not resume else path, out)
     return OutputPlan(out=out, path=path, command=command, state=state, overwrite=overwrite, resume=resume,
-                      inputs=resolved_inputs, layout=layout)
+                      inputs=resolved_inputs)
 
 
 def as_output_plan(out: OutputPlan | str | Path, *, command: str, overwrite: bool = False) -> OutputPlan:
@@ -292,7 +385,7 @@ def as_output_plan(out: OutputPlan | str | Path, *, command: str, overwrite: boo
 def recheck(plan: OutputPlan) -> OutputPlan:
     """The plan made again just before writing: what is at `--out` may have changed during the work."""
     return prepare_output(plan.out, command=plan.command, inputs=plan.inputs, overwrite=plan.overwrite,
-                          resume=plan.resume, layout=plan.layout)
+                          resume=plan.resume)
 
 
 def make_dirs(path: Path) -> list[Path]:
@@ -335,7 +428,7 @@ def resumable_output_dir(plan: OutputPlan) -> Iterator[Path]:
     wrote_manifest = False
     try:
         if read_manifest(plan.path) is None:
-            write_manifest(plan.path, plan.command)
+            write_manifest(plan.path, plan.command, record_files=False)
             wrote_manifest = True
     except OSError as exc:
         remove_empty_dirs(created)
@@ -352,12 +445,52 @@ def resumable_output_dir(plan: OutputPlan) -> Iterator[Path]:
         raise
 
 
-def prepare_output_file(out: str | Path, *, inputs: Iterable[str | Path | None] = (),
-                        overwrite: bool = False) -> Path:
+def file_record_path(path: str | Path) -> Path:
+    """The hidden record beside an output file: ``DIR/.NAME.denoise-gs-output.json``."""
+    path = Path(path)
+    return path.with_name(f".{path.name}{MANIFEST_NAME}")
+
+
+def write_file_record(path: str | Path, command: str) -> Path:
+    """Record that `command` wrote the file `path` (its size, modification time and SHA-256) in
+    `file_record_path(path)`, so that a later ``--overwrite`` may replace it while it is unchanged."""
+    path = Path(path)
+    record = file_record_path(path)
+    data = {"command": command, "version": _version(),
+            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "format": MANIFEST_FORMAT,
+            "file": path.name, **_file_entry(path)}
+    tmp = record.with_name(f"{record.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        os.replace(tmp, record)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return record
+
+
+def _written_by(path: Path, command: str) -> str | None:
+    """None when `file_record_path(path)` says `command` wrote `path` and it is unchanged, else why not."""
+    try:
+        data = json.loads(file_record_path(path).read_text())
+    except (OSError, ValueError):
+        return f"it has no record of being written by `{command}`"
+    if not isinstance(data, dict) or data.get("command") != command or data.get("file") != path.name:
+        return f"its record does not say `{command}` wrote it"
+    try:
+        same = _same_file(path, data)
+    except OSError:
+        same = False
+    return None if same else f"it changed since `{command}` wrote it"
+
+
+def prepare_output_file(out: str | Path, *, command: str, inputs: Iterable[str | Path | None] = (),
+                        overwrite: bool = False, example_name: str = "out.json") -> Path:
     """The policy for a single output file (e.g. `denoise select --out FILE`); return its resolved path.
 
-    A folder at `out` is refused; an existing file only without `overwrite`; the file must not be
-    an input or lie inside one; its nearest existing parent must be writable. Creates nothing.
+    A folder at `out` is refused; an existing file is replaced only with `overwrite` and only when
+    `command` wrote it (`write_file_record`, which the command calls after writing) and it has not
+    changed since; the file must not be an input or lie inside one; its nearest existing parent must
+    be writable. Creates nothing. `example_name`: the file name the message suggests when `out` is a folder.
 
     Raises:
         InputError: naming the path and the fix.
@@ -371,11 +504,16 @@ def prepare_output_file(out: str | Path, *, inputs: Iterable[str | Path | None] 
     _check_inputs(out, path, inputs)
     if path.is_dir():
         raise InputError("--out is a folder; it must name a file", path=out,
-                         fix=f"pass a file name, e.g. --out {out / 'selection.json'}")
+                         fix=f"pass a file name, e.g. --out {out / example_name}")
     if os.path.lexists(path):
         if not overwrite:
             raise InputError("--out already exists", path=out,
-                             fix="pass --overwrite to replace it, or choose another --out")
+                             fix="pass --overwrite to replace it if this command wrote it, or choose another --out")
+        why = _written_by(path, command)
+        if why is not None:
+            raise InputError(f"--out already exists and {why}; only a file this command wrote is replaced",
+                             path=out, fix="choose another --out (or move the file away yourself); nothing was "
+                                           "changed")
         _check_writable(path.parent, out)
     else:
         _check_writable(_nearest_existing(path.parent), out)

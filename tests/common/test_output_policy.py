@@ -12,10 +12,12 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.output import (
     LOCK_NAME,
     MANIFEST_NAME,
+    file_record_path,
     prepare_output,
     prepare_output_file,
     read_manifest,
     resumable_output_dir,
+    write_file_record,
     write_manifest,
 )
 
@@ -159,7 +161,7 @@ def test_read_only_parent_fails_before_any_work(tmp_path, monkeypatch):
         prepare_output(parent / "a" / "out", command=CMD)  # nearest existing parent: ro
     assert "fix:" in str(exc.value)
     with pytest.raises(InputError, match="not writable"):
-        prepare_output_file(parent / "sel.json")
+        prepare_output_file(parent / "sel.json", command=CMD)
     assert os.listdir(parent) == []
 
 
@@ -223,31 +225,110 @@ def test_resumable_folder(tmp_path):
         prepare_output(out, command="other cmd", resume=True)
 
 
-def test_resumable_layout_and_leftover_lock(tmp_path):
+def test_a_folder_without_manifest_is_never_taken_for_a_resumable_output(tmp_path):
+    # Entries named like the run's own ("round1", "report.md") do not make a folder ours: only the
+    # manifest does (a user's folder of that shape was once resumed into and its files deleted).
     old = tmp_path / "old"
     (old / "round1").mkdir(parents=True)
     (old / "report.md").write_text("r")
-    assert prepare_output(old, command="run cmd", resume=True, layout=("round[0-9]*", "report.md")).state == "previous"
-    (old / "thesis.tex").write_text("x")
-    with pytest.raises(InputError, match="thesis.tex"):
-        prepare_output(old, command="run cmd", resume=True, layout=("round[0-9]*", "report.md"))
+    with pytest.raises(InputError, match="did not write"):
+        prepare_output(old, command="run cmd", resume=True)
     locked = tmp_path / "locked"
     locked.mkdir()
     (locked / LOCK_NAME).write_text("123")
     assert prepare_output(locked, command="run cmd", resume=True).state == "empty"
 
 
+@pytest.mark.parametrize("added", ["top.txt", "sub/nested.txt", "emptydir/", "link", "a.txt (changed)"])
+def test_overwrite_refuses_a_previous_output_holding_what_it_did_not_write(tmp_path, added):
+    out = tmp_path / "out"
+    _write(out, files=("a.txt",))
+    (out / "sub").mkdir()  # after the manifest: not the command's either
+    if added == "top.txt":
+        (out / "top.txt").write_text("mine")
+    elif added == "sub/nested.txt":
+        (out / "sub" / "nested.txt").write_text("mine")
+    elif added == "emptydir/":
+        (out / "sub").rmdir()
+        (out / "emptydir").mkdir()
+    elif added == "link":
+        (out / "sub").rmdir()
+        (out / "link").symlink_to(tmp_path)
+    else:
+        (out / "sub").rmdir()
+        (out / "a.txt").write_text("edited by the user")
+    before = _tree(tmp_path)
+    with pytest.raises(InputError, match="did not write or that changed since"):
+        _write(out, overwrite=True, files=("b.txt",))
+    assert _tree(tmp_path) == before
+
+
+def test_overwrite_replaces_an_unchanged_previous_output(tmp_path):
+    out = tmp_path / "out"
+    with atomic_output_dir(prepare_output(out, command=CMD)) as tmp:
+        (tmp / "sub").mkdir()
+        (tmp / "sub" / "x.bin").write_bytes(b"x" * 10)
+        (tmp / "link").symlink_to("sub/x.bin")
+    m = json.loads((out / MANIFEST_NAME).read_text())
+    assert m["dirs"] == ["sub"] and set(m["files"]) == {"sub/x.bin", "link"}
+    assert m["files"]["link"] == {"link": "sub/x.bin"}
+    os.utime(out / "sub" / "x.bin", ns=(1, 1))  # a copy that kept the content: told apart by its SHA-256
+    _write(out, overwrite=True, files=("b.txt",))
+    assert sorted(os.listdir(out)) == [MANIFEST_NAME, "b.txt"]
+
+
+def test_overwrite_refuses_a_manifest_that_lists_no_files(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.txt").write_text("a")
+    (out / MANIFEST_NAME).write_text(json.dumps({"command": CMD, "version": "0", "format": 1}))
+    with pytest.raises(InputError, match="does not list its files"):
+        _write(out, overwrite=True)
+    assert (out / "a.txt").read_text() == "a"
+
+
+def test_a_leftover_temporary_folder_is_named_as_such(tmp_path):
+    out = tmp_path / "out"
+    (out / ".tmp-3f368950").mkdir(parents=True)
+    with pytest.raises(InputError, match="temporary folder of an interrupted run"):
+        prepare_output(out, command=CMD)
+
+
 def test_output_file_policy(tmp_path):
     (tmp_path / "dir").mkdir()
-    with pytest.raises(InputError, match="is a folder"):
-        prepare_output_file(tmp_path / "dir")
+    with pytest.raises(InputError, match=r"(?s)is a folder.*dir/sel\.json"):
+        prepare_output_file(tmp_path / "dir", command=CMD, example_name="sel.json")
     f = tmp_path / "sel.json"
     f.write_text("{}")
     with pytest.raises(InputError, match="--overwrite"):
-        prepare_output_file(f)
-    assert prepare_output_file(f, overwrite=True) == f.resolve()
+        prepare_output_file(f, command=CMD)
+    # A file the command did not write is never replaced, --overwrite or not.
+    with pytest.raises(InputError, match="no record"):
+        prepare_output_file(f, command=CMD, overwrite=True)
+    write_file_record(f, CMD)
+    assert file_record_path(f).name == ".sel.json" + MANIFEST_NAME
+    assert prepare_output_file(f, command=CMD, overwrite=True) == f.resolve()
+    with pytest.raises(InputError, match="does not say `other cmd` wrote it"):
+        prepare_output_file(f, command="other cmd", overwrite=True)
+    os.utime(f, ns=(1, 1))  # same content, new time: still ours
+    assert prepare_output_file(f, command=CMD, overwrite=True) == f.resolve()
+    f.write_text('{"edited": 1}')
+    with pytest.raises(InputError, match="changed since"):
+        prepare_output_file(f, command=CMD, overwrite=True)
     with pytest.raises(InputError, match="is inside the input"):
-        prepare_output_file(tmp_path / "dir" / "s.json", inputs=[tmp_path / "dir"])
+        prepare_output_file(tmp_path / "dir" / "s.json", command=CMD, inputs=[tmp_path / "dir"])
+
+
+def test_output_file_through_a_link_needs_the_targets_record(tmp_path):
+    target = tmp_path / "real" / "t.splat"
+    target.parent.mkdir()
+    target.write_bytes(b"user data")
+    link = tmp_path / "link.splat"
+    link.symlink_to(target)
+    with pytest.raises(InputError, match="no record"):
+        prepare_output_file(link, command=CMD, overwrite=True)
+    write_file_record(target, CMD)
+    assert prepare_output_file(link, command=CMD, overwrite=True) == target.resolve()
 
 
 def test_atomic_write_text_leaves_no_temporary_on_failure(tmp_path):

@@ -76,11 +76,15 @@ def test_n2v_previous_output_needs_overwrite(tmp_path, noisy, capsys):
     fast = ["--steps", "1", "--passes", "0", "--preset", "fast"]
     assert main(["n2v", str(noisy), "--out", str(out), *fast]) == 0
     assert json.loads((out / MANIFEST_NAME).read_text())["command"] == "denoise n2v"
-    (out / "report.json").write_text("stale")
     err = assert_refused(main, ["n2v", noisy, "--out", out, *fast], capsys, tmp_path, "previous output")
     assert "--overwrite" in err
+    (out / "notes.txt").write_text("the user's")  # not the command's: the output is kept
+    assert_refused(main, ["n2v", noisy, "--out", out, *fast, "--overwrite"], capsys, tmp_path, "notes.txt")
+    (out / "notes.txt").unlink()
+    first = (out / "report.json").stat().st_mtime_ns
     assert main(["n2v", str(noisy), "--out", str(out), *fast, "--overwrite"]) == 0
-    assert json.loads((out / "report.json").read_text())["steps"] == 1  # replaced
+    assert json.loads((out / "report.json").read_text())["steps"] == 1
+    assert (out / "report.json").stat().st_mtime_ns != first  # replaced
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]
 
 
@@ -100,8 +104,14 @@ def test_select_out_file_policy(tmp_path, noisy, model, capsys, monkeypatch):
     err = assert_refused(main, ["select", model, "--images", noisy, "--k", "1", "--out", sel], capsys, tmp_path,
                          "already exists")
     assert "--overwrite" in err
-    assert main(["select", str(model), "--images", str(noisy), "--k", "1", "--out", str(sel), "--overwrite"]) == 0
-    assert len(json.loads(sel.read_text())["selected"]) == 1
+    # The user's own file is never replaced, --overwrite or not; a selection this command wrote is.
+    assert_refused(main, ["select", model, "--images", noisy, "--k", "1", "--out", sel, "--overwrite"], capsys,
+                   tmp_path, "no record of being written by `denoise select`")
+    assert sel.read_text() == "mine"
+    ours = tmp_path / "ours.json"
+    assert main(["select", str(model), "--images", str(noisy), "--k", "1", "--out", str(ours)]) == 0
+    assert main(["select", str(model), "--images", str(noisy), "--k", "1", "--out", str(ours), "--overwrite"]) == 0
+    assert len(json.loads(ours.read_text())["selected"]) == 1
     ro = tmp_path / "ro"
     ro.mkdir()
     readonly_access(monkeypatch, ro)

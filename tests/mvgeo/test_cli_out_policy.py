@@ -163,11 +163,16 @@ def test_align_previous_output_needs_overwrite(tmp_path, data, capsys, instant_a
     assert main(["align", str(data / "images"), "--out", str(out)]) == 0
     first = json.loads((out / MANIFEST_NAME).read_text())
     assert first["command"] == "mvgeo align"
-    (out / "align.json").write_text("edited")
     err = assert_refused(main, ["align", data / "images", "--out", out], capsys, tmp_path, "previous output")
     assert "--overwrite" in err
+    ours = (out / "align.json").read_text()
+    (out / "align.json").write_text("edited")  # the user's edit: kept, --overwrite or not
+    assert_refused(main, ["align", data / "images", "--out", out, "--overwrite"], capsys, tmp_path, "changed since")
+    (out / "align.json").write_text(ours)
     assert main(["align", str(data / "images"), "--out", str(out), "--overwrite"]) == 0
-    assert json.loads((out / "align.json").read_text())["n_points"] == 3  # replaced
+    assert json.loads((out / "align.json").read_text())["n_points"] == 3
+    again = json.loads((out / MANIFEST_NAME).read_text())["files"]["align.json"]
+    assert again["mtime_ns"] != first["files"]["align.json"]["mtime_ns"]  # a new file: replaced
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "out"]  # no .old-/.tmp- sibling
 
 

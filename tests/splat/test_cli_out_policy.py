@@ -76,11 +76,16 @@ def test_render_previous_output_needs_overwrite(tmp_path, model_and_cameras, cap
     out = tmp_path / "renders"
     assert main(["render", str(m), "--cameras", str(s), "--out", str(out)]) == 0
     assert sorted(os.listdir(out)) == [MANIFEST_NAME, "v0.png"]
-    (out / "v0.png").write_bytes(b"stale")
+    png = (out / "v0.png").read_bytes()
+    (out / "v0.png").write_bytes(b"edited")
     err = assert_refused(main, ["render", m, "--cameras", s, "--out", out], capsys, tmp_path, "previous output")
     assert "--overwrite" in err
+    # a render the user changed is not replaced, --overwrite or not
+    assert_refused(main, ["render", m, "--cameras", s, "--out", out, "--overwrite"], capsys, tmp_path,
+                   "changed since")
+    (out / "v0.png").write_bytes(png)  # the same bytes again (a new modification time): the command's file
     assert main(["render", str(m), "--cameras", str(s), "--out", str(out), "--overwrite"]) == 0
-    assert (out / "v0.png").read_bytes()[:4] == b"\x89PNG"  # replaced
+    assert (out / "v0.png").read_bytes()[:4] == b"\x89PNG"
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]
 
 

@@ -244,7 +244,13 @@ def test_splat_export_cli_writes_each_format(tmp_path):
     np.testing.assert_array_equal(_np(read_gaussian_ply(tmp_path / "b.ply"))["means"], _np(model)["means"])
     # an existing file is kept unless --overwrite; an unknown suffix needs --format
     assert main(["export", src, "--out", str(tmp_path / "a.splat")]) == 2
-    assert main(["export", src, "--out", str(tmp_path / "a.splat"), "--overwrite"]) == 0
+    assert main(["export", src, "--out", str(tmp_path / "a.splat"), "--overwrite"]) == 0  # written by export
+    (tmp_path / "mine.splat").write_bytes(b"user data")  # not written by export: never replaced
+    assert main(["export", src, "--out", str(tmp_path / "mine.splat"), "--overwrite"]) == 2
+    assert (tmp_path / "mine.splat").read_bytes() == b"user data"
+    (tmp_path / "a.splat").write_bytes(b"edited")  # changed since: kept
+    assert main(["export", src, "--out", str(tmp_path / "a.splat"), "--overwrite"]) == 2
+    assert (tmp_path / "a.splat").read_bytes() == b"edited"
     assert main(["export", src, "--out", str(tmp_path / "a.bin")]) == 2
     assert main(["export", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "c.splat")]) == 2
     assert not (tmp_path / "c.splat").exists()
