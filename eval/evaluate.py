@@ -38,9 +38,11 @@ and propagates.
 from __future__ import annotations
 
 import dataclasses
+import filecmp
 import logging
 import os
 import shutil
+import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -139,23 +141,61 @@ def _stem_poses(model: SparseModel) -> dict[str, np.ndarray]:
     return {Path(n).stem: model.image(n).cam_from_world for n in model.names}
 
 
+def _same_image(path: Path, src: Path) -> bool:
+    """`path` is a plain file with `src`'s bytes (a hard link to it, or a copy)."""
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        return os.path.samefile(path, src) or filecmp.cmp(path, src, shallow=False)
+    except OSError:
+        return False
+
+
 def copy_train_inputs(dataset: DatasetFolder, folder: Path, names: Sequence[str] | None = None) -> Path:
     """`folder` holding (hard links to) the dataset's noisy training images `names` (default: all of
-    `dataset.train`), rebuilt atomically when it holds a different set; where `evaluate_dataset` runs."""
+    `dataset.train`), rebuilt atomically when it holds a different set; where `evaluate_dataset` runs.
+
+    Only what this function puts there is ever replaced: the folder is rebuilt only while every entry in it
+    is one of the dataset's images (by file name and bytes); anything else is refused.
+
+    Raises:
+        InputError: `folder` exists and holds something that is not one of the dataset's images (nothing
+            is changed), or is not a folder.
+    """
     names = list(dataset.train if names is None else names)
-    if folder.is_dir() and sorted(p.stem for p in folder.iterdir()) == sorted(names):
-        return folder
-    tmp = folder.with_name(folder.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    for name in names:
-        src = dataset.images[name]
-        try:
-            os.link(src, tmp / src.name)
-        except OSError:
-            shutil.copy2(src, tmp / src.name)
-    shutil.rmtree(folder, ignore_errors=True)
-    os.replace(tmp, folder)
+    wanted = {dataset.images[n].name: dataset.images[n] for n in names}
+    if os.path.lexists(folder):
+        if folder.is_symlink() or not folder.is_dir():
+            raise InputError("the training-image folder of the evaluation is not a folder", path=folder,
+                             fix="move it out of the evaluation folder, or choose another --out")
+        by_name = {p.name: p for p in dataset.images.values()}
+        entries = sorted(folder.iterdir())
+        foreign = [e for e in entries if e.name not in by_name or not _same_image(e, by_name[e.name])]
+        if foreign:
+            shown = ", ".join(str(e) for e in foreign[:5]) + (", ..." if len(foreign) > 5 else "")
+            raise InputError(f"the training-image folder of the evaluation holds entries that are not the "
+                             f"dataset's images, which rebuilding it would delete: {shown}", path=folder,
+                             fix="move them out of the evaluation folder, or choose another --out; nothing was "
+                                 "changed")
+        if sorted(e.name for e in entries) == sorted(wanted):
+            return folder
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))
+    try:
+        for src in wanted.values():
+            try:
+                os.link(src, tmp / src.name)
+            except OSError:
+                shutil.copy2(src, tmp / src.name)
+        if os.path.lexists(folder):  # only the dataset's images, checked above
+            old = folder.with_name(f".{folder.name}.old-{tmp.name.rsplit('-', 1)[-1]}")
+            os.replace(folder, old)
+            os.replace(tmp, folder)
+            shutil.rmtree(old)
+        else:
+            os.replace(tmp, folder)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return folder
 
 

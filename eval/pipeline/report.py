@@ -1,4 +1,8 @@
-"""`OUT/report.json` and `OUT/report.md` (with contact sheets) of a pipeline run."""
+"""`OUT/report.json` and `OUT/report.md` (with contact sheets) of a pipeline run.
+
+The report is committed like a stage's outputs (`eval.pipeline.stage.commit_outputs`): written in a
+hidden work folder, then moved into place, with a record `OUT/stages/report.json` of every file, so
+that a later run replaces or withdraws only files it wrote (`REPORT_OUTPUTS`)."""
 
 from __future__ import annotations
 
@@ -12,16 +16,19 @@ import numpy as np
 from eval.contact_sheet import contact_sheet
 from eval.pipeline.config import PipelineConfig
 from eval.pipeline.rounds import RoundResult, StoppedRound
-from eval.pipeline.stage import StageResult
+from eval.pipeline.stage import StageResult, commit_outputs, output_manifest, stage_work_dir
 from eval.pipeline.views import view_files
 from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image, write_image
 
-__all__ = ["CONTACT_ROWS", "write_report"]
+__all__ = ["CONTACT_ROWS", "REPORT_OUTPUTS", "REPORT_RECORD", "write_report"]
 
 #: Views shown per contact sheet (evenly spaced over the round's views).
 CONTACT_ROWS = 6
+#: What the report writes in OUT, and the name of its record (`OUT/stages/<name>.json`).
+REPORT_OUTPUTS = ("report.json", "report.md", "report_files")
+REPORT_RECORD = "report"
 
 
 def _json_safe(x: object) -> object:
@@ -42,7 +49,8 @@ def _images(folder: Path) -> dict[str, Path]:
         return {}
 
 
-def _contact_sheet_png(out: Path, images_dir: Path, rd: Path, r: int) -> Path | None:
+def _contact_sheet_png(dest: Path, images_dir: Path, rd: Path, r: int) -> Path | None:
+    """Write `dest/report_files/contact_round<r>.png` (None when the round has no denoised images)."""
     denoised = _images(rd / "denoised")
     if not denoised:
         return None
@@ -54,7 +62,7 @@ def _contact_sheet_png(out: Path, images_dir: Path, rd: Path, r: int) -> Path | 
              read_image(renders[n]) if n in renders else None] for n in shown]
     sheet = contact_sheet(rows, titles=["noisy", f"denoised (round {r})", f"render (round {r})"],
                           row_labels=shown)
-    path = out / "report_files" / f"contact_round{r}.png"
+    path = dest / "report_files" / f"contact_round{r}.png"
     write_image(path, sheet)
     return path
 
@@ -73,7 +81,7 @@ def _size_lines(config: PipelineConfig, sizes: dict) -> list[str]:
 def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds: Sequence[RoundResult],
                  timings_s: dict[str, float], working: StageResult | None = None,
                  exported: StageResult | None = None, stopped: StoppedRound | None = None) -> tuple[Path, Path]:
-    """Write `report.json`, `report.md` and `report_files/contact_round<N>.png`.
+    """Write `report.json`, `report.md` and `report_files/contact_round<N>.png` (module docstring).
 
     Args:
         out: the run's output folder.
@@ -87,7 +95,25 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
 
     Returns:
         (report.json, report.md) paths.
+
+    Raises:
+        UnownedOutputError: the previous report's files hold files the run did not write or that changed
+            (`eval.pipeline.stage.UnownedOutputError`; nothing is replaced).
     """
+    with stage_work_dir(out, REPORT_RECORD) as work:
+        _write_report_files(out, work, images_dir=images_dir, config=config, rounds=rounds, timings_s=timings_s,
+                            working=working, exported=exported, stopped=stopped)
+        written = [o for o in REPORT_OUTPUTS if (work / o).exists()]
+        manifest = output_manifest(work, written)
+        commit_outputs(out, REPORT_RECORD, REPORT_OUTPUTS, work, {"name": REPORT_RECORD, "manifest": manifest},
+                       manifest)
+    return out / "report.json", out / "report.md"
+
+
+def _write_report_files(out: Path, dest: Path, *, images_dir: Path, config: PipelineConfig,
+                        rounds: Sequence[RoundResult], timings_s: dict[str, float], working: StageResult | None,
+                        exported: StageResult | None, stopped: StoppedRound | None) -> None:
+    """The report of the run in `out`, written into `dest` (`write_report`'s arguments)."""
     stages = []
     selected: dict[str, list[str]] = {}
     for rnd in [*rounds, *([stopped] if stopped is not None else [])]:
@@ -97,7 +123,7 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
             if name == "select":
                 selected[f"round{rnd.index}"] = list(res.summary.get("selected", []))
     noisy_dir = out / "inputs" if working is not None else images_dir  # same size as the renders
-    sheets = {rnd.index: _contact_sheet_png(out, noisy_dir, rnd.dir, rnd.index) for rnd in rounds}
+    sheets = {rnd.index: _contact_sheet_png(dest, noisy_dir, rnd.dir, rnd.index) for rnd in rounds}
     sizes = dict(working.summary.get("sizes", {})) if working is not None else {}
     report = {
         "images_dir": str(images_dir),
@@ -109,12 +135,12 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
         "rounds": [{"index": rnd.index, "dir": rnd.dir.name} for rnd in rounds],
         "result_round": rounds[-1].index if rounds else None,
         "stopped": None if stopped is None else {"round": stopped.index, "reason": stopped.reason},
-        "contact_sheets": {f"round{k}": str(v.relative_to(out)) for k, v in sheets.items() if v is not None},
+        "contact_sheets": {f"round{k}": str(v.relative_to(dest)) for k, v in sheets.items() if v is not None},
         "max_size": config.max_size,
         "image_sizes": sizes,
         "export": dict(exported.summary) if exported is not None else None,
     }
-    json_path, md_path = out / "report.json", out / "report.md"
+    json_path, md_path = dest / "report.json", dest / "report.md"
     atomic_write_text(json_path, json.dumps(_json_safe(report), indent=2) + "\n")
 
     lines = ["# Denoise-GS run", "", f"- inputs: `{images_dir}`",
@@ -144,7 +170,6 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
         lines += ["## Contact sheets (noisy | denoised | render)", ""]
         for k, v in sheets.items():
             if v is not None:
-                lines += [f"### Round {k}", "", f"![round {k}]({v.relative_to(out).as_posix()})", ""]
+                lines += [f"### Round {k}", "", f"![round {k}]({v.relative_to(dest).as_posix()})", ""]
     lines += ["## Settings", "", "```json", json.dumps(config.to_dict(), indent=2), "```", ""]
     atomic_write_text(md_path, "\n".join(lines))
-    return json_path, md_path

@@ -32,12 +32,18 @@ file's size and sha256, checked before a resumed run reuses them; see
     OUT/roundN/selection.json                     (select, rounds >= 2)
     OUT/scene.splat, OUT/view/index.html           (export: .splat and offline viewer of the last round)
     OUT/cameras/working/, OUT/cameras/input/      (export: final cameras at working and input size)
-    OUT/report.json, OUT/report.md, OUT/report_files/*.png
+    OUT/report.json, OUT/report.md, OUT/report_files/*.png   (recorded in OUT/stages/report.json)
+
+A resumed run changes only files it wrote: before any stage runs, the outputs of every stage it may run
+(and the published files: export's and the report's) are checked against their records, and a file the
+run did not write, or one whose content changed, stops it (`UnownedOutputError`, exit code 2) with nothing
+changed (`run_pipeline`).
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -45,9 +51,18 @@ from eval.pipeline.config import PipelineConfig
 from eval.pipeline.hashing import hash_files
 from eval.pipeline.inputs import SIZES_FILE, WORKING_DIR, prepare_inputs
 from eval.pipeline.lock import output_lock
-from eval.pipeline.report import write_report
+from eval.pipeline.publish import EXPORT_OUTPUTS
+from eval.pipeline.report import REPORT_OUTPUTS, REPORT_RECORD, write_report
 from eval.pipeline.rounds import RoundResult, StoppedRound
-from eval.pipeline.stage import StageResult, StageRunner, StageSpec, code_digests
+from eval.pipeline.stage import (
+    StageResult,
+    StageRunner,
+    StageSpec,
+    UnownedOutputError,
+    check_outputs_owned,
+    code_digests,
+    withdraw_outputs,
+)
 from eval.pipeline.stage_settings import InputsStageSettings, RoundSettings, round_settings, stage_seed
 from eval.pipeline.stages import MODEL_FILE, PipelineStages, product_stages, refine_kept_previous
 from eval.pipeline.validate import validate_run_inputs
@@ -61,10 +76,10 @@ _log = logging.getLogger(__name__)
 
 #: The command named in a run folder's manifest (`mvgeo.common.output`).
 RUN_COMMAND = "denoise-gs run"
-#: Top-level entries a run writes: a folder holding only these (e.g. a run written before manifests
-#: existed, or one whose round 1 `eval.methods.share_round1` linked in) is resumed.
-RUN_LAYOUT = ("round[0-9]*", "report.json", "report.md", "report_files", "stages", "inputs", "scene.splat", "view",
-              "cameras")
+#: The outputs of each stage of a round, relative to the round's folder.
+SCENE_OUTPUTS = {"align": ("align",), "fuse": ("fused", "noisy_renders"), "splat": ("sparse", "point_cloud.ply"),
+                 "render": ("renders",)}
+ROUND2_OUTPUTS = {"select": ("selection.json",), "refine": ("denoised", MODEL_FILE)}
 
 
 @dataclass(frozen=True)
@@ -113,7 +128,7 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
     if previous is not None:  # the previous round's calibration (eval.pipeline.calibration)
         inputs["previous_align"] = previous.dir / "align"
         upstream = (images, previous.stages["align"])
-    al = runner.run(StageSpec("align", rd, stages.align, ("align",), inputs=inputs, upstream=upstream,
+    al = runner.run(StageSpec("align", rd, stages.align, SCENE_OUTPUTS["align"], inputs=inputs, upstream=upstream,
                               settings=settings.align, seed=stage_seed(config.seed, r, "align"),
                               code=stages.code.get("align", ())),
                     label=f"{label}/align")
@@ -130,22 +145,59 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
             fuse_inputs.update(previous_align=previous.dir / "align", previous_noisy=working,
                                previous_noisy_renders=previous.dir / "noisy_renders")
             fuse_upstream += (previous.stages["align"], previous.stages["fuse"])
-        fu = runner.run(StageSpec("fuse", rd, stages.fuse, ("fused", "noisy_renders"), inputs=fuse_inputs,
+        fu = runner.run(StageSpec("fuse", rd, stages.fuse, SCENE_OUTPUTS["fuse"], inputs=fuse_inputs,
                                   upstream=fuse_upstream, settings=settings.fuse,
                                   seed=stage_seed(config.seed, r, "fuse"), code=stages.code.get("fuse", ())),
                         label=f"{label}/fuse")
         out["fuse"] = fu
         splat_images, splat_upstream = rd / "fused", (images, al, fu)
-    sp = runner.run(StageSpec("splat", rd, stages.splat, ("sparse", "point_cloud.ply"),
+    sp = runner.run(StageSpec("splat", rd, stages.splat, SCENE_OUTPUTS["splat"],
                               inputs={"images": splat_images, "align": rd / "align"}, upstream=splat_upstream,
                               settings=settings.splat, seed=stage_seed(config.seed, r, "splat"),
                               code=stages.code.get("splat", ())),
                     label=f"{label}/splat")
-    re = runner.run(StageSpec("render", rd, stages.render, ("renders",),
+    re = runner.run(StageSpec("render", rd, stages.render, SCENE_OUTPUTS["render"],
                               inputs={"sparse": rd / "sparse", "scene": rd / "point_cloud.ply"}, upstream=(sp,),
                               settings=settings.render, seed=0, code=stages.code.get("render", ())),
                     label=f"{label}/render")
     return {**out, "splat": sp, "render": re}
+
+
+def _planned_outputs(out: Path, stages: PipelineStages,
+                     settings: list[RoundSettings]) -> Iterator[tuple[Path, str, tuple[str, ...]]]:
+    """(stage folder, stage name, outputs) of every stage a run of `settings` may run, then the published
+    ones (export, if `stages` has it, and the report)."""
+    yield out, WORKING_DIR, (WORKING_DIR,)
+    for rs in settings:
+        rd = out / f"round{rs.index}"
+        first = {"denoise": stages.denoise_outputs} if rs.index == 1 else ROUND2_OUTPUTS
+        scene = {k: v for k, v in SCENE_OUTPUTS.items() if k != "fuse" or rs.fuse is not None}
+        for name, outputs in {**first, **scene}.items():
+            yield rd, name, outputs
+    yield from _published(out, stages)
+
+
+def _check_planned_outputs(out: Path, stages: PipelineStages, settings: list[RoundSettings]) -> None:
+    """`check_outputs_owned` for every stage of `_planned_outputs`; one error names every file found.
+
+    Raises:
+        UnownedOutputError: files the run did not write, or that changed, in the outputs of those stages.
+    """
+    names, problems = [], []
+    for folder, name, outputs in _planned_outputs(out, stages, settings):
+        try:
+            check_outputs_owned(folder, name, outputs, defer_hidden=True)
+        except UnownedOutputError as exc:
+            names += [n for n in exc.stages if n not in names]
+            problems += exc.paths
+    if problems:
+        raise UnownedOutputError(names, out, problems)
+
+
+def _published(out: Path, stages: PipelineStages) -> list[tuple[Path, str, tuple[str, ...]]]:
+    """(folder, record name, outputs) of the run's published result: export's files and the report."""
+    export = [(out, "export", EXPORT_OUTPUTS)] if stages.export is not None else []
+    return [*export, (out, REPORT_RECORD, REPORT_OUTPUTS)]
 
 
 def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig, *,
@@ -161,14 +213,26 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         stages: the stage functions; default the product's (`product_stages()`).
         force: re-run every stage even when complete outputs exist.
 
+    Resuming changes only files the run wrote. Before any stage runs, the committed outputs of every stage
+    this run may run, and the published result (`scene.splat`, `view/`, `cameras/`, the report files), are
+    checked against their records (size and sha256 of every file): a file the run did not write, or one
+    whose content changed, stops the run with nothing changed; a recorded file that is missing is written
+    again. Hidden files (e.g. `.DS_Store`) in complete outputs are checked only when their stage runs.
+    When a stage is about to be recomputed, the previous published result is withdrawn first (its files
+    and records removed, after the same check), so a run killed afterwards leaves no report, scene or
+    cameras that do not match its stages; a run with nothing to recompute keeps them, and rewrites only
+    the report (this invocation's timings).
+
     Raises:
         InputError: bad inputs or settings (e.g. a preset name a component does not have), found
             before any compute (see `validate_run_inputs`, `eval.pipeline.stage_settings`).
+        UnownedOutputError: (an `InputError`) files in `out` that the run would have to replace or
+            delete but did not write, or that changed since (named in the message; nothing changed).
         ValueError: `stages` cannot run `config` (no fuse function with `fuse_noisy_splat`, or a
             denoise stage without a network before a second round).
     """
     images_dir, out = Path(images_dir), Path(out)
-    plan = prepare_output(out, command=RUN_COMMAND, inputs=[images_dir], resume=True, layout=RUN_LAYOUT)
+    plan = prepare_output(out, command=RUN_COMMAND, inputs=[images_dir], resume=True)
     files = validate_run_inputs(images_dir, config)
     stages = product_stages() if stages is None else stages
     if config.rounds >= 2 and MODEL_FILE not in stages.denoise_outputs:
@@ -178,7 +242,17 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     # and a changed component default changes the keys of the stages that use it.
     settings = [round_settings(config, r) for r in range(1, config.rounds + 1)]
     timer = StageTimer()
-    runner = StageRunner(timer=timer, force=force)
+    withdrawn = False
+
+    def withdraw_published(spec: StageSpec) -> None:
+        """Before the first stage that is recomputed: remove the previous published result (the run's own)."""
+        nonlocal withdrawn
+        if not withdrawn:
+            withdrawn = True
+            if any([withdraw_outputs(folder, name, outputs) for folder, name, outputs in _published(out, stages)]):
+                _log.info("stage %s runs again: the previous scene, cameras and report were withdrawn", spec.name)
+
+    runner = StageRunner(timer=timer, force=force, before_change=withdraw_published)
     # The noisy inputs enter the keys by content (only the image files, so
     # unrelated files in IMAGES_DIR change nothing).
     noisy_digest = hash_files(files.values())
@@ -186,6 +260,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     rounds: list[RoundResult] = []
     stopped: StoppedRound | None = None
     with resumable_output_dir(plan), output_lock(out):
+        _check_planned_outputs(out, stages, settings)  # before anything is changed
         # The working images (upright, long side <= max_size): every stage reads these, not the inputs.
         prep = runner.run(StageSpec(WORKING_DIR, out, prepare_inputs, (WORKING_DIR,), inputs={"noisy": images_dir},
                                     settings=InputsStageSettings(config.max_size, noisy_digest),
@@ -203,13 +278,13 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
             prev, rd = rounds[-1], out / f"round{r}"
             model_stage = prev.stages.get("denoise") or prev.stages["refine"]
             sel = runner.run(StageSpec(
-                "select", rd, stages.select, ("selection.json",),
+                "select", rd, stages.select, ROUND2_OUTPUTS["select"],
                 inputs={"sparse": prev.dir / "sparse", "images": prev.dir / "denoised"},
                 upstream=(prev.stages["splat"], model_stage), settings=rs.select,
                 seed=stage_seed(config.seed, r, "select"), code=stages.code.get("select", ())),
                 label=f"round{r}/select")
             ref = runner.run(StageSpec(
-                "refine", rd, stages.refine, ("denoised", MODEL_FILE),
+                "refine", rd, stages.refine, ROUND2_OUTPUTS["refine"],
                 inputs={"noisy": working, "selection": rd / "selection.json",
                         "model": prev.dir / MODEL_FILE, "renders": prev.dir / "renders",
                         "previous": prev.dir / "denoised"},
@@ -229,7 +304,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         if stages.export is not None:
             last = rounds[-1]
             exported = runner.run(StageSpec(
-                "export", out, stages.export, ("scene.splat", "view", "cameras"),
+                "export", out, stages.export, EXPORT_OUTPUTS,
                 inputs={"scene": last.dir / "point_cloud.ply", "sparse": last.dir / "sparse",
                         "sizes": working / SIZES_FILE},
                 upstream=(prep, last.stages["splat"]), code=stages.code.get("export", ())), label="export")

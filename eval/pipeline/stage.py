@@ -12,23 +12,31 @@ relative to the stage's folder) into a private work folder `ctx.work_dir`.
 2. if `stages/<name>.json` holds that key and every declared output still
    matches the record (same files, sizes and sha256), the stage is skipped
    (its recorded summary is returned);
-3. otherwise the record is deleted first, `fn` runs in a temporary sibling
-   folder (removed if `fn` raises), the size and sha256 of every output file
-   (every non-hidden file inside an output folder) are taken there, each output
-   replaces the old one with an atomic rename, and the record is written last
-   (atomically).
+3. otherwise the committed outputs are checked to be the stage's own: every
+   file in them (hidden ones included) must be one the record says the stage
+   wrote, with the recorded sha256. A file the stage did not write, or one
+   whose content changed, stops the run with `UnownedOutputError` before the
+   stage changes anything (running it again would delete the file); a recorded
+   file that is missing is fine (it is written again);
+4. `fn` runs in a temporary sibling folder (removed if `fn` raises; the old
+   outputs and their record stay as they were), the size and sha256 of every
+   output file (every non-hidden file inside an output folder) are taken
+   there, the ownership check is made again, a pending record owning both the
+   old and the new files is written, each output replaces the old one with an
+   atomic rename, and the record is written last (atomically).
 
 So a stage's outputs are complete exactly when its record holds the current
-key and they hash as recorded: a crash at any point leaves either no record
-(the stage re-runs) or the new one, and a missing, truncated or edited output
-makes its stage run again.
+key and they hash as recorded: a crash at any point leaves either the old
+record with the old outputs, a pending record (the stage re-runs), or the new
+one. A deleted output makes its stage run again; a changed or added file is
+never overwritten or deleted, since it may be the user's.
 
 Downstream stages follow through their keys, not through a flag held by the
 runner: a stage's key contains the recorded output digest of each upstream
 stage, so when a re-run upstream stage writes outputs that differ from before
 (different bytes), every stage after it gets a new key and runs again, also in
 a later process after an interruption. When the re-run writes the very bytes
-the damaged files had before, the stages after it read exactly what they read
+the missing files had before, the stages after it read exactly what they read
 the first time and their checked outputs are reused.
 
 Code: one rule. The key includes `source_digest` of the module that defines
@@ -53,7 +61,8 @@ import shutil
 import tempfile
 import time
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import Any
@@ -62,11 +71,12 @@ import numpy as np
 
 from eval.pipeline.hashing import file_sha256, hash_json, hash_path, source_digest, tree_files
 from mvgeo.common.atomic import atomic_write_text
-from mvgeo.common.errors import DgsError
+from mvgeo.common.errors import DgsError, InputError
 from mvgeo.common.timing import StageTimer
 
-__all__ = ["RECORD_DIR", "StageContext", "StageFn", "StageResult", "StageRunner", "StageSpec", "code_digests",
-           "output_manifest", "settings_json", "verify_outputs"]
+__all__ = ["RECORD_DIR", "StageContext", "StageFn", "StageResult", "StageRunner", "StageSpec", "UnownedOutputError",
+           "check_outputs_owned", "code_digests", "commit_outputs", "output_manifest", "settings_json",
+           "stage_work_dir", "unowned_outputs", "verify_outputs", "withdraw_outputs"]
 
 _log = logging.getLogger(__name__)
 
@@ -257,8 +267,123 @@ def verify_outputs(root: Path, manifest: Mapping[str, Mapping]) -> str | None:
     return None
 
 
+class UnownedOutputError(InputError):
+    """Stages' committed outputs hold files they did not write, or files they wrote whose content changed
+    since; writing the outputs again would delete them, so nothing is changed.
+
+    Attributes:
+        stages: the stages' names.
+        paths: the files concerned (each with why, e.g. ``"run/inputs/notes.txt (not written by the stage)"``).
+    """
+
+    def __init__(self, stages: str | Sequence[str], folder: Path, problems: Sequence[str]):
+        self.stages = (stages,) if isinstance(stages, str) else tuple(stages)
+        self.paths = tuple(problems)
+        names = ", ".join(repr(n) for n in self.stages)
+        shown = "; ".join(problems[:8]) + (f"; and {len(problems) - 8} more" if len(problems) > 8 else "")
+        which = f"stage {names}" if len(self.stages) == 1 else f"stages {names}"
+        super().__init__(f"writing the outputs of {which} again would delete files in them that the run did "
+                         f"not write or that changed since it wrote them: {shown}", path=folder,
+                         fix="move these files out of the output folder (an output file that is missing is simply "
+                             "written again), or choose another --out; nothing was changed")
+
+
+def _record_file(stage_dir: Path, name: str) -> Path:
+    return stage_dir / RECORD_DIR / f"{name}.json"
+
+
 def _record_path(spec: StageSpec) -> Path:
-    return spec.stage_dir / RECORD_DIR / f"{spec.name}.json"
+    return _record_file(spec.stage_dir, spec.name)
+
+
+def _read_record(record: Path) -> tuple[dict | None, str]:
+    """(the record, "") or (None, why there is none usable)."""
+    if not record.is_file():
+        return None, "no record"
+    try:
+        rec = json.loads(record.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None, "unreadable record"
+    if not isinstance(rec, dict):
+        return None, "unreadable record"
+    return rec, ""
+
+
+def _owned_files(rec: Mapping | None) -> dict[str, frozenset[str]]:
+    """Path relative to the stage folder -> the sha256 values the stage wrote there, by its record:
+    `owned` (every file, hidden ones included; a pending record's holds the old and the new files), else
+    the manifest's files (records written before `owned` existed). Empty for no or a malformed record."""
+    if rec is None:
+        return {}
+    try:
+        owned = rec.get("owned")
+        if isinstance(owned, Mapping):
+            return {str(k): frozenset(str(h) for h in v) for k, v in owned.items() if isinstance(v, list)}
+        return {str(k): frozenset([str(v["sha256"])]) for k, v in dict(rec["manifest"]["files"]).items()}
+    except (KeyError, TypeError, AttributeError):
+        return {}
+
+
+def _entries(root: Path, outputs: Sequence[str]) -> Iterator[tuple[str, Path]]:
+    """(path relative to `root`, path) of every entry under `root`'s `outputs` that is not a folder: files,
+    symbolic links (to folders too: they are not followed) and anything else, hidden ones included.
+
+    Raises:
+        OSError: a folder cannot be listed.
+    """
+
+    def fail(exc: OSError) -> None:
+        raise exc
+
+    for o in outputs:
+        path = root / o
+        if not os.path.lexists(path):
+            continue
+        if not path.is_dir() or path.is_symlink():
+            yield o, path
+            continue
+        for dirpath, dirnames, filenames in os.walk(path, onerror=fail):
+            folder = Path(dirpath)
+            for n in sorted(dirnames):
+                if (folder / n).is_symlink():
+                    yield (folder / n).relative_to(root).as_posix(), folder / n
+            for n in sorted(filenames):
+                yield (folder / n).relative_to(root).as_posix(), folder / n
+
+
+def unowned_outputs(stage_dir: Path, outputs: Sequence[str], owned: Mapping[str, frozenset[str]]) -> list[str]:
+    """The entries under `stage_dir`'s `outputs` that are not files `owned` records with their current content,
+    each as ``"<path> (why)"`` (the path as `stage_dir` is given); missing recorded files are no problem."""
+    problems = []
+    try:
+        for rel, path in _entries(stage_dir, outputs):
+            shas = owned.get(rel)
+            if path.is_symlink() or not path.is_file() or not shas:
+                problems.append(f"{path} (not written by the stage)")
+            elif file_sha256(path) not in shas:
+                problems.append(f"{path} (changed since the stage wrote it)")
+    except OSError as exc:
+        problems.append(f"{exc.filename or stage_dir} (cannot be read: {exc.strerror or exc})")
+    return problems
+
+
+def check_outputs_owned(stage_dir: Path, name: str, outputs: Sequence[str], *, defer_hidden: bool = False) -> None:
+    """Raise `UnownedOutputError` when the committed `outputs` of stage `name` in `stage_dir` hold anything its
+    record (`stages/<name>.json`) does not say it wrote, as it wrote it (see `unowned_outputs`); without a
+    readable record, every existing file in them counts as not written by the stage.
+
+    With `defer_hidden`, outputs that are complete by the record (`verify_outputs`) pass: all they can hold
+    besides the stage's files are hidden entries (e.g. a file manager's `.DS_Store`), which matter only if
+    the stage runs again, and `StageRunner.run` checks them then.
+    """
+    rec, _ = _read_record(_record_file(stage_dir, name))
+    manifest = rec.get("manifest") if rec is not None else None
+    if (defer_hidden and isinstance(manifest, Mapping) and isinstance(manifest.get("outputs"), Mapping)
+            and set(manifest["outputs"]) == set(outputs) and verify_outputs(stage_dir, manifest) is None):
+        return
+    problems = unowned_outputs(stage_dir, outputs, _owned_files(rec))
+    if problems:
+        raise UnownedOutputError(name, stage_dir, problems)
 
 
 def _remove(path: Path) -> None:
@@ -280,15 +405,82 @@ def _replace(src: Path, dst: Path) -> None:
         _remove(old)
 
 
-def _reusable(spec: StageSpec, key: str, record: Path) -> tuple[dict | None, str]:
-    """(the record, "") when the stage's committed outputs can be reused for `key`, else (None, why not)."""
-    if not record.is_file():
-        return None, "no record"
+@contextmanager
+def stage_work_dir(stage_dir: Path, name: str) -> Iterator[Path]:
+    """A new empty hidden folder `stage_dir/.<name>.work-*` for a stage's outputs, removed when the block
+    ends; those a killed run left (the same prefix: the runner's own) are removed first."""
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    for stale in stage_dir.glob(f".{name}.work-*"):
+        _remove(stale)
+    work = Path(tempfile.mkdtemp(prefix=f".{name}.work-", dir=stage_dir))
     try:
-        rec = json.loads(record.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None, "unreadable record"
-    if not isinstance(rec, dict) or rec.get("key") != key:
+        yield work
+    finally:
+        _remove(work)
+
+
+def commit_outputs(stage_dir: Path, name: str, outputs: Sequence[str], work: Path, record: Mapping[str, object],
+                   manifest: Mapping[str, Mapping] | None = None) -> None:
+    """Move the outputs written in `work` into `stage_dir` and write the record `stages/<name>.json`.
+
+    Each of `outputs` present in `work` replaces the committed one (atomic rename); one absent from `work`
+    is removed from `stage_dir`. First the committed outputs are checked to be the stage's own
+    (`check_outputs_owned`), and a pending record owning both the old and the new files is written, so
+    that a crash while they are replaced leaves files the next run knows as its own. The record written
+    last is `record` plus `owned` (every file written, hidden ones included).
+
+    Args:
+        manifest: `output_manifest(work, ...)` when the caller has it (its sha256 values are reused).
+
+    Raises:
+        UnownedOutputError: the committed outputs hold files the stage did not write or that changed.
+    """
+    rec_path = _record_file(stage_dir, name)
+    old_rec, _ = _read_record(rec_path)
+    old = _owned_files(old_rec)
+    problems = unowned_outputs(stage_dir, outputs, old)
+    if problems:
+        raise UnownedOutputError(name, stage_dir, problems)
+    known = {k: v["sha256"] for k, v in (manifest or {}).get("files", {}).items()}
+    new = {rel: [known.get(rel) or file_sha256(path)] for rel, path in _entries(work, outputs) if path.is_file()}
+    pending = {rel: sorted(set(new.get(rel, [])) | old.get(rel, frozenset())) for rel in new.keys() | old.keys()}
+    atomic_write_text(rec_path, json.dumps({"name": name, "pending": True, "owned": pending}, indent=2,
+                                           sort_keys=True) + "\n")
+    for o in outputs:
+        if os.path.lexists(work / o):
+            _replace(work / o, stage_dir / o)
+        elif os.path.lexists(stage_dir / o):
+            _remove(stage_dir / o)
+    atomic_write_text(rec_path, json.dumps({**record, "owned": new}, indent=2, sort_keys=True) + "\n")
+
+
+def withdraw_outputs(stage_dir: Path, name: str, outputs: Sequence[str]) -> bool:
+    """Remove the committed `outputs` of stage `name`, then its record, after `check_outputs_owned`.
+
+    A crash in between leaves the record with some outputs missing, which the next run writes again.
+    Returns True when anything was removed.
+
+    Raises:
+        UnownedOutputError: they hold files the stage did not write or that changed (nothing is removed).
+    """
+    check_outputs_owned(stage_dir, name, outputs)
+    removed = False
+    for o in outputs:
+        if os.path.lexists(stage_dir / o):
+            _remove(stage_dir / o)
+            removed = True
+    record = _record_file(stage_dir, name)
+    if record.is_file():
+        record.unlink()
+        removed = True
+    return removed
+
+
+def _reusable(spec: StageSpec, key: str, rec: dict | None, why: str) -> tuple[dict | None, str]:
+    """(the record, "") when the stage's committed outputs can be reused for `key`, else (None, why not)."""
+    if rec is None:
+        return None, why
+    if rec.get("key") != key:
         return None, "settings, inputs, code or upstream outputs changed"
     manifest = rec.get("manifest")
     if not isinstance(manifest, Mapping) or set(manifest.get("outputs", {})) != set(spec.outputs):
@@ -305,11 +497,16 @@ class StageRunner:
     Args:
         timer: receives the seconds of every stage that runs, under `"<label>/<name>"`.
         force: re-run every stage even when its outputs are complete.
+        before_change: called with a stage's spec when it is about to run (it will not be skipped and its
+            outputs are the stage's own), before its function runs; `run_pipeline` withdraws the run's
+            published result there.
     """
 
-    def __init__(self, *, timer: StageTimer | None = None, force: bool = False):
+    def __init__(self, *, timer: StageTimer | None = None, force: bool = False,
+                 before_change: Callable[[StageSpec], None] | None = None):
         self.timer = timer if timer is not None else StageTimer()
         self.force = force
+        self.before_change = before_change
         self.results: list[StageResult] = []
 
     def run(self, spec: StageSpec, *, label: str | None = None) -> StageResult:
@@ -320,6 +517,9 @@ class StageRunner:
             label: timer/log label (default `spec.name`).
 
         Raises:
+            UnownedOutputError: the stage must run, but its committed outputs hold files it did not write
+                or that changed since (checked before the function runs and again before the commit;
+                nothing of the stage's is changed).
             DgsError: the function did not write a declared output, or returned a non-JSON-able summary.
             Whatever the stage function raises (outputs and record are then untouched).
         """
@@ -327,24 +527,26 @@ class StageRunner:
         key = spec.key()
         record = _record_path(spec)
         outputs = {o: spec.stage_dir / o for o in spec.outputs}
+        old, why = _read_record(record)
         if not self.force:
-            rec, why = _reusable(spec, key, record)
+            rec, why = _reusable(spec, key, old, why)
             if rec is not None:
                 _log.info("stage %s: complete (outputs checked), skipped", label)
                 result = StageResult(spec.name, key, outputs, rec.get("summary", {}), True,
                                      float(rec.get("seconds", 0.0)), hash_json(rec["manifest"]))
                 self.results.append(result)
                 return result
+        problems = unowned_outputs(spec.stage_dir, spec.outputs, _owned_files(old))
+        if problems:
+            raise UnownedOutputError(spec.name, spec.stage_dir, problems)
+        if not self.force:
             if why.startswith("output check"):
                 _log.warning("stage %s: %s; running it again", label, why)
             elif record.is_file():
                 _log.info("stage %s: %s; running it again", label, why)
-        spec.stage_dir.mkdir(parents=True, exist_ok=True)
-        _remove(record)
-        for stale in spec.stage_dir.glob(f".{spec.name}.work-*"):  # left by a killed run
-            _remove(stale)
-        work = Path(tempfile.mkdtemp(prefix=f".{spec.name}.work-", dir=spec.stage_dir))
-        try:
+        if self.before_change is not None:
+            self.before_change(spec)
+        with stage_work_dir(spec.stage_dir, spec.name) as work:
             settings = dict(spec.settings) if isinstance(spec.settings, Mapping) else spec.settings
             ctx = StageContext(spec.name, work, dict(spec.inputs), settings, spec.seed)
             start = time.perf_counter()
@@ -356,19 +558,14 @@ class StageRunner:
                 raise DgsError(f"stage {label} did not write its declared outputs {missing} "
                                f"(a bug in the stage function)")
             manifest = output_manifest(work, spec.outputs)
+            body = {"key": key, "name": spec.name, "manifest": manifest, "code": code_digests(spec.fn, spec.code),
+                    "seconds": round(seconds, 4), "seed": spec.seed, "settings": settings_json(spec.settings),
+                    "summary": summary}
             try:
-                record_text = json.dumps({"key": key, "name": spec.name, "manifest": manifest,
-                                          "code": code_digests(spec.fn, spec.code),
-                                          "seconds": round(seconds, 4), "seed": spec.seed,
-                                          "settings": settings_json(spec.settings), "summary": summary},
-                                         indent=2, sort_keys=True)
+                json.dumps(body)
             except TypeError as exc:
                 raise DgsError(f"stage {label} returned a summary that is not JSON-able: {exc}") from exc
-            for o in spec.outputs:
-                _replace(work / o, outputs[o])
-            atomic_write_text(record, record_text + "\n")
-        finally:
-            _remove(work)
+            commit_outputs(spec.stage_dir, spec.name, spec.outputs, work, body, manifest)
         result = StageResult(spec.name, key, outputs, summary, False, seconds, hash_json(manifest))
         self.results.append(result)
         return result

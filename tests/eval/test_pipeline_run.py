@@ -9,7 +9,7 @@ import shutil
 import numpy as np
 import pytest
 
-from eval.pipeline import PipelineConfig, preset, run_pipeline
+from eval.pipeline import PipelineConfig, preset, run_pipeline, stage_seed
 from eval.pipeline.lock import LOCK_NAME, output_lock
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import write_image
@@ -142,9 +142,10 @@ def test_interrupted_run_resumes(tmp_path, scene, stage):
     with pytest.raises(KeyboardInterrupt):
         run_pipeline(scene, out, _cfg(rounds=2, seed=7), stages=tiny.stages())
     rd = out / "round1"
-    # The interrupted stage's record is gone (old outputs are stale, not trusted), no temp folders remain,
-    # and the lock is released.
-    assert not (rd / "stages" / f"{stage}.json").exists()
+    # The interrupted stage's outputs and record are the previous run's (its key is not this run's), no
+    # temp folders remain, the previous report was withdrawn, and the lock is released.
+    assert json.loads((rd / "stages" / f"{stage}.json").read_text())["seed"] == stage_seed(0, 1, stage)
+    assert not (out / "report.json").exists() and not (out / "report.md").exists()
     assert not _leftovers(out) and not (out / LOCK_NAME).exists()
     calls_before = dict(tiny.calls)
     run_pipeline(scene, out, _cfg(rounds=2, seed=7), stages=tiny.stages())

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 import shutil
 
 import pytest
@@ -12,7 +13,7 @@ import pytest
 from eval.pipeline import PRESETS, StageRunner, StageSpec, preset
 from eval.pipeline.config import AlignSettings, DenoiseSettings, SplatSettings
 from eval.pipeline.hashing import file_sha256, hash_json, tree_files
-from eval.pipeline.stage import settings_json, verify_outputs
+from eval.pipeline.stage import UnownedOutputError, settings_json, verify_outputs
 from eval.pipeline.stage_settings import align_config, check_settings, round2_config, round_settings, train_config
 from mvgeo.common.errors import ConfigError, DgsError
 
@@ -63,8 +64,7 @@ def test_commit_skip_and_replace(tmp_path):
     # Deleting an output makes the stage incomplete.
     (tmp_path / "st" / "a.txt").unlink()
     assert not runner.run(_spec(tmp_path, _writer("one", calls))).skipped
-    # New settings: outputs are replaced, folders included (no stale files inside `d`).
-    (tmp_path / "st" / "d" / "stale.txt").write_text("old")
+    # New settings: outputs are replaced, folders included.
     runner.run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
     assert (tmp_path / "st" / "a.txt").read_text() == "two"
     assert sorted(p.name for p in (tmp_path / "st" / "d").iterdir()) == ["b.txt"]
@@ -84,15 +84,15 @@ def test_record_holds_size_and_sha256_of_every_output_file(tmp_path):
     assert verify_outputs(st, manifest) is None
 
 
+def _tree(st):
+    return {p.relative_to(st).as_posix(): p.read_bytes() for p in sorted(st.rglob("*")) if p.is_file()}
+
+
 @pytest.mark.parametrize(("damage", "reason"), [
-    (lambda st: (st / "a.txt").write_text("on"), "a.txt has 2 bytes, 3 recorded"),
-    (lambda st: (st / "d" / "b.txt").write_text("ONEONE"), "d/b.txt changed"),  # same size
     (lambda st: (st / "d" / "b.txt").unlink(), "d/b.txt is missing"),
-    (lambda st: (st / "d" / "new.txt").write_text("x"), "d/new.txt was not written by the stage"),
     (lambda st: shutil.rmtree(st / "d"), "d is missing"),
-    (lambda st: (shutil.rmtree(st / "d"), (st / "d").write_text("x")), "d is not a dir"),
 ])
-def test_damaged_output_reruns_the_stage(tmp_path, damage, reason):
+def test_missing_output_reruns_the_stage(tmp_path, damage, reason):
     calls: list = []
     runner = StageRunner()
     first = runner.run(_spec(tmp_path, _writer("one", calls)))
@@ -106,11 +106,87 @@ def test_damaged_output_reruns_the_stage(tmp_path, damage, reason):
     assert runner.run(_spec(tmp_path, _writer("one", calls))).skipped and len(calls) == 2
 
 
+@pytest.mark.parametrize(("damage", "reason", "culprit", "why"), [
+    (lambda st: (st / "a.txt").write_text("on"), "a.txt has 2 bytes, 3 recorded", "a.txt", "changed"),
+    (lambda st: (st / "d" / "b.txt").write_text("ONEONE"), "d/b.txt changed", "d/b.txt", "changed"),  # same size
+    (lambda st: (st / "d" / "new.txt").write_text("x"), "d/new.txt was not written by the stage", "d/new.txt",
+     "not written"),
+    (lambda st: (shutil.rmtree(st / "d"), (st / "d").write_text("x")), "d is not a dir", "d", "not written"),
+    (lambda st: (st / "d" / "link").symlink_to(st / "a.txt"), "d/link was not written", "d/link", "not written"),
+])
+@pytest.mark.parametrize("force", [False, True])
+def test_changed_or_added_output_files_stop_the_stage_before_it_runs(tmp_path, damage, reason, culprit, why, force):
+    """A file in a stage's outputs that the stage did not write, or whose content changed, may be the user's:
+    the stage refuses to run (it would delete it), with a typed error naming the file, and changes nothing;
+    once the file is moved out of the folder the stage runs again."""
+    calls: list = []
+    first = StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    st = tmp_path / "st"
+    manifest = json.loads((st / "stages" / "s.json").read_text())["manifest"]
+    damage(st)
+    assert reason in verify_outputs(st, manifest)
+    before = _tree(st)
+    with pytest.raises(UnownedOutputError, match=re.escape(f"{st / culprit} ({why}")) as info:
+        StageRunner(force=force).run(_spec(tmp_path, _writer("one", calls)))
+    assert "move these files out" in info.value.fix and info.value.path == st
+    assert len(calls) == 1 and _tree(st) == before
+    # New settings (a stage that must run anyway): refused too.
+    with pytest.raises(UnownedOutputError):
+        StageRunner().run(_spec(tmp_path, _writer("one", calls), settings={"v": 2}))
+    assert len(calls) == 1 and _tree(st) == before
+    # The user moves the file out: an added file was the only difference, a missing output is written again.
+    (st / culprit).rename(tmp_path / "kept")
+    again = StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    assert again.skipped == (culprit not in manifest["files"] and culprit not in manifest["outputs"])
+    assert again.outputs_digest == first.outputs_digest and verify_outputs(st, manifest) is None
+    assert len(calls) == 1 + (not again.skipped)
+
+
+def test_interrupted_commit_leaves_files_the_next_run_owns(tmp_path, monkeypatch):
+    """A crash while outputs are being replaced leaves a pending record that owns the old and the new files:
+    the next run is not refused by its own files and writes the outputs again."""
+    import eval.pipeline.stage as stage_mod
+
+    calls: list = []
+    StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    real_replace, moved = stage_mod._replace, []
+
+    def crash_after_first(src, dst):
+        if moved:
+            raise KeyboardInterrupt("killed while committing")
+        moved.append(dst)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(stage_mod, "_replace", crash_after_first)
+    with pytest.raises(KeyboardInterrupt):
+        StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
+    st = tmp_path / "st"
+    assert (st / "a.txt").read_text() == "two" and (st / "d" / "b.txt").read_text() == "oneone"  # half replaced
+    assert json.loads((st / "stages" / "s.json").read_text())["pending"] is True
+    monkeypatch.setattr(stage_mod, "_replace", real_replace)
+    res = StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
+    assert not res.skipped and (st / "d" / "b.txt").read_text() == "twotwo"
+    assert StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2})).skipped
+
+
+def test_outputs_without_a_record_are_not_replaced(tmp_path):
+    calls: list = []
+    StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    (tmp_path / "st" / "stages" / "s.json").unlink()
+    with pytest.raises(UnownedOutputError, match="a.txt"):
+        StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    assert (tmp_path / "st" / "a.txt").read_text() == "one" and len(calls) == 1
+
+
 def test_hidden_files_in_output_folders_are_not_outputs(tmp_path):
     calls: list = []
     StageRunner().run(_spec(tmp_path, _writer("one", calls)))
     (tmp_path / "st" / "d" / ".DS_Store").write_text("x")
     assert StageRunner().run(_spec(tmp_path, _writer("one", calls))).skipped and len(calls) == 1
+    # ...but they are not the stage's either: replacing the folder would delete them.
+    with pytest.raises(UnownedOutputError, match="DS_Store"):
+        StageRunner().run(_spec(tmp_path, _writer("one", calls), settings={"v": 2}))
+    assert (tmp_path / "st" / "d" / ".DS_Store").read_text() == "x"
 
 
 def test_key_depends_on_upstream_outputs(tmp_path):
@@ -122,9 +198,9 @@ def test_key_depends_on_upstream_outputs(tmp_path):
     assert down[0] != down[1]
 
 
-def test_failing_stage_leaves_old_outputs_unrecorded(tmp_path):
+def test_failing_stage_leaves_old_outputs_and_their_record(tmp_path):
     runner = StageRunner()
-    runner.run(_spec(tmp_path, _writer("one", [])))
+    first = runner.run(_spec(tmp_path, _writer("one", [])))
 
     def boom(ctx):
         (ctx.work_dir / "a.txt").write_text("half")
@@ -132,9 +208,10 @@ def test_failing_stage_leaves_old_outputs_unrecorded(tmp_path):
 
     with pytest.raises(RuntimeError):
         runner.run(_spec(tmp_path, boom, settings={"v": 2}))
-    assert (tmp_path / "st" / "a.txt").read_text() == "one"  # untouched
-    assert not (tmp_path / "st" / "stages" / "s.json").exists()  # ...but no longer trusted
+    assert (tmp_path / "st" / "a.txt").read_text() == "one"  # untouched, and so is their record: the old key's
+    assert json.loads((tmp_path / "st" / "stages" / "s.json").read_text())["key"] == first.key
     assert not [p for p in (tmp_path / "st").iterdir() if p.name.startswith(".")]
+    assert not runner.run(_spec(tmp_path, _writer("two", []), settings={"v": 2})).skipped
 
 
 def test_undeclared_output_and_bad_summary(tmp_path):

@@ -1,4 +1,6 @@
-"""Resume checks what it reuses: damaged stage outputs are recomputed, and the result equals an undamaged run's.
+"""Resume checks what it reuses: missing stage outputs are recomputed, and the result equals an undamaged run's;
+changed or added files stop the run with nothing changed (they may be the user's), and once they are moved out
+of the folder the run completes as if they had been deleted.
 
 The small real stages of `tests/eval/_tiny_stages.py` write every kind of output the product writes:
 16-bit PNG folders, a PLY, a `.pt` checkpoint file (JSON text there; the real checkpoint in the slow
@@ -17,7 +19,7 @@ import numpy as np
 import pytest
 
 from eval.pipeline import preset, run_pipeline
-from eval.pipeline.stage import RECORD_DIR
+from eval.pipeline.stage import RECORD_DIR, UnownedOutputError
 from tests.eval._tiny_stages import TinyStages, make_scene
 
 #: Damaged file (a glob under OUT; the first match) -> the stage that wrote it.
@@ -92,6 +94,10 @@ def test_intact_copy_is_reused_whole(reference, tmp_path):
     assert not tiny.calls
 
 
+def _all_bytes(out: Path) -> dict[str, bytes]:
+    return {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
 @pytest.mark.parametrize("damage", sorted(DAMAGE))
 @pytest.mark.parametrize("target", sorted(DAMAGE_TARGETS))
 def test_damaged_output_is_recomputed(reference, tmp_path, target, damage):
@@ -100,6 +106,13 @@ def test_damaged_output_is_recomputed(reference, tmp_path, target, damage):
     path = sorted(out.glob(target))[0]
     DAMAGE[damage](path)
     tiny = TinyStages()
+    if damage != "delete":
+        # A changed file may be the user's edit: the run stops, naming it, before it changes anything.
+        before = _all_bytes(out)
+        with pytest.raises(UnownedOutputError, match=f"{path.name} \\(changed since the stage wrote it\\)"):
+            run_pipeline(scene, out, _cfg(rounds=2), stages=tiny.stages())
+        assert not tiny.calls and _all_bytes(out) == before
+        path.rename(tmp_path / "kept")  # the fix the error names: move it out of the folder
     res = run_pipeline(scene, out, _cfg(rounds=2), stages=tiny.stages())
     # Only the damaged stage runs: it writes the same bytes again, so the stages after it read exactly
     # what they read before and their checked outputs are reused (see the next test for the case where
@@ -111,14 +124,18 @@ def test_damaged_output_is_recomputed(reference, tmp_path, target, damage):
     assert not [p for p in out.rglob(".*") if any(t in p.name for t in (".work-", ".old-", ".tmp"))]
 
 
-def test_extra_file_in_an_output_folder_reruns_its_stage(reference, tmp_path):
+def test_extra_file_in_an_output_folder_stops_the_run(reference, tmp_path):
     out = _copy(reference, tmp_path)
-    (out / "round1" / "denoised" / "view_999.png").write_bytes((out / "round1" / "denoised" /
-                                                               "view_000.png").read_bytes())
+    extra = out / "round1" / "denoised" / "view_999.png"
+    extra.write_bytes((out / "round1" / "denoised" / "view_000.png").read_bytes())
     tiny = TinyStages()
+    with pytest.raises(UnownedOutputError, match="view_999.png \\(not written by the stage\\)") as info:
+        run_pipeline(reference[0], out, _cfg(rounds=2), stages=tiny.stages())
+    assert "move these files out" in info.value.fix
+    assert not tiny.calls and extra.is_file()
+    extra.rename(tmp_path / "view_999.png")
     run_pipeline(reference[0], out, _cfg(rounds=2), stages=tiny.stages())
-    assert dict(tiny.calls) == {"denoise": 1}
-    assert _snapshot(out) == _snapshot(reference[1])  # the stray file went with the old folder
+    assert not tiny.calls and _snapshot(out) == _snapshot(reference[1])
 
 
 def test_changed_rebuild_reruns_every_later_stage_even_after_an_interruption(tmp_path):
@@ -130,7 +147,7 @@ def test_changed_rebuild_reruns_every_later_stage_even_after_an_interruption(tmp
     tiny = TinyStages()
     tiny.stamp_checkpoints = True
     run_pipeline(scene, out, _cfg(rounds=2), stages=tiny.stages())
-    _truncate(out / "round1" / "denoised" / "view_001.png")
+    (out / "round1" / "denoised" / "view_001.png").unlink()
     interrupted = TinyStages()
     interrupted.stamp_checkpoints = True
     interrupted.fail_next.add("splat")
@@ -150,12 +167,13 @@ def test_changed_rebuild_reruns_every_later_stage_even_after_an_interruption(tmp
 
 
 def test_damage_with_fuse_stage(tmp_path):
-    """The fuse stage's two output folders are checked too; damaging `noisy_renders` re-runs fuse only."""
+    """The fuse stage's two output folders are checked too; a file missing from `noisy_renders` re-runs fuse
+    only."""
     scene = make_scene(tmp_path / "images", n=5)
     cfg = dataclasses.replace(_cfg(rounds=1), fuse_noisy_splat=True)
     run_pipeline(scene, tmp_path / "ref", cfg, stages=TinyStages().stages())
     shutil.copytree(tmp_path / "ref", tmp_path / "out")
-    _random_bytes(sorted((tmp_path / "out" / "round1" / "noisy_renders").glob("*.png"))[2])
+    sorted((tmp_path / "out" / "round1" / "noisy_renders").glob("*.png"))[2].unlink()
     tiny = TinyStages()
     run_pipeline(scene, tmp_path / "out", cfg, stages=tiny.stages())
     assert dict(tiny.calls) == {"fuse": 1}
@@ -164,9 +182,9 @@ def test_damage_with_fuse_stage(tmp_path):
 
 @pytest.mark.slow  # real N2V and splat training (a few steps): ~20 s on a loaded 2-core machine
 def test_product_stages_recompute_damaged_outputs(tmp_path):
-    """The product's denoise, splat and render stages (alignment from the tiny set): a truncated real
-    checkpoint and a PLY overwritten with random bytes are recomputed, and the final Gaussians,
-    renders and checkpoint equal the undamaged run's."""
+    """The product's denoise, splat and render stages (alignment from the tiny set): a deleted real
+    checkpoint and a deleted PLY are recomputed, and the final Gaussians, renders and checkpoint equal
+    the undamaged run's."""
     import torch
 
     from denoise.model import load_checkpoint
@@ -182,8 +200,8 @@ def test_product_stages_recompute_damaged_outputs(tmp_path):
     ref, out = tmp_path / "ref", tmp_path / "out"
     run_pipeline(scene, ref, cfg, stages=stages)
     shutil.copytree(ref, out)
-    _truncate(out / "round1" / "n2v_model.pt")
-    _random_bytes(out / "round1" / "point_cloud.ply")
+    (out / "round1" / "n2v_model.pt").unlink()
+    (out / "round1" / "point_cloud.ply").unlink()
     res = run_pipeline(scene, out, cfg, stages=stages)
     r1 = res.rounds[0]
     assert not r1.stages["denoise"].skipped and not r1.stages["splat"].skipped
