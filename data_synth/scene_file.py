@@ -64,12 +64,21 @@ def find_scene(scene: str | Path) -> Path:
 
 
 def read_toml(path: Path) -> dict[str, Any]:
-    """Parse a TOML file (errors name the file)."""
+    """Parse a TOML file.
+
+    Raises:
+        InputError: the file cannot be read, is not UTF-8 text (e.g. an image passed as the scene), or is
+            not valid TOML; the message names the file.
+    """
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", path=path, fix="fix the syntax at the position given") from exc
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not a UTF-8 text file (byte {exc.start} cannot be decoded), so not a TOML scene file",
+                         path=path, fix="pass a .toml scene file saved as UTF-8 (`data-synth list` shows the "
+                         "built-in scenes)") from exc
     except OSError as exc:
         raise InputError(f"cannot read scene file: {exc.strerror}", path=path) from exc
 

@@ -46,17 +46,37 @@ def _sparse_dir(data_dir: Path) -> Path:
                      fix="DATA_DIR must hold images/ and sparse/0/ (a data-synth render or mvgeo align output)")
 
 
+#: What `split.json` holds, quoted in the errors about it.
+SPLIT_FORMAT = 'split.json must be UTF-8 JSON {"train": ["NAME.png", ...], "test": ["NAME.png", ...]}'
+
+
 def read_split(data_dir: Path, split: str) -> list[str] | None:
-    """Names in `split.json[split]`, or None when the folder has no split file."""
+    """Names in `split.json[split]`, or None when the folder has no split file.
+
+    Raises:
+        InputError: the file cannot be read or decoded, is not JSON, or `split` is not a list of names.
+    """
     path = data_dir / "split.json"
     if not path.exists():
         return None
     try:
-        names = json.loads(path.read_text())[split]
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise InputError(f"cannot read the '{split}' list ({exc})", path=path,
-                         fix='split.json must be {"train": [...], "test": [...]}') from exc
-    return [str(n) for n in names]
+        data = json.loads(path.read_bytes())
+    except OSError as exc:
+        raise InputError(f"cannot read split.json ({exc.strerror})", path=path, fix=SPLIT_FORMAT) from exc
+    except UnicodeDecodeError as exc:
+        raise InputError(f"split.json is not UTF-8 text (byte {exc.start} cannot be decoded)", path=path,
+                         fix=SPLIT_FORMAT) from exc
+    except json.JSONDecodeError as exc:
+        raise InputError(f"split.json is not valid JSON ({exc})", path=path, fix=SPLIT_FORMAT) from exc
+    if not isinstance(data, dict):
+        raise InputError(f"split.json holds a {type(data).__name__}, not an object", path=path, fix=SPLIT_FORMAT)
+    if split not in data:
+        raise InputError(f"split.json has no '{split}' list", path=path, fix=SPLIT_FORMAT)
+    names = data[split]
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise InputError(f"split.json's '{split}' must be a list of image names (strings), got {names!r:.80}",
+                         path=path, fix=SPLIT_FORMAT)
+    return names
 
 
 def load_views(data_dir: str | Path, *, split: str | None = "train", sparse_dir: str | Path | None = None
@@ -125,6 +145,9 @@ def points_from_depth(data_dir: str | Path, views: TrainingViews, *, stride_px: 
 
     Uses the ground-truth depth a `data_synth` folder ships: an oracle initialisation for
     benchmarks with known geometry (the real pipeline initialises from `mvgeo align`).
+
+    Raises:
+        InputError: a view has no depth map, or one that is unreadable or not one value per pixel.
     """
     depth_dir = Path(data_dir) / "depth"
     xyz_all, rgb_all = [], []
@@ -133,7 +156,15 @@ def points_from_depth(data_dir: str | Path, views: TrainingViews, *, stride_px: 
         if not path.exists():
             raise InputError("no depth map for this view", path=path,
                              fix="use --init POINTS.ply or a sparse model with points")
-        depth = np.load(path)
+        try:
+            depth = np.load(path)
+        except (OSError, ValueError, EOFError) as exc:  # ValueError: not a .npy file, or pickled objects
+            raise InputError(f"cannot read a depth map from this file ({exc})", path=path,
+                             fix="write it with numpy.save as an (H, W) float array, or use --init POINTS.ply") from exc
+        if not isinstance(depth, np.ndarray) or depth.shape != (cam.height, cam.width):
+            raise InputError(f"depth map has shape {getattr(depth, 'shape', None)}, its view is "
+                             f"{cam.width}x{cam.height} (expected ({cam.height}, {cam.width}))", path=path,
+                             fix="write one (H, W) depth value per pixel of the view, or use --init POINTS.ply")
         rows, cols = np.mgrid[0:cam.height:stride_px, 0:cam.width:stride_px]
         z = depth[rows, cols]
         ok = np.isfinite(z) & (z > 0)

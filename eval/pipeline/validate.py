@@ -29,7 +29,10 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
     """Check the inputs of `run_pipeline`; return stem -> image file.
 
     Checks: the folder exists and holds images with distinct stems, each one
-    decodes and is at least `MIN_IMAGE_SIZE_PX` on each side, there are at
+    decodes and is at least `MIN_IMAGE_SIZE_PX` on each side, all have one
+    working size (after `config.max_size`: every stage, the alignment first,
+    works on the working images and assumes one camera; inputs of different
+    sizes that downscale to one size are accepted), there are at
     least two, and at least `config.views` when a second round will select
     views (with fewer images than K the selection would be meaningless, so we
     stop and ask for a smaller `--views` instead of silently using all views).
@@ -40,6 +43,7 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
     """
     images_dir = Path(images_dir)
     files = view_files(images_dir)
+    first: tuple[Path, tuple[int, int], tuple[int, int]] | None = None
     for path in files.values():
         img = read_image(path)
         if min(img.shape[:2]) < MIN_IMAGE_SIZE_PX:
@@ -50,6 +54,12 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
             raise InputError(f"--max-size {config.max_size} makes this {img.shape[1]}x{img.shape[0]} image {w}x{h} "
                              f"px; at least {MIN_IMAGE_SIZE_PX} px per side is needed", path=path,
                              fix="pass a larger --max-size")
+        size = (img.shape[1], img.shape[0])
+        if first is None:
+            first = (path, size, (w, h))
+        elif (w, h) != first[2]:
+            raise InputError(_mixed_sizes(first, (path, size, (w, h)), config.max_size), path=images_dir,
+                             fix="resize or crop all images to one size first (the alignment assumes one camera)")
     n = len(files)
     if n < MIN_VIEWS:
         raise InputError(f"only {n} image(s); pose-free reconstruction needs at least {MIN_VIEWS}",
@@ -59,6 +69,15 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
                          f"among the inputs, so K cannot exceed the number of images", path=images_dir,
                          fix=f"pass --views {n} (or fewer), or add images")
     return files
+
+
+def _mixed_sizes(a: tuple[Path, tuple[int, int], tuple[int, int]], b: tuple[Path, tuple[int, int], tuple[int, int]],
+                 max_size: int | None) -> str:
+    """The message for two images (file, input (W, H), working (W, H)) whose working sizes differ."""
+    text = f"images have different sizes ({a[0].name}: {a[1][0]}x{a[1][1]}, {b[0].name}: {b[1][0]}x{b[1][1]})"
+    if (a[1], b[1]) != (a[2], b[2]):
+        text += f"; at --max-size {max_size} they are {a[2][0]}x{a[2][1]} and {b[2][0]}x{b[2][1]}"
+    return text
 
 
 @dataclass(frozen=True)
@@ -98,16 +117,28 @@ def validate_dataset_folder(root: Path) -> DatasetFolder:
         raise InputError("dataset has no split.json (train/test views)", path=split_path, fix=fix)
     if not (root / "sparse" / "0").is_dir():
         raise InputError("dataset has no ground-truth sparse/0/ cameras", path=root / "sparse" / "0", fix=fix)
+    split_fix = 'write split.json as UTF-8 JSON {"train": ["NAME.png", ...], "test": ["NAME.png", ...]}'
     try:
-        split = json.loads(split_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"cannot parse split.json ({exc})", path=split_path, fix=fix) from exc
-    if not isinstance(split, dict) or not all(isinstance(split.get(k), list) for k in ("train", "test")):
-        raise InputError('split.json must be {"train": [names], "test": [names]}', path=split_path)
+        split = json.loads(split_path.read_bytes())
+    except OSError as exc:
+        raise InputError(f"cannot read split.json ({exc.strerror})", path=split_path, fix=split_fix) from exc
+    except UnicodeDecodeError as exc:
+        raise InputError(f"split.json is not UTF-8 text (byte {exc.start} cannot be decoded)", path=split_path,
+                         fix=split_fix) from exc
+    except json.JSONDecodeError as exc:
+        raise InputError(f"cannot parse split.json ({exc})", path=split_path, fix=split_fix) from exc
+    if not isinstance(split, dict):
+        raise InputError(f"split.json holds a {type(split).__name__}, not an object", path=split_path,
+                         fix=split_fix)
+    for key in ("train", "test"):
+        names = split.get(key)
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise InputError(f"split.json's {key!r} must be a list of image names (strings), got {names!r:.80}",
+                             path=split_path, fix=split_fix)
     images = view_files(root / "images")
     clean = view_files(root / "clean")
-    train = [Path(str(n)).stem for n in split["train"]]
-    test = [Path(str(n)).stem for n in split["test"]]
+    train = [Path(n).stem for n in split["train"]]
+    test = [Path(n).stem for n in split["test"]]
     if not train or not test:
         raise InputError(f"split.json needs training and held-out views (has {len(train)} train, "
                          f"{len(test)} test)", path=split_path)

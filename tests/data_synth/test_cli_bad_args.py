@@ -96,3 +96,15 @@ def test_estimate_bounds_a_measured_render():
     measured = numpy_peak + 32 * w * h * n * n
     estimate = estimate_render_bytes((w, h), n)
     assert measured <= estimate <= 2 * measured, (measured, estimate)
+
+
+@pytest.mark.parametrize("command", ["render", "show"])
+@pytest.mark.parametrize(("name", "content"), [("scene.toml", b'[scene]\nname = "caf\xe9"\n'),
+                                             ("photo.png", b"\x89PNG\r\n\x1a\n\xff\xfe")])
+def test_a_scene_file_that_is_not_utf8_is_refused(tmp_path, capsys, no_render, command, name, content):
+    scene = tmp_path / "in" / name
+    scene.parent.mkdir()
+    scene.write_bytes(content)
+    argv = [command, scene] + (["--out", tmp_path / "out"] if command == "render" else [])
+    assert_refused(main, argv, capsys, inputs=[scene], watch=[tmp_path, scene.parent],
+                   message=[str(scene), "not a UTF-8 text file", "fix:"])

@@ -114,6 +114,22 @@ def test_duplicate_key_toml_and_missing_files(tmp_path):
     assert info.value.key == "textures"
 
 
+def test_a_file_that_is_not_utf8_text_is_an_input_error(tmp_path):
+    """A non-UTF-8 .toml, or an image passed as the scene, names the file instead of a UnicodeDecodeError."""
+    latin1 = tmp_path / "latin1.toml"
+    latin1.write_bytes(TINY_SCENE.replace("[scene]", "# caf\xe9\n[scene]", 1).encode("latin-1"))
+    png = tmp_path / "photo.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\xff\xfe")
+    for path in (latin1, png):
+        with pytest.raises(InputError, match="not a UTF-8 text file") as info:
+            load_scene(path)
+        assert str(path) in str(info.value) and "fix:" in str(info.value)
+    child = write_scene(tmp_path, 'base = "latin1.toml"\n', "child.toml")
+    with pytest.raises(InputError, match="not a UTF-8 text file") as info:
+        load_scene(child)
+    assert str(latin1) in str(info.value)
+
+
 def test_toml_writer_round_trip():
     data = {"a": 1, "b": 1.5e-7, "c": "q\"uote", "d": [1, 2], "e": [[0.1, 0.2], [0.3, 0.4]], "f": True,
             "t": {"x": 0.1, "sub": {"y": "z"}}, "arr": [{"k": 1}, {"k": 2, "n": {"m": 3}}], "empty": []}

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
+import cv2
 import pytest
 
 import eval.cli
 from eval.cli import main
+from eval.pipeline import preset, validate_run_inputs
+from mvgeo.common.errors import InputError
+from tests.common.cli_contract import assert_refused
 from tests.eval._tiny_stages import make_scene, tiny_dataset
 
 
@@ -78,6 +83,37 @@ def test_run_corrupt_image(tmp_path, capsys):
     assert "view_002.png" in _err(capsys)
 
 
+def test_run_refuses_mixed_image_sizes_before_any_output(tmp_path, capsys):
+    """Images of different sizes stop the run up front, naming two files and their sizes (the alignment
+    used to refuse them after the denoise stage had written OUT/inputs and round1/)."""
+    from mvgeo.common.imageio import read_image, write_image
+
+    scene = make_scene(tmp_path / "images", n=6, size_wh=(64, 48))
+    big = scene / "view_003.png"
+    write_image(big, cv2.resize(read_image(big), (160, 120)))
+    err = assert_refused(main, ["run", scene, "--out", tmp_path / "out", "--views", "6"], capsys, inputs=[scene],
+                         watch=[tmp_path], message=["view_000.png: 64x48", "view_003.png: 160x120",
+                                                    "resize or crop all images to one size"])
+    assert str(scene) in err
+
+
+def test_run_sizes_are_compared_at_the_working_size(tmp_path):
+    """Inputs that --max-size brings to one working size are accepted (each keeps its input-size camera);
+    the same inputs without downscaling, or ones of another shape, are refused naming the working sizes."""
+    from mvgeo.common.imageio import read_image, write_image
+
+    scene = make_scene(tmp_path / "images", n=3, size_wh=(96, 64))
+    write_image(scene / "view_001.png", cv2.resize(read_image(scene / "view_001.png"), (192, 128)))
+    cfg = preset("fast", views=3)
+    assert list(validate_run_inputs(scene, dataclasses.replace(cfg, max_size=96))) == [
+        "view_000", "view_001", "view_002"]
+    with pytest.raises(InputError, match="view_000.png: 96x64, view_001.png: 192x128"):
+        validate_run_inputs(scene, dataclasses.replace(cfg, max_size=None))
+    write_image(scene / "view_002.png", cv2.resize(read_image(scene / "view_002.png"), (128, 128)))
+    with pytest.raises(InputError, match="at --max-size 96 they are 96x64 and 96x96"):
+        validate_run_inputs(scene, dataclasses.replace(cfg, max_size=96))
+
+
 def _dataset(tmp_path):
     root = tmp_path / "ds"
     make_scene(root / "images", n=4)
@@ -96,6 +132,21 @@ def test_eval_dataset_missing_parts(tmp_path, capsys, remove, message):
     shutil.rmtree(target) if target.is_dir() else target.unlink()
     assert main(["eval", str(root), "--out", str(tmp_path / "out")]) == 2
     assert message in _err(capsys)
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    (b'{"train": ["view_001", "caf\xe9"], "test": ["view_000"]}', "not UTF-8 text"),
+    (b'{"train": 5, "test": ["view_000"]}', "'train' must be a list of image names"),
+    (b'{"train": ["view_001"], "test": "view_000"}', "'test' must be a list of image names"),
+    (b'{"train": ["view_001", 2], "test": ["view_000"]}', "'train' must be a list of image names"),
+    (b'[["view_001"], ["view_000"]]', "not an object"),
+    (b'{"train": [', "cannot parse split.json"),
+])
+def test_eval_refuses_a_malformed_split_json(tmp_path, capsys, content, message):
+    root = _dataset(tmp_path)
+    (root / "split.json").write_bytes(content)
+    assert_refused(main, ["eval", root, "--out", tmp_path / "out"], capsys, inputs=[root], watch=[tmp_path],
+                   message=[str(root / "split.json"), message, "fix:"])
 
 
 def test_eval_split_and_methods(tmp_path, capsys):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from mvgeo.camera import Camera
 from mvgeo.common.imageio import read_image
 from mvgeo.sparse_model import read_sparse_model, write_sparse_model
 from splat.cli import main
+from tests.common.cli_contract import assert_refused
 from tests.splat.test_train import _write_dataset, scene  # noqa: F401  (module fixture)
 
 
@@ -94,6 +96,41 @@ def test_train_input_errors_name_the_problem(tmp_path, scene, capsys):  # noqa: 
     _expect_error(capsys, ["train", str(tmp_path / "missing_image"), "--out", str(out), "--init",
                            str(tmp_path / "none.ply")])
     assert not out.exists()  # no half-written outputs
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    (b'{"train": 5}', "'train' must be a list of image names"),
+    (b'{"train": "v0.png", "test": []}', "'train' must be a list of image names"),
+    (b'{"train": [0, 1], "test": []}', "'train' must be a list of image names"),
+    (b'{"test": ["v4.png"]}', "no 'train' list"),
+    (b'["v0.png"]', "not an object"),
+    (b'{"train": ["caf\xe9.png"], "test": []}', "not UTF-8 text"),
+    (b'{"train": [', "not valid JSON"),
+])
+def test_train_refuses_a_malformed_split_json(tmp_path, scene, capsys, content, message):  # noqa: F811
+    data = tmp_path / "data"
+    _write_dataset(data, scene)
+    (data / "split.json").write_bytes(content)
+    assert_refused(main, ["train", data, "--out", tmp_path / "out", "--iters", "2"], capsys, inputs=[data],
+                   watch=[tmp_path], message=[str(data / "split.json"), message, "fix:"])
+
+
+@pytest.mark.parametrize(("content", "message"), [(b"not a numpy file", "cannot read a depth map"),
+                                                  (None, "depth map has shape (3, 4)")])
+def test_train_init_depth_refuses_a_bad_depth_map(tmp_path, scene, capsys, content, message):  # noqa: F811
+    data = tmp_path / "data"
+    names = _write_dataset(data, scene)
+    cam = scene["camera"]
+    (data / "depth").mkdir()
+    for name in names:
+        np.save(data / "depth" / f"{Path(name).stem}.npy", np.ones((cam.height, cam.width), np.float32))
+    bad = data / "depth" / "v1.npy"
+    if content is None:
+        np.save(bad, np.ones((3, 4), np.float32))
+    else:
+        bad.write_bytes(content)
+    assert_refused(main, ["train", data, "--out", tmp_path / "out", "--iters", "2", "--init", "depth"], capsys,
+                   inputs=[data], watch=[tmp_path], message=[str(bad), message, "fix:"])
 
 
 def test_render_input_errors(tmp_path, scene, capsys):  # noqa: F811
