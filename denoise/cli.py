@@ -105,9 +105,10 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
 def _cmd_select(args: argparse.Namespace) -> int:
     from mvgeo.sparse_model import read_sparse_model
 
-    if args.out:
-        prepare_output_file(args.out, command="denoise select", inputs=[args.sparse_dir, args.images],
-                            overwrite=args.overwrite, example_name="selection.json")
+    out = None
+    if args.out:  # the resolved file: a symbolic link given as --out is written through, not replaced
+        out = prepare_output_file(args.out, command="denoise select", inputs=[args.sparse_dir, args.images],
+                                  overwrite=args.overwrite, example_name="selection.json")
     model = read_sparse_model(args.sparse_dir)
     images_dir = Path(args.images)
     poses, paths = {}, {}
@@ -120,9 +121,9 @@ def _cmd_select(args: argparse.Namespace) -> int:
         paths[im.name] = path
     sel = select_views(poses, paths, k=args.k, seed=args.seed)
     text = json.dumps(sel.to_json_dict(), indent=2)
-    if args.out:
-        atomic_write_text(args.out, text + "\n")
-        write_file_record(args.out, "denoise select")
+    if out is not None:
+        atomic_write_text(out, text + "\n")
+        write_file_record(out, "denoise select")
     print(text)
     return 0
 

@@ -217,7 +217,10 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     this run may run, and the published result (`scene.splat`, `view/`, `cameras/`, the report files), are
     checked against their records (size and sha256 of every file): a file the run did not write, or one
     whose content changed, stops the run with nothing changed; a recorded file that is missing is written
-    again. Hidden files (e.g. `.DS_Store`) in complete outputs are checked only when their stage runs.
+    again. Hidden files (e.g. `.DS_Store`) in complete outputs are checked only when their stage runs again:
+    a resume that recomputes nothing keeps working beside them, and one that must recompute that stage stops
+    there, the hidden file untouched (the stages before it, and the withdrawal of the published result, may
+    have happened by then: both touch only the run's own files).
     When a stage is about to be recomputed, the previous published result is withdrawn first (its files
     and records removed, after the same check), so a run killed afterwards leaves no report, scene or
     cameras that do not match its stages; a run with nothing to recompute keeps them, and rewrites only
@@ -249,7 +252,9 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         nonlocal withdrawn
         if not withdrawn:
             withdrawn = True
-            if any([withdraw_outputs(folder, name, outputs) for folder, name, outputs in _published(out, stages)]):
+            # The report first: a run killed in between leaves no report naming a scene that is gone.
+            if any([withdraw_outputs(folder, name, outputs)
+                    for folder, name, outputs in reversed(_published(out, stages))]):
                 _log.info("stage %s runs again: the previous scene, cameras and report were withdrawn", spec.name)
 
     runner = StageRunner(timer=timer, force=force, before_change=withdraw_published)

@@ -57,6 +57,7 @@ import functools
 import json
 import logging
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -285,7 +286,7 @@ class UnownedOutputError(InputError):
         super().__init__(f"writing the outputs of {which} again would delete files in them that the run did "
                          f"not write or that changed since it wrote them: {shown}", path=folder,
                          fix="move these files out of the output folder (an output file that is missing is simply "
-                             "written again), or choose another --out; nothing was changed")
+                             "written again), or choose another --out; the files named were left as they are")
 
 
 def _record_file(stage_dir: Path, name: str) -> Path:
@@ -374,7 +375,8 @@ def check_outputs_owned(stage_dir: Path, name: str, outputs: Sequence[str], *, d
 
     With `defer_hidden`, outputs that are complete by the record (`verify_outputs`) pass: all they can hold
     besides the stage's files are hidden entries (e.g. a file manager's `.DS_Store`), which matter only if
-    the stage runs again, and `StageRunner.run` checks them then.
+    the stage runs again, and `StageRunner.run` checks them then (before the stage changes anything; stages
+    before it may have run by then).
     """
     rec, _ = _read_record(_record_file(stage_dir, name))
     manifest = rec.get("manifest") if rec is not None else None
@@ -410,8 +412,10 @@ def stage_work_dir(stage_dir: Path, name: str) -> Iterator[Path]:
     """A new empty hidden folder `stage_dir/.<name>.work-*` for a stage's outputs, removed when the block
     ends; those a killed run left (the same prefix: the runner's own) are removed first."""
     stage_dir.mkdir(parents=True, exist_ok=True)
+    ours = re.compile(rf"\.{re.escape(name)}\.work-[a-z0-9_]{{8}}")  # `tempfile.mkdtemp`'s 8 characters
     for stale in stage_dir.glob(f".{name}.work-*"):
-        _remove(stale)
+        if ours.fullmatch(stale.name) and stale.is_dir() and not stale.is_symlink():
+            _remove(stale)
     work = Path(tempfile.mkdtemp(prefix=f".{name}.work-", dir=stage_dir))
     try:
         yield work

@@ -179,15 +179,19 @@ def to_uint(img: np.ndarray, bits: int = 8) -> np.ndarray:
 
 
 def write_image(path: str | Path, img: np.ndarray, *, bits: int = 8) -> None:
-    """Write an (H, W, 3) or (H, W) float image in [0, 1] (RGB) as PNG/JPEG."""
+    """Write an (H, W, 3) or (H, W) float image in [0, 1] (RGB) as PNG/JPEG.
+
+    The file is written under a temporary sibling name and renamed onto `path`: an existing file there is
+    replaced, never written into, so a hard link or a symbolic link at `path` keeps what it points to.
+    """
+    from mvgeo.common.atomic import atomic_write_bytes
     from mvgeo.common.deps import cv2
 
     path = Path(path)
     arr = to_uint(img, bits)
     if arr.ndim == 3:
         arr = arr[:, :, ::-1]
-    path.parent.mkdir(parents=True, exist_ok=True)
     ok, buf = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(arr))
     if not ok:
         raise InputError("cannot encode image", path=path)
-    buf.tofile(path)
+    atomic_write_bytes(path, buf.tobytes())

@@ -139,8 +139,8 @@ def _file_entry(path: Path) -> dict[str, object]:
 
 
 def _same_file(path: Path, entry: object) -> bool:
-    """`path` is still the file `entry` (`_file_entry`) describes: same link target, or same size and
-    (same modification time, or else same SHA-256)."""
+    """`path` is still the file `entry` (`_file_entry`) describes: the same link target, or a regular file
+    of the same size and SHA-256 (the modification time is not trusted: it can be set back)."""
     if not isinstance(entry, dict):
         return False
     st = path.lstat()
@@ -148,7 +148,7 @@ def _same_file(path: Path, entry: object) -> bool:
         return stat.S_ISLNK(st.st_mode) and os.readlink(path) == entry["link"]
     if not stat.S_ISREG(st.st_mode) or st.st_size != entry.get("size"):
         return False
-    return st.st_mtime_ns == entry.get("mtime_ns") or _file_sha256(path) == entry.get("sha256")
+    return _file_sha256(path) == entry.get("sha256")
 
 
 def _tree(folder: Path) -> tuple[list[str], list[str]]:
@@ -172,7 +172,8 @@ def _tree(folder: Path) -> tuple[list[str], list[str]]:
 def write_manifest(folder: str | Path, command: str, *, record_files: bool = True) -> Path:
     """Write `folder/.denoise-gs-output.json`: ``{"command", "version", "created_utc", "format"}`` and,
     with `record_files`, ``"dirs"`` (every folder under `folder`) and ``"files"`` (every file or link:
-    size, modification time and SHA-256, or the link's target), what `--overwrite` may replace later.
+    size, modification time and SHA-256, or the link's target), what `--overwrite` may replace later
+    (compared by size and SHA-256).
     The resumable commands write it without files when they open their folder (their stages record
     what they write)."""
     folder = Path(folder)

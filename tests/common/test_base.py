@@ -1,3 +1,5 @@
+import os
+
 import numpy as np
 import pytest
 
@@ -82,3 +84,23 @@ def test_grayscale_is_replicated(tmp_path):
     cv2.imwrite(str(tmp_path / "g.png"), np.full((4, 6), 128, np.uint8))
     img = read_image(tmp_path / "g.png")
     assert img.shape == (4, 6, 3) and np.allclose(img, 128 / 255)
+
+
+def test_write_image_replaces_the_file_instead_of_writing_into_it(tmp_path):
+    # A hard link elsewhere (a `cp -al` backup) keeps the old bytes; a symbolic link is replaced, its target
+    # untouched.
+    img = np.full((4, 5, 3), 0.5, np.float32)
+    path = tmp_path / "v.png"
+    write_image(path, np.zeros((4, 5, 3), np.float32))
+    backup = tmp_path / "backup.png"
+    os.link(path, backup)
+    old = backup.read_bytes()
+    write_image(path, img)
+    assert backup.read_bytes() == old and path.read_bytes() != old
+    target = tmp_path / "user.txt"
+    target.write_text("the user's")
+    link = tmp_path / "l.png"
+    link.symlink_to(target)
+    write_image(link, img)
+    assert target.read_text() == "the user's" and not link.is_symlink()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["backup.png", "l.png", "user.txt", "v.png"]

@@ -272,9 +272,20 @@ def test_overwrite_replaces_an_unchanged_previous_output(tmp_path):
     m = json.loads((out / MANIFEST_NAME).read_text())
     assert m["dirs"] == ["sub"] and set(m["files"]) == {"sub/x.bin", "link"}
     assert m["files"]["link"] == {"link": "sub/x.bin"}
-    os.utime(out / "sub" / "x.bin", ns=(1, 1))  # a copy that kept the content: told apart by its SHA-256
+    os.utime(out / "sub" / "x.bin", ns=(1, 1))  # a copy that kept the content: still the command's file
     _write(out, overwrite=True, files=("b.txt",))
     assert sorted(os.listdir(out)) == [MANIFEST_NAME, "b.txt"]
+
+
+def test_an_edit_of_the_same_size_with_its_time_set_back_is_still_an_edit(tmp_path):
+    out = tmp_path / "out"
+    _write(out, files=("a.txt",))
+    st = (out / "a.txt").stat()
+    (out / "a.txt").write_text("A.txt")  # same size
+    os.utime(out / "a.txt", ns=(st.st_atime_ns, st.st_mtime_ns))
+    with pytest.raises(InputError, match="changed since"):
+        _write(out, overwrite=True)
+    assert (out / "a.txt").read_text() == "A.txt"
 
 
 def test_overwrite_refuses_a_manifest_that_lists_no_files(tmp_path):

@@ -112,6 +112,11 @@ def test_select_out_file_policy(tmp_path, noisy, model, capsys, monkeypatch):
     assert main(["select", str(model), "--images", str(noisy), "--k", "1", "--out", str(ours)]) == 0
     assert main(["select", str(model), "--images", str(noisy), "--k", "1", "--out", str(ours), "--overwrite"]) == 0
     assert len(json.loads(ours.read_text())["selected"]) == 1
+    # --out a symbolic link to a selection this command wrote: written through the link, which stays
+    link = tmp_path / "link.json"
+    link.symlink_to(ours)
+    assert main(["select", str(model), "--images", str(noisy), "--k", "1", "--out", str(link), "--overwrite"]) == 0
+    assert link.is_symlink() and len(json.loads(ours.read_text())["selected"]) == 1
     ro = tmp_path / "ro"
     ro.mkdir()
     readonly_access(monkeypatch, ro)
