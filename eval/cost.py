@@ -12,7 +12,15 @@ stage and summed end to end; scoring time is not included.
 Reuse: every point runs in its own folder, first seeded with hard links to the
 base point's completed stages, so the stage keys decide what re-runs (a
 change of splat iterations re-runs splat and render only). Scores are cached
-per point, keyed by the final render stage's key and the pose-fit setting.
+per point (`points/<name>/score.json`, committed with its record
+`points/<name>/stages/score.json`), keyed by the final render stage's key and
+the pose-fit setting.
+
+The sweep changes only files it wrote: before any point runs, the results
+(`eval.results.RESULTS_OUTPUTS`, written by `write_cost_results`), every
+point's cached scores and the stage outputs of every point's run are checked
+against their records; a file the sweep did not write, or one that changed
+since, stops it (`UnownedOutputError`) with nothing changed.
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ import json
 import logging
 import os
 import shutil
+import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,21 +39,27 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from eval.distributed import chain_after
-from eval.pipeline import PipelineConfig, PipelineStages, preset, run_pipeline
-from eval.pipeline.run import RUN_COMMAND
-from eval.pipeline.stage_settings import check_settings
+from eval.pipeline import PipelineConfig, PipelineStages, preset, product_stages, run_pipeline
+from eval.pipeline.run import RUN_COMMAND, planned_run_outputs
+from eval.pipeline.stage import UnownedOutputError, check_outputs_owned
+from eval.pipeline.stage_settings import check_settings, round_settings
 from eval.pipeline.validate import DatasetFolder
+from eval.results import RESULTS_OUTPUTS, RESULTS_RECORD, check_results_owned, commit_written, save_figure
 from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import InputError
-from mvgeo.common.output import write_manifest
+from mvgeo.common.output import prepare_output, write_manifest
 
 if TYPE_CHECKING:
     from eval.distributed import RayExecutor
 
-__all__ = ["DEFAULT_GRID", "KNOBS", "CostConfig", "CostPoint", "SweepPoint", "apply_knob", "run_cost_sweep",
-           "sweep_points", "write_cost_results"]
+__all__ = ["DEFAULT_GRID", "KNOBS", "SCORE_FILE", "SCORE_RECORD", "CostConfig", "CostPoint", "SweepPoint",
+           "apply_knob", "check_cost_outputs", "run_cost_sweep", "sweep_points", "write_cost_results"]
 
 _log = logging.getLogger(__name__)
+
+#: A point's cached scores in its folder, and the name of their record (`points/<name>/stages/<name>.json`).
+SCORE_FILE = "score.json"
+SCORE_RECORD = "score"
 
 
 def _set_denoise(cfg: PipelineConfig, **kw) -> PipelineConfig:
@@ -188,11 +203,10 @@ class CostPoint:
 
 def _share_stages(src: Path, dst: Path) -> None:
     """Seed a new point folder with hard links to `src`'s round folders (keys decide what re-runs)."""
-    if dst.exists() or not src.is_dir():
+    if os.path.lexists(dst) or not src.is_dir():
         return
-    tmp = dst.with_name(f".{dst.name}.link-tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.link-", dir=dst.parent))
 
     def link(a: str, b: str) -> None:
         try:
@@ -200,11 +214,14 @@ def _share_stages(src: Path, dst: Path) -> None:
         except OSError:
             shutil.copy2(a, b)
 
-    for rd in sorted(src.glob("round*")):
-        shutil.copytree(rd, tmp / rd.name, copy_function=link,
-                        ignore=lambda d, names: [n for n in names if n.startswith(".")])
-    write_manifest(tmp, RUN_COMMAND, record_files=False)  # a run folder: `run_pipeline` resumes into it
-    os.replace(tmp, dst)
+    try:
+        for rd in sorted(src.glob("round*")):
+            shutil.copytree(rd, tmp / rd.name, copy_function=link,
+                            ignore=lambda d, names: [n for n in names if n.startswith(".")])
+        write_manifest(tmp, RUN_COMMAND, record_files=False)  # a run folder: `run_pipeline` resumes into it
+        os.replace(tmp, dst)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # gone after the rename; this call's own folder otherwise
 
 
 def _subset(names: Sequence[str], n: int) -> list[str]:
@@ -239,6 +256,8 @@ def run_cost_sweep(dataset: DatasetFolder, out: Path, config: CostConfig, *,
 
     Raises:
         InputError: bad grid values, or a preset a component does not have (before any compute).
+        UnownedOutputError: files in `out` the sweep would replace or delete but did not write, or that
+            changed since (`check_cost_outputs`, before any compute; nothing is changed).
     """
     from eval.evaluate import score_reconstruction
 
@@ -250,6 +269,7 @@ def run_cost_sweep(dataset: DatasetFolder, out: Path, config: CostConfig, *,
         score = lambda rd, ds, names: score_reconstruction(  # noqa: E731
             rd, ds, names, pose_fit_iters=config.pose_fit_iters, device=config.base.device)
     jobs = [_PointJob(p, dataset, out, config.pose_fit_iters, score, stages) for p in points]
+    check_cost_outputs(out, jobs)  # before anything is changed
     if executor is not None:
         for job in jobs:  # here, before the tasks: points with the same images share the folder
             _inputs_folder(dataset, out / f"inputs{job.tag}", job.names)
@@ -290,12 +310,72 @@ class _PointJob:
         return self.point.name != "base" and not self.tag
 
 
+def check_cost_outputs(out: Path, jobs: Sequence[_PointJob]) -> None:
+    """Check, before any point runs, that the sweep into `out` would replace or delete only files it wrote:
+    the results (`eval.results.check_results_owned`), each point's cached scores (`SCORE_FILE`) and the
+    stage outputs its run may write (as `run_pipeline` checks them); and that each point's folder can be
+    opened as a run folder (`prepare_output`). One error names every file found.
+
+    Raises:
+        UnownedOutputError: files the sweep did not write, or that changed since, where it writes.
+        InputError: a point's folder is refused as a whole (e.g. a folder of the user's at its path).
+    """
+    names: list[str] = []
+    problems: list[str] = []
+
+    def check(fn: Callable[..., None], *args: object) -> None:
+        try:
+            fn(*args)
+        except UnownedOutputError as exc:
+            names.extend(n for n in exc.stages if n not in names)
+            problems.extend(exc.paths)
+
+    check(check_results_owned, out)
+    for job in jobs:
+        run_dir = out / "points" / job.point.name
+        prepare_output(run_dir, command=RUN_COMMAND, resume=True)
+        check(check_outputs_owned, run_dir, SCORE_RECORD, (SCORE_FILE,))
+        stages = job.stages if job.stages is not None else product_stages()
+        settings = [round_settings(job.point.config, r) for r in range(1, job.point.config.rounds + 1)]
+        for stage_dir, name, outputs in planned_run_outputs(run_dir, stages, settings):
+            check(check_outputs_owned, stage_dir, name, outputs)
+    if problems:
+        raise UnownedOutputError(names, out, problems)
+
+
+def _cached_scores(cache: Path, key: Mapping[str, object]) -> dict[str, float] | None:
+    """The metrics `cache` holds for `key`, None when it holds another key's.
+
+    Raises:
+        InputError: `cache` is not the JSON object of scores `_run_point` writes.
+    """
+    if not cache.is_file():
+        return None
+    try:
+        rec = json.loads(cache.read_text(encoding="utf-8"))
+        if not isinstance(rec, dict):
+            raise ValueError(f"it holds a {type(rec).__name__}, not an object")
+        if rec.get("key") != key:
+            return None
+        return {str(k): float(v) for k, v in dict(rec["metrics"]).items()}
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"the point's cached scores cannot be read ({exc})", path=cache,
+                         fix="move the file out of the sweep folder (the point is scored again), or choose "
+                             "another --out") from None
+
+
 def _run_point(job: _PointJob) -> CostPoint:
-    """Run (or resume) one sweep point in `out/points/<name>/` and score it (scores cached per point)."""
+    """Run (or resume) one sweep point in `out/points/<name>/` and score it (scores cached per point; they are
+    checked to be the sweep's own first).
+
+    Raises:
+        UnownedOutputError: the point's folder holds files the sweep did not write or that changed since.
+    """
     p, dataset, out = job.point, job.dataset, job.out
     names, tag = job.names, job.tag
-    inputs = _inputs_folder(dataset, out / f"inputs{tag}", names)
     run_dir = out / "points" / p.name
+    check_outputs_owned(run_dir, SCORE_RECORD, (SCORE_FILE,))
+    inputs = _inputs_folder(dataset, out / f"inputs{tag}", names)
     if job.shares_base:
         _share_stages(out / "points" / "base", run_dir)
     _log.info("cost sweep: %s", p.name)
@@ -305,15 +385,11 @@ def _run_point(job: _PointJob) -> CostPoint:
     final = res.rounds[-1]
     key = {"render": final.stages["render"].key, "pose_fit_iters": job.pose_fit_iters,
            "test": list(dataset.test)}
-    cache = run_dir / "score.json"
-    metrics = None
-    if cache.is_file():
-        rec = json.loads(cache.read_text())
-        if rec.get("key") == key:
-            metrics = rec["metrics"]
+    metrics = _cached_scores(run_dir / SCORE_FILE, key)
     if metrics is None:
         metrics = {k: float(v) for k, v in dict(job.score(final.dir, dataset, names)).items()}
-        atomic_write_text(cache, json.dumps({"key": key, "metrics": metrics}, indent=2) + "\n")
+        text = json.dumps({"key": key, "metrics": metrics}, indent=2) + "\n"
+        commit_written(run_dir, SCORE_RECORD, (SCORE_FILE,), lambda work: atomic_write_text(work / SCORE_FILE, text))
     return CostPoint(p.name, p.knob, p.value, stage_s, float(sum(stage_s.values())),
                      **{k: metrics.get(k, float("nan")) for k in ("psnr_db", "ssim", "lpips", "rot_err_deg", "ate")})
 
@@ -383,7 +459,7 @@ def plot_cost(rows: Sequence[CostPoint], folder: Path) -> list[Path]:
         for ax in list(axes.flat)[len(knobs):]:
             ax.axis("off")
         fig.tight_layout()
-        fig.savefig(folder / fname)
+        save_figure(fig, folder / fname)
         plt.close(fig)
         paths.append(folder / fname)
     stages = list(dict.fromkeys(s for r in rows for s in r.stage_s))
@@ -397,26 +473,33 @@ def plot_cost(rows: Sequence[CostPoint], folder: Path) -> list[Path]:
     ax.set_ylabel("seconds")
     ax.legend(fontsize=6, ncols=2)
     fig.tight_layout()
-    fig.savefig(folder / "stage_times.png")
+    save_figure(fig, folder / "stage_times.png")
     plt.close(fig)
     paths.append(folder / "stage_times.png")
     return paths
 
 
 def write_cost_results(out: Path, rows: Sequence[CostPoint], *, title: str) -> tuple[Path, Path]:
-    """`results.json`, `results.md` and `figures/*.png` (JSON and Markdown written atomically)."""
+    """`results.json`, `results.md` and `figures/*.png` in `out`, committed with their record like
+    `eval.results.write_results` (`RESULTS_OUTPUTS`, `RESULTS_RECORD`).
+
+    Raises:
+        UnownedOutputError: those files in `out` include some it did not write or that changed (nothing is
+            replaced).
+    """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
 
     def safe(x: object) -> object:
         return None if isinstance(x, float) and not np.isfinite(x) else x
 
-    data = [{k: (safe(v) if not isinstance(v, dict) else v) for k, v in dataclasses.asdict(r).items()}
-            for r in rows]
-    json_path, md_path = out / "results.json", out / "results.md"
-    atomic_write_text(json_path, json.dumps({"points": data}, indent=2, default=str) + "\n")
-    figs = plot_cost(rows, out / "figures")
-    md = cost_markdown(rows, title=title)
-    md += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figs) + "\n"
-    atomic_write_text(md_path, md)
-    return json_path, md_path
+    def write(dest: Path) -> None:
+        data = [{k: (safe(v) if not isinstance(v, dict) else v) for k, v in dataclasses.asdict(r).items()}
+                for r in rows]
+        atomic_write_text(dest / "results.json", json.dumps({"points": data}, indent=2, default=str) + "\n")
+        figs = plot_cost(rows, dest / "figures")
+        md = cost_markdown(rows, title=title)
+        md += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.relative_to(dest).as_posix()})" for p in figs) + "\n"
+        atomic_write_text(dest / "results.md", md)
+
+    commit_written(out, RESULTS_RECORD, RESULTS_OUTPUTS, write)
+    return out / "results.json", out / "results.md"

@@ -31,8 +31,16 @@ denoise-then-reconstruct method with the same settings.
 
 Each (scene, method, seed) is one call, `run_task(EvalTask)`, whose argument is
 plain picklable data. A method that cannot handle the input, by a documented
-error (`FAILED_RUN_ERRORS`), gives a "failed" row; any other exception is a bug
-and propagates.
+error (`FAILED_RUN_ERRORS`), gives a "failed" row; an error about the output
+folder itself (files in a run folder the evaluation did not write, a run folder
+that is not one) stops the evaluation; any other exception is a bug and
+propagates.
+
+The evaluation changes only files it wrote: the held-out renders
+(`OUT/heldout/<scene>/`) are committed with records (`OUT/heldout/stages/`,
+`save_heldout_renders`), the results with theirs (`eval.results`), and before
+any run every file the evaluation may replace (results, held-out renders, the
+run folders' stage outputs) is checked (`check_eval_outputs`).
 """
 
 from __future__ import annotations
@@ -43,7 +51,7 @@ import logging
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -56,13 +64,16 @@ from eval.image_metrics import score_images
 from eval.methods import METHODS, EvalMethod, reconstruct
 from eval.pipeline import PipelineConfig, preset
 from eval.pipeline.config import DENOISE_METHODS, DenoiseMethod
-from eval.pipeline.stage_settings import check_settings
+from eval.pipeline.run import RUN_COMMAND, SCENE_OUTPUTS, planned_run_outputs
+from eval.pipeline.stage import UnownedOutputError, check_outputs_owned
+from eval.pipeline.stage_settings import check_settings, round_settings
 from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import write_views
-from eval.results import RunScores
+from eval.results import RunScores, check_results_owned, commit_written
 from mvgeo.camera import Camera
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.imageio import read_image
+from mvgeo.common.output import prepare_output
 from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 from splat.ply import read_gaussian_ply
@@ -72,8 +83,10 @@ from splat.render import render_views
 if TYPE_CHECKING:
     from eval.distributed import RayExecutor
 
-__all__ = ["FAILED_RUN_ERRORS", "EvalConfig", "EvalTask", "copy_train_inputs", "evaluate_dataset", "run_task",
-           "scene_dataset", "score_reconstruction", "share_keys"]
+__all__ = ["FAILED_RUN_ERRORS", "HELDOUT_DIR", "EvalConfig", "EvalTask",
+           "check_eval_outputs", "copy_train_inputs", "evaluate_dataset", "heldout_record",
+           "run_task", "save_heldout_references", "save_heldout_renders", "scene_dataset", "score_reconstruction",
+           "share_keys"]
 
 _log = logging.getLogger(__name__)
 
@@ -83,8 +96,22 @@ FOCAL_PRIOR_OK = 1e9
 #: The documented errors by which a method says it cannot handle an input: bad or missing data
 #: (`InputError`, e.g. `oracle_clean` without clean photos, `3dgs_gt_poses` without initial points) and
 #: geometry without a unique answer (`DegenerateGeometryError`, e.g. alignment that cannot determine the
-#: cameras). Such a run becomes a "failed" row; any other exception is a bug and surfaces.
+#: cameras). Such a run becomes a "failed" row, unless the error is about the output folder itself
+#: (`run_task`); any other exception is a bug and surfaces.
 FAILED_RUN_ERRORS: tuple[type[Exception], ...] = (InputError, DegenerateGeometryError)
+#: The held-out renders' folder in OUT: `<scene>/<method>/seed<k>/`, `<scene>/_clean/`, `<scene>/_noisy/`,
+#: and their records in `stages/`.
+HELDOUT_DIR = "heldout"
+
+
+def _about_run_folder(exc: Exception, seed_dir: Path) -> bool:
+    """`exc` is about the output folder, not the method: files in a run folder that the evaluation did not
+    write or that changed (`UnownedOutputError`), or a run folder refused as a whole (not a run's folder,
+    another process writing it: an `InputError` naming a folder of `seed_dir`)."""
+    if isinstance(exc, UnownedOutputError):
+        return True
+    path = getattr(exc, "path", None)
+    return isinstance(exc, InputError) and path is not None and Path(path).parent == seed_dir
 
 
 @dataclass(frozen=True)
@@ -310,20 +337,25 @@ class EvalTask:
 
 
 def run_task(task: EvalTask) -> RunScores:
-    """Run (or reuse) one method with one seed and score it on the held-out views.
+    """Run (or resume) one method with one seed and score it on the held-out views.
 
     Returns:
         The run's scores; a "failed" row (NaN metrics, the error) when the method raised one of
         `FAILED_RUN_ERRORS`.
 
     Raises:
+        UnownedOutputError: the run folder, or the held-out renders' folder,
+            holds files the evaluation did not write or that changed since; nothing of them was changed.
+        InputError: a run folder is refused as a whole (not a `denoise-gs run` folder, another process
+            writing it).
         Any other exception of the method or the scoring (a bug, not a property of the input).
     """
     method, config = task.method, task.config
     label = method.row_label(config.denoiser)
+    seed_dir = task.out / "runs" / task.scene / f"seed{task.seed}"
     try:
         rec = reconstruct(method, task.dataset, task.base, seed=task.seed, denoiser=config.denoiser,
-                          inputs=task.inputs, seed_dir=task.out / "runs" / task.scene / f"seed{task.seed}")
+                          inputs=task.inputs, seed_dir=seed_dir)
         gt = read_sparse_model(task.dataset.root / "sparse" / "0")
         model = read_gaussian_ply(rec.round_dir / "point_cloud.ply", device=config.device)
         est, est_cams = None, []
@@ -334,25 +366,131 @@ def run_task(task: EvalTask) -> RunScores:
         held_out: dict[str, np.ndarray] = {}
         per_view, pose_stats = _score_scene(model, gt, est, task.dataset, config, est_cams, renders_out=held_out)
     except FAILED_RUN_ERRORS as exc:
+        if _about_run_folder(exc, seed_dir):  # the output folder, not the method: the evaluation stops
+            raise
         # One method failing on a hard input (e.g. alignment that cannot determine the cameras) must not
         # lose the others: the row is kept with NaN metrics and the error, and the table shows it as failed.
         _log.error("eval %s: %s, seed %d failed: %s: %s", task.scene, method.name, task.seed,
                    type(exc).__name__, exc)
         nan = float("nan")
         return RunScores(task.scene, label, task.seed, nan, nan, nan, error=f"{type(exc).__name__}: {exc}")
-    save_heldout_renders(task.out / "heldout" / task.scene, method.name, task.seed, held_out, task.dataset)
+    save_heldout_renders(task.out / HELDOUT_DIR / task.scene, method.name, task.seed, held_out, task.dataset)
     means = {m: float(np.mean([v[m] for v in per_view.values()])) for m in ("psnr_db", "ssim", "lpips")}
     return RunScores(task.scene, label, task.seed, **means, **pose_stats, seconds=rec.seconds, per_view=per_view)
 
 
+def heldout_record(scene: str, method: str | None, seed: int = 0) -> str:
+    """The record name (in `OUT/heldout/stages/`) of a run's held-out renders, or with `method` None of the
+    scene's clean and noisy held-out images."""
+    return f"{scene}.references" if method is None else f"{scene}.{method}.seed{seed}"
+
+
+def _heldout_outputs(scene: str, method: str | None, seed: int = 0) -> tuple[str, ...]:
+    """What `heldout_record(scene, method, seed)` records, relative to `OUT/heldout`."""
+    return (f"{scene}/_clean", f"{scene}/_noisy") if method is None else (f"{scene}/{method}/seed{seed}",)
+
+
 def save_heldout_renders(folder: Path, method: str, seed: int, renders: Mapping[str, np.ndarray],
                          dataset: DatasetFolder) -> None:
-    """Keep a run's held-out renders for the figures: `folder/<method>/seed<k>/<view>.png`, and once
-    per scene the clean and noisy held-out images (`folder/_clean/`, `folder/_noisy/`)."""
-    write_views(folder / method / f"seed{seed}", dict(renders))
-    for part, files in (("_clean", dataset.clean), ("_noisy", dataset.images)):
-        if not (folder / part).is_dir():
-            write_views(folder / part, {n: read_image(files[n]) for n in dataset.test if n in files})
+    """Keep a run's held-out renders for the figures: `folder/<method>/seed<k>/<view>.png` (`folder` is
+    `OUT/heldout/<scene>`), and the clean and noisy held-out images (`save_heldout_references`) when
+    `folder/_clean/` is not there yet. Each is committed with its record (`heldout_record`) in
+    `folder/../stages/`, replacing only what an earlier call wrote.
+
+    Raises:
+        UnownedOutputError: `folder/<method>/seed<k>/` holds files this function did not write there or that
+            changed since (nothing is replaced).
+    """
+    folder = Path(folder)
+    scene = folder.name
+    commit_written(folder.parent, heldout_record(scene, method, seed), _heldout_outputs(scene, method, seed),
+                   lambda work: write_views(work / scene / method / f"seed{seed}", dict(renders)))
+    if not (folder / "_clean").is_dir():
+        save_heldout_references(folder, dataset)
+
+
+def save_heldout_references(folder: Path, dataset: DatasetFolder) -> None:
+    """Write the clean and noisy held-out images of `dataset` into `folder/_clean/` and `folder/_noisy/`
+    (`folder` is `OUT/heldout/<scene>`), committed with their record (`heldout_record(scene, None)`).
+
+    Raises:
+        UnownedOutputError: those folders hold files this function did not write or that changed.
+    """
+    folder = Path(folder)
+    scene = folder.name
+
+    def write(work: Path) -> None:
+        for part, files in (("_clean", dataset.clean), ("_noisy", dataset.images)):
+            write_views(work / scene / part, {n: read_image(files[n]) for n in dataset.test if n in files})
+
+    commit_written(folder.parent, heldout_record(scene, None), _heldout_outputs(scene, None), write)
+
+
+def _run_stage_outputs(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig, seed: int,
+                       denoiser: DenoiseMethod, seed_dir: Path
+                       ) -> Iterator[tuple[Path | None, Path, str, tuple[str, ...]]]:
+    """(run folder, stage folder, stage name, outputs) of every stage `eval.methods.reconstruct` may run for
+    `method` (the runs it makes first included); the run folder is that of a `run_pipeline` run, None for
+    the ground-truth-pose splat (it opens no run folder)."""
+    config = method.pipeline_config(dataclasses.replace(base, seed=seed), denoiser)
+    folder = seed_dir / method.folder(denoiser)
+    if method.gt_pose_variant_of is not None:
+        yield from _run_stage_outputs(method.gt_pose_variant_of, dataset, base, seed, denoiser, seed_dir)
+        if method.gt_pose_points_from not in (None, method.gt_pose_variant_of):
+            yield from _run_stage_outputs(method.gt_pose_points_from, dataset, base, seed, denoiser, seed_dir)
+    if method.ground_truth_poses:
+        for name in ("align", "splat"):
+            yield None, folder / "round1", name, SCENE_OUTPUTS[name]
+        return
+    settings = [round_settings(config, r) for r in range(1, config.rounds + 1)]
+    for stage_dir, name, outputs in planned_run_outputs(folder, method.stages(dataset), settings):
+        yield folder, stage_dir, name, outputs
+
+
+def check_eval_outputs(tasks: Sequence[EvalTask]) -> None:
+    """Check, before any run, that the evaluation of `tasks` (one output folder and scene) would replace or
+    delete only files it wrote: its results (`eval.results.check_results_owned`), the held-out renders of
+    every task and the scene's clean and noisy held-out images, and every stage output of the runs
+    (`eval.methods.reconstruct`'s, as `run_pipeline` checks them); and that each run folder can be opened
+    (`prepare_output`). One error names every file found.
+
+    Raises:
+        UnownedOutputError: files the evaluation did not write, or that changed since, where it writes.
+        InputError: a run folder is refused as a whole (e.g. a folder of the user's at its path).
+    """
+    if not tasks:
+        return
+    out, scene = tasks[0].out, tasks[0].scene
+    names: list[str] = []
+    problems: list[str] = []
+
+    def check(fn: Callable[..., None], *args: object) -> None:
+        try:
+            fn(*args)
+        except UnownedOutputError as exc:
+            names.extend(n for n in exc.stages if n not in names)
+            problems.extend(exc.paths)
+
+    check(check_results_owned, out)
+    heldout = out / HELDOUT_DIR
+    check(check_outputs_owned, heldout, heldout_record(scene, None), _heldout_outputs(scene, None))
+    run_folders: dict[Path, None] = {}
+    stage_outputs: dict[tuple[Path, str, tuple[str, ...]], None] = {}
+    for t in tasks:
+        check(check_outputs_owned, heldout, heldout_record(scene, t.method.name, t.seed),
+              _heldout_outputs(scene, t.method.name, t.seed))
+        seed_dir = out / "runs" / scene / f"seed{t.seed}"
+        for folder, stage_dir, name, outputs in _run_stage_outputs(t.method, t.dataset, t.base, t.seed,
+                                                                   t.config.denoiser, seed_dir):
+            if folder is not None:
+                run_folders[folder] = None
+            stage_outputs[stage_dir, name, outputs] = None
+    for folder in run_folders:
+        prepare_output(folder, command=RUN_COMMAND, resume=True)
+    for stage_dir, name, outputs in stage_outputs:
+        check(check_outputs_owned, stage_dir, name, outputs)
+    if problems:
+        raise UnownedOutputError(names, out, problems)
 
 
 def share_keys(task: EvalTask) -> tuple[tuple[str, int, str], ...]:
@@ -375,8 +513,13 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     (`share_keys`) in order, the others in parallel; the rows come back in the serial order (seeds,
     then methods), and `on_row` gets the finished ones in that order. None: one after another here.
 
+    Before any run, every file the evaluation (and `eval.results.write_results` into `out`) may replace is
+    checked to be one it wrote (`check_eval_outputs`).
+
     Raises:
         InputError: dataset problems or settings a component does not have (found before any compute).
+        UnownedOutputError: files in `out` that the evaluation would replace or delete but did not write, or
+            that changed since (found before any run; raised by a run when they appear later).
         Any exception of a run other than `FAILED_RUN_ERRORS` (see `run_task`).
     """
     out = Path(out)
@@ -395,10 +538,13 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     methods = config.selected()
     for m in methods:  # a preset a component lacks fails here, before any compute
         check_settings(m.pipeline_config(base, config.denoiser))
-    inputs = copy_train_inputs(dataset, out / "inputs" / scene)
+    inputs = out / "inputs" / scene
+    tasks = [EvalTask(scene, method, seed, dataset, base, inputs, out, config)
+             for seed in range(config.seeds) for method in methods]
+    check_eval_outputs(tasks)  # before anything is changed
+    copy_train_inputs(dataset, inputs)
+    save_heldout_references(out / HELDOUT_DIR / scene, dataset)
     if executor is not None:
-        tasks = [EvalTask(scene, method, seed, dataset, base, inputs, out, config)
-                 for seed in range(config.seeds) for method in methods]
 
         def finished(done: Mapping[int, RunScores]) -> None:
             if on_row is not None:
@@ -407,12 +553,11 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
         return executor.run(run_task, tasks, after=chain_after([share_keys(t) for t in tasks]),
                             desc=f"eval {scene}", on_done=finished)
     rows: list[RunScores] = []
-    for seed in range(config.seeds):
-        for method in methods:
-            _log.info("eval %s: %s, seed %d", scene, method.name, seed)
-            rows.append(run_task(EvalTask(scene, method, seed, dataset, base, inputs, out, config)))
-            if on_row is not None:
-                on_row(list(rows))
+    for task in tasks:
+        _log.info("eval %s: %s, seed %d", scene, task.method.name, task.seed)
+        rows.append(run_task(task))
+        if on_row is not None:
+            on_row(list(rows))
     return rows
 
 

@@ -1,18 +1,37 @@
-"""Evaluation results: per-run rows, mean +- std over seeds, `results.json`, `results.md`, bar charts."""
+"""Evaluation results: per-run rows, mean +- std over seeds, `results.json`, `results.md`, bar charts.
+
+The files `denoise-gs eval` and `denoise-gs cost` write at the top of their output folder
+(`RESULTS_OUTPUTS`) are committed like a pipeline stage's outputs (`eval.pipeline.stage.commit_outputs`,
+through `commit_written`): written in a hidden work folder, then renamed into place, with a record
+`OUT/stages/results.json` of every file. A later invocation replaces only files that record lists with
+their recorded content; anything else there (a note added to `results.md`, a file put in `figures/`)
+stops it with `UnownedOutputError` and nothing is changed. A file is always replaced by a rename, never
+written into, so hard and symbolic links at an output's path keep what they point to.
+"""
 
 from __future__ import annotations
 
+import io
 import json
 import math
-from collections.abc import Sequence
+import os
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from mvgeo.common.atomic import atomic_write_text
+from eval.pipeline.stage import check_outputs_owned, commit_outputs, output_manifest, stage_work_dir
+from mvgeo.common.atomic import atomic_write_bytes, atomic_write_text
 
-__all__ = ["METRICS", "RunScores", "SummaryCell", "plot_bars", "results_markdown", "summarise", "write_results"]
+__all__ = ["METRICS", "RESULTS_OUTPUTS", "RESULTS_RECORD", "RunScores", "SummaryCell", "check_results_owned",
+           "commit_written", "plot_bars", "results_markdown", "save_figure", "summarise", "write_results"]
+
+#: What `write_results` (and `eval.cost.write_cost_results`) write in OUT, and the name of their record
+#: (`OUT/stages/<name>.json`).
+RESULTS_OUTPUTS = ("results.json", "results.md", "figures")
+RESULTS_RECORD = "results"
 
 #: metric -> (label, higher is better)
 METRICS: dict[str, tuple[str, bool]] = {
@@ -143,8 +162,7 @@ def plot_bars(rows: Sequence[RunScores], path: Path, *, metric: str = "psnr_db")
     ax.set_ylabel(METRICS[metric][0])
     ax.legend(fontsize=7, ncols=2)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
     return path
 
@@ -192,8 +210,7 @@ def plot_heldout_grid(folder: Path, path: Path, *, seed: int = 0, max_views: int
                 title += f"\n{10 * np.log10(1.0 / max(float(np.mean((img - clean) ** 2)), 1e-12)):.2f} dB"
             ax.set_title(f"{v}: {title}" if c == 0 else title, fontsize=7)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
     return path
 
@@ -208,23 +225,70 @@ def _json_safe(x: object) -> object:
     return x
 
 
+def save_figure(fig: Any, path: Path) -> Path:
+    """Save a matplotlib figure to `path` (format from its suffix, PNG without one) through a temporary
+    sibling renamed onto it: an existing file is replaced, never written into, so a hard link to it or a
+    symbolic link at `path` keeps what it points to. Returns `path`."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=Path(path).suffix.lstrip(".").lower() or "png")
+    atomic_write_bytes(path, buf.getvalue())
+    return Path(path)
+
+
+def commit_written(folder: Path, name: str, outputs: Sequence[str], write: Callable[[Path], None]) -> None:
+    """Write `outputs` (paths relative to `folder`) with `write(work)` into a new hidden work folder of
+    `folder`, then commit them into `folder` with the record `folder/stages/<name>.json`
+    (`eval.pipeline.stage.commit_outputs`); an output `write` did not write is removed from `folder`.
+
+    Raises:
+        UnownedOutputError: `folder`'s `outputs` hold files the record does not list, or listed files whose
+            content changed (checked before `write` runs and again before the commit; nothing is changed).
+        Whatever `write` raises (the work folder is removed; `folder` is unchanged).
+    """
+    folder = Path(folder)
+    check_outputs_owned(folder, name, outputs)
+    with stage_work_dir(folder, name) as work:
+        write(work)
+        written = [o for o in outputs if os.path.lexists(work / o)]
+        manifest = output_manifest(work, written)
+        commit_outputs(folder, name, outputs, work, {"name": name, "manifest": manifest}, manifest)
+
+
+def check_results_owned(out: Path) -> None:
+    """Raise `UnownedOutputError` when `RESULTS_OUTPUTS` in `out` hold files `write_results` (or
+    `eval.cost.write_cost_results`) did not write there, or that changed since; without a record (a
+    folder written before the record existed) every such file counts as not written by the command."""
+    check_outputs_owned(Path(out), RESULTS_RECORD, RESULTS_OUTPUTS)
+
+
 def write_results(out: Path, rows: Sequence[RunScores], *, title: str = "Evaluation") -> tuple[Path, Path]:
-    """Write `results.json` (rows + summary; NaN -> null), `results.md` and `figures/<metric>.png`."""
-    out.mkdir(parents=True, exist_ok=True)
+    """Write `results.json` (rows + summary; NaN -> null), `results.md` and `figures/<metric>.png` into `out`
+    (committed with a record, see the module docstring).
+
+    Raises:
+        UnownedOutputError: those files in `out` include some it did not write or that changed (nothing is
+            replaced).
+    """
+    out = Path(out)
+    commit_written(out, RESULTS_RECORD, RESULTS_OUTPUTS, lambda work: _write_result_files(out, work, rows, title))
+    return out / "results.json", out / "results.md"
+
+
+def _write_result_files(out: Path, dest: Path, rows: Sequence[RunScores], title: str) -> None:
+    """The results of the evaluation in `out` (held-out renders read from `out/heldout/`), written into `dest`."""
     summary = {s: {m: {k: asdict(c) for k, c in cells.items()} for m, cells in ms.items()}
                for s, ms in summarise(rows).items()}
-    json_path, md_path = out / "results.json", out / "results.md"
+    json_path, md_path = dest / "results.json", dest / "results.md"
     atomic_write_text(json_path, json.dumps(_json_safe({"runs": [asdict(r) for r in rows], "summary": summary}),
                                             indent=2) + "\n")
     md = results_markdown(rows, title=title)
     figs = []
     for metric in ("psnr_db", "ssim", "lpips"):
-        figs.append(plot_bars(rows, out / "figures" / f"{metric}.png", metric=metric))
+        figs.append(plot_bars(rows, dest / "figures" / f"{metric}.png", metric=metric))
     for scene in dict.fromkeys(r.scene for r in rows):
-        grid = plot_heldout_grid(out / "heldout" / scene, out / "figures" / f"heldout_{scene}.png",
+        grid = plot_heldout_grid(out / "heldout" / scene, dest / "figures" / f"heldout_{scene}.png",
                                  methods=list(dict.fromkeys(r.method for r in rows if r.scene == scene)))
         if grid is not None:
             figs.append(grid)
-    md += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in figs) + "\n"
+    md += "\n## Figures\n\n" + "\n".join(f"![{p.stem}]({p.relative_to(dest).as_posix()})" for p in figs) + "\n"
     atomic_write_text(md_path, md)
-    return json_path, md_path

@@ -19,17 +19,28 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.pipeline.stage import StageContext
+from eval.pipeline.stage import (
+    RECORD_DIR,
+    StageContext,
+    check_outputs_owned,
+    commit_outputs,
+    output_manifest,
+    stage_work_dir,
+    verify_outputs,
+)
 from eval.pipeline.views import view_files, write_views
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import exif_focal_35mm, read_image
 
-__all__ = ["SIZES_FILE", "WORKING_DIR", "prepare_inputs", "read_sizes", "resize_area",
+__all__ = ["DATA_DIR", "SIZES_FILE", "WORKING_DIR", "prepare_inputs", "read_sizes", "resize_area",
            "working_dataset", "working_focal_prior", "working_size"]
 
 #: Folder of the working images inside OUT, and the sizes file inside it.
 WORKING_DIR = "inputs"
 SIZES_FILE = "sizes.json"
+#: Folder of an evaluation's datasets inside its OUT (`working_dataset`); each working-size dataset's record
+#: is `DATA_DIR/stages/<its name>.json`.
+DATA_DIR = "data"
 
 
 def working_size(width: int, height: int, max_size: int | None) -> tuple[int, int]:
@@ -113,16 +124,32 @@ def working_focal_prior(working_dir: str | Path):
     return common_focal_prior(values, stems)
 
 
+def _recorded_dataset(data_dir: Path, name: str, source: Path, max_size: int) -> bool:
+    """`data_dir/name` is the complete working-size dataset its record says `working_dataset` made from
+    `source` at `max_size` (every file as recorded)."""
+    try:
+        rec = json.loads((data_dir / RECORD_DIR / f"{name}.json").read_text(encoding="utf-8"))
+        return (isinstance(rec, dict) and not rec.get("pending") and rec.get("source") == str(source)
+                and rec.get("max_size") == max_size and isinstance(rec.get("manifest"), dict)
+                and verify_outputs(data_dir, rec["manifest"]) is None)
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+
+
 def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -> Path:
     """An evaluation dataset (`images/`, `clean/`, `split.json`, `sparse/0/`) at the working size.
 
     `folder` itself when no image's long side exceeds `max_size` (or `max_size` is None); else
-    `out/data/<name>_max<N>/`, made once (reused when complete): the noisy and clean images
-    downscaled with the area filter (16-bit PNG), the ground-truth cameras scaled to match
-    (`Camera.scaled`, poses unchanged), `split.json` copied. Other files of `folder` are not copied.
+    `out/data/<name>_max<N>/`, made once (reused while its record `out/data/stages/<name>_max<N>.json` says
+    it is complete and unchanged): the noisy and clean images downscaled with the area filter (16-bit PNG),
+    the ground-truth cameras scaled to match (`Camera.scaled`, poses unchanged), `split.json` copied. Other
+    files of `folder` are not copied. It is written in a hidden work folder and committed with the record
+    (`eval.pipeline.stage.commit_outputs`), so only a folder this function made is ever replaced.
 
     Raises:
         InputError: an image whose size differs from its ground-truth camera's.
+        UnownedOutputError: `out/data/<name>_max<N>/` exists and holds files this function did not write
+            there, or that changed since (refused before anything is written; nothing is changed).
     """
     from mvgeo.sparse_model import SparseModel, read_sparse_model, write_sparse_model
 
@@ -135,9 +162,11 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
             sizes[part, stem] = (img.shape[1], img.shape[0])
     if max_size is None or all(max(s) <= max_size for s in sizes.values()):
         return folder
-    target = out / "data" / f"{folder.name}_max{max_size}"
-    if (target / "split.json").is_file():
+    data_dir, name = out / DATA_DIR, f"{folder.name}_max{max_size}"
+    target, source = data_dir / name, folder.resolve()
+    if _recorded_dataset(data_dir, name, source, max_size):
         return target
+    check_outputs_owned(data_dir, name, (name,))  # before anything is written
     gt = read_sparse_model(folder / "sparse" / "0")
     cameras = {}
     for im in gt.images:
@@ -148,16 +177,15 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
                                  f"ground-truth camera is {cam.width}x{cam.height}", path=folder / part,
                                  fix="make the images and sparse/0 agree")
         cameras[im.camera_id] = cam.scaled(*working_size(cam.width, cam.height, max_size))
-    tmp = target.with_name(f".{target.name}.tmp")
-    if tmp.exists():
-        import shutil
-
-        shutil.rmtree(tmp)
-    for part, views in files.items():
-        write_views(tmp / part, {stem: resize_area(read_image(p), working_size(*sizes[part, stem], max_size))
-                                 for stem, p in views.items()})
-    write_sparse_model(tmp / "sparse" / "0", SparseModel(cameras, gt.images, gt.points_xyz, gt.points_rgb),
-                       binary=False)
-    (tmp / "split.json").write_bytes((folder / "split.json").read_bytes())
-    tmp.replace(target)
+    with stage_work_dir(data_dir, name) as work:
+        tmp = work / name
+        for part, views in files.items():
+            write_views(tmp / part, {stem: resize_area(read_image(p), working_size(*sizes[part, stem], max_size))
+                                     for stem, p in views.items()})
+        write_sparse_model(tmp / "sparse" / "0", SparseModel(cameras, gt.images, gt.points_xyz, gt.points_rgb),
+                           binary=False)
+        (tmp / "split.json").write_bytes((folder / "split.json").read_bytes())
+        manifest = output_manifest(work, (name,))
+        commit_outputs(data_dir, name, (name,), work, {"name": name, "source": str(source), "max_size": max_size,
+                                                       "manifest": manifest}, manifest)
     return target

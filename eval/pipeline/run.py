@@ -163,7 +163,7 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
     return {**out, "splat": sp, "render": re}
 
 
-def _planned_outputs(out: Path, stages: PipelineStages,
+def planned_run_outputs(out: Path, stages: PipelineStages,
                      settings: list[RoundSettings]) -> Iterator[tuple[Path, str, tuple[str, ...]]]:
     """(stage folder, stage name, outputs) of every stage a run of `settings` may run, then the published
     ones (export, if `stages` has it, and the report)."""
@@ -177,14 +177,14 @@ def _planned_outputs(out: Path, stages: PipelineStages,
     yield from _published(out, stages)
 
 
-def _check_planned_outputs(out: Path, stages: PipelineStages, settings: list[RoundSettings]) -> None:
-    """`check_outputs_owned` for every stage of `_planned_outputs`; one error names every file found.
+def _checkplanned_run_outputs(out: Path, stages: PipelineStages, settings: list[RoundSettings]) -> None:
+    """`check_outputs_owned` for every stage of `planned_run_outputs`; one error names every file found.
 
     Raises:
         UnownedOutputError: files the run did not write, or that changed, in the outputs of those stages.
     """
     names, problems = [], []
-    for folder, name, outputs in _planned_outputs(out, stages, settings):
+    for folder, name, outputs in planned_run_outputs(out, stages, settings):
         try:
             check_outputs_owned(folder, name, outputs, defer_hidden=True)
         except UnownedOutputError as exc:
@@ -265,7 +265,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     rounds: list[RoundResult] = []
     stopped: StoppedRound | None = None
     with resumable_output_dir(plan), output_lock(out):
-        _check_planned_outputs(out, stages, settings)  # before anything is changed
+        _checkplanned_run_outputs(out, stages, settings)  # before anything is changed
         # The working images (upright, long side <= max_size): every stage reads these, not the inputs.
         prep = runner.run(StageSpec(WORKING_DIR, out, prepare_inputs, (WORKING_DIR,), inputs={"noisy": images_dir},
                                     settings=InputsStageSettings(config.max_size, noisy_digest),

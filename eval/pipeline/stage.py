@@ -280,6 +280,7 @@ class UnownedOutputError(InputError):
     def __init__(self, stages: str | Sequence[str], folder: Path, problems: Sequence[str]):
         self.stages = (stages,) if isinstance(stages, str) else tuple(stages)
         self.paths = tuple(problems)
+        self.folder = Path(folder)
         names = ", ".join(repr(n) for n in self.stages)
         shown = "; ".join(problems[:8]) + (f"; and {len(problems) - 8} more" if len(problems) > 8 else "")
         which = f"stage {names}" if len(self.stages) == 1 else f"stages {names}"
@@ -287,6 +288,10 @@ class UnownedOutputError(InputError):
                          f"not write or that changed since it wrote them: {shown}", path=folder,
                          fix="move these files out of the output folder (an output file that is missing is simply "
                              "written again), or choose another --out; the files named were left as they are")
+
+    def __reduce__(self) -> tuple[type, tuple]:
+        """Pickle with the constructor's arguments: one raised in a Ray task reaches the driver as itself."""
+        return type(self), (self.stages, self.folder, list(self.paths))
 
 
 def _record_file(stage_dir: Path, name: str) -> Path:

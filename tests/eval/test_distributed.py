@@ -292,6 +292,27 @@ def test_cost_sweep_on_ray_gives_the_serial_rows(cluster, dataset, tmp_path):
     assert "splat" in rerun and not rerun & {"denoise", "align"}
 
 
+def test_an_output_folder_error_in_a_ray_task_reaches_the_driver_as_its_own_type(cluster, dataset, tmp_path):
+    """A file in a run folder that the evaluation did not write stops the evaluation on Ray as in the
+    serial path (an `UnownedOutputError`, exit code 2), not as a "failed" row nor an unpicklable error."""
+    from eval.evaluate import EvalTask, copy_train_inputs, run_task
+    from eval.methods import METHODS
+    from eval.pipeline.stage import UnownedOutputError
+
+    ex, _ = cluster
+    out = tmp_path / "out"
+    config = EvalConfig(methods=("instantsplat",), seeds=1, preset="fast")
+    task = EvalTask("s", METHODS["instantsplat"], 0, dataset, preset("fast", views=3),
+                    copy_train_inputs(dataset, out / "inputs" / "s"), out, config)
+    (row,) = ex.run(run_task, [task])
+    assert not row.error
+    notes = out / "runs" / "s" / "seed0" / "instantsplat" / "round1" / "renders" / "notes.txt"
+    notes.write_text("mine")
+    with pytest.raises(UnownedOutputError, match="notes.txt"):
+        ex.run(run_task, [task])
+    assert notes.read_text() == "mine"
+
+
 # ----------------------------------------------------------------- refused values
 def _closed_port() -> int:
     """A loopback port nothing listens on (bound, then released)."""
