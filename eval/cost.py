@@ -41,7 +41,7 @@ import numpy as np
 from eval.distributed import chain_after
 from eval.pipeline import PipelineConfig, PipelineStages, preset, product_stages, run_pipeline
 from eval.pipeline.run import RUN_COMMAND, planned_run_outputs
-from eval.pipeline.stage import UnownedOutputError, check_outputs_owned
+from eval.pipeline.stage import OwnershipCheck, check_outputs_owned
 from eval.pipeline.stage_settings import check_settings, round_settings
 from eval.pipeline.validate import DatasetFolder
 from eval.results import RESULTS_OUTPUTS, RESULTS_RECORD, check_results_owned, commit_written, save_figure
@@ -320,16 +320,8 @@ def check_cost_outputs(out: Path, jobs: Sequence[_PointJob]) -> None:
         UnownedOutputError: files the sweep did not write, or that changed since, where it writes.
         InputError: a point's folder is refused as a whole (e.g. a folder of the user's at its path).
     """
-    names: list[str] = []
-    problems: list[str] = []
-
-    def check(fn: Callable[..., None], *args: object) -> None:
-        try:
-            fn(*args)
-        except UnownedOutputError as exc:
-            names.extend(n for n in exc.stages if n not in names)
-            problems.extend(exc.paths)
-
+    owned = OwnershipCheck()
+    check = owned.check
     check(check_results_owned, out)
     for job in jobs:
         run_dir = out / "points" / job.point.name
@@ -339,8 +331,7 @@ def check_cost_outputs(out: Path, jobs: Sequence[_PointJob]) -> None:
         settings = [round_settings(job.point.config, r) for r in range(1, job.point.config.rounds + 1)]
         for stage_dir, name, outputs in planned_run_outputs(run_dir, stages, settings):
             check(check_outputs_owned, stage_dir, name, outputs)
-    if problems:
-        raise UnownedOutputError(names, out, problems)
+    owned.raise_if_any(out)
 
 
 def _cached_scores(cache: Path, key: Mapping[str, object]) -> dict[str, float] | None:

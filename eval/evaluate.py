@@ -65,7 +65,7 @@ from eval.methods import METHODS, EvalMethod, reconstruct
 from eval.pipeline import PipelineConfig, preset
 from eval.pipeline.config import DENOISE_METHODS, DenoiseMethod
 from eval.pipeline.run import RUN_COMMAND, SCENE_OUTPUTS, planned_run_outputs
-from eval.pipeline.stage import UnownedOutputError, check_outputs_owned
+from eval.pipeline.stage import OwnershipCheck, UnownedOutputError, check_outputs_owned
 from eval.pipeline.stage_settings import check_settings, round_settings
 from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import write_views
@@ -461,16 +461,8 @@ def check_eval_outputs(tasks: Sequence[EvalTask]) -> None:
     if not tasks:
         return
     out, scene = tasks[0].out, tasks[0].scene
-    names: list[str] = []
-    problems: list[str] = []
-
-    def check(fn: Callable[..., None], *args: object) -> None:
-        try:
-            fn(*args)
-        except UnownedOutputError as exc:
-            names.extend(n for n in exc.stages if n not in names)
-            problems.extend(exc.paths)
-
+    owned = OwnershipCheck()
+    check = owned.check
     check(check_results_owned, out)
     heldout = out / HELDOUT_DIR
     check(check_outputs_owned, heldout, heldout_record(scene, None), _heldout_outputs(scene, None))
@@ -489,8 +481,7 @@ def check_eval_outputs(tasks: Sequence[EvalTask]) -> None:
         prepare_output(folder, command=RUN_COMMAND, resume=True)
     for stage_dir, name, outputs in stage_outputs:
         check(check_outputs_owned, stage_dir, name, outputs)
-    if problems:
-        raise UnownedOutputError(names, out, problems)
+    owned.raise_if_any(out)
 
 
 def share_keys(task: EvalTask) -> tuple[tuple[str, int, str], ...]:

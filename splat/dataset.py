@@ -6,7 +6,6 @@ The folder layout is docs/conventions.md's dataset folder (written by
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from plyfile import PlyData
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
+from mvgeo.common.jsonio import read_json_object
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 
 
@@ -59,17 +59,7 @@ def read_split(data_dir: Path, split: str) -> list[str] | None:
     path = data_dir / "split.json"
     if not path.exists():
         return None
-    try:
-        data = json.loads(path.read_bytes())
-    except OSError as exc:
-        raise InputError(f"cannot read split.json ({exc.strerror})", path=path, fix=SPLIT_FORMAT) from exc
-    except UnicodeDecodeError as exc:
-        raise InputError(f"split.json is not UTF-8 text (byte {exc.start} cannot be decoded)", path=path,
-                         fix=SPLIT_FORMAT) from exc
-    except json.JSONDecodeError as exc:
-        raise InputError(f"split.json is not valid JSON ({exc})", path=path, fix=SPLIT_FORMAT) from exc
-    if not isinstance(data, dict):
-        raise InputError(f"split.json holds a {type(data).__name__}, not an object", path=path, fix=SPLIT_FORMAT)
+    data = read_json_object(path, fix=SPLIT_FORMAT)
     if split not in data:
         raise InputError(f"split.json has no '{split}' list", path=path, fix=SPLIT_FORMAT)
     names = data[split]

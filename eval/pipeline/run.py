@@ -55,10 +55,10 @@ from eval.pipeline.publish import EXPORT_OUTPUTS
 from eval.pipeline.report import REPORT_OUTPUTS, REPORT_RECORD, write_report
 from eval.pipeline.rounds import RoundResult, StoppedRound
 from eval.pipeline.stage import (
+    OwnershipCheck,
     StageResult,
     StageRunner,
     StageSpec,
-    UnownedOutputError,
     check_outputs_owned,
     code_digests,
     withdraw_outputs,
@@ -177,21 +177,16 @@ def planned_run_outputs(out: Path, stages: PipelineStages,
     yield from _published(out, stages)
 
 
-def _checkplanned_run_outputs(out: Path, stages: PipelineStages, settings: list[RoundSettings]) -> None:
+def _check_run_outputs(out: Path, stages: PipelineStages, settings: list[RoundSettings]) -> None:
     """`check_outputs_owned` for every stage of `planned_run_outputs`; one error names every file found.
 
     Raises:
         UnownedOutputError: files the run did not write, or that changed, in the outputs of those stages.
     """
-    names, problems = [], []
+    owned = OwnershipCheck()
     for folder, name, outputs in planned_run_outputs(out, stages, settings):
-        try:
-            check_outputs_owned(folder, name, outputs, defer_hidden=True)
-        except UnownedOutputError as exc:
-            names += [n for n in exc.stages if n not in names]
-            problems += exc.paths
-    if problems:
-        raise UnownedOutputError(names, out, problems)
+        owned.check(check_outputs_owned, folder, name, outputs, defer_hidden=True)
+    owned.raise_if_any(out)
 
 
 def _published(out: Path, stages: PipelineStages) -> list[tuple[Path, str, tuple[str, ...]]]:
@@ -265,7 +260,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     rounds: list[RoundResult] = []
     stopped: StoppedRound | None = None
     with resumable_output_dir(plan), output_lock(out):
-        _checkplanned_run_outputs(out, stages, settings)  # before anything is changed
+        _check_run_outputs(out, stages, settings)  # before anything is changed
         # The working images (upright, long side <= max_size): every stage reads these, not the inputs.
         prep = runner.run(StageSpec(WORKING_DIR, out, prepare_inputs, (WORKING_DIR,), inputs={"noisy": images_dir},
                                     settings=InputsStageSettings(config.max_size, noisy_digest),

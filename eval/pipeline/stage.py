@@ -75,9 +75,9 @@ from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import DgsError, InputError
 from mvgeo.common.timing import StageTimer
 
-__all__ = ["RECORD_DIR", "StageContext", "StageFn", "StageResult", "StageRunner", "StageSpec", "UnownedOutputError",
-           "check_outputs_owned", "code_digests", "commit_outputs", "output_manifest", "settings_json",
-           "stage_work_dir", "unowned_outputs", "verify_outputs", "withdraw_outputs"]
+__all__ = ["RECORD_DIR", "OwnershipCheck", "StageContext", "StageFn", "StageResult", "StageRunner", "StageSpec",
+           "UnownedOutputError", "check_outputs_owned", "code_digests", "commit_outputs", "output_manifest",
+           "settings_json", "stage_work_dir", "unowned_outputs", "verify_outputs", "withdraw_outputs"]
 
 _log = logging.getLogger(__name__)
 
@@ -292,6 +292,29 @@ class UnownedOutputError(InputError):
     def __reduce__(self) -> tuple[type, tuple]:
         """Pickle with the constructor's arguments: one raised in a Ray task reaches the driver as itself."""
         return type(self), (self.stages, self.folder, list(self.paths))
+
+
+class OwnershipCheck:
+    """Runs several ownership checks and raises one `UnownedOutputError` naming every file they found.
+
+    ``check(fn, *args)`` calls ``fn(*args)`` (e.g. `check_outputs_owned`) and keeps what its
+    `UnownedOutputError` names; ``raise_if_any(folder)`` raises them together.
+    """
+
+    def __init__(self) -> None:
+        self.stages: list[str] = []
+        self.problems: list[str] = []
+
+    def check(self, fn: Callable[..., None], *args: object, **kwargs: object) -> None:
+        try:
+            fn(*args, **kwargs)
+        except UnownedOutputError as exc:
+            self.stages.extend(n for n in exc.stages if n not in self.stages)
+            self.problems.extend(exc.paths)
+
+    def raise_if_any(self, folder: Path) -> None:
+        if self.problems:
+            raise UnownedOutputError(self.stages, folder, self.problems)
 
 
 def _record_file(stage_dir: Path, name: str) -> Path:

@@ -6,7 +6,6 @@ Everything a stage would reject hours later is rejected here with an
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +14,7 @@ from eval.pipeline.inputs import working_size
 from eval.pipeline.views import view_files
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
+from mvgeo.common.jsonio import read_json_object
 
 __all__ = ["MIN_IMAGE_SIZE_PX", "DatasetFolder", "validate_dataset_folder", "validate_run_inputs"]
 
@@ -118,18 +118,7 @@ def validate_dataset_folder(root: Path) -> DatasetFolder:
     if not (root / "sparse" / "0").is_dir():
         raise InputError("dataset has no ground-truth sparse/0/ cameras", path=root / "sparse" / "0", fix=fix)
     split_fix = 'write split.json as UTF-8 JSON {"train": ["NAME.png", ...], "test": ["NAME.png", ...]}'
-    try:
-        split = json.loads(split_path.read_bytes())
-    except OSError as exc:
-        raise InputError(f"cannot read split.json ({exc.strerror})", path=split_path, fix=split_fix) from exc
-    except UnicodeDecodeError as exc:
-        raise InputError(f"split.json is not UTF-8 text (byte {exc.start} cannot be decoded)", path=split_path,
-                         fix=split_fix) from exc
-    except json.JSONDecodeError as exc:
-        raise InputError(f"cannot parse split.json ({exc})", path=split_path, fix=split_fix) from exc
-    if not isinstance(split, dict):
-        raise InputError(f"split.json holds a {type(split).__name__}, not an object", path=split_path,
-                         fix=split_fix)
+    split = read_json_object(split_path, fix=split_fix)
     for key in ("train", "test"):
         names = split.get(key)
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):

@@ -169,6 +169,16 @@ def _tree(folder: Path) -> tuple[list[str], list[str]]:
     return sorted(dirs), sorted(files)
 
 
+def _write_json(path: Path, data: dict) -> None:
+    """`path` written as indented JSON through a temporary sibling (`NAME.tmp-PID`) and a rename."""
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_manifest(folder: str | Path, command: str, *, record_files: bool = True) -> Path:
     """Write `folder/.denoise-gs-output.json`: ``{"command", "version", "created_utc", "format"}`` and,
     with `record_files`, ``"dirs"`` (every folder under `folder`) and ``"files"`` (every file or link:
@@ -185,12 +195,7 @@ def write_manifest(folder: str | Path, command: str, *, record_files: bool = Tru
         dirs, files = _tree(folder)
         data["dirs"] = dirs
         data["files"] = {rel: _file_entry(folder / rel) for rel in files}
-    tmp = path.with_name(f"{MANIFEST_NAME}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    _write_json(path, data)
     return path
 
 
@@ -460,12 +465,7 @@ def write_file_record(path: str | Path, command: str) -> Path:
     data = {"command": command, "version": _version(),
             "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "format": MANIFEST_FORMAT,
             "file": path.name, **_file_entry(path)}
-    tmp = record.with_name(f"{record.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
-        os.replace(tmp, record)
-    finally:
-        tmp.unlink(missing_ok=True)
+    _write_json(record, data)
     return record
 
 

@@ -140,7 +140,7 @@ def test_eval_dataset_missing_parts(tmp_path, capsys, remove, message):
     (b'{"train": ["view_001"], "test": "view_000"}', "'test' must be a list of image names"),
     (b'{"train": ["view_001", 2], "test": ["view_000"]}', "'train' must be a list of image names"),
     (b'[["view_001"], ["view_000"]]', "not an object"),
-    (b'{"train": [', "cannot parse split.json"),
+    (b'{"train": [', "split.json is not valid JSON"),
 ])
 def test_eval_refuses_a_malformed_split_json(tmp_path, capsys, content, message):
     root = _dataset(tmp_path)
