@@ -330,7 +330,7 @@ def check_cost_outputs(out: Path, jobs: Sequence[_PointJob]) -> None:
         stages = job.stages if job.stages is not None else product_stages()
         settings = [round_settings(job.point.config, r) for r in range(1, job.point.config.rounds + 1)]
         for stage_dir, name, outputs in planned_run_outputs(run_dir, stages, settings):
-            check(check_outputs_owned, stage_dir, name, outputs)
+            check(check_outputs_owned, stage_dir, name, outputs, defer_hidden=True)
     owned.raise_if_any(out)
 
 

@@ -65,7 +65,15 @@ from eval.methods import METHODS, EvalMethod, reconstruct
 from eval.pipeline import PipelineConfig, preset
 from eval.pipeline.config import DENOISE_METHODS, DenoiseMethod
 from eval.pipeline.run import RUN_COMMAND, SCENE_OUTPUTS, planned_run_outputs
-from eval.pipeline.stage import OwnershipCheck, UnownedOutputError, check_outputs_owned
+from eval.pipeline.stage import (
+    RECORD_DIR,
+    OwnershipCheck,
+    UnownedOutputError,
+    adopt_outputs,
+    check_outputs_owned,
+    commit_outputs,
+    stage_work_dir,
+)
 from eval.pipeline.stage_settings import check_settings, round_settings
 from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import write_views
@@ -180,32 +188,47 @@ def _same_image(path: Path, src: Path) -> bool:
 
 def copy_train_inputs(dataset: DatasetFolder, folder: Path, names: Sequence[str] | None = None) -> Path:
     """`folder` holding (hard links to) the dataset's noisy training images `names` (default: all of
-    `dataset.train`), rebuilt atomically when it holds a different set; where `evaluate_dataset` runs.
+    `dataset.train`), rebuilt atomically when it holds a different set or other bytes; where
+    `evaluate_dataset` runs.
 
-    Only what this function puts there is ever replaced: the folder is rebuilt only while every entry in it
-    is one of the dataset's images (by file name and bytes); anything else is refused.
+    Only what this function put there is ever replaced: the links it makes are recorded
+    (`stages/inputs.<folder name>.json` beside `folder`, as a stage records its outputs), and a folder holding
+    anything else, or a recorded file that changed, is refused. A folder without a record (written before
+    records existed) is taken as its own while it holds only the dataset's images (by name and bytes).
 
     Raises:
-        InputError: `folder` exists and holds something that is not one of the dataset's images (nothing
-            is changed), or is not a folder.
+        InputError: `folder` is not a folder, or holds something this function did not put there
+            (`UnownedOutputError`; nothing is changed).
     """
     names = list(dataset.train if names is None else names)
     wanted = {dataset.images[n].name: dataset.images[n] for n in names}
+    stage_dir, record = folder.parent, f"inputs.{folder.name}"
     if os.path.lexists(folder):
         if folder.is_symlink() or not folder.is_dir():
             raise InputError("the training-image folder of the evaluation is not a folder", path=folder,
                              fix="move it out of the evaluation folder, or choose another --out")
-        by_name = {p.name: p for p in dataset.images.values()}
         entries = sorted(folder.iterdir())
-        foreign = [e for e in entries if e.name not in by_name or not _same_image(e, by_name[e.name])]
-        if foreign:
-            shown = ", ".join(str(e) for e in foreign[:5]) + (", ..." if len(foreign) > 5 else "")
-            raise InputError(f"the training-image folder of the evaluation holds entries that are not the "
-                             f"dataset's images, which rebuilding it would delete: {shown}", path=folder,
-                             fix="move them out of the evaluation folder, or choose another --out; nothing was "
-                                 "changed")
-        if sorted(e.name for e in entries) == sorted(wanted):
+        if (stage_dir / RECORD_DIR / f"{record}.json").is_file():
+            check_outputs_owned(stage_dir, record, (folder.name,))
+        else:
+            by_name = {p.name: p for p in dataset.images.values()}
+            foreign = [e for e in entries if e.name not in by_name or not _same_image(e, by_name[e.name])]
+            if foreign:
+                raise UnownedOutputError(record, stage_dir, [f"{e} (not one of the dataset's images)"
+                                                             for e in foreign])
+            adopt_outputs(stage_dir, record, (folder.name,))  # the dataset's own images: this function's
+        if (sorted(e.name for e in entries) == sorted(wanted)
+                and all(_same_image(folder / n, src) for n, src in wanted.items())):
             return folder
+    with stage_work_dir(stage_dir, record) as work:
+        (work / folder.name).mkdir()
+        for src in wanted.values():
+            try:
+                os.link(src, work / folder.name / src.name)
+            except OSError:
+                shutil.copy2(src, work / folder.name / src.name)
+        commit_outputs(stage_dir, record, (folder.name,), work, {"name": record})
+    return folder
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))
     try:
@@ -480,7 +503,7 @@ def check_eval_outputs(tasks: Sequence[EvalTask]) -> None:
     for folder in run_folders:
         prepare_output(folder, command=RUN_COMMAND, resume=True)
     for stage_dir, name, outputs in stage_outputs:
-        check(check_outputs_owned, stage_dir, name, outputs)
+        check(check_outputs_owned, stage_dir, name, outputs, defer_hidden=True)
     owned.raise_if_any(out)
 
 

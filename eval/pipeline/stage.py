@@ -76,8 +76,9 @@ from mvgeo.common.errors import DgsError, InputError
 from mvgeo.common.timing import StageTimer
 
 __all__ = ["RECORD_DIR", "OwnershipCheck", "StageContext", "StageFn", "StageResult", "StageRunner", "StageSpec",
-           "UnownedOutputError", "check_outputs_owned", "code_digests", "commit_outputs", "output_manifest",
-           "settings_json", "stage_work_dir", "unowned_outputs", "verify_outputs", "withdraw_outputs"]
+           "UnownedOutputError", "adopt_outputs", "check_outputs_owned", "code_digests", "commit_outputs",
+           "output_manifest", "settings_json", "stage_work_dir", "unowned_outputs", "verify_outputs",
+           "withdraw_outputs"]
 
 _log = logging.getLogger(__name__)
 
@@ -317,6 +318,10 @@ class OwnershipCheck:
             raise UnownedOutputError(self.stages, folder, self.problems)
 
 
+#: The file `stage_work_dir` puts in each work folder: what makes a leftover one the runner's to remove.
+WORK_MARKER = ".denoise-gs-work"
+
+
 def _record_file(stage_dir: Path, name: str) -> Path:
     return stage_dir / RECORD_DIR / f"{name}.json"
 
@@ -437,15 +442,18 @@ def _replace(src: Path, dst: Path) -> None:
 
 @contextmanager
 def stage_work_dir(stage_dir: Path, name: str) -> Iterator[Path]:
-    """A new empty hidden folder `stage_dir/.<name>.work-*` for a stage's outputs, removed when the block
-    ends; those a killed run left (the same prefix: the runner's own) are removed first."""
+    """A new hidden folder `stage_dir/.<name>.work-*` for a stage's outputs (holding only the marker
+    `WORK_MARKER`), removed when the block ends. Those a killed run left are removed first: folders of that
+    name pattern that hold the marker (a folder of the user's with a similar name does not)."""
     stage_dir.mkdir(parents=True, exist_ok=True)
     ours = re.compile(rf"\.{re.escape(name)}\.work-[a-z0-9_]{{8}}")  # `tempfile.mkdtemp`'s 8 characters
     for stale in stage_dir.glob(f".{name}.work-*"):
-        if ours.fullmatch(stale.name) and stale.is_dir() and not stale.is_symlink():
+        if (ours.fullmatch(stale.name) and stale.is_dir() and not stale.is_symlink()
+                and (stale / WORK_MARKER).is_file()):
             _remove(stale)
     work = Path(tempfile.mkdtemp(prefix=f".{name}.work-", dir=stage_dir))
     try:
+        (work / WORK_MARKER).write_text(f"stage {name}, pid {os.getpid()}\n")
         yield work
     finally:
         _remove(work)
@@ -484,6 +492,14 @@ def commit_outputs(stage_dir: Path, name: str, outputs: Sequence[str], work: Pat
         elif os.path.lexists(stage_dir / o):
             _remove(stage_dir / o)
     atomic_write_text(rec_path, json.dumps({**record, "owned": new}, indent=2, sort_keys=True) + "\n")
+
+
+def adopt_outputs(stage_dir: Path, name: str, outputs: Sequence[str]) -> None:
+    """Record the files now in `stage_dir`'s `outputs` as stage `name`'s own (`stages/<name>.json`, as
+    `commit_outputs` records them), for outputs a caller has just verified to be its own by other means."""
+    owned = {rel: [file_sha256(path)] for rel, path in _entries(stage_dir, outputs) if path.is_file()}
+    atomic_write_text(_record_file(stage_dir, name),
+                      json.dumps({"name": name, "owned": owned}, indent=2, sort_keys=True) + "\n")
 
 
 def withdraw_outputs(stage_dir: Path, name: str, outputs: Sequence[str]) -> bool:

@@ -22,7 +22,7 @@ def list_images(folder: str | Path) -> list[Path]:
 
     Raises:
         InputError: the folder is missing, not a folder, holds no images, or holds a broken
-            symbolic link with an image name (named).
+            symbolic link with an image name, or an image whose file name is not UTF-8 (named).
     """
     folder = Path(folder)
     if not folder.exists():
@@ -31,6 +31,11 @@ def list_images(folder: str | Path) -> list[Path]:
         raise InputError("not a folder", path=folder, fix="pass a folder of images")
     named = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     for p in named:
+        try:
+            p.name.encode("utf-8")
+        except UnicodeEncodeError:  # bytes the file system gave undecoded: OpenCV and the records cannot take it
+            raise InputError(f"image file name {os.fsencode(p.name)!r} is not UTF-8 text", path=folder,
+                             fix="rename the file (e.g. `mv` it to an ASCII name)") from None
         if p.is_symlink() and not p.exists():  # a photo we would silently lose
             raise InputError("broken symbolic link: the image it points to does not exist", path=p,
                              fix=f"restore its target ({os.readlink(p)}) or remove the link")

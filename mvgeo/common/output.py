@@ -75,6 +75,8 @@ MANIFEST_NAME = ".denoise-gs-output.json"
 #: file (left by a run that was killed) counts as empty.
 LOCK_NAME = ".denoise-gs.lock"
 MANIFEST_FORMAT = 1
+#: The longest file name (bytes) the common file systems take.
+_NAME_MAX = 255
 #: Temporary entries `mvgeo.common.atomic` creates inside an empty `--out` (removed unless the process
 #: is killed).
 _TEMP_NAME = re.compile(r"\.tmp-[0-9a-f]{8}")
@@ -152,7 +154,7 @@ def _same_file(path: Path, entry: object) -> bool:
 
 
 def _tree(folder: Path) -> tuple[list[str], list[str]]:
-    """(folders, files and links) under `folder`, relative POSIX paths, the manifest and lock left out."""
+    """(folders, files and links) under `folder`, relative POSIX paths, the top-level manifest left out."""
     dirs, files = [], []
     for root, subdirs, names in os.walk(folder):
         rel_root = Path(root).relative_to(folder)
@@ -164,7 +166,7 @@ def _tree(folder: Path) -> tuple[list[str], list[str]]:
                 dirs.append((rel_root / d).as_posix())
         for n in names:
             rel = (rel_root / n).as_posix()
-            if rel not in (MANIFEST_NAME, LOCK_NAME) and not rel.startswith(f"{MANIFEST_NAME}.tmp-"):
+            if rel != MANIFEST_NAME:
                 files.append(rel)
     return sorted(dirs), sorted(files)
 
@@ -280,9 +282,22 @@ def _check_writable(folder: Path, plan_out: Path) -> None:
                          fix="choose an --out in a folder you can write to")
 
 
+def _is_lock_file(path: Path) -> bool:
+    """`path` is what `eval.pipeline.lock.output_lock` writes: a small regular file holding a pid (or
+    nothing yet); a user's file that happens to carry the name is not."""
+    try:
+        st = path.lstat()
+        if not stat.S_ISREG(st.st_mode) or st.st_size > 32:
+            return False
+        text = path.read_bytes().decode("ascii").strip()
+    except (OSError, UnicodeDecodeError):
+        return False
+    return text == "" or text.isdigit()
+
+
 def _entries(folder: Path, *, resume: bool) -> list[str]:
     names = os.listdir(folder)
-    return [n for n in names if not (resume and n == LOCK_NAME)]
+    return [n for n in names if not (resume and n == LOCK_NAME and _is_lock_file(folder / n))]
 
 
 def _is_cwd_or_ancestor(path: Path) -> bool:
@@ -445,7 +460,8 @@ def resumable_output_dir(plan: OutputPlan) -> Iterator[Path]:
     except BaseException:
         if wrote_manifest:
             with contextlib.suppress(OSError):
-                if set(os.listdir(plan.path)) <= {MANIFEST_NAME, LOCK_NAME}:
+                # Only the manifest: with a lock file there another run holds the folder and relies on it.
+                if set(os.listdir(plan.path)) == {MANIFEST_NAME}:
                     (plan.path / MANIFEST_NAME).unlink(missing_ok=True)
                     remove_empty_dirs(created)
         raise
@@ -506,6 +522,10 @@ def prepare_output_file(out: str | Path, *, command: str, inputs: Iterable[str |
     if path.is_dir():
         raise InputError("--out is a folder; it must name a file", path=out,
                          fix=f"pass a file name, e.g. --out {out / example_name}")
+    if len(os.fsencode(file_record_path(path).name)) > _NAME_MAX:
+        raise InputError(f"--out's file name is too long to keep the record beside it ({len(path.name)} "
+                         f"characters; at most {_NAME_MAX - len(MANIFEST_NAME) - 1} bytes)", path=out,
+                         fix="choose a shorter file name")
     if os.path.lexists(path):
         if not overwrite:
             raise InputError("--out already exists", path=out,

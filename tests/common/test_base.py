@@ -104,3 +104,10 @@ def test_write_image_replaces_the_file_instead_of_writing_into_it(tmp_path):
     write_image(link, img)
     assert target.read_text() == "the user's" and not link.is_symlink()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["backup.png", "l.png", "user.txt", "v.png"]
+
+
+def test_list_images_refuses_a_file_name_that_is_not_utf8(tmp_path):
+    write_image(tmp_path / "a.png", np.zeros((4, 4, 3), np.float32))
+    (tmp_path / os.fsdecode(b"\xff_000.png")).write_bytes((tmp_path / "a.png").read_bytes())
+    with pytest.raises(InputError, match="not UTF-8"):
+        list_images(tmp_path)

@@ -354,3 +354,41 @@ def test_manifest_roundtrip_and_garbage(tmp_path):
     assert read_manifest(tmp_path)["command"] == "a b"
     (tmp_path / MANIFEST_NAME).write_text(json.dumps({"command": 3}))
     assert read_manifest(tmp_path) is None
+
+
+@pytest.mark.parametrize("name", [LOCK_NAME, MANIFEST_NAME + ".tmp-notes"])
+def test_overwrite_counts_files_named_like_internal_ones(tmp_path, name):
+    # A previous output of a command that writes at once never holds a lock or a manifest temporary:
+    # a file with such a name is the user's.
+    out = tmp_path / "out"
+    _write(out)
+    (out / name).write_text("the user's")
+    with pytest.raises(InputError, match="did not write"):
+        _write(out, overwrite=True)
+    assert (out / name).read_text() == "the user's"
+
+
+def test_a_users_file_named_like_the_lock_is_not_a_lock(tmp_path):
+    folder = tmp_path / "f"
+    folder.mkdir()
+    (folder / LOCK_NAME).write_text("precious notes")
+    with pytest.raises(InputError, match="did not write"):
+        prepare_output(folder, command="run cmd", resume=True)
+    (folder / LOCK_NAME).write_text("12345\n")  # what a killed run leaves: a pid
+    assert prepare_output(folder, command="run cmd", resume=True).state == "empty"
+
+
+def test_a_file_name_too_long_for_its_record_is_refused_up_front(tmp_path):
+    with pytest.raises(InputError, match="too long"):
+        prepare_output_file(tmp_path / ("a" * 230 + ".splat"), command=CMD)
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_run_that_loses_the_lock_leaves_the_winners_manifest(tmp_path):
+    out = tmp_path / "out"
+    plan = prepare_output(out, command="run cmd", resume=True)
+    with pytest.raises(InputError, match="another run"):
+        with resumable_output_dir(plan):
+            (out / LOCK_NAME).write_text("999\n")  # the winner's lock, taken meanwhile
+            raise InputError("another run (pid 999) is writing this folder")
+    assert sorted(os.listdir(out)) == [MANIFEST_NAME, LOCK_NAME]

@@ -349,3 +349,17 @@ def test_the_best_preset_trains_the_wide_unet():
     assert default.denoise.n2v.unet.width == N2V_PRESETS["default"].unet.width == 16
     assert dataclasses.replace(best.denoise.n2v, unet=default.denoise.n2v.unet) == default.denoise.n2v
     assert best.splat.train.iters == 2000 != default.splat.train.iters
+
+
+def test_only_marked_work_folders_are_removed_as_stale(tmp_path):
+    from eval.pipeline.stage import WORK_MARKER, stage_work_dir
+
+    users = tmp_path / ".splat.work-abcdefgh"  # the runner's name pattern, but the user's folder
+    users.mkdir()
+    (users / "thesis.tex").write_text("x")
+    stale = tmp_path / ".splat.work-zyxwvuts"  # left by a killed run: marked
+    stale.mkdir()
+    (stale / WORK_MARKER).write_text("stage splat\n")
+    with stage_work_dir(tmp_path, "splat") as work:
+        assert (work / WORK_MARKER).is_file()
+    assert (users / "thesis.tex").read_text() == "x" and not stale.exists() and not work.exists()

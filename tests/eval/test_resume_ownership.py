@@ -173,7 +173,7 @@ def test_copy_train_inputs_refuses_a_folder_holding_other_files(tmp_path):
     before = _tree(folder)
     with pytest.raises(InputError, match="notes.txt") as info:
         copy_train_inputs(dataset, folder)
-    assert "move them out" in info.value.fix and info.value.path == folder
+    assert "move these files out" in info.value.fix and info.value.path == folder.parent
     assert _tree(folder) == before
     with pytest.raises(InputError, match="notes.txt"):  # also when it would be rebuilt with other views
         copy_train_inputs(dataset, folder, dataset.train[:2])
@@ -188,3 +188,20 @@ def test_copy_train_inputs_rebuilds_a_folder_of_its_own_links(tmp_path):
     assert sorted(p.stem for p in folder.iterdir()) == sorted(dataset.train)
     assert all((folder / dataset.images[n].name).read_bytes() == dataset.images[n].read_bytes() for n in dataset.train)
     assert not [p for p in folder.parent.iterdir() if p.name.startswith(".")]
+
+
+def test_copy_train_inputs_rebuilds_its_links_after_the_dataset_changed(tmp_path):
+    # The dataset's images were re-rendered (new bytes, same names): the recorded links are still this
+    # function's own and are rebuilt; a user file beside them is not.
+    dataset = tiny_dataset(tmp_path / "ds")
+    folder = tmp_path / "out" / "inputs" / "s"
+    copy_train_inputs(dataset, folder)
+    src = dataset.images[dataset.train[0]]
+    src.unlink()  # a new render: a new file under the same name
+    src.write_bytes(b"new render")
+    copy_train_inputs(dataset, folder)
+    assert (folder / src.name).read_bytes() == b"new render"
+    (folder / "notes.txt").write_text("the user's")
+    with pytest.raises(InputError, match="not written by the stage"):
+        copy_train_inputs(dataset, folder)
+    assert (folder / "notes.txt").read_text() == "the user's"
