@@ -41,10 +41,10 @@ import numpy as np
 from eval.distributed import chain_after
 from eval.pipeline import PipelineConfig, PipelineStages, preset, product_stages, run_pipeline
 from eval.pipeline.run import RUN_COMMAND, planned_run_outputs
-from eval.pipeline.stage import OwnershipCheck, check_outputs_owned
+from eval.pipeline.stage import OwnershipCheck, check_outputs_owned, commit_written
 from eval.pipeline.stage_settings import check_settings, round_settings
 from eval.pipeline.validate import DatasetFolder
-from eval.results import RESULTS_OUTPUTS, RESULTS_RECORD, check_results_owned, commit_written, save_figure
+from eval.results import RESULTS_OUTPUTS, RESULTS_RECORD, check_results_owned, save_figure
 from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import InputError
 from mvgeo.common.output import prepare_output, write_manifest

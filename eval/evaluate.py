@@ -71,13 +71,12 @@ from eval.pipeline.stage import (
     UnownedOutputError,
     adopt_outputs,
     check_outputs_owned,
-    commit_outputs,
-    stage_work_dir,
+    commit_written,
 )
 from eval.pipeline.stage_settings import check_settings, round_settings
 from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import write_views
-from eval.results import RunScores, check_results_owned, commit_written
+from eval.results import RunScores, check_results_owned
 from mvgeo.camera import Camera
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.imageio import read_image
@@ -220,14 +219,16 @@ def copy_train_inputs(dataset: DatasetFolder, folder: Path, names: Sequence[str]
         if (sorted(e.name for e in entries) == sorted(wanted)
                 and all(_same_image(folder / n, src) for n, src in wanted.items())):
             return folder
-    with stage_work_dir(stage_dir, record) as work:
+
+    def link(work: Path) -> None:
         (work / folder.name).mkdir()
         for src in wanted.values():
             try:
                 os.link(src, work / folder.name / src.name)
             except OSError:
                 shutil.copy2(src, work / folder.name / src.name)
-        commit_outputs(stage_dir, record, (folder.name,), work, {"name": record})
+
+    commit_written(stage_dir, record, (folder.name,), link)
     return folder
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))

@@ -1,9 +1,9 @@
 """Evaluation results: per-run rows, mean +- std over seeds, `results.json`, `results.md`, bar charts.
 
 The files `denoise-gs eval` and `denoise-gs cost` write at the top of their output folder
-(`RESULTS_OUTPUTS`) are committed like a pipeline stage's outputs (`eval.pipeline.stage.commit_outputs`,
-through `commit_written`): written in a hidden work folder, then renamed into place, with a record
-`OUT/stages/results.json` of every file. A later invocation replaces only files that record lists with
+(`RESULTS_OUTPUTS`) are committed like a pipeline stage's outputs (`eval.pipeline.stage.commit_written`):
+written in a hidden work folder, then renamed into place, with a record `OUT/stages/results.json` of every
+file. A later invocation replaces only files that record lists with
 their recorded content; anything else there (a note added to `results.md`, a file put in `figures/`)
 stops it with `UnownedOutputError` and nothing is changed. A file is always replaced by a rename, never
 written into, so hard and symbolic links at an output's path keep what they point to.
@@ -14,19 +14,18 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from eval.pipeline.stage import check_outputs_owned, commit_outputs, output_manifest, stage_work_dir
+from eval.pipeline.stage import check_outputs_owned, commit_written
 from mvgeo.common.atomic import atomic_write_bytes, atomic_write_text
 
 __all__ = ["METRICS", "RESULTS_OUTPUTS", "RESULTS_RECORD", "RunScores", "SummaryCell", "check_results_owned",
-           "commit_written", "plot_bars", "results_markdown", "save_figure", "summarise", "write_results"]
+           "plot_bars", "results_markdown", "save_figure", "summarise", "write_results"]
 
 #: What `write_results` (and `eval.cost.write_cost_results`) write in OUT, and the name of their record
 #: (`OUT/stages/<name>.json`).
@@ -233,25 +232,6 @@ def save_figure(fig: Any, path: Path) -> Path:
     fig.savefig(buf, format=Path(path).suffix.lstrip(".").lower() or "png")
     atomic_write_bytes(path, buf.getvalue())
     return Path(path)
-
-
-def commit_written(folder: Path, name: str, outputs: Sequence[str], write: Callable[[Path], None]) -> None:
-    """Write `outputs` (paths relative to `folder`) with `write(work)` into a new hidden work folder of
-    `folder`, then commit them into `folder` with the record `folder/stages/<name>.json`
-    (`eval.pipeline.stage.commit_outputs`); an output `write` did not write is removed from `folder`.
-
-    Raises:
-        UnownedOutputError: `folder`'s `outputs` hold files the record does not list, or listed files whose
-            content changed (checked before `write` runs and again before the commit; nothing is changed).
-        Whatever `write` raises (the work folder is removed; `folder` is unchanged).
-    """
-    folder = Path(folder)
-    check_outputs_owned(folder, name, outputs)
-    with stage_work_dir(folder, name) as work:
-        write(work)
-        written = [o for o in outputs if os.path.lexists(work / o)]
-        manifest = output_manifest(work, written)
-        commit_outputs(folder, name, outputs, work, {"name": name, "manifest": manifest}, manifest)
 
 
 def check_results_owned(out: Path) -> None:

@@ -10,27 +10,14 @@ import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
+from mvgeo.common.digest import file_sha256, update_with_file
 from mvgeo.common.errors import DgsError
 
 __all__ = ["SOURCE_SUFFIXES", "file_sha256", "hash_files", "hash_json", "hash_path", "source_digest",
            "tree_files"]
 
-_CHUNK = 1 << 20
 #: Files whose bytes make up a module's or package's source digest (the C++ kernels included).
 SOURCE_SUFFIXES = (".py", ".cpp", ".h", ".c", ".cu")
-
-
-def _file_digest(path: Path, h) -> None:
-    with open(path, "rb") as f:
-        while chunk := f.read(_CHUNK):
-            h.update(chunk)
-
-
-def file_sha256(path: str | Path) -> str:
-    """sha256 of one file's bytes."""
-    h = hashlib.sha256()
-    _file_digest(Path(path), h)
-    return h.hexdigest()
 
 
 def tree_files(folder: str | Path) -> list[Path]:
@@ -48,7 +35,7 @@ def hash_files(files: Iterable[Path], *, root: Path | None = None) -> str:
     items = sorted((p.relative_to(root).as_posix() if root else p.name, p) for p in map(Path, files))
     for name, path in items:
         h.update(name.encode("utf-8") + b"\0")
-        _file_digest(path, h)
+        update_with_file(h, path)
         h.update(b"\0")
     return h.hexdigest()
 

@@ -22,10 +22,7 @@ import numpy as np
 from eval.pipeline.stage import (
     RECORD_DIR,
     StageContext,
-    check_outputs_owned,
-    commit_outputs,
-    output_manifest,
-    stage_work_dir,
+    commit_written,
     verify_outputs,
 )
 from eval.pipeline.views import view_files, write_views
@@ -144,7 +141,7 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
     it is complete and unchanged): the noisy and clean images downscaled with the area filter (16-bit PNG),
     the ground-truth cameras scaled to match (`Camera.scaled`, poses unchanged), `split.json` copied. Other
     files of `folder` are not copied. It is written in a hidden work folder and committed with the record
-    (`eval.pipeline.stage.commit_outputs`), so only a folder this function made is ever replaced.
+    (`eval.pipeline.stage.commit_written`), so only a folder this function made is ever replaced.
 
     Raises:
         InputError: an image whose size differs from its ground-truth camera's.
@@ -166,7 +163,6 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
     target, source = data_dir / name, folder.resolve()
     if _recorded_dataset(data_dir, name, source, max_size):
         return target
-    check_outputs_owned(data_dir, name, (name,))  # before anything is written
     gt = read_sparse_model(folder / "sparse" / "0")
     cameras = {}
     for im in gt.images:
@@ -177,7 +173,8 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
                                  f"ground-truth camera is {cam.width}x{cam.height}", path=folder / part,
                                  fix="make the images and sparse/0 agree")
         cameras[im.camera_id] = cam.scaled(*working_size(cam.width, cam.height, max_size))
-    with stage_work_dir(data_dir, name) as work:
+
+    def write(work: Path) -> None:
         tmp = work / name
         for part, views in files.items():
             write_views(tmp / part, {stem: resize_area(read_image(p), working_size(*sizes[part, stem], max_size))
@@ -185,7 +182,6 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
         write_sparse_model(tmp / "sparse" / "0", SparseModel(cameras, gt.images, gt.points_xyz, gt.points_rgb),
                            binary=False)
         (tmp / "split.json").write_bytes((folder / "split.json").read_bytes())
-        manifest = output_manifest(work, (name,))
-        commit_outputs(data_dir, name, (name,), work, {"name": name, "source": str(source), "max_size": max_size,
-                                                       "manifest": manifest}, manifest)
+
+    commit_written(data_dir, name, (name,), write, {"source": str(source), "max_size": max_size})
     return target

@@ -1,6 +1,6 @@
 """`OUT/report.json` and `OUT/report.md` (with contact sheets) of a pipeline run.
 
-The report is committed like a stage's outputs (`eval.pipeline.stage.commit_outputs`): written in a
+The report is committed like a stage's outputs (`eval.pipeline.stage.commit_written`): written in a
 hidden work folder, then moved into place, with a record `OUT/stages/report.json` of every file, so
 that a later run replaces or withdraws only files it wrote (`REPORT_OUTPUTS`)."""
 
@@ -16,7 +16,7 @@ import numpy as np
 from eval.contact_sheet import contact_sheet
 from eval.pipeline.config import PipelineConfig
 from eval.pipeline.rounds import RoundResult, StoppedRound
-from eval.pipeline.stage import StageResult, commit_outputs, output_manifest, stage_work_dir
+from eval.pipeline.stage import StageResult, commit_written
 from eval.pipeline.views import view_files
 from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import InputError
@@ -100,13 +100,9 @@ def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds:
         UnownedOutputError: the previous report's files hold files the run did not write or that changed
             (`eval.pipeline.stage.UnownedOutputError`; nothing is replaced).
     """
-    with stage_work_dir(out, REPORT_RECORD) as work:
-        _write_report_files(out, work, images_dir=images_dir, config=config, rounds=rounds, timings_s=timings_s,
-                            working=working, exported=exported, stopped=stopped)
-        written = [o for o in REPORT_OUTPUTS if (work / o).exists()]
-        manifest = output_manifest(work, written)
-        commit_outputs(out, REPORT_RECORD, REPORT_OUTPUTS, work, {"name": REPORT_RECORD, "manifest": manifest},
-                       manifest)
+    commit_written(out, REPORT_RECORD, REPORT_OUTPUTS, lambda work: _write_report_files(
+        out, work, images_dir=images_dir, config=config, rounds=rounds, timings_s=timings_s, working=working,
+        exported=exported, stopped=stopped))
     return out / "report.json", out / "report.md"
 
 

@@ -77,6 +77,7 @@ from mvgeo.common.timing import StageTimer
 
 __all__ = ["RECORD_DIR", "OwnershipCheck", "StageContext", "StageFn", "StageResult", "StageRunner", "StageSpec",
            "UnownedOutputError", "adopt_outputs", "check_outputs_owned", "code_digests", "commit_outputs",
+           "commit_written",
            "output_manifest", "settings_json", "stage_work_dir", "unowned_outputs", "verify_outputs",
            "withdraw_outputs"]
 
@@ -482,24 +483,54 @@ def commit_outputs(stage_dir: Path, name: str, outputs: Sequence[str], work: Pat
     if problems:
         raise UnownedOutputError(name, stage_dir, problems)
     known = {k: v["sha256"] for k, v in (manifest or {}).get("files", {}).items()}
-    new = {rel: [known.get(rel) or file_sha256(path)] for rel, path in _entries(work, outputs) if path.is_file()}
+    new = _owned_now(work, outputs, known)
     pending = {rel: sorted(set(new.get(rel, [])) | old.get(rel, frozenset())) for rel in new.keys() | old.keys()}
-    atomic_write_text(rec_path, json.dumps({"name": name, "pending": True, "owned": pending}, indent=2,
-                                           sort_keys=True) + "\n")
+    _write_record(rec_path, {"name": name, "pending": True, "owned": pending})
     for o in outputs:
         if os.path.lexists(work / o):
             _replace(work / o, stage_dir / o)
         elif os.path.lexists(stage_dir / o):
             _remove(stage_dir / o)
-    atomic_write_text(rec_path, json.dumps({**record, "owned": new}, indent=2, sort_keys=True) + "\n")
+    _write_record(rec_path, {**record, "owned": new})
+
+
+def _owned_now(root: Path, outputs: Sequence[str], known: Mapping[str, str] | None = None) -> dict[str, list[str]]:
+    """The `owned` map of a record for the files now under `root`'s `outputs` (sha256 from `known` where
+    given, else hashed)."""
+    known = known or {}
+    return {rel: [known.get(rel) or file_sha256(path)] for rel, path in _entries(root, outputs) if path.is_file()}
+
+
+def _write_record(path: Path, record: Mapping[str, object]) -> None:
+    atomic_write_text(path, json.dumps(record, indent=2, sort_keys=True) + "\n")
+
+
+def commit_written(folder: Path, name: str, outputs: Sequence[str], write: Callable[[Path], None],
+                   record: Mapping[str, object] | None = None) -> None:
+    """Write `outputs` (paths relative to `folder`) with `write(work)` into a new hidden work folder of
+    `folder` (`stage_work_dir`), then commit them into `folder` with the record `folder/stages/<name>.json`
+    (`commit_outputs`; `record`'s fields added to it); an output `write` did not write is removed from
+    `folder`. What a pipeline stage's run does, for outputs that are not a stage's (a report, results).
+
+    Raises:
+        UnownedOutputError: `folder`'s `outputs` hold files the record does not list, or listed files whose
+            content changed (checked before `write` runs and again before the commit; nothing is changed).
+        Whatever `write` raises (the work folder is removed; `folder` is unchanged).
+    """
+    folder = Path(folder)
+    check_outputs_owned(folder, name, outputs)
+    with stage_work_dir(folder, name) as work:
+        write(work)
+        written = [o for o in outputs if os.path.lexists(work / o)]
+        manifest = output_manifest(work, written)
+        commit_outputs(folder, name, outputs, work, {**(record or {}), "name": name, "manifest": manifest},
+                       manifest)
 
 
 def adopt_outputs(stage_dir: Path, name: str, outputs: Sequence[str]) -> None:
     """Record the files now in `stage_dir`'s `outputs` as stage `name`'s own (`stages/<name>.json`, as
     `commit_outputs` records them), for outputs a caller has just verified to be its own by other means."""
-    owned = {rel: [file_sha256(path)] for rel, path in _entries(stage_dir, outputs) if path.is_file()}
-    atomic_write_text(_record_file(stage_dir, name),
-                      json.dumps({"name": name, "owned": owned}, indent=2, sort_keys=True) + "\n")
+    _write_record(_record_file(stage_dir, name), {"name": name, "owned": _owned_now(stage_dir, outputs)})
 
 
 def withdraw_outputs(stage_dir: Path, name: str, outputs: Sequence[str]) -> bool:

@@ -36,7 +36,6 @@ This module imports only the standard library.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import os
 import re
@@ -49,6 +48,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from mvgeo.common.digest import file_sha256
 from mvgeo.common.errors import InputError
 
 __all__ = [
@@ -125,19 +125,11 @@ def _version() -> str:
         return "0+unknown"
 
 
-def _file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _file_entry(path: Path) -> dict[str, object]:
     st = path.lstat()
     if stat.S_ISLNK(st.st_mode):
         return {"link": os.readlink(path)}
-    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": _file_sha256(path)}
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": file_sha256(path)}
 
 
 def _same_file(path: Path, entry: object) -> bool:
@@ -150,7 +142,7 @@ def _same_file(path: Path, entry: object) -> bool:
         return stat.S_ISLNK(st.st_mode) and os.readlink(path) == entry["link"]
     if not stat.S_ISREG(st.st_mode) or st.st_size != entry.get("size"):
         return False
-    return _file_sha256(path) == entry.get("sha256")
+    return file_sha256(path) == entry.get("sha256")
 
 
 def _tree(folder: Path) -> tuple[list[str], list[str]]:
