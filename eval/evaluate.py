@@ -50,7 +50,6 @@ import filecmp
 import logging
 import os
 import shutil
-import tempfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -229,24 +228,6 @@ def copy_train_inputs(dataset: DatasetFolder, folder: Path, names: Sequence[str]
                 shutil.copy2(src, work / folder.name / src.name)
 
     commit_written(stage_dir, record, (folder.name,), link)
-    return folder
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))
-    try:
-        for src in wanted.values():
-            try:
-                os.link(src, tmp / src.name)
-            except OSError:
-                shutil.copy2(src, tmp / src.name)
-        if os.path.lexists(folder):  # only the dataset's images, checked above
-            old = folder.with_name(f".{folder.name}.old-{tmp.name.rsplit('-', 1)[-1]}")
-            os.replace(folder, old)
-            os.replace(tmp, folder)
-            shutil.rmtree(old)
-        else:
-            os.replace(tmp, folder)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return folder
 
 

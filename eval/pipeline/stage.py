@@ -344,6 +344,22 @@ def _read_record(record: Path) -> tuple[dict | None, str]:
     return rec, ""
 
 
+def _record_problems(stage_dir: Path, name: str) -> list[str]:
+    """Why stage `name` may not write its record `stages/<name>.json` (as `unowned_outputs` words it): the
+    record folder is not a folder, or a file of that name is not a record of stage `name` (a symbolic link,
+    not a JSON object, or one naming another stage); [] when there is none or it is the stage's."""
+    folder = stage_dir / RECORD_DIR
+    if os.path.lexists(folder) and (folder.is_symlink() or not folder.is_dir()):
+        return [f"{folder} (not a folder of stage records)"]
+    path = _record_file(stage_dir, name)
+    if not os.path.lexists(path):
+        return []
+    rec = None if path.is_symlink() else _read_record(path)[0]
+    if rec is None or rec.get("name") != name:
+        return [f"{path} (not a record written by the stage)"]
+    return []
+
+
 def _owned_files(rec: Mapping | None) -> dict[str, frozenset[str]]:
     """Path relative to the stage folder -> the sha256 values the stage wrote there, by its record:
     `owned` (every file, hidden ones included; a pending record's holds the old and the new files), else
@@ -412,6 +428,9 @@ def check_outputs_owned(stage_dir: Path, name: str, outputs: Sequence[str], *, d
     the stage runs again, and `StageRunner.run` checks them then (before the stage changes anything; stages
     before it may have run by then).
     """
+    problems = _record_problems(stage_dir, name)
+    if problems:
+        raise UnownedOutputError(name, stage_dir, problems)
     rec, _ = _read_record(_record_file(stage_dir, name))
     manifest = rec.get("manifest") if rec is not None else None
     if (defer_hidden and isinstance(manifest, Mapping) and isinstance(manifest.get("outputs"), Mapping)
@@ -429,16 +448,49 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
-def _replace(src: Path, dst: Path) -> None:
-    """Move `src` onto `dst` (file or folder); the old `dst` is renamed away first, then removed."""
+def _retired_name(output: str, tag: str) -> str:
+    """Where `commit_outputs` moves the committed `output` (relative to the stage folder) while the new one
+    takes its place: a hidden sibling `.<name>.old-<tag>`."""
+    out = PurePath(output)
+    return (out.parent / f".{out.name}.old-{tag}").as_posix()
+
+
+def _replace(src: Path, dst: Path, old: Path) -> None:
+    """Move `src` onto `dst` (file or folder); the old `dst` is renamed to `old` first, then removed."""
     dst.parent.mkdir(parents=True, exist_ok=True)
-    old = None
+    moved = False
     if dst.exists() or dst.is_symlink():
-        old = dst.parent / f".{dst.name}.old-{uuid.uuid4().hex[:8]}"
         os.replace(dst, old)
+        moved = True
     os.replace(src, dst)
-    if old is not None:
+    if moved:
         _remove(old)
+
+
+def _clear_retired(stage_dir: Path, rec: Mapping | None) -> None:
+    """Remove the old outputs a killed commit left under their retired names (`_retired_name`): those the
+    pending record `rec` names, and only when every file in them is one the record owns, as it wrote it
+    (else they are left; they are hidden and block nothing)."""
+    retired = rec.get("retired") if rec is not None and rec.get("pending") else None
+    if not isinstance(retired, Mapping):
+        return
+    owned = _owned_files(rec)
+    for output, name in retired.items():
+        if not isinstance(name, str) or name != _retired_name(str(output), name.rsplit("-", 1)[-1]):
+            continue
+        path = stage_dir / name
+        if not os.path.lexists(path):
+            continue
+        try:
+            entries = [(str(output) + rel[len(name):], p) for rel, p in _entries(stage_dir, [name])]
+            ours = all(not p.is_symlink() and p.is_file() and file_sha256(p) in owned.get(rel, ())
+                       for rel, p in entries)
+        except OSError:
+            ours = False
+        if ours:
+            _remove(path)
+        else:
+            _log.warning("left %s: the old output a killed run moved there holds files it did not write", path)
 
 
 @contextmanager
@@ -479,16 +531,19 @@ def commit_outputs(stage_dir: Path, name: str, outputs: Sequence[str], work: Pat
     rec_path = _record_file(stage_dir, name)
     old_rec, _ = _read_record(rec_path)
     old = _owned_files(old_rec)
-    problems = unowned_outputs(stage_dir, outputs, old)
+    problems = _record_problems(stage_dir, name) + unowned_outputs(stage_dir, outputs, old)
     if problems:
         raise UnownedOutputError(name, stage_dir, problems)
+    _clear_retired(stage_dir, old_rec)
     known = {k: v["sha256"] for k, v in (manifest or {}).get("files", {}).items()}
     new = _owned_now(work, outputs, known)
     pending = {rel: sorted(set(new.get(rel, [])) | old.get(rel, frozenset())) for rel in new.keys() | old.keys()}
-    _write_record(rec_path, {"name": name, "pending": True, "owned": pending})
+    tag = uuid.uuid4().hex[:8]
+    retired = {o: _retired_name(o, tag) for o in outputs if os.path.lexists(work / o)}
+    _write_record(rec_path, {"name": name, "pending": True, "owned": pending, "retired": retired})
     for o in outputs:
-        if os.path.lexists(work / o):
-            _replace(work / o, stage_dir / o)
+        if o in retired:
+            _replace(work / o, stage_dir / o, stage_dir / retired[o])
         elif os.path.lexists(stage_dir / o):
             _remove(stage_dir / o)
     _write_record(rec_path, {**record, "owned": new})
@@ -529,7 +584,14 @@ def commit_written(folder: Path, name: str, outputs: Sequence[str], write: Calla
 
 def adopt_outputs(stage_dir: Path, name: str, outputs: Sequence[str]) -> None:
     """Record the files now in `stage_dir`'s `outputs` as stage `name`'s own (`stages/<name>.json`, as
-    `commit_outputs` records them), for outputs a caller has just verified to be its own by other means."""
+    `commit_outputs` records them), for outputs a caller has just verified to be its own by other means.
+
+    Raises:
+        UnownedOutputError: a file of the record's name is not a record of stage `name` (nothing is written).
+    """
+    problems = _record_problems(stage_dir, name)
+    if problems:
+        raise UnownedOutputError(name, stage_dir, problems)
     _write_record(_record_file(stage_dir, name), {"name": name, "owned": _owned_now(stage_dir, outputs)})
 
 
@@ -543,6 +605,7 @@ def withdraw_outputs(stage_dir: Path, name: str, outputs: Sequence[str]) -> bool
         UnownedOutputError: they hold files the stage did not write or that changed (nothing is removed).
     """
     check_outputs_owned(stage_dir, name, outputs)
+    _clear_retired(stage_dir, _read_record(_record_file(stage_dir, name))[0])
     removed = False
     for o in outputs:
         if os.path.lexists(stage_dir / o):
@@ -615,7 +678,8 @@ class StageRunner:
                                      float(rec.get("seconds", 0.0)), hash_json(rec["manifest"]))
                 self.results.append(result)
                 return result
-        problems = unowned_outputs(spec.stage_dir, spec.outputs, _owned_files(old))
+        problems = (_record_problems(spec.stage_dir, spec.name)
+                    + unowned_outputs(spec.stage_dir, spec.outputs, _owned_files(old)))
         if problems:
             raise UnownedOutputError(spec.name, spec.stage_dir, problems)
         if not self.force:

@@ -13,7 +13,13 @@ import pytest
 from eval.pipeline import PRESETS, StageRunner, StageSpec, preset
 from eval.pipeline.config import AlignSettings, DenoiseSettings, SplatSettings
 from eval.pipeline.hashing import file_sha256, hash_json, tree_files
-from eval.pipeline.stage import UnownedOutputError, settings_json, verify_outputs
+from eval.pipeline.stage import (
+    UnownedOutputError,
+    check_outputs_owned,
+    settings_json,
+    verify_outputs,
+    withdraw_outputs,
+)
 from eval.pipeline.stage_settings import align_config, check_settings, round2_config, round_settings, train_config
 from mvgeo.common.errors import ConfigError, DgsError
 
@@ -151,11 +157,11 @@ def test_interrupted_commit_leaves_files_the_next_run_owns(tmp_path, monkeypatch
     StageRunner().run(_spec(tmp_path, _writer("one", calls)))
     real_replace, moved = stage_mod._replace, []
 
-    def crash_after_first(src, dst):
+    def crash_after_first(src, dst, old):
         if moved:
             raise KeyboardInterrupt("killed while committing")
         moved.append(dst)
-        real_replace(src, dst)
+        real_replace(src, dst, old)
 
     monkeypatch.setattr(stage_mod, "_replace", crash_after_first)
     with pytest.raises(KeyboardInterrupt):
@@ -167,6 +173,80 @@ def test_interrupted_commit_leaves_files_the_next_run_owns(tmp_path, monkeypatch
     res = StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
     assert not res.skipped and (st / "d" / "b.txt").read_text() == "twotwo"
     assert StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2})).skipped
+
+
+def test_old_outputs_a_killed_commit_moved_aside_are_removed_by_the_next_commit(tmp_path, monkeypatch):
+    """Killed after an old output was renamed to its hidden retired name and before it was removed: the
+    pending record names it, and the next commit removes it (only files the record owns, unchanged)."""
+    import eval.pipeline.stage as stage_mod
+
+    calls: list = []
+    StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    real_remove = stage_mod._remove
+
+    def killed_before_removing_old(path):
+        if ".old-" in path.name:
+            raise KeyboardInterrupt("killed while committing")
+        real_remove(path)
+
+    monkeypatch.setattr(stage_mod, "_remove", killed_before_removing_old)
+    with pytest.raises(KeyboardInterrupt):
+        StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
+    st = tmp_path / "st"
+    left = sorted(p.name for p in st.iterdir() if ".old-" in p.name)
+    assert len(left) == 1 and left[0].startswith(".a.txt.old-")
+    monkeypatch.setattr(stage_mod, "_remove", real_remove)
+    StageRunner().run(_spec(tmp_path, _writer("three", calls), settings={"v": 3}))
+    assert not [p for p in st.iterdir() if ".old-" in p.name]
+    assert (st / "a.txt").read_text() == "three"
+
+
+def test_a_changed_old_output_left_by_a_killed_commit_is_kept(tmp_path, monkeypatch):
+    import eval.pipeline.stage as stage_mod
+
+    calls: list = []
+    StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    real_remove = stage_mod._remove
+
+    def killed_before_removing_old(path):
+        if ".old-" in path.name:
+            raise KeyboardInterrupt("killed while committing")
+        real_remove(path)
+
+    monkeypatch.setattr(stage_mod, "_remove", killed_before_removing_old)
+    with pytest.raises(KeyboardInterrupt):
+        StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
+    monkeypatch.setattr(stage_mod, "_remove", real_remove)
+    st = tmp_path / "st"
+    (old,) = [p for p in st.iterdir() if ".old-" in p.name]
+    old.write_text("edited by the user")
+    StageRunner().run(_spec(tmp_path, _writer("three", calls), settings={"v": 3}))
+    assert old.read_text() == "edited by the user"
+
+
+@pytest.mark.parametrize("content", ["my notes, not JSON", '{"name": "other"}', "[1, 2]"])
+def test_a_users_file_named_like_the_record_is_not_replaced(tmp_path, content):
+    calls: list = []
+    StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    record = tmp_path / "st" / "stages" / "s.json"
+    record.write_text(content)
+    with pytest.raises(UnownedOutputError, match="s.json"):
+        StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
+    assert record.read_text() == content and (tmp_path / "st" / "a.txt").read_text() == "one"
+    with pytest.raises(UnownedOutputError, match="s.json"):
+        check_outputs_owned(tmp_path / "st", "s", ["a.txt"])
+    with pytest.raises(UnownedOutputError, match="s.json"):
+        withdraw_outputs(tmp_path / "st", "s", ["a.txt"])
+    assert record.read_text() == content and (tmp_path / "st" / "a.txt").read_text() == "one"
+
+
+def test_a_users_file_named_like_the_record_folder_is_refused(tmp_path):
+    calls: list = []
+    (tmp_path / "st").mkdir()
+    (tmp_path / "st" / "stages").write_text("mine")
+    with pytest.raises(UnownedOutputError, match="stages"):
+        StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    assert (tmp_path / "st" / "stages").read_text() == "mine" and not calls
 
 
 def test_outputs_without_a_record_are_not_replaced(tmp_path):
