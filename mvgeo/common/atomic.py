@@ -17,12 +17,15 @@ from pathlib import Path
 from mvgeo.common.errors import InputError
 from mvgeo.common.output import (
     LOCK_NAME,
+    OWNER_SUFFIX,
     OutputPlan,
     make_dirs,
     recheck,
     remove_empty_dirs,
+    remove_stale_leftovers,
     remove_tree,
     write_manifest,
+    write_owner,
 )
 
 __all__ = ["atomic_output_dir", "atomic_write_bytes", "atomic_write_text"]
@@ -51,7 +54,9 @@ def atomic_output_dir(plan: OutputPlan) -> Iterator[Path]:
       output is put back.
 
     On an exception in the block the temporary folder (and any parent folder created for it) is
-    removed and `plan.path` is untouched.
+    removed and `plan.path` is untouched. The temporary folder and the renamed old output each have an
+    owner file beside them while they exist (`mvgeo.common.output.write_owner`); what a killed command left
+    is removed here first (`remove_stale_leftovers`: only folders whose owner's process is gone).
 
     Raises:
         InputError: `plan.path` is no longer acceptable (re-check), or the final renames fail.
@@ -62,13 +67,18 @@ def atomic_output_dir(plan: OutputPlan) -> Iterator[Path]:
     tag = uuid.uuid4().hex[:8]
     if plan.state == "empty":
         created: list[Path] = []
+        remove_stale_leftovers(plan.path)
         tmp = plan.path / f".tmp-{tag}"
     else:
         created = make_dirs(plan.path.parent)
+        remove_stale_leftovers(plan.path.parent, f".{plan.path.name}.")
         tmp = plan.path.parent / f".{plan.path.name}.tmp-{tag}"
+    owner = tmp.with_name(tmp.name + OWNER_SUFFIX)
     try:
+        write_owner(tmp)
         tmp.mkdir()
     except OSError as exc:
+        owner.unlink(missing_ok=True)
         remove_empty_dirs(created)
         raise InputError(f"cannot create the output folder ({exc.strerror or exc})", path=plan.out,
                          fix="choose an --out in a folder you can write to") from None
@@ -78,8 +88,10 @@ def atomic_output_dir(plan: OutputPlan) -> Iterator[Path]:
         _commit(plan, tmp, tag)
     except BaseException:
         remove_tree(tmp)
+        owner.unlink(missing_ok=True)
         remove_empty_dirs(created)
         raise
+    owner.unlink(missing_ok=True)
 
 
 def _commit(plan: OutputPlan, tmp: Path, tag: str) -> None:
@@ -98,21 +110,25 @@ def _commit(plan: OutputPlan, tmp: Path, tag: str) -> None:
             raise _commit_error(plan, exc) from None
     else:
         old = path.parent / f".{path.name}.old-{tag}"
+        owner = write_owner(old)
         try:
-            os.rename(path, old)
-        except OSError as exc:
-            raise _commit_error(plan, exc) from None
-        try:
-            os.rename(tmp, path)
-        except OSError as exc:
-            os.rename(old, path)
-            raise _commit_error(plan, exc) from None
-        remove_tree(old)
+            try:
+                os.rename(path, old)
+            except OSError as exc:
+                raise _commit_error(plan, exc) from None
+            try:
+                os.rename(tmp, path)
+            except OSError as exc:
+                os.rename(old, path)
+                raise _commit_error(plan, exc) from None
+            remove_tree(old)
+        finally:
+            owner.unlink(missing_ok=True)
 
 
 def _move_entries_up(plan: OutputPlan, tmp: Path) -> None:
     path = plan.path
-    others = set(os.listdir(path)) - {tmp.name, LOCK_NAME}
+    others = set(os.listdir(path)) - {tmp.name, tmp.name + OWNER_SUFFIX, LOCK_NAME}
     if others:
         raise InputError(f"--out is no longer empty ({sorted(others)[:3]} appeared while computing)",
                          path=plan.out, fix="choose another --out, or run the command again")

@@ -29,7 +29,12 @@ the current directory is written into only when empty (it is never renamed);
 replacing a previous output there is refused (run from another folder).
 
 `mvgeo.common.atomic.atomic_output_dir(plan)` then writes the folder
-atomically and `resumable_output_dir(plan)` opens a resumable one.
+atomically and `resumable_output_dir(plan)` opens a resumable one. The
+temporary folder it writes into and a replaced output while it is renamed
+aside each have an owner file beside them naming the process (host and pid);
+a pair whose process is gone (a command killed by SIGKILL or out of memory)
+is removed by the next command writing there. Nothing else with a similar name
+is ever removed.
 This module imports only the standard library.
 """
 
@@ -40,6 +45,7 @@ import json
 import os
 import re
 import shutil
+import socket
 import stat
 import tempfile
 import time
@@ -57,6 +63,7 @@ __all__ = [
     "OUT_HELP",
     "OUT_RESUME_HELP",
     "OVERWRITE_HELP",
+    "OWNER_SUFFIX",
     "OutputPlan",
     "as_output_plan",
     "prepare_output",
@@ -64,9 +71,12 @@ __all__ = [
     "foreign_entries",
     "prepare_output_file",
     "read_manifest",
+    "remove_stale_leftovers",
     "resumable_output_dir",
+    "stale_leftovers",
     "write_file_record",
     "write_manifest",
+    "write_owner",
 ]
 
 #: The manifest every command writes at the top of its output folder.
@@ -80,6 +90,11 @@ _NAME_MAX = 255
 #: Temporary entries `mvgeo.common.atomic` creates inside an empty `--out` (removed unless the process
 #: is killed).
 _TEMP_NAME = re.compile(r"\.tmp-[0-9a-f]{8}")
+
+#: The temporary and retired folders `mvgeo.common.atomic` makes: `.tmp-TAG` inside an empty `--out`,
+#: `.<name>.tmp-TAG` and `.<name>.old-TAG` beside it. Each has an owner file, the name plus `OWNER_SUFFIX`.
+_LEFTOVER_NAME = re.compile(r"\.(?:.+\.)?(?:tmp|old)-[0-9a-f]{8}")
+OWNER_SUFFIX = ".owner"
 
 #: `--out` / `--overwrite` help texts of the commands that replace their output folder.
 OUT_HELP = ("output folder: a new or empty one (written there; `.` works only when the current folder is "
@@ -287,9 +302,63 @@ def _is_lock_file(path: Path) -> bool:
     return text == "" or text.isdigit()
 
 
+def write_owner(entry: Path) -> Path:
+    """Write the owner file of the temporary or retired folder `entry` (`entry` + `OWNER_SUFFIX`, naming
+    this process), before `entry` is created or renamed into place; returns it."""
+    owner = entry.with_name(entry.name + OWNER_SUFFIX)
+    owner.write_text(json.dumps({"entry": entry.name, "host": socket.gethostname(), "pid": os.getpid()}) + "\n")
+    return owner
+
+
+def _process_gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # e.g. another user's process
+        return False
+    return False
+
+
+def stale_leftovers(folder: Path, prefix: str = "") -> list[Path]:
+    """The temporary and retired folders in `folder` (names starting with `prefix`) that a killed command
+    left, with their owner files: a folder is one only with an owner file `write_owner` wrote for it on
+    this host whose process is gone. Never raises."""
+    found: list[Path] = []
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return found
+    for name in names:
+        if not (name.startswith(prefix) and _LEFTOVER_NAME.fullmatch(name)):
+            continue
+        entry, owner = folder / name, folder / (name + OWNER_SUFFIX)
+        try:
+            if entry.is_symlink() or not entry.is_dir() or owner.is_symlink() or owner.stat().st_size > 4096:
+                continue
+            info = json.loads(owner.read_text())
+            if (isinstance(info, dict) and info.get("entry") == name and info.get("host") == socket.gethostname()
+                    and isinstance(info.get("pid"), int) and info["pid"] != os.getpid()
+                    and _process_gone(info["pid"])):
+                found += [entry, owner]
+        except (OSError, UnicodeDecodeError, ValueError):
+            continue
+    return found
+
+
+def remove_stale_leftovers(folder: Path, prefix: str = "") -> None:
+    """Remove what `stale_leftovers(folder, prefix)` finds."""
+    for path in stale_leftovers(folder, prefix):
+        if path.is_dir():
+            remove_tree(path)
+        else:
+            path.unlink(missing_ok=True)
+
+
 def _entries(folder: Path, *, resume: bool) -> list[str]:
     names = os.listdir(folder)
-    return [n for n in names if not (resume and n == LOCK_NAME and _is_lock_file(folder / n))]
+    stale = {p.name for p in stale_leftovers(folder)}
+    return [n for n in names if n not in stale and not (resume and n == LOCK_NAME and _is_lock_file(folder / n))]
 
 
 def _is_cwd_or_ancestor(path: Path) -> bool:
@@ -348,7 +417,7 @@ def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path
                              fix="choose another --out (a new or empty folder)")
         else:
             shown = ", ".join(repr(n) for n in sorted(entries)[:3]) + (", ..." if len(entries) > 3 else "")
-            if all(_TEMP_NAME.fullmatch(n) for n in entries):
+            if all(_TEMP_NAME.fullmatch(n.removesuffix(OWNER_SUFFIX)) for n in entries):
                 raise InputError(f"--out holds only the temporary folder of an interrupted run ({shown})", path=out,
                                  fix="delete it yourself if no command is writing to --out now, or choose another "
                                      "--out; nothing was changed")

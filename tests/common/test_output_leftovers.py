@@ -1,0 +1,133 @@
+"""What a command killed by SIGKILL leaves at `--out` (the temporary folder it wrote into, or the old output
+it had renamed aside) is removed by the next command writing there, and only that: the owner file beside
+each (`mvgeo.common.output.write_owner`) must name a process of this host that is gone."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from mvgeo.common.atomic import atomic_output_dir
+from mvgeo.common.errors import InputError
+from mvgeo.common.output import OWNER_SUFFIX, prepare_output, stale_leftovers
+
+CMD = "tool write"
+ROOT = Path(__file__).resolve().parents[2]
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL")
+
+
+def _killed_while_writing(out: Path, tmp_path: Path) -> None:
+    """Run a command writing `out` in a child process and SIGKILL it inside the atomic block."""
+    ready = tmp_path / "ready"
+    code = (
+        "import pathlib, time\n"
+        "from mvgeo.common.atomic import atomic_output_dir\n"
+        "from mvgeo.common.output import prepare_output\n"
+        f"with atomic_output_dir(prepare_output({str(out)!r}, command={CMD!r})) as tmp:\n"
+        "    (tmp / 'half.txt').write_text('half')\n"
+        f"    pathlib.Path({str(ready)!r}).write_text('1')\n"
+        "    time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 60
+        while not ready.exists():
+            assert proc.poll() is None, "the child ended before it was killed"
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        proc.kill()
+    ready.unlink()
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def _hidden(folder: Path) -> list[str]:
+    return sorted(n for n in os.listdir(folder) if n.startswith("."))
+
+
+def test_a_killed_commands_temporary_folder_beside_out_is_removed_by_the_next_one(tmp_path):
+    out = tmp_path / "out"
+    _killed_while_writing(out, tmp_path)
+    left = _hidden(tmp_path)
+    assert len(left) == 2 and left[0].startswith(".out.tmp-") and left[1] == left[0] + OWNER_SUFFIX
+    with atomic_output_dir(prepare_output(out, command=CMD)) as tmp:
+        (tmp / "a.txt").write_text("a")
+    assert _hidden(tmp_path) == [] and (out / "a.txt").read_text() == "a"
+
+
+def test_an_empty_out_holding_only_a_killed_commands_temporary_folder_counts_as_empty(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    _killed_while_writing(out, tmp_path)
+    assert len(_hidden(out)) == 2
+    plan = prepare_output(out, command=CMD)
+    assert plan.state == "empty"
+    with atomic_output_dir(plan) as tmp:
+        (tmp / "a.txt").write_text("a")
+    assert sorted(os.listdir(out)) == [".denoise-gs-output.json", "a.txt"]
+
+
+def test_an_old_output_a_killed_overwrite_renamed_aside_is_removed(tmp_path):
+    out = tmp_path / "out"
+    with atomic_output_dir(prepare_output(out, command=CMD)) as tmp:
+        (tmp / "a.txt").write_text("1")
+    old = tmp_path / ".out.old-0123abcd"
+    old.mkdir()
+    (old / "a.txt").write_text("0")
+    (tmp_path / (old.name + OWNER_SUFFIX)).write_text(
+        json.dumps({"entry": old.name, "host": socket.gethostname(), "pid": _dead_pid()}))
+    with atomic_output_dir(prepare_output(out, command=CMD, overwrite=True)) as tmp:
+        (tmp / "a.txt").write_text("2")
+    assert _hidden(tmp_path) == [] and (out / "a.txt").read_text() == "2"
+
+
+@pytest.mark.parametrize("case", ["no owner file", "owner alive", "other host", "owner names another entry",
+                                  "a file, not a folder"])
+def test_what_is_not_provably_a_dead_commands_leftover_is_kept(tmp_path, case):
+    out = tmp_path / "out"
+    name = ".out.tmp-0123abcd"
+    entry = tmp_path / name
+    if case == "a file, not a folder":
+        entry.write_text("mine")
+    else:
+        entry.mkdir()
+        (entry / "mine.txt").write_text("mine")
+    info = {"entry": name, "host": socket.gethostname(), "pid": _dead_pid()}
+    if case == "owner alive":
+        info["pid"] = os.getppid()
+    elif case == "other host":
+        info["host"] = socket.gethostname() + "-elsewhere"
+    elif case == "owner names another entry":
+        info["entry"] = ".out.tmp-ffffffff"
+    if case != "no owner file":
+        (tmp_path / (name + OWNER_SUFFIX)).write_text(json.dumps(info))
+    before = _hidden(tmp_path)
+    assert stale_leftovers(tmp_path) == []
+    with atomic_output_dir(prepare_output(out, command=CMD)) as tmp:
+        (tmp / "a.txt").write_text("a")
+    assert _hidden(tmp_path) == before
+    assert (entry / "mine.txt").read_text() == "mine" if entry.is_dir() else entry.read_text() == "mine"
+
+
+def test_an_out_holding_a_leftover_of_a_live_command_is_still_refused(tmp_path):
+    out = tmp_path / "out"
+    (out / ".tmp-0123abcd").mkdir(parents=True)
+    (out / (".tmp-0123abcd" + OWNER_SUFFIX)).write_text(
+        json.dumps({"entry": ".tmp-0123abcd", "host": socket.gethostname(), "pid": os.getppid()}))
+    with pytest.raises(InputError, match="temporary folder of an interrupted run"):
+        prepare_output(out, command=CMD)
