@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from mvgeo.align.dense_pairs import pair_flows, pair_pointmap
+from mvgeo.align.dense_pairs import pair_flows, pair_pointmap, rotated_180
 from mvgeo.align.features import MatchSet, detect_and_match, extract_features, match_features
 from mvgeo.align.graph import components, maximum_spanning_tree
 from mvgeo.align.pairs import PairFailure, PairGeometry, PairPrediction, PairSet
@@ -277,6 +277,9 @@ class ClassicalPointmapModel:
         self.seed = seed
         self.focal_prior_px = None if focal_prior_px is None else float(focal_prior_px)
         self._matched: tuple[tuple, MatchSet] | None = None  # (images and pairs key, MatchSet) of the last `match`
+        # Dense flows of the last `relate`, by their exact inputs (`_dense_pairs`): a refocused `relate` reuses the
+        # flows of every pair whose inliers did not change (DTU scan24: 21 of 28 pairs, temple: 31 of 38).
+        self._flow_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 
     @property
     def pointmap_size_px(self) -> int:
@@ -379,10 +382,21 @@ class ClassicalPointmapModel:
                  for im in images]
         order = select_dense_pairs(len(images), {k: v[0].n_inliers for k, v in rels.items()}, self.config.dense_top_k)
         preds, fails, done = [], [], set()
+        digests = [hashlib.sha1(g.tobytes()).hexdigest() + str(g.shape) for g in small]
+        previous, self._flow_cache = self._flow_cache, {}
+
+        def flows(i, j, a, b, R):
+            """`pair_flows` of pair (i, j), from the previous `relate` when its inputs are the same."""
+            key = (digests[i], digests[j], a.tobytes(), b.tobytes(), rotated_180(R))
+            out = previous.get(key)
+            if out is None:
+                out = pair_flows(small[i], small[j], a, b, R)
+            self._flow_cache[key] = out
+            return out
 
         def dense(ij):
             try:
-                return self._dense(images, small, K, *ij, *rels[ij])
+                return self._dense(images, small, K, *ij, *rels[ij], flows=flows)
             except (DensePairError, DegenerateGeometryError) as exc:
                 return exc
 
@@ -431,7 +445,8 @@ class ClassicalPointmapModel:
                      self.config.focal_prior, f)
         return f, False, _why_no_focal(rels, self.config.two_view)
 
-    def _dense(self, images, small, K_align, i: int, j: int, rel, u1, u2) -> PairPrediction:
+    def _dense(self, images, small, K_align, i: int, j: int, rel, u1, u2, *, flows=None) -> PairPrediction:
+        """Pair (i, j)'s pointmaps; `flows(i, j, a, b, R)` returns its flows (default `pair_flows`)."""
         # Everything below works on the pointmap grid.
         Hi, Wi = small[i].shape
         Hj, Wj = small[j].shape
@@ -444,7 +459,7 @@ class ClassicalPointmapModel:
         inl = rel.inlier_mask
         a, b = u1[inl] * si, u2[inl] * sj
         R, t = rel.R, rel.t  # cam_j_from_cam_i, |t| = 1
-        flow_ij, flow_ji = pair_flows(small[i], small[j], a, b, R)
+        flow_ij, flow_ji = (pair_flows(small[i], small[j], a, b, R) if flows is None else flows(i, j, a, b, R))
         F = np.linalg.inv(Kj).T @ skew(t) @ R @ np.linalg.inv(Ki)
         cam_j_from_i = np.concatenate([R, t.reshape(3, 1)], axis=1)
         cam_i_from_j = np.concatenate([R.T, (-R.T @ t).reshape(3, 1)], axis=1)

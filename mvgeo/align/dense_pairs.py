@@ -16,7 +16,7 @@ from mvgeo.common.deps import cv2
 from mvgeo.epipolar import sampson_distance
 from mvgeo.triangulate import triangulate_two_view
 
-__all__ = ["dense_flow", "flow_checks", "pair_flows", "pair_pointmap", "pair_pointmap_reference"]
+__all__ = ["dense_flow", "flow_checks", "pair_flows", "pair_pointmap", "pair_pointmap_reference", "rotated_180"]
 
 
 def _resize(image: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -79,11 +79,17 @@ def _flow_rotated_180(gray_a, gray_b, uv_a_px, uv_b_px) -> tuple[np.ndarray, np.
     return np.ascontiguousarray(flow_ab, np.float32), np.ascontiguousarray(flow_ba, np.float32)
 
 
+def rotated_180(R_b_from_a: np.ndarray) -> bool:
+    """Whether `pair_flows` matches against b turned by 180 deg: the relative rotation turns the image plane
+    by more than 135 deg (the only way `pair_flows` depends on the rotation)."""
+    return bool(abs(np.degrees(np.arctan2(R_b_from_a[1, 0], R_b_from_a[0, 0]))) > 135.0)
+
+
 def pair_flows(gray_a: np.ndarray, gray_b: np.ndarray, uv_a_px: np.ndarray, uv_b_px: np.ndarray,
                R_b_from_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Flows a -> b and b -> a ((H, W, 2) each) seeded by the matches; against b turned by 180 deg
-    when the relative rotation `R_b_from_a` turns the image plane by more than 135 deg."""
-    if abs(np.degrees(np.arctan2(R_b_from_a[1, 0], R_b_from_a[0, 0]))) > 135.0:
+    when the relative rotation `R_b_from_a` turns the image plane by more than 135 deg (`rotated_180`)."""
+    if rotated_180(R_b_from_a):
         return _flow_rotated_180(gray_a, gray_b, uv_a_px, uv_b_px)
     return dense_flow(gray_a, gray_b, uv_a_px, uv_b_px), dense_flow(gray_b, gray_a, uv_b_px, uv_a_px)
 

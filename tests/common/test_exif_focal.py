@@ -108,3 +108,39 @@ def test_photos_too_large_for_pillows_guard_give_none(tmp_path, monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert exif_focal_35mm(path) == 26.0
+
+
+def _pillow_focal(path):
+    """The focal as Pillow reads it after decoding the whole file (the reference of the PNG header scan)."""
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            value = exif.get_ifd(EXIF_IFD).get(FOCAL_35MM, exif.get(FOCAL_35MM))
+    except Exception:
+        return None
+    return None if value is None or float(value) <= 0 else float(value)
+
+
+def test_png_header_scan_agrees_with_pillow(tmp_path):
+    from PIL import PngImagePlugin
+
+    from mvgeo.common.imageio import _png_without_exif
+
+    plain = tmp_path / "plain.png"
+    Image.fromarray(np.full((30, 40, 3), 90, np.uint8)).save(plain)
+    with_exif = _save(tmp_path / "exif.png", 35)
+    info = PngImagePlugin.PngInfo()  # EXIF in a text chunk, as ImageMagick writes it
+    raw = Image.Exif()
+    raw.get_ifd(EXIF_IFD)[FOCAL_35MM] = 28
+    hexed = raw.tobytes().hex()
+    info.add_text("Raw profile type exif", f"\nexif\n{len(raw.tobytes())}\n{hexed}\n")
+    text = tmp_path / "text.png"
+    Image.fromarray(np.full((30, 40, 3), 90, np.uint8)).save(text, pnginfo=info)
+    truncated = tmp_path / "truncated.png"
+    truncated.write_bytes(plain.read_bytes()[:40])
+    cases = {plain: True, with_exif: False, text: False, truncated: False}
+    for path, scan in cases.items():
+        assert _png_without_exif(path) is scan, path.name
+        assert exif_focal_35mm(path) == _pillow_focal(path), path.name
+    assert exif_focal_35mm(with_exif) == 35.0 and exif_focal_35mm(plain) is None
+    assert _png_without_exif(_save(tmp_path / "a.jpg", 26)) is False  # not a PNG: Pillow decides

@@ -107,6 +107,51 @@ def test_match_is_computed_once_and_refocus_reuses_it(views4, monkeypatch):
     assert len(calls) == 3
 
 
+def _assert_same_pairs(a: PairSet, b: PairSet) -> None:
+    assert [(p.i, p.j) for p in a.predictions] == [(p.i, p.j) for p in b.predictions]
+    for x, y in zip(a.predictions, b.predictions, strict=True):
+        for field in ("pts_i", "pts_j", "conf_i", "conf_j", "matches_px"):
+            np.testing.assert_array_equal(getattr(x, field), getattr(y, field))
+    assert [(g.i, g.j) for g in a.geometries] == [(g.i, g.j) for g in b.geometries]
+    for x, y in zip(a.geometries, b.geometries, strict=True):
+        np.testing.assert_array_equal(x.matches_px, y.matches_px)
+        np.testing.assert_array_equal(x.cam_j_from_cam_i, y.cam_j_from_cam_i)
+
+
+def test_refocus_reuses_the_flows_of_unchanged_pairs_with_the_same_result(views4, monkeypatch):
+    """A refocused `relate` takes the dense flows of the pairs whose inliers (and images) did not change from
+    the previous `relate`; its pairs are exactly those of a model that computes every flow anew."""
+    real, calls = cp.pair_flows, []
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(cp, "pair_flows", counting)
+    images = views4[1]
+    cfg = dataclasses.replace(PREVIEW.pairwise, focal_pairs=0)
+    model = ClassicalPointmapModel(cfg, seed=0)
+    first = model.predict_pairs(images, PAIRS)
+    n_first = len(calls)
+    assert n_first == len(first.predictions)
+    same = model.refocus(images, PAIRS, first.focal_px)  # the same focal: the same inliers, every flow reused
+    assert len(calls) == n_first
+    _assert_same_pairs(same, first)
+    for f in (first.focal_px * 1.05, 200.0):  # other focals: only changed pairs recompute their flows
+        before = len(calls)
+        cached = model.refocus(images, PAIRS, f)
+        assert len(calls) - before <= len(cached.predictions)
+        fresh_model = ClassicalPointmapModel(cfg, seed=0)
+        fresh_model.match(images, PAIRS)
+        fresh = fresh_model.refocus(images, PAIRS, f)
+        _assert_same_pairs(cached, fresh)
+    # Other images: nothing is reused (the key holds the pointmap-grid images).
+    before = len(calls)
+    darker = [np.clip(im * 0.9, 0.0, 1.0).astype(im.dtype) for im in images]
+    out = model.predict_pairs(darker, PAIRS)
+    assert len(calls) - before == len(out.predictions)
+
+
 def test_dense_pair_selection_is_connected_and_top_k(rng):
     n = 10
     inliers = {(i, j): int(rng.integers(20, 500)) for i in range(n) for j in range(i + 1, n) if rng.random() < 0.6}
