@@ -27,6 +27,7 @@ import json
 import logging
 import os
 import shutil
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -287,8 +288,9 @@ def share_round1(src_run: Path, dst_run: Path) -> bool:
     src, dst = Path(src_run) / "round1", Path(dst_run) / "round1"
     if dst.exists() or not (src / "stages").is_dir():
         return False
-    tmp = dst.with_name(".round1.link-tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    # A new folder of this call's own (a fixed name could be a folder of the user's, which is never removed).
+    tmp = Path(tempfile.mkdtemp(prefix=".round1.link-", dir=dst.parent)) / "round1"
 
     def link(a: str, b: str) -> None:
         try:
@@ -296,9 +298,12 @@ def share_round1(src_run: Path, dst_run: Path) -> bool:
         except OSError:
             shutil.copy2(a, b)
 
-    shutil.copytree(src, tmp, copy_function=link,
-                    ignore=lambda d, names: [n for n in names if n.startswith(".")])
-    os.replace(tmp, dst)
+    try:
+        shutil.copytree(src, tmp, copy_function=link,
+                        ignore=lambda d, names: [n for n in names if n.startswith(".")])
+        os.replace(tmp, dst)
+    finally:
+        shutil.rmtree(tmp.parent, ignore_errors=True)  # this call's own folder (empty after the rename)
     if read_manifest(dst_run) is None:  # the run folder is ours: `denoise-gs run` resumes into it
         write_manifest(dst_run, RUN_COMMAND, record_files=False)
     return True

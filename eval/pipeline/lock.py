@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -43,7 +44,15 @@ def output_lock(out: str | Path) -> Iterator[None]:
     out.mkdir(parents=True, exist_ok=True)
     lock = out / LOCK_NAME
     while True:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:  # never through a link of that name, nor into anything but a regular file: they are the user's
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644)
+        except OSError as exc:
+            raise InputError(f"cannot open the lock file {LOCK_NAME} ({exc.strerror or exc})", path=lock,
+                             fix="move it away if it is yours, or choose another --out; nothing was changed") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise InputError(f"{LOCK_NAME} in the output folder is not a lock file", path=lock,
+                             fix="move it away if it is yours, or choose another --out; nothing was changed")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

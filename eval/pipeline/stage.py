@@ -337,7 +337,7 @@ def _read_record(record: Path) -> tuple[dict | None, str]:
         return None, "no record"
     try:
         rec = json.loads(record.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError):  # RecursionError: nested too deeply
         return None, "unreadable record"
     if not isinstance(rec, dict):
         return None, "unreadable record"

@@ -71,7 +71,7 @@ def atomic_output_dir(plan: OutputPlan) -> Iterator[Path]:
         tmp = plan.path / f".tmp-{tag}"
     else:
         created = make_dirs(plan.path.parent)
-        remove_stale_leftovers(plan.path.parent, f".{plan.path.name}.")
+        remove_stale_leftovers(plan.path.parent, plan.path.name)
         tmp = plan.path.parent / f".{plan.path.name}.tmp-{tag}"
     owner = tmp.with_name(tmp.name + OWNER_SUFFIX)
     try:

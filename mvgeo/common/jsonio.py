@@ -18,7 +18,7 @@ def read_json_object(path: str | Path, *, fix: str) -> dict:
 
     Raises:
         InputError: naming `path` and `fix`, when the file cannot be read, is not UTF-8 text, is not valid
-            JSON, or holds something other than an object.
+            JSON (or is nested too deeply to parse), or holds something other than an object.
     """
     path = Path(path)
     try:
@@ -30,6 +30,8 @@ def read_json_object(path: str | Path, *, fix: str) -> dict:
                          fix=fix) from exc
     except json.JSONDecodeError as exc:
         raise InputError(f"{path.name} is not valid JSON ({exc})", path=path, fix=fix) from exc
+    except RecursionError:
+        raise InputError(f"{path.name} is not valid JSON (nested too deeply)", path=path, fix=fix) from None
     if not isinstance(data, dict):
         raise InputError(f"{path.name} holds a {type(data).__name__}, not an object", path=path, fix=fix)
     return data

@@ -224,9 +224,12 @@ def foreign_entries(folder: str | Path, manifest: dict) -> list[str] | None:
 
 def read_manifest(folder: str | Path) -> dict | None:
     """The manifest of `folder`, or None when it has none or it cannot be parsed."""
+    path = Path(folder) / MANIFEST_NAME
+    if not path.is_file():  # e.g. a FIFO of that name, whose read would block
+        return None
     try:
-        data = json.loads((Path(folder) / MANIFEST_NAME).read_text())
-    except (OSError, ValueError):
+        data = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
         return None
     return data if isinstance(data, dict) and isinstance(data.get("command"), str) else None
 
@@ -320,35 +323,39 @@ def _process_gone(pid: int) -> bool:
     return False
 
 
-def stale_leftovers(folder: Path, prefix: str = "") -> list[Path]:
-    """The temporary and retired folders in `folder` (names starting with `prefix`) that a killed command
-    left, with their owner files: a folder is one only with an owner file `write_owner` wrote for it on
-    this host whose process is gone. Never raises."""
+def stale_leftovers(folder: Path, out_name: str | None = None) -> list[Path]:
+    """The temporary and retired folders in `folder` that a killed command left, with their owner files
+    (with `out_name`: only those of the output `folder/out_name`, `.<out_name>.tmp-TAG` and
+    `.<out_name>.old-TAG`; else any, e.g. `.tmp-TAG` in an empty `--out`): a folder is one only with an
+    owner file `write_owner` wrote for it on this host whose process is gone. Never raises."""
     found: list[Path] = []
     try:
         names = os.listdir(folder)
     except OSError:
         return found
     for name in names:
-        if not (name.startswith(prefix) and _LEFTOVER_NAME.fullmatch(name)):
+        if not _LEFTOVER_NAME.fullmatch(name) or (
+                out_name is not None and not re.fullmatch(rf"\.{re.escape(out_name)}\.(?:tmp|old)-[0-9a-f]{{8}}",
+                                                          name)):
             continue
         entry, owner = folder / name, folder / (name + OWNER_SUFFIX)
         try:
-            if entry.is_symlink() or not entry.is_dir() or owner.is_symlink() or owner.stat().st_size > 4096:
+            st = owner.lstat()  # a regular file: a FIFO would block the read, a link may point anywhere
+            if entry.is_symlink() or not entry.is_dir() or not stat.S_ISREG(st.st_mode) or st.st_size > 4096:
                 continue
             info = json.loads(owner.read_text())
+            pid = info.get("pid") if isinstance(info, dict) else None
             if (isinstance(info, dict) and info.get("entry") == name and info.get("host") == socket.gethostname()
-                    and isinstance(info.get("pid"), int) and info["pid"] != os.getpid()
-                    and _process_gone(info["pid"])):
+                    and type(pid) is int and 0 < pid < 2**31 and pid != os.getpid() and _process_gone(pid)):
                 found += [entry, owner]
-        except (OSError, UnicodeDecodeError, ValueError):
+        except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
             continue
     return found
 
 
-def remove_stale_leftovers(folder: Path, prefix: str = "") -> None:
-    """Remove what `stale_leftovers(folder, prefix)` finds."""
-    for path in stale_leftovers(folder, prefix):
+def remove_stale_leftovers(folder: Path, out_name: str | None = None) -> None:
+    """Remove what `stale_leftovers(folder, out_name)` finds."""
+    for path in stale_leftovers(folder, out_name):
         if path.is_dir():
             remove_tree(path)
         else:
@@ -546,11 +553,25 @@ def write_file_record(path: str | Path, command: str) -> Path:
     return record
 
 
+def _read_file_record(path: Path) -> dict | None:
+    """The record `write_file_record` wrote beside `path`: a regular file (not a link) holding a JSON object
+    with a `command` and `path`'s name as `file`; None when there is no such record."""
+    record = file_record_path(path)
+    try:
+        if not stat.S_ISREG(record.lstat().st_mode):
+            return None
+        data = json.loads(record.read_text())
+    except (OSError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
+        return None
+    if not isinstance(data, dict) or not isinstance(data.get("command"), str) or data.get("file") != path.name:
+        return None
+    return data
+
+
 def _written_by(path: Path, command: str) -> str | None:
     """None when `file_record_path(path)` says `command` wrote `path` and it is unchanged, else why not."""
-    try:
-        data = json.loads(file_record_path(path).read_text())
-    except (OSError, ValueError):
+    data = _read_file_record(path)
+    if data is None:
         return f"it has no record of being written by `{command}`"
     if not isinstance(data, dict) or data.get("command") != command or data.get("file") != path.name:
         return f"its record does not say `{command}` wrote it"
@@ -587,6 +608,11 @@ def prepare_output_file(out: str | Path, *, command: str, inputs: Iterable[str |
         raise InputError(f"--out's file name is too long to keep the record beside it ({len(path.name)} "
                          f"characters; at most {_NAME_MAX - len(MANIFEST_NAME) - 1} bytes)", path=out,
                          fix="choose a shorter file name")
+    record = file_record_path(path)
+    if os.path.lexists(record) and _read_file_record(path) is None:
+        raise InputError(f"{record.name} beside --out is not a record this toolkit wrote, and writing --out would "
+                         "replace it", path=record,
+                         fix="move it away yourself, or choose another --out; nothing was changed")
     if os.path.lexists(path):
         if not overwrite:
             raise InputError("--out already exists", path=out,

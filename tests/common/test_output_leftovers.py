@@ -131,3 +131,15 @@ def test_an_out_holding_a_leftover_of_a_live_command_is_still_refused(tmp_path):
         json.dumps({"entry": ".tmp-0123abcd", "host": socket.gethostname(), "pid": os.getppid()}))
     with pytest.raises(InputError, match="temporary folder of an interrupted run"):
         prepare_output(out, command=CMD)
+
+
+def test_only_the_leftovers_of_the_same_out_are_removed(tmp_path):
+    """`--out a` removes a dead command's `.a.tmp-TAG`, not `.a.b.tmp-TAG` (that of `--out a.b`)."""
+    pid = _dead_pid()
+    for name in (".a.tmp-0123abcd", ".a.b.tmp-0123abcd"):
+        (tmp_path / name).mkdir()
+        (tmp_path / (name + OWNER_SUFFIX)).write_text(
+            json.dumps({"entry": name, "host": socket.gethostname(), "pid": pid}))
+    with atomic_output_dir(prepare_output(tmp_path / "a", command=CMD)) as tmp:
+        (tmp / "x.txt").write_text("x")
+    assert _hidden(tmp_path) == [".a.b.tmp-0123abcd", ".a.b.tmp-0123abcd" + OWNER_SUFFIX]

@@ -1,0 +1,52 @@
+"""A user's file named like a stage record is refused with `UnownedOutputError` (exit 2), whatever
+it holds, never a crash, and nothing is replaced."""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+
+from eval.pipeline import StageRunner, StageSpec
+from eval.pipeline.stage import UnownedOutputError, adopt_outputs, check_outputs_owned, commit_written
+
+
+def _fn(ctx):
+    (ctx.work_dir / "a.txt").write_text("new")
+    return {}
+
+
+def _sha(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_a_users_deeply_nested_json_file_named_like_the_record_is_refused_not_a_crash(tmp_path):
+    st = tmp_path / "st"
+    (st / "stages").mkdir(parents=True)
+    record = st / "stages" / "s.json"
+    record.write_text("[" * 100_000 + "]" * 100_000)
+    before = _sha(record)
+    with pytest.raises(UnownedOutputError, match="s.json"):
+        StageRunner().run(StageSpec(name="s", stage_dir=st, fn=_fn, outputs=("a.txt",)))
+    with pytest.raises(UnownedOutputError, match="s.json"):
+        check_outputs_owned(st, "s", ["a.txt"])
+    with pytest.raises(UnownedOutputError, match="s.json"):
+        commit_written(st, "s", ["a.txt"], lambda work: (work / "a.txt").write_text("x"))
+    with pytest.raises(UnownedOutputError, match="s.json"):
+        adopt_outputs(st, "s", ["a.txt"])
+    assert _sha(record) == before and sorted(p.name for p in st.iterdir()) == ["stages"]
+
+
+def test_linking_round1_never_removes_a_users_folder_named_like_its_temporary_one(tmp_path):
+    from eval.methods import share_round1
+
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    (src / "round1" / "stages").mkdir(parents=True)
+    (src / "round1" / "stages" / "denoise.json").write_text("{}")
+    mine = dst / ".round1.link-tmp"
+    mine.mkdir(parents=True)
+    (mine / "notes.txt").write_text("mine")
+    assert share_round1(src, dst)
+    assert (mine / "notes.txt").read_text() == "mine"
+    assert (dst / "round1" / "stages" / "denoise.json").read_text() == "{}"
+    assert sorted(p.name for p in dst.iterdir() if p.name.startswith(".round1")) == [".round1.link-tmp"]
