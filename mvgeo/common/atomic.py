@@ -19,13 +19,13 @@ from mvgeo.common.output import (
     LOCK_NAME,
     OWNER_SUFFIX,
     OutputPlan,
+    OwnerFile,
     make_dirs,
     recheck,
     remove_empty_dirs,
     remove_stale_leftovers,
     remove_tree,
     write_manifest,
-    write_owner,
 )
 
 __all__ = ["atomic_output_dir", "atomic_write_bytes", "atomic_write_text"]
@@ -55,8 +55,9 @@ def atomic_output_dir(plan: OutputPlan) -> Iterator[Path]:
 
     On an exception in the block the temporary folder (and any parent folder created for it) is
     removed and `plan.path` is untouched. The temporary folder and the renamed old output each have an
-    owner file beside them while they exist (`mvgeo.common.output.write_owner`); what a killed command left
-    is removed here first (`remove_stale_leftovers`: only folders whose owner's process is gone).
+    owner file beside them while they exist (`mvgeo.common.output.OwnerFile`); what a killed command left
+    is removed here first (`remove_stale_leftovers`: only folders whose owner's process is gone and whose
+    owner file is not locked).
 
     Raises:
         InputError: `plan.path` is no longer acceptable (re-check), or the final renames fail.
@@ -73,12 +74,13 @@ def atomic_output_dir(plan: OutputPlan) -> Iterator[Path]:
         created = make_dirs(plan.path.parent)
         remove_stale_leftovers(plan.path.parent, plan.path.name)
         tmp = plan.path.parent / f".{plan.path.name}.tmp-{tag}"
-    owner = tmp.with_name(tmp.name + OWNER_SUFFIX)
+    owner = None
     try:
-        write_owner(tmp)
+        owner = OwnerFile(tmp)
         tmp.mkdir()
     except OSError as exc:
-        owner.unlink(missing_ok=True)
+        if owner is not None:
+            owner.release()
         remove_empty_dirs(created)
         raise InputError(f"cannot create the output folder ({exc.strerror or exc})", path=plan.out,
                          fix="choose an --out in a folder you can write to") from None
@@ -88,10 +90,10 @@ def atomic_output_dir(plan: OutputPlan) -> Iterator[Path]:
         _commit(plan, tmp, tag)
     except BaseException:
         remove_tree(tmp)
-        owner.unlink(missing_ok=True)
+        owner.release()
         remove_empty_dirs(created)
         raise
-    owner.unlink(missing_ok=True)
+    owner.release()
 
 
 def _commit(plan: OutputPlan, tmp: Path, tag: str) -> None:
@@ -110,7 +112,10 @@ def _commit(plan: OutputPlan, tmp: Path, tag: str) -> None:
             raise _commit_error(plan, exc) from None
     else:
         old = path.parent / f".{path.name}.old-{tag}"
-        owner = write_owner(old)
+        try:
+            owner = OwnerFile(old)
+        except OSError as exc:
+            raise _commit_error(plan, exc) from None
         try:
             try:
                 os.rename(path, old)
@@ -123,7 +128,7 @@ def _commit(plan: OutputPlan, tmp: Path, tag: str) -> None:
                 raise _commit_error(plan, exc) from None
             remove_tree(old)
         finally:
-            owner.unlink(missing_ok=True)
+            owner.release()
 
 
 def _move_entries_up(plan: OutputPlan, tmp: Path) -> None:

@@ -41,6 +41,7 @@ This module imports only the standard library.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import re
@@ -65,6 +66,7 @@ __all__ = [
     "OVERWRITE_HELP",
     "OWNER_SUFFIX",
     "OutputPlan",
+    "OwnerFile",
     "as_output_plan",
     "prepare_output",
     "file_record_path",
@@ -76,7 +78,6 @@ __all__ = [
     "stale_leftovers",
     "write_file_record",
     "write_manifest",
-    "write_owner",
 ]
 
 #: The manifest every command writes at the top of its output folder.
@@ -305,12 +306,56 @@ def _is_lock_file(path: Path) -> bool:
     return text == "" or text.isdigit()
 
 
-def write_owner(entry: Path) -> Path:
-    """Write the owner file of the temporary or retired folder `entry` (`entry` + `OWNER_SUFFIX`, naming
-    this process), before `entry` is created or renamed into place; returns it."""
-    owner = entry.with_name(entry.name + OWNER_SUFFIX)
-    owner.write_text(json.dumps({"entry": entry.name, "host": socket.gethostname(), "pid": os.getpid()}) + "\n")
-    return owner
+class OwnerFile:
+    """The owner file of a temporary or retired folder `entry` (`entry` + `OWNER_SUFFIX`): JSON naming this
+    process (host, pid), created before `entry` is created or renamed into place and locked (`flock`) by
+    this process until `release` (which removes it). `stale_leftovers` takes a folder for a dead command's
+    only when the process is gone and the lock is free, so a live command is recognised even from another
+    pid namespace (a container) sharing the folder.
+
+    Raises:
+        OSError: the file cannot be created (it exists, the folder is not writable).
+    """
+
+    def __init__(self, entry: Path):
+        self.path = entry.with_name(entry.name + OWNER_SUFFIX)
+        fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+        try:
+            with contextlib.suppress(OSError):  # a file system without flock: the pid alone tells
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            info = {"entry": entry.name, "host": socket.gethostname(), "pid": os.getpid()}
+            os.write(fd, (json.dumps(info) + "\n").encode())
+        except BaseException:
+            os.close(fd)
+            self.path.unlink(missing_ok=True)
+            raise
+        self._fd: int | None = fd
+
+    def release(self) -> None:
+        """Remove the owner file, then drop its lock (idempotent)."""
+        if self._fd is None:
+            return
+        self.path.unlink(missing_ok=True)
+        os.close(self._fd)
+        self._fd = None
+
+
+def _owner_locked(owner: Path) -> bool:
+    """A live `OwnerFile` holds `owner`'s lock (True also when the file cannot be opened: then nothing is
+    known); False when the lock is free or the file system has no `flock`."""
+    try:
+        fd = os.open(owner, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return False
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
 
 
 def _process_gone(pid: int) -> bool:
@@ -327,7 +372,7 @@ def stale_leftovers(folder: Path, out_name: str | None = None) -> list[Path]:
     """The temporary and retired folders in `folder` that a killed command left, with their owner files
     (with `out_name`: only those of the output `folder/out_name`, `.<out_name>.tmp-TAG` and
     `.<out_name>.old-TAG`; else any, e.g. `.tmp-TAG` in an empty `--out`): a folder is one only with an
-    owner file `write_owner` wrote for it on this host whose process is gone. Never raises."""
+    owner file an `OwnerFile` wrote for it on this host whose process is gone. Never raises."""
     found: list[Path] = []
     try:
         names = os.listdir(folder)
@@ -346,7 +391,8 @@ def stale_leftovers(folder: Path, out_name: str | None = None) -> list[Path]:
             info = json.loads(owner.read_text())
             pid = info.get("pid") if isinstance(info, dict) else None
             if (isinstance(info, dict) and info.get("entry") == name and info.get("host") == socket.gethostname()
-                    and type(pid) is int and 0 < pid < 2**31 and pid != os.getpid() and _process_gone(pid)):
+                    and type(pid) is int and 0 < pid < 2**31 and pid != os.getpid() and _process_gone(pid)
+                    and not _owner_locked(owner)):
                 found += [entry, owner]
         except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
             continue

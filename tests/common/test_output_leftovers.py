@@ -1,6 +1,6 @@
 """What a command killed by SIGKILL leaves at `--out` (the temporary folder it wrote into, or the old output
 it had renamed aside) is removed by the next command writing there, and only that: the owner file beside
-each (`mvgeo.common.output.write_owner`) must name a process of this host that is gone."""
+each (`mvgeo.common.output.OwnerFile`) must name a process of this host that is gone, and be unlocked."""
 
 from __future__ import annotations
 
@@ -143,3 +143,31 @@ def test_only_the_leftovers_of_the_same_out_are_removed(tmp_path):
     with atomic_output_dir(prepare_output(tmp_path / "a", command=CMD)) as tmp:
         (tmp / "x.txt").write_text("x")
     assert _hidden(tmp_path) == [".a.b.tmp-0123abcd", ".a.b.tmp-0123abcd" + OWNER_SUFFIX]
+
+
+def test_a_leftover_whose_owner_file_is_locked_is_kept_even_if_its_pid_looks_gone(tmp_path):
+    """A command in another pid namespace (a container sharing the folder) has a pid this one cannot see;
+    its owner file's lock says it is alive."""
+    import fcntl
+
+    name = ".out.tmp-0123abcd"
+    (tmp_path / name).mkdir()
+    owner = tmp_path / (name + OWNER_SUFFIX)
+    owner.write_text(json.dumps({"entry": name, "host": socket.gethostname(), "pid": _dead_pid()}))
+    assert stale_leftovers(tmp_path) == [tmp_path / name, owner]  # unlocked: a dead command's
+    with open(owner) as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        assert stale_leftovers(tmp_path) == []
+        with atomic_output_dir(prepare_output(tmp_path / "out", command=CMD)) as tmp:
+            (tmp / "a.txt").write_text("a")
+        assert (tmp_path / name).is_dir() and owner.is_file()
+
+
+def test_the_owner_file_is_locked_while_the_command_writes(tmp_path):
+    from mvgeo.common.output import _owner_locked
+
+    with atomic_output_dir(prepare_output(tmp_path / "out", command=CMD)) as tmp:
+        owner = tmp.with_name(tmp.name + OWNER_SUFFIX)
+        assert _owner_locked(owner)
+        assert stale_leftovers(tmp_path) == []
+    assert not owner.exists()
