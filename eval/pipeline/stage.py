@@ -456,21 +456,18 @@ def _retired_name(output: str, tag: str) -> str:
 
 
 def _replace(src: Path, dst: Path, old: Path) -> None:
-    """Move `src` onto `dst` (file or folder); the old `dst` is renamed to `old` first, then removed."""
+    """Move `src` onto `dst` (file or folder); the old `dst` is renamed to `old` first (removed by the caller,
+    `_clear_retired`)."""
     dst.parent.mkdir(parents=True, exist_ok=True)
-    moved = False
     if dst.exists() or dst.is_symlink():
         os.replace(dst, old)
-        moved = True
     os.replace(src, dst)
-    if moved:
-        _remove(old)
 
 
 def _clear_retired(stage_dir: Path, rec: Mapping | None) -> None:
-    """Remove the old outputs a killed commit left under their retired names (`_retired_name`): those the
-    pending record `rec` names, and only when every file in them is one the record owns, as it wrote it
-    (else they are left; they are hidden and block nothing)."""
+    """Remove the old outputs a commit moved aside to their retired names (`_retired_name`; this commit's, or
+    a killed one's): those the pending record `rec` names, and only when every file in them is one the
+    record owns, as it wrote it (else they are left; they are hidden and block nothing)."""
     retired = rec.get("retired") if rec is not None and rec.get("pending") else None
     if not isinstance(retired, Mapping):
         return
@@ -540,12 +537,16 @@ def commit_outputs(stage_dir: Path, name: str, outputs: Sequence[str], work: Pat
     pending = {rel: sorted(set(new.get(rel, [])) | old.get(rel, frozenset())) for rel in new.keys() | old.keys()}
     tag = uuid.uuid4().hex[:8]
     retired = {o: _retired_name(o, tag) for o in outputs if os.path.lexists(work / o)}
-    _write_record(rec_path, {"name": name, "pending": True, "owned": pending, "retired": retired})
+    pending_rec = {"name": name, "pending": True, "owned": pending, "retired": retired}
+    _write_record(rec_path, pending_rec)
     for o in outputs:
         if o in retired:
             _replace(work / o, stage_dir / o, stage_dir / retired[o])
         elif os.path.lexists(stage_dir / o):
             _remove(stage_dir / o)
+    # The old outputs are removed only as the pending record owns them: a file put into one after the check
+    # above and before its rename is kept (under the hidden retired name, with a warning).
+    _clear_retired(stage_dir, pending_rec)
     _write_record(rec_path, {**record, "owned": new})
 
 

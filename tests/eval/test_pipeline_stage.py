@@ -194,7 +194,7 @@ def test_old_outputs_a_killed_commit_moved_aside_are_removed_by_the_next_commit(
         StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
     st = tmp_path / "st"
     left = sorted(p.name for p in st.iterdir() if ".old-" in p.name)
-    assert len(left) == 1 and left[0].startswith(".a.txt.old-")
+    assert len(left) == 2 and left[0].startswith(".a.txt.old-") and left[1].startswith(".d.old-")
     monkeypatch.setattr(stage_mod, "_remove", real_remove)
     StageRunner().run(_spec(tmp_path, _writer("three", calls), settings={"v": 3}))
     assert not [p for p in st.iterdir() if ".old-" in p.name]
@@ -218,10 +218,33 @@ def test_a_changed_old_output_left_by_a_killed_commit_is_kept(tmp_path, monkeypa
         StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
     monkeypatch.setattr(stage_mod, "_remove", real_remove)
     st = tmp_path / "st"
-    (old,) = [p for p in st.iterdir() if ".old-" in p.name]
+    (old,) = [p for p in st.iterdir() if p.name.startswith(".a.txt.old-")]
     old.write_text("edited by the user")
     StageRunner().run(_spec(tmp_path, _writer("three", calls), settings={"v": 3}))
     assert old.read_text() == "edited by the user"
+
+
+def test_a_file_added_to_an_output_during_its_commit_is_kept(tmp_path, monkeypatch):
+    """A file put into a committed output after the ownership check and before the output is moved aside
+    is not removed with the old output: it stays under the hidden retired name."""
+    import eval.pipeline.stage as stage_mod
+
+    calls: list = []
+    StageRunner().run(_spec(tmp_path, _writer("one", calls)))
+    real_replace = stage_mod._replace
+
+    def user_writes_first(src, dst, old):
+        if dst.name == "d":
+            (dst / "mine.txt").write_text("the user's")
+        real_replace(src, dst, old)
+
+    monkeypatch.setattr(stage_mod, "_replace", user_writes_first)
+    StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
+    st = tmp_path / "st"
+    (kept,) = [p for p in st.iterdir() if p.name.startswith(".d.old-")]
+    assert (kept / "mine.txt").read_text() == "the user's"
+    assert not [p for p in st.iterdir() if p.name.startswith(".a.txt.old-")]  # the stage's own: removed
+    assert (st / "d" / "b.txt").read_text() == "twotwo"
 
 
 @pytest.mark.parametrize("content", ["my notes, not JSON", '{"name": "other"}', "[1, 2]"])
