@@ -23,7 +23,8 @@ relative to the stage's folder) into a private work folder `ctx.work_dir`.
    output file (every non-hidden file inside an output folder) are taken
    there, the ownership check is made again, a pending record owning both the
    old and the new files is written, each output replaces the old one with an
-   atomic rename, and the record is written last (atomically).
+   atomic rename (the old one renamed aside first, then removed where it holds
+   only files that record owns), and the record is written last (atomically).
 
 So a stage's outputs are complete exactly when its record holds the current
 key and they hash as recorded: a crash at any point leaves either the old
