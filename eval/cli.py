@@ -86,6 +86,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
                                                                        reuse_intrinsics=args.reuse_intrinsics))
     if args.align_photos is not None:
         config = dataclasses.replace(config, align=dataclasses.replace(config.align, photos=args.align_photos))
+    if args.intrinsics is not None:
+        config = dataclasses.replace(config, align=dataclasses.replace(config.align, intrinsics=str(args.intrinsics)))
     config = dataclasses.replace(config, max_size=args.max_size)
     if args.denoiser is not None:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, method=args.denoiser))
@@ -286,6 +288,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="round 1's alignment input: the noisy photos, and the denoised ones where those are "
                           "refused (noisy_first), or the denoised ones (the paper's). Default: the preset's "
                           "(noisy_first with default and best, denoised with fast)")
+    run.add_argument("--intrinsics", type=Path, default=None, metavar="FILE",
+                     help="the photos' calibration at their size: a COLMAP cameras.txt with one camera, or an "
+                          "mrcal .cameramodel, without lens distortion (undistort the photos first). Every "
+                          "round's alignment uses it instead of estimating the focal length")
     run.set_defaults(func=_cmd_run)
 
     ev = sub.add_parser("eval", help="score methods on a scene with ground truth")

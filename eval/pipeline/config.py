@@ -100,6 +100,11 @@ class AlignSettings:
             are matched with the noisy photos' detector (`eval.pipeline.stages.denoised_photos_config`): R2R's photos at
             sigma 50 align so (1.1 deg) and were refused with the clean-photo one. Rounds >= 2 align the
             round's denoised photos.
+        intrinsics: the photos' calibration at their input size (a COLMAP cameras.txt with one camera, or
+            an mrcal .cameramodel), without lens distortion (the splat trains on the photos as they are);
+            None: estimated. Every round's alignment uses it instead of estimating the focal length
+            (`mvgeo align --intrinsics`); its content and file name, not its folder, enter the align stages'
+            keys.
     """
 
     preset: str = "default"
@@ -110,6 +115,7 @@ class AlignSettings:
     reuse_intrinsics: ReuseIntrinsics = "auto"
     reuse_geometry: ReuseGeometry = "auto"
     photos: AlignPhotos = "denoised"
+    intrinsics: str | None = None
 
 
 @dataclass(frozen=True)

@@ -75,7 +75,11 @@ def _size_lines(config: PipelineConfig, sizes: dict) -> list[str]:
     shown = ", ".join(f"{w[0]}x{w[1]}" + (f" (from {i[0]}x{i[1]})" if i != w else " (input size)")
                       for w, i in pairs)
     limit = "none (input size)" if config.max_size is None else f"long side <= {config.max_size} px"
-    return [f"- working size: {shown}; --max-size: {limit}"]
+    lines = [f"- working size: {shown}; --max-size: {limit}"]
+    if config.align.intrinsics is not None:
+        lines.append(f"- calibration: `{config.align.intrinsics}` (given with --intrinsics; the alignment used it, "
+                     "scaled to the working size, instead of estimating the focal length)")
+    return lines
 
 
 def write_report(out: Path, *, images_dir: Path, config: PipelineConfig, rounds: Sequence[RoundResult],

@@ -128,8 +128,11 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
     if previous is not None:  # the previous round's calibration (eval.pipeline.calibration)
         inputs["previous_align"] = previous.dir / "align"
         upstream = (images, previous.stages["align"])
+    hashed: tuple[str, ...] = ()
+    if config.align.intrinsics is not None:  # the user's calibration: its content enters the key
+        inputs["intrinsics"], hashed = Path(config.align.intrinsics), ("intrinsics",)
     al = runner.run(StageSpec("align", rd, stages.align, SCENE_OUTPUTS["align"], inputs=inputs, upstream=upstream,
-                              settings=settings.align, seed=stage_seed(config.seed, r, "align"),
+                              hashed_inputs=hashed, settings=settings.align, seed=stage_seed(config.seed, r, "align"),
                               code=stages.code.get("align", ())),
                     label=f"{label}/align")
     out: dict[str, StageResult] = {"align": al}
@@ -230,7 +233,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
             denoise stage without a network before a second round).
     """
     images_dir, out = Path(images_dir), Path(out)
-    plan = prepare_output(out, command=RUN_COMMAND, inputs=[images_dir], resume=True)
+    plan = prepare_output(out, command=RUN_COMMAND, inputs=[images_dir, config.align.intrinsics], resume=True)
     files = validate_run_inputs(images_dir, config)
     stages = product_stages() if stages is None else stages
     if config.rounds >= 2 and MODEL_FILE not in stages.denoise_outputs:

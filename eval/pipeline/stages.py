@@ -48,7 +48,9 @@ from eval.pipeline.stage import StageContext, StageFn
 from eval.pipeline.stage_settings import SplatStageSettings
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.align.stats import AlignStats
+from mvgeo.camera import Camera
 from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, DisconnectedViewsError
+from mvgeo.common.imageio import read_image
 from mvgeo.common.threads import torch_threads
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
@@ -139,14 +141,17 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     s = ctx.settings
     cfg = s.align
     no_prior = ""
-    if "working" in ctx.inputs and cfg.exif_focal:  # the input photos' EXIF focal: the working PNGs lack it
+    files = list(view_files(ctx.inputs["images"]).values())
+    mode = s.reuse_intrinsics or "never"
+    if "intrinsics" in ctx.inputs:  # the user's calibration (AlignSettings.intrinsics), at the working size
+        align_images = functools.partial(align_images, intrinsics=working_camera(ctx.inputs["intrinsics"], files[0]))
+        mode = "never"  # nothing to re-estimate in later rounds
+    elif "working" in ctx.inputs and cfg.exif_focal:  # the input photos' EXIF focal: the working PNGs lack it
         prior, no_prior = working_focal_prior(ctx.inputs["working"])
         if prior is not None:
             align_images = functools.partial(align_images, focal_prior=prior)
         else:
             _log.info("no focal prior from the input photos' EXIF: %s", no_prior)
-    files = list(view_files(ctx.inputs["images"]).values())
-    mode = s.reuse_intrinsics or "never"
     previous = ctx.inputs.get("previous_align")
     if previous is None:
         noisy = view_files(ctx.inputs["noisy"]) if s.noisy_first else None
@@ -167,6 +172,14 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     if PHOTOS_KEY in res.stats.annotations:
         summary["photos"] = res.stats.annotations[PHOTOS_KEY]
     return summary
+
+
+def working_camera(intrinsics: Path, image: Path) -> Camera:
+    """The calibration `intrinsics` (of the input photos) scaled to the size of the working photo `image`."""
+    from mvgeo.align.intrinsics import read_intrinsics
+
+    h, w = read_image(image).shape[:2]
+    return read_intrinsics(intrinsics).scaled(w, h)
 
 
 def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] | None, cfg):

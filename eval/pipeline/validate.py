@@ -9,14 +9,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from eval.pipeline.config import PipelineConfig
 from eval.pipeline.inputs import working_size
 from eval.pipeline.views import view_files
+from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.common.jsonio import read_json_object
 
-__all__ = ["MIN_IMAGE_SIZE_PX", "DatasetFolder", "validate_dataset_folder", "validate_run_inputs"]
+__all__ = ["MIN_IMAGE_SIZE_PX", "DatasetFolder", "check_intrinsics", "validate_dataset_folder", "validate_run_inputs"]
 
 #: Smallest image side accepted: LPIPS-AlexNet needs 31 px, alignment and the
 #: 4-level UNet need more than a handful of pixels; 32 covers all.
@@ -35,7 +38,8 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
     sizes that downscale to one size are accepted), there are at
     least two, and at least `config.views` when a second round will select
     views (with fewer images than K the selection would be meaningless, so we
-    stop and ask for a smaller `--views` instead of silently using all views).
+    stop and ask for a smaller `--views` instead of silently using all views),
+    and a given calibration (`AlignSettings.intrinsics`) fits them (`check_intrinsics`).
     The output folder is checked before, by `mvgeo.common.output.prepare_output`.
 
     Raises:
@@ -60,6 +64,8 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
         elif (w, h) != first[2]:
             raise InputError(_mixed_sizes(first, (path, size, (w, h)), config.max_size), path=images_dir,
                              fix="resize or crop all images to one size first (the alignment assumes one camera)")
+    if config.align.intrinsics is not None and first is not None:
+        check_intrinsics(Path(config.align.intrinsics), first[1])
     n = len(files)
     if n < MIN_VIEWS:
         raise InputError(f"only {n} image(s); pose-free reconstruction needs at least {MIN_VIEWS}",
@@ -69,6 +75,28 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
                          f"among the inputs, so K cannot exceed the number of images", path=images_dir,
                          fix=f"pass --views {n} (or fewer), or add images")
     return files
+
+
+def check_intrinsics(path: Path, size_wh: tuple[int, int]) -> Camera:
+    """The photos' calibration `path` (`AlignSettings.intrinsics`), checked for photos of input size `size_wh`.
+
+    Raises:
+        InputError: the file is missing or unreadable, holds several cameras, has lens distortion (the
+            splat trains on the photos as they are: they must be undistorted first), or is for another size.
+    """
+    from mvgeo.align.intrinsics import read_intrinsics
+
+    camera = read_intrinsics(path)
+    if np.any(camera.dist != 0.0):
+        raise InputError(f"the calibration has lens distortion ({camera.model}); the splat trains on the photos "
+                         "as they are, so they must be undistorted", path=path,
+                         fix="undistort the photos first (e.g. COLMAP's image_undistorter) and pass their PINHOLE "
+                             "camera")
+    if camera.size_wh != tuple(size_wh):
+        raise InputError(f"the calibration is for {camera.width}x{camera.height} images, the photos are "
+                         f"{size_wh[0]}x{size_wh[1]}", path=path,
+                         fix="pass the calibration of these photos at their size")
+    return camera
 
 
 def _mixed_sizes(a: tuple[Path, tuple[int, int], tuple[int, int]], b: tuple[Path, tuple[int, int], tuple[int, int]],
