@@ -7,6 +7,7 @@ import hashlib
 import json
 import re
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -175,52 +176,42 @@ def test_interrupted_commit_leaves_files_the_next_run_owns(tmp_path, monkeypatch
     assert StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2})).skipped
 
 
-def test_old_outputs_a_killed_commit_moved_aside_are_removed_by_the_next_commit(tmp_path, monkeypatch):
-    """Killed after an old output was renamed to its hidden retired name and before it was removed: the
-    pending record names it, and the next commit removes it (only files the record owns, unchanged)."""
+def _killed_before_removing_the_old_outputs(tmp_path, monkeypatch) -> Path:
+    """Commit "one", then kill the commit of "two" after its outputs were renamed to their hidden retired
+    names and before they were removed; returns the stage folder."""
     import eval.pipeline.stage as stage_mod
 
     calls: list = []
     StageRunner().run(_spec(tmp_path, _writer("one", calls)))
     real_remove = stage_mod._remove
 
-    def killed_before_removing_old(path):
+    def killed(path):
         if ".old-" in path.name:
             raise KeyboardInterrupt("killed while committing")
         real_remove(path)
 
-    monkeypatch.setattr(stage_mod, "_remove", killed_before_removing_old)
-    with pytest.raises(KeyboardInterrupt):
-        StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
-    st = tmp_path / "st"
+    with monkeypatch.context() as m:
+        m.setattr(stage_mod, "_remove", killed)
+        with pytest.raises(KeyboardInterrupt):
+            StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
+    return tmp_path / "st"
+
+
+def test_old_outputs_a_killed_commit_moved_aside_are_removed_by_the_next_commit(tmp_path, monkeypatch):
+    """The pending record names them, and the next commit removes them (only files it owns, unchanged)."""
+    st = _killed_before_removing_the_old_outputs(tmp_path, monkeypatch)
     left = sorted(p.name for p in st.iterdir() if ".old-" in p.name)
     assert len(left) == 2 and left[0].startswith(".a.txt.old-") and left[1].startswith(".d.old-")
-    monkeypatch.setattr(stage_mod, "_remove", real_remove)
-    StageRunner().run(_spec(tmp_path, _writer("three", calls), settings={"v": 3}))
+    StageRunner().run(_spec(tmp_path, _writer("three", []), settings={"v": 3}))
     assert not [p for p in st.iterdir() if ".old-" in p.name]
     assert (st / "a.txt").read_text() == "three"
 
 
 def test_a_changed_old_output_left_by_a_killed_commit_is_kept(tmp_path, monkeypatch):
-    import eval.pipeline.stage as stage_mod
-
-    calls: list = []
-    StageRunner().run(_spec(tmp_path, _writer("one", calls)))
-    real_remove = stage_mod._remove
-
-    def killed_before_removing_old(path):
-        if ".old-" in path.name:
-            raise KeyboardInterrupt("killed while committing")
-        real_remove(path)
-
-    monkeypatch.setattr(stage_mod, "_remove", killed_before_removing_old)
-    with pytest.raises(KeyboardInterrupt):
-        StageRunner().run(_spec(tmp_path, _writer("two", calls), settings={"v": 2}))
-    monkeypatch.setattr(stage_mod, "_remove", real_remove)
-    st = tmp_path / "st"
+    st = _killed_before_removing_the_old_outputs(tmp_path, monkeypatch)
     (old,) = [p for p in st.iterdir() if p.name.startswith(".a.txt.old-")]
     old.write_text("edited by the user")
-    StageRunner().run(_spec(tmp_path, _writer("three", calls), settings={"v": 3}))
+    StageRunner().run(_spec(tmp_path, _writer("three", []), settings={"v": 3}))
     assert old.read_text() == "edited by the user"
 
 
