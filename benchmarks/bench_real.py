@@ -2,7 +2,8 @@
 
 Usage: `python benchmarks/bench_real.py [--data=DIR[,DIR...]] [--sets=temple,dtu_spread,dtu_cluster,data]
 [--noise=clean,noisy] [--noise-seeds=N]
-[--methods=ours,ours_noexif,ours_intr,ours_partial,ours_chain,ours_averaged,incremental,global] [--out=NAME] [--exif]`
+[--methods=ours,ours_noexif,ours_intr,ours_partial,ours_intr_partial,ours_chain,ours_averaged,incremental,global,
+global_intr] [--out=NAME] [--exif]`
 (writes docs/bench/NAME.md, default `real`; only the table and its header). `--noise-seeds=N` (default 6) runs
 the noisy variant with noise seeds 0..N-1 and adds a table of the noisy rows per set and method over the seeds:
 one draw of the noise moves the pose errors by more than the methods differ. `--exif` writes every image with
@@ -30,9 +31,10 @@ cameras.txt written from the set's calibration, read by `mvgeo.align.intrinsics.
 connect every view, or the verdict would cut views off, the largest group is registered and the others are named
 (the note column), as the mappers return partial models; `ours_chain` / `ours_averaged` (`ours --initial-poses
 chain|averaged`) = the defaults with that start first (the other start still follows where the first contradicts
-its pairs); `pycolmap
+its pairs); `ours_intr_partial` (`ours --intrinsics --allow-partial`) = both; `pycolmap
 incremental` and `pycolmap global` (`mvgeo.align.colmap_sfm.run_colmap`: CPU SIFT, exhaustive matching, one
-SIMPLE_RADIAL camera).
+SIMPLE_RADIAL camera); `global_intr` (`pycolmap global, known camera`) = the global mapper with the set's
+calibration as a fixed PINHOLE camera (`ColmapConfig.known_pinhole`), the counterpart of `ours --intrinsics`.
 
 Columns: registered / total; rotation error median and max over all pairs of registered views (relative
 rotations, `mvgeo.metrics.compare_poses`: free of the gauge); translation-direction error median; ATE RMSE of
@@ -253,18 +255,20 @@ def _short_reason(reason: str) -> str:
             else "position undetermined" if "not determined" in reason else reason[:40])
 
 
-def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref, stages: list[StageTimes] | None = None):
+def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref, stages: list[StageTimes] | None = None, *,
+                 known_pinhole: tuple[float, float, float, float] | None = None):
     names = sorted(gt)
+    method = f"pycolmap {mapper}" + (", known camera" if known_pinhole is not None else "")
     t = time.perf_counter()
     try:
-        col = run_colmap(folder, ColmapConfig(mapper=mapper), image_names=names)
+        col = run_colmap(folder, ColmapConfig(mapper=mapper, known_pinhole=known_pinhole), image_names=names)
     except Exception as exc:
-        return failed_row(label, f"pycolmap {mapper}", exc, time.perf_counter() - t)
+        return failed_row(label, method, exc, time.perf_counter() - t)
     sec = time.perf_counter() - t
     if stages is not None:
-        stages.append((label, f"pycolmap {mapper}", {k: v for k, v in col.stats["timings_s"].items() if k != "total"}))
+        stages.append((label, method, {k: v for k, v in col.stats["timings_s"].items() if k != "total"}))
     f = float(np.median([c.fx for c in col.sparse_model.cameras.values()]))
-    return metrics_row(label, f"pycolmap {mapper}", col.sparse_model.cam_from_world_by_name(), gt, f, f_ref, sec,
+    return metrics_row(label, method, col.sparse_model.cam_from_world_by_name(), gt, f, f_ref, sec,
                        tracks=int(col.stats["n_points"]))
 
 
@@ -290,8 +294,8 @@ def colmap_verified_pairs(folder: Path, names: list[str], min_inliers: int = 15)
             db.close()
 
 
-METHODS = ("ours", "ours_noexif", "ours_intr", "ours_partial", "ours_chain", "ours_averaged", "global",
-           "incremental")
+METHODS = ("ours", "ours_noexif", "ours_intr", "ours_partial", "ours_intr_partial", "ours_chain", "ours_averaged",
+           "global", "global_intr", "incremental")
 #: Without --methods: `ours_noexif` is `ours` on images without EXIF, so only asked for with --exif.
 DEFAULT_METHODS = ("ours", "ours_intr", "global", "incremental")
 
@@ -420,6 +424,12 @@ def main() -> int:
                     elif m == "ours_partial":
                         r = run_ours(label, "ours --allow-partial", folder, s.gt, f_ref, None,
                                      replace(OURS, allow_partial=True), stages)
+                    elif m == "ours_intr_partial":
+                        r = run_ours(label, "ours --intrinsics --allow-partial", folder, s.gt, f_ref, cams_txt,
+                                     replace(OURS, allow_partial=True), stages)
+                    elif m == "global_intr":
+                        known = (float(s.K[0, 0]), float(s.K[1, 1]), float(s.K[0, 2]), float(s.K[1, 2]))
+                        r = run_pycolmap(label, "global", folder, s.gt, f_ref, stages, known_pinhole=known)
                     else:
                         r = run_pycolmap(label, m, folder, s.gt, f_ref, stages)
                     rows.append(r)

@@ -36,6 +36,9 @@ class ColmapConfig:
         num_threads: CPU threads (-1: all).
         single_camera: one shared camera for all images.
         camera_model: COLMAP camera model to estimate.
+        known_pinhole: (fx, fy, cx, cy) in pixels (COLMAP's convention: the top-left pixel's corner at 0)
+            of a known PINHOLE camera shared by all images, kept fixed by the mapper's bundle adjustment
+            (the counterpart of `mvgeo align --intrinsics`); None: `camera_model` is estimated.
     """
 
     mapper: str = "incremental"
@@ -43,6 +46,7 @@ class ColmapConfig:
     num_threads: int = -1
     single_camera: bool = True
     camera_model: str = "SIMPLE_RADIAL"
+    known_pinhole: tuple[float, float, float, float] | None = None
 
 
 @dataclass
@@ -80,6 +84,9 @@ def run_colmap(images_dir: str | Path, config: ColmapConfig = ColmapConfig(), *,
         ext.use_gpu = False
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = config.camera_model
+        if config.known_pinhole is not None:
+            reader.camera_model = "PINHOLE"
+            reader.camera_params = ",".join(repr(float(v)) for v in config.known_pinhole)
         mode = pycolmap.CameraMode.SINGLE if config.single_camera else pycolmap.CameraMode.AUTO
         with timer.stage("features"):
             pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=mode, reader_options=reader,
@@ -90,9 +97,18 @@ def run_colmap(images_dir: str | Path, config: ColmapConfig = ColmapConfig(), *,
             if config.mapper == "incremental":
                 opts = pycolmap.IncrementalPipelineOptions()
                 opts.num_threads = config.num_threads
+                if config.known_pinhole is not None:
+                    opts.ba_refine_focal_length = False
+                    opts.ba_refine_principal_point = False
+                    opts.ba_refine_extra_params = False
                 recs = pycolmap.incremental_mapping(db, images_dir, work / "sparse", options=opts)
             else:
-                recs = pycolmap.global_mapping(db, images_dir, work / "sparse")
+                gopts = pycolmap.GlobalPipelineOptions()
+                if config.known_pinhole is not None:
+                    gopts.mapper.bundle_adjustment.refine_focal_length = False
+                    gopts.mapper.bundle_adjustment.refine_principal_point = False
+                    gopts.mapper.bundle_adjustment.refine_extra_params = False
+                recs = pycolmap.global_mapping(db, images_dir, work / "sparse", options=gopts)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     if not recs:
