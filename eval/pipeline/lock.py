@@ -33,6 +33,17 @@ def _owner_pid(fd: int) -> int | None:
     return int(text) if text.isdigit() else None
 
 
+def _holds_a_pid_or_nothing(fd: int) -> bool:
+    """The open lock file holds what this module writes there: nothing yet, or a pid (a user's file of that
+    name holding anything else is not truncated)."""
+    try:
+        data = os.pread(fd, 33, 0)
+    except OSError:
+        return False
+    text = data.decode("ascii", errors="replace").strip()
+    return len(data) <= 32 and (text == "" or text.isdigit())
+
+
 @contextlib.contextmanager
 def output_lock(out: str | Path) -> Iterator[None]:
     """Hold the lock of folder `out` (created if needed) for the block's lifetime.
@@ -49,7 +60,7 @@ def output_lock(out: str | Path) -> Iterator[None]:
         except OSError as exc:
             raise InputError(f"cannot open the lock file {LOCK_NAME} ({exc.strerror or exc})", path=lock,
                              fix="move it away if it is yours, or choose another --out; nothing was changed") from None
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
+        if not stat.S_ISREG(os.fstat(fd).st_mode) or not _holds_a_pid_or_nothing(fd):
             os.close(fd)
             raise InputError(f"{LOCK_NAME} in the output folder is not a lock file", path=lock,
                              fix="move it away if it is yours, or choose another --out; nothing was changed")

@@ -465,7 +465,7 @@ def _replace(src: Path, dst: Path, old: Path) -> None:
     os.replace(src, dst)
 
 
-def _clear_retired(stage_dir: Path, rec: Mapping | None) -> None:
+def _clear_retired(stage_dir: Path, rec: Mapping | None, outputs: Sequence[str]) -> None:
     """Remove the old outputs a commit moved aside to their retired names (`_retired_name`; this commit's, or
     a killed one's): those the pending record `rec` names, and only when every file in them is one the
     record owns, as it wrote it (else they are left; they are hidden and block nothing)."""
@@ -474,8 +474,9 @@ def _clear_retired(stage_dir: Path, rec: Mapping | None) -> None:
         return
     owned = _owned_files(rec)
     for output, name in retired.items():
-        if not isinstance(name, str) or name != _retired_name(str(output), name.rsplit("-", 1)[-1]):
-            continue
+        tag = name.rsplit("-", 1)[-1] if isinstance(name, str) else ""
+        if output not in outputs or not re.fullmatch(r"[0-9a-f]{8}", tag) or name != _retired_name(output, tag):
+            continue  # only the stage's own outputs' retired names (a record edited by hand names others)
         path = stage_dir / name
         if not os.path.lexists(path):
             continue
@@ -532,7 +533,7 @@ def commit_outputs(stage_dir: Path, name: str, outputs: Sequence[str], work: Pat
     problems = _record_problems(stage_dir, name) + unowned_outputs(stage_dir, outputs, old)
     if problems:
         raise UnownedOutputError(name, stage_dir, problems)
-    _clear_retired(stage_dir, old_rec)
+    _clear_retired(stage_dir, old_rec, outputs)
     known = {k: v["sha256"] for k, v in (manifest or {}).get("files", {}).items()}
     new = _owned_now(work, outputs, known)
     pending = {rel: sorted(set(new.get(rel, [])) | old.get(rel, frozenset())) for rel in new.keys() | old.keys()}
@@ -547,7 +548,7 @@ def commit_outputs(stage_dir: Path, name: str, outputs: Sequence[str], work: Pat
             _remove(stage_dir / o)
     # The old outputs are removed only as the pending record owns them: a file put into one after the check
     # above and before its rename is kept (under the hidden retired name, with a warning).
-    _clear_retired(stage_dir, pending_rec)
+    _clear_retired(stage_dir, pending_rec, outputs)
     _write_record(rec_path, {**record, "owned": new})
 
 
@@ -607,7 +608,7 @@ def withdraw_outputs(stage_dir: Path, name: str, outputs: Sequence[str]) -> bool
         UnownedOutputError: they hold files the stage did not write or that changed (nothing is removed).
     """
     check_outputs_owned(stage_dir, name, outputs)
-    _clear_retired(stage_dir, _read_record(_record_file(stage_dir, name))[0])
+    _clear_retired(stage_dir, _read_record(_record_file(stage_dir, name))[0], outputs)
     removed = False
     for o in outputs:
         if os.path.lexists(stage_dir / o):

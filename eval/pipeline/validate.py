@@ -64,6 +64,10 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
         elif (w, h) != first[2]:
             raise InputError(_mixed_sizes(first, (path, size, (w, h)), config.max_size), path=images_dir,
                              fix="resize or crop all images to one size first (the alignment assumes one camera)")
+        elif config.align.intrinsics is not None and size != first[1]:  # one calibration: one input size
+            raise InputError(f"images have different sizes ({first[0].name}: {first[1][0]}x{first[1][1]}, "
+                             f"{path.name}: {size[0]}x{size[1]}) but --intrinsics gives one camera", path=images_dir,
+                             fix="pass photos of one size, the size the calibration is for")
     if config.align.intrinsics is not None and first is not None:
         check_intrinsics(Path(config.align.intrinsics), first[1])
     n = len(files)

@@ -78,12 +78,14 @@ def atomic_output_dir(plan: OutputPlan) -> Iterator[Path]:
     try:
         owner = OwnerFile(tmp)
         tmp.mkdir()
-    except OSError as exc:
+    except BaseException as exc:  # a Ctrl-C in between too: no owner file without its folder
         if owner is not None:
             owner.release()
         remove_empty_dirs(created)
-        raise InputError(f"cannot create the output folder ({exc.strerror or exc})", path=plan.out,
-                         fix="choose an --out in a folder you can write to") from None
+        if isinstance(exc, OSError):
+            raise InputError(f"cannot create the output folder ({exc.strerror or exc})", path=plan.out,
+                             fix="choose an --out in a folder you can write to") from None
+        raise
     try:
         yield tmp
         write_manifest(tmp, plan.command)

@@ -348,7 +348,7 @@ def _owner_locked(owner: Path) -> bool:
     except OSError:
         return True
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # shared: conflicts with the owner's, needs no write access
         return False
     except BlockingIOError:
         return True
@@ -372,28 +372,44 @@ def stale_leftovers(folder: Path, out_name: str | None = None) -> list[Path]:
     """The temporary and retired folders in `folder` that a killed command left, with their owner files
     (with `out_name`: only those of the output `folder/out_name`, `.<out_name>.tmp-TAG` and
     `.<out_name>.old-TAG`; else any, e.g. `.tmp-TAG` in an empty `--out`): a folder is one only with an
-    owner file an `OwnerFile` wrote for it on this host whose process is gone. Never raises."""
+    owner file an `OwnerFile` wrote for it on this host whose process is gone and whose lock is free. An
+    owner file whose folder was never created (the process died in between) counts alone. Never raises.
+
+    A retired folder `.<name>.old-TAG` whose output `<name>` is missing is not one: the command was killed
+    between its two renames, and that folder is the only copy of the previous output (left for the user).
+    """
     found: list[Path] = []
     try:
-        names = os.listdir(folder)
+        names = set(os.listdir(folder))
     except OSError:
         return found
-    for name in names:
-        if not _LEFTOVER_NAME.fullmatch(name) or (
+    for name in sorted(names):
+        entry_name = name.removesuffix(OWNER_SUFFIX)
+        if not _LEFTOVER_NAME.fullmatch(entry_name) or (
                 out_name is not None and not re.fullmatch(rf"\.{re.escape(out_name)}\.(?:tmp|old)-[0-9a-f]{{8}}",
-                                                          name)):
+                                                          entry_name)):
             continue
-        entry, owner = folder / name, folder / (name + OWNER_SUFFIX)
+        entry, owner = folder / entry_name, folder / (entry_name + OWNER_SUFFIX)
+        alone = entry_name not in names
+        if name == entry_name and alone:  # a folder-like name without its owner file: not ours to judge
+            continue
+        if name != entry_name and not alone:  # the owner file of a folder: judged with the folder
+            continue
         try:
             st = owner.lstat()  # a regular file: a FIFO would block the read, a link may point anywhere
-            if entry.is_symlink() or not entry.is_dir() or not stat.S_ISREG(st.st_mode) or st.st_size > 4096:
+            if not stat.S_ISREG(st.st_mode) or st.st_size > 4096:
                 continue
+            if not alone and (entry.is_symlink() or not entry.is_dir()):
+                continue
+            if not alone and ".old-" in entry_name and not os.path.lexists(folder / entry_name[1:-13]):
+                continue  # the only copy of a previous output (see above)
             info = json.loads(owner.read_text())
             pid = info.get("pid") if isinstance(info, dict) else None
-            if (isinstance(info, dict) and info.get("entry") == name and info.get("host") == socket.gethostname()
+            if (isinstance(info, dict) and info.get("entry") == entry_name
+                    and info.get("host") == socket.gethostname()
                     and type(pid) is int and 0 < pid < 2**31 and pid != os.getpid() and _process_gone(pid)
                     and not _owner_locked(owner)):
-                found += [entry, owner]
+                found += [owner] if alone else [entry, owner]
         except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
             continue
     return found
@@ -560,6 +576,7 @@ def resumable_output_dir(plan: OutputPlan) -> Iterator[Path]:
         raise ValueError("resumable_output_dir needs a plan made with resume=True")
     plan = recheck(plan)
     created = make_dirs(plan.path)
+    remove_stale_leftovers(plan.path)  # what a killed command left inside (`stale_leftovers`)
     wrote_manifest = False
     try:
         if read_manifest(plan.path) is None:

@@ -17,7 +17,7 @@ import pytest
 
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.errors import InputError
-from mvgeo.common.output import OWNER_SUFFIX, prepare_output, stale_leftovers
+from mvgeo.common.output import OWNER_SUFFIX, prepare_output, stale_leftovers, write_manifest
 
 CMD = "tool write"
 ROOT = Path(__file__).resolve().parents[2]
@@ -171,3 +171,42 @@ def test_the_owner_file_is_locked_while_the_command_writes(tmp_path):
         assert _owner_locked(owner)
         assert stale_leftovers(tmp_path) == []
     assert not owner.exists()
+
+
+def _dead_owner(folder, name):
+    (folder / (name + OWNER_SUFFIX)).write_text(
+        json.dumps({"entry": name, "host": socket.gethostname(), "pid": _dead_pid()}))
+
+
+def test_the_only_copy_of_a_previous_output_is_kept(tmp_path):
+    """Killed between the two renames of --overwrite: `out` is gone, `.out.old-TAG` is the previous output
+    and `.out.tmp-TAG` the unfinished new one. The next command writing `out` keeps the former."""
+    for name in (".out.old-0123abcd", ".out.tmp-0123abcd"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "a.txt").write_text(name)
+        _dead_owner(tmp_path, name)
+    with atomic_output_dir(prepare_output(tmp_path / "out", command=CMD)) as tmp:
+        (tmp / "b.txt").write_text("b")
+    assert (tmp_path / ".out.old-0123abcd" / "a.txt").read_text() == ".out.old-0123abcd"
+    assert not (tmp_path / ".out.tmp-0123abcd").exists()
+
+
+def test_an_owner_file_whose_folder_was_never_made_is_removed(tmp_path):
+    _dead_owner(tmp_path, ".out.tmp-0123abcd")
+    with atomic_output_dir(prepare_output(tmp_path / "out", command=CMD)) as tmp:
+        (tmp / "b.txt").write_text("b")
+    assert _hidden(tmp_path) == []
+
+
+def test_a_resumed_folder_loses_what_a_killed_command_left_inside(tmp_path):
+    from mvgeo.common.output import resumable_output_dir
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / ".x.tmp-0123abcd").mkdir()
+    _dead_owner(out, ".x.tmp-0123abcd")
+    (out / "mine.txt").write_text("kept")  # refused as --out by the policy, so a run folder of ours instead
+    write_manifest(out, CMD, record_files=False)
+    with resumable_output_dir(prepare_output(out, command=CMD, resume=True)):
+        pass
+    assert sorted(os.listdir(out)) == [".denoise-gs-output.json", "mine.txt"]

@@ -151,10 +151,21 @@ def test_killed_holder_releases_the_lock(tmp_path):
 def test_unheld_lock_file_is_taken_over_whatever_it_says(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
-    for text in ("", "0", "999999999", str(os.getppid()), "garbage"):
+    for text in ("", "0", "999999999", str(os.getppid())):
         (out / LOCK_NAME).write_text(text)  # e.g. left by a crashed run: only a held lock counts
         with output_lock(out):
             assert (out / LOCK_NAME).read_text().strip() == str(os.getpid())
+
+
+@pytest.mark.parametrize("text", ["garbage", "my notes\n", "1" * 40])
+def test_a_users_file_named_like_the_lock_is_neither_truncated_nor_removed(tmp_path, text):
+    """What this module writes there is a pid or nothing; anything else is the user's."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / LOCK_NAME).write_text(text)
+    with pytest.raises(InputError, match="not a lock file"), output_lock(out):
+        pass
+    assert (out / LOCK_NAME).read_text() == text
 
 
 def test_second_holder_in_the_same_process_is_refused(tmp_path):

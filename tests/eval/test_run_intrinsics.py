@@ -124,3 +124,16 @@ def test_check_intrinsics_names_the_file(tmp_path):
     with pytest.raises(InputError, match="distortion") as info:
         check_intrinsics(cams, (48, 40))
     assert "c.txt" in str(info.value)
+
+
+def test_photos_of_several_input_sizes_are_refused_with_one_calibration(tmp_path, capsys):
+    """800x600 and 804x603 photos share a working size; one calibration cannot be both cameras."""
+    images = make_scene(tmp_path / "images", n=2, size_wh=(96, 80))
+    make_scene(tmp_path / "other", n=3, size_wh=(98, 82))
+    (tmp_path / "other" / "view_002.png").rename(images / "view_009.png")
+    cams = _cameras_txt(tmp_path / "cameras.txt", "1 PINHOLE 96 80 100 100 48 40")
+    out = tmp_path / "out"
+    code = main(["run", str(images), "--out", str(out), "--preset", "fast", "--max-size", "48",
+                 "--intrinsics", str(cams)])
+    err = capsys.readouterr().err
+    assert code == 2 and "--intrinsics gives one camera" in err and not out.exists()

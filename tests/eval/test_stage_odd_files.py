@@ -50,3 +50,26 @@ def test_linking_round1_never_removes_a_users_folder_named_like_its_temporary_on
     assert (mine / "notes.txt").read_text() == "mine"
     assert (dst / "round1" / "stages" / "denoise.json").read_text() == "{}"
     assert sorted(p.name for p in dst.iterdir() if p.name.startswith(".round1")) == [".round1.link-tmp"]
+
+
+def test_a_pending_record_naming_other_paths_as_retired_removes_nothing_else(tmp_path):
+    """Only `.<output>.old-<8 hex>` of the stage's own outputs are ever removed as retired outputs."""
+    import json
+
+    from eval.pipeline.stage import StageRunner, StageSpec
+
+    def fn(ctx):
+        (ctx.work_dir / "a.txt").write_text("a")
+        return {}
+
+    st = tmp_path / "st"
+    StageRunner().run(StageSpec(name="s", stage_dir=st, fn=fn, outputs=("a.txt",)))
+    (tmp_path / "precious").mkdir()
+    (tmp_path / "precious" / "f.txt").write_text("mine")
+    (st / ".b.txt.old-zzzzzzzz").mkdir()
+    record = st / "stages" / "s.json"
+    rec = json.loads(record.read_text())
+    rec.update(pending=True, retired={"../precious": "../precious", "b.txt": ".b.txt.old-zzzzzzzz"})
+    record.write_text(json.dumps(rec))
+    StageRunner().run(StageSpec(name="s", stage_dir=st, fn=fn, outputs=("a.txt",), settings={"v": 2}))
+    assert (tmp_path / "precious" / "f.txt").read_text() == "mine" and (st / ".b.txt.old-zzzzzzzz").is_dir()
