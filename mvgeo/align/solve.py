@@ -231,6 +231,37 @@ def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: Al
                             dropped=dropped, unregistered=unregistered)
 
 
+def ideal_pixels(uv_px: np.ndarray, K: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
+    """(M, 2) pixels `uv_px` of a view with known intrinsics `K` (alignment pixels) as the camera the bundle
+    adjustment, the pair checks and PnP model sees them: principal point at the image centre, square pixels
+    of focal `K[0, 0]`. Exact for a pinhole `K` (the same rays)."""
+    W, H = size_wh
+    uv = np.asarray(uv_px, np.float64)
+    return np.stack([uv[:, 0] - K[0, 2] + W / 2.0, (uv[:, 1] - K[1, 2]) * (K[0, 0] / K[1, 1]) + H / 2.0], axis=1)
+
+
+def ideal_matches(matches: Sequence[tuple[int, int, np.ndarray]], K_align: np.ndarray | None,
+                  size_wh: tuple[int, int]) -> list[tuple[int, int, np.ndarray]]:
+    """`matches` ((i, j, (M, 4) uv)) through `ideal_pixels` of their views (`K_align[i]`, `K_align[j]`); as
+    they are without known intrinsics (the principal point is then taken at the centre anyway)."""
+    if K_align is None:
+        return list(matches)
+    return [(i, j, np.hstack([ideal_pixels(uv[:, :2], K_align[i], size_wh), ideal_pixels(uv[:, 2:], K_align[j],
+                                                                                          size_wh)]))
+            for i, j, uv in matches]
+
+
+@dataclass(frozen=True)
+class _IdealKeypoints:
+    """A view's keypoints through `ideal_pixels` (the `Keypoints` protocol: `uv_px`, `root()`)."""
+
+    uv_px: np.ndarray
+    base: object
+
+    def root(self) -> np.ndarray:
+        return self.base.root()
+
+
 def adjust_and_judge(graph: PairGraph, start: str, res: GlobalAlignResult, align_cfg: GlobalAlignConfig, config,
                      timer: StageTimer, *, inputs: AlignInputs, pairs: PairSet,
                      dropped: list[tuple[str, str]] | None = None, unregistered: list[Unregistered] | None = None,
@@ -243,21 +274,24 @@ def adjust_and_judge(graph: PairGraph, start: str, res: GlobalAlignResult, align
         with timer.stage("bundle_adjust"):
             ba_cfg = replace(config.bundle, shared_focal=config.bundle.shared_focal or align_cfg.shared_focal,
                              optimize_focal=inputs.intrinsics is None)
-            ba = bundle_adjust(res.cam_from_world, res.focal_px * s, inputs.align_wh, pairs.matches, config=ba_cfg)
+            ba = bundle_adjust(res.cam_from_world, res.focal_px * s, inputs.align_wh,
+                               ideal_matches(pairs.matches, inputs.K_align, inputs.align_wh), config=ba_cfg)
             res, rescale = reposed(res, ba.cam_from_world, ba.focal_px / s, ba, s)
     # Judged against every verified pair of these views, the dropped ones included. Without the bundle
     # adjustment the poses come from pointmaps `s` times coarser than the matches: judged at that resolution.
     keep = {name: k for k, name in enumerate(inputs.names)}
     index = [keep.get(name) for name in graph.inputs.names]
-    evidence = [(index[i], index[j], uv) for i, j, uv in graph.pairs.matches
-                if index[i] is not None and index[j] is not None]
+    evidence = ideal_matches([(index[i], index[j], uv) for i, j, uv in graph.pairs.matches
+                              if index[i] is not None and index[j] is not None], inputs.K_align, inputs.align_wh)
     thr = config.consistency_px * (1.0 if ba is not None else max(s, 1.0))
     feats = None
     if graph.pairs.features is not None:  # per view of `inputs`, like the evidence's indices
         feats = [None] * n
         for k, i in enumerate(index):
             if i is not None:
-                feats[i] = graph.pairs.features[k]
+                f = graph.pairs.features[k]
+                feats[i] = f if inputs.K_align is None else _IdealKeypoints(
+                    ideal_pixels(f.uv_px, inputs.K_align[i], inputs.align_wh), f)
     checks, bad = judge_pairs(res.cam_from_world, res.focal_px * s, inputs.align_wh, evidence, threshold_px=thr,
                               min_explained=config.min_pair_explained, max_rotation_deg=config.max_pair_rotation_deg)
     located: list[Located] = []
