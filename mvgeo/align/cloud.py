@@ -115,8 +115,9 @@ def _stereo_maps(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult |
     """Depth and confidence maps by flow stereo with the final cameras, their grids' K, and the report."""
     Wa, Ha = inputs.align_wh
     with timer.stage("dense_stereo"):
-        K_a = np.stack([np.array([[f, 0, Wa / 2.0], [0, f, Ha / 2.0], [0, 0, 1]])
-                        for f in res.focal_px * grid_to_align])
+        K_a = (np.asarray(inputs.K_align, np.float64) if inputs.K_align is not None  # known: its principal point
+               else np.stack([np.array([[f, 0, Wa / 2.0], [0, f, Ha / 2.0], [0, 0, 1]])
+                              for f in res.focal_px * grid_to_align]))
         stereo = stereo_depths(inputs.small, K_a, res.cam_from_world, pairs, {(i, j): uv for i, j, uv in matches},
                                config.dense_stereo)
     depth_maps, conf_maps = list(stereo.depth), list(stereo.conf)
@@ -160,7 +161,11 @@ def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | 
     else:
         depth_maps, conf_maps, pts_maps = res.depth, res.conf, res.pts_world
         Hp, Wp = res.depth[0].shape
-        K_grid = [np.array([[f, 0, Wp / 2.0], [0, f, Hp / 2.0], [0, 0, 1]]) for f in res.focal_px]
+        if inputs.K_align is not None:  # known intrinsics at the pointmap grid (our pixel convention: exact)
+            Wa, Ha = inputs.align_wh
+            K_grid = [np.diag([Wp / Wa, Hp / Ha, 1.0]) @ K for K in np.asarray(inputs.K_align, np.float64)]
+        else:
+            K_grid = [np.array([[f, 0, Wp / 2.0], [0, f, Hp / 2.0], [0, 0, 1]]) for f in res.focal_px]
     with timer.stage("scene"):
         keep = covisibility_keep(pts_maps, depth_maps, conf_maps, res.cam_from_world, K_grid,
                                  rel_depth_tol=config.covisibility_rel_tol,
