@@ -20,7 +20,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from mvgeo.common.errors import InputError
-from mvgeo.common.output import LOCK_NAME
+from mvgeo.common.output import LOCK_NAME, is_lock_content
 
 __all__ = ["LOCK_NAME", "output_lock"]
 
@@ -37,11 +37,9 @@ def _holds_a_pid_or_nothing(fd: int) -> bool:
     """The open lock file holds what this module writes there: nothing yet, or a pid (a user's file of that
     name holding anything else is not truncated)."""
     try:
-        data = os.pread(fd, 33, 0)
+        return is_lock_content(os.pread(fd, 33, 0))
     except OSError:
         return False
-    text = data.decode("ascii", errors="replace").strip()
-    return len(data) <= 32 and (text == "" or text.isdigit())
 
 
 @contextlib.contextmanager

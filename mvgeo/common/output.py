@@ -71,6 +71,7 @@ __all__ = [
     "prepare_output",
     "file_record_path",
     "foreign_entries",
+    "is_lock_content",
     "prepare_output_file",
     "read_manifest",
     "remove_stale_leftovers",
@@ -94,7 +95,7 @@ _TEMP_NAME = re.compile(r"\.tmp-[0-9a-f]{8}")
 
 #: The temporary and retired folders `mvgeo.common.atomic` makes: `.tmp-TAG` inside an empty `--out`,
 #: `.<name>.tmp-TAG` and `.<name>.old-TAG` beside it. Each has an owner file, the name plus `OWNER_SUFFIX`.
-_LEFTOVER_NAME = re.compile(r"\.(?:.+\.)?(?:tmp|old)-[0-9a-f]{8}")
+_LEFTOVER_NAME = re.compile(r"\.(?:(?P<out>.+)\.)?(?P<kind>tmp|old)-[0-9a-f]{8}")
 OWNER_SUFFIX = ".owner"
 
 #: `--out` / `--overwrite` help texts of the commands that replace their output folder.
@@ -293,17 +294,22 @@ def _check_writable(folder: Path, plan_out: Path) -> None:
                          fix="choose an --out in a folder you can write to")
 
 
+def is_lock_content(data: bytes) -> bool:
+    """`data` (the first 33 bytes of a file, or more) is what `eval.pipeline.lock.output_lock` writes in its
+    lock file: nothing yet, or a pid; anything else is a user's file that happens to carry the name."""
+    text = data.decode("ascii", errors="replace").strip()
+    return len(data) <= 32 and (text == "" or text.isdigit())
+
+
 def _is_lock_file(path: Path) -> bool:
-    """`path` is what `eval.pipeline.lock.output_lock` writes: a small regular file holding a pid (or
-    nothing yet); a user's file that happens to carry the name is not."""
+    """`path` is a regular file holding what `eval.pipeline.lock.output_lock` writes (`is_lock_content`)."""
     try:
-        st = path.lstat()
-        if not stat.S_ISREG(st.st_mode) or st.st_size > 32:
+        if not stat.S_ISREG(path.lstat().st_mode):
             return False
-        text = path.read_bytes().decode("ascii").strip()
-    except (OSError, UnicodeDecodeError):
+        with open(path, "rb") as fh:
+            return is_lock_content(fh.read(33))
+    except OSError:
         return False
-    return text == "" or text.isdigit()
 
 
 class OwnerFile:
@@ -385,9 +391,8 @@ def stale_leftovers(folder: Path, out_name: str | None = None) -> list[Path]:
         return found
     for name in sorted(names):
         entry_name = name.removesuffix(OWNER_SUFFIX)
-        if not _LEFTOVER_NAME.fullmatch(entry_name) or (
-                out_name is not None and not re.fullmatch(rf"\.{re.escape(out_name)}\.(?:tmp|old)-[0-9a-f]{{8}}",
-                                                          entry_name)):
+        m = _LEFTOVER_NAME.fullmatch(entry_name)
+        if m is None or (out_name is not None and m["out"] != out_name):
             continue
         entry, owner = folder / entry_name, folder / (entry_name + OWNER_SUFFIX)
         alone = entry_name not in names
@@ -401,7 +406,7 @@ def stale_leftovers(folder: Path, out_name: str | None = None) -> list[Path]:
                 continue
             if not alone and (entry.is_symlink() or not entry.is_dir()):
                 continue
-            if not alone and ".old-" in entry_name and not os.path.lexists(folder / entry_name[1:-13]):
+            if not alone and m["kind"] == "old" and not os.path.lexists(folder / (m["out"] or "")):
                 continue  # the only copy of a previous output (see above)
             info = json.loads(owner.read_text())
             pid = info.get("pid") if isinstance(info, dict) else None
