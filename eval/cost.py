@@ -349,8 +349,8 @@ def _cached_scores(cache: Path, key: Mapping[str, object]) -> dict[str, float] |
         if rec.get("key") != key:
             return None
         return {str(k): float(v) for k, v in dict(rec["metrics"]).items()}
-    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"the point's cached scores cannot be read ({exc})", path=cache,
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise InputError(f"the point's cached scores cannot be read ({exc or 'JSON nested too deeply'})", path=cache,
                          fix="move the file out of the sweep folder (the point is scored again), or choose "
                              "another --out") from None
 

@@ -346,8 +346,12 @@ def _denoised_before_refusal(method: EvalMethod, config: PipelineConfig, folder:
     record = rd / "stages" / "denoise.json"
     if config.fuse_noisy_splat or not record.is_file() or (rd / "stages" / "splat.json").is_file():
         raise err
-    done = json.loads(record.read_text())
-    if done.get("pending") or not isinstance(done.get("seconds"), int | float):  # a commit that was cut short
+    try:
+        done = json.loads(record.read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # not a record the stage wrote
+        raise err from None
+    # not a record, or a commit that was cut short
+    if not isinstance(done, dict) or done.get("pending") or not isinstance(done.get("seconds"), int | float):
         raise err
     _log.warning("%s: its alignment refused the photos (%s); the ground-truth-pose variant splats round 1's "
                  "denoised photos", method.name, str(err).split(":")[0])

@@ -91,6 +91,9 @@ def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int]]]:
     try:
         raw = json.loads(path.read_text())
         return {stem: {k: (int(v[k][0]), int(v[k][1])) for k in ("input", "working")} for stem, v in raw.items()}
+    except RecursionError:  # deeply nested JSON
+        raise InputError("cannot read the working sizes (JSON nested too deeply)", path=path,
+                         fix="re-run with --force to rebuild OUT/inputs") from None
     except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
         raise InputError(f"cannot read the working sizes ({exc})", path=path,
                          fix="re-run with --force to rebuild OUT/inputs") from exc
@@ -129,7 +132,7 @@ def _recorded_dataset(data_dir: Path, name: str, source: Path, max_size: int) ->
         return (isinstance(rec, dict) and not rec.get("pending") and rec.get("source") == str(source)
                 and rec.get("max_size") == max_size and isinstance(rec.get("manifest"), dict)
                 and verify_outputs(data_dir, rec["manifest"]) is None)
-    except (OSError, UnicodeDecodeError, ValueError):
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
         return False
 
 

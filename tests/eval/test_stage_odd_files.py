@@ -73,3 +73,44 @@ def test_a_pending_record_naming_other_paths_as_retired_removes_nothing_else(tmp
     record.write_text(json.dumps(rec))
     StageRunner().run(StageSpec(name="s", stage_dir=st, fn=fn, outputs=("a.txt",), settings={"v": 2}))
     assert (tmp_path / "precious" / "f.txt").read_text() == "mine" and (st / ".b.txt.old-zzzzzzzz").is_dir()
+
+
+NESTED = "[" * 100_000 + "]" * 100_000
+
+
+def test_the_toolkits_own_json_files_deeply_nested_give_typed_errors_or_not_ours(tmp_path):
+    """`sizes.json`, a working dataset's record, a cost point's score cache and a denoise stage record, each
+    replaced by deeply nested JSON: a typed error naming the file, "not ours", or the original refusal; never
+    a RecursionError traceback."""
+    from eval.cost import _cached_scores
+    from eval.methods import METHODS, _denoised_before_refusal
+    from eval.pipeline import preset
+    from eval.pipeline.inputs import _recorded_dataset, read_sizes, working_focal_prior
+    from eval.pipeline.stage import RECORD_DIR
+    from mvgeo.common.errors import DisconnectedViewsError, InputError
+
+    sizes = tmp_path / "inputs" / "sizes.json"
+    sizes.parent.mkdir()
+    sizes.write_text(NESTED)
+    with pytest.raises(InputError, match="nested too deeply") as exc:
+        read_sizes(sizes)
+    assert "sizes.json" in str(exc.value)
+    with pytest.raises(InputError, match="nested too deeply"):
+        working_focal_prior(sizes.parent)
+
+    (tmp_path / "data" / RECORD_DIR).mkdir(parents=True)
+    (tmp_path / "data" / RECORD_DIR / "scene.json").write_text(NESTED)
+    assert _recorded_dataset(tmp_path / "data", "scene", tmp_path / "src", 512) is False
+
+    cache = tmp_path / "scores.json"
+    cache.write_text(NESTED)
+    with pytest.raises(InputError, match="cached scores") as exc:
+        _cached_scores(cache, {"k": 1})
+    assert "scores.json" in str(exc.value)
+
+    (tmp_path / "m" / "round1" / "stages").mkdir(parents=True)
+    (tmp_path / "m" / "round1" / "stages" / "denoise.json").write_text(NESTED)
+    refusal = DisconnectedViewsError("the pair graph is disconnected")
+    with pytest.raises(DisconnectedViewsError) as exc:
+        _denoised_before_refusal(METHODS["product"], preset("default"), tmp_path / "m", refusal)
+    assert exc.value is refusal
