@@ -28,7 +28,7 @@ from mvgeo.common.deps import cv2
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import list_images, read_image, write_image
-from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file, write_file_record
+from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file, write_output_file
 from mvgeo.common.timing import StageTimer
 
 _log = logging.getLogger(__name__)
@@ -122,8 +122,7 @@ def _cmd_select(args: argparse.Namespace) -> int:
     sel = select_views(poses, paths, k=args.k, seed=args.seed)
     text = json.dumps(sel.to_json_dict(), indent=2)
     if out is not None:
-        atomic_write_text(out, text + "\n")
-        write_file_record(out, "denoise select")
+        write_output_file(out, "denoise select", lambda tmp: atomic_write_text(tmp, text + "\n"))
     print(text)
     return 0
 

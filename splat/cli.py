@@ -34,7 +34,7 @@ from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import write_image
-from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file, write_file_record
+from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file, write_output_file
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 from splat.dataset import load_views, points_from_depth, read_point_cloud_ply
@@ -159,8 +159,7 @@ def _export(args) -> int:
     out = prepare_output_file(args.out, command="splat export", inputs=inputs, overwrite=args.overwrite,
                               example_name=f"scene.{fmt}")
     model, _ = _model_and_cameras(args)
-    export_model(model, fmt, out)
-    write_file_record(out, "splat export")
+    write_output_file(out, "splat export", lambda tmp: export_model(model, fmt, tmp))
     print(f"{model.num_gaussians} Gaussians -> {args.out} ({fmt}, {out.stat().st_size} bytes)")
     return 0
 

@@ -19,7 +19,9 @@ any computation, what may happen at `--out`:
 
 A single output file (`prepare_output_file`) is replaced with `overwrite=True`
 only when the hidden record beside it (`write_file_record`) says this command
-wrote it and its content is unchanged.
+wrote it and its content is unchanged. `write_output_file` checks again after
+the work: a new file is hard-linked into place (which fails if one appeared
+meanwhile), an existing one is re-checked just before the rename.
 
 It also refuses an `--out` that is, contains or lies inside an input (symbolic
 links and `..` resolved), and one whose nearest existing parent cannot be
@@ -50,7 +52,8 @@ import socket
 import stat
 import tempfile
 import time
-from collections.abc import Iterable, Iterator
+import uuid
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -79,6 +82,7 @@ __all__ = [
     "stale_leftovers",
     "write_file_record",
     "write_manifest",
+    "write_output_file",
 ]
 
 #: The manifest every command writes at the top of its output folder.
@@ -693,6 +697,49 @@ def prepare_output_file(out: str | Path, *, command: str, inputs: Iterable[str |
         _check_writable(path.parent, out)
     else:
         _check_writable(_nearest_existing(path.parent), out)
+    return path
+
+
+def write_output_file(path: Path, command: str, write: Callable[[Path], object]) -> Path:
+    """Write the single output file `path` (planned by `prepare_output_file`) and its record.
+
+    `write(tmp)` writes the content to a temporary sibling; it is then published without ever replacing
+    what `command` did not write: where nothing is at `path` the file is hard-linked into place, which fails
+    if a file appeared there since the plan (an atomic no-replace); where something is there it is checked
+    again (`command` wrote it and it is unchanged) just before the rename. Then the record
+    (`write_file_record`). The temporary file never stays behind.
+
+    Raises:
+        InputError: `path` was created, or changed, by someone else while the content was being made
+            (nothing was replaced).
+    """
+    path = Path(path)
+    tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
+
+    def changed(why: str) -> InputError:
+        return InputError(f"--out changed while the output was being made: {why}; only a file this command "
+                          "wrote is replaced", path=path,
+                          fix="choose another --out (or move the file away yourself); nothing was replaced")
+
+    try:
+        write(tmp)
+        if not os.path.lexists(path):
+            try:
+                os.link(tmp, path)  # fails when `path` exists: never replaces
+            except FileExistsError:
+                raise changed("a file appeared there") from None
+            except OSError:  # a file system without hard links: the check above, then a rename
+                if os.path.lexists(path):
+                    raise changed("a file appeared there") from None
+                os.replace(tmp, path)
+        else:
+            why = _written_by(path, command)
+            if why is not None:
+                raise changed(why)
+            os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    write_file_record(path, command)
     return path
 
 

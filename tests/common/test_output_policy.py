@@ -19,6 +19,7 @@ from mvgeo.common.output import (
     resumable_output_dir,
     write_file_record,
     write_manifest,
+    write_output_file,
 )
 
 CMD = "tool write"
@@ -392,3 +393,66 @@ def test_a_run_that_loses_the_lock_leaves_the_winners_manifest(tmp_path):
             (out / LOCK_NAME).write_text("999\n")  # the winner's lock, taken meanwhile
             raise InputError("another run (pid 999) is writing this folder")
     assert sorted(os.listdir(out)) == [MANIFEST_NAME, LOCK_NAME]
+
+
+def _leftovers(folder) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if ".tmp-" in p.name)
+
+
+def test_output_file_written_new_and_replaced_when_ours(tmp_path):
+    out = prepare_output_file(tmp_path / "a.json", command=CMD)
+    write_output_file(out, CMD, lambda tmp: tmp.write_text("one"))
+    assert out.read_text() == "one" and file_record_path(out).is_file() and _leftovers(tmp_path) == []
+    out = prepare_output_file(tmp_path / "a.json", command=CMD, overwrite=True)
+    write_output_file(out, CMD, lambda tmp: tmp.write_text("two"))
+    assert out.read_text() == "two" and _leftovers(tmp_path) == []
+    # a file system without hard links: checked, then renamed
+    out.unlink()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(os, "link", lambda *a, **k: (_ for _ in ()).throw(PermissionError(1, "no links")))
+        write_output_file(out, CMD, lambda tmp: tmp.write_text("three"))
+    assert out.read_text() == "three" and _leftovers(tmp_path) == []
+
+
+def test_output_file_that_appears_or_changes_while_the_output_is_made_is_never_replaced(tmp_path):
+    """`prepare_output_file` checks --out before the work; `write_output_file` after it. A file the user put
+    at --out, or changed there, in between is kept, byte for byte, and the command stops with a typed error."""
+    out = prepare_output_file(tmp_path / "b.json", command=CMD)
+
+    def make(tmp):
+        tmp.write_text("ours")
+        out.write_text("the user's")  # appears while the output is being made
+
+    with pytest.raises(InputError, match="changed while the output was being made: it has no record"):
+        write_output_file(out, CMD, make)
+    assert out.read_text() == "the user's" and not file_record_path(out).exists() and _leftovers(tmp_path) == []
+    # ... or at the last moment, after the check and before the hard link (with and without hard links)
+    real_link = os.link
+
+    def link_late(src, dst):
+        out.write_text("the user's, late")
+        real_link(src, dst)
+
+    def no_link_late(src, dst):
+        out.write_text("the user's, late")
+        raise PermissionError(1, "no links")
+
+    for link in (link_late, no_link_late):
+        out.unlink()
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(os, "link", link)
+            with pytest.raises(InputError, match="a file appeared there"):
+                write_output_file(out, CMD, lambda tmp: tmp.write_text("ours"))
+        assert out.read_text() == "the user's, late" and _leftovers(tmp_path) == []
+    # ours when planned, edited by the user before the rename
+    out.unlink()
+    write_output_file(out, CMD, lambda tmp: tmp.write_text("ours"))
+    out = prepare_output_file(out, command=CMD, overwrite=True)
+
+    def edit(tmp):
+        tmp.write_text("ours again")
+        out.write_text("edited by the user")
+
+    with pytest.raises(InputError, match="changed while the output was being made: it changed since"):
+        write_output_file(out, CMD, edit)
+    assert out.read_text() == "edited by the user" and _leftovers(tmp_path) == []
