@@ -57,16 +57,26 @@ def _config(method: str, lr: float, guard: bool) -> N2VConfig:
 @pytest.mark.parametrize("method", ["r2r", "n2v"])
 def test_a_diverging_training_starts_again_at_half_the_rate(method, caplog):
     noisy, clean = _images()
-    # lr 0.03 (30x the default) diverges on these images: measured final window losses 19 (R2R) and 1.3e4 (N2V)
-    # against 0.49 / 0.27 at 1e-3, and photos at 6.3 / 20.8 dB against the noisy 20.8 dB
+    # lr 0.03 (30x the default) diverges on these images: measured final window losses 3.9e3 (R2R) and 2.6e5
+    # (N2V), photos at 4.7 / 20.8 dB against the noisy 20.8 dB
     bad = train_with_method(noisy, _config(method, 0.03, False), seed=0)
     assert np.median(bad.history[-50:]) > 10
     good = train_with_method(noisy, _config(method, 0.03, True), seed=0)
     assert "diverged" in caplog.text and "starting again at 0.015" in caplog.text
-    assert len(good.history) == 300 and np.median(good.history[-50:]) < 1.0  # measured 0.41 / 0.23
-    assert [r["lr"] for r in good.restarts] == [0.03, 0.015] and not bad.restarts
+    # each abandoned run is recorded, the rate halved from 0.03 each time (how many restarts a chaotic run needs
+    # depends on the floating-point order of the convolutions: one or two measured)
+    rates = [r["lr"] for r in good.restarts]
+    assert rates and rates == [0.03 * 0.5**k for k in range(len(rates))] and not bad.restarts
+    assert len(good.history) == 300
+    # the rescued run ends as a run at the default rate does: its loss (measured 0.44 / 0.26 against 0.49 /
+    # 0.27) and its photos (20.2 / 22.9 dB against 19.4 / 23.0; on two 64-px images 300 steps of R2R do not
+    # beat the noisy photos at any rate, the guard's job is to end where an undisturbed run ends)
+    ref = train_with_method(noisy, _config(method, 1e-3, True), seed=0)
+    assert not ref.restarts
+    assert np.median(good.history[-50:]) < 1.2 * np.median(ref.history[-50:])
     out = denoise_with_method(good, noisy, _config(method, 0.03, True), passes=2, seed=0)
-    assert _psnr(out, clean) > _psnr(noisy, clean) + 1.0  # measured 23.3 dB against 20.8 dB
+    out_ref = denoise_with_method(ref, noisy, _config(method, 1e-3, True), passes=2, seed=0)
+    assert _psnr(out, clean) > _psnr(out_ref, clean) - 1.0
 
 
 def _reference_loop(model: N2VModel, config: N2VConfig, loss_at_step) -> N2VModel:
