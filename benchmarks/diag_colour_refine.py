@@ -8,7 +8,7 @@ the expected value of clipped Gaussian noise (`denoise.clipping.clipped_mean`) w
 sigma (`denoise.self_supervised.r2r_noise_std`, the estimate R2R uses).
 
 Usage: .venv/bin/python benchmarks/diag_colour_refine.py ROUND_DIR DATASET NOISY_DIR OUT [--iters N] [--lr LR]
-           [--params sh0|sh0,shN|sh0,opacity] [--loss clipped|plain]
+           [--params P[,P...]] [--loss clipped|plain]      (P: sh0, shN, opacity, scales, quats)
 (ROUND_DIR: a splat trained with the true cameras: `point_cloud.ply` and `sparse/0`, e.g. the `run/round1`
 of `benchmarks/diag_splat_inputs.py`; DATASET: its dataset folder; NOISY_DIR: the noisy training photos.)
 Prints the held-out PSNR / SSIM / LPIPS before and after, scored as the `@gt_poses` rows.
@@ -60,6 +60,9 @@ print(f"before: {before['psnr_db']:.2f} / {before['ssim']:.3f} / {before['lpips'
 
 names = {"sh0": model.sh0, "shN": model.shN, "opacity": model.opacity_logits, "scales": model.log_scales,
          "quats": model.quats}
+unknown = set(args.params.split(",")) - set(names)
+if unknown:
+    raise SystemExit(f"unknown --params {sorted(unknown)}: choose from {', '.join(names)}")
 train = [names[p] for p in args.params.split(",")]
 for p in (model.means, model.quats, model.log_scales, model.opacity_logits, model.sh0, model.shN):
     p.requires_grad_(any(p is q for q in train))

@@ -122,7 +122,7 @@ def _cmd_select(args: argparse.Namespace) -> int:
     sel = select_views(poses, paths, k=args.k, seed=args.seed)
     text = json.dumps(sel.to_json_dict(), indent=2)
     if out is not None:
-        write_output_file(out, "denoise select", lambda tmp: atomic_write_text(tmp, text + "\n"))
+        write_output_file(out, "denoise select", lambda tmp: tmp.write_text(text + "\n", encoding="utf-8"))
     print(text)
     return 0
 

@@ -29,6 +29,12 @@ from torch import Tensor, nn
 from denoise.filters import pad_symmetric
 from mvgeo.common.errors import check_shape
 
+#: Run the CPU convolutions on channels-last (NHWC) activations: oneDNN's fast path, R2R training 1.15-1.2x and
+#: inference 1.33x faster than on NCHW ones on real photos (docs/bench/denoise_speed.md); the weights keep their
+#: layout and callers get NCHW back. Other devices keep the layout they are given. (False only for the tests'
+#: NCHW reference.)
+_CHANNELS_LAST_ON_CPU = True
+
 
 @dataclass(frozen=True)
 class UNetConfig:
@@ -120,11 +126,7 @@ class UNet(nn.Module):
         if ph or pw:
             r = max(ph, pw)
             x = pad_symmetric(x, r)[..., r - top : r + h + ph - top, r - left : r + w + pw - left]
-        if x.is_cpu:
-            # oneDNN's convolutions are faster on channels-last (NHWC) activations than on NCHW ones:
-            # the network's steps 1.3-1.6x, the R2R training 1.15-1.2x and the inference 1.33x on real
-            # photos (docs/bench/denoise_speed.md); the weights keep their layout. Other devices keep the
-            # layout they are given.
+        if x.is_cpu and _CHANNELS_LAST_ON_CPU:
             x = x.contiguous(memory_format=torch.channels_last)
         inp = x
         skips = []

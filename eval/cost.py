@@ -350,7 +350,8 @@ def _cached_scores(cache: Path, key: Mapping[str, object]) -> dict[str, float] |
             return None
         return {str(k): float(v) for k, v in dict(rec["metrics"]).items()}
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, RecursionError) as exc:
-        raise InputError(f"the point's cached scores cannot be read ({exc or 'JSON nested too deeply'})", path=cache,
+        why = "JSON nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+        raise InputError(f"the point's cached scores cannot be read ({why})", path=cache,
                          fix="move the file out of the sweep folder (the point is scored again), or choose "
                              "another --out") from None
 

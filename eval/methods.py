@@ -349,7 +349,7 @@ def _denoised_before_refusal(method: EvalMethod, config: PipelineConfig, folder:
     try:
         done = json.loads(record.read_text())
     except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # not a record the stage wrote
-        raise err from None
+        done = None
     # not a record, or a commit that was cut short
     if not isinstance(done, dict) or done.get("pending") or not isinstance(done.get("seconds"), int | float):
         raise err

@@ -94,7 +94,7 @@ def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int]]]:
     except RecursionError:  # deeply nested JSON
         raise InputError("cannot read the working sizes (JSON nested too deeply)", path=path,
                          fix="re-run with --force to rebuild OUT/inputs") from None
-    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:  # Attribute: a list
         raise InputError(f"cannot read the working sizes ({exc})", path=path,
                          fix="re-run with --force to rebuild OUT/inputs") from exc
 

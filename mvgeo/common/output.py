@@ -659,7 +659,7 @@ def prepare_output_file(out: str | Path, *, command: str, inputs: Iterable[str |
     """The policy for a single output file (e.g. `denoise select --out FILE`); return its resolved path.
 
     A folder at `out` is refused; an existing file is replaced only with `overwrite` and only when
-    `command` wrote it (`write_file_record`, which the command calls after writing) and it has not
+    `command` wrote it (`write_file_record`; `write_output_file` writes both and checks again) and it has not
     changed since; the file must not be an input or lie inside one; its nearest existing parent must
     be writable. Creates nothing. `example_name`: the file name the message suggests when `out` is a folder.
 
@@ -707,7 +707,7 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
     what `command` did not write: where nothing is at `path` the file is hard-linked into place, which fails
     if a file appeared there since the plan (an atomic no-replace); where something is there it is checked
     again (`command` wrote it and it is unchanged) just before the rename. Then the record
-    (`write_file_record`). The temporary file never stays behind.
+    (`write_file_record`). The temporary file is removed unless the process is killed.
 
     Raises:
         InputError: `path` was created, or changed, by someone else while the content was being made
@@ -728,10 +728,16 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
                 os.link(tmp, path)  # fails when `path` exists: never replaces
             except FileExistsError:
                 raise changed("a file appeared there") from None
-            except OSError:  # a file system without hard links: the check above, then a rename
-                if os.path.lexists(path):
+            except OSError:  # a file system without hard links: claim the name, then rename over the claim
+                try:
+                    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644))
+                except FileExistsError:
                     raise changed("a file appeared there") from None
-                os.replace(tmp, path)
+                try:
+                    os.replace(tmp, path)
+                except OSError:
+                    path.unlink(missing_ok=True)  # our empty claim
+                    raise
         else:
             why = _written_by(path, command)
             if why is not None:
@@ -739,7 +745,13 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
             os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
-    write_file_record(path, command)
+    try:
+        write_file_record(path, command)
+    except OSError as exc:
+        raise InputError(f"{path.name} was written, but its record could not be ({exc.strerror or exc}); "
+                         "without it a later --overwrite refuses the file", path=file_record_path(path),
+                         fix="free space or permissions, then run the command again after removing the file "
+                             "yourself") from None
     return path
 
 

@@ -437,6 +437,23 @@ def test_output_file_that_appears_or_changes_while_the_output_is_made_is_never_r
         out.write_text("the user's, late")
         raise PermissionError(1, "no links")
 
+    def no_link_late_before_the_claim(src, dst):  # appears after the no-link check, before the claim
+        raise PermissionError(1, "no links")
+
+    real_open = os.open
+
+    def open_late(p, flags, *a):
+        if flags & os.O_EXCL and os.fspath(p) == os.fspath(out):
+            out.write_text("the user's, late")
+        return real_open(p, flags, *a)
+
+    out.unlink()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(os, "link", no_link_late_before_the_claim)
+        mp.setattr(os, "open", open_late)
+        with pytest.raises(InputError, match="a file appeared there"):
+            write_output_file(out, CMD, lambda tmp: tmp.write_text("ours"))
+    assert out.read_text() == "the user's, late" and _leftovers(tmp_path) == []
     for link in (link_late, no_link_late):
         out.unlink()
         with pytest.MonkeyPatch.context() as mp:
@@ -456,3 +473,17 @@ def test_output_file_that_appears_or_changes_while_the_output_is_made_is_never_r
     with pytest.raises(InputError, match="changed while the output was being made: it changed since"):
         write_output_file(out, CMD, edit)
     assert out.read_text() == "edited by the user" and _leftovers(tmp_path) == []
+
+
+def test_output_file_whose_record_cannot_be_written_is_a_typed_error(tmp_path, monkeypatch):
+    import mvgeo.common.output as output
+
+    out = prepare_output_file(tmp_path / "c.json", command=CMD)
+
+    def full(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(output, "write_file_record", full)
+    with pytest.raises(InputError, match="its record could not be") as exc:
+        write_output_file(out, CMD, lambda tmp: tmp.write_text("ours"))
+    assert "c.json" in str(exc.value) and _leftovers(tmp_path) == []

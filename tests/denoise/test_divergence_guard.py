@@ -55,18 +55,30 @@ def _config(method: str, lr: float, guard: bool) -> N2VConfig:
 
 
 @pytest.mark.parametrize("method", ["r2r", "n2v"])
-def test_a_diverging_training_starts_again_at_half_the_rate(method, caplog):
+def test_a_diverging_training_starts_again_at_half_the_rate(method, caplog, monkeypatch):
+    import denoise.n2v as n2v
+
     noisy, clean = _images()
     # lr 0.03 (30x the default) diverges on these images: measured final window losses 3.9e3 (R2R) and 2.6e5
     # (N2V), photos at 4.7 / 20.8 dB against the noisy 20.8 dB
     bad = train_with_method(noisy, _config(method, 0.03, False), seed=0)
     assert np.median(bad.history[-50:]) > 10
+    run_rates: list[float] = []  # the peak rate of every run the guarded training makes
+    real_train = n2v._train
+
+    def spy(*a, lr, **k):
+        run_rates.append(lr)
+        return real_train(*a, lr=lr, **k)
+
+    monkeypatch.setattr(n2v, "_train", spy)
     good = train_with_method(noisy, _config(method, 0.03, True), seed=0)
+    monkeypatch.setattr(n2v, "_train", real_train)
     assert "diverged" in caplog.text and "starting again at 0.015" in caplog.text
     # each abandoned run is recorded, the rate halved from 0.03 each time (how many restarts a chaotic run needs
     # depends on the floating-point order of the convolutions: one or two measured)
     rates = [r["lr"] for r in good.restarts]
     assert rates and rates == [0.03 * 0.5**k for k in range(len(rates))] and not bad.restarts
+    assert run_rates == [0.03 * 0.5**k for k in range(len(rates) + 1)]  # each run at half the one before
     assert len(good.history) == 300
     # the rescued run ends as a run at the default rate does: its loss (measured 0.44 / 0.26 against 0.49 /
     # 0.27) and its photos (20.2 / 22.9 dB against 19.4 / 23.0; on two 64-px images 300 steps of R2R do not

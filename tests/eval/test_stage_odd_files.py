@@ -97,6 +97,9 @@ def test_the_toolkits_own_json_files_deeply_nested_give_typed_errors_or_not_ours
     assert "sizes.json" in str(exc.value)
     with pytest.raises(InputError, match="nested too deeply"):
         working_focal_prior(sizes.parent)
+    sizes.write_text("[1, 2]")  # not an object
+    with pytest.raises(InputError, match="cannot read the working sizes"):
+        read_sizes(sizes)
 
     (tmp_path / "data" / RECORD_DIR).mkdir(parents=True)
     (tmp_path / "data" / RECORD_DIR / "scene.json").write_text(NESTED)

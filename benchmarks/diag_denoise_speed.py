@@ -1,10 +1,12 @@
 """The denoiser's speed on real-size photos: this checkout against a base commit, in one run.
 
 Times what the pipeline's denoise stage does (`denoise.self_supervised.train_with_method`, then
-`denoise_with_method`) on the 12 noisy training photos of a dataset: R2R training steps of the `default`
-preset's UNet (width 16) and the `best` preset's (width 32), and the 8-pass inference over the 12 photos.
-The base commit is checked out with `git worktree` into a temporary folder; the two code versions run as
-separate processes, alternating, `--repeats` times, so both see the same machine load. With `--quality`
+`denoise_with_method`, under the stage's fixed torch thread count) on the 12 noisy training photos of a
+dataset: R2R training steps of the `default` preset's UNet (width 16) and the `best` preset's (width 32), and
+the 8-pass inference over the 12 photos. The base commit's files are extracted with `git archive` into a
+temporary folder (the repository's history is needed; nothing is registered in it); the two code versions
+run as separate processes, alternating, `--repeats` times, so both see the same machine load. A diagnostic,
+not part of `make bench`: it compares against a chosen commit. With `--quality`
 both versions also train the `default` network for its full 2000 steps (seed 0) and the photos are scored
 against `clean/` (PSNR, SSIM): a faster path must give the same photos up to float round-off.
 
@@ -12,9 +14,9 @@ Without a dataset argument the DTU scan24 photos of `../shared/data` are importe
 sigma 25/255, seed 0) into a temporary folder; without `../shared/data` the built-in `llff_like` scene is
 rendered at 384x288 (the benchmark then says so).
 
-Usage: .venv/bin/python benchmarks/bench_denoise_speed.py [--dataset DIR] [--base REF] [--repeats N]
+Usage: .venv/bin/python benchmarks/diag_denoise_speed.py [--dataset DIR] [--base REF] [--repeats N]
            [--steps S] [--quality]      (writes docs/bench/denoise_speed.md)
-       .venv/bin/python benchmarks/bench_denoise_speed.py --worker DATASET TASK   (one measurement, JSON)
+       .venv/bin/python benchmarks/diag_denoise_speed.py --worker DATASET TASK   (one measurement, JSON)
 """
 
 from __future__ import annotations
@@ -38,13 +40,11 @@ def worker(dataset: Path, task: str) -> dict:
     or `quality` (2000 steps of the default network, seed 0, scored)."""
     from dataclasses import replace
 
-    import numpy as np
-
     import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
-    from denoise.self_supervised import denoise_with_method, train_with_method
     from eval.pipeline import preset
     from eval.pipeline.stage_settings import n2v_config
     from eval.pipeline.views import read_views
+    from mvgeo.common.threads import torch_threads
 
     names = [Path(n).stem for n in sorted(json.loads((dataset / "split.json").read_text())["train"])[:12]]
     noisy = read_views(dataset / "images", names)
@@ -54,6 +54,18 @@ def worker(dataset: Path, task: str) -> dict:
     # the denoise stage's network of the `default` (width 16) or `best` (width 32) preset, R2R
     config = replace(n2v_config(preset("default" if width == 16 else "best").denoise), method="r2r")
     assert config.unet.width == width
+    with torch_threads(config.torch_threads):  # as the denoise stage: training and inference
+        return _measure(kind, rest, config, images, names, dataset)
+
+
+def _measure(kind: str, rest: list[str], config, images: list, names: list[str], dataset: Path) -> dict:
+    from dataclasses import replace
+
+    import numpy as np
+
+    from denoise.self_supervised import denoise_with_method, train_with_method
+    from eval.pipeline.views import read_views
+
     if kind == "train":
         config = replace(config, steps=int(rest[1]))
         t0 = time.perf_counter()
@@ -129,26 +141,25 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         base = tmp / "base"
-        subprocess.run(["git", "worktree", "add", "--detach", str(base), args.base], cwd=ROOT, check=True,
-                       capture_output=True)
-        try:
-            dataset, what = _dataset(args.dataset, tmp)
-            tasks = [f"train:16:{args.steps}", f"train:32:{args.steps}", "infer:16", "infer:32"]
-            times: dict[tuple[str, str], list[float]] = {}
-            start_load = os.getloadavg()
-            for _ in range(args.repeats):
-                for task in tasks:
-                    for label, code in (("base", base), ("this", ROOT)):
-                        print(f"{label} {task}", flush=True)
-                        times.setdefault((label, task), []).append(_run(code, dataset, task)["seconds"])
-            quality = {}
-            if args.quality:
+        base.mkdir()
+        archive = subprocess.run(["git", "archive", "--format=tar", args.base], cwd=ROOT, check=True,
+                                 capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
+        dataset, what = _dataset(args.dataset, tmp)
+        tasks = [f"train:16:{args.steps}", f"train:32:{args.steps}", "infer:16", "infer:32"]
+        times: dict[tuple[str, str], list[float]] = {}
+        start_load = os.getloadavg()
+        for _ in range(args.repeats):
+            for task in tasks:
                 for label, code in (("base", base), ("this", ROOT)):
-                    print(f"{label} quality", flush=True)
-                    quality[label] = _run(code, dataset, "quality")
-            end_load = os.getloadavg()
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, capture_output=True)
+                    print(f"{label} {task}", flush=True)
+                    times.setdefault((label, task), []).append(_run(code, dataset, task)["seconds"])
+        quality = {}
+        if args.quality:
+            for label, code in (("base", base), ("this", ROOT)):
+                print(f"{label} quality", flush=True)
+                quality[label] = _run(code, dataset, "quality")
+        end_load = os.getloadavg()
     rows = []
     names = {f"train:16:{args.steps}": f"R2R training, width 16 (`default`), {args.steps} steps",
              f"train:32:{args.steps}": f"R2R training, width 32 (`best`), {args.steps} steps",
@@ -171,7 +182,7 @@ def main() -> None:
                           [["base", f"{qb['psnr']:.3f}", f"{qb['ssim']:.4f}"],
                            ["this", f"{qt['psnr']:.3f}", f"{qt['ssim']:.4f}"]]), "",
                  f"Largest difference between the two versions' first photo: {diff:.2g} (of 1)."]
-    cmd = "OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/bench_denoise_speed.py" + (
+    cmd = "OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/diag_denoise_speed.py" + (
         " --quality" if args.quality else "") + (f" --base {args.base}" if args.base != DEFAULT_BASE else "")
     write_fragment("denoise_speed", "Denoiser speed on real-size photos (training and inference)", "\n".join(body),
                    reproduce=cmd)
