@@ -29,8 +29,8 @@ from torch import Tensor, nn
 from denoise.filters import pad_symmetric
 from mvgeo.common.errors import check_shape
 
-#: Run the CPU convolutions on channels-last (NHWC) activations: oneDNN's fast path, R2R training 1.15-1.2x and
-#: inference 1.33x faster than on NCHW ones on real photos (docs/bench/denoise_speed.md); the weights keep their
+#: Run the CPU convolutions on channels-last (NHWC) activations: oneDNN's fast path, R2R training 1.2x and
+#: inference 1.3-1.6x faster than on NCHW ones on real photos (docs/bench/denoise_speed.md); the weights keep their
 #: layout and callers get NCHW back. Other devices keep the layout they are given. (False only for the tests'
 #: NCHW reference.)
 _CHANNELS_LAST_ON_CPU = True
