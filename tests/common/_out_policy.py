@@ -13,8 +13,8 @@ TEMP_MARKERS = (".tmp-", ".old-", "-probe-")
 
 
 def snapshot(root: Path) -> dict[str, str | None]:
-    """Relative path -> sha256 of the content (None for a folder, "-> target" for a link), for every
-    entry under `root`."""
+    """Relative path -> sha256 of the content (None for a folder, "-> target" for a link, "special" for a
+    FIFO, socket or device, which is never opened: a FIFO would block), for every entry under `root`."""
     out: dict[str, str | None] = {}
     for dirpath, dirnames, filenames in os.walk(root):
         for name in dirnames + filenames:
@@ -24,9 +24,11 @@ def snapshot(root: Path) -> dict[str, str | None]:
                 out[rel] = "-> " + os.readlink(p)
             elif os.path.isdir(p):
                 out[rel] = None
-            else:
+            elif os.path.isfile(p):
                 with open(p, "rb") as f:
                     out[rel] = hashlib.sha256(f.read()).hexdigest()
+            else:
+                out[rel] = "special"
     return out
 
 

@@ -4,12 +4,10 @@ replaced or written through."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import socket
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -27,30 +25,13 @@ from mvgeo.common.output import (
     stale_leftovers,
     write_manifest,
 )
+from tests.common._out_policy import snapshot
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX file types")
 
 CMD = "tool write"
 DEEP = "[" * 100_000 + "]" * 100_000
 OWNER_DEEP = "[" * 2000 + "]" * 2000  # within the owner file's 4096 bytes
-
-
-def _snapshot(root: Path) -> dict[str, str]:
-    """Relative path -> sha256 of a file, the target of a link, or "dir", for everything under `root`."""
-    out = {}
-    for dirpath, dirnames, filenames in os.walk(root):
-        for n in dirnames + filenames:
-            p = Path(dirpath) / n
-            rel = p.relative_to(root).as_posix()
-            if p.is_symlink():
-                out[rel] = "link:" + os.readlink(p)
-            elif p.is_dir():
-                out[rel] = "dir"
-            elif p.is_file():
-                out[rel] = hashlib.sha256(p.read_bytes()).hexdigest()
-            else:
-                out[rel] = "special"
-    return out
 
 
 @pytest.mark.timeout(30)  # a FIFO read would block
@@ -69,11 +50,11 @@ def test_a_users_folder_named_like_a_leftover_with_an_odd_owner_file_is_kept_wit
     else:
         pid = 10**20 if owner == "huge pid" else -(10**20)
         path.write_text(json.dumps({"entry": name, "host": socket.gethostname(), "pid": pid}))
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     assert stale_leftovers(out) == []
     with pytest.raises(InputError):
         prepare_output(out, command=CMD)
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
 
 def test_a_users_deeply_nested_json_is_a_typed_error(tmp_path):
@@ -100,10 +81,10 @@ def test_a_users_file_named_like_an_output_files_record_is_refused_not_replaced(
         record.write_text("my other notes")
     else:
         record.symlink_to(mine)
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     with pytest.raises(InputError, match="record"):
         prepare_output_file(tmp_path / "sel.json", command="denoise select")
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
 
 def test_a_stale_record_of_the_command_for_a_deleted_output_file_may_be_replaced(tmp_path):
@@ -123,11 +104,11 @@ def test_a_symbolic_link_named_like_the_lock_is_not_written_through(tmp_path):
     mine = tmp_path / "precious.txt"
     mine.write_text("precious")
     (out / LOCK_NAME).symlink_to(mine)
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     with pytest.raises(InputError, match="lock"):
         with output_lock(out):
             pass
-    assert _snapshot(tmp_path) == before
+    assert snapshot(tmp_path) == before
 
 
 def test_an_atomic_write_after_an_odd_owner_file_still_leaves_the_users_folder(tmp_path):
@@ -136,8 +117,8 @@ def test_an_atomic_write_after_an_odd_owner_file_still_leaves_the_users_folder(t
     (tmp_path / name).mkdir()
     (tmp_path / name / "mine.txt").write_text("mine")
     (tmp_path / (name + OWNER_SUFFIX)).write_text(OWNER_DEEP)
-    before = _snapshot(tmp_path)
+    before = snapshot(tmp_path)
     with atomic_output_dir(prepare_output(tmp_path / "out", command=CMD)) as tmp:
         (tmp / "a.txt").write_text("a")
-    after = _snapshot(tmp_path)
+    after = snapshot(tmp_path)
     assert {k: v for k, v in after.items() if not k.startswith("out")} == before
