@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["DARK_CLIPPED_BLUR_PX", "DARK_CLIPPED_MIN_LOCAL", "MIN_CLIPPED_FRACTION", "clipped_mean", "clipped_sides",
-           "dark_clipped_fraction", "undo_clipping_bias"]
+           "clipped_variance", "dark_clipped_fraction", "undo_clipping_bias"]
 
 #: A side of a photo counts as clipped when at least this fraction of its values sit exactly on it.
 #: Unclipped noise puts no value exactly on 0 or 1 (8-bit: only where x is within half a level of it
@@ -70,6 +70,30 @@ def clipped_mean(x: Tensor, sigma: float | Tensor, *, low: bool = True, high: bo
         sigma: noise std, a number or a tensor broadcastable to `x` (``> 0``).
     """
     return _mean_and_slope(x, torch.as_tensor(sigma, dtype=x.dtype, device=x.device).clamp_min(1e-6), low, high)[0]
+
+
+def clipped_variance(x: Tensor, sigma: float | Tensor, *, low: bool = True, high: bool = True) -> Tensor:
+    """``Var[clip(x + n, 0, 1)]`` for ``n ~ N(0, sigma^2)`` (each side clipped only if `low` / `high`).
+
+    With ``a = -x / s``, ``b = (1 - x) / s``, the second moment of the clipped value is
+    ``(x^2 + s^2) (Phi(b) - Phi(a)) + 2 x s (phi(a) - phi(b)) + s^2 (a phi(a) - b phi(b)) + (1 - Phi(b))``
+    (the Gaussian's part between the bounds, plus the mass clipped to 1); over black (``x = 0``,
+    only the low side) the variance is ``(1/2 - 1/(2 pi)) s^2 = 0.341 s^2``.
+
+    Args:
+        x: clean values, any shape (float).
+        sigma: noise std, a number or a tensor broadcastable to `x` (``> 0``).
+    """
+    s = torch.as_tensor(sigma, dtype=x.dtype, device=x.device).clamp_min(1e-6)
+    a, b = _bounds(x, s, low, high)
+    m, _ = _mean_and_slope(x, s, low, high)
+    cdf_a, cdf_b = torch.special.ndtr(a), torch.special.ndtr(b)
+    # t phi(t) -> 0 at t = +-inf (an unclipped side).
+    a_phi = torch.where(torch.isfinite(a), a * _phi(a), torch.zeros_like(a))
+    b_phi = torch.where(torch.isfinite(b), b * _phi(b), torch.zeros_like(b))
+    second = ((x * x + s * s) * (cdf_b - cdf_a) + 2.0 * x * s * (_phi(a) - _phi(b)) + s * s * (a_phi - b_phi)
+              + (1.0 - cdf_b))
+    return (second - m * m).clamp_min(0.0)
 
 
 def undo_clipping_bias(mean: Tensor, sigma: float | Tensor, *, low: bool = True, high: bool = True) -> Tensor:

@@ -9,9 +9,11 @@ random patches, optimiser and learning-rate schedule, with another objective
   neighbour sub-image of a patch to the other, with the paper's regulariser; its
   weight ramps linearly from 0 to `N2VConfig.nb2nb_gamma` over the steps;
 - ``"r2r"`` (`denoise.r2r`): the network maps ``y + alpha z`` to ``y - z / alpha``; the
-  noise std of each image comes from `estimate_noise_sigma_pca` on its unclipped patches
-  unless given (clipping at 0 and 1 hides noise: over all patches the estimate reads 22/255
-  on DTU photos with sigma 25/255, and about 10/255 on the temple's black background), or,
+  noise std of each image comes from `estimate_noise_sigma_clipped` unless given (clipping
+  at 0 and 1 hides noise: over all patches the PCA estimate reads 22/255 on DTU photos with
+  sigma 25/255 and about 10/255 on the temple's black background; its unclipped patches
+  alone read 34-36/255 on the temple at sigma 50/255, where Foi's clipped-noise model fitted
+  per intensity reads 47/255), or,
   where shot noise dominates, per pixel from the image's noise curve (`r2r_noise_std`;
   a constant std under-recorrupts the bright pixels and over-recorrupts the dark ones); at
   inference pass k runs on the k-th of the square's 8 rotations / reflections of the
@@ -68,7 +70,7 @@ from denoise.losses import neighbor2neighbor_loss
 from denoise.model import N2VModel
 from denoise.n2v import N2VConfig, new_model, optimise_unet, train_n2v
 from denoise.neighbor2neighbor import neighbour_choice, neighbour_subsample
-from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_pca
+from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_clipped
 from denoise.patches import effective_patch_px, sample_patches
 from denoise.r2r import recorrupt
 from mvgeo.common.deps import cv2
@@ -100,7 +102,8 @@ def r2r_noise_std(img: np.ndarray, *, noise_model: NoiseModel = "auto") -> float
 
     Args:
         img: ``(H, W, 3)`` RGB (or gray) in ``[0, 1]``.
-        noise_model: ``"constant"``: `estimate_noise_sigma_pca` of the unclipped patches;
+        noise_model: ``"constant"``: `estimate_noise_sigma_clipped` (the unclipped patches' PCA estimate, or
+            the clipped-noise fit where that is larger: a dark photo at a high noise level);
             ``"curve"``: the image's `NoiseCurve` evaluated at its `INTENSITY_BLUR_PX`
             Gaussian blur; ``"auto"``: the curve where its signal-dependent term dominates at
             the median intensity (`denoise.inference.signal_dependent_curve`, the N2V fusion's
@@ -111,7 +114,7 @@ def r2r_noise_std(img: np.ndarray, *, noise_model: NoiseModel = "auto") -> float
     """
     curve = signal_dependent_curve(img, noise_model)
     if curve is None:
-        return estimate_noise_sigma_pca(img, exclude_clipped=True)
+        return estimate_noise_sigma_clipped(img)
     blurred = cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32), (0, 0), INTENSITY_BLUR_PX)
     return curve.sigma_at(image_to_tensor(blurred.reshape(img.shape)))
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from denoise.clipping import clipped_mean, clipped_sides, undo_clipping_bias
+from denoise.clipping import clipped_mean, clipped_sides, clipped_variance, undo_clipping_bias
 
 
 @pytest.mark.parametrize(("low", "high"), [(True, True), (True, False), (False, True)])
@@ -20,6 +20,23 @@ def test_clipped_mean_matches_monte_carlo(low, high):
     clipped = np.clip(draws, 0.0 if low else -np.inf, 1.0 if high else np.inf)
     got = clipped_mean(torch.tensor(x), sigma, low=low, high=high).numpy()
     np.testing.assert_allclose(got, clipped.mean(axis=1), atol=1e-3)
+
+
+@pytest.mark.parametrize(("low", "high"), [(True, True), (True, False), (False, True)])
+def test_clipped_variance_matches_monte_carlo(low, high):
+    # 400k draws per value: the sample variance's relative std is sqrt(2 / 4e5) ~ 0.2 % for Gaussian draws
+    # (more for the clipped ones, whose kurtosis is higher); tolerance 1.5 % of the value.
+    rng = np.random.default_rng(1)
+    x = np.array([-0.05, 0.0, 0.02, 0.1, 0.5, 0.93, 1.0, 1.04])
+    for sigma in (0.05, 0.2):
+        draws = x[:, None] + sigma * rng.standard_normal((len(x), 400_000))
+        clipped = np.clip(draws, 0.0 if low else -np.inf, 1.0 if high else np.inf)
+        got = clipped_variance(torch.tensor(x), sigma, low=low, high=high).numpy()
+        np.testing.assert_allclose(got, clipped.var(axis=1), rtol=0.015, atol=1e-7)
+    # Black, clipped below: (1/2 - 1/(2 pi)) sigma^2; far from both bounds: sigma^2.
+    assert abs(float(clipped_variance(torch.zeros(1, dtype=torch.float64), 0.1, high=False)) / 0.01
+               - (0.5 - 0.5 / np.pi)) < 1e-9
+    assert abs(float(clipped_variance(torch.full((1,), 0.5, dtype=torch.float64), 0.01)) / 1e-4 - 1) < 1e-9
 
 
 def test_undo_inverts_the_clipped_mean_with_a_number_or_a_map():

@@ -9,10 +9,14 @@ from denoise.model import load_checkpoint, save_checkpoint
 from denoise.n2v import N2VConfig, new_model
 from denoise.noise_level import (
     NoiseCurve,
+    _patches,
+    _surround_level,
     estimate_noise_curve,
     estimate_noise_sigma,
+    estimate_noise_sigma_clipped,
     estimate_noise_sigma_pca,
     estimate_noise_sigma_robust,
+    fit_clipped_noise_sigma,
 )
 from denoise.unet import UNetConfig
 
@@ -133,3 +137,61 @@ def test_pca_estimate_without_the_clipped_patches(rng):
     # Unclipped images: the option changes nothing.
     grey = 0.5 + 0.05 * rng.standard_normal((64, 64, 3))
     assert estimate_noise_sigma_pca(grey, exclude_clipped=True) == estimate_noise_sigma_pca(grey)
+
+
+def _dark_photo(rng, sigma: float, size: int = 200) -> np.ndarray:
+    """A shaded, lightly textured disc (28 % of the area, clean values 0.07-0.6) on black, with white noise
+    `sigma`, clipped to [0, 1] and stored in 8 bits, as a camera writes a dark scene."""
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    disc = (xx - 0.55) ** 2 + (yy - 0.5) ** 2 < 0.3**2
+    shade = 0.1 + 0.5 * xx[..., None] * np.array([1.0, 0.8, 0.6]) + 0.03 * rng.standard_normal((size, size, 1))
+    clean = np.where(disc[..., None], shade, 0.0)
+    return np.round(np.clip(clean + sigma * rng.standard_normal(clean.shape), 0.0, 1.0) * 255) / 255
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_clipped_fit_reads_the_noise_of_a_dark_photo(seed):
+    # ~40k 3x3x3 patches in 8 bins of ~5k 27-D samples: each bin's PCA tail is within a few percent; the fit
+    # read 1-2 % low over seeds 0-2 (a clipped value is not Gaussian; the bins span levels). Bound: 5 %.
+    rng = np.random.default_rng(seed)
+    for sigma in (0.05, 0.1, 0.2):
+        img = _dark_photo(rng, sigma)
+        fit = fit_clipped_noise_sigma(img)
+        assert abs(fit / sigma - 1) < 0.05, (sigma, fit)
+        both = estimate_noise_sigma_clipped(img)
+        assert both == max(fit, estimate_noise_sigma_pca(img, exclude_clipped=True))
+        assert abs(both / sigma - 1) < 0.05
+    # The defect it removes: at sigma 0.2 the unclipped patches are mid-tones whose noise stayed inside
+    # [0, 1]: truncated, about 0.7 sigma.
+    img = _dark_photo(rng, 0.2)
+    assert estimate_noise_sigma_pca(img, exclude_clipped=True) < 0.8 * 0.2
+
+
+def test_clipped_fit_on_unclipped_and_clean_images(rng):
+    # No clipping: the clipped model is the Gaussian, the fit reads plain white noise.
+    grey = 0.5 + 0.05 * rng.standard_normal((128, 128, 3))
+    assert abs(fit_clipped_noise_sigma(grey) / 0.05 - 1) < 0.05
+    # A clean dark photo: next to nothing (the lower end of the search, 0.5/255).
+    clean = np.where(np.arange(64)[:, None, None] < 40, 0.0, 0.4) * np.ones((64, 64, 3))
+    assert fit_clipped_noise_sigma(clean) <= 1.0 / 255
+    assert fit_clipped_noise_sigma(np.zeros((2, 2, 3))) == 0.0  # smaller than a patch
+    assert fit_clipped_noise_sigma(np.zeros((3, 3, 3))) == 0.0  # one patch
+
+
+def test_surround_level_matches_a_loop(rng):
+    # Each patch's ring mean (the square of side patch + 2 ring around it, minus the patch; borders
+    # reflected as OpenCV's BORDER_REFLECT: ...cba|abc...), on `_patches`' grid and in its order.
+    img = rng.uniform(size=(23, 31, 3))
+    for patch_px, max_patches in ((3, 10**6), (5, 40)):
+        got = _surround_level(img, patch_px, max_patches, ring_px=2)
+        g = np.pad(img.mean(axis=2), 2, mode="symmetric")  # the ring reaches 2 px past the image
+        n = (23 - patch_px + 1) * (31 - patch_px + 1)
+        step = max(1, int(np.ceil(np.sqrt(n / max_patches))))
+        want = []
+        for i in range(0, 23 - patch_px + 1, step):
+            for j in range(0, 31 - patch_px + 1, step):
+                outer = g[i:i + patch_px + 4, j:j + patch_px + 4]  # padded coordinates: patch at (i + 2, j + 2)
+                inner = outer[2:2 + patch_px, 2:2 + patch_px]
+                want.append((outer.sum() - inner.sum()) / (outer.size - inner.size))
+        assert len(got) == len(want) == len(_patches(img, patch_px, max_patches))
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
