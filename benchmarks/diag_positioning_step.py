@@ -3,8 +3,8 @@ against the scipy.sparse reference `_damped_step_sparse`, on random problems fro
 100 views x 30000 tracks (2-5 observations per track, rays 0.01 rad from the truth), seconds per step and
 the largest difference relative to the step.
 
-Usage: .venv/bin/python benchmarks/diag_positioning_step.py (one line per size: first block step, which also
-builds the track pairs; a second block step; one sparse step; difference)."""
+Usage: .venv/bin/python benchmarks/diag_positioning_step.py (one line per size: first block step (with the
+normal equations); a second block step; one sparse step; difference)."""
 
 import time
 

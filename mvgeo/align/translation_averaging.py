@@ -36,7 +36,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix, diags
+from scipy.sparse import coo_matrix, csr_matrix, diags
 
 from mvgeo.align.bundle import build_tracks
 from mvgeo.align.graph import components
@@ -147,7 +147,6 @@ class _Problem:
         self.v, self.ov, self.op = rays, obs_view, obs_point
         self.n, self.p, self.k = n_views, n_points, len(rays)
         self.gauge_w = np.sqrt(max(self.k, 1))
-        self.pairs: tuple[np.ndarray, np.ndarray] | None = None  # `_track_pairs`, made by the first step
 
     def split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n3, p3 = 3 * self.n, 3 * self.p
@@ -244,24 +243,25 @@ class _Normal:
         return np.r_[np.diag(self.h_cc) + np.repeat(self.cc_diag, 3), np.repeat(self.xx, 3), self.dd]
 
 
-def _track_pairs(op: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """(k, l): every ordered pair of observations of the same point, itself included (sum over points of
-    m_p^2 pairs): where a point's Schur term lands in the reduced camera system."""
-    order = np.argsort(op, kind="stable")
-    m = np.bincount(op, minlength=n_points)
-    first = np.cumsum(m) - m  # each point's first position in `order`
-    m_k = m[op[order]]
-    kk = np.repeat(np.arange(len(op)), m_k)
-    offset = np.arange(len(kk)) - np.repeat(np.cumsum(m_k) - m_k, m_k)
-    ll = first[op[order][kk]] + offset
-    return order[kk], order[ll]
+def _block_sum(index: np.ndarray, blocks: np.ndarray, n_out: int) -> np.ndarray:
+    """(n_out, 3, 3): the (K, 3, 3) `blocks` summed by `index` (K,) (`np.add.at`'s result, by `np.bincount`)."""
+    flat = (index[:, None] * 9 + np.arange(9)).ravel()
+    return np.bincount(flat, blocks.reshape(-1), minlength=9 * n_out).reshape(n_out, 3, 3)
+
+
+def _block_matrix(ov: np.ndarray, op: np.ndarray, blocks: np.ndarray, n: int, p: int) -> csr_matrix:
+    """Sparse (3n, 3p) matrix with the (K, 3, 3) `blocks` at block positions (ov[k], op[k]) (duplicates summed)."""
+    rows = (3 * ov[:, None, None] + np.arange(3)[None, :, None]) + np.zeros((1, 1, 3), np.int64)
+    cols = (3 * op[:, None, None] + np.arange(3)[None, None, :]) + np.zeros((1, 3, 1), np.int64)
+    return csr_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * p))
 
 
 def _damped_step(nq: _Normal, lam: float, D: np.ndarray, free: np.ndarray) -> np.ndarray:
     """The step of ``(H + lam diag(D)) step = b``: the scales eliminated (1 x 1 each; fixed ones, `free`
     False, held), then the points (3 x 3 each), then a dense (3N, 3N) solve; `_damped_step_sparse` is the
-    same solve on the sparse matrices. A point's Schur term is added per pair of its observations
-    (`_track_pairs`), so the work grows with the observations, not with views x points."""
+    same solve on the sparse matrices. The points' Schur term ``sum_p B_p V_p^-1 B_p^T`` is one product of
+    two sparse (3N, 3P) block matrices (a block per observation), so the work grows with the observations
+    and their pairs within tracks, not with views x points."""
     pb = nq.problem
     n, P, ov, op = pb.n, pb.p, pb.ov, pb.op
     m3n = 3 * n
@@ -270,28 +270,20 @@ def _damped_step(nq: _Normal, lam: float, D: np.ndarray, free: np.ndarray) -> np
     q = a * nq.wd * nq.wd  # the coupling's outer products u u^T enter with this factor
     quu = q[:, None, None] * (nq.u[:, :, None] * nq.u[:, None, :])  # (K, 3, 3)
     eye = np.eye(3)
-    # Centre blocks (dense, with the gauge term) and point blocks, scales eliminated.
-    S = nq.h_cc + np.diag(lam * Dc)
-    blk = np.zeros((n, 3, 3))
-    np.add.at(blk, ov, nq.wd2[:, None, None] * eye - quu)
-    idx = 3 * np.arange(n)[:, None] + np.arange(3)
-    S[idx[:, :, None], idx[:, None, :]] += blk
-    V = nq.xx[:, None, None] * eye + lam * Dx[:, :, None] * eye  # damped diagonal per point
-    np.add.at(V, op, -quu)
-    Vinv = np.linalg.inv(V)
     # Each observation's centre-point block (symmetric): -w d^2 I + q u u^T in rows C_n, columns X_p.
     B = -nq.wd2[:, None, None] * eye + quu
+    # Centre blocks (dense, with the gauge term) and point blocks, scales eliminated.
+    S = nq.h_cc + np.diag(lam * Dc)
+    blk = _block_sum(ov, -B, n)
+    idx = 3 * np.arange(n)[:, None] + np.arange(3)
+    S[idx[:, :, None], idx[:, None, :]] += blk
+    V = nq.xx[:, None, None] * eye + lam * Dx[:, :, None] * eye - _block_sum(op, quu, P)  # damped, per point
+    Vinv = np.linalg.inv(V)
     coup = (a * nq.b_d * nq.wd)[:, None] * nq.u  # (K, 3): the scales' right-hand side carried over
     rhs_c = nq.b_c + np.stack([np.bincount(ov, coup[:, k], minlength=n) for k in range(3)], axis=1).ravel()
     rhs_x = nq.b_x - np.stack([np.bincount(op, coup[:, k], minlength=P) for k in range(3)], axis=1)
     Y = B @ Vinv[op]  # (K, 3, 3)
-    if pb.pairs is None:
-        pb.pairs = _track_pairs(op, P)
-    kk, ll = pb.pairs
-    contrib = Y[kk] @ B[ll]  # (pairs, 3, 3) into block (ov[k], ov[l])
-    rows = (3 * ov[kk])[:, None, None] + np.arange(3)[None, :, None]
-    cols = (3 * ov[ll])[:, None, None] + np.arange(3)[None, None, :]
-    S -= np.bincount((rows * m3n + cols).ravel(), contrib.ravel(), minlength=m3n * m3n).reshape(m3n, m3n)
+    S -= (_block_matrix(ov, op, Y, n, P) @ _block_matrix(ov, op, B, n, P).T).toarray()
     yr = np.einsum("kij,kj->ki", Y, rhs_x[op])
     rhs = rhs_c - np.stack([np.bincount(ov, yr[:, k], minlength=n) for k in range(3)], axis=1).ravel()
     dC = np.linalg.solve(S, rhs)

@@ -237,7 +237,7 @@ def test_matches_scipy_least_squares_on_the_same_cost():
 @pytest.mark.parametrize("duplicate", [False, True])
 @pytest.mark.parametrize("lam", [0.0, 1e-4, 10.0])
 def test_block_step_equals_the_sparse_reference(lam, duplicate):
-    """`_damped_step` (blocks, each point's Schur term added per pair of its observations) against
+    """`_damped_step` (blocks; the points' Schur term as one product of sparse block matrices) against
     `_damped_step_sparse` (scipy.sparse products of the Jacobian), at a state off the optimum with IRLS
     weights and some scales held; also with observations repeated (a track seeing one view twice)."""
     _, problem, _ = _small_problem(5)
