@@ -122,6 +122,12 @@ def estimate_noise_curve(img: np.ndarray, *, bins: int = 8, patch_px: int = 5) -
     return NoiseCurve(float(gain), float(floor))
 
 
+def _grid_step(h: int, w: int, patch_px: int, max_patches: int) -> int:
+    """The stride (the same along both axes) that thins an image's patch positions to about `max_patches`."""
+    n = (h - patch_px + 1) * (w - patch_px + 1)
+    return max(1, int(np.ceil(np.sqrt(n / max_patches))))
+
+
 def _patches(img: np.ndarray, patch_px: int, max_patches: int = 200000) -> np.ndarray | None:
     """Patches of `img` as rows ``(N, C * P * P)``, on a regular grid thinned to about `max_patches`.
 
@@ -136,8 +142,7 @@ def _patches(img: np.ndarray, patch_px: int, max_patches: int = 200000) -> np.nd
     if h < patch_px or w < patch_px:
         return None
     windows = np.lib.stride_tricks.sliding_window_view(a, (patch_px, patch_px), axis=(0, 1))
-    n = windows.shape[0] * windows.shape[1]
-    step = max(1, int(np.ceil(np.sqrt(n / max_patches))))  # the same stride along both axes
+    step = _grid_step(h, w, patch_px, max_patches)
     return windows[::step, ::step].reshape(-1, c * patch_px * patch_px)  # copies only the subsample
 
 
@@ -229,8 +234,7 @@ def _surround_level(img: np.ndarray, patch_px: int, max_patches: int, ring_px: i
     inner = cv2.boxFilter(g, cv2.CV_64F, (patch_px, patch_px), normalize=False, borderType=cv2.BORDER_REFLECT,
                           anchor=(patch_px // 2, patch_px // 2))
     ring = (box - inner) / (outer * outer - patch_px * patch_px)  # at each patch centre
-    n = (h - patch_px + 1) * (w - patch_px + 1)
-    step = max(1, int(np.ceil(np.sqrt(n / max_patches))))  # `_patches`' grid
+    step = _grid_step(h, w, patch_px, max_patches)  # `_patches`' grid
     c = patch_px // 2
     return ring[c:h - patch_px + 1 + c:step, c:w - patch_px + 1 + c:step].reshape(-1)
 
@@ -275,15 +279,14 @@ def fit_clipped_noise_sigma(img: np.ndarray, *, patch_px: int = CLIPPED_FIT_PATC
     m = torch.tensor([patches[c].mean() for c in chunks], dtype=torch.float64)  # unselected: their own values
     v = np.maximum([_pca_tail_variance(patches[c]) for c in chunks], 1e-12)
     grid = np.exp(np.linspace(np.log(CLIPPED_FIT_RANGE[0]), np.log(CLIPPED_FIT_RANGE[1]), 97))  # 1.7 % apart
-
-    def log_ratio(sig: float) -> np.ndarray:  # (bins,) log of measured over predicted variance
-        x = undo_clipping_bias(m, sig, low=low, high=high)
-        return np.log(v) - np.log(np.maximum(clipped_variance(x, sig, low=low, high=high).numpy(), 1e-12))
-
+    # (bins, grid): the log of each bin's measured over its predicted variance at each candidate sigma.
+    sig = torch.as_tensor(grid, dtype=torch.float64)[None, :]
+    x = undo_clipping_bias(m[:, None].expand(-1, len(grid)), sig, low=low, high=high)
+    pred = clipped_variance(x, sig, low=low, high=high).numpy()
+    r = np.log(v)[:, None] - np.log(np.maximum(pred, 1e-12))
     # Each bin's own sigma (where its log-ratio crosses zero: the predicted variance grows with sigma), then
     # the median: a bin that mixes levels (black and object pixels at an edge) holds less noise than its mean
     # level predicts and would pull a joint fit low.
-    r = np.stack([log_ratio(float(g)) for g in grid], axis=1)  # (bins, grid)
     below = r > 0  # measured above predicted: sigma larger than this grid value
     per_bin = []
     for b in range(len(chunks)):
