@@ -15,6 +15,7 @@ import numpy as np
 
 from eval.contact_sheet import contact_sheet
 from eval.pipeline.config import PipelineConfig
+from eval.pipeline.quality import quality_lines, round_camera_plot, round_quality
 from eval.pipeline.rounds import RoundResult, StoppedRound
 from eval.pipeline.stage import StageResult, commit_written
 from eval.pipeline.views import view_files
@@ -125,6 +126,8 @@ def _write_report_files(out: Path, dest: Path, *, images_dir: Path, config: Pipe
     noisy_dir = out / "inputs" if working is not None else images_dir  # same size as the renders
     sheets = {rnd.index: _contact_sheet_png(dest, noisy_dir, rnd.dir, rnd.index) for rnd in rounds}
     sizes = dict(working.summary.get("sizes", {})) if working is not None else {}
+    quality = [round_quality(rnd) for rnd in rounds]
+    camera_plots = {rnd.index: round_camera_plot(dest, rnd) for rnd in rounds}
     report = {
         "images_dir": str(images_dir),
         "settings": config.to_dict(),
@@ -139,6 +142,8 @@ def _write_report_files(out: Path, dest: Path, *, images_dir: Path, config: Pipe
         "max_size": config.max_size,
         "image_sizes": sizes,
         "export": dict(exported.summary) if exported is not None else None,
+        "quality": {f"round{q.index}": q.to_json() for q in quality},
+        "camera_plots": {f"round{k}": str(v.relative_to(dest)) for k, v in camera_plots.items() if v is not None},
     }
     json_path, md_path = dest / "report.json", dest / "report.md"
     atomic_write_text(json_path, json.dumps(_json_safe(report), indent=2) + "\n")
@@ -162,6 +167,13 @@ def _write_report_files(out: Path, dest: Path, *, images_dir: Path, config: Pipe
     total = sum(s["seconds"] for s in stages)
     lines += ["", f"Recorded stage time, all rounds: {total:.1f} s (this invocation: "
               f"{timings_s.get('total', 0.0):.1f} s; skipped stages cost nothing).", ""]
+    if any(q.denoise or q.align or q.splat for q in quality):
+        lines += quality_lines(quality)
+    if any(camera_plots.values()):
+        lines += ["## Cameras", ""]
+        for k, v in camera_plots.items():
+            if v is not None:
+                lines += [f"![round {k} cameras]({v.relative_to(dest).as_posix()})", ""]
     if selected:
         lines += ["## Selected views", ""]
         lines += [f"- {k}: {', '.join(v)}" for k, v in selected.items()]

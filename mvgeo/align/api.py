@@ -124,7 +124,7 @@ def _bundle_stats(c: Candidate) -> BundleStats | None:
                        centre_std_ratio(b),
                        None if r is None else [round(float(k), 4) for k in r[0]],
                        None if r is None else [None if np.isnan(m) else round(float(m), 4) for m in r[1]],
-                       b.readjusted)
+                       b.readjusted, list(c.inputs.names))
 
 
 def _jsonable(x):

@@ -104,6 +104,8 @@ class BundleStats:
     dense_depth_log_mad: list[float | None] | None = None
     #: it ran a second time on the tracks its first result triangulated (`mvgeo.align.bundle.bundle_adjust`).
     readjusted: bool = False
+    #: the views the per-view lists above follow (None in an align.json written before it was recorded).
+    views: list[str] | None = None
 
 
 @dataclass(frozen=True)

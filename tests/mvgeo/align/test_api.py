@@ -40,6 +40,7 @@ def test_result_and_typed_report(llff6, llff6_preview):
     ba = s.bundle_adjustment
     assert ba is not None and ba.reproj_rms_after_px < ba.reproj_rms_before_px and ba.n_points > 100
     assert len(ba.centre_std_ratio) == 6 and max(ba.centre_std_ratio) <= 1.0  # every position determined
+    assert ba.views == names  # the views the per-view lists follow
     assert s.pairs_inconsistent == [] and s.pair_consistency_min >= 0.5
     for stage in ("load", "pairwise", "global_align", "bundle_adjust", "dense_stereo", "total"):
         assert stage in s.timings_s, stage

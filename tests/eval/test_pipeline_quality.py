@@ -1,0 +1,171 @@
+"""`eval.pipeline.quality`: the report's self-checks of a run (no ground truth) and its camera plot."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from skimage.metrics import peak_signal_noise_ratio
+
+from eval.pipeline.quality import (
+    camera_plot_png,
+    fit_psnr_db,
+    plot_axes,
+    quality_lines,
+    round_camera_plot,
+    round_quality,
+)
+from eval.pipeline.rounds import RoundResult
+from eval.pipeline.stage import StageResult
+from mvgeo.align.stats import FocalPriorStats, InconsistentPair, Unregistered
+from mvgeo.camera import Camera
+from mvgeo.common.imageio import read_image, write_image
+from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
+from tests.common.align_stats import align_stats, bundle_stats
+
+
+def _look_at(centre: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(3, 4) cam_from_world of an OpenCV camera (x right, y down, z forward) at `centre` looking at `target`."""
+    z = target - centre
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)  # down
+    R = np.stack([x, y, z])
+    return np.concatenate([R, (-R @ centre)[:, None]], axis=1)
+
+
+def _ring(n: int = 8, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    up = np.asarray(up)
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.stack([_look_at(np.array([3 * np.cos(t), 3 * np.sin(t), 0.5]), np.zeros(3), up) for t in a])
+
+
+def test_plot_axes_put_up_against_the_cameras_image_down_axis():
+    # An orbit around +z: up is +z; forward, right and up are orthonormal and right-handed (right = fwd x up).
+    fwd, right, up = plot_axes(_ring())
+    np.testing.assert_allclose(up, [0, 0, 1], atol=0.02)  # the cameras look slightly down: up tilts a little
+    assert abs(fwd @ up) < 1e-12 and abs(right @ up) < 1e-12 and abs(fwd @ right) < 1e-12
+    np.testing.assert_allclose(np.cross(fwd, up), right, atol=1e-12)
+    # Forward-facing cameras on a line, looking along +x with world up -y: forward is +x, up is -y.
+    cams = np.stack([_look_at(np.array([0.0, 0.0, z]), np.array([10.0, 0.0, z]), np.array([0.0, -1.0, 0.0]))
+                     for z in np.linspace(-1, 1, 5)])
+    fwd, right, up = plot_axes(cams)
+    np.testing.assert_allclose(fwd, [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(up, [0, -1, 0], atol=1e-12)
+
+
+def test_fit_psnr_matches_scikit_image_and_skips_unmatched_views(tmp_path):
+    rng = np.random.default_rng(0)
+    clean = {f"v{i}": rng.random((24, 32, 3), dtype=np.float32) for i in range(3)}
+    for name, img in clean.items():
+        write_image(tmp_path / "photos" / f"{name}.png", img)
+        write_image(tmp_path / "renders" / f"{name}.png", np.clip(img + rng.normal(0, 0.05, img.shape), 0, 1))
+    write_image(tmp_path / "renders" / "extra.png", clean["v0"])  # no photo of that name: left out
+    write_image(tmp_path / "photos" / "v2.png", np.zeros((12, 16, 3), np.float32))  # another size: left out
+    got = fit_psnr_db(tmp_path / "renders", tmp_path / "photos")
+    assert sorted(got) == ["v0", "v1"]
+    for name in got:  # the PNGs as read back (8-bit levels), against scikit-image's PSNR
+        ref = peak_signal_noise_ratio(read_image(tmp_path / "photos" / f"{name}.png").astype(np.float64),
+                                      read_image(tmp_path / "renders" / f"{name}.png").astype(np.float64),
+                                      data_range=1.0)
+        assert got[name] == pytest.approx(ref, rel=1e-9)
+    assert fit_psnr_db(tmp_path / "missing", tmp_path / "photos") == {}
+
+
+def _stage(name: str, outputs: dict, summary: dict) -> StageResult:
+    return StageResult(name=name, key="0" * 64, outputs=outputs, summary=summary, skipped=False, seconds=1.0,
+                       outputs_digest="")
+
+
+def _round(tmp_path: Path, stats, *, with_splat: bool = True) -> RoundResult:
+    rd = tmp_path / "round1"
+    (rd / "align").mkdir(parents=True)
+    stats.write(rd / "align" / "align.json")
+    cams = _ring(4)
+    names = [f"{i:03d}.png" for i in range(4)]
+    model = SparseModel({1: Camera.pinhole(100.0, 100.0, 32.0, 24.0, 64, 48)},
+                        [PosedImage(n, 1, c) for n, c in zip(names, cams, strict=True)],
+                        np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+    write_sparse_model(rd / "align" / "sparse" / "0", model, binary=True)
+    np.savez(rd / "align" / "points.npz", xyz=np.random.default_rng(1).normal(size=(500, 3)))
+    stages = {"denoise": _stage("denoise", {}, {"train": {"loss": {"first": 1.25, "last": 0.5, "count": 400}},
+                                               "objective": "r2r", "dark_clipped_fraction": 0.024}),
+              "align": _stage("align", {"align": rd / "align"}, {"registered": 4, "photos": {"aligned": "noisy"}})}
+    if with_splat:
+        img = np.full((48, 64, 3), 0.5, np.float32)
+        for k, n in enumerate(names):
+            write_image(rd / "denoised" / n, img)
+            write_image(rd / "renders" / n, img + (0.01 * (k + 1) if k != 2 else 0.2))  # view 002 fits worst
+        stages["splat"] = _stage("splat", {"sparse": rd / "sparse"}, {
+            "train": {"num_gaussians": {"first": 900.0, "last": 1234.0, "count": 11}}, "timings_s": {"optimize": 42.0}})
+    return RoundResult(index=1, dir=rd, stages=stages)
+
+
+def test_round_quality_reads_the_stages_and_align_json(tmp_path):
+    stats = align_stats(n_registered=4, focal_px={f"{i:03d}.png": 512.0 for i in range(4)},
+                        bundle_adjustment=dataclasses.replace(
+                            bundle_stats(focal_log_std=0.012, centre_std_ratio=[0.01, 0.04, 0.02, 0.03]),
+                            n_points=321, n_observations=999, reproj_rms_after_px=0.61, reproj_median_after_px=0.27,
+                            views=["003.png", "000.png", "001.png", "002.png"]))
+    stats = dataclasses.replace(stats, n_images=5, align_size_wh=[64, 48], n_pairs=10, n_pairs_verified=7,
+                                n_pairs_ok=5, focal_determined_by_pairs=False,
+                                unregistered=[Unregistered("004.png", "no usable pair")],
+                                pairs_inconsistent=[InconsistentPair("000.png", "001.png", 0.83, 4.0)])
+    q = round_quality(_round(tmp_path, stats))
+    a = q.align
+    assert (a.n_registered, a.n_images, a.unregistered, a.photos) == (4, 5, [("004.png", "no usable pair")], "noisy")
+    assert a.focal_px == 512.0 and a.focal_log_std == 0.012 and "generic prior" in a.focal_source
+    assert (a.n_tracks, a.n_observations, a.reproj_rms_px, a.reproj_median_px) == (321, 999, 0.61, 0.27)
+    assert (a.n_pairs, a.n_pairs_verified, a.n_pairs_dense) == (10, 7, 5)
+    # Largest centre uncertainty first, named through `BundleStats.views` (not the order of focal_px).
+    assert a.least_constrained == [("000.png", 0.04), ("002.png", 0.03), ("001.png", 0.02)]
+    assert q.denoise.objective == "r2r" and (q.denoise.loss_first, q.denoise.loss_last, q.denoise.steps) == (
+        1.25, 0.5, 400)
+    s = q.splat
+    assert s.n_gaussians == 1234 and s.seconds == 42.0 and s.worst[0][0] == "002"
+    assert s.fit_psnr_db["000"] > s.fit_psnr_db["001"] > s.fit_psnr_db["003"] > s.fit_psnr_db["002"]
+    text = "\n".join(quality_lines([q]))
+    for part in ("**4 of 5 views registered**", "`004.png` left out: no usable pair", "512.0 px at 64x48",
+                 "log-std 0.012 (1.2 %)", "321 tracks, 999 observations", "RMS 0.610 px", "7 of 10 verified",
+                 "`000.png`-`001.png` (83 % of its matches)", "`000.png` 4.00 %", "objective r2r (2.4 %",
+                 "1234 Gaussians in 42 s", "lowest `002`"):
+        assert part in text, part
+    assert q.to_json()["align"]["least_constrained"][0] == ["000.png", 0.04]
+
+
+def test_focal_source_names_the_calibration_or_the_prior(tmp_path):
+    known = dataclasses.replace(align_stats(n_registered=4, known_intrinsics=True, bundle_adjustment=bundle_stats(
+        focal_log_std=0.0)), focal_px={"000.png": 500.0})
+    q = round_quality(_round(tmp_path / "a", known, with_splat=False))
+    assert "--intrinsics" in q.align.focal_source and math.isnan(q.align.focal_log_std) and q.splat is None
+    exif = dataclasses.replace(align_stats(n_registered=4), focal_determined_by_pairs=False,
+                               focal_prior=FocalPriorStats("exif", 28.0, 400.0))
+    assert "exif focal (28 mm" in round_quality(_round(tmp_path / "b", exif)).align.focal_source
+    pairs = align_stats(n_registered=4)  # focal_determined_by_pairs
+    assert "from the pairs" in round_quality(_round(tmp_path / "c", pairs)).align.focal_source
+
+
+def test_unreadable_align_json_is_a_clear_error(tmp_path):
+    from mvgeo.common.errors import InputError
+
+    rnd = _round(tmp_path, align_stats(n_registered=4))
+    (rnd.dir / "align" / "align.json").write_text("{")
+    with pytest.raises(InputError, match="cannot read the alignment's report") as e:
+        round_quality(rnd)
+    assert e.value.path == rnd.dir / "align" / "align.json"
+
+
+def test_camera_plot_is_written_from_the_splat_or_the_alignment_cameras(tmp_path):
+    rnd = _round(tmp_path, align_stats(n_registered=4), with_splat=False)
+    path = round_camera_plot(tmp_path / "report", rnd)  # no splat: the alignment's cameras
+    assert path == tmp_path / "report" / "report_files" / "cameras_round1.png"
+    img = read_image(path)
+    assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 400 and img.std() > 0.01  # not blank
+    assert round_camera_plot(tmp_path / "r2", RoundResult(index=2, dir=tmp_path, stages={})) is None
+    one = SparseModel({1: Camera.pinhole(100.0, 100.0, 32.0, 24.0, 64, 48)},
+                      [PosedImage("a.png", 1, _ring(1)[0])], np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+    assert camera_plot_png(tmp_path / "one.png", one, None, title="one camera").is_file()  # no spread, no points
