@@ -63,7 +63,7 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
             first = (path, size, (w, h))
         elif (w, h) != first[2]:
             raise InputError(_mixed_sizes(first, (path, size, (w, h)), config.max_size), path=images_dir,
-                             fix="resize or crop all images to one size first (the alignment assumes one camera)")
+                             fix=_mixed_sizes_fix(first[1], size))
         elif config.align.intrinsics is not None and size != first[1]:  # one calibration: one input size
             raise InputError(f"images have different sizes ({first[0].name}: {first[1][0]}x{first[1][1]}, "
                              f"{path.name}: {size[0]}x{size[1]}) but --intrinsics gives one camera", path=images_dir,
@@ -101,6 +101,15 @@ def check_intrinsics(path: Path, size_wh: tuple[int, int]) -> Camera:
                          f"{size_wh[0]}x{size_wh[1]}", path=path,
                          fix="pass the calibration of these photos at their size")
     return camera
+
+
+def _mixed_sizes_fix(a_wh: tuple[int, int], b_wh: tuple[int, int]) -> str:
+    """The fix for two input sizes that differ: a portrait photo among landscape ones (or the reverse) is the
+    same camera turned by 90 degrees, to be turned back, not resized."""
+    if a_wh == b_wh[::-1]:
+        return ("one photo is portrait and the other landscape (the same camera turned by 90 degrees): rotate the "
+                "photos to one orientation first, without resizing (the alignment assumes one camera)")
+    return "resize or crop all images to one size first (the alignment assumes one camera)"
 
 
 def _mixed_sizes(a: tuple[Path, tuple[int, int], tuple[int, int]], b: tuple[Path, tuple[int, int], tuple[int, int]],

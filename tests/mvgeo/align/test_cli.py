@@ -85,7 +85,7 @@ def test_compare_cli_json(aligned, scene, capsys):
     assert out["n_registered"] == 6 and out["median_rotation_deg"] >= 0
 
 
-@pytest.mark.parametrize("case", ["missing", "empty", "one_image", "corrupt", "mixed_sizes", "duplicate"])
+@pytest.mark.parametrize("case", ["missing", "empty", "one_image", "corrupt", "mixed_sizes", "turned", "duplicate"])
 def test_bad_input_exit_2_and_no_output(case, scene, tmp_path, capsys):
     src = tmp_path / "imgs"
     src.mkdir()
@@ -101,6 +101,8 @@ def test_bad_input_exit_2_and_no_output(case, scene, tmp_path, capsys):
             (src / "view_001.png").write_bytes(b"not a png")
         elif case == "mixed_sizes":
             write_image(src / "view_001.png", read_image(files[1])[:100])
+        elif case == "turned":  # a portrait photo among landscape ones
+            write_image(src / "view_001.png", np.ascontiguousarray(np.rot90(read_image(files[1]))))
         elif case == "duplicate":
             shutil.copy(files[0], src / "view_009.png")
         elif case == "empty":
@@ -115,7 +117,9 @@ def test_bad_input_exit_2_and_no_output(case, scene, tmp_path, capsys):
     if case == "duplicate":
         assert "identical" in err
     if case == "mixed_sizes":
-        assert "different sizes" in err
+        assert "different sizes" in err and "resize/crop" in err
+    if case == "turned":
+        assert "different sizes" in err and "rotate the photos to one orientation first, without resizing" in err
     assert not out.exists()
     assert not list(tmp_path.glob(".out.tmp-*"))
 
