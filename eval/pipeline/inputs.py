@@ -8,13 +8,20 @@ texture), and written as a 16-bit PNG into `OUT/inputs/`; smaller inputs are cop
 working size, so the final cameras can also be written at the input resolution
 (`eval.pipeline.publish`), and the photo's EXIF 35 mm-equivalent focal length (`focal_35mm`, null
 without one), which the PNGs do not carry: the alignment starts at it (`working_focal_prior`).
+
+Every stage assumes one camera, so the working images share one size (`reference_working_size`: the
+most common one). A portrait photo among landscape ones (or the reverse) is the same camera turned by 90
+degrees: its working image is turned a quarter counter-clockwise (`np.rot90`) to the common orientation,
+and `sizes.json` records `turned: 1` for it; its camera in `cameras/input/` is turned back
+(`eval.pipeline.publish.turn_back`). The round folders' photos and renders keep the working orientation.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections import Counter
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +36,8 @@ from eval.pipeline.views import view_files, write_views
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import exif_focal_35mm, read_image
 
-__all__ = ["DATA_DIR", "SIZES_FILE", "WORKING_DIR", "prepare_inputs", "read_sizes", "resize_area",
-           "working_dataset", "working_focal_prior", "working_size"]
+__all__ = ["DATA_DIR", "SIZES_FILE", "WORKING_DIR", "prepare_inputs", "read_sizes", "reference_working_size",
+           "resize_area", "working_dataset", "working_focal_prior", "working_size"]
 
 #: Folder of the working images inside OUT, and the sizes file inside it.
 WORKING_DIR = "inputs"
@@ -47,6 +54,15 @@ def working_size(width: int, height: int, max_size: int | None) -> tuple[int, in
         return int(width), int(height)
     s = max_size / max(width, height)
     return max(1, round(width * s)), max(1, round(height * s))
+
+
+def reference_working_size(sizes_wh: Sequence[tuple[int, int]]) -> tuple[int, int]:
+    """The (W, H) the working images share: the most common of `sizes_wh` (ties: the first seen). A size
+    that is its transpose (a photo turned by 90 degrees) is turned to it (module docstring)."""
+    if not sizes_wh:
+        raise ValueError("no image sizes")
+    counts = Counter(tuple(s) for s in sizes_wh)
+    return max(counts, key=lambda s: (counts[s], -[tuple(x) for x in sizes_wh].index(s)))
 
 
 def resize_area(img: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
@@ -67,7 +83,7 @@ def prepare_inputs(ctx: StageContext) -> Mapping[str, object]:
     (`ctx.settings`: `InputsStageSettings`) and `WORKING_DIR/sizes.json`."""
     max_size = ctx.settings.max_size
     out = ctx.work_dir / WORKING_DIR
-    sizes: dict[str, dict[str, list[int]]] = {}
+    sizes: dict[str, dict[str, object]] = {}
     images = {}
     for stem, path in view_files(Path(ctx.inputs["noisy"])).items():
         img = read_image(path)
@@ -75,14 +91,21 @@ def prepare_inputs(ctx: StageContext) -> Mapping[str, object]:
         images[stem] = resize_area(img, size)
         sizes[stem] = {"input": [img.shape[1], img.shape[0]], "working": list(size),
                        "focal_35mm": exif_focal_35mm(path)}
+    ref = reference_working_size([tuple(v["working"]) for v in sizes.values()])
+    for stem, v in sizes.items():
+        if tuple(v["working"]) != ref and tuple(v["working"]) == ref[::-1]:  # a photo turned by 90 degrees
+            images[stem] = np.ascontiguousarray(np.rot90(images[stem], k=1))
+            v["working"], v["turned"] = list(ref), 1
     write_views(out, images)
     (out / SIZES_FILE).write_text(json.dumps(sizes, indent=2) + "\n")
-    resized = sorted(s for s, v in sizes.items() if v["input"] != v["working"])
-    return {"max_size": max_size, "sizes": sizes, "resized": resized}
+    resized = sorted(s for s, v in sizes.items() if v["input"] != v["working"] and not v.get("turned"))
+    turned = sorted(s for s, v in sizes.items() if v.get("turned"))
+    return {"max_size": max_size, "sizes": sizes, "resized": resized, **({"turned": turned} if turned else {})}
 
 
-def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int]]]:
-    """`sizes.json` -> stem -> {"input": (W, H), "working": (W, H)}.
+def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int] | int]]:
+    """`sizes.json` -> stem -> {"input": (W, H), "working": (W, H), "turned": quarter turns counter-clockwise
+    from the photo to its working image (0 or 1; 0 where the file does not say)}.
 
     Raises:
         InputError: missing or malformed file.
@@ -90,7 +113,13 @@ def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int]]]:
     path = Path(path)
     try:
         raw = json.loads(path.read_text())
-        return {stem: {k: (int(v[k][0]), int(v[k][1])) for k in ("input", "working")} for stem, v in raw.items()}
+        out = {stem: {k: (int(v[k][0]), int(v[k][1])) for k in ("input", "working")} for stem, v in raw.items()}
+        for stem, v in raw.items():
+            turned = v.get("turned", 0)
+            if turned not in (0, 1) or isinstance(turned, bool):
+                raise ValueError(f"view {stem!r}: turned must be 0 or 1, got {turned!r}")
+            out[stem]["turned"] = turned
+        return out
     except RecursionError:  # deeply nested JSON
         raise InputError("cannot read the working sizes (JSON nested too deeply)", path=path,
                          fix="re-run with --force to rebuild OUT/inputs") from None

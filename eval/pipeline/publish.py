@@ -9,6 +9,9 @@ Outputs (in OUT):
 
 The input-resolution cameras let the poses be reused on the full-size photos: a pixel
 quantity scales by `W_in / W_work` in x and `H_in / H_work` in y (`mvgeo.camera.Camera.scaled`).
+A photo whose working image was turned a quarter counter-clockwise (`sizes.json` `turned: 1`, a portrait
+photo among landscape ones) gets its camera turned back first (`turn_back`), so `cameras/input/` describes
+the photo as it is.
 """
 
 from __future__ import annotations
@@ -16,13 +19,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
+import numpy as np
+
 from eval.pipeline.inputs import read_sizes
 from eval.pipeline.stage import StageContext
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
-__all__ = ["EXPORT_CODE", "EXPORT_OUTPUTS", "export", "input_size_cameras"]
+__all__ = ["EXPORT_CODE", "EXPORT_OUTPUTS", "export", "input_size_cameras", "turn_back"]
 
 #: What the stage writes (relative to OUT).
 EXPORT_OUTPUTS = ("scene.splat", "view", "cameras")
@@ -31,18 +36,47 @@ EXPORT_OUTPUTS = ("scene.splat", "view", "cameras")
 EXPORT_CODE = ("eval.pipeline", "splat", "denoise", "mvgeo")
 
 
-def input_size_cameras(sparse: SparseModel, sizes: Mapping[str, Mapping[str, tuple[int, int]]]) -> SparseModel:
-    """`sparse` (working-size cameras) with each image's camera scaled to its input size.
+#: cam_a_from_cam_b of a quarter turn: image B = `np.rot90(A)` (counter-clockwise) of a pinhole image A.
+#: A pixel (x_b, y_b) of B is (W_A - y_b, x_b) of A (corner convention), so x_a = f_y^B X_a / Z_a + W_A - c_y^B
+#: and y_a = f_x^B Y_a / Z_a + c_x^B with X_a = -Y_b, Y_a = X_b, Z_a = Z_b.
+_A_FROM_B_QUARTER = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
-    Images that share a camera and an input size keep sharing one; an image whose input size
-    differs from its camera's other images gets its own camera (new id).
+
+def turn_back(camera: Camera, cam_from_world: np.ndarray) -> tuple[Camera, np.ndarray]:
+    """The camera and pose of photo A from those of its working image B = `np.rot90(A)` (a quarter turn
+    counter-clockwise): A's intrinsics swap the focal lengths and move the principal point, its pose turns
+    about the optical axis (`_A_FROM_B_QUARTER`). Pinhole cameras only.
+
+    Args:
+        camera: B's camera; cam_from_world: (3, 4) B's pose.
+
+    Returns:
+        (A's PINHOLE camera, of size B's height x B's width; A's (3, 4) cam_from_world).
+
+    Raises:
+        InputError: a camera with lens distortion (its coefficients would have to be turned too).
+    """
+    if np.any(camera.dist != 0.0):
+        raise InputError(f"cannot turn back a {camera.model} camera with lens distortion",
+                         fix="re-run with a pinhole calibration (undistorted photos)")
+    width_a, height_a = camera.height, camera.width
+    cam_a = Camera.pinhole(camera.fy, camera.fx, width_a - camera.cy, camera.cx, width_a, height_a)
+    return cam_a, _A_FROM_B_QUARTER @ np.asarray(cam_from_world, np.float64)[:3]
+
+
+def input_size_cameras(sparse: SparseModel, sizes: Mapping[str, Mapping[str, object]]) -> SparseModel:
+    """`sparse` (working-size cameras) with each image's camera scaled to its input size, and turned back
+    where its working image was turned (`turn_back`; `sizes` as `read_sizes` returns them).
+
+    Images that share a camera, an input size and a turn keep sharing one; an image whose input size
+    or turn differs from its camera's other images gets its own camera (new id).
 
     Raises:
         InputError: an image of `sparse` missing from `sizes`, or a working size that does not
             match its camera.
     """
     cameras: dict[int, Camera] = {}
-    new_id: dict[tuple[int, tuple[int, int]], int] = {}
+    new_id: dict[tuple[int, tuple[int, int], int], int] = {}
     images = []
     for im in sparse.images:
         stem = Path(im.name).stem
@@ -52,11 +86,15 @@ def input_size_cameras(sparse: SparseModel, sizes: Mapping[str, Mapping[str, tup
         if tuple(sizes[stem]["working"]) != (cam.width, cam.height):
             raise InputError(f"view {stem!r}: working size {sizes[stem]['working']} differs from its camera's "
                              f"{cam.width}x{cam.height}", fix="re-run with --force")
-        key = (im.camera_id, tuple(sizes[stem]["input"]))
+        turned = int(sizes[stem].get("turned", 0))
+        cam_from_world = im.cam_from_world
+        if turned:
+            cam, cam_from_world = turn_back(cam, cam_from_world)
+        key = (im.camera_id, tuple(sizes[stem]["input"]), turned)
         if key not in new_id:
             new_id[key] = im.camera_id if im.camera_id not in cameras else max([*cameras, *sparse.cameras]) + 1
             cameras[new_id[key]] = cam.scaled(*key[1])
-        images.append(PosedImage(im.name, new_id[key], im.cam_from_world))
+        images.append(PosedImage(im.name, new_id[key], cam_from_world))
     return SparseModel(cameras, images, sparse.points_xyz, sparse.points_rgb)
 
 

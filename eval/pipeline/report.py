@@ -77,6 +77,11 @@ def _size_lines(config: PipelineConfig, sizes: dict) -> list[str]:
                       for w, i in pairs)
     limit = "none (input size)" if config.max_size is None else f"long side <= {config.max_size} px"
     lines = [f"- working size: {shown}; --max-size: {limit}"]
+    turned = sorted(k for k, v in sizes.items() if v.get("turned"))
+    if turned:
+        lines.append(f"- turned a quarter counter-clockwise to the others' orientation (portrait among landscape, "
+                     f"or the reverse): {', '.join(turned)}; their working images, denoised photos and renders "
+                     "stay turned, their cameras in `cameras/input/` are turned back")
     if config.align.intrinsics is not None:
         lines.append(f"- calibration: `{config.align.intrinsics}` (given with --intrinsics; the alignment used it, "
                      "scaled to the working size, instead of estimating the focal length)")

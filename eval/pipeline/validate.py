@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from eval.pipeline.config import PipelineConfig
-from eval.pipeline.inputs import working_size
+from eval.pipeline.inputs import reference_working_size, working_size
 from eval.pipeline.views import view_files
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
@@ -35,7 +35,8 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
     decodes and is at least `MIN_IMAGE_SIZE_PX` on each side, all have one
     working size (after `config.max_size`: every stage, the alignment first,
     works on the working images and assumes one camera; inputs of different
-    sizes that downscale to one size are accepted), there are at
+    sizes that downscale to one size are accepted, and so are photos turned by
+    90 degrees, except with a calibration: `prepare_inputs` turns them back), there are at
     least two, and at least `config.views` when a second round will select
     views (with fewer images than K the selection would be meaningless, so we
     stop and ask for a smaller `--views` instead of silently using all views),
@@ -47,7 +48,7 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
     """
     images_dir = Path(images_dir)
     files = view_files(images_dir)
-    first: tuple[Path, tuple[int, int], tuple[int, int]] | None = None
+    seen: list[tuple[Path, tuple[int, int], tuple[int, int]]] = []
     for path in files.values():
         img = read_image(path)
         if min(img.shape[:2]) < MIN_IMAGE_SIZE_PX:
@@ -58,16 +59,21 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
             raise InputError(f"--max-size {config.max_size} makes this {img.shape[1]}x{img.shape[0]} image {w}x{h} "
                              f"px; at least {MIN_IMAGE_SIZE_PX} px per side is needed", path=path,
                              fix="pass a larger --max-size")
-        size = (img.shape[1], img.shape[0])
-        if first is None:
-            first = (path, size, (w, h))
-        elif (w, h) != first[2]:
-            raise InputError(_mixed_sizes(first, (path, size, (w, h)), config.max_size), path=images_dir,
-                             fix=_mixed_sizes_fix(first[1], size))
-        elif config.align.intrinsics is not None and size != first[1]:  # one calibration: one input size
-            raise InputError(f"images have different sizes ({first[0].name}: {first[1][0]}x{first[1][1]}, "
-                             f"{path.name}: {size[0]}x{size[1]}) but --intrinsics gives one camera", path=images_dir,
-                             fix="pass photos of one size, the size the calibration is for")
+        seen.append((path, (img.shape[1], img.shape[0]), (w, h)))
+    first = None
+    if seen:
+        ref = reference_working_size([v[2] for v in seen])
+        first = next(v for v in seen if v[2] == ref)
+        for view in seen:
+            # A photo turned by 90 degrees is turned back to the common orientation (`prepare_inputs`); with
+            # --intrinsics it is refused: one calibration, of one input size.
+            if view[2] != ref and not (view[2] == ref[::-1] and config.align.intrinsics is None):
+                raise InputError(_mixed_sizes(first, view, config.max_size), path=images_dir,
+                                 fix=_mixed_sizes_fix(first[1], view[1]))
+            if config.align.intrinsics is not None and view[1] != first[1]:  # one calibration: one input size
+                raise InputError(f"images have different sizes ({first[0].name}: {first[1][0]}x{first[1][1]}, "
+                                 f"{view[0].name}: {view[1][0]}x{view[1][1]}) but --intrinsics gives one camera",
+                                 path=images_dir, fix="pass photos of one size, the size the calibration is for")
     if config.align.intrinsics is not None and first is not None:
         check_intrinsics(Path(config.align.intrinsics), first[1])
     n = len(files)
@@ -104,11 +110,13 @@ def check_intrinsics(path: Path, size_wh: tuple[int, int]) -> Camera:
 
 
 def _mixed_sizes_fix(a_wh: tuple[int, int], b_wh: tuple[int, int]) -> str:
-    """The fix for two input sizes that differ: a portrait photo among landscape ones (or the reverse) is the
-    same camera turned by 90 degrees, to be turned back, not resized."""
+    """The fix for two input sizes that differ. A portrait photo among landscape ones (or the reverse) is the
+    same camera turned by 90 degrees: the run turns it back itself, except with --intrinsics (one calibration,
+    of one input size), where the photos are to be rotated to one orientation first, not resized."""
     if a_wh == b_wh[::-1]:
-        return ("one photo is portrait and the other landscape (the same camera turned by 90 degrees): rotate the "
-                "photos to one orientation first, without resizing (the alignment assumes one camera)")
+        return ("one photo is portrait and the other landscape (the same camera turned by 90 degrees), and "
+                "--intrinsics gives one camera: rotate the photos to the calibration's orientation first, without "
+                "resizing")
     return "resize or crop all images to one size first (the alignment assumes one camera)"
 
 

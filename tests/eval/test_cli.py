@@ -98,16 +98,20 @@ def test_run_refuses_mixed_image_sizes_before_any_output(tmp_path, capsys):
     assert str(scene) in err
 
 
-def test_run_names_a_portrait_photo_among_landscape_ones(tmp_path, capsys):
-    """A photo turned by 90 degrees is the same camera: the fix says to rotate it back, not to resize it."""
+def test_run_with_a_calibration_refuses_a_portrait_photo_among_landscape_ones(tmp_path, capsys):
+    """A photo turned by 90 degrees is turned back by the run (tests/eval/test_turned_photos.py), except
+    with --intrinsics (one calibration of one input size): the fix says to rotate it, not to resize it."""
     from mvgeo.common.imageio import read_image, write_image
 
     scene = make_scene(tmp_path / "images", n=4, size_wh=(64, 48))
     turned = scene / "view_002.png"
     write_image(turned, np.ascontiguousarray(np.rot90(read_image(turned))))
-    assert_refused(main, ["run", scene, "--out", tmp_path / "out", "--views", "4"], capsys, inputs=[scene],
-                   watch=[tmp_path], message=["view_000.png: 64x48", "view_002.png: 48x64", "portrait",
-                                              "rotate the photos to one orientation first, without resizing"])
+    cams = tmp_path / "cameras.txt"
+    cams.write_text("1 PINHOLE 64 48 60 60 32 24\n")
+    assert_refused(main, ["run", scene, "--out", tmp_path / "out", "--views", "4", "--intrinsics", cams], capsys,
+                   inputs=[scene, cams], watch=[tmp_path],
+                   message=["view_000.png: 64x48", "view_002.png: 48x64", "portrait",
+                            "rotate the photos to the calibration's orientation first, without resizing"])
 
 
 def test_run_sizes_are_compared_at_the_working_size(tmp_path):
