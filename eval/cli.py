@@ -251,7 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run the pipeline (denoise, align, splat; the N2V presets two rounds) on a "
                                      "folder of noisy images")
-    run.add_argument("images_dir", type=Path, help="folder of noisy images (PNG/JPEG/TIFF)")
+    run.add_argument("images_dir", type=Path,
+                     help="folder of noisy images (PNG/JPEG/TIFF/WebP; HEIC and raw photos: convert them first)")
     run.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP)
     run.add_argument("--preset", choices=sorted(PRESETS), default="default", help="settings preset")
     run.add_argument("--views", type=int_range(2), default=None,

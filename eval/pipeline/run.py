@@ -203,7 +203,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     """Run (or resume) Denoise-GS on a folder of noisy, unposed images.
 
     Args:
-        images_dir: folder of noisy images (PNG/JPEG/TIFF, 8 or 16 bit).
+        images_dir: folder of noisy images (PNG/JPEG/TIFF/WebP, 8 or 16 bit).
         out: output folder (created; one run at a time, enforced by a lock file). A new or empty
             folder, or a previous run's (resumed); anything else, or one that is, holds or lies
             inside `images_dir`, is refused before any work (`mvgeo.common.output`).

@@ -14,7 +14,12 @@ import numpy as np
 
 from mvgeo.common.errors import InputError
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+#: Camera and phone photo formats OpenCV does not decode (HEIF, AVIF, raw). `list_images` refuses a folder
+#: holding one without a readable file of the same name (RAW+JPEG and HEIC+JPEG pairs read the JPEG), so no
+#: photo is left out silently.
+UNREADABLE_PHOTO_SUFFIXES = (".heic", ".heif", ".avif", ".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".raf",
+                             ".orf", ".rw2", ".pef", ".srw")
 
 
 def list_images(folder: str | Path) -> list[Path]:
@@ -22,7 +27,9 @@ def list_images(folder: str | Path) -> list[Path]:
 
     Raises:
         InputError: the folder is missing, not a folder, holds no images, or holds a broken
-            symbolic link with an image name, or an image whose file name is not UTF-8 (named).
+            symbolic link with an image name, or an image whose file name is not UTF-8 (named), or a
+            photo in a format OpenCV does not read (`UNREADABLE_PHOTO_SUFFIXES`) without a readable file of
+            the same name.
     """
     folder = Path(folder)
     if not folder.exists():
@@ -40,6 +47,15 @@ def list_images(folder: str | Path) -> list[Path]:
             raise InputError("broken symbolic link: the image it points to does not exist", path=p,
                              fix=f"restore its target ({os.readlink(p)}) or remove the link")
     files = [p for p in named if p.is_file()]
+    stems = {p.stem for p in files}
+    unread = sorted(p.name for p in folder.iterdir()
+                    if p.suffix.lower() in UNREADABLE_PHOTO_SUFFIXES and p.stem not in stems and p.is_file())
+    if unread:
+        shown = ", ".join(unread[:5]) + (f" and {len(unread) - 5} more" if len(unread) > 5 else "")
+        raise InputError(f"{len(unread)} photo(s) in a format this tool does not read ({shown}); they would be "
+                         "left out", path=folder,
+                         fix="convert them to JPEG or PNG (e.g. `heif-convert` for HEIC, `darktable-cli` or "
+                             "`dcraw` for raw files), or move them out of the folder")
     if not files:
         raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder", path=folder,
                          fix="put PNG/JPEG images directly in this folder")

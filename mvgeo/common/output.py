@@ -45,6 +45,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
+import logging
 import os
 import re
 import shutil
@@ -60,6 +61,8 @@ from typing import Literal
 
 from mvgeo.common.digest import file_sha256
 from mvgeo.common.errors import InputError
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "LOCK_NAME",
@@ -78,6 +81,7 @@ __all__ = [
     "prepare_output_file",
     "read_manifest",
     "remove_stale_leftovers",
+    "restore_retired_output",
     "resumable_output_dir",
     "stale_leftovers",
     "write_file_record",
@@ -405,23 +409,68 @@ def stale_leftovers(folder: Path, out_name: str | None = None) -> list[Path]:
         if name != entry_name and not alone:  # the owner file of a folder: judged with the folder
             continue
         try:
-            st = owner.lstat()  # a regular file: a FIFO would block the read, a link may point anywhere
-            if not stat.S_ISREG(st.st_mode) or st.st_size > 4096:
-                continue
             if not alone and (entry.is_symlink() or not entry.is_dir()):
                 continue
             if not alone and m["kind"] == "old" and not os.path.lexists(folder / (m["out"] or "")):
                 continue  # the only copy of a previous output (see above)
-            info = json.loads(owner.read_text())
-            pid = info.get("pid") if isinstance(info, dict) else None
-            if (isinstance(info, dict) and info.get("entry") == entry_name
-                    and info.get("host") == socket.gethostname()
-                    and type(pid) is int and 0 < pid < 2**31 and pid != os.getpid() and _process_gone(pid)
-                    and not _owner_locked(owner)):
-                found += [owner] if alone else [entry, owner]
-        except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
+        except OSError:
             continue
+        if _owner_gone(owner, entry_name):
+            found += [owner] if alone else [entry, owner]
     return found
+
+
+def _owner_gone(owner: Path, entry_name: str) -> bool:
+    """`owner` is an owner file an `OwnerFile` wrote for `entry_name` on this host, its process is gone and
+    its lock is free. Never raises."""
+    try:
+        st = owner.lstat()  # a regular file: a FIFO would block the read, a link may point anywhere
+        if not stat.S_ISREG(st.st_mode) or st.st_size > 4096:
+            return False
+        info = json.loads(owner.read_text())
+        pid = info.get("pid") if isinstance(info, dict) else None
+        return (isinstance(info, dict) and info.get("entry") == entry_name
+                and info.get("host") == socket.gethostname()
+                and type(pid) is int and 0 < pid < 2**31 and pid != os.getpid() and _process_gone(pid)
+                and not _owner_locked(owner))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
+        return False
+
+
+def restore_retired_output(path: Path) -> Path | None:
+    """Put back the previous output of `path` that a killed `--overwrite` left retired.
+
+    Replacing an output renames it to `.<name>.old-TAG` beside it, then the new one into place; a command
+    killed between the two renames leaves no `<name>`, and the retired folder is the only copy of the previous
+    output. When `path` is missing and exactly one such folder has an owner file whose process is gone (and
+    whose lock is free), it is renamed back to `path` and its owner file removed, so the next command finds
+    the previous output where the user left it (and resumes in it, or replaces it only with --overwrite).
+    Returns the folder it restored from, or None. Never raises.
+    """
+    try:
+        if os.path.lexists(path):
+            return None
+        names = set(os.listdir(path.parent))
+    except OSError:
+        return None
+    retired = []
+    for name in sorted(names):
+        m = _LEFTOVER_NAME.fullmatch(name)
+        if m is None or m["kind"] != "old" or m["out"] != path.name or name + OWNER_SUFFIX not in names:
+            continue
+        entry = path.parent / name
+        if not entry.is_symlink() and entry.is_dir() and _owner_gone(path.parent / (name + OWNER_SUFFIX), name):
+            retired.append(entry)
+    if len(retired) != 1:
+        return None
+    try:
+        os.rename(retired[0], path)
+    except OSError:
+        return None
+    retired[0].with_name(retired[0].name + OWNER_SUFFIX).unlink(missing_ok=True)
+    _log.warning("restored the previous output %s from %s, where a command killed while replacing it had left it",
+                 path, retired[0].name)
+    return retired[0]
 
 
 def remove_stale_leftovers(folder: Path, out_name: str | None = None) -> None:
@@ -472,6 +521,7 @@ def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path
                          fix="remove the link or choose another --out")
     path = _resolve(out)
     resolved_inputs = _check_inputs(out, path, inputs)
+    restore_retired_output(path)  # a killed --overwrite's only copy of the previous output, put back first
     state: OutputState
     if os.path.lexists(path) and not path.is_dir():
         raise InputError("--out exists and is not a folder", path=out,

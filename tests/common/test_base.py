@@ -111,3 +111,28 @@ def test_list_images_refuses_a_file_name_that_is_not_utf8(tmp_path):
     (tmp_path / os.fsdecode(b"\xff_000.png")).write_bytes((tmp_path / "a.png").read_bytes())
     with pytest.raises(InputError, match="not UTF-8"):
         list_images(tmp_path)
+
+
+def test_list_images_refuses_photos_it_cannot_read_unless_a_readable_copy_is_beside_them(tmp_path):
+    """HEIC or raw photos would be left out without a word: refused, named, unless a JPEG/PNG of the same
+    name is there (RAW+JPEG and HEIC+JPEG pairs read the JPEG). WebP is read."""
+    from mvgeo.common.deps import cv2
+
+    img = np.zeros((4, 4, 3), np.float32)
+    write_image(tmp_path / "a.jpg", img)
+    (tmp_path / "a.CR2").write_bytes(b"raw")  # the JPEG's raw twin
+    (tmp_path / "b.HEIC").write_bytes(b"heic")
+    with pytest.raises(InputError, match=r"1 photo\(s\) in a format this tool does not read \(b.HEIC\)") as e:
+        list_images(tmp_path)
+    assert "heif-convert" in e.value.fix
+    (tmp_path / "b.HEIC").unlink()
+    (tmp_path / "notes.txt").write_text("not a photo")  # other files are not photos: ignored as before
+    assert [p.name for p in list_images(tmp_path)] == ["a.jpg"]
+    assert cv2.imwrite(str(tmp_path / "c.webp"), np.zeros((4, 4, 3), np.uint8))
+    assert [p.name for p in list_images(tmp_path)] == ["a.jpg", "c.webp"]
+    only = tmp_path / "only"
+    only.mkdir()
+    for i in range(7):
+        (only / f"IMG_{i}.heic").write_bytes(b"heic")
+    with pytest.raises(InputError, match="7 photo.*IMG_4.heic and 2 more"):
+        list_images(only)

@@ -178,17 +178,46 @@ def _dead_owner(folder, name):
         json.dumps({"entry": name, "host": socket.gethostname(), "pid": _dead_pid()}))
 
 
-def test_the_only_copy_of_a_previous_output_is_kept(tmp_path):
-    """Killed between the two renames of --overwrite: `out` is gone, `.out.old-TAG` is the previous output
-    and `.out.tmp-TAG` the unfinished new one. The next command writing `out` keeps the former."""
+def _killed_between_the_renames(folder: Path) -> None:
+    """What --overwrite leaves when killed between its two renames: no `out`, the previous output (with its
+    manifest) retired as `.out.old-TAG`, the unfinished new one as `.out.tmp-TAG`, both with dead owners."""
     for name in (".out.old-0123abcd", ".out.tmp-0123abcd"):
-        (tmp_path / name).mkdir()
-        (tmp_path / name / "a.txt").write_text(name)
-        _dead_owner(tmp_path, name)
+        (folder / name).mkdir()
+        (folder / name / "a.txt").write_text(name)
+        _dead_owner(folder, name)
+    write_manifest(folder / ".out.old-0123abcd", CMD)
+
+
+def test_the_only_copy_of_a_previous_output_is_put_back(tmp_path):
+    """The next command writing `out` renames the retired previous output back to `out` first: it is then a
+    previous output like any other (refused without --overwrite, replaced with it)."""
+    _killed_between_the_renames(tmp_path)
+    with pytest.raises(InputError, match="holds a previous output"):
+        prepare_output(tmp_path / "out", command=CMD)
+    assert (tmp_path / "out" / "a.txt").read_text() == ".out.old-0123abcd"
+    assert _hidden(tmp_path) == [".out.tmp-0123abcd", ".out.tmp-0123abcd" + OWNER_SUFFIX]  # removed when writing
+    with atomic_output_dir(prepare_output(tmp_path / "out", command=CMD, overwrite=True)) as tmp:
+        (tmp / "b.txt").write_text("b")
+    assert sorted(p.name for p in (tmp_path / "out").iterdir() if not p.name.startswith(".")) == ["b.txt"]
+    assert _hidden(tmp_path) == []
+
+
+def test_a_retired_output_is_not_put_back_when_it_is_not_certain(tmp_path):
+    """Two retired copies (which one?), a live owner, or an `out` that exists: nothing is moved."""
+    _killed_between_the_renames(tmp_path)
+    (tmp_path / ".out.old-89abcdef").mkdir()
+    _dead_owner(tmp_path, ".out.old-89abcdef")
     with atomic_output_dir(prepare_output(tmp_path / "out", command=CMD)) as tmp:
         (tmp / "b.txt").write_text("b")
-    assert (tmp_path / ".out.old-0123abcd" / "a.txt").read_text() == ".out.old-0123abcd"
-    assert not (tmp_path / ".out.tmp-0123abcd").exists()
+    assert (tmp_path / ".out.old-0123abcd" / "a.txt").is_file() and (tmp_path / ".out.old-89abcdef").is_dir()
+    live = tmp_path / "live"
+    live.mkdir()
+    (live / ".out.old-0123abcd").mkdir()
+    (live / (".out.old-0123abcd" + OWNER_SUFFIX)).write_text(
+        json.dumps({"entry": ".out.old-0123abcd", "host": socket.gethostname(), "pid": os.getppid()}))
+    with atomic_output_dir(prepare_output(live / "out", command=CMD)) as tmp:
+        (tmp / "b.txt").write_text("b")
+    assert (live / ".out.old-0123abcd").is_dir() and (live / "out" / "b.txt").is_file()
 
 
 def test_an_owner_file_whose_folder_was_never_made_is_removed(tmp_path):
