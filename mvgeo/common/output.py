@@ -383,7 +383,8 @@ def _process_gone(pid: int) -> bool:
 
 
 def stale_leftovers(folder: Path, out_name: str | None = None) -> list[Path]:
-    """The temporary and retired folders in `folder` that a killed command left, with their owner files
+    """The temporary and retired folders (and single output files' temporary files) in `folder` that a killed
+    command left, with their owner files
     (with `out_name`: only those of the output `folder/out_name`, `.<out_name>.tmp-TAG` and
     `.<out_name>.old-TAG`; else any, e.g. `.tmp-TAG` in an empty `--out`): a folder is one only with an
     owner file an `OwnerFile` wrote for it on this host whose process is gone and whose lock is free. An
@@ -409,7 +410,8 @@ def stale_leftovers(folder: Path, out_name: str | None = None) -> list[Path]:
         if name != entry_name and not alone:  # the owner file of a folder: judged with the folder
             continue
         try:
-            if not alone and (entry.is_symlink() or not entry.is_dir()):
+            # A folder, or the temporary file of a single output file (`write_output_file`).
+            if not alone and (entry.is_symlink() or not (entry.is_dir() or (m["kind"] == "tmp" and entry.is_file()))):
                 continue
             if not alone and m["kind"] == "old" and not os.path.lexists(folder / (m["out"] or "")):
                 continue  # the only copy of a previous output (see above)
@@ -757,14 +759,17 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
     what `command` did not write: where nothing is at `path` the file is hard-linked into place, which fails
     if a file appeared there since the plan (an atomic no-replace); where something is there it is checked
     again (`command` wrote it and it is unchanged) just before the rename. Then the record
-    (`write_file_record`). The temporary file is removed unless the process is killed.
+    (`write_file_record`). The temporary file is removed unless the process is killed; it has an owner file
+    (`OwnerFile`), so the next call for `path` removes what a killed one left (`remove_stale_leftovers`).
 
     Raises:
         InputError: `path` was created, or changed, by someone else while the content was being made
             (nothing was replaced).
     """
     path = Path(path)
+    remove_stale_leftovers(path.parent, path.name)  # a killed call's temporary file, with its dead owner
     tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
+    owner = OwnerFile(tmp)
 
     def changed(why: str) -> InputError:
         return InputError(f"--out changed while the output was being made: {why}; only a file this command "
@@ -795,6 +800,7 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
             os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+        owner.release()
     try:
         write_file_record(path, command)
     except OSError as exc:

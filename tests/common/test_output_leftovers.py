@@ -97,13 +97,14 @@ def test_an_old_output_a_killed_overwrite_renamed_aside_is_removed(tmp_path):
 
 
 @pytest.mark.parametrize("case", ["no owner file", "owner alive", "other host", "owner names another entry",
-                                  "a file, not a folder"])
+                                  "a symbolic link"])
 def test_what_is_not_provably_a_dead_commands_leftover_is_kept(tmp_path, case):
     out = tmp_path / "out"
     name = ".out.tmp-0123abcd"
     entry = tmp_path / name
-    if case == "a file, not a folder":
-        entry.write_text("mine")
+    if case == "a symbolic link":  # to the user's file: neither a folder nor a file the commands write
+        (tmp_path / "mine.txt").write_text("mine")
+        entry.symlink_to(tmp_path / "mine.txt")
     else:
         entry.mkdir()
         (entry / "mine.txt").write_text("mine")
@@ -121,7 +122,7 @@ def test_what_is_not_provably_a_dead_commands_leftover_is_kept(tmp_path, case):
     with atomic_output_dir(prepare_output(out, command=CMD)) as tmp:
         (tmp / "a.txt").write_text("a")
     assert _hidden(tmp_path) == before
-    assert (entry / "mine.txt").read_text() == "mine" if entry.is_dir() else entry.read_text() == "mine"
+    assert (entry / "mine.txt").read_text() == "mine" if not entry.is_symlink() else entry.read_text() == "mine"
 
 
 def test_an_out_holding_a_leftover_of_a_live_command_is_still_refused(tmp_path):
@@ -239,3 +240,38 @@ def test_a_resumed_folder_loses_what_a_killed_command_left_inside(tmp_path):
     with resumable_output_dir(prepare_output(out, command=CMD, resume=True)):
         pass
     assert sorted(os.listdir(out)) == [".denoise-gs-output.json", "mine.txt"]
+
+
+def test_a_single_output_files_temporary_file_left_by_sigkill_is_removed_next_time(tmp_path):
+    """`write_output_file` killed while writing leaves `.F.tmp-TAG` and its owner file; the next call for F
+    removes both (and nothing else: a user's `.F.tmp-…` without an owner file stays)."""
+    from mvgeo.common.output import prepare_output_file, write_output_file
+
+    out = tmp_path / "scene.ply"
+    ready = tmp_path / "ready"
+    code = (
+        "import pathlib, time\n"
+        "from mvgeo.common.output import prepare_output_file, write_output_file\n"
+        "def write(tmp):\n"
+        "    tmp.write_text('half')\n"
+        f"    pathlib.Path({str(ready)!r}).write_text('1')\n"
+        "    time.sleep(60)\n"
+        f"write_output_file(prepare_output_file({str(out)!r}, command={CMD!r}), {CMD!r}, write)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 60
+        while not ready.exists():
+            assert proc.poll() is None, "the child ended before it was killed"
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        proc.kill()
+    ready.unlink()
+    left = _hidden(tmp_path)
+    assert len(left) == 2 and left[0].startswith(".scene.ply.tmp-") and left[1] == left[0] + OWNER_SUFFIX
+    (tmp_path / ".scene.ply.tmp-89abcdef").write_text("the user's")  # no owner file: not ours
+    write_output_file(prepare_output_file(out, command=CMD), CMD, lambda tmp: tmp.write_text("whole"))
+    assert out.read_text() == "whole"
+    assert _hidden(tmp_path) == [".scene.ply.denoise-gs-output.json", ".scene.ply.tmp-89abcdef"]
