@@ -47,6 +47,8 @@ class DenoiseQuality:
     loss_last: float | None
     steps: int | None
     restarts: int = 0
+    #: "training" (round 1's denoise stage) or "fine-tuning" (a later round's refine stage).
+    kind: str = "training"
 
 
 @dataclass(frozen=True)
@@ -125,13 +127,13 @@ def _first_last(summary: Mapping, key: str) -> tuple[float | None, float | None,
     return float(h["first"]), float(h["last"]), int(h["count"])
 
 
-def _denoise_quality(summary: Mapping) -> DenoiseQuality:
+def _denoise_quality(summary: Mapping, kind: str) -> DenoiseQuality:
     first, last, count = _first_last(summary, "loss")
     frac = summary.get("dark_clipped_fraction")
     return DenoiseQuality(objective=summary.get("objective"),
                           dark_clipped_fraction=None if frac is None else float(frac),
                           loss_first=first, loss_last=last, steps=count,
-                          restarts=len(summary.get("training_restarts", [])))
+                          restarts=len(summary.get("training_restarts", [])), kind=kind)
 
 
 def _focal_source(stats: AlignStats) -> str:
@@ -216,7 +218,8 @@ def round_quality(rnd: RoundResult) -> RoundQuality:
     Raises:
         InputError: the round's align.json cannot be read.
     """
-    denoise = rnd.stages.get("denoise") or rnd.stages.get("refine")
+    denoise, kind = ((rnd.stages["denoise"], "training") if "denoise" in rnd.stages
+                     else (rnd.stages.get("refine"), "fine-tuning"))
     align_json = _align_json(rnd)
     align = None
     if align_json is not None:
@@ -228,7 +231,7 @@ def round_quality(rnd: RoundResult) -> RoundQuality:
         align = _align_quality(stats, rnd.stages["align"].summary)
     splat = rnd.stages.get("splat")
     return RoundQuality(index=rnd.index,
-                        denoise=_denoise_quality(denoise.summary) if denoise is not None else None,
+                        denoise=_denoise_quality(denoise.summary, kind) if denoise is not None else None,
                         align=align, splat=_splat_quality(splat.summary, rnd.dir) if splat is not None else None)
 
 
@@ -247,7 +250,7 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
             why = (f" ({100 * d.dark_clipped_fraction:.1f} % of the photos' area dark and clipped)"
                    if d.dark_clipped_fraction is not None else "")
             restarts = f"; restarted {d.restarts} time(s) after diverging" if d.restarts else ""
-            lines.append(f"- denoising: {what}{why}; training loss {_fmt(d.loss_first, '.4g')} -> "
+            lines.append(f"- denoising: {what}{why}; {d.kind} loss {_fmt(d.loss_first, '.4g')} -> "
                          f"{_fmt(d.loss_last, '.4g')} over {d.steps} steps{restarts}")
         a = q.align
         if a is not None:

@@ -60,6 +60,7 @@ def test_two_rounds_layout_report_and_selection(tmp_path, scene):
     # The run's own checks: each round's renders against its denoised photos, and its cameras plotted.
     assert "## Quality" in md and "cameras_round1.png" in md and "cameras_round2.png" in md
     assert sorted(report["quality"]["round2"]["splat"]["fit_psnr_db"]) == sorted(selected)
+    assert [report["quality"][f"round{r}"]["denoise"]["kind"] for r in (1, 2)] == ["training", "fine-tuning"]
     assert report["camera_plots"] == {"round1": "report_files/cameras_round1.png",
                                       "round2": "report_files/cameras_round2.png"}
     assert (out / "report_files" / "cameras_round2.png").stat().st_size > 0
