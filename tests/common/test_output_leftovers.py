@@ -28,14 +28,18 @@ pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL")
 def _killed_while_writing(out: Path, tmp_path: Path) -> None:
     """Run a command writing `out` in a child process and SIGKILL it inside the atomic block."""
     ready = tmp_path / "ready"
-    code = (
+    _kill_when_ready(
         "import pathlib, time\n"
         "from mvgeo.common.atomic import atomic_output_dir\n"
         "from mvgeo.common.output import prepare_output\n"
         f"with atomic_output_dir(prepare_output({str(out)!r}, command={CMD!r})) as tmp:\n"
         "    (tmp / 'half.txt').write_text('half')\n"
         f"    pathlib.Path({str(ready)!r}).write_text('1')\n"
-        "    time.sleep(60)\n")
+        "    time.sleep(60)\n", ready)
+
+
+def _kill_when_ready(code: str, ready: Path) -> None:
+    """Run `code` in a child process, SIGKILL it once it has written `ready`, then remove `ready`."""
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT)
     try:
         deadline = time.monotonic() + 60
@@ -249,26 +253,14 @@ def test_a_single_output_files_temporary_file_left_by_sigkill_is_removed_next_ti
 
     out = tmp_path / "scene.ply"
     ready = tmp_path / "ready"
-    code = (
+    _kill_when_ready(
         "import pathlib, time\n"
         "from mvgeo.common.output import prepare_output_file, write_output_file\n"
         "def write(tmp):\n"
         "    tmp.write_text('half')\n"
         f"    pathlib.Path({str(ready)!r}).write_text('1')\n"
         "    time.sleep(60)\n"
-        f"write_output_file(prepare_output_file({str(out)!r}, command={CMD!r}), {CMD!r}, write)\n")
-    proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT)
-    try:
-        deadline = time.monotonic() + 60
-        while not ready.exists():
-            assert proc.poll() is None, "the child ended before it was killed"
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=30)
-    finally:
-        proc.kill()
-    ready.unlink()
+        f"write_output_file(prepare_output_file({str(out)!r}, command={CMD!r}), {CMD!r}, write)\n", ready)
     left = _hidden(tmp_path)
     assert len(left) == 2 and left[0].startswith(".scene.ply.tmp-") and left[1] == left[0] + OWNER_SUFFIX
     (tmp_path / ".scene.ply.tmp-89abcdef").write_text("the user's")  # no owner file: not ours

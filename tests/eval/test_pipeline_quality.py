@@ -131,7 +131,8 @@ def test_round_quality_reads_the_stages_and_align_json(tmp_path):
     text = "\n".join(quality_lines([q]))
     for part in ("**4 of 5 views registered**", "`004.png` left out: no usable pair", "512.0 px at 64x48",
                  "log-std 0.012 (1.2 %)", "321 tracks, 999 observations", "RMS 0.610 px", "7 of 10 verified",
-                 "`000.png`-`001.png` (83 % of its matches)", "`000.png` 4.00 %", "objective r2r (2.4 %", "training loss 1.25 -> 0.5 over 400 steps",
+                 "`000.png`-`001.png` (83 % of its matches)", "`000.png` 4.00 %", "objective r2r (2.4 %",
+                 "training loss 1.25 -> 0.5 over 400 steps",
                  "1234 Gaussians in 42 s", "lowest `002`"):
         assert part in text, part
     assert q.to_json()["align"]["least_constrained"][0] == ["000.png", 0.04]
