@@ -246,7 +246,7 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
         lines += [f"### Round {q.index}", ""]
         d = q.denoise
         if d is not None and d.loss_last is not None:
-            what = f"objective {d.objective}" if d.objective else "denoiser"
+            what = f"objective {d.objective}" if d.objective else "the preset's objective"
             why = (f" ({100 * d.dark_clipped_fraction:.1f} % of the photos' area dark and clipped)"
                    if d.dark_clipped_fraction is not None else "")
             restarts = f"; restarted {d.restarts} time(s) after diverging" if d.restarts else ""
@@ -306,7 +306,8 @@ def plot_axes(cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 def camera_plot_png(path: Path, sparse: SparseModel, points_xyz: np.ndarray | None, *, title: str) -> Path:
-    """Write a PNG of the cameras seen from above and from behind (`plot_axes`), over the alignment's points.
+    """Write a PNG of the cameras seen from above and from behind (`plot_axes`) over the alignment's points, and
+    of the cameras alone from above (where a scene's extent would shrink them to a dot).
 
     Args:
         path: the PNG to write.
@@ -326,9 +327,12 @@ def camera_plot_png(path: Path, sparse: SparseModel, points_xyz: np.ndarray | No
     dirs = cfw[:, 2, :3]
     spread = np.linalg.norm(centres - centres.mean(axis=0), axis=1)
     arrow = 0.25 * float(np.median(spread)) if len(names) > 1 and np.median(spread) > 0 else 1.0
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
-    for ax, (a, b, xl, yl) in zip(axes, [(right, fwd, "right", "forward"), (right, up, "right", "up")], strict=True):
-        if points_xyz is not None and len(points_xyz):
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5))
+    panels = [(right, fwd, "right", "forward", "from above"),
+              (right, up, "right", "up", "from behind, along the mean viewing direction"),
+              (right, fwd, "right", "forward", "the cameras alone, from above")]
+    for k, (ax, (a, b, xl, yl, panel_title)) in enumerate(zip(axes, panels, strict=True)):
+        if points_xyz is not None and len(points_xyz) and k < 2:
             step = max(1, len(points_xyz) // PLOT_POINTS)
             p = np.asarray(points_xyz, np.float64)[::step]
             u, v = p @ a, p @ b
@@ -340,10 +344,11 @@ def camera_plot_png(path: Path, sparse: SparseModel, points_xyz: np.ndarray | No
         ax.quiver(cu, cv, dirs @ a * arrow, dirs @ b * arrow, angles="xy", scale_units="xy", scale=1,
                   color="tab:red", width=0.004)
         ax.scatter(cu, cv, s=12, c="tab:red")
-        for n, x, y in zip(names, cu, cv, strict=True):
-            ax.annotate(Path(n).stem, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
-        ax.set(xlabel=xl, ylabel=yl, aspect="equal",
-               title="from above" if yl == "forward" else "from behind, along the mean viewing direction")
+        if k == 2:  # named where the cameras are not a dot beside the scene
+            for n, x, y in zip(names, cu, cv, strict=True):
+                ax.annotate(Path(n).stem, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set(xlabel=xl, ylabel=yl, title=panel_title)
+        ax.set_aspect("equal", adjustable="datalim")  # one scale on both axes, every panel the same size
     fig.suptitle(title)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
