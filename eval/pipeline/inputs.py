@@ -98,7 +98,8 @@ def prepare_inputs(ctx: StageContext) -> Mapping[str, object]:
             v["working"], v["turned"] = list(ref), 1
     write_views(out, images)
     (out / SIZES_FILE).write_text(json.dumps(sizes, indent=2) + "\n")
-    resized = sorted(s for s, v in sizes.items() if v["input"] != v["working"] and not v.get("turned"))
+    resized = sorted(s for s, v in sizes.items()
+                     if v["input"] != (v["working"][::-1] if v.get("turned") else v["working"]))
     turned = sorted(s for s, v in sizes.items() if v.get("turned"))
     return {"max_size": max_size, "sizes": sizes, "resized": resized, **({"turned": turned} if turned else {})}
 

@@ -89,12 +89,13 @@ class AlignQuality:
 
 @dataclass(frozen=True)
 class SplatQuality:
-    """The splat at the round's own views (not a held-out score): each view's render against the round's
-    denoised photo (PSNR, dB; a view the scene reproduces much worse than the others has a pose or content
-    the scene does not explain), Gaussians at the end, optimisation seconds.
+    """The splat at the round's own views (not a held-out score): each view's render against the photo the
+    splat trained on (the round's denoised photo, or its fused one with the fuse extension; PSNR, dB: a view
+    the scene reproduces much worse than the others has a pose or content the scene does not explain),
+    Gaussians at the end, optimisation seconds.
 
     Attributes:
-        fit_psnr_db: view name -> PSNR of its render against its denoised photo.
+        fit_psnr_db: view name -> PSNR of its render against its training photo.
     """
 
     fit_psnr_db: dict[str, float]
@@ -193,11 +194,11 @@ def fit_psnr_db(renders_dir: Path, photos_dir: Path) -> dict[str, float]:
     return out
 
 
-def _splat_quality(summary: Mapping, rd: Path) -> SplatQuality:
+def _splat_quality(summary: Mapping, rd: Path, photos: str) -> SplatQuality:
     _, gaussians, _ = _first_last(summary, "num_gaussians")
     timings = summary.get("timings_s")
     seconds = timings.get("optimize") if isinstance(timings, Mapping) else None
-    return SplatQuality(fit_psnr_db=fit_psnr_db(rd / "renders", rd / "denoised"),
+    return SplatQuality(fit_psnr_db=fit_psnr_db(rd / "renders", rd / photos),
                         n_gaussians=None if gaussians is None else int(gaussians),
                         seconds=None if seconds is None else float(seconds))
 
@@ -232,7 +233,9 @@ def round_quality(rnd: RoundResult) -> RoundQuality:
     splat = rnd.stages.get("splat")
     return RoundQuality(index=rnd.index,
                         denoise=_denoise_quality(denoise.summary, kind) if denoise is not None else None,
-                        align=align, splat=_splat_quality(splat.summary, rnd.dir) if splat is not None else None)
+                        align=align,
+                        splat=_splat_quality(splat.summary, rnd.dir, "fused" if "fuse" in rnd.stages else "denoised")
+                        if splat is not None else None)
 
 
 def _fmt(x: float | None, spec: str) -> str:
@@ -280,7 +283,7 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
             lines.append(f"- splat: {gauss}{secs}")
             if s.fit_psnr_db:
                 med = float(np.median(list(s.fit_psnr_db.values())))
-                lines.append(f"  - its renders of the {len(s.fit_psnr_db)} views against their denoised photos "
+                lines.append(f"  - its renders of the {len(s.fit_psnr_db)} views against the photos it trained on "
                              f"(a fit, not a held-out score): median PSNR {_fmt(med, '.2f')} dB; lowest " +
                              ", ".join(f"`{n}` {_fmt(v, '.2f')} dB" for n, v in s.worst))
         lines.append("")

@@ -188,4 +188,37 @@ def validate_dataset_folder(root: Path) -> DatasetFolder:
     for name in test:
         if name not in clean:
             raise InputError(f"held-out view {name!r} has no clean image", path=root / "clean")
+    _one_orientation({n: images[n] for n in train}, root / "images")
     return DatasetFolder(root, train, test, images, clean)
+
+
+def _upright_size(path: Path) -> tuple[int, int] | None:
+    """(W, H) of an image as `read_image` returns it (a JPEG's EXIF orientation applied), from its header;
+    None where Pillow cannot tell (the image's own checks report it later)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            if path.suffix.lower() in (".jpg", ".jpeg") and im.getexif().get(0x0112, 1) in (5, 6, 7, 8):
+                w, h = h, w
+            return w, h
+    except (OSError, ValueError, SyntaxError):  # Pillow's errors on unreadable or odd files
+        return None
+
+
+def _one_orientation(files: dict[str, Path], folder: Path) -> None:
+    """Refuse an evaluation dataset whose training photos are of two orientations (W x H and H x W).
+    `denoise-gs run` turns such photos to one orientation (`prepare_inputs`), but an evaluation scores the
+    poses and the splat in each photo's own frame, which that would turn by 90 degrees."""
+    first: dict[tuple[int, int], str] = {}
+    for n, p in files.items():
+        size = _upright_size(p)
+        if size is not None:
+            first.setdefault(size, n)
+    for sa, a in first.items():
+        sb = sa[::-1]
+        if sb != sa and sb in first:
+            raise InputError(f"training views of two orientations ({a}: {sa[0]}x{sa[1]}, {first[sb]}: "
+                             f"{sb[0]}x{sb[1]}); an evaluation compares poses in each photo's own frame", path=folder,
+                             fix="import the views of one orientation only (a run, `denoise-gs run`, takes both)")

@@ -439,6 +439,22 @@ def _owner_gone(owner: Path, entry_name: str) -> bool:
         return False
 
 
+def _rename_no_replace(src: Path, dst: Path) -> bool:
+    """Rename `src` to `dst` only if nothing is at `dst` (Linux `renameat2(RENAME_NOREPLACE)`: a plain rename
+    would replace an empty folder another command has just made there). False where that call is missing or
+    fails: the caller then moves nothing."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_noreplace = -100, 1
+    return renameat2(at_fdcwd, os.fsencode(src), at_fdcwd, os.fsencode(dst), rename_noreplace) == 0
+
+
 def restore_retired_output(path: Path) -> Path | None:
     """Put back the previous output of `path` that a killed `--overwrite` left retired.
 
@@ -463,11 +479,7 @@ def restore_retired_output(path: Path) -> Path | None:
         entry = path.parent / name
         if not entry.is_symlink() and entry.is_dir() and _owner_gone(path.parent / (name + OWNER_SUFFIX), name):
             retired.append(entry)
-    if len(retired) != 1:
-        return None
-    try:
-        os.rename(retired[0], path)
-    except OSError:
+    if len(retired) != 1 or not _rename_no_replace(retired[0], path):
         return None
     retired[0].with_name(retired[0].name + OWNER_SUFFIX).unlink(missing_ok=True)
     _log.warning("restored the previous output %s from %s, where a command killed while replacing it had left it",
@@ -500,7 +512,9 @@ def _is_cwd_or_ancestor(path: Path) -> bool:
 
 def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path | None] = (),
                    overwrite: bool = False, resume: bool = False) -> OutputPlan:
-    """Check `out` against the output policy (module docstring) before any work; create nothing.
+    """Check `out` against the output policy (module docstring) before any work; create nothing, with one
+    exception: a previous output that a killed `--overwrite` left retired beside a missing `out` is renamed
+    back first (`restore_retired_output`).
 
     Args:
         out: the `--out` folder.
@@ -518,6 +532,8 @@ def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path
     if os.fspath(out).strip() == "":
         raise InputError("--out is empty", fix="pass an output folder")
     out = Path(out)
+    if out.is_symlink() and not out.exists():  # the link's target may be an output a killed --overwrite retired
+        restore_retired_output(_resolve(out))
     if out.is_symlink() and not out.exists():
         raise InputError("--out is a broken symbolic link", path=out,
                          fix="remove the link or choose another --out")
@@ -767,9 +783,15 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
             (nothing was replaced).
     """
     path = Path(path)
+    created = make_dirs(path.parent)  # `prepare_output_file` accepts a folder still to be made
     remove_stale_leftovers(path.parent, path.name)  # a killed call's temporary file, with its dead owner
     tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
-    owner = OwnerFile(tmp)
+    try:
+        owner = OwnerFile(tmp)
+    except OSError as exc:
+        remove_empty_dirs(created)
+        raise InputError(f"cannot write beside the output file ({exc.strerror or exc})", path=path.parent,
+                         fix="choose another --out (a folder you can write)") from None
 
     def changed(why: str) -> InputError:
         return InputError(f"--out changed while the output was being made: {why}; only a file this command "
@@ -798,6 +820,11 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
             if why is not None:
                 raise changed(why)
             os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        owner.release()
+        remove_empty_dirs(created)
+        raise
     finally:
         tmp.unlink(missing_ok=True)
         owner.release()

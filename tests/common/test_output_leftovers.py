@@ -267,3 +267,26 @@ def test_a_single_output_files_temporary_file_left_by_sigkill_is_removed_next_ti
     write_output_file(prepare_output_file(out, command=CMD), CMD, lambda tmp: tmp.write_text("whole"))
     assert out.read_text() == "whole"
     assert _hidden(tmp_path) == [".scene.ply.denoise-gs-output.json", ".scene.ply.tmp-89abcdef"]
+
+
+def test_a_retired_output_behind_a_symbolic_link_is_put_back(tmp_path):
+    """`--out link` whose target a killed --overwrite retired: the link is broken until the target is put back."""
+    _killed_between_the_renames(tmp_path)
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "out")
+    with pytest.raises(InputError, match="holds a previous output"):
+        prepare_output(link, command=CMD)
+    assert (link / "a.txt").read_text() == ".out.old-0123abcd"
+
+
+def test_the_restoring_rename_never_replaces_what_is_there(tmp_path):
+    """A plain rename would replace an empty folder another command just made at `out`."""
+    from mvgeo.common.output import _rename_no_replace
+
+    (tmp_path / "src").mkdir()
+    (tmp_path / "src" / "a.txt").write_text("a")
+    (tmp_path / "dst").mkdir()
+    assert not _rename_no_replace(tmp_path / "src", tmp_path / "dst")
+    assert (tmp_path / "src" / "a.txt").is_file() and list((tmp_path / "dst").iterdir()) == []
+    assert _rename_no_replace(tmp_path / "src", tmp_path / "new")
+    assert (tmp_path / "new" / "a.txt").is_file() and not (tmp_path / "src").exists()

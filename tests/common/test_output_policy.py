@@ -487,3 +487,19 @@ def test_output_file_whose_record_cannot_be_written_is_a_typed_error(tmp_path, m
     with pytest.raises(InputError, match="its record could not be") as exc:
         write_output_file(out, CMD, lambda tmp: tmp.write_text("ours"))
     assert "c.json" in str(exc.value) and _leftovers(tmp_path) == []
+
+
+def test_output_file_in_a_folder_still_to_be_made(tmp_path):
+    """`prepare_output_file` accepts `NEW/SUB/F` under a writable folder; `write_output_file` makes the folders
+    (and takes them away again when the write fails)."""
+    out = prepare_output_file(tmp_path / "new" / "sub" / "a.json", command=CMD)
+    write_output_file(out, CMD, lambda tmp: tmp.write_text("one"))
+    assert out.read_text() == "one" and _leftovers(out.parent) == []
+    bad = prepare_output_file(tmp_path / "other" / "sub" / "b.json", command=CMD)
+
+    def fail(tmp):
+        raise RuntimeError("the content could not be made")
+
+    with pytest.raises(RuntimeError):
+        write_output_file(bad, CMD, fail)
+    assert not (tmp_path / "other").exists()

@@ -170,3 +170,12 @@ def test_camera_plot_is_written_from_the_splat_or_the_alignment_cameras(tmp_path
     one = SparseModel({1: Camera.pinhole(100.0, 100.0, 32.0, 24.0, 64, 48)},
                       [PosedImage("a.png", 1, _ring(1)[0])], np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
     assert camera_plot_png(tmp_path / "one.png", one, None, title="one camera").is_file()  # no spread, no points
+
+
+def test_with_the_fuse_extension_the_renders_are_compared_with_the_fused_photos(tmp_path):
+    rnd = _round(tmp_path, align_stats(n_registered=4))
+    for n in sorted(p.name for p in (rnd.dir / "renders").glob("*.png")):
+        write_image(rnd.dir / "fused" / n, read_image(rnd.dir / "renders" / n))  # what the splat trained on
+    assert all(v < 60 for v in round_quality(rnd).splat.fit_psnr_db.values())  # against denoised/
+    fused = RoundResult(index=1, dir=rnd.dir, stages={**rnd.stages, "fuse": _stage("fuse", {}, {})})
+    assert all(math.isinf(v) for v in round_quality(fused).splat.fit_psnr_db.values())

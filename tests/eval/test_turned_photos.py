@@ -121,3 +121,30 @@ def test_turned_photos_with_a_calibration_or_other_sizes_are_refused(tmp_path):
     write_image(scene / "view_003.png", resize_area(read_image(scene / "view_000.png"), (48, 36)))
     with pytest.raises(InputError, match="resize or crop"):
         validate_run_inputs(scene, cfg)
+
+
+def test_an_evaluation_dataset_of_two_orientations_is_refused(tmp_path):
+    """An evaluation scores poses in each photo's own frame, which turning would change: refused up front."""
+    from eval.pipeline import validate_dataset_folder
+
+    root = tmp_path / "ds"
+    scene = make_scene(root / "images", n=4, size_wh=(64, 48))
+    make_scene(root / "clean", n=4, size_wh=(64, 48))
+    (root / "sparse" / "0").mkdir(parents=True)
+    (root / "split.json").write_text(json.dumps({"train": [f"view_00{i}.png" for i in range(3)],
+                                                 "test": ["view_003.png"]}))
+    assert validate_dataset_folder(root).train == ["view_000", "view_001", "view_002"]
+    _turn(scene / "view_001.png")
+    with pytest.raises(InputError, match="two orientations.*view_000: 64x48, view_001: 48x64"):
+        validate_dataset_folder(root)
+
+
+def test_a_turned_photo_that_is_also_downscaled_is_reported_as_resized(tmp_path):
+    scene = make_scene(tmp_path / "photos", n=3, size_wh=(128, 96))
+    _turn(scene / "view_001.png")
+    out = tmp_path / "out"
+    run_pipeline(scene, out, PipelineConfig(views=3, rounds=1, max_size=64), stages=TinyStages().stages())
+    summary = json.loads((out / "stages" / "inputs.json").read_text())["summary"]
+    assert summary["turned"] == ["view_001"] and summary["resized"] == ["view_000", "view_001", "view_002"]
+    assert json.loads((out / WORKING_DIR / SIZES_FILE).read_text())["view_001"] == {
+        "input": [96, 128], "working": [64, 48], "focal_35mm": None, "turned": 1}
