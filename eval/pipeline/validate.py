@@ -193,14 +193,14 @@ def validate_dataset_folder(root: Path) -> DatasetFolder:
 
 
 def _upright_size(path: Path) -> tuple[int, int] | None:
-    """(W, H) of an image as `read_image` returns it (a JPEG's EXIF orientation applied), from its header;
+    """(W, H) of an image as `read_image` returns it (a JPEG's or WebP's EXIF orientation applied), from its header;
     None where Pillow cannot tell (the image's own checks report it later)."""
     from PIL import Image
 
     try:
         with Image.open(path) as im:
             w, h = im.size
-            if path.suffix.lower() in (".jpg", ".jpeg") and im.getexif().get(0x0112, 1) in (5, 6, 7, 8):
+            if path.suffix.lower() in (".jpg", ".jpeg", ".webp") and im.getexif().get(0x0112, 1) in (5, 6, 7, 8):
                 w, h = h, w
             return w, h
     except (OSError, ValueError, SyntaxError):  # Pillow's errors on unreadable or odd files

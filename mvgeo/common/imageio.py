@@ -83,6 +83,25 @@ def jpeg_exif_orientation(data: bytes | np.ndarray) -> int:
     return 1
 
 
+def webp_exif_orientation(data: bytes | np.ndarray) -> int:
+    """The EXIF Orientation tag (1..8) of WebP file bytes; 1 (as stored) when absent or unreadable.
+
+    Walks the RIFF chunks for the "EXIF" one (its TIFF block, after an optional "Exif\\0\\0" header) and
+    reads tag 0x0112 from IFD0.
+    """
+    b = data if isinstance(data, bytes) else np.asarray(data, np.uint8).tobytes()
+    if len(b) < 12 or b[:4] != b"RIFF" or b[8:12] != b"WEBP":
+        return 1
+    i = 12
+    while i + 8 <= len(b):
+        fourcc, size = b[i:i + 4], int.from_bytes(b[i + 4:i + 8], "little")
+        if fourcc == b"EXIF":
+            t = b[i + 8:i + 8 + size]
+            return _tiff_orientation(t[6:] if t[:6] == b"Exif\x00\x00" else t)
+        i += 8 + size + (size & 1)  # chunks are padded to an even size
+    return 1
+
+
 def _tiff_orientation(t: bytes) -> int:
     if len(t) < 8 or t[:2] not in (b"II", b"MM"):
         return 1
@@ -187,7 +206,7 @@ def exif_focal_35mm(path: str | Path) -> float | None:
 def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
     """Read an 8/16-bit image as float32 RGB in [0, 1], shape (H, W, 3).
 
-    Grayscale files are replicated to three channels; alpha is dropped. A JPEG's EXIF
+    Grayscale files are replicated to three channels; alpha is dropped. A JPEG's or WebP's EXIF
     Orientation tag is applied (the array is the photo as a viewer shows it).
 
     Raises:
@@ -211,7 +230,8 @@ def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
         raise InputError(f"unsupported pixel type {img.dtype}", path=path, fix="use 8- or 16-bit images")
     if img.ndim == 2:
         img = img[:, :, None]
-    img = apply_exif_orientation(img, jpeg_exif_orientation(data))
+    img = apply_exif_orientation(img, jpeg_exif_orientation(data) if data[:2].tobytes() == b"\xff\xd8"
+                                 else webp_exif_orientation(data))
     if img.shape[2] == 4:
         img = img[:, :, :3]
     if img.shape[2] == 1:

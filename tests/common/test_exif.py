@@ -59,3 +59,21 @@ def test_corrupt_exif_block_reads_as_orientation_one():
     # SOI, APP1 "Exif" with a truncated TIFF header, then SOS
     data = b"\xff\xd8" + b"\xff\xe1\x00\x0a" + b"Exif\x00\x00II" + b"\xff\xda\x00\x02"
     assert jpeg_exif_orientation(data) == 1
+
+
+@pytest.mark.parametrize("orientation", [1, 3, 6, 8])
+def test_read_image_applies_a_webp_exif_orientation(tmp_path, orientation):
+    """WebP carries EXIF in a RIFF chunk (`webp_exif_orientation`); lossless, so the pixels compare exactly."""
+    from mvgeo.common.imageio import webp_exif_orientation
+
+    pixels = _asymmetric_rgb()
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(pixels).save(tmp_path / "tagged.webp", lossless=True, exif=exif.tobytes())
+    assert webp_exif_orientation((tmp_path / "tagged.webp").read_bytes()) == orientation
+    with Image.open(tmp_path / "tagged.webp") as im:
+        upright = np.asarray(ImageOps.exif_transpose(im).convert("RGB"), np.float32) / 255.0
+    np.testing.assert_array_equal(read_image(tmp_path / "tagged.webp"), upright)
+    Image.fromarray(pixels).save(tmp_path / "plain.webp", lossless=True)
+    assert webp_exif_orientation((tmp_path / "plain.webp").read_bytes()) == 1
+    assert webp_exif_orientation(b"RIFF\x10\x00\x00\x00WEBPEXIF\xff\xff\xff\x7fII") == 1  # truncated chunk
