@@ -117,9 +117,16 @@ def _align(args: argparse.Namespace) -> int:
     if moved:
         print(f"note: {moved} re-posed where PnP on the other views' points puts them (align.json "
               "views_located_by_points)", file=sys.stderr)
+    ba = s.bundle_adjustment
+    fit = "" if ba is None else f", reprojection RMS {ba.reproj_rms_after_px:.3g} px over {ba.n_points} tracks"
+    focals = sorted(s.focal_px.values())
+    if focals and not s.known_intrinsics:
+        how = "from the pairs" if s.focal_determined_by_pairs else "not determined by the pairs"
+        std = f", log-std {ba.focal_log_std:.3f}" if ba is not None else ""
+        fit += f", focal {focals[len(focals) // 2]:.1f} px ({how}{std})"
     print(f"aligned {s.n_registered}/{s.n_images} images ({s.n_pairs_ok}/{s.n_pairs} pairs, {s.initial_poses} "
           f"start, {len(s.candidates)} candidate(s){prior}), {s.n_points} points, "
-          f"loss {s.init_loss:.4g} -> {s.final_loss:.4g}, {s.timings_s['total']:.1f} s -> {args.out}")
+          f"loss {s.init_loss:.4g} -> {s.final_loss:.4g}{fit}, {s.timings_s['total']:.1f} s -> {args.out}")
     return 0
 
 

@@ -51,11 +51,17 @@ def test_align_outputs(aligned, scene):
     assert filled.shape == (6,) and np.all((filled >= 0) & (filled <= 1)) and filled.max() > 0.01
 
 
-def test_no_hole_fill_flag(scene, tmp_path):
+def test_no_hole_fill_flag_and_the_summary_line(scene, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["align", str(scene / "images"), "--out", str(out), *FAST, "--no-hole-fill"]) == 0
     stats = json.loads((out / "align.json").read_text())
     assert stats["dense_stereo"]["fraction_filled"] == [0.0] * 6
+    # The summary line names the fit and the focal as align.json records them.
+    line = capsys.readouterr().out
+    ba = stats["bundle_adjustment"]
+    assert f"reprojection RMS {ba['reproj_rms_after_px']:.3g} px over {ba['n_points']} tracks" in line
+    focal = sorted(stats["focal_px"].values())[3]
+    assert f"focal {focal:.1f} px (" in line and f"log-std {ba['focal_log_std']:.3f})" in line
 
 
 def test_align_poses_against_ground_truth_and_colmap(aligned, scene, tmp_path, capsys):
