@@ -49,6 +49,11 @@ class DenoiseQuality:
     restarts: int = 0
     #: "training" (round 1's denoise stage) or "fine-tuning" (a later round's refine stage).
     kind: str = "training"
+    #: round 1: each noisy photo's noise std (/255) as the default denoiser estimates it
+    #: (`denoise.self_supervised.r2r_noise_std`); the median of the per-pixel map for the photos in
+    #: `signal_dependent` (noise that grows with the intensity, e.g. shot noise).
+    noise_std_255: dict[str, float] = field(default_factory=dict)
+    signal_dependent: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -128,13 +133,32 @@ def _first_last(summary: Mapping, key: str) -> tuple[float | None, float | None,
     return float(h["first"]), float(h["last"]), int(h["count"])
 
 
-def _denoise_quality(summary: Mapping, kind: str) -> DenoiseQuality:
+def noise_levels(folder: Path) -> tuple[dict[str, float], list[str]]:
+    """(view -> noise std /255, the views whose noise is signal-dependent) of the photos in `folder`, as the
+    default denoiser estimates them (`r2r_noise_std`; a per-pixel map's median); empty without photos."""
+    import torch
+
+    from denoise.self_supervised import r2r_noise_std
+
+    levels, dependent = {}, []
+    for name, path in _views(folder).items():
+        sigma = r2r_noise_std(read_image(path))
+        if isinstance(sigma, torch.Tensor):
+            sigma = float(sigma.median())
+            dependent.append(name)
+        levels[name] = 255.0 * float(sigma)
+    return levels, dependent
+
+
+def _denoise_quality(summary: Mapping, kind: str, noisy_dir: Path | None) -> DenoiseQuality:
     first, last, count = _first_last(summary, "loss")
     frac = summary.get("dark_clipped_fraction")
+    levels, dependent = noise_levels(noisy_dir) if noisy_dir is not None else ({}, [])
     return DenoiseQuality(objective=summary.get("objective"),
                           dark_clipped_fraction=None if frac is None else float(frac),
                           loss_first=first, loss_last=last, steps=count,
-                          restarts=len(summary.get("training_restarts", [])), kind=kind)
+                          restarts=len(summary.get("training_restarts", [])), kind=kind,
+                          noise_std_255=levels, signal_dependent=dependent)
 
 
 def _focal_source(stats: AlignStats) -> str:
@@ -213,8 +237,9 @@ def _align_json(rnd: RoundResult) -> Path | None:
     return None
 
 
-def round_quality(rnd: RoundResult) -> RoundQuality:
-    """The self-checks of round `rnd` from its stages' summaries and its `align.json`.
+def round_quality(rnd: RoundResult, noisy_dir: Path | None = None) -> RoundQuality:
+    """The self-checks of round `rnd` from its stages' summaries and its `align.json`; with `noisy_dir` (the
+    run's working photos), round 1 also reports their noise level (`noise_levels`).
 
     Raises:
         InputError: the round's align.json cannot be read.
@@ -232,7 +257,8 @@ def round_quality(rnd: RoundResult) -> RoundQuality:
         align = _align_quality(stats, rnd.stages["align"].summary)
     splat = rnd.stages.get("splat")
     return RoundQuality(index=rnd.index,
-                        denoise=_denoise_quality(denoise.summary, kind) if denoise is not None else None,
+                        denoise=(_denoise_quality(denoise.summary, kind, noisy_dir if kind == "training" else None)
+                                 if denoise is not None else None),
                         align=align,
                         splat=_splat_quality(splat.summary, rnd.dir, "fused" if "fuse" in rnd.stages else "denoised")
                         if splat is not None else None)
@@ -255,6 +281,12 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
             restarts = f"; restarted {d.restarts} time(s) after diverging" if d.restarts else ""
             lines.append(f"- denoising: {what}{why}; {d.kind} loss {_fmt(d.loss_first, '.4g')} -> "
                          f"{_fmt(d.loss_last, '.4g')} over {d.steps} steps{restarts}")
+        if d is not None and d.noise_std_255:
+            v = np.array(list(d.noise_std_255.values()))
+            dep = (f"; signal-dependent (e.g. shot noise) in {len(d.signal_dependent)} of them: the median of "
+                   "each one's per-pixel level" if d.signal_dependent else "")
+            lines.append(f"- noise level of the {len(v)} photos as the denoiser estimates it: median "
+                         f"{np.median(v):.1f}/255 (from {v.min():.1f} to {v.max():.1f}){dep}")
         a = q.align
         if a is not None:
             photos = f" ({a.photos} photos)" if a.photos else ""
