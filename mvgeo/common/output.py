@@ -783,10 +783,11 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
             (nothing was replaced).
     """
     path = Path(path)
-    created = make_dirs(path.parent)  # `prepare_output_file` accepts a folder still to be made
-    remove_stale_leftovers(path.parent, path.name)  # a killed call's temporary file, with its dead owner
+    created: list[Path] = []
     tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
     try:
+        created = make_dirs(path.parent)  # `prepare_output_file` accepts a folder still to be made
+        remove_stale_leftovers(path.parent, path.name)  # a killed call's temporary file, with its dead owner
         owner = OwnerFile(tmp)
     except OSError as exc:
         remove_empty_dirs(created)
