@@ -8,7 +8,6 @@ What may be replaced is decided by the output policy (`mvgeo.common.output`).
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
 import uuid
 from collections.abc import Iterator
@@ -25,6 +24,7 @@ from mvgeo.common.output import (
     remove_empty_dirs,
     remove_stale_leftovers,
     remove_tree,
+    rename_no_replace,
     write_manifest,
 )
 
@@ -32,7 +32,8 @@ __all__ = ["atomic_output_dir", "atomic_write_bytes", "atomic_write_text"]
 
 
 def _commit_error(plan: OutputPlan, exc: OSError) -> InputError:
-    return InputError(f"cannot put the output in place ({exc.strerror or exc}); nothing was changed",
+    what = f": {Path(exc.filename).name}" if isinstance(exc, FileExistsError) and exc.filename else ""
+    return InputError(f"cannot put the output in place ({exc.strerror or exc}{what}); nothing was changed",
                       path=plan.out, fix="check what appeared at --out meanwhile, or choose another --out")
 
 
@@ -143,9 +144,7 @@ def _move_entries_up(plan: OutputPlan, tmp: Path) -> None:
     try:
         for name in sorted(os.listdir(tmp)):
             dst = path / name
-            if os.path.lexists(dst):
-                raise OSError(errno.EEXIST, "exists", str(dst))
-            os.rename(tmp / name, dst)
+            rename_no_replace(tmp / name, dst)  # never over an entry that appeared since the check above
             moved.append(dst)
         tmp.rmdir()
     except OSError as exc:

@@ -43,6 +43,7 @@ This module imports only the standard library.
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import logging
@@ -81,6 +82,7 @@ __all__ = [
     "prepare_output_file",
     "read_manifest",
     "remove_stale_leftovers",
+    "rename_no_replace",
     "restore_retired_output",
     "resumable_output_dir",
     "stale_leftovers",
@@ -439,20 +441,44 @@ def _owner_gone(owner: Path, entry_name: str) -> bool:
         return False
 
 
-def _rename_no_replace(src: Path, dst: Path) -> bool:
-    """Rename `src` to `dst` only if nothing is at `dst` (Linux `renameat2(RENAME_NOREPLACE)`: a plain rename
-    would replace an empty folder another command has just made there). False where that call is missing or
-    fails: the caller then moves nothing."""
+def _renameat2():
+    """libc's `renameat2`, or None where the C library has none (not Linux, or glibc before 2.28)."""
     import ctypes
     import ctypes.util
 
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        renameat2 = libc.renameat2
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True).renameat2
     except (OSError, AttributeError):
-        return False
-    at_fdcwd, rename_noreplace = -100, 1
-    return renameat2(at_fdcwd, os.fsencode(src), at_fdcwd, os.fsencode(dst), rename_noreplace) == 0
+        return None
+
+
+def rename_no_replace(src: Path, dst: Path, *, fallback: bool = True) -> None:
+    """Rename `src` to `dst` only if nothing is at `dst`: a plain rename silently replaces a file, or an empty
+    folder, that appeared at `dst` after a check. Linux `renameat2(RENAME_NOREPLACE)` makes the check and the
+    rename one step; where it is missing (or the file system refuses the flag) `fallback` checks, then renames
+    (a gap of microseconds), and without `fallback` nothing is moved (`OSError`).
+
+    Raises:
+        FileExistsError: something is at `dst` (nothing was moved).
+        OSError: the rename failed otherwise.
+    """
+    import ctypes
+
+    fn = _renameat2()
+    if fn is not None:
+        at_fdcwd, rename_noreplace = -100, 1
+        if fn(at_fdcwd, os.fsencode(src), at_fdcwd, os.fsencode(dst), rename_noreplace) == 0:
+            return
+        err = ctypes.get_errno()
+        if err == errno.EEXIST:
+            raise FileExistsError(err, os.strerror(err), str(dst))
+        if err not in (errno.EINVAL, errno.ENOSYS):  # EINVAL / ENOSYS: the flag or the call is unsupported
+            raise OSError(err, os.strerror(err), str(dst))
+    if not fallback:
+        raise OSError(errno.ENOSYS, "no rename that refuses to replace", str(dst))
+    if os.path.lexists(dst):
+        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(dst))
+    os.rename(src, dst)
 
 
 def restore_retired_output(path: Path) -> Path | None:
@@ -479,7 +505,11 @@ def restore_retired_output(path: Path) -> Path | None:
         entry = path.parent / name
         if not entry.is_symlink() and entry.is_dir() and _owner_gone(path.parent / (name + OWNER_SUFFIX), name):
             retired.append(entry)
-    if len(retired) != 1 or not _rename_no_replace(retired[0], path):
+    if len(retired) != 1:
+        return None
+    try:
+        rename_no_replace(retired[0], path, fallback=False)
+    except OSError:
         return None
     retired[0].with_name(retired[0].name + OWNER_SUFFIX).unlink(missing_ok=True)
     _log.warning("restored the previous output %s from %s, where a command killed while replacing it had left it",

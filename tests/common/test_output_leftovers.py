@@ -279,14 +279,44 @@ def test_a_retired_output_behind_a_symbolic_link_is_put_back(tmp_path):
     assert (link / "a.txt").read_text() == ".out.old-0123abcd"
 
 
-def test_the_restoring_rename_never_replaces_what_is_there(tmp_path):
-    """A plain rename would replace an empty folder another command just made at `out`."""
-    from mvgeo.common.output import _rename_no_replace
+@pytest.mark.parametrize("fallback", [True, False])
+def test_rename_no_replace_never_replaces_what_is_there(tmp_path, fallback):
+    """A plain rename would replace an empty folder, or a file, that appeared at the destination."""
+    from mvgeo.common.output import rename_no_replace
 
     (tmp_path / "src").mkdir()
     (tmp_path / "src" / "a.txt").write_text("a")
     (tmp_path / "dst").mkdir()
-    assert not _rename_no_replace(tmp_path / "src", tmp_path / "dst")
+    with pytest.raises(FileExistsError):
+        rename_no_replace(tmp_path / "src", tmp_path / "dst", fallback=fallback)
     assert (tmp_path / "src" / "a.txt").is_file() and list((tmp_path / "dst").iterdir()) == []
-    assert _rename_no_replace(tmp_path / "src", tmp_path / "new")
+    (tmp_path / "user.txt").write_text("the user's")
+    with pytest.raises(FileExistsError):
+        rename_no_replace(tmp_path / "src" / "a.txt", tmp_path / "user.txt", fallback=fallback)
+    assert (tmp_path / "user.txt").read_text() == "the user's"
+    rename_no_replace(tmp_path / "src", tmp_path / "new", fallback=fallback)
     assert (tmp_path / "new" / "a.txt").is_file() and not (tmp_path / "src").exists()
+
+
+def test_a_file_appearing_in_an_empty_out_while_the_output_moves_in_is_kept(tmp_path, monkeypatch):
+    """`--out` was empty: the results move up from the temporary folder inside it. A file of the user's that
+    appears after the last check (here: right after it) is neither replaced nor removed; exit 2."""
+    import mvgeo.common.atomic as atomic
+
+    out = tmp_path / "out"
+    out.mkdir()
+    listdir, seen = os.listdir, []
+
+    def listdir_then_user_writes(p="."):
+        names = listdir(p)
+        if Path(p) == out and not seen:  # `_move_entries_up`'s check of --out: the user's file comes after it
+            seen.append(p)
+            (out / "a.txt").write_text("the user's")
+        return names
+
+    with pytest.raises(InputError, match="a.txt"):
+        with atomic_output_dir(prepare_output(out, command=CMD)) as tmp:
+            (tmp / "a.txt").write_text("ours")
+            (tmp / "b.txt").write_text("ours")
+            monkeypatch.setattr(atomic.os, "listdir", listdir_then_user_writes)
+    assert (out / "a.txt").read_text() == "the user's" and seen
