@@ -61,8 +61,7 @@ def reference_working_size(sizes_wh: Sequence[tuple[int, int]]) -> tuple[int, in
     that is its transpose (a photo turned by 90 degrees) is turned to it (module docstring)."""
     if not sizes_wh:
         raise ValueError("no image sizes")
-    counts = Counter(tuple(s) for s in sizes_wh)
-    return max(counts, key=lambda s: (counts[s], -[tuple(x) for x in sizes_wh].index(s)))
+    return Counter(tuple(s) for s in sizes_wh).most_common(1)[0][0]  # equal counts: in first-seen order
 
 
 def resize_area(img: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:

@@ -49,9 +49,9 @@ class DenoiseQuality:
     restarts: int = 0
     #: "training" (round 1's denoise stage) or "fine-tuning" (a later round's refine stage).
     kind: str = "training"
-    #: round 1: each noisy photo's noise std (/255) as the default denoiser estimates it
-    #: (`denoise.self_supervised.r2r_noise_std`); the median of the per-pixel map for the photos in
-    #: `signal_dependent` (noise that grows with the intensity, e.g. shot noise).
+    #: round 1: each noisy photo's noise std (/255) as the default denoiser estimates it, recorded by the
+    #: denoise stage (`noise_levels`); the median of the per-pixel map for the photos in `signal_dependent`
+    #: (noise that grows with the intensity, e.g. shot noise).
     noise_std_255: dict[str, float] = field(default_factory=dict)
     signal_dependent: list[str] = field(default_factory=list)
 
@@ -133,32 +133,33 @@ def _first_last(summary: Mapping, key: str) -> tuple[float | None, float | None,
     return float(h["first"]), float(h["last"]), int(h["count"])
 
 
-def noise_levels(folder: Path) -> tuple[dict[str, float], list[str]]:
-    """(view -> noise std /255, the views whose noise is signal-dependent) of the photos in `folder`, as the
-    default denoiser estimates them (`r2r_noise_std`; a per-pixel map's median); empty without photos."""
+def noise_levels(images: Mapping[str, np.ndarray]) -> dict[str, object]:
+    """The denoise stage's record of its photos' noise: {"noise_std_255": view -> std /255,
+    "signal_dependent": [views whose noise grows with the intensity]}, as the default denoiser estimates it
+    (`r2r_noise_std`; a per-pixel map's median)."""
     import torch
 
     from denoise.self_supervised import r2r_noise_std
 
     levels, dependent = {}, []
-    for name, path in _views(folder).items():
-        sigma = r2r_noise_std(read_image(path))
+    for name, img in images.items():
+        sigma = r2r_noise_std(img)
         if isinstance(sigma, torch.Tensor):
             sigma = float(sigma.median())
             dependent.append(name)
         levels[name] = 255.0 * float(sigma)
-    return levels, dependent
+    return {"noise_std_255": levels, "signal_dependent": dependent}
 
 
-def _denoise_quality(summary: Mapping, kind: str, noisy_dir: Path | None) -> DenoiseQuality:
+def _denoise_quality(summary: Mapping, kind: str) -> DenoiseQuality:
     first, last, count = _first_last(summary, "loss")
     frac = summary.get("dark_clipped_fraction")
-    levels, dependent = noise_levels(noisy_dir) if noisy_dir is not None else ({}, [])
     return DenoiseQuality(objective=summary.get("objective"),
                           dark_clipped_fraction=None if frac is None else float(frac),
                           loss_first=first, loss_last=last, steps=count,
                           restarts=len(summary.get("training_restarts", [])), kind=kind,
-                          noise_std_255=levels, signal_dependent=dependent)
+                          noise_std_255={str(k): float(v) for k, v in summary.get("noise_std_255", {}).items()},
+                          signal_dependent=list(summary.get("signal_dependent", [])))
 
 
 def _focal_source(stats: AlignStats) -> str:
@@ -237,9 +238,8 @@ def _align_json(rnd: RoundResult) -> Path | None:
     return None
 
 
-def round_quality(rnd: RoundResult, noisy_dir: Path | None = None) -> RoundQuality:
-    """The self-checks of round `rnd` from its stages' summaries and its `align.json`; with `noisy_dir` (the
-    run's working photos), round 1 also reports their noise level (`noise_levels`).
+def round_quality(rnd: RoundResult) -> RoundQuality:
+    """The self-checks of round `rnd` from its stages' summaries and its `align.json`.
 
     Raises:
         InputError: the round's align.json cannot be read.
@@ -257,8 +257,7 @@ def round_quality(rnd: RoundResult, noisy_dir: Path | None = None) -> RoundQuali
         align = _align_quality(stats, rnd.stages["align"].summary)
     splat = rnd.stages.get("splat")
     return RoundQuality(index=rnd.index,
-                        denoise=(_denoise_quality(denoise.summary, kind, noisy_dir if kind == "training" else None)
-                                 if denoise is not None else None),
+                        denoise=_denoise_quality(denoise.summary, kind) if denoise is not None else None,
                         align=align,
                         splat=_splat_quality(splat.summary, rnd.dir, "fused" if "fuse" in rnd.stages else "denoised")
                         if splat is not None else None)

@@ -131,7 +131,7 @@ def _write_report_files(out: Path, dest: Path, *, images_dir: Path, config: Pipe
     noisy_dir = out / "inputs" if working is not None else images_dir  # same size as the renders
     sheets = {rnd.index: _contact_sheet_png(dest, noisy_dir, rnd.dir, rnd.index) for rnd in rounds}
     sizes = dict(working.summary.get("sizes", {})) if working is not None else {}
-    quality = [round_quality(rnd, noisy_dir) for rnd in rounds]
+    quality = [round_quality(rnd) for rnd in rounds]
     camera_plots = {rnd.index: round_camera_plot(dest, rnd) for rnd in rounds}
     report = {
         "images_dir": str(images_dir),

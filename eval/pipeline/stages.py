@@ -106,6 +106,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     ``(1 - k) * network output + k * noisy photo``."""
     from denoise.model import save_checkpoint
     from denoise.self_supervised import choose_objective, denoise_with_method, train_with_method
+    from eval.pipeline.quality import noise_levels
 
     s = ctx.settings
     noisy = read_views(ctx.inputs["noisy"])
@@ -124,7 +125,8 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
     restarts = {"training_restarts": model.restarts} if model.restarts else {}  # a diverged training, restarted
-    return {"views": list(noisy), "train": _history_summary(model.history), **chosen, **restarts}
+    return {"views": list(noisy), "train": _history_summary(model.history), **chosen, **restarts,
+            **noise_levels(noisy)}  # the report's noise level, measured once here
 
 
 #: The align stage's record of which photos it aligned (`AlignSettings.photos`), in align.json.

@@ -16,7 +16,7 @@ from eval.pipeline.inputs import reference_working_size, working_size
 from eval.pipeline.views import view_files
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
-from mvgeo.common.imageio import read_image
+from mvgeo.common.imageio import exif_orientation, read_image
 from mvgeo.common.jsonio import read_json_object
 
 __all__ = ["MIN_IMAGE_SIZE_PX", "DatasetFolder", "check_intrinsics", "validate_dataset_folder", "validate_run_inputs"]
@@ -193,16 +193,15 @@ def validate_dataset_folder(root: Path) -> DatasetFolder:
 
 
 def _upright_size(path: Path) -> tuple[int, int] | None:
-    """(W, H) of an image as `read_image` returns it (a JPEG's or WebP's EXIF orientation applied), from its header;
-    None where Pillow cannot tell (the image's own checks report it later)."""
+    """(W, H) of an image as `read_image` returns it: the size from its header (Pillow), turned where its EXIF
+    orientation (`exif_orientation`, the rule `read_image` applies) turns it; None where Pillow cannot tell
+    (the image's own checks report it later)."""
     from PIL import Image
 
     try:
         with Image.open(path) as im:
             w, h = im.size
-            if path.suffix.lower() in (".jpg", ".jpeg", ".webp") and im.getexif().get(0x0112, 1) in (5, 6, 7, 8):
-                w, h = h, w
-            return w, h
+        return (h, w) if exif_orientation(path.read_bytes()) in (5, 6, 7, 8) else (w, h)
     except (OSError, ValueError, SyntaxError):  # Pillow's errors on unreadable or odd files
         return None
 

@@ -83,8 +83,8 @@ def load_inputs(images: Sequence[Path] | Sequence[np.ndarray], *, names: Sequenc
     sizes = {a.shape[:2] for a in arrays}
     if len(sizes) > 1:
         listing = ", ".join(f"{n}: {a.shape[1]}x{a.shape[0]}" for n, a in zip(names, arrays, strict=True))
-        a, b = (sorted(sizes) + [None])[:2]
-        turned = len(sizes) == 2 and a == b[::-1]  # portrait and landscape photos of one camera
+        a, b, *more = sorted(sizes)
+        turned = not more and a == b[::-1]  # portrait and landscape photos of one camera
         raise InputError(f"images have different sizes ({listing})",
                          fix="mvgeo align assumes one camera: " + (
                              "rotate the photos to one orientation first, without resizing (the same camera "

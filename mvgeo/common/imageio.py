@@ -36,7 +36,8 @@ def list_images(folder: str | Path) -> list[Path]:
         raise InputError("folder does not exist", path=folder, fix="pass a folder of images")
     if not folder.is_dir():
         raise InputError("not a folder", path=folder, fix="pass a folder of images")
-    named = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    entries = list(folder.iterdir())
+    named = sorted(p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES)
     for p in named:
         try:
             p.name.encode("utf-8")
@@ -48,7 +49,7 @@ def list_images(folder: str | Path) -> list[Path]:
                              fix=f"restore its target ({os.readlink(p)}) or remove the link")
     files = [p for p in named if p.is_file()]
     stems = {p.stem for p in files}
-    unread = sorted(p.name for p in folder.iterdir()
+    unread = sorted(p.name for p in entries
                     if p.suffix.lower() in UNREADABLE_PHOTO_SUFFIXES and p.stem not in stems and p.is_file())
     if unread:
         shown = ", ".join(unread[:5]) + (f" and {len(unread) - 5} more" if len(unread) > 5 else "")
@@ -100,6 +101,13 @@ def webp_exif_orientation(data: bytes | np.ndarray) -> int:
             return _tiff_orientation(t[6:] if t[:6] == b"Exif\x00\x00" else t)
         i += 8 + size + (size & 1)  # chunks are padded to an even size
     return 1
+
+
+def exif_orientation(data: bytes | np.ndarray) -> int:
+    """The EXIF Orientation tag (1..8) `read_image` applies: a JPEG's or a WebP's (by their content, not
+    their file name); 1 for any other file or without one."""
+    b = data if isinstance(data, bytes) else np.asarray(data, np.uint8).tobytes()
+    return jpeg_exif_orientation(b) if b[:2] == b"\xff\xd8" else webp_exif_orientation(b)
 
 
 def _tiff_orientation(t: bytes) -> int:
@@ -230,8 +238,7 @@ def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
         raise InputError(f"unsupported pixel type {img.dtype}", path=path, fix="use 8- or 16-bit images")
     if img.ndim == 2:
         img = img[:, :, None]
-    img = apply_exif_orientation(img, jpeg_exif_orientation(data) if data[:2].tobytes() == b"\xff\xd8"
-                                 else webp_exif_orientation(data))
+    img = apply_exif_orientation(img, exif_orientation(data))
     if img.shape[2] == 4:
         img = img[:, :, :3]
     if img.shape[2] == 1:

@@ -45,6 +45,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import functools
 import json
 import logging
 import os
@@ -441,6 +442,7 @@ def _owner_gone(owner: Path, entry_name: str) -> bool:
         return False
 
 
+@functools.cache
 def _renameat2():
     """libc's `renameat2`, or None where the C library has none (not Linux, or glibc before 2.28)."""
     import ctypes
@@ -829,6 +831,7 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
                           "wrote is replaced", path=path,
                           fix="choose another --out (or move the file away yourself); nothing was replaced")
 
+    done = False
     try:
         write(tmp)
         if not os.path.lexists(path):
@@ -851,14 +854,12 @@ def write_output_file(path: Path, command: str, write: Callable[[Path], object])
             if why is not None:
                 raise changed(why)
             os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        owner.release()
-        remove_empty_dirs(created)
-        raise
+        done = True
     finally:
         tmp.unlink(missing_ok=True)
         owner.release()
+        if not done:
+            remove_empty_dirs(created)
     try:
         write_file_record(path, command)
     except OSError as exc:

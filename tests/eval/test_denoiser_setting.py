@@ -68,6 +68,7 @@ def test_the_real_stage_trains_and_applies_the_method(tmp_path, method):
     summary = denoise(ctx)
     out = read_views(tmp_path / "work" / "denoised")
     assert sorted(out) == sorted(noisy) == summary["views"]
+    assert sorted(summary["noise_std_255"]) == sorted(noisy)  # the report's noise level, recorded here
     assert (tmp_path / "work" / "n2v_model.pt").is_file()
     # A flat patch: any sensible denoiser lowers the error to it (30 steps; the noisy error is 0.1^2).
     err_noisy = np.mean([(noisy[k] - clean) ** 2 for k in noisy])

@@ -182,18 +182,22 @@ def test_with_the_fuse_extension_the_renders_are_compared_with_the_fused_photos(
 
 
 def test_round_one_reports_the_photos_noise_level(tmp_path):
-    """Each photo's noise std as the default denoiser reads it (`r2r_noise_std`), in /255."""
+    """Each photo's noise std as the default denoiser reads it (`r2r_noise_std`), in /255, recorded by the
+    denoise stage and reported from its summary."""
     from eval.pipeline.quality import noise_levels
 
     rng = np.random.default_rng(3)
     yy, xx = np.mgrid[:96, :128] / 128.0
     base = np.stack([0.3 + 0.3 * xx, 0.4 + 0.2 * yy, 0.5 + 0.1 * xx * yy], axis=-1)
-    for k, sigma in enumerate((10, 20)):
-        write_image(tmp_path / "noisy" / f"v{k}.png", base + rng.normal(0, sigma / 255, base.shape), bits=16)
-    levels, dependent = noise_levels(tmp_path / "noisy")
+    photos = {f"v{k}": np.clip(base + rng.normal(0, sigma / 255, base.shape), 0, 1).astype(np.float32)
+              for k, sigma in enumerate((10, 20))}
+    record = noise_levels(photos)
+    levels, dependent = record["noise_std_255"], record["signal_dependent"]
     assert dependent == [] and levels["v0"] == pytest.approx(10, rel=0.1) and levels["v1"] == pytest.approx(20, rel=0.1)
     rnd = _round(tmp_path / "r", align_stats(n_registered=4))
-    q = round_quality(rnd, tmp_path / "noisy")
+    recorded = RoundResult(index=1, dir=rnd.dir, stages={**rnd.stages, "denoise": _stage(
+        "denoise", {}, {**rnd.stages["denoise"].summary, **record})})
+    q = round_quality(recorded)
     assert q.denoise.noise_std_255 == levels
     assert f"median {np.median(list(levels.values())):.1f}/255" in "\n".join(quality_lines([q]))
-    assert round_quality(rnd).denoise.noise_std_255 == {}  # no photos given
+    assert round_quality(rnd).denoise.noise_std_255 == {}  # a summary without the record
