@@ -648,11 +648,11 @@ def run_careamics(scene: str, data_dir: Path, *, views: int, crop_px: int, steps
                                       "K=8)")]
     ours += [("default", "r2r", n, "UNet R2R (the product's choice for photos; K=8 recorruptions)") for n in steps]
     for preset, method, n, note in ours:
-        cfg = n2v_preset(preset, steps=n, method=method, torch_threads=threads)
-        t = time.perf_counter()
-        model = train_with_method(noisy, cfg, seed=seed)
-        train_s = time.perf_counter() - t
-        with torch_threads(threads):
+        cfg = n2v_preset(preset, steps=n, method=method)
+        with torch_threads(threads):  # the denoiser's thread budget (`denoise.parallel`)
+            t = time.perf_counter()
+            model = train_with_method(noisy, cfg, seed=seed)
+            train_s = time.perf_counter() - t
             t = time.perf_counter()
             outs = denoise_with_method(model, noisy, cfg, passes=PASSES, seed=seed)
             per = (time.perf_counter() - t) / len(noisy)

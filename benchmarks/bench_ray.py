@@ -6,17 +6,19 @@ graph has 4 chains of one):
 - `oracle`: `oracle_clean` (alignment + splat + held-out scoring) with 4 seeds at 256x192, 12 views (the
   demo's size: runs of about a minute, so the time ratio is the runs', not the cluster's start-up);
 - `n2v`: `oracle_clean` and `n2v_round1` (N2V training and denoising first) with 2 seeds at 128x96, 8 views:
-  the scores check with the denoiser in the runs.
+  the scores check with the denoiser in the runs;
+- `n2v_256`: `n2v_round1` with 4 seeds at the `oracle` sweep's size: every run trains a denoiser, at a size
+  where the runs, not the cluster's start-up, set the time.
 Each command is its own process, as a user runs it: the serial one first, then the Ray one, in fresh
 out folders, so both render the scene and run every stage (nothing from a cache). The Ray wall time
 includes starting and stopping the local cluster.
 
 The serial process runs torch with its default threads (the machine's cores), each Ray task with one;
-the denoiser and the scoring fix their own counts (`N2VConfig.torch_threads`,
-`eval.image_metrics.SCORING_THREADS`), so the scores must be identical (docs/cluster.md, "Threads and
+the denoiser runs one torch thread per piece of work (`denoise.parallel`) and the scoring fixes its
+count (`eval.image_metrics.SCORING_THREADS`), so the scores must be identical (docs/cluster.md, "Threads and
 memory per task").
 
-Run: `.venv/bin/python benchmarks/bench_ray.py` (writes docs/bench/ray.md; about 10 minutes on 2 cores).
+Run: `.venv/bin/python benchmarks/bench_ray.py` (writes docs/bench/ray.md; about 20 minutes on 2 cores).
 """
 
 from __future__ import annotations
@@ -37,7 +39,8 @@ from _common import ROOT, md_table, write_fragment  # noqa: E402
 
 ARGS = ["eval", "llff_like", "--preset", "fast", "--splat-iters", "300"]
 SWEEPS = {"oracle": ["--size", "256x192", "--scene-views", "12", "--seeds", "4", "--methods", "oracle_clean"],
-          "n2v": ["--size", "128x96", "--scene-views", "8", "--seeds", "2", "--methods", "oracle_clean", "n2v_round1"]}
+          "n2v": ["--size", "128x96", "--scene-views", "8", "--seeds", "2", "--methods", "oracle_clean", "n2v_round1"],
+          "n2v_256": ["--size", "256x192", "--scene-views", "12", "--seeds", "4", "--methods", "n2v_round1"]}
 SCORE_KEYS = ("scene", "method", "seed", "psnr_db", "ssim", "lpips", "rot_err_deg", "ate", "per_view", "error")
 GOAL_RATIO = 0.8
 
@@ -116,7 +119,8 @@ def main() -> int:
 
 Machine: {os.cpu_count()} cores ({_cpu_model()}), Python {platform.python_version()}; 1-minute load average
 ({'; '.join(loads)}). Measured {now}. The serial process runs torch with its default {threads} threads, each
-Ray task with one (the denoiser with its own 2, the scoring with 1).
+Ray task with one (the denoiser one per piece of work, on as many Python threads as the run has
+torch threads; the scoring with 1).
 
 {md_table(["sweep (4 runs)", "serial (s)", "`--workers 2` (s)", "ratio", f"goal <= {GOAL_RATIO}x",
            "above half the serial (s)", "scores identical to serial"], table)}

@@ -130,8 +130,7 @@ def main() -> int:
             cache[folder] = _load(args.data_root / folder)
         noisy, clean = cache[folder]
         base = n2v_preset("default", steps=args.time_steps or steps)
-        cfg = replace(base, method=method, unet=replace(base.unet, width=width), batch_size=batch, patch_px=patch,
-                      torch_threads=None if args.device != "cpu" else base.torch_threads)
+        cfg = replace(base, method=method, unet=replace(base.unet, width=width), batch_size=batch, patch_px=patch)
         t0 = time.perf_counter()
         model = train_with_method(noisy, cfg, seed=seed, device=args.device)
         if args.device.startswith("cuda"):

@@ -44,7 +44,6 @@ def worker(dataset: Path, task: str) -> dict:
     from eval.pipeline import preset
     from eval.pipeline.stage_settings import n2v_config
     from eval.pipeline.views import read_views
-    from mvgeo.common.threads import torch_threads
 
     names = [Path(n).stem for n in sorted(json.loads((dataset / "split.json").read_text())["train"])[:12]]
     noisy = read_views(dataset / "images", names)
@@ -54,7 +53,14 @@ def worker(dataset: Path, task: str) -> dict:
     # the denoise stage's network of the `default` (width 16) or `best` (width 32) preset, R2R
     config = replace(n2v_config(preset("default" if width == 16 else "best").denoise), method="r2r")
     assert config.unet.width == width
-    with torch_threads(config.torch_threads):  # as the denoise stage: training and inference
+    try:  # as the denoise stage: one torch thread per piece of work (`denoise.parallel`) ...
+        from denoise.parallel import one_thread_per_task as stage_threads
+    except ImportError:  # ... or, in code before it, the training's fixed intra-op thread count
+        from mvgeo.common.threads import torch_threads
+
+        def stage_threads():
+            return torch_threads(config.torch_threads)
+    with stage_threads():
         return _measure(kind, rest, config, images, names, dataset)
 
 
@@ -129,6 +135,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--quality", action="store_true")
+    ap.add_argument("--page", default="denoise_speed", help="the docs/bench page written (without .md)")
     args = ap.parse_args()
     if args.worker:
         print(json.dumps(worker(Path(args.worker[0]), args.worker[1])))
@@ -169,8 +176,8 @@ def main() -> None:
         b, t = min(times[("base", task)]), min(times[("this", task)])
         rows.append([names[task], f"{b:.1f}", f"{t:.1f}", f"{b / t:.2f}x"])
     body = [f"Photos: {what}. Base: commit `{args.base}`; this: the checkout. Each cell is the fastest of "
-            f"{args.repeats} runs, the two versions alternating, each in its own process (2 torch threads, as "
-            f"the denoise stage). Load average (1/5/15 min) at start {start_load[0]:.2f}/{start_load[1]:.2f}/"
+            f"{args.repeats} runs, the two versions alternating, each in its own process with torch's default "
+            f"threads and the denoise stage's thread settings. Load average (1/5/15 min) at start {start_load[0]:.2f}/{start_load[1]:.2f}/"
             f"{start_load[2]:.2f}, at end {end_load[0]:.2f}/{end_load[1]:.2f}/{end_load[2]:.2f}.", "",
             md_table(["what", "base (s)", "this (s)", "speed-up"], rows)]
     if quality:
@@ -183,8 +190,10 @@ def main() -> None:
                            ["this", f"{qt['psnr']:.3f}", f"{qt['ssim']:.4f}"]]), "",
                  f"Largest difference between the two versions' first photo: {diff:.2g} (of 1)."]
     cmd = "OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/diag_denoise_speed.py" + (
-        " --quality" if args.quality else "") + (f" --base {args.base}" if args.base != DEFAULT_BASE else "")
-    write_fragment("denoise_speed", "Denoiser speed on real-size photos (training and inference)", "\n".join(body),
+        " --quality" if args.quality else "") + (f" --base {args.base}" if args.base != DEFAULT_BASE else "") + (
+        f" --dataset {args.dataset}" if args.dataset else "") + (
+        f" --page {args.page}" if args.page != "denoise_speed" else "")
+    write_fragment(args.page, "Denoiser speed on real-size photos (training and inference)", "\n".join(body),
                    reproduce=cmd)
 
 

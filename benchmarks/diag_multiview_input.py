@@ -36,7 +36,7 @@ from denoise import self_supervised as S
 from denoise.images import images_to_tensors, tensor_to_image
 from denoise.inference import dihedral
 from denoise.multiview_n2n import neighbour_views, warp_view
-from denoise.n2v import n2v_preset, new_model, optimise_unet
+from denoise.n2v import StepBatch, n2v_preset, new_model, optimise_unet
 from denoise.patches import sample_patches
 from denoise.r2r import recorrupt
 from eval.pipeline.views import read_views, write_views
@@ -117,11 +117,14 @@ def main() -> int:
     gen = torch.Generator().manual_seed(args.seed)
     unet = model.unet
 
-    def step_loss(step: int) -> torch.Tensor:
+    def loss(net: torch.nn.Module, inp: torch.Tensor, views: torch.Tensor, tgt: torch.Tensor) -> torch.Tensor:
+        return torch.mean((inp + model.alpha * net(torch.cat([inp, views], 1)) - tgt) ** 2)
+
+    def step_loss(step: int) -> StepBatch:
         batch, s = sample_patches(normed, patch_px=cfg.patch_px, batch_size=cfg.batch_size, rng=rng,
                                   paired=paired, augment=cfg.augment)
         inp, tgt = recorrupt(batch[:, :3], s, alpha=cfg.r2r_alpha, generator=gen)
-        return torch.mean((inp + model.alpha * unet(torch.cat([inp, batch[:, 3:]], 1)) - tgt) ** 2)
+        return StepBatch((inp, batch[:, 3:], tgt), loss)
 
     t1 = time.perf_counter()
     optimise_unet(model, cfg, step_loss, desc=f"r2r+{nk} views")

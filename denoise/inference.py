@@ -23,7 +23,7 @@ curve 26.22 dB (true curve 26.23 dB; best NLM h 26.24 dB): hence ``noise_model="
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Literal
 
 import numpy as np
@@ -35,6 +35,7 @@ from denoise.images import image_to_tensor, tensor_to_image
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
 from denoise.noise_level import NoiseCurve, estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_pca
+from denoise.parallel import one_thread_per_task, run_tasks
 from mvgeo.common.errors import check_shape
 from mvgeo.common.progress import progress
 
@@ -157,14 +158,32 @@ def denoise_tensor(model: N2VModel, x: Tensor, *, passes: int = 8, generator: to
         raise ValueError(f"passes must be >= 0, got {passes}")
     model.unet.eval()
     if passes == 0:
-        return predict_tiled(model, x, tile_px=tile_px, margin_px=margin_px)
-    acc = torch.zeros_like(x)
-    for k in range(passes):
+        with one_thread_per_task():
+            return predict_tiled(model, x, tile_px=tile_px, margin_px=margin_px)
+
+    def draw(k: int) -> Tensor:
         xt = dihedral(x, k) if dihedral_ensemble else x
-        masked = mask_pixels(xt, p=model.mask_prob, replacement=model.replacement, radius=model.radius,
-                             generator=generator).masked
+        return mask_pixels(xt, p=model.mask_prob, replacement=model.replacement, radius=model.radius,
+                           generator=generator).masked
+
+    def predict(k: int, masked: Tensor) -> Tensor:
         pred = predict_tiled(model, masked, tile_px=tile_px, margin_px=margin_px)
-        acc += dihedral(pred, k, inverse=True) if dihedral_ensemble else pred
+        return dihedral(pred, k, inverse=True) if dihedral_ensemble else pred
+
+    return mean_of_passes(x, passes, draw, predict)
+
+
+def mean_of_passes(x: Tensor, passes: int, draw: Callable[[int], Tensor],
+                   predict: Callable[[int, Tensor], Tensor]) -> Tensor:
+    """``mean_k predict(k, draw(k))`` over ``k < passes``: the inputs drawn here in pass order (`draw` may use
+    a shared random generator), the predictions run a thread budget's worth at a time on
+    `denoise.parallel.run_tasks` and summed in pass order, so the result does not depend on the threads."""
+    acc = torch.zeros_like(x)
+    with one_thread_per_task() as threads:
+        for start in range(0, passes, threads):
+            group = [(k, draw(k)) for k in range(start, min(passes, start + threads))]
+            for pred in run_tasks(lambda kx: predict(*kx), group, device=x.device):
+                acc += pred
     return acc / passes
 
 

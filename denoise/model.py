@@ -57,11 +57,13 @@ class N2VModel:
     def unet_config(self) -> UNetConfig:
         return self.unet.config
 
-    def apply(self, x: Tensor) -> Tensor:
+    def apply(self, x: Tensor, *, unet: torch.nn.Module | None = None) -> Tensor:
         """Run the residual network on a (possibly masked) batch.
 
         Args:
             x: ``[B, C, H, W]`` in ``[0, 1]`` units (float32).
+            unet: another module with this model's weights (a training replica, `denoise.n2v`); default
+                ``self.unet``.
 
         Returns:
             ``[B, C, H, W]`` in ``[0, 1]`` units (not clipped).
@@ -70,7 +72,7 @@ class N2VModel:
         mean = torch.tensor(self.mean, dtype=x.dtype, device=x.device).reshape(1, -1, 1, 1)
         std = torch.tensor(self.std, dtype=x.dtype, device=x.device).reshape(1, -1, 1, 1)
         xn = (x - mean) / std
-        return (xn + self.alpha * self.unet(xn)) * std + mean
+        return (xn + self.alpha * (unet or self.unet)(xn)) * std + mean
 
 
 def save_checkpoint(path: str | Path, model: N2VModel) -> None:

@@ -36,7 +36,7 @@ import torch
 
 from denoise.images import images_to_tensors
 from denoise.model import N2VModel
-from denoise.n2v import N2VConfig, masked_mse, new_model, optimise_unet
+from denoise.n2v import N2VConfig, StepBatch, masked_mse, new_model, optimise_unet
 from denoise.patches import effective_patch_px, sample_patches
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import ConfigError, InputError, ShapeError
@@ -229,10 +229,11 @@ def train_multiview_n2n(images: Sequence[np.ndarray], targets: Sequence[tuple[np
     paired = [torch.cat([(torch.from_numpy(np.ascontiguousarray(tgt.transpose(2, 0, 1))) - mean) / std,
                          torch.from_numpy((cnt > 0).astype(np.float32))[None]], dim=0).to(device)
               for tgt, cnt in targets]
-    def step_loss(step: int) -> torch.Tensor:
-        batch, extra = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
-                                      paired=paired, augment=config.augment)
-        out = batch + model.alpha * model.unet(batch)
-        return masked_mse(out, extra[:, :3], extra[:, 3:4] > 0.5)
+    def target_loss(unet: torch.nn.Module, batch: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
+        return masked_mse(batch + model.alpha * unet(batch), extra[:, :3], extra[:, 3:4] > 0.5)
 
-    return optimise_unet(model, config, step_loss, desc="multiview-n2n")
+    def step_batch(step: int) -> StepBatch:
+        return StepBatch(sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
+                                        paired=paired, augment=config.augment), target_loss)
+
+    return optimise_unet(model, config, step_batch, desc="multiview-n2n")

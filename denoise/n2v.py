@@ -10,6 +10,7 @@ warm-up and a cosine decay of the learning rate. Everything is seeded.
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -22,11 +23,11 @@ import torch
 from denoise.images import images_to_tensors
 from denoise.masking import REPLACEMENTS, Replacement, mask_pixels
 from denoise.model import N2VModel
+from denoise.parallel import one_thread_per_task, run_tasks
 from denoise.patches import effective_patch_px, sample_patches
 from denoise.unet import UNet, UNetConfig
 from mvgeo.common.errors import ConfigError, DgsError
 from mvgeo.common.progress import progress_bar
-from mvgeo.common.threads import torch_threads
 
 _log = logging.getLogger(__name__)
 
@@ -88,16 +89,17 @@ class N2VConfig:
             linearly from 0, as in the paper's code; paper: 2).
         r2r_alpha: Recorrupted-to-Recorrupted scale: input ``y + alpha z``, target ``y - z / alpha``
             (paper: 0.5).
-        torch_threads: torch's intra-op CPU threads while training (restored afterwards; None: leave
-            torch's setting, i.e. the machine's core count). The trained weights depend on the count
-            (oneDNN sums a convolution's weight gradient in per-thread chunks: after 60 steps the
-            weights of a 1- and a 2-thread run differ by 3.6e-3), so a fixed count gives the same
-            network on every machine, serially and in a Ray task (`eval.distributed`); the
-            pipeline's denoise stage keeps the count for the inference too (the UNet's outputs
-            differ by ~2e-7 between counts, enough to flip a PNG level now and then). 2: on the
-            2-core reference machine 1.45x faster than 1 (60 steps, 7.2 s against 10.5 s); a
-            one-CPU Ray task then runs two threads while it trains (OMP_WAIT_POLICY=PASSIVE keeps
-            that cheap).
+        batch_chunks: a training step's batch is split into this many chunks of consecutive samples, each
+            run through the network with one torch thread, on up to as many Python threads as the caller's
+            torch thread count (`denoise.parallel`), their gradients summed in chunk order. The trained
+            weights depend on this count, not on the machine's or the Ray task's CPUs (a whole batch on 2
+            intra-op threads differs from 1 thread by 3.6e-3 in the weights after 60 steps: oneDNN sums a
+            convolution's weight gradient in per-thread chunks). On CPU only; other devices take the
+            batch whole. 2: on the 2-core reference machine as fast as the whole batch on 2 intra-op
+            threads (width 16: 0.85 s against 0.79-1.07 s for 20 steps), and 1.05x the whole batch's time on
+            one thread. A batch of fewer samples has one chunk per sample. Each chunk's loss is its own
+            mean (for the masked objectives, over its own masked pixels), weighted by its share of the
+            samples.
         divergence_guard: watch the training loss (`DivergenceGuard`: a window of 50 steps whose median
             loss is more than 3x the lowest window median so far, or a non-finite loss) and start a
             diverging run again at half the learning rate (`optimise_unet`). Runs that do not diverge are
@@ -121,7 +123,7 @@ class N2VConfig:
     method: Method = "n2v"
     nb2nb_gamma: float = 2.0
     r2r_alpha: float = 0.5
-    torch_threads: int | None = 2
+    batch_chunks: int = 2
     divergence_guard: bool = True
 
     def __post_init__(self) -> None:
@@ -129,8 +131,8 @@ class N2VConfig:
         for key in positive:
             if getattr(self, key) < 1:
                 raise ConfigError(f"must be >= 1, got {getattr(self, key)}", key=key)
-        if self.torch_threads is not None and self.torch_threads < 1:
-            raise ConfigError(f"must be >= 1 or None, got {self.torch_threads}", key="torch_threads")
+        if self.batch_chunks < 1:
+            raise ConfigError(f"must be >= 1, got {self.batch_chunks}", key="batch_chunks")
         if not self.lr > 0:
             raise ConfigError(f"must be > 0, got {self.lr}", key="lr")
         if not 0 < self.mask_prob < 1:
@@ -262,15 +264,18 @@ def train_n2v(images: Sequence[np.ndarray], config: N2VConfig | None = None, *, 
     mean = torch.tensor(model.mean).reshape(3, 1, 1)
     std = torch.tensor(model.std).reshape(3, 1, 1)
     normed = [((t - mean) / std).to(device) for t in tensors]
-    def blind_spot_loss(step: int) -> torch.Tensor:
+    def blind_spot_loss(unet: torch.nn.Module, batch: torch.Tensor, masked: torch.Tensor,
+                        mask: torch.Tensor) -> torch.Tensor:
+        return masked_mse(masked + model.alpha * unet(masked), batch, mask)
+
+    def blind_spot_batch(step: int) -> StepBatch:
         batch, _ = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
                                   augment=config.augment)
         mb = mask_pixels(batch, p=config.mask_prob, replacement=config.replacement, radius=config.radius,
                          generator=gen)
-        out = mb.masked + model.alpha * model.unet(mb.masked)
-        return masked_mse(out, batch, mb.mask)
+        return StepBatch((batch, mb.masked, mb.mask), blind_spot_loss)
 
-    return optimise_unet(model, config, blind_spot_loss, desc="n2v")
+    return optimise_unet(model, config, blind_spot_batch, desc="n2v")
 
 
 class TrainingDivergedError(DgsError):
@@ -321,15 +326,81 @@ class DivergenceGuard:
         return False
 
 
+@dataclass(frozen=True)
+class StepBatch:
+    """One training step's batch, as `optimise_unet` splits it.
+
+    Attributes:
+        rows: tensors whose first dimension is the sample (patches, masks, targets, drawn for the whole
+            batch, so that the random draws do not depend on the split).
+        loss: ``loss(unet, *rows_of_a_chunk)``: the objective's mean over those samples, computed with
+            `unet` (the model's network or a replica sharing its weights).
+    """
+
+    rows: tuple[torch.Tensor, ...]
+    loss: Callable[..., torch.Tensor]
+
+
+def chunk_bounds(n: int, chunks: int) -> list[tuple[int, int]]:
+    """``min(chunks, n)`` consecutive ``(start, stop)`` ranges covering ``range(n)``, sizes differing by at
+    most one (the first ones larger)."""
+    k = max(1, min(chunks, n))
+    sizes = [n // k + (1 if i < n % k else 0) for i in range(k)]
+    starts = np.cumsum([0, *sizes])
+    return [(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
+
+
+def weight_sharing_replicas(unet: torch.nn.Module, count: int) -> list[torch.nn.Module]:
+    """`unet` and ``count - 1`` copies whose parameters share its storage (an optimiser step on `unet` moves
+    them too) but keep their own gradients."""
+    replicas = [unet]
+    for _ in range(count - 1):
+        twin = copy.deepcopy(unet)
+        for p_twin, p in zip(twin.parameters(), unet.parameters(), strict=True):
+            p_twin.data = p.data
+        replicas.append(twin)
+    return replicas
+
+
+def chunked_backward(replicas: Sequence[torch.nn.Module], batch: StepBatch, *,
+                     device: torch.device | str = "cpu") -> float:
+    """Backward pass of `batch`'s loss split into ``len(replicas)`` chunks (`chunk_bounds`), chunk k through
+    ``replicas[k]`` (`weight_sharing_replicas`), the chunks on `denoise.parallel.run_tasks`; the gradients
+    end summed in chunk order in ``replicas[0]``'s parameters. Returns the step's loss: the chunks' means
+    weighted by their share of the samples, summed in chunk order (may be non-finite)."""
+    n = int(batch.rows[0].shape[0])
+    bounds = chunk_bounds(n, len(replicas))
+
+    def one(k: int) -> float:
+        a, b = bounds[k]
+        net = replicas[k]
+        net.zero_grad(set_to_none=True)
+        loss = batch.loss(net, *(t[a:b] for t in batch.rows)) * ((b - a) / n)
+        loss.backward()
+        return loss.item()
+
+    values = run_tasks(one, range(len(bounds)), device=device)
+    for k in range(1, len(bounds)):
+        for p, p_k in zip(replicas[0].parameters(), replicas[k].parameters(), strict=True):
+            if p_k.grad is None:
+                continue
+            if p.grad is None:
+                p.grad = p_k.grad.clone()
+            else:
+                p.grad.add_(p_k.grad)
+    return float(sum(values))
+
+
 #: Restarts at a halved learning rate after a divergence (`optimise_unet`): 4 reach 1/16 of it.
 MAX_RESTARTS = 4
 
 
-def optimise_unet(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[int], torch.Tensor], *,
+def optimise_unet(model: N2VModel, config: N2VConfig, batch_at_step: Callable[[int], StepBatch], *,
                   desc: str) -> N2VModel:
     """The training loop every self-supervised objective shares: Adam at `config.lr` with the warm-up
-    and cosine schedule of `lr_factor`, `config.steps` steps, `loss_at_step(step)` giving each step's loss
-    (it draws its own batch), the (finite) losses appended to `model.history`. Returns `model` in eval mode.
+    and cosine schedule of `lr_factor`, `config.steps` steps, `batch_at_step(step)` drawing each step's
+    batch and giving its loss (`StepBatch`), split into `config.batch_chunks` chunks on CPU
+    (`chunked_backward`), the (finite) losses appended to `model.history`. Returns `model` in eval mode.
 
     With `config.divergence_guard`, a run the `DivergenceGuard` finds diverging starts again from the
     weights it started from, at half the learning rate and with a new optimiser (the batches continue
@@ -345,7 +416,7 @@ def optimise_unet(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[in
     n_history = len(model.history)
     lr = config.lr
     for attempt in range(MAX_RESTARTS + 1):
-        at = _train(model, config, loss_at_step, desc=desc, lr=lr)
+        at = _train(model, config, batch_at_step, desc=desc, lr=lr)
         if at is None:
             break
         if attempt == MAX_RESTARTS:
@@ -363,24 +434,24 @@ def optimise_unet(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[in
     return model
 
 
-def _train(model: N2VModel, config: N2VConfig, loss_at_step: Callable[[int], torch.Tensor], *, desc: str,
+def _train(model: N2VModel, config: N2VConfig, batch_at_step: Callable[[int], StepBatch], *, desc: str,
            lr: float) -> int | None:
     """One run of `optimise_unet`'s loop at peak learning rate `lr`; the step it diverged at, or None."""
     unet = model.unet
     unet.train()
+    device = next(unet.parameters()).device
+    chunks = config.batch_chunks if device.type == "cpu" else 1
+    replicas = weight_sharing_replicas(unet, min(chunks, config.batch_size))
     opt = torch.optim.Adam(unet.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: lr_factor(s, steps=config.steps, warmup_frac=config.warmup_frac,
                                  min_lr_frac=config.min_lr_frac))
     guard = DivergenceGuard() if config.divergence_guard else None
     skipped = 0
-    with torch_threads(config.torch_threads), progress_bar(desc=desc, total=config.steps) as bar:
+    with one_thread_per_task(), progress_bar(desc=desc, total=config.steps) as bar:
         for step in range(config.steps):
-            loss = loss_at_step(step)
-            value = loss.item()
+            value = chunked_backward(replicas, batch_at_step(step), device=device)
             if math.isfinite(value):  # a non-finite loss would write NaNs into the weights: step skipped
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
                 opt.step()
                 model.history.append(value)
             else:

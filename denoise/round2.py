@@ -41,12 +41,12 @@ from denoise.inference import MARGIN_PX, TILE_PX, predict_tiled
 from denoise.losses import charbonnier, chroma_loss, gradient_loss, total_variation
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
-from denoise.n2v import lr_factor
+from denoise.n2v import StepBatch, chunked_backward, lr_factor, weight_sharing_replicas
 from denoise.noise_level import estimate_noise_sigma_robust
+from denoise.parallel import one_thread_per_task, run_tasks
 from denoise.patches import effective_patch_px, sample_patches
 from mvgeo.common.errors import ConfigError, InputError
 from mvgeo.common.progress import progress_bar
-from mvgeo.common.threads import torch_threads
 from mvgeo.image_metrics import ssim
 
 
@@ -84,8 +84,8 @@ class Round2Config:
             Both networks see the same cells and replacements, so the comparison is paired;
             at 504x378 a fifth still scores 1.4 million values on 12 views, and the guard
             costs 10 network passes per view instead of 50.
-        torch_threads: torch's intra-op CPU threads while fine-tuning (None: torch's setting); a
-            fixed count makes the result independent of the machine (`N2VConfig.torch_threads`).
+        batch_chunks: a step's batch split into this many chunks, each on one torch thread
+            (`N2VConfig.batch_chunks`): the result depends on it, not on the machine's threads.
     """
 
     w_low: float = 1.0
@@ -106,7 +106,7 @@ class Round2Config:
     guard: bool = True
     guard_cells: int = 5
     guard_z: float = 2.0
-    torch_threads: int | None = 2
+    batch_chunks: int = 2
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -118,8 +118,8 @@ class Round2Config:
                 raise ConfigError(f"must be >= 1, got {getattr(self, key)}", key=key)
         if self.loss not in ("joint", "charbonnier"):
             raise ConfigError(f"unknown loss {self.loss!r}", key="loss", expected="'joint' or 'charbonnier'")
-        if self.torch_threads is not None and self.torch_threads < 1:
-            raise ConfigError(f"must be >= 1 or None, got {self.torch_threads}", key="torch_threads")
+        if self.batch_chunks < 1:
+            raise ConfigError(f"must be >= 1, got {self.batch_chunks}", key="batch_chunks")
         if not self.guard_z >= 0:
             raise ConfigError(f"must be >= 0, got {self.guard_z}", key="guard_z")
         if not 1 <= self.guard_cells <= JINVARIANT_STRIDE**2:
@@ -231,18 +231,28 @@ def jinvariant_predict(model: N2VModel, x: Tensor, *, stride: int = JINVARIANT_S
     b, c, h, w = x.shape
     out = torch.full_like(x, float("nan"))
     flat = x.reshape(b, c, h * w)
-    for a in range(stride):
-        for bb in range(stride):
+
+    def masked_prediction(p: tuple[Tensor, Tensor]) -> Tensor:
+        mask, inp = p
+        return predict_tiled(model, inp, tile_px=tile_px, margin_px=margin_px)[..., mask]
+
+    # The passes' inputs are drawn in pass order (the draws do not depend on the threads) and predicted a
+    # thread budget's worth at a time (the cells are disjoint: each pass writes its own pixels).
+    with one_thread_per_task() as threads:
+        group: list[tuple[Tensor, Tensor]] = []
+        cells_all = [(a, bb) for a in range(stride) for bb in range(stride)]
+        for i, (a, bb) in enumerate(cells_all):
             mask = cell_mask(h, w, [(a, bb)], stride=stride, device=x.device)
-            if not bool(mask.any()):
-                continue
-            free = torch.nonzero(~mask.reshape(-1)).reshape(-1)
-            pick = free[torch.randint(len(free), (b, h * w), generator=generator, device=x.device)]
-            if run is not None and (a, bb) not in run:
-                continue
-            repl = flat.gather(2, pick[:, None, :].expand(b, c, h * w)).reshape(b, c, h, w)
-            pred = predict_tiled(model, torch.where(mask[None, None], repl, x), tile_px=tile_px, margin_px=margin_px)
-            out = torch.where(mask[None, None], pred, out)
+            if bool(mask.any()):
+                free = torch.nonzero(~mask.reshape(-1)).reshape(-1)
+                pick = free[torch.randint(len(free), (b, h * w), generator=generator, device=x.device)]
+                if run is None or (a, bb) in run:
+                    repl = flat.gather(2, pick[:, None, :].expand(b, c, h * w)).reshape(b, c, h, w)
+                    group.append((mask, torch.where(mask[None, None], repl, x)))
+            if group and (len(group) == threads or i == len(cells_all) - 1):
+                for (m, _), values in zip(group, run_tasks(masked_prediction, group, device=x.device), strict=True):
+                    out[..., m] = values
+                group = []
     return out
 
 
@@ -414,10 +424,16 @@ def _finetune(model: N2VModel, noisy_t: list[Tensor], render_t: list[Tensor], cf
     patch = effective_patch_px(noisy_t, cfg.patch_px)
     unet = model.unet
     unet.train()
+    device = noisy_t[0].device
+    replicas = weight_sharing_replicas(unet, min(cfg.batch_chunks if device.type == "cpu" else 1, cfg.batch_size))
     opt = torch.optim.Adam(unet.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: lr_factor(s, steps=cfg.steps, warmup_frac=0.0, min_lr_frac=0.05))
-    with torch_threads(cfg.torch_threads), progress_bar(desc="round2", total=cfg.steps) as bar:
+
+    def loss(net: torch.nn.Module, inp: Tensor, noisy: Tensor, render: Tensor) -> Tensor:
+        return joint_loss(model.apply(inp, unet=net), noisy, render, cfg).total
+
+    with one_thread_per_task(), progress_bar(desc="round2", total=cfg.steps) as bar:
         for _ in range(cfg.steps):
             noisy, render = sample_patches(noisy_t, patch_px=patch, batch_size=cfg.batch_size, rng=rng,
                                            paired=render_t)
@@ -425,12 +441,10 @@ def _finetune(model: N2VModel, noisy_t: list[Tensor], render_t: list[Tensor], cf
             if cfg.mask_input:
                 inp = mask_pixels(noisy, p=model.mask_prob, replacement=model.replacement, radius=model.radius,
                                   generator=gen).masked
-            terms = joint_loss(model.apply(inp), noisy, render, cfg)
-            opt.zero_grad(set_to_none=True)
-            terms.total.backward()
+            value = chunked_backward(replicas, StepBatch((inp, noisy, render), loss), device=device)
             opt.step()
             sched.step()
-            model.history.append(terms.total.item())
+            model.history.append(value)
             bar.update(1)
     unet.eval()
     model.blind_spot = False  # trained on the full input now: no centre-pixel fusion at inference

@@ -63,19 +63,21 @@ from denoise.inference import (
     NoiseModel,
     denoise_images,
     dihedral,
+    mean_of_passes,
     predict_tiled,
     signal_dependent_curve,
 )
 from denoise.losses import neighbor2neighbor_loss
 from denoise.model import N2VModel
-from denoise.n2v import N2VConfig, new_model, optimise_unet, train_n2v
+from denoise.n2v import N2VConfig, StepBatch, new_model, optimise_unet, train_n2v
 from denoise.neighbor2neighbor import neighbour_choice, neighbour_subsample
 from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_clipped
+from denoise.parallel import run_tasks
 from denoise.patches import effective_patch_px, sample_patches
 from denoise.r2r import recorrupt
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import InputError
-from mvgeo.common.progress import progress
+from mvgeo.common.progress import progress, progress_bar
 
 _log = logging.getLogger(__name__)
 
@@ -225,23 +227,26 @@ def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, se
         # broadcast, not copied).
         paired = [(torch.as_tensor(s, dtype=torch.float32) / std).to(device).expand(3, *t.shape[-2:])
                   for s, t in zip(sig, tensors, strict=True)]
-    unet = model.unet
+    def r2r_loss(unet: torch.nn.Module, inp: torch.Tensor, tgt: torch.Tensor) -> torch.Tensor:
+        return torch.mean((inp + model.alpha * unet(inp) - tgt) ** 2)
 
-    def step_loss(step: int) -> torch.Tensor:
+    def step_batch(step: int) -> StepBatch:
         batch, extra = sample_patches(normed, patch_px=patch, batch_size=config.batch_size, rng=rng,
                                       paired=paired, augment=config.augment)
         if config.method == "neighbor2neighbor":
             choice = neighbour_choice(batch.shape[0], patch, patch, generator=gen, device=device)
-            g1, g2 = neighbour_subsample(batch, choice)
-            with torch.no_grad():
-                full1, full2 = neighbour_subsample(batch + model.alpha * unet(batch), choice)
-            pred = g1 + model.alpha * unet(g1)
             gamma = config.nb2nb_gamma * (step + 1) / config.steps
-            return neighbor2neighbor_loss(pred, g2, full1, full2, gamma=gamma)
-        inp, tgt = recorrupt(batch, extra, alpha=config.r2r_alpha, generator=gen)
-        return torch.mean((inp + model.alpha * unet(inp) - tgt) ** 2)
 
-    return optimise_unet(model, config, step_loss, desc=config.method)
+            def nb2nb_loss(unet: torch.nn.Module, batch: torch.Tensor, choice: torch.Tensor) -> torch.Tensor:
+                g1, g2 = neighbour_subsample(batch, choice)
+                with torch.no_grad():
+                    full1, full2 = neighbour_subsample(batch + model.alpha * unet(batch), choice)
+                return neighbor2neighbor_loss(g1 + model.alpha * unet(g1), g2, full1, full2, gamma=gamma)
+
+            return StepBatch((batch, choice), nb2nb_loss)
+        return StepBatch(recorrupt(batch, extra, alpha=config.r2r_alpha, generator=gen), r2r_loss)
+
+    return optimise_unet(model, config, step_batch, desc=config.method)
 
 
 def denoise_one_pass(model: N2VModel, images: Sequence[np.ndarray], *, tile_px: int = TILE_PX,
@@ -253,14 +258,18 @@ def denoise_one_pass(model: N2VModel, images: Sequence[np.ndarray], *, tile_px: 
     """
     device = next(model.unet.parameters()).device
     model.unet.eval()
-    out = []
-    with torch.no_grad():
-        for i, img in enumerate(progress(images, desc="denoise", total=len(images))):
-            x = image_to_tensor(img, name=f"image {i}")[None].to(device)
-            if estimate_noise_sigma(img) >= clean_sigma:
-                x = predict_tiled(model, x, tile_px=tile_px, margin_px=margin_px)
-            out.append(tensor_to_image(x[0], like=img))
-    return out
+
+    def one(i: int) -> np.ndarray:
+        img = images[i]
+        x = image_to_tensor(img, name=f"image {i}")[None].to(device)
+        if estimate_noise_sigma(img) >= clean_sigma:
+            x = predict_tiled(model, x, tile_px=tile_px, margin_px=margin_px)
+        bar.update(1)
+        return tensor_to_image(x[0], like=img)
+
+    # The images on the denoiser's threads (`denoise.parallel`), one torch thread each.
+    with progress_bar(desc="denoise", total=len(images)) as bar:
+        return run_tasks(one, range(len(images)), device=device)
 
 
 def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N2VConfig, *, passes: int = 8,
@@ -323,14 +332,15 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
             if estimate_noise_sigma(img) < clean_sigma:
                 out.append(tensor_to_image(x[0], like=img))
                 continue
-            k = max(passes, 1)
-            y = torch.zeros_like(x)
-            for d in range(k):
+            def draw(d: int, x: torch.Tensor = x, s: torch.Tensor = sig[i]) -> torch.Tensor:
                 z = torch.randn(x.shape, generator=gen, device=device, dtype=x.dtype)
-                pred = predict_tiled(model, dihedral(x + config.r2r_alpha * sig[i] * z, d), tile_px=tile_px,
-                                     margin_px=margin_px)
-                y += dihedral(pred, d, inverse=True)
-            out.append(tensor_to_image(y[0] / k, like=img))
+                return dihedral(x + config.r2r_alpha * s * z, d)
+
+            def predict(d: int, recorrupted: torch.Tensor) -> torch.Tensor:
+                pred = predict_tiled(model, recorrupted, tile_px=tile_px, margin_px=margin_px)
+                return dihedral(pred, d, inverse=True)
+
+            out.append(tensor_to_image(mean_of_passes(x, max(passes, 1), draw, predict)[0], like=img))
     return _undo_clipping(images, out, sig, clean_sigma) if undo_clipping else out
 
 

@@ -209,8 +209,8 @@ def _cluster_settings(args: argparse.Namespace, device: str) -> ClusterSettings:
 WORKERS_HELP = ("runs at once: 1 (default) runs them one after another here; N > 1 starts a local Ray cluster "
                 "of N CPUs, one run per CPU (docs/cluster.md)")
 TASK_THREADS_HELP = ("with --workers or --ray-address: torch and compositor threads per run (default: the run's "
-                     "one CPU); the denoiser trains with its own fixed count (N2VConfig.torch_threads), so the "
-                     "scores are the serial run's with any value")
+                     "one CPU); the scores are the serial run's with any value (docs/cluster.md, \"Threads and "
+                     "memory per task\")")
 RAY_ADDRESS_HELP = ("run on an existing Ray cluster instead: its head's host:port (as `ray start --head` prints), "
                     "or auto; the out folder must be at the same path on every node (docs/cluster.md)")
 

@@ -13,9 +13,10 @@ finds it in the stage cache; chains run in parallel. The output lock of each run
 
 Threads: each task gets `cpus_per_task` CPUs from Ray (1 by default) and runs with as many torch,
 compositor, BLAS and OpenCV threads (`mvgeo.common.threads`), so N tasks on N CPUs do not
-oversubscribe the cores; `ClusterSettings.task_threads` overrides the count. The denoiser's training
-sets its own fixed count (`N2VConfig.torch_threads`, `Round2Config.torch_threads`), because its result
-depends on it: so a task's scores are the serial run's. The workers get `OMP_WAIT_POLICY`
+oversubscribe the cores; `ClusterSettings.task_threads` overrides the count. The denoiser runs every
+torch operation on one thread and spreads fixed-size pieces (a batch's chunks, an image's passes) over
+the task's threads (`denoise.parallel`), because a thread count inside an operation would change its
+bits: so a task's scores are the serial run's. The workers get `OMP_WAIT_POLICY`
 (docs/conventions.md, "Threads").
 
 Code: the workers must run the driver's code. A Ray worker imports what its setup hook needs (`eval`,
@@ -82,9 +83,9 @@ class ClusterSettings:
         cpus_per_task: CPUs Ray reserves for each task.
         gpus_per_task: GPUs Ray reserves for each task (a fraction shares one; 0: none).
         task_threads: torch, compositor, BLAS and OpenCV threads of each task; None: the CPUs Ray gave
-            it, so that tasks do not oversubscribe the cores. The denoiser's training keeps its own
-            fixed count (`N2VConfig.torch_threads`): its result depends on the count, the other
-            stages' do not.
+            it, so that tasks do not oversubscribe the cores. The denoiser spreads fixed-size pieces over
+            them, one torch thread each (`denoise.parallel`): its result does not depend on the count,
+            nor do the other stages'.
     """
 
     workers: int = 1

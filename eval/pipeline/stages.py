@@ -51,7 +51,6 @@ from mvgeo.align.stats import AlignStats
 from mvgeo.camera import Camera
 from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, DisconnectedViewsError
 from mvgeo.common.imageio import read_image
-from mvgeo.common.threads import torch_threads
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
 __all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "PHOTOS_KEY", "ROTATION_ATOL", "STAGE_CODE",
@@ -105,6 +104,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     denoise them all (`ctx.settings`: `DenoiseStageSettings`); with `keep_noisy` k, `denoised/` holds
     ``(1 - k) * network output + k * noisy photo``."""
     from denoise.model import save_checkpoint
+    from denoise.parallel import one_thread_per_task
     from denoise.self_supervised import choose_objective, denoise_with_method, train_with_method
     from eval.pipeline.quality import noise_levels
 
@@ -115,9 +115,9 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         choice = choose_objective(list(noisy.values()))
         n2v = dataclasses.replace(n2v, method=choice.method)
         chosen = {"objective": choice.method, "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
-    # The training's fixed thread count for the inference too: the UNet's outputs differ in the last
-    # float bits between counts, enough to flip a PNG level now and then (N2VConfig.torch_threads).
-    with torch_threads(n2v.torch_threads):
+    # One torch thread per task for training and inference alike (`denoise.parallel`): the UNet's outputs
+    # differ in the last float bits between thread counts, enough to flip a PNG level now and then.
+    with one_thread_per_task():
         model = train_with_method(list(noisy.values()), n2v, seed=ctx.seed, device=s.device)
         out = denoise_with_method(model, list(noisy.values()), n2v, passes=s.passes, seed=ctx.seed)
     if s.keep_noisy > 0:
@@ -552,6 +552,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     (`ctx.settings`: `RefineStageSettings`)."""
     from denoise.inference import denoise_images
     from denoise.model import load_checkpoint, save_checkpoint
+    from denoise.parallel import one_thread_per_task
     from denoise.round2 import refine_round2
 
     s = ctx.settings
@@ -561,8 +562,8 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     model = load_checkpoint(ctx.inputs["model"], device=s.device)
     # Trust target (the render only where it agrees with the photo within the noise) and the
     # blind-spot-loss guard: see denoise.round2.refine_round2.
-    # Fine-tuning and inference with round 2's fixed thread count, as in `denoise`: the result depends on it.
-    with torch_threads(s.round2.torch_threads):
+    # Fine-tuning and inference with one torch thread per task, as in `denoise`: the result would depend on it.
+    with one_thread_per_task():
         model, r2 = refine_round2(model, list(noisy.values()), list(renders.values()), s.round2, seed=ctx.seed)
         # Keep the observation blend (denoise.fusion) for the fine-tuned model too: most of round 1's
         # quality comes from it, and without it round 2 fell from 23.97 to 20.92 dB on the demo scene

@@ -9,7 +9,15 @@ import pytest
 import torch
 
 from denoise.model import N2VModel
-from denoise.n2v import MAX_RESTARTS, DivergenceGuard, N2VConfig, TrainingDivergedError, lr_factor, optimise_unet
+from denoise.n2v import (
+    MAX_RESTARTS,
+    DivergenceGuard,
+    N2VConfig,
+    StepBatch,
+    TrainingDivergedError,
+    lr_factor,
+    optimise_unet,
+)
 from denoise.self_supervised import denoise_with_method, train_with_method
 from denoise.unet import UNet, UNetConfig
 
@@ -51,7 +59,7 @@ def _psnr(a, b) -> float:
 
 def _config(method: str, lr: float, guard: bool) -> N2VConfig:
     return N2VConfig(unet=UNetConfig(width=8, depth=2), steps=300, batch_size=4, patch_px=32, lr=lr, method=method,
-                     torch_threads=1, divergence_guard=guard)
+                     divergence_guard=guard)
 
 
 @pytest.mark.parametrize("method", ["r2r", "n2v"])
@@ -91,15 +99,17 @@ def test_a_diverging_training_starts_again_at_half_the_rate(method, caplog, monk
     assert _psnr(out, clean) > _psnr(out_ref, clean) - 1.0
 
 
-def _reference_loop(model: N2VModel, config: N2VConfig, loss_at_step) -> N2VModel:
+def _reference_loop(model: N2VModel, config: N2VConfig, batch_at_step) -> N2VModel:
     """The training loop without any guard, written out: Adam, the warm-up and cosine schedule, one step per
-    loss (the slow obvious reference of `optimise_unet` for runs that do not diverge)."""
+    loss of the whole batch (the slow obvious reference of `optimise_unet` with one chunk, for runs that do
+    not diverge)."""
     opt = torch.optim.Adam(model.unet.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(
         s, steps=config.steps, warmup_frac=config.warmup_frac, min_lr_frac=config.min_lr_frac))
     model.unet.train()
     for step in range(config.steps):
-        loss = loss_at_step(step)
+        batch = batch_at_step(step)
+        loss = batch.loss(model.unet, *batch.rows)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -119,7 +129,7 @@ def test_a_run_that_does_not_diverge_is_unchanged_to_the_bit(steps):
         assert torch.equal(a, b)
     # and both are the plain loop's: the same patches and recorruptions from the same seeds
     torch.manual_seed(0)
-    cfg = N2VConfig(unet=UNetConfig(width=4, depth=1), steps=steps, lr=1e-3, torch_threads=1)
+    cfg = N2VConfig(unet=UNetConfig(width=4, depth=1), steps=steps, lr=1e-3, batch_chunks=1)
     x = torch.rand(4, 3, 16, 16, generator=torch.Generator().manual_seed(1))
     models = []
     for run in (optimise_unet, None):
@@ -127,11 +137,12 @@ def test_a_run_that_does_not_diverge_is_unchanged_to_the_bit(steps):
         model = N2VModel(UNet(cfg.unet), mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0))
         gen = torch.Generator().manual_seed(2)
 
-        def loss_at_step(step: int, model=model, gen=gen) -> torch.Tensor:
+        def batch_at_step(step: int, gen=gen) -> StepBatch:
             noise = torch.randn(x.shape, generator=gen) * 0.1
-            return torch.mean((model.unet(x + noise) - x) ** 2)
+            return StepBatch((x + noise,), lambda unet, y: torch.mean((unet(y) - x) ** 2))
 
-        models.append(run(model, cfg, loss_at_step, desc="test") if run else _reference_loop(model, cfg, loss_at_step))
+        models.append(run(model, cfg, batch_at_step, desc="test") if run
+                      else _reference_loop(model, cfg, batch_at_step))
     assert models[0].history == models[1].history
     for a, b in zip(models[0].unet.parameters(), models[1].unet.parameters(), strict=True):
         assert torch.equal(a, b)
@@ -139,15 +150,15 @@ def test_a_run_that_does_not_diverge_is_unchanged_to_the_bit(steps):
 
 def test_a_training_that_always_diverges_is_a_typed_error():
     torch.manual_seed(0)
-    cfg = N2VConfig(unet=UNetConfig(width=4, depth=1), steps=20, lr=1e-3, torch_threads=1)
+    cfg = N2VConfig(unet=UNetConfig(width=4, depth=1), steps=20, lr=1e-3)
     model = N2VModel(UNet(cfg.unet), mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0))
     x = torch.rand(1, 3, 8, 8)
     start = [p.detach().clone() for p in model.unet.parameters()]
     calls = []
 
-    def nan_loss(step: int) -> torch.Tensor:
+    def nan_loss(step: int) -> StepBatch:
         calls.append(step)
-        return model.unet(x).mean() * float("nan")
+        return StepBatch((x,), lambda unet, x: unet(x).mean() * float("nan"))
 
     with pytest.raises(TrainingDivergedError, match="diverged at step 0"):
         optimise_unet(model, cfg, nan_loss, desc="test")

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from denoise.inference import denoise_images
-from denoise.n2v import N2VConfig, lr_factor, masked_mse, n2v_preset, train_n2v
+from denoise.n2v import N2VConfig, lr_factor, masked_mse, n2v_preset, new_model, train_n2v
 from denoise.unet import UNetConfig
 from mvgeo.common.errors import ConfigError, InputError
 from tests.denoise._synth import add_noise, psnr, smooth_scene
@@ -92,12 +92,13 @@ def test_n2v_denoises_smooth_scenes(rng):
 
 
 def test_training_threads_fix_the_network(rng):
-    """`torch_threads` fixes torch's thread count while training: the same weights whatever the caller's
-    count (a Ray task's 1 CPU, a workstation's cores), and the caller's count is restored. The control
-    (None: the caller's count) shows the count matters at this size: oneDNN's weight gradients sum
-    per-thread chunks."""
+    """The trained weights do not depend on the caller's torch thread count (a Ray task's 1 CPU, a
+    workstation's cores): each of `batch_chunks` chunks runs on one torch thread (`denoise.parallel`), and the
+    caller's count is restored. The control shows the count would matter at this size: the same batch
+    through the network on 1 and on 3 intra-op threads gives different weight gradients (oneDNN sums
+    them in per-thread chunks)."""
     imgs = [add_noise(rng, smooth_scene(rng, 64, 64), 0.1) for _ in range(2)]
-    cfg = N2VConfig(unet=UNetConfig(width=16, depth=2), steps=4, batch_size=8, patch_px=64, torch_threads=2)
+    cfg = N2VConfig(unet=UNetConfig(width=16, depth=2), steps=4, batch_size=8, patch_px=64)
     saved = torch.get_num_threads()
 
     def weights(outer: int, config: N2VConfig) -> torch.Tensor:
@@ -110,7 +111,21 @@ def test_training_threads_fix_the_network(rng):
         return torch.cat([p.detach().flatten() for p in m.unet.parameters()])
 
     assert torch.equal(weights(1, cfg), weights(3, cfg))
-    free = dataclasses.replace(cfg, torch_threads=None)
-    assert not torch.equal(weights(1, free), weights(3, free))
-    with pytest.raises(ConfigError, match="torch_threads"):
-        N2VConfig(torch_threads=0)
+    one = dataclasses.replace(cfg, batch_chunks=1)
+    assert torch.equal(weights(1, one), weights(3, one))
+
+    net = new_model(cfg, [torch.from_numpy(i.transpose(2, 0, 1).copy()) for i in imgs], seed=0).unet
+    x = torch.randn(8, 3, 64, 64, generator=torch.Generator().manual_seed(1))
+
+    def gradient(threads: int) -> torch.Tensor:
+        torch.set_num_threads(threads)
+        try:
+            net.zero_grad()
+            net(x).square().mean().backward()
+        finally:
+            torch.set_num_threads(saved)
+        return torch.cat([p.grad.flatten() for p in net.parameters()])
+
+    assert not torch.equal(gradient(1), gradient(3))
+    with pytest.raises(ConfigError, match="batch_chunks"):
+        N2VConfig(batch_chunks=0)

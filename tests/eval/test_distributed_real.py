@@ -21,8 +21,8 @@ from eval.cli import main
 def test_real_eval_with_two_workers_scores_as_serial(tmp_path):
     """Two seeds of a real evaluation at a tiny size, serially and with `--workers 2`: identical scores.
 
-    The serial process runs with torch's default threads and each task with one; the N2V training sets
-    its own fixed count (`N2VConfig.torch_threads`), which makes its network the same in both."""
+    The serial process runs with torch's default threads and each task with one; the N2V training runs
+    one torch thread per chunk of a batch (`denoise.parallel`), which makes its network the same in both."""
     ray_module = sys.modules.get("ray")
     assert ray_module is None or not ray_module.is_initialized(), \
         "a Ray is already initialised in this process: `--workers 2` would run on it, not on a cluster of its own"

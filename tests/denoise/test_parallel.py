@@ -1,0 +1,153 @@
+"""The denoiser's thread-count-independent parallelism (`denoise.parallel`, `denoise.n2v.chunked_backward`)."""
+
+import numpy as np
+import pytest
+import torch
+
+from denoise.inference import denoise_images, mean_of_passes
+from denoise.n2v import (
+    N2VConfig,
+    StepBatch,
+    chunk_bounds,
+    chunked_backward,
+    masked_mse,
+    new_model,
+    train_n2v,
+    weight_sharing_replicas,
+)
+from denoise.parallel import budget, one_thread_per_task, run_tasks
+from denoise.round2 import jinvariant_predict
+from denoise.self_supervised import denoise_with_method, train_self_supervised
+from denoise.unet import UNetConfig
+from tests.denoise._synth import add_noise, smooth_scene
+
+
+@pytest.fixture
+def outer_threads():
+    """Set the caller's torch thread count for a block; restored after the test."""
+    saved = torch.get_num_threads()
+    yield torch.set_num_threads
+    torch.set_num_threads(saved)
+
+
+def _net(width: int = 8):
+    cfg = N2VConfig(unet=UNetConfig(width=width, depth=2))
+    return new_model(cfg, [torch.rand(3, 32, 32, generator=torch.Generator().manual_seed(0))], seed=0).unet
+
+
+def test_chunk_bounds_cover_the_batch_in_order():
+    for n in range(1, 12):
+        for k in range(1, 5):
+            b = chunk_bounds(n, k)
+            assert len(b) == min(n, k)
+            assert b[0][0] == 0 and b[-1][1] == n
+            assert all(b1 == a2 for (_, b1), (a2, _) in zip(b[:-1], b[1:], strict=True))
+            sizes = [stop - start for start, stop in b]
+            assert max(sizes) - min(sizes) <= 1 and sizes == sorted(sizes, reverse=True)
+
+
+def test_chunked_gradient_matches_the_whole_batch(outer_threads):
+    """Reference: the whole batch's loss backpropagated through one network. A mean loss split into chunks
+    weighted by their share gives the same gradient up to float32 round-off (the sums are reordered: 1e-6
+    relative); a masked mean is averaged per chunk instead, so it is compared with that definition."""
+    outer_threads(1)
+    net = _net()
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(5, 3, 32, 32, generator=g)
+    target = torch.randn(5, 3, 32, 32, generator=g)
+    mask = torch.rand(5, 1, 32, 32, generator=g) < 0.1
+
+    def mse(unet, x, target, mask):
+        return torch.mean((unet(x) - target) ** 2)
+
+    def masked(unet, x, target, mask):
+        return masked_mse(unet(x), target, mask)
+
+    def grads(module):
+        return torch.cat([p.grad.flatten() for p in module.parameters()])
+
+    for loss in (mse, masked):
+        net.zero_grad()
+        if loss is mse:
+            loss(net, x, target, mask).backward()
+        else:  # per-chunk masked means of the chunks 0:3 and 3:5, weighted 3/5 and 2/5
+            (loss(net, x[:3], target[:3], mask[:3]) * 0.6 + loss(net, x[3:], target[3:], mask[3:]) * 0.4).backward()
+        reference = grads(net).clone()
+        replicas = weight_sharing_replicas(net, 2)
+        value = chunked_backward(replicas, StepBatch((x, target, mask), loss))
+        got = grads(net)
+        assert np.isfinite(value)
+        torch.testing.assert_close(got, reference, rtol=1e-5, atol=1e-7)
+        assert replicas[1].parameters().__next__().data_ptr() == net.parameters().__next__().data_ptr()
+
+
+def test_chunks_give_the_same_bits_on_one_thread_or_several(outer_threads):
+    net = _net(16)
+    x = torch.randn(8, 3, 48, 48, generator=torch.Generator().manual_seed(4))
+
+    def loss(unet, x):
+        return unet(x).square().mean()
+
+    def run(threads: int) -> torch.Tensor:
+        outer_threads(threads)
+        replicas = weight_sharing_replicas(net, 2)
+        chunked_backward(replicas, StepBatch((x,), loss))
+        return torch.cat([p.grad.flatten() for p in net.parameters()]).clone()
+
+    assert torch.equal(run(1), run(2))
+    assert torch.equal(run(1), run(4))
+
+
+def test_run_tasks_keeps_order_and_one_torch_thread(outer_threads):
+    outer_threads(3)
+    assert budget() == 3
+    seen = run_tasks(lambda i: (i, torch.get_num_threads()), range(7))
+    assert [i for i, _ in seen] == list(range(7))
+    assert {t for _, t in seen} == {1}
+    with one_thread_per_task() as held:
+        assert held == 3 and torch.get_num_threads() == 1 and budget() == 3
+        with one_thread_per_task() as inner:  # nested: the outermost budget
+            assert inner == 3
+    assert torch.get_num_threads() == 3
+
+
+def test_mean_of_passes_against_a_loop(outer_threads):
+    """Reference: draw and predict one pass after the other with the same generator."""
+    x = torch.rand(1, 3, 16, 16)
+
+    def run(threads: int, parallel: bool) -> torch.Tensor:
+        outer_threads(threads)
+        gen = torch.Generator().manual_seed(5)
+        draw = lambda k: x + 0.1 * torch.randn(x.shape, generator=gen) + k  # noqa: E731
+        predict = lambda k, y: torch.sin(y) * (k + 1)  # noqa: E731
+        if parallel:
+            return mean_of_passes(x, 5, draw, predict)
+        acc = torch.zeros_like(x)
+        for k in range(5):
+            acc += predict(k, draw(k))
+        return acc / 5
+
+    reference = run(1, parallel=False)
+    assert torch.equal(run(2, parallel=True), reference)
+    assert torch.equal(run(3, parallel=True), reference)
+
+
+def test_denoising_does_not_depend_on_the_callers_threads(outer_threads, rng):
+    """N2V's K-pass inference, R2R's recorrupted passes, Neighbor2Neighbor's one pass per image and the
+    J-invariant prediction: the same bits with 1 and 2 caller threads, training included."""
+    imgs = [add_noise(rng, smooth_scene(rng, 40, 48), 0.1) for _ in range(3)]
+    results = {}
+    for threads in (1, 2):
+        outer_threads(threads)
+        out = []
+        n2v = train_n2v(imgs, N2VConfig(unet=UNetConfig(width=8, depth=2), steps=3, batch_size=4, patch_px=32), seed=0)
+        out += denoise_images(n2v, imgs, passes=3, seed=1)
+        for method in ("r2r", "neighbor2neighbor"):
+            cfg = N2VConfig(unet=UNetConfig(width=8, depth=2), steps=3, batch_size=4, patch_px=32, method=method)
+            model = train_self_supervised(imgs, cfg, seed=0)
+            out += denoise_with_method(model, imgs, cfg, passes=3, seed=1)
+        x = torch.from_numpy(imgs[0].transpose(2, 0, 1).copy())[None]
+        out.append(jinvariant_predict(n2v, x, generator=torch.Generator().manual_seed(2)).numpy())
+        results[threads] = out
+    for a, b in zip(results[1], results[2], strict=True):
+        np.testing.assert_array_equal(a, b)
