@@ -177,8 +177,9 @@ def main() -> None:
         rows.append([names[task], f"{b:.1f}", f"{t:.1f}", f"{b / t:.2f}x"])
     body = [f"Photos: {what}. Base: commit `{args.base}`; this: the checkout. Each cell is the fastest of "
             f"{args.repeats} runs, the two versions alternating, each in its own process with torch's default "
-            f"threads and the denoise stage's thread settings. Load average (1/5/15 min) at start {start_load[0]:.2f}/{start_load[1]:.2f}/"
-            f"{start_load[2]:.2f}, at end {end_load[0]:.2f}/{end_load[1]:.2f}/{end_load[2]:.2f}.", "",
+            f"threads and the denoise stage's thread settings. Load average (1/5/15 min) at start "
+            f"{start_load[0]:.2f}/{start_load[1]:.2f}/{start_load[2]:.2f}, at end "
+            f"{end_load[0]:.2f}/{end_load[1]:.2f}/{end_load[2]:.2f}.", "",
             md_table(["what", "base (s)", "this (s)", "speed-up"], rows)]
     if quality:
         qb, qt = quality["base"], quality["this"]
