@@ -128,8 +128,8 @@ The Ray times include starting the cluster and its 2 worker processes (each impo
 and shutting it down; "above half the serial" is that cost plus the idle worker at the end (tasks of
 unequal length) plus the slowdown of two runs sharing the machine's memory bandwidth.
 "Identical" compares every field of every row but the measured seconds (per-view
-metrics included). Where the serial run already keeps both cores busy (N2V training with 2 threads) a
-second worker has less to gain.
+metrics included). Where the serial run already keeps both cores busy (the denoiser's chunks and passes,
+the compositor) a second worker has less to gain.
 
 {md_table(["sweep", "run", "PSNR Ray", "PSNR serial", "LPIPS Ray", "LPIPS serial", "rot. err. Ray",
            "rot. err. serial"], scores)}
