@@ -35,7 +35,7 @@ from denoise.images import image_to_tensor, tensor_to_image
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
 from denoise.noise_level import NoiseCurve, estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_pca
-from denoise.parallel import one_thread_per_task, run_tasks
+from denoise.parallel import group_size, one_thread_per_task, run_tasks
 from mvgeo.common.errors import check_shape
 from mvgeo.common.progress import progress
 
@@ -176,12 +176,15 @@ def denoise_tensor(model: N2VModel, x: Tensor, *, passes: int = 8, generator: to
 def mean_of_passes(x: Tensor, passes: int, draw: Callable[[int], Tensor],
                    predict: Callable[[int, Tensor], Tensor]) -> Tensor:
     """``mean_k predict(k, draw(k))`` over ``k < passes``: the inputs drawn here in pass order (`draw` may use
-    a shared random generator), the predictions run a thread budget's worth at a time on
+    a shared random generator), the predictions run `denoise.parallel.group_size` at a time on
     `denoise.parallel.run_tasks` and summed in pass order, so the result does not depend on the threads."""
+    if passes < 1:
+        raise ValueError(f"passes must be >= 1, got {passes}")
     acc = torch.zeros_like(x)
-    with one_thread_per_task() as threads:
-        for start in range(0, passes, threads):
-            group = [(k, draw(k)) for k in range(start, min(passes, start + threads))]
+    with one_thread_per_task():
+        step = group_size(x)
+        for start in range(0, passes, step):
+            group = [(k, draw(k)) for k in range(start, min(passes, start + step))]
             for pred in run_tasks(lambda kx: predict(*kx), group, device=x.device):
                 acc += pred
     return acc / passes

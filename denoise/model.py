@@ -72,7 +72,7 @@ class N2VModel:
         mean = torch.tensor(self.mean, dtype=x.dtype, device=x.device).reshape(1, -1, 1, 1)
         std = torch.tensor(self.std, dtype=x.dtype, device=x.device).reshape(1, -1, 1, 1)
         xn = (x - mean) / std
-        return (xn + self.alpha * (unet or self.unet)(xn)) * std + mean
+        return (xn + self.alpha * (self.unet if unet is None else unet)(xn)) * std + mean
 
 
 def save_checkpoint(path: str | Path, model: N2VModel) -> None:

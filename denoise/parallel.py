@@ -32,7 +32,7 @@ import torch
 
 from mvgeo.common.threads import torch_threads
 
-__all__ = ["budget", "one_thread_per_task", "run_tasks"]
+__all__ = ["IN_FLIGHT_BYTES", "budget", "group_size", "in_parallel", "one_thread_per_task", "run_tasks"]
 
 _BUDGET: ContextVar[int | None] = ContextVar("denoise_thread_budget", default=None)
 
@@ -57,8 +57,10 @@ def one_thread_per_task() -> Iterator[int]:
         _BUDGET.reset(token)
 
 
-def _one_thread() -> None:
+def _worker_start() -> None:
+    """A worker thread: one torch thread, and a budget of 1, so that work nested in a task runs in order."""
     torch.set_num_threads(1)
+    _BUDGET.set(1)
 
 
 def run_tasks[T, R](fn: Callable[[T], R], items: Iterable[T], *, device: torch.device | str = "cpu") -> list[R]:
@@ -67,12 +69,38 @@ def run_tasks[T, R](fn: Callable[[T], R], items: Iterable[T], *, device: torch.d
 
     Each ``fn(x)`` must be independent of the others (no shared random generator, no shared output); the
     results come back in the order of `items`, so a caller that sums them in that order gets the same bits
-    whatever the thread count.
+    whatever the thread count. The caller's grad mode holds in the workers too (torch keeps it per thread).
     """
     work = list(items)
+    grad = torch.is_grad_enabled()
+
+    def task(x: T) -> R:
+        with torch.set_grad_enabled(grad):
+            return fn(x)
+
     with one_thread_per_task() as threads:
-        workers = min(threads, len(work)) if torch.device(device).type == "cpu" else 1
+        workers = min(threads, len(work)) if in_parallel(device) else 1
         if workers <= 1:
             return [fn(x) for x in work]
-        with ThreadPoolExecutor(max_workers=workers, initializer=_one_thread) as pool:
-            return list(pool.map(fn, work))
+        with ThreadPoolExecutor(max_workers=workers, initializer=_worker_start) as pool:
+            return list(pool.map(task, work))
+
+
+def in_parallel(device: torch.device | str) -> bool:
+    """Whether work on `device` is spread over threads: on CPU (other devices run it in order here)."""
+    return torch.device(device).type == "cpu"
+
+
+#: Bytes of full-image tensors (inputs and outputs) a group of inference passes may hold at once
+#: (`group_size`); the networks' own activations, per tile, come on top, one set per thread.
+IN_FLIGHT_BYTES = 256 * 2**20
+
+
+def group_size(x: torch.Tensor) -> int:
+    """How many passes over `x` (each an input and an output the size of `x`) to draw and run at once: the
+    thread budget on CPU, at most what `IN_FLIGHT_BYTES` allows (at least 1); 1 on other devices. The
+    results do not depend on it (passes are drawn in order and summed in order)."""
+    if not in_parallel(x.device):
+        return 1
+    per_pass = 2 * x.numel() * x.element_size()
+    return max(1, min(budget(), IN_FLIGHT_BYTES // max(per_pass, 1)))

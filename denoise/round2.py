@@ -43,7 +43,7 @@ from denoise.masking import mask_pixels
 from denoise.model import N2VModel
 from denoise.n2v import StepBatch, chunked_backward, lr_factor, weight_sharing_replicas
 from denoise.noise_level import estimate_noise_sigma_robust
-from denoise.parallel import one_thread_per_task, run_tasks
+from denoise.parallel import group_size, one_thread_per_task, run_tasks
 from denoise.patches import effective_patch_px, sample_patches
 from mvgeo.common.errors import ConfigError, InputError
 from mvgeo.common.progress import progress_bar
@@ -236,9 +236,10 @@ def jinvariant_predict(model: N2VModel, x: Tensor, *, stride: int = JINVARIANT_S
         mask, inp = p
         return predict_tiled(model, inp, tile_px=tile_px, margin_px=margin_px)[..., mask]
 
-    # The passes' inputs are drawn in pass order (the draws do not depend on the threads) and predicted a
-    # thread budget's worth at a time (the cells are disjoint: each pass writes its own pixels).
-    with one_thread_per_task() as threads:
+    # The passes' inputs are drawn in pass order (the draws do not depend on the threads) and predicted
+    # `group_size` at a time (the cells are disjoint: each pass writes its own pixels).
+    with one_thread_per_task():
+        step = group_size(x)
         group: list[tuple[Tensor, Tensor]] = []
         cells_all = [(a, bb) for a in range(stride) for bb in range(stride)]
         for i, (a, bb) in enumerate(cells_all):
@@ -249,7 +250,7 @@ def jinvariant_predict(model: N2VModel, x: Tensor, *, stride: int = JINVARIANT_S
                 if run is None or (a, bb) in run:
                     repl = flat.gather(2, pick[:, None, :].expand(b, c, h * w)).reshape(b, c, h, w)
                     group.append((mask, torch.where(mask[None, None], repl, x)))
-            if group and (len(group) == threads or i == len(cells_all) - 1):
+            if group and (len(group) == step or i == len(cells_all) - 1):
                 for (m, _), values in zip(group, run_tasks(masked_prediction, group, device=x.device), strict=True):
                     out[..., m] = values
                 group = []

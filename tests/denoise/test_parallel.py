@@ -5,20 +5,24 @@ import pytest
 import torch
 
 from denoise.inference import denoise_images, mean_of_passes
+from denoise.model import N2VModel
 from denoise.n2v import (
     N2VConfig,
     StepBatch,
     chunk_bounds,
     chunked_backward,
+    lr_factor,
     masked_mse,
     new_model,
+    optimise_unet,
     train_n2v,
     weight_sharing_replicas,
 )
-from denoise.parallel import budget, one_thread_per_task, run_tasks
-from denoise.round2 import jinvariant_predict
+from denoise.parallel import IN_FLIGHT_BYTES, budget, group_size, one_thread_per_task, run_tasks
+from denoise.round2 import Round2Config, jinvariant_predict
 from denoise.self_supervised import denoise_with_method, train_self_supervised
-from denoise.unet import UNetConfig
+from denoise.unet import UNet, UNetConfig
+from mvgeo.common.errors import ConfigError
 from tests.denoise._synth import add_noise, smooth_scene
 
 
@@ -111,6 +115,71 @@ def test_run_tasks_keeps_order_and_one_torch_thread(outer_threads):
     assert torch.get_num_threads() == 3
 
 
+def test_run_tasks_keeps_the_callers_grad_mode_and_nests_in_order(outer_threads):
+    """torch keeps the grad mode per thread: the workers take the caller's; work nested in a task has a budget
+    of 1 (it runs in order in that task's thread)."""
+    outer_threads(2)
+    w = torch.ones(3, requires_grad=True)
+    with torch.no_grad():
+        assert run_tasks(lambda _: (w * 2).requires_grad, range(2)) == [False, False]
+    assert run_tasks(lambda _: (w * 2).requires_grad, range(2)) == [True, True]
+    assert run_tasks(lambda _: budget(), range(2)) == [1, 1]
+
+
+def test_group_size_caps_the_images_in_flight(outer_threads):
+    outer_threads(8)
+    with one_thread_per_task():
+        assert group_size(torch.zeros(1, 3, 64, 64)) == 8
+        big = torch.zeros(1, 3, 4000, 6000)  # 288 MB per pass (input and output): one at a time
+        assert group_size(big) == 1
+        mid = torch.zeros(1, 3, 1200, 1600)  # 46 MB per pass
+        assert group_size(mid) == IN_FLIGHT_BYTES // (2 * mid.numel() * 4) == 5
+    with pytest.raises(ValueError, match="passes"):
+        mean_of_passes(torch.zeros(1, 3, 4, 4), 0, lambda k: None, lambda k, y: y)
+
+
+def test_training_with_chunks_against_a_loop(outer_threads):
+    """Reference: Adam with the warm-up and cosine schedule over 15 steps, each step's chunks backpropagated
+    one after the other through the one network (gradients accumulated in chunk order), on one thread;
+    `optimise_unet` on 3 threads (each chunk through its own weight-sharing replica) gives the same bits."""
+    cfg = N2VConfig(unet=UNetConfig(width=8, depth=2), steps=15, batch_size=5, lr=3e-3, batch_chunks=2,
+                    divergence_guard=False)
+    x = torch.rand(5, 3, 32, 32, generator=torch.Generator().manual_seed(1))
+
+    def loss(unet, y):
+        return torch.mean((unet(y) - 0.5) ** 2)
+
+    weights = []
+    for reference in (False, True):
+        torch.manual_seed(0)
+        model = N2VModel(UNet(cfg.unet), mean=(0.0,) * 3, std=(1.0,) * 3)
+        gen = torch.Generator().manual_seed(2)
+
+        def batch_at_step(step: int, gen=gen) -> StepBatch:
+            return StepBatch((x + 0.1 * torch.randn(x.shape, generator=gen),), loss)
+
+        if not reference:
+            outer_threads(3)
+            optimise_unet(model, cfg, batch_at_step, desc="test")
+        else:
+            outer_threads(1)
+            opt = torch.optim.Adam(model.unet.parameters(), lr=cfg.lr)
+            sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(
+                s, steps=cfg.steps, warmup_frac=cfg.warmup_frac, min_lr_frac=cfg.min_lr_frac))
+            model.unet.train()
+            for step in range(cfg.steps):
+                b = batch_at_step(step)
+                opt.zero_grad(set_to_none=True)
+                for start, stop in chunk_bounds(5, 2):
+                    (b.loss(model.unet, b.rows[0][start:stop]) * ((stop - start) / 5)).backward()
+                opt.step()
+                sched.step()
+        weights.append(torch.cat([p.detach().flatten() for p in model.unet.parameters()]))
+    assert torch.equal(weights[0], weights[1])
+    with pytest.raises(ConfigError, match="batch_chunks"):
+        Round2Config(batch_chunks=0)
+
+
 def test_mean_of_passes_against_a_loop(outer_threads):
     """Reference: draw and predict one pass after the other with the same generator."""
     x = torch.rand(1, 3, 16, 16)
@@ -129,7 +198,7 @@ def test_mean_of_passes_against_a_loop(outer_threads):
 
     reference = run(1, parallel=False)
     assert torch.equal(run(2, parallel=True), reference)
-    assert torch.equal(run(3, parallel=True), reference)
+    assert torch.equal(run(3, parallel=True), reference)  # groups of 3 and 2: the sums' order matters
 
 
 def test_denoising_does_not_depend_on_the_callers_threads(outer_threads, rng):
