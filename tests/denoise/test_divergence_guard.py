@@ -15,11 +15,11 @@ from denoise.n2v import (
     N2VConfig,
     StepBatch,
     TrainingDivergedError,
-    lr_factor,
     optimise_unet,
 )
 from denoise.self_supervised import denoise_with_method, train_with_method
 from denoise.unet import UNet, UNetConfig
+from tests.denoise._reference import reference_training
 
 
 def _feed(guard: DivergenceGuard, losses) -> list[int]:
@@ -99,26 +99,6 @@ def test_a_diverging_training_starts_again_at_half_the_rate(method, caplog, monk
     assert _psnr(out, clean) > _psnr(out_ref, clean) - 1.0
 
 
-def _reference_loop(model: N2VModel, config: N2VConfig, batch_at_step) -> N2VModel:
-    """The training loop without any guard, written out: Adam, the warm-up and cosine schedule, one step per
-    loss of the whole batch (the slow obvious reference of `optimise_unet` with one chunk, for runs that do
-    not diverge)."""
-    opt = torch.optim.Adam(model.unet.parameters(), lr=config.lr)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(
-        s, steps=config.steps, warmup_frac=config.warmup_frac, min_lr_frac=config.min_lr_frac))
-    model.unet.train()
-    for step in range(config.steps):
-        batch = batch_at_step(step)
-        loss = batch.loss(model.unet, *batch.rows)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-        model.history.append(loss.item())
-    model.unet.eval()
-    return model
-
-
 @pytest.mark.parametrize("steps", [300, 123])  # 123: a last, partial window
 def test_a_run_that_does_not_diverge_is_unchanged_to_the_bit(steps):
     noisy, _ = _images()
@@ -142,7 +122,7 @@ def test_a_run_that_does_not_diverge_is_unchanged_to_the_bit(steps):
             return StepBatch((x + noise,), lambda unet, y: torch.mean((unet(y) - x) ** 2))
 
         models.append(run(model, cfg, batch_at_step, desc="test") if run
-                      else _reference_loop(model, cfg, batch_at_step))
+                      else reference_training(model, cfg, batch_at_step))
     assert models[0].history == models[1].history
     for a, b in zip(models[0].unet.parameters(), models[1].unet.parameters(), strict=True):
         assert torch.equal(a, b)

@@ -11,7 +11,6 @@ from denoise.n2v import (
     StepBatch,
     chunk_bounds,
     chunked_backward,
-    lr_factor,
     masked_mse,
     new_model,
     optimise_unet,
@@ -23,6 +22,7 @@ from denoise.round2 import Round2Config, jinvariant_predict
 from denoise.self_supervised import denoise_with_method, train_self_supervised
 from denoise.unet import UNet, UNetConfig
 from mvgeo.common.errors import ConfigError
+from tests.denoise._reference import reference_training
 from tests.denoise._synth import add_noise, smooth_scene
 
 
@@ -163,17 +163,7 @@ def test_training_with_chunks_against_a_loop(outer_threads):
             optimise_unet(model, cfg, batch_at_step, desc="test")
         else:
             outer_threads(1)
-            opt = torch.optim.Adam(model.unet.parameters(), lr=cfg.lr)
-            sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(
-                s, steps=cfg.steps, warmup_frac=cfg.warmup_frac, min_lr_frac=cfg.min_lr_frac))
-            model.unet.train()
-            for step in range(cfg.steps):
-                b = batch_at_step(step)
-                opt.zero_grad(set_to_none=True)
-                for start, stop in chunk_bounds(5, 2):
-                    (b.loss(model.unet, b.rows[0][start:stop]) * ((stop - start) / 5)).backward()
-                opt.step()
-                sched.step()
+            reference_training(model, cfg, batch_at_step, chunks=2)
         weights.append(torch.cat([p.detach().flatten() for p in model.unet.parameters()]))
     assert torch.equal(weights[0], weights[1])
     with pytest.raises(ConfigError, match="batch_chunks"):
