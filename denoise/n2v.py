@@ -23,7 +23,7 @@ import torch
 from denoise.images import images_to_tensors
 from denoise.masking import REPLACEMENTS, Replacement, mask_pixels
 from denoise.model import N2VModel
-from denoise.parallel import one_thread_per_task, run_tasks
+from denoise.parallel import in_parallel, one_thread_per_task, run_tasks
 from denoise.patches import effective_patch_px, sample_patches
 from denoise.unet import UNet, UNetConfig
 from mvgeo.common.errors import ConfigError, DgsError
@@ -350,9 +350,11 @@ def chunk_bounds(n: int, chunks: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
 
 
-def weight_sharing_replicas(unet: torch.nn.Module, count: int) -> list[torch.nn.Module]:
-    """`unet` and ``count - 1`` copies whose parameters share its storage (an optimiser step on `unet` moves
-    them too) but keep their own gradients."""
+def weight_sharing_replicas(unet: torch.nn.Module, chunks: int, *, batch_size: int) -> list[torch.nn.Module]:
+    """`unet` and copies whose parameters share its storage (an optimiser step on `unet` moves them too) but
+    keep their own gradients: one network per chunk of a `batch_size` batch split into `chunks` on CPU
+    (`chunk_bounds`), `unet` alone on other devices, which take the batch whole."""
+    count = min(chunks, batch_size) if in_parallel(next(unet.parameters()).device) else 1
     replicas = [unet]
     for _ in range(count - 1):
         twin = copy.deepcopy(unet)
@@ -362,8 +364,7 @@ def weight_sharing_replicas(unet: torch.nn.Module, count: int) -> list[torch.nn.
     return replicas
 
 
-def chunked_backward(replicas: Sequence[torch.nn.Module], batch: StepBatch, *,
-                     device: torch.device | str = "cpu") -> float:
+def chunked_backward(replicas: Sequence[torch.nn.Module], batch: StepBatch) -> float:
     """Backward pass of `batch`'s loss split into ``len(replicas)`` chunks (`chunk_bounds`), chunk k through
     ``replicas[k]`` (`weight_sharing_replicas`), the chunks on `denoise.parallel.run_tasks`; the gradients
     end summed in chunk order in ``replicas[0]``'s parameters. Returns the step's loss: the chunks' means
@@ -379,7 +380,7 @@ def chunked_backward(replicas: Sequence[torch.nn.Module], batch: StepBatch, *,
         loss.backward()
         return loss.item()
 
-    values = run_tasks(one, range(len(bounds)), device=device)
+    values = run_tasks(one, range(len(bounds)), device=next(replicas[0].parameters()).device)
     for k in range(1, len(bounds)):
         for p, p_k in zip(replicas[0].parameters(), replicas[k].parameters(), strict=True):
             if p_k.grad is None:
@@ -439,9 +440,7 @@ def _train(model: N2VModel, config: N2VConfig, batch_at_step: Callable[[int], St
     """One run of `optimise_unet`'s loop at peak learning rate `lr`; the step it diverged at, or None."""
     unet = model.unet
     unet.train()
-    device = next(unet.parameters()).device
-    chunks = config.batch_chunks if device.type == "cpu" else 1
-    replicas = weight_sharing_replicas(unet, min(chunks, config.batch_size))
+    replicas = weight_sharing_replicas(unet, config.batch_chunks, batch_size=config.batch_size)
     opt = torch.optim.Adam(unet.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: lr_factor(s, steps=config.steps, warmup_frac=config.warmup_frac,
@@ -450,7 +449,7 @@ def _train(model: N2VModel, config: N2VConfig, batch_at_step: Callable[[int], St
     skipped = 0
     with one_thread_per_task(), progress_bar(desc=desc, total=config.steps) as bar:
         for step in range(config.steps):
-            value = chunked_backward(replicas, batch_at_step(step), device=device)
+            value = chunked_backward(replicas, batch_at_step(step))
             if math.isfinite(value):  # a non-finite loss would write NaNs into the weights: step skipped
                 opt.step()
                 model.history.append(value)

@@ -425,8 +425,7 @@ def _finetune(model: N2VModel, noisy_t: list[Tensor], render_t: list[Tensor], cf
     patch = effective_patch_px(noisy_t, cfg.patch_px)
     unet = model.unet
     unet.train()
-    device = noisy_t[0].device
-    replicas = weight_sharing_replicas(unet, min(cfg.batch_chunks if device.type == "cpu" else 1, cfg.batch_size))
+    replicas = weight_sharing_replicas(unet, cfg.batch_chunks, batch_size=cfg.batch_size)
     opt = torch.optim.Adam(unet.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: lr_factor(s, steps=cfg.steps, warmup_frac=0.0, min_lr_frac=0.05))
@@ -442,7 +441,7 @@ def _finetune(model: N2VModel, noisy_t: list[Tensor], render_t: list[Tensor], cf
             if cfg.mask_input:
                 inp = mask_pixels(noisy, p=model.mask_prob, replacement=model.replacement, radius=model.radius,
                                   generator=gen).masked
-            value = chunked_backward(replicas, StepBatch((inp, noisy, render), loss), device=device)
+            value = chunked_backward(replicas, StepBatch((inp, noisy, render), loss))
             opt.step()
             sched.step()
             model.history.append(value)

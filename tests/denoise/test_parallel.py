@@ -77,7 +77,7 @@ def test_chunked_gradient_matches_the_whole_batch(outer_threads):
         else:  # per-chunk masked means of the chunks 0:3 and 3:5, weighted 3/5 and 2/5
             (loss(net, x[:3], target[:3], mask[:3]) * 0.6 + loss(net, x[3:], target[3:], mask[3:]) * 0.4).backward()
         reference = grads(net).clone()
-        replicas = weight_sharing_replicas(net, 2)
+        replicas = weight_sharing_replicas(net, 2, batch_size=5)
         value = chunked_backward(replicas, StepBatch((x, target, mask), loss))
         got = grads(net)
         assert np.isfinite(value)
@@ -94,7 +94,7 @@ def test_chunks_give_the_same_bits_on_one_thread_or_several(outer_threads):
 
     def run(threads: int) -> torch.Tensor:
         outer_threads(threads)
-        replicas = weight_sharing_replicas(net, 2)
+        replicas = weight_sharing_replicas(net, 2, batch_size=8)
         chunked_backward(replicas, StepBatch((x,), loss))
         return torch.cat([p.grad.flatten() for p in net.parameters()]).clone()
 
@@ -130,9 +130,9 @@ def test_group_size_caps_the_images_in_flight(outer_threads):
     outer_threads(8)
     with one_thread_per_task():
         assert group_size(torch.zeros(1, 3, 64, 64)) == 8
-        big = torch.zeros(1, 3, 4000, 6000)  # 288 MB per pass (input and output): one at a time
+        big = torch.zeros(1, 3, 4000, 6000)  # 288 MB of input and output each time: one at a time
         assert group_size(big) == 1
-        mid = torch.zeros(1, 3, 1200, 1600)  # 46 MB per pass
+        mid = torch.zeros(1, 3, 1200, 1600)  # 46 MB of input and output each time
         assert group_size(mid) == IN_FLIGHT_BYTES // (2 * mid.numel() * 4) == 5
     with pytest.raises(ValueError, match="passes"):
         mean_of_passes(torch.zeros(1, 3, 4, 4), 0, lambda k: None, lambda k, y: y)
