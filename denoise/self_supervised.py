@@ -121,13 +121,17 @@ def r2r_noise_std(img: np.ndarray, *, noise_model: NoiseModel = "auto") -> float
     return curve.sigma_at(image_to_tensor(blurred.reshape(img.shape)))
 
 
-def _sigmas(images: Sequence[np.ndarray], noise_sigma: float | Sequence[float] | None,
-            noise_model: NoiseModel) -> list[float | torch.Tensor]:
+#: Noise std of images: one number for all, one per image (a number, or a ``[C, H, W]`` per-pixel map as
+#: `r2r_noise_std` gives), or None (estimated).
+NoiseStd = float | Sequence[float | torch.Tensor] | None
+
+
+def _sigmas(images: Sequence[np.ndarray], noise_sigma: NoiseStd, noise_model: NoiseModel) -> list[float | torch.Tensor]:
     if noise_sigma is None:
         return [r2r_noise_std(im, noise_model=noise_model) for im in images]
     if np.isscalar(noise_sigma):
         return [float(noise_sigma)] * len(images)
-    sig = [float(s) for s in noise_sigma]
+    sig = [s if isinstance(s, torch.Tensor) else float(s) for s in noise_sigma]
     if len(sig) != len(images):
         raise InputError(f"{len(sig)} noise levels for {len(images)} images")
     return sig
@@ -168,20 +172,21 @@ def choose_objective(images: Sequence[np.ndarray], *, max_dark_clipped: float = 
 
 def train_with_method(images: Sequence[np.ndarray], config: N2VConfig, *, seed: int = 0,
                       model: N2VModel | None = None, device: str | torch.device = "cpu",
-                      noise_model: NoiseModel = "auto") -> N2VModel:
+                      noise_model: NoiseModel = "auto", noise_sigma: NoiseStd = None) -> N2VModel:
     """Train the UNet with ``config.method``: `denoise.n2v.train_n2v` or `train_self_supervised`.
 
-    Arguments as `train_n2v` (`noise_model`: R2R only); apply the result with
-    `denoise_with_method` and the same `config` and `noise_model`.
+    Arguments as `train_n2v` (`noise_model`, `noise_sigma`: R2R only, as `train_self_supervised`'s);
+    apply the result with `denoise_with_method` and the same `config`, `noise_model` and `noise_sigma`.
     """
     if config.method == "n2v":
         return train_n2v(images, config, seed=seed, model=model, device=device)
-    return train_self_supervised(images, config, seed=seed, model=model, device=device, noise_model=noise_model)
+    return train_self_supervised(images, config, seed=seed, model=model, device=device, noise_model=noise_model,
+                                 noise_sigma=noise_sigma)
 
 
 def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, seed: int = 0,
                           model: N2VModel | None = None,
-                          noise_sigma: float | Sequence[float] | None = None,
+                          noise_sigma: NoiseStd = None,
                           device: str | torch.device = "cpu", noise_model: NoiseModel = "auto") -> N2VModel:
     """Train the UNet with Neighbor2Neighbor or Recorrupted-to-Recorrupted (``config.method``).
 
@@ -190,8 +195,8 @@ def train_self_supervised(images: Sequence[np.ndarray], config: N2VConfig, *, se
         config: training options; ``method`` must be ``"neighbor2neighbor"`` or ``"r2r"``.
         seed: seeds the weights, the patches, the sub-sampling / recorruption noise.
         model: continue training this model instead of a new one.
-        noise_sigma: ``"r2r"`` only: noise std per image (or one for all), ``[0, 1]`` units;
-            default: `r2r_noise_std` of each image with `noise_model`.
+        noise_sigma: ``"r2r"`` only: noise std per image (a number, or a per-pixel map as `r2r_noise_std`
+            gives), or one for all, ``[0, 1]`` units; default: `r2r_noise_std` of each image with `noise_model`.
         device: torch device of the training (the model is moved there and returned there).
         noise_model: ``"r2r"`` only, when `noise_sigma` is not given (see `r2r_noise_std`).
 
@@ -273,7 +278,7 @@ def denoise_one_pass(model: N2VModel, images: Sequence[np.ndarray], *, tile_px: 
 
 
 def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N2VConfig, *, passes: int = 8,
-                        seed: int = 0, noise_sigma: float | Sequence[float] | None = None,
+                        seed: int = 0, noise_sigma: NoiseStd = None,
                         tile_px: int = TILE_PX, margin_px: int = MARGIN_PX, clean_sigma: float = CLEAN_SIGMA,
                         noise_model: NoiseModel = "auto", undo_clipping: bool = True) -> list[np.ndarray]:
     """Denoise `images` with a model trained by ``config.method``.

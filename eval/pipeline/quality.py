@@ -133,17 +133,21 @@ def _first_last(summary: Mapping, key: str) -> tuple[float | None, float | None,
     return float(h["first"]), float(h["last"]), int(h["count"])
 
 
-def noise_levels(images: Mapping[str, np.ndarray]) -> dict[str, object]:
+def noise_levels(images: Mapping[str, np.ndarray], stds: Sequence[object] | None = None) -> dict[str, object]:
     """The denoise stage's record of its photos' noise: {"noise_std_255": view -> std /255,
     "signal_dependent": [views whose noise grows with the intensity]}, as the default denoiser estimates it
-    (`r2r_noise_std`; a per-pixel map's median)."""
+    (`r2r_noise_std`; a per-pixel map's median). `stds`: those estimates, one per image in order, where the
+    caller has them already (default: estimated here)."""
     import torch
 
     from denoise.self_supervised import r2r_noise_std
 
+    if stds is None:
+        stds = [r2r_noise_std(img) for img in images.values()]
+    if len(stds) != len(images):
+        raise ValueError(f"{len(stds)} noise estimates for {len(images)} images")
     levels, dependent = {}, []
-    for name, img in images.items():
-        sigma = r2r_noise_std(img)
+    for name, sigma in zip(images, stds, strict=True):
         if isinstance(sigma, torch.Tensor):
             sigma = float(sigma.median())
             dependent.append(name)

@@ -105,7 +105,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     ``(1 - k) * network output + k * noisy photo``."""
     from denoise.model import save_checkpoint
     from denoise.parallel import one_thread_per_task
-    from denoise.self_supervised import choose_objective, denoise_with_method, train_with_method
+    from denoise.self_supervised import choose_objective, denoise_with_method, r2r_noise_std, train_with_method
     from eval.pipeline.quality import noise_levels
 
     s = ctx.settings
@@ -118,15 +118,20 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     # One torch thread per task for training and inference alike (`denoise.parallel`): the UNet's outputs
     # differ in the last float bits between thread counts, enough to flip a PNG level now and then.
     with one_thread_per_task():
-        model = train_with_method(list(noisy.values()), n2v, seed=ctx.seed, device=s.device)
-        out = denoise_with_method(model, list(noisy.values()), n2v, passes=s.passes, seed=ctx.seed)
+        # Each photo's noise std, estimated once: R2R's recorruption and both networks' clipping correction
+        # use it, and the report records it (N2V's fusion estimates its own).
+        stds = [r2r_noise_std(im) for im in noisy.values()]
+        given = None if n2v.method == "n2v" else stds
+        model = train_with_method(list(noisy.values()), n2v, seed=ctx.seed, device=s.device, noise_sigma=given)
+        out = denoise_with_method(model, list(noisy.values()), n2v, passes=s.passes, seed=ctx.seed,
+                                  noise_sigma=given)
     if s.keep_noisy > 0:
         out = [(1.0 - s.keep_noisy) * d + s.keep_noisy * y for d, y in zip(out, noisy.values(), strict=True)]
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
     restarts = {"training_restarts": model.restarts} if model.restarts else {}  # a diverged training, restarted
     return {"views": list(noisy), "train": _history_summary(model.history), **chosen, **restarts,
-            **noise_levels(noisy)}  # the report's noise level, measured once here
+            **noise_levels(noisy, stds)}  # the report's noise level
 
 
 #: The align stage's record of which photos it aligned (`AlignSettings.photos`), in align.json.

@@ -154,6 +154,26 @@ def test_r2r_noise_levels_and_n2v_route(rng):
     assert len(denoise_with_method(m, noisy, n2v, passes=1)) == 2
 
 
+@pytest.mark.parametrize("method", ["neighbor2neighbor", "r2r"])
+def test_given_noise_estimates_are_the_estimated_ones(rng, method):
+    """The pipeline's denoise stage estimates each photo's std once (`r2r_noise_std`) and passes it in:
+    training and inference then match estimating inside, bit for bit, for a number and for a per-pixel map
+    (shot noise, the second image)."""
+    noisy = [add_noise(rng, smooth_scene(rng, 32, 32), 0.1), _poisson_gaussian(rng, smooth_scene(rng, 96, 96), 0.01,
+                                                                               2 / 255)]
+    stds = [r2r_noise_std(im) for im in noisy]
+    assert isinstance(stds[0], float) and isinstance(stds[1], torch.Tensor)
+    cfg = N2VConfig(unet=UNetConfig(width=4, depth=2), steps=3, batch_size=2, patch_px=16, method=method)
+    inside = train_with_method(noisy, cfg, seed=0)
+    given = train_with_method(noisy, cfg, seed=0, noise_sigma=stds)
+    assert inside.history == given.history
+    a = denoise_with_method(inside, noisy, cfg, passes=2, seed=1)
+    b = denoise_with_method(given, noisy, cfg, passes=2, seed=1, noise_sigma=stds)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    c = denoise_with_method(given, noisy, cfg, passes=2, seed=1, noise_sigma=[2 * s for s in stds])
+    assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=True))  # the given ones are the ones used
+
+
 def test_cli_method_flag(tmp_path, rng):
     src = tmp_path / "noisy"
     src.mkdir()

@@ -192,6 +192,10 @@ def test_round_one_reports_the_photos_noise_level(tmp_path):
     photos = {f"v{k}": np.clip(base + rng.normal(0, sigma / 255, base.shape), 0, 1).astype(np.float32)
               for k, sigma in enumerate((10, 20))}
     record = noise_levels(photos)
+    from denoise.self_supervised import r2r_noise_std
+    assert noise_levels(photos, [r2r_noise_std(p) for p in photos.values()]) == record  # the stage's estimates
+    with pytest.raises(ValueError, match="1 noise estimates for 2 images"):
+        noise_levels(photos, [0.1])
     levels, dependent = record["noise_std_255"], record["signal_dependent"]
     assert dependent == [] and levels["v0"] == pytest.approx(10, rel=0.1) and levels["v1"] == pytest.approx(20, rel=0.1)
     rnd = _round(tmp_path / "r", align_stats(n_registered=4))
