@@ -118,14 +118,21 @@ def predict_tiled(model: N2VModel, x: Tensor, *, tile_px: int = TILE_PX, margin_
     h, w = x.shape[-2:]
     if h <= tile_px + 2 * margin_px and w <= tile_px + 2 * margin_px:
         return model.apply(x)
+    cores = [(y0, min(y0 + tile_px, h), x0, min(x0 + tile_px, w))
+             for y0 in tile_starts(h, tile_px) for x0 in tile_starts(w, tile_px)]
+
+    def core(c: tuple[int, int, int, int]) -> Tensor:
+        y0, y1, x0, x1 = c
+        cy0, cx0 = max(0, y0 - margin_px), max(0, x0 - margin_px)
+        cy1, cx1 = min(h, y1 + margin_px), min(w, x1 + margin_px)
+        return model.apply(x[..., cy0:cy1, cx0:cx1])[..., y0 - cy0 : y1 - cy0, x0 - cx0 : x1 - cx0]
+
+    # The tiles are fixed by `tile_px` and run one per task (`denoise.parallel`: one torch thread each, on
+    # the caller's thread budget; in order inside a task that is itself one of several): the same bits
+    # whatever the threads.
     out = torch.empty_like(x)
-    for y0 in tile_starts(h, tile_px):
-        for x0 in tile_starts(w, tile_px):
-            y1, x1 = min(y0 + tile_px, h), min(x0 + tile_px, w)
-            cy0, cx0 = max(0, y0 - margin_px), max(0, x0 - margin_px)
-            cy1, cx1 = min(h, y1 + margin_px), min(w, x1 + margin_px)
-            pred = model.apply(x[..., cy0:cy1, cx0:cx1])
-            out[..., y0:y1, x0:x1] = pred[..., y0 - cy0 : y1 - cy0, x0 - cx0 : x1 - cx0]
+    for (y0, y1, x0, x1), pred in zip(cores, run_tasks(core, cores, device=x.device), strict=True):
+        out[..., y0:y1, x0:x1] = pred
     return out
 
 

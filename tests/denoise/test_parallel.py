@@ -1,10 +1,12 @@
 """The denoiser's thread-count-independent parallelism (`denoise.parallel`, `denoise.n2v.chunked_backward`)."""
 
+import threading
+
 import numpy as np
 import pytest
 import torch
 
-from denoise.inference import denoise_images, mean_of_passes
+from denoise.inference import denoise_images, mean_of_passes, predict_tiled, tile_starts
 from denoise.model import N2VModel
 from denoise.n2v import (
     N2VConfig,
@@ -210,3 +212,39 @@ def test_denoising_does_not_depend_on_the_callers_threads(outer_threads, rng):
         results[threads] = out
     for a, b in zip(results[1], results[2], strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_tiled_prediction_against_a_loop_and_on_threads(outer_threads, monkeypatch):
+    """A photo larger than one tile: its tiles run one per task; the same bits as a written-out loop over the
+    tiles on one thread, with 1, 2 or 3 caller threads; and the tiles do run on several threads."""
+    model = new_model(N2VConfig(unet=UNetConfig(width=8, depth=2)), [torch.rand(3, 32, 32)], seed=0)
+    model.unet.eval()
+    x = torch.rand(1, 3, 70, 90, generator=torch.Generator().manual_seed(3))
+    tile, margin = 24, 8
+
+    outer_threads(1)
+    reference = torch.empty_like(x)
+    with torch.no_grad():
+        for y0 in tile_starts(70, tile):
+            for x0 in tile_starts(90, tile):
+                y1, x1 = min(y0 + tile, 70), min(x0 + tile, 90)
+                cy0, cx0 = max(0, y0 - margin), max(0, x0 - margin)
+                cy1, cx1 = min(70, y1 + margin), min(90, x1 + margin)
+                reference[..., y0:y1, x0:x1] = model.apply(x[..., cy0:cy1, cx0:cx1])[..., y0 - cy0:y1 - cy0,
+                                                                                   x0 - cx0:x1 - cx0]
+    seen = set()
+    apply = model.apply
+
+    def spy(inp, **kw):
+        seen.add(threading.get_ident())
+        assert torch.get_num_threads() == 1
+        return apply(inp, **kw)
+
+    monkeypatch.setattr(model, "apply", spy)
+    for threads in (1, 2, 3):
+        outer_threads(threads)
+        seen.clear()
+        with torch.no_grad():
+            assert torch.equal(predict_tiled(model, x, tile_px=tile, margin_px=margin), reference)
+        # One caller thread: the tiles in order here; more: on the worker threads.
+        assert seen == {threading.get_ident()} if threads == 1 else threading.get_ident() not in seen
