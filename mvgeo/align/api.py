@@ -11,6 +11,7 @@ generates the candidates and one rule chooses (`policy`) -> the dense cloud (`cl
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -19,6 +20,7 @@ import numpy as np
 from mvgeo.align.classical_pairs import ClassicalPointmapModel
 from mvgeo.align.cloud import DenseCloud, dense_cloud
 from mvgeo.align.config import DEFAULT, PREVIEW, AlignConfig
+from mvgeo.align.global_align import GlobalAlignResult
 from mvgeo.align.graph import make_pairs
 from mvgeo.align.inputs import load_inputs
 from mvgeo.align.intrinsics import FocalPrior, choose_focal_prior
@@ -26,7 +28,7 @@ from mvgeo.align.locate import Located
 from mvgeo.align.pairs import PairSet, PointmapModel
 from mvgeo.align.policy import choose_solution
 from mvgeo.align.result import AlignResult
-from mvgeo.align.solve import Candidate
+from mvgeo.align.solve import Candidate, cloud_alignment
 from mvgeo.align.stats import AlignStats, BundleStats, CandidateSummary, FocalPriorStats, InconsistentPair, LocatedView
 from mvgeo.align.verdict import centre_std_ratio
 from mvgeo.align.writer import write_align_result
@@ -80,10 +82,15 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         with timer.stage("pairwise"):
             pairs = model.predict_pairs(inputs.small, pair_list)
         chosen, candidates, contradicted = choose_solution(inputs, pairs, pair_list, model, config, timer)
+        aligned = functools.cache(lambda: cloud_alignment(chosen, timer))  # run only if the cloud asks for it
         cloud = dense_cloud(chosen.inputs, chosen.result, chosen.ba, [(p.i, p.j) for p in chosen.pairs.predictions],
-                            chosen.pairs.matches, config, timer, chosen.graph.grid_to_align)
+                            chosen.pairs.matches, config, timer, chosen.graph.grid_to_align, aligned=aligned)
         sparse = _sparse_model(chosen, cloud)
-        stats = _stats(chosen, candidates, pairs, len(pair_list), len(inputs), sparse, cloud, config, timer)
+        ran_full = chosen.start_values is None or aligned.cache_info().currsize > 0
+        alignment = (aligned() if ran_full else chosen.result,
+                     chosen.align_config.iters if ran_full else config.candidate_align_iters)
+        stats = _stats(chosen, candidates, pairs, len(pair_list), len(inputs), sparse, cloud, config, timer,
+                       alignment)
         stats = dataclasses.replace(stats, chain_start_contradicted=None if contradicted is None else
                                     round(contradicted, 4),
                                     focal_prior_unavailable=no_prior, focal_prior=None if prior is None else
@@ -136,15 +143,18 @@ def _jsonable(x):
 
 
 def _stats(c: Candidate, candidates: list[CandidateSummary], pairs: PairSet, n_pairs: int, n_images: int,
-           sparse: SparseModel, cloud: DenseCloud, config: AlignConfig, timer: StageTimer) -> AlignStats:
+           sparse: SparseModel, cloud: DenseCloud, config: AlignConfig, timer: StageTimer,
+           alignment: tuple[GlobalAlignResult, int]) -> AlignStats:
+    """`alignment`: the global alignment that was run last for the chosen candidate, and its iterations."""
     names = c.inputs.names
+    ga, ga_iters = alignment
     Hp, Wp = c.result.depth[0].shape
     return AlignStats(
         n_images=n_images, n_registered=len(names), input_size_wh=list(c.inputs.input_wh),
         align_size_wh=list(c.inputs.align_wh), pointmap_size_wh=[Wp, Hp], n_pairs=n_pairs,
         n_pairs_ok=len(c.pairs.predictions), n_pairs_verified=len(pairs.geometries),
         failed_pairs=c.graph.failed, pairs_rejected_by_loops=c.graph.rejected, unregistered=c.unregistered,
-        iterations=c.align_config.iters, init_loss=c.result.init_loss, final_loss=c.result.final_loss,
+        iterations=ga_iters, init_loss=ga.init_loss, final_loss=ga.final_loss,
         focal_px={im.name: sparse.cameras[im.camera_id].fx for im in sparse.images},
         known_intrinsics=c.inputs.intrinsics is not None, shared_focal=c.align_config.shared_focal,
         bundle_adjustment=_bundle_stats(c), dense_stereo=cloud.stereo,

@@ -8,7 +8,7 @@ co-visibility and thins them to the point budget (`mvgeo.align.scene`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -111,7 +111,7 @@ def reposed(res: GlobalAlignResult, cam_from_world: np.ndarray, focal_px: np.nda
 
 
 def _stereo_maps(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | None, pairs, matches, config,
-                 timer: StageTimer, grid_to_align: float):
+                 timer: StageTimer, grid_to_align: float, aligned: Callable[[], GlobalAlignResult]):
     """Depth and confidence maps by flow stereo with the final cameras, their grids' K, and the report."""
     Wa, Ha = inputs.align_wh
     with timer.stage("dense_stereo"):
@@ -127,8 +127,9 @@ def _stereo_maps(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult |
     for v, d in enumerate(depth_maps):
         if np.isfinite(d).mean() < config.dense_stereo.min_coverage:
             Hg, Wg = d.shape
-            depth_maps[v] = cv2.resize(np.asarray(res.depth[v], np.float64), (Wg, Hg), interpolation=cv2.INTER_NEAREST)
-            conf_maps[v] = cv2.resize(np.asarray(res.conf[v], np.float64), (Wg, Hg), interpolation=cv2.INTER_NEAREST)
+            full = aligned()
+            depth_maps[v] = cv2.resize(np.asarray(full.depth[v], np.float64), (Wg, Hg), interpolation=cv2.INTER_NEAREST)
+            conf_maps[v] = cv2.resize(np.asarray(full.conf[v], np.float64), (Wg, Hg), interpolation=cv2.INTER_NEAREST)
             from_alignment.append(inputs.names[v])
     with timer.stage("hole_fill"):
         depth_maps, conf_maps, filled = fill_depth_holes(depth_maps, conf_maps, config.hole_fill)
@@ -149,16 +150,25 @@ def _stereo_maps(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult |
 
 def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | None,
                 pairs: Sequence[tuple[int, int]], matches: Sequence[tuple[int, int, np.ndarray]], config,
-                timer: StageTimer, grid_to_align: float) -> DenseCloud:
+                timer: StageTimer, grid_to_align: float,
+                aligned: Callable[[], GlobalAlignResult] | None = None) -> DenseCloud:
     """The output cloud of the chosen solution (module docstring). `config`: `AlignConfig`; `pairs`: the
-    pairs with dense pointmaps (the stereo partners); `matches`: every verified pair's matches."""
+    pairs with dense pointmaps (the stereo partners); `matches`: every verified pair's matches; `res`: the
+    solution (cameras); `aligned`: gives `res` with the depth maps of the full global alignment
+    (`mvgeo.align.solve.cloud_alignment`; it may be called more than once and should keep its result), called
+    only where the cloud uses them (default: `res`'s own)."""
     n = len(inputs)
     report = None
+
+    def full() -> GlobalAlignResult:
+        return res if aligned is None else aligned()
+
     if config.dense_stereo.enabled:
         depth_maps, conf_maps, K_grid, report = _stereo_maps(inputs, res, ba, pairs, matches, config, timer,
-                                                             grid_to_align)
+                                                             grid_to_align, full)
         pts_maps = [backproject_depth(d, k, T) for d, k, T in zip(depth_maps, K_grid, res.cam_from_world, strict=True)]
     else:
+        res = full()
         depth_maps, conf_maps, pts_maps = res.depth, res.conf, res.pts_world
         Hp, Wp = res.depth[0].shape
         if inputs.K_align is not None:  # known intrinsics at the pointmap grid (our pixel convention: exact)

@@ -143,6 +143,8 @@ class Candidate:
         located: the views cut off by contradicted pairs, each with its PnP on the main group's points
             (`mvgeo.align.locate`); those it locates are not refused.
         relocated: the views `relocate` moved to their PnP pose before this candidate's adjustment.
+        start_values: the start's initial values, from which `cloud_alignment` runs the global alignment
+            in full (None where the candidate ran it in full already).
     """
 
     start: str
@@ -160,6 +162,7 @@ class Candidate:
     verdict: Verdict = Verdict()
     located: list[Located] = field(default_factory=list)
     relocated: list[Located] = field(default_factory=list)
+    start_values: StartValues | None = None
 
     @property
     def explained_fraction(self) -> float:
@@ -225,10 +228,31 @@ def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: Al
             values = start_values(graph, start, config, inputs=inputs, pairs=pairs)
         elif values.start != start:
             raise ValueError(f"initial values of the {values.start} start given for the {start} start")
-        res = global_align(pairs.predictions, [(Hp, Wp)] * len(inputs), config=values.align_config,
+        run_cfg, later = values.align_config, None
+        if config.bundle_adjust and pairs.geometries and config.candidate_align_iters < run_cfg.iters:
+            # The poses are the bundle adjustment's: the start goes to it after `candidate_align_iters`
+            # iterations, and the full alignment runs only for the chosen candidate's cloud.
+            run_cfg, later = replace(run_cfg, iters=config.candidate_align_iters), values
+        res = global_align(pairs.predictions, [(Hp, Wp)] * len(inputs), config=run_cfg,
                            focal_init_px=values.focal_init_px, init=values.init)
-    return adjust_and_judge(graph, start, res, values.align_config, config, timer, inputs=inputs, pairs=pairs,
-                            dropped=dropped, unregistered=unregistered)
+    c = adjust_and_judge(graph, start, res, values.align_config, config, timer, inputs=inputs, pairs=pairs,
+                         dropped=dropped, unregistered=unregistered)
+    return replace(c, start_values=later)
+
+
+def cloud_alignment(c: Candidate, timer: StageTimer) -> GlobalAlignResult:
+    """`c`'s result with the depth maps of its global alignment run in full (`AlignConfig.align.iters`) from
+    its start's initial values, re-posed onto its bundle adjustment (`mvgeo.align.cloud.reposed`): the
+    poses and focals are `c.result`'s. `c.result` itself where the candidate ran the alignment in full."""
+    v = c.start_values
+    if v is None or c.ba is None:
+        return c.result
+    Hp, Wp = c.pairs.predictions[0].pts_i.shape[:2]
+    with timer.stage("global_align"):
+        res = global_align(c.pairs.predictions, [(Hp, Wp)] * len(c.inputs), config=v.align_config,
+                           focal_init_px=v.focal_init_px, init=v.init)
+        s = c.graph.grid_to_align
+        return reposed(res, c.result.cam_from_world, c.result.focal_px, c.ba, s)[0]
 
 
 def ideal_pixels(uv_px: np.ndarray, K: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
@@ -362,7 +386,7 @@ def relocate(c: Candidate, config, timer: StageTimer) -> Candidate | None:
     if bend > LOCATE_MAX_ROTATION_DEG:
         _log.warning("re-posing moved the other views' relative rotations by up to %.1f deg: not kept", bend)
         return None
-    return new
+    return replace(new, start_values=c.start_values)  # its views' depth maps come from the same start
 
 
 def main_group_change_deg(before: np.ndarray, after: np.ndarray, moved: set[int]) -> float:

@@ -7,11 +7,19 @@ import numpy as np
 import pytest
 
 from mvgeo.align.api import AlignConfig, align_images
-from mvgeo.align.global_align import GlobalAlignConfig
+from mvgeo.align.global_align import GlobalAlignConfig, global_align
 from mvgeo.align.inputs import load_inputs
 from mvgeo.align.locate import Located
 from mvgeo.align.pairs import PairGeometry, PairSet
-from mvgeo.align.solve import main_group_change_deg, pair_graph, prior_confirmed, relocate, solve
+from mvgeo.align.solve import (
+    cloud_alignment,
+    main_group_change_deg,
+    pair_graph,
+    prior_confirmed,
+    relocate,
+    solve,
+    start_values,
+)
 from mvgeo.align.stats import RejectedPair, Unregistered
 from mvgeo.common.errors import DisconnectedViewsError, InputError
 from mvgeo.common.timing import StageTimer
@@ -187,3 +195,58 @@ def test_a_prior_is_confirmed_only_by_an_adjustment_of_pairs_computed_at_it():
     assert not prior_confirmed(1516.0, 1302.0, 1373.0, change)  # re-estimated pairs, back within 10 %
     assert not prior_confirmed(None, 1516.0, 1516.0, change)  # no prior
     assert not prior_confirmed(1516.0, None, 1516.0, change)  # a model without one pair focal
+
+
+def test_a_candidate_goes_to_its_bundle_adjustment_after_candidate_align_iters(rng):
+    """With the bundle adjustment, a candidate runs `candidate_align_iters` global-alignment iterations (0: its
+    start's values as they are) and keeps its start's values; `cloud_alignment` runs the alignment in full from
+    them (the same as `global_align` on its own) and puts its depth maps under the candidate's cameras.
+    Without the bundle adjustment the candidate's poses are the alignment's: it runs in full there."""
+    poses, depths = make_views(5)
+    pairs = [(0, 1), (1, 2), (0, 2), (2, 3), (1, 3), (3, 4), (2, 4)]
+    ps = PairSet(make_pairs(poses, depths, FOCAL, rng, pairs=pairs, noise=0.01), [],
+                 [PairGeometry(i, j, uv) for i, j, uv in make_matches(poses, depths, FOCAL, pairs)],
+                 focal_determined=True)
+    cfg = replace(FAST, loop_check=False)
+    graph = pair_graph(_inputs(rng, 5), ps, cfg, StageTimer())
+    values = start_values(graph, "chain", cfg)
+    c = solve(graph, "chain", cfg, StageTimer())
+    assert cfg.candidate_align_iters == 0 and c.start_values is not None and c.verdict.ok
+    assert c.result.init_loss == pytest.approx(c.result.final_loss)  # no iteration ran
+    timer = StageTimer()
+    full = cloud_alignment(c, timer)
+    assert "global_align" in timer.as_dict()
+    Hp, Wp = ps.predictions[0].pts_i.shape[:2]
+    alone = global_align(ps.predictions, [(Hp, Wp)] * 5, config=values.align_config,
+                         focal_init_px=values.focal_init_px, init=values.init)
+    assert full.final_loss == pytest.approx(alone.final_loss) and full.final_loss < full.init_loss
+    np.testing.assert_array_equal(full.cam_from_world, c.result.cam_from_world)  # the candidate's cameras
+    np.testing.assert_array_equal(full.focal_px, c.result.focal_px)
+    for v in range(5):  # the full alignment's depth maps, each rescaled (onto the bundle adjustment's tracks)
+        k = np.nanmedian(full.depth[v] / alone.depth[v])
+        np.testing.assert_allclose(full.depth[v], k * alone.depth[v], rtol=1e-9)
+    ran = solve(graph, "chain", replace(cfg, candidate_align_iters=cfg.align.iters), StageTimer())
+    assert ran.start_values is None and cloud_alignment(ran, StageTimer()) is ran.result
+    assert ran.result.final_loss < ran.result.init_loss
+    no_ba = solve(graph, "chain", replace(cfg, bundle_adjust=False), StageTimer())
+    assert no_ba.start_values is None and no_ba.result.final_loss < no_ba.result.init_loss
+
+
+def test_the_cloud_runs_the_full_alignment_only_where_it_uses_its_depth_maps(llff6):
+    """`align_images`: with the dense stereo (every view covered) the full global alignment never runs and
+    align.json reports the candidate's iterations (0); without it the cloud comes from the full alignment,
+    reported with its iterations and losses."""
+    from mvgeo.align.api import PREVIEW
+    from mvgeo.align.dense_stereo import DenseStereoConfig
+    from mvgeo.common.imageio import list_images
+
+    files = list_images(llff6 / "images")
+    with_stereo = align_images(files, replace(PREVIEW, seed=0))
+    st = with_stereo.stats
+    assert st.dense_stereo is not None and st.dense_stereo.views_with_alignment_depth == []
+    assert st.iterations == 0 and st.init_loss == pytest.approx(st.final_loss)
+    without = align_images(files, replace(PREVIEW, seed=0, dense_stereo=DenseStereoConfig(enabled=False)))
+    assert without.stats.iterations == PREVIEW.align.iters and without.stats.final_loss < without.stats.init_loss
+    # The same cameras either way (the cloud does not feed back into the poses).
+    np.testing.assert_array_equal(np.stack(list(with_stereo.sparse_model.cam_from_world_by_name().values())),
+                                  np.stack(list(without.sparse_model.cam_from_world_by_name().values())))
