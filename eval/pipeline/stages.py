@@ -190,15 +190,17 @@ def working_camera(intrinsics: Path, image: Path) -> Camera:
 
 
 def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] | None, cfg):
-    """Round 1: the noisy photos under the denoised photos' names when `noisy` is given (stem -> file), and
-    the denoised `files` where those are refused or not given; which ones in `PHOTOS_KEY`.
+    """Round 1: the noisy photos under the denoised photos' names when `noisy` is given (stem -> file), with
+    the dense cloud made of the denoised `files` (`align_images`' `cloud_images`), and the denoised `files`
+    alone where those are refused or not given; which ones in `PHOTOS_KEY`.
 
     After the noisy photos were refused, the denoised ones are matched with the detector for noisy photos
     (`denoised_photos_config`)."""
     photos: dict[str, object] = {"aligned": "denoised"}
     if noisy is not None:
         try:
-            res = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files])
+            # The poses from the noisy photos, the dense cloud (the splat's start) from the denoised ones.
+            res = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files], cloud_images=files)
             res.stats.annotations[PHOTOS_KEY] = {"aligned": "noisy"}
             return res
         except (AlignmentRefusedError, DisconnectedViewsError) as exc:

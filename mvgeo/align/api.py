@@ -22,7 +22,7 @@ from mvgeo.align.cloud import DenseCloud, dense_cloud
 from mvgeo.align.config import DEFAULT, PREVIEW, AlignConfig
 from mvgeo.align.global_align import GlobalAlignResult
 from mvgeo.align.graph import make_pairs
-from mvgeo.align.inputs import load_inputs
+from mvgeo.align.inputs import AlignInputs, load_inputs
 from mvgeo.align.intrinsics import FocalPrior, choose_focal_prior
 from mvgeo.align.locate import Located
 from mvgeo.align.pairs import PairSet, PointmapModel
@@ -43,7 +43,8 @@ __all__ = ["AlignConfig", "AlignResult", "FocalPrior", "PREVIEW", "align_images"
 
 def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignConfig = DEFAULT, *,
                  names: Sequence[str] | None = None, intrinsics: Camera | None = None,
-                 model: PointmapModel | None = None, focal_prior: FocalPrior | None = None) -> AlignResult:
+                 model: PointmapModel | None = None, focal_prior: FocalPrior | None = None,
+                 cloud_images: Sequence[Path] | Sequence[np.ndarray] | None = None) -> AlignResult:
     """Pose-free reconstruction of a few views: pairwise pointmaps, DUSt3R global alignment, bundle adjustment.
 
     Args:
@@ -57,6 +58,11 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
             these images were made from; ignored when `intrinsics` is given); default: the image files' common
             EXIF focal (`AlignConfig.exif_focal`), if any. The bundle adjustment refines it; kept within
             `AlignConfig.refocus_min_change`, it counts as determining the focal.
+        cloud_images: the same views in the same order and size, whose pixels the dense cloud is made of (the
+            dense stereo's flows and the points' colours) instead of `images`'; the poses come from `images`
+            alone. E.g. photos that went through a denoiser, where `images` are the noisy photos: their
+            features relate the views without the denoiser's texture, and the stereo and colours are
+            cleaner in the denoised ones.
 
     Raises:
         InputError: too few/corrupt/duplicate/mixed-size images; `DisconnectedViewsError` (an `InputError`): a
@@ -68,6 +74,7 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         timer = StageTimer()
         with timer.stage("load"):
             inputs = load_inputs(images, names=names, intrinsics=intrinsics, max_size_px=config.max_size_px)
+        pixels = None if cloud_images is None else _cloud_pixels(inputs, cloud_images, intrinsics, config)
         prior, no_prior = choose_focal_prior(images, known_intrinsics=inputs.intrinsics is not None,
                                              given=focal_prior, read_exif=config.exif_focal)
         if model is None:
@@ -83,7 +90,9 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
             pairs = model.predict_pairs(inputs.small, pair_list)
         chosen, candidates, contradicted = choose_solution(inputs, pairs, pair_list, model, config, timer)
         aligned = functools.cache(lambda: cloud_alignment(chosen, timer))  # run only if the cloud asks for it
-        cloud = dense_cloud(chosen.inputs, chosen.result, chosen.ba, [(p.i, p.j) for p in chosen.pairs.predictions],
+        cloud_inputs = chosen.inputs if pixels is None else pixels.restricted(
+            [inputs.names.index(n) for n in chosen.inputs.names])
+        cloud = dense_cloud(cloud_inputs, chosen.result, chosen.ba, [(p.i, p.j) for p in chosen.pairs.predictions],
                             chosen.pairs.matches, config, timer, chosen.graph.grid_to_align, aligned=aligned)
         sparse = _sparse_model(chosen, cloud)
         ran_full = chosen.start_values is None or aligned.cache_info().currsize > 0
@@ -98,6 +107,18 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
                                                     round(prior.focal_px(inputs.input_wh), 2)))
         return AlignResult(sparse, cloud.xyz, cloud.rgb, cloud.conf, stats)
 
+
+
+def _cloud_pixels(inputs: AlignInputs, cloud_images, intrinsics: Camera | None, config: AlignConfig) -> AlignInputs:
+    """`cloud_images` loaded as `inputs` were (the same names, undistortion and size), checked to match them."""
+    if len(cloud_images) != len(inputs):
+        raise InputError(f"{len(cloud_images)} cloud images for {len(inputs)} images",
+                         fix="pass one cloud image per image, in the same order")
+    pixels = load_inputs(cloud_images, names=inputs.names, intrinsics=intrinsics, max_size_px=config.max_size_px)
+    if pixels.input_wh != inputs.input_wh:
+        raise InputError(f"the cloud images are {pixels.input_wh[0]}x{pixels.input_wh[1]}, the images "
+                         f"{inputs.input_wh[0]}x{inputs.input_wh[1]}", fix="pass the same views at the same size")
+    return pixels
 
 
 def _sparse_model(c: Candidate, cloud: DenseCloud) -> SparseModel:

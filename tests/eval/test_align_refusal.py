@@ -83,8 +83,8 @@ def test_noisy_first_aligns_the_noisy_photos_under_the_denoised_names(tmp_path, 
     noisy = _views(tmp_path / "noisy", ("000003.jpg", "000007.jpg"))  # the working photos may differ in type
     calls = []
 
-    def record(files, cfg, names=None):
-        calls.append(([f.name for f in files], names))
+    def record(files, cfg, names=None, cloud_images=None):
+        calls.append(([f.name for f in files], names, [(f.parent.name, f.name) for f in cloud_images]))
         raise _Stop
 
     monkeypatch.setattr(mvgeo.align, "align_images", record)
@@ -92,7 +92,9 @@ def test_noisy_first_aligns_the_noisy_photos_under_the_denoised_names(tmp_path, 
                        AlignStageSettings(AlignConfig(), noisy_first=True), 0)
     with pytest.raises(_Stop):
         align(ctx)
-    assert calls == [(["000003.jpg", "000007.jpg"], ["000003.png", "000007.png"])]
+    # the dense cloud (the splat's start) from the denoised photos
+    assert calls == [(["000003.jpg", "000007.jpg"], ["000003.png", "000007.png"],
+                      [("denoised", "000003.png"), ("denoised", "000007.png")])]
 
 
 @pytest.mark.parametrize("refusal", [_refused("views_unsupported"),
@@ -102,7 +104,7 @@ def test_noisy_first_falls_back_to_the_denoised_photos_and_reports_their_refusal
     noisy = _views(tmp_path / "noisy", ("000003.png", "000007.png"))
     calls, thresholds = [], []
 
-    def refuse_both(files, cfg, names=None):
+    def refuse_both(files, cfg, names=None, cloud_images=None):
         calls.append(files[0].parent.name)
         thresholds.append(cfg.pairwise.sensitive_below_noise)
         raise refusal if files[0].parent == noisy else _refused("positions_undetermined", ("000003.png",))

@@ -83,7 +83,7 @@ def test_noisy_first_aligns_with_the_prior_too(tmp_path, monkeypatch):
         (denoised / name).write_bytes(b"")
     calls = []
 
-    def refuse(files, cfg, names=None, **kw):
+    def refuse(files, cfg, names=None, cloud_images=None, **kw):
         calls.append((files[0].parent.name, kw))
         raise DisconnectedViewsError("disconnected", views=("001.png",))
 

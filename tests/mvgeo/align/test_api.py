@@ -60,3 +60,28 @@ def test_written_result_reads_back(llff6_preview, tmp_path):
     assert model.names == llff6_preview.sparse_model.names
     for a, b in zip(model.images, llff6_preview.sparse_model.images, strict=True):
         np.testing.assert_allclose(np.asarray(a.cam_from_world)[:3], np.asarray(b.cam_from_world)[:3], atol=1e-9)
+
+
+def test_the_cloud_is_made_of_the_cloud_images(llff6, llff6_preview):
+    """`cloud_images`: the poses come from `images` alone, the dense cloud (stereo and colours) from the cloud
+    images: with flat grey cloud images (one level per view) every point's colour is its view's grey."""
+    import dataclasses
+
+    import pytest
+
+    from mvgeo.align import PREVIEW, align_images
+    from mvgeo.common.errors import InputError
+
+    files = list_images(llff6 / "images")
+    greys = [(40 + 25 * k) / 255 for k in range(len(files))]
+    flat = [np.full((192, 256, 3), g, np.float32) for g in greys]
+    res = align_images(files, dataclasses.replace(PREVIEW, seed=0), cloud_images=flat)
+    poses = lambda r: np.stack(list(r.sparse_model.cam_from_world_by_name().values()))  # noqa: E731
+    np.testing.assert_array_equal(poses(res), poses(llff6_preview))
+    levels = {int(np.rint(g * 255)) for g in greys}
+    assert len(res.points_rgb) > 100 and set(np.unique(res.points_rgb)) <= levels
+    assert len(set(np.unique(res.points_rgb)) & levels) > 1  # points of several views
+    with pytest.raises(InputError, match="5 cloud images for 6 images"):
+        align_images(files, PREVIEW, cloud_images=flat[:5])
+    with pytest.raises(InputError, match="the cloud images are 128x96"):
+        align_images(files, PREVIEW, cloud_images=[f[:96, :128] for f in flat])
