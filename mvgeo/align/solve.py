@@ -1,10 +1,12 @@
-"""One candidate solution: the checked pair graph, then global alignment, bundle adjustment and the verdict.
+"""One candidate solution: the checked pair graph, then the start, bundle adjustment and the verdict.
 
 `pair_graph` turns the pair stage's `PairSet` into the graph a candidate is solved on: pairs whose relative
 rotation contradicts most of their loops of three pairs are rejected (`mvgeo.align.loops`), and the views
 must be connected (or, with `allow_partial`, the largest connected group is kept). `solve` runs one start
-(`mvgeo.align.init`) through the global alignment and the bundle adjustment on every verified pair's
-matches, and judges the result against all of them (`mvgeo.align.verdict`).
+(`mvgeo.align.init`) through `AlignConfig.candidate_align_iters` iterations of the global alignment (none
+by default; all of them without the bundle adjustment) and the bundle adjustment on every verified pair's
+matches, and judges the result against all of them (`mvgeo.align.verdict`). `cloud_alignment` runs the
+global alignment in full for the chosen candidate's cloud.
 """
 
 from __future__ import annotations
@@ -31,8 +33,8 @@ from mvgeo.align.verdict import Verdict, judge_pairs, verdict
 from mvgeo.common.errors import DisconnectedViewsError
 from mvgeo.common.timing import StageTimer
 
-__all__ = ["Candidate", "PairGraph", "StartValues", "adjust_and_judge", "main_group_change_deg", "pair_graph",
-           "pairs_K_align", "prior_confirmed", "relocate", "solve", "start_values"]
+__all__ = ["Candidate", "PairGraph", "StartValues", "adjust_and_judge", "cloud_alignment", "main_group_change_deg",
+           "pair_graph", "pairs_K_align", "prior_confirmed", "relocate", "solve", "start_values"]
 
 _log = logging.getLogger(__name__)
 
