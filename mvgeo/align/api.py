@@ -108,7 +108,6 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         return AlignResult(sparse, cloud.xyz, cloud.rgb, cloud.conf, stats)
 
 
-
 def _cloud_pixels(inputs: AlignInputs, cloud_images, intrinsics: Camera | None, config: AlignConfig) -> AlignInputs:
     """`cloud_images` loaded as `inputs` were (the same names, undistortion and size), checked to match them."""
     if len(cloud_images) != len(inputs):
