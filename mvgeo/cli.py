@@ -34,7 +34,9 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--pointmap-size", type=int_range(8), default=128, help="long side of the dense pointmaps (px)")
     a.add_argument("--pairs", default="auto", help="complete | window:K | auto (complete up to 24 images)")
     a.add_argument("--shared-focal", action="store_true", help="one focal for all views")
-    a.add_argument("--iters", type=nonneg_int, default=100, help="global alignment iterations (default 100)")
+    a.add_argument("--iters", type=nonneg_int, default=100,
+                   help="global alignment iterations, run for the cloud where it uses the alignment's depth maps "
+                        "(default 100)")
     a.add_argument("--align-stride", type=positive_int, default=4,
                    help="global alignment on every K-th pixel row/column (default 4; 1 = all pixels)")
     a.add_argument("--ba", action=argparse.BooleanOptionalAction, default=True,
@@ -50,6 +52,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="thinning to --points: most confident point per pixel cell of each view (default) "
                         "or per voxel")
     a.add_argument("--intrinsics", type=Path, help="COLMAP cameras.txt or mrcal .cameramodel of these images")
+    a.add_argument("--cloud-images", type=Path, metavar="DIR",
+                   help="a folder with the same views under the same file names (e.g. denoised versions of noisy "
+                        "photos): the dense cloud's stereo and colours come from them, the poses from IMAGES_DIR")
     a.add_argument("--exif-focal", action=argparse.BooleanOptionalAction, default=True,
                    help="without --intrinsics, start at the photos' EXIF 35 mm-equivalent focal length when they all "
                         "carry the same one (default: on; align.json 'focal_prior')")
@@ -82,8 +87,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _align(args: argparse.Namespace) -> int:
-    plan = prepare_output(args.out, command="mvgeo align", inputs=[args.images_dir, args.intrinsics],
-                          overwrite=args.overwrite)
+    plan = prepare_output(args.out, command="mvgeo align", inputs=[args.images_dir, args.intrinsics,
+                                                                   args.cloud_images], overwrite=args.overwrite)
     from mvgeo.align.api import AlignConfig, align_images, write_align_result
     from mvgeo.align.classical_pairs import ClassicalPairConfig
     from mvgeo.align.dense_stereo import DenseStereoConfig
@@ -98,6 +103,13 @@ def _align(args: argparse.Namespace) -> int:
         raise InputError(f"need at least 2 images, found {len(paths)}", path=args.images_dir,
                          fix="add more views of the scene")
     intr = read_intrinsics(args.intrinsics) if args.intrinsics else None
+    cloud = None
+    if args.cloud_images is not None:
+        cloud = [args.cloud_images / p.name for p in paths]
+        missing = [c.name for c in cloud if not c.is_file()]
+        if missing:
+            raise InputError(f"--cloud-images lacks {missing}", path=args.cloud_images,
+                             fix="give it the same views under the same file names as the images folder")
     cfg = AlignConfig(max_size_px=args.max_size, pairs=PairGraphSpec.parse(args.pairs),
                       pairwise=ClassicalPairConfig(pointmap_size_px=args.pointmap_size),
                       align=GlobalAlignConfig(iters=args.iters, shared_focal=args.shared_focal,
@@ -106,7 +118,7 @@ def _align(args: argparse.Namespace) -> int:
                       downsample=args.downsample, dense_stereo=DenseStereoConfig(enabled=args.dense_stereo),
                       hole_fill=HoleFillConfig(enabled=args.hole_fill), initial_poses=args.initial_poses,
                       exif_focal=args.exif_focal)
-    result = align_images(paths, cfg, intrinsics=intr)
+    result = align_images(paths, cfg, intrinsics=intr, cloud_images=cloud)
     write_align_result(plan, result)
     s = result.stats
     if s.unregistered:

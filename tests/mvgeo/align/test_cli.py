@@ -91,6 +91,31 @@ def test_compare_cli_json(aligned, scene, capsys):
     assert out["n_registered"] == 6 and out["median_rotation_deg"] >= 0
 
 
+def test_cloud_images_colour_the_cloud(aligned, scene, tmp_path, capsys):
+    """--cloud-images: the same poses as without it, the cloud's colours from the other folder (flat greys, one
+    level per view); a folder that lacks a view is exit 2, naming it, with no output."""
+    grey = tmp_path / "grey"
+    grey.mkdir()
+    levels = set()
+    for k, f in enumerate(list_images(scene / "images")):
+        levels.add(40 + 25 * k)
+        write_image(grey / f.name, np.full((192, 256, 3), (40 + 25 * k) / 255, np.float32))
+    out = tmp_path / "out"
+    assert main(["align", str(scene / "images"), "--out", str(out), *FAST, "--cloud-images", str(grey)]) == 0
+    a, b = read_sparse_model(out / "sparse" / "0"), read_sparse_model(aligned / "sparse" / "0")
+    for name in a.names:
+        np.testing.assert_array_equal(a.image(name).cam_from_world, b.image(name).cam_from_world)
+    import open3d as o3d
+
+    rgb = np.rint(np.asarray(o3d.io.read_point_cloud(str(out / "points.ply")).colors) * 255).astype(int)
+    assert len(rgb) > 100 and set(np.unique(rgb)) <= levels
+    (grey / "view_002.png").unlink()
+    capsys.readouterr()
+    assert main(["align", str(scene / "images"), "--out", str(tmp_path / "o2"), "--cloud-images", str(grey)]) == 2
+    err = capsys.readouterr().err
+    assert "view_002.png" in err and "Traceback" not in err and not (tmp_path / "o2").exists()
+
+
 @pytest.mark.parametrize("case", ["missing", "empty", "one_image", "corrupt", "mixed_sizes", "turned", "duplicate"])
 def test_bad_input_exit_2_and_no_output(case, scene, tmp_path, capsys):
     src = tmp_path / "imgs"
