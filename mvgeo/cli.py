@@ -136,9 +136,10 @@ def _align(args: argparse.Namespace) -> int:
         how = "from the pairs" if s.focal_determined_by_pairs else "not determined by the pairs"
         std = f", log-std {ba.focal_log_std:.3f}" if ba is not None else ""
         fit += f", focal {focals[len(focals) // 2]:.1f} px ({how}{std})"
+    ga = f", alignment loss {s.init_loss:.4g} -> {s.final_loss:.4g}" if s.iterations else ""  # where it ran
     print(f"aligned {s.n_registered}/{s.n_images} images ({s.n_pairs_ok}/{s.n_pairs} pairs, {s.initial_poses} "
-          f"start, {len(s.candidates)} candidate(s){prior}), {s.n_points} points, "
-          f"loss {s.init_loss:.4g} -> {s.final_loss:.4g}{fit}, {s.timings_s['total']:.1f} s -> {args.out}")
+          f"start, {len(s.candidates)} candidate(s){prior}), {s.n_points} points{ga}{fit}, "
+          f"{s.timings_s['total']:.1f} s -> {args.out}")
     return 0
 
 
