@@ -19,10 +19,9 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
    defined in `pairs` with the `PointmapModel` protocol a learned DUSt3R/MASt3R wrapper can implement;
    `dense_pairs` holds the flows and the triangulated pointmaps).
 3. `solve`: the pair graph (loop check `loops`, connectivity `graph`), then one candidate: initial poses
-   (`init`: DUSt3R's chaining, or rotation averaging `rotation_averaging` then positions), bundle
-   adjustment from them on every verified pair's tracks (`bundle`, `bundle_lm`; after
-   `AlignConfig.candidate_align_iters` iterations of DUSt3R's global alignment, default none: they do not
-   improve the adjusted poses), and a `verdict` with typed reasons naming the views (raised as
+   (`init`: DUSt3R's chaining, or rotation averaging `rotation_averaging` then positions), DUSt3R's global
+   alignment (`global_align`, objective in `alignment_objective`), bundle adjustment on every verified
+   pair's tracks (`bundle`, `bundle_lm`), and a `verdict` with typed reasons naming the views (raised as
    `mvgeo.common.errors.AlignmentRefusedError`: kind, views, message and fix). Views the verdict would
    cut off (every link contradicted) are first located by PnP on points the main group triangulates from
    guided matches (`locate`, `guided`).
@@ -30,9 +29,9 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
    (`solve.relocate`), pruning of contradicted pairs, the second start) and the one rule that chooses.
 5. `cloud`: depth maps recomputed by flow stereo with the final cameras (`dense_stereo`, `hole_fill`;
    optionally from other pixels of the same views, `align_images`' `cloud_images`), co-visibility pruning
-   and thinning (`scene`). DUSt3R's global alignment (`global_align`, objective in `alignment_objective`)
-   runs in full once, for the chosen candidate (`solve.cloud_alignment`), where the cloud uses its depth
-   maps: without the dense stereo, and for a view the stereo leaves empty.
+   and thinning (`scene`). With `AlignConfig.candidate_align_iters` set, the candidates run fewer global
+   alignment iterations and it runs in full once, for the chosen candidate's cloud where the cloud uses its
+   depth maps (`solve.cloud_alignment`).
 6. `stats` (`AlignStats`, align.json) and `writer`.
 
 Also: `intrinsics` (known calibration, undistortion, the EXIF focal prior), `colmap_sfm` (the pycolmap

@@ -30,16 +30,16 @@ class AlignConfig:
         pairwise: options of the classical pair estimator (incl. the pointmap resolution
             `pointmap_size_px`).
         align: options of the global alignment (`shared_focal` lives there); default 100 iterations on
-            every 4th pixel row/column, since the final poses come from the bundle adjustment. With the
-            bundle adjustment those iterations run once, for the chosen candidate's cloud (its depth maps,
-            where the cloud uses them: `dense_stereo` off, or a view the stereo leaves empty), not for
-            every candidate (`candidate_align_iters`).
-        candidate_align_iters: global-alignment iterations each candidate runs before its bundle adjustment
-            (0: the start's initial values go to it directly). The bundle adjustment's poses do not improve
-            with them: on DTU scan24 (clean and sigma 25/255, noise seeds 0-3) and the clean temple ring,
-            0 against 100 gave the same registered views and errors or smaller ones (median rotation error
-            0.252-0.430 / 1.002 deg against 0.252-0.430 / 1.030) and took 0.3-0.9 s less of 2.4-4.2 s
-            (docs/bench/align_speed.md); on llff_like 0.0129 against 0.0138 deg (docs/bench/align.md).
+            every 4th pixel row/column, since the final poses come from the bundle adjustment.
+        candidate_align_iters: global-alignment iterations each candidate runs before its bundle adjustment;
+            None (default): all of `align.iters`. Fewer (0: the start's values go to the adjustment as they
+            are) run the full alignment once, for the chosen candidate's cloud, only where the cloud uses
+            its depth maps (`dense_stereo` off, or a view the stereo leaves empty). 0 gave the same or better
+            poses on DTU scan24 (clean and sigma 25/255, six noise draws), the clean temple ring, llff_like
+            and object_ring, 4-14 % faster (docs/bench/align_speed.md), but at sigma 50/255 the noisy DTU
+            photos were refused on three seeds of three (0.75 deg with the iterations) and one seed's denoised
+            photos were accepted 1.1 deg / ATE 0.18 off: a bent start needs the alignment before the
+            adjustment.
         min_conf: output points need a confidence above this (2.0; 1 means no information).
         consistency_px: a pair's match is explained by the result when its Sampson distance under the
             final poses and focals is below this (2.0 px at `max_size_px`; without the bundle
@@ -129,7 +129,7 @@ class AlignConfig:
     pairs: PairGraphSpec = field(default_factory=PairGraphSpec)
     pairwise: ClassicalPairConfig = field(default_factory=ClassicalPairConfig)
     align: GlobalAlignConfig = field(default_factory=lambda: GlobalAlignConfig(iters=100, pixel_stride=4))
-    candidate_align_iters: int = 0
+    candidate_align_iters: int | None = None
     min_conf: float = 2.0
     consistency_px: float = 2.0
     min_pair_explained: float = 0.5

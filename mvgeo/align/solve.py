@@ -1,12 +1,12 @@
-"""One candidate solution: the checked pair graph, then the start, bundle adjustment and the verdict.
+"""One candidate solution: the checked pair graph, then global alignment, bundle adjustment and the verdict.
 
 `pair_graph` turns the pair stage's `PairSet` into the graph a candidate is solved on: pairs whose relative
 rotation contradicts most of their loops of three pairs are rejected (`mvgeo.align.loops`), and the views
 must be connected (or, with `allow_partial`, the largest connected group is kept). `solve` runs one start
-(`mvgeo.align.init`) through `AlignConfig.candidate_align_iters` iterations of the global alignment (none
-by default; all of them without the bundle adjustment) and the bundle adjustment on every verified pair's
-matches, and judges the result against all of them (`mvgeo.align.verdict`). `cloud_alignment` runs the
-global alignment in full for the chosen candidate's cloud.
+(`mvgeo.align.init`) through the global alignment (`AlignConfig.candidate_align_iters` of its iterations
+where set) and the bundle adjustment on every verified pair's matches, and judges the result against all
+of them (`mvgeo.align.verdict`). `cloud_alignment` runs the global alignment in full for the chosen
+candidate's cloud where the candidate ran fewer iterations.
 """
 
 from __future__ import annotations
@@ -231,10 +231,11 @@ def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: Al
         elif values.start != start:
             raise ValueError(f"initial values of the {values.start} start given for the {start} start")
         run_cfg, later = values.align_config, None
-        if config.bundle_adjust and pairs.geometries and config.candidate_align_iters < run_cfg.iters:
+        fewer = config.candidate_align_iters
+        if fewer is not None and fewer < run_cfg.iters and config.bundle_adjust and pairs.geometries:
             # The poses are the bundle adjustment's: the start goes to it after `candidate_align_iters`
             # iterations, and the full alignment runs only for the chosen candidate's cloud.
-            run_cfg, later = replace(run_cfg, iters=config.candidate_align_iters), values
+            run_cfg, later = replace(run_cfg, iters=fewer), values
         res = global_align(pairs.predictions, [(Hp, Wp)] * len(inputs), config=run_cfg,
                            focal_init_px=values.focal_init_px, init=values.init)
     c = adjust_and_judge(graph, start, res, values.align_config, config, timer, inputs=inputs, pairs=pairs,

@@ -198,20 +198,21 @@ def test_a_prior_is_confirmed_only_by_an_adjustment_of_pairs_computed_at_it():
 
 
 def test_a_candidate_goes_to_its_bundle_adjustment_after_candidate_align_iters(rng):
-    """With the bundle adjustment, a candidate runs `candidate_align_iters` global-alignment iterations (0: its
-    start's values as they are) and keeps its start's values; `cloud_alignment` runs the alignment in full from
-    them (the same as `global_align` on its own) and puts its depth maps under the candidate's cameras.
-    Without the bundle adjustment the candidate's poses are the alignment's: it runs in full there."""
+    """With the bundle adjustment and `candidate_align_iters` set, a candidate runs that many global-alignment
+    iterations (0: its start's values as they are) and keeps its start's values; `cloud_alignment` runs the
+    alignment in full from them (the same as `global_align` on its own) and puts its depth maps under the
+    candidate's cameras. Unset (the default), or without the bundle adjustment (the candidate's poses are
+    then the alignment's), it runs in full in the candidate."""
     poses, depths = make_views(5)
     pairs = [(0, 1), (1, 2), (0, 2), (2, 3), (1, 3), (3, 4), (2, 4)]
     ps = PairSet(make_pairs(poses, depths, FOCAL, rng, pairs=pairs, noise=0.01), [],
                  [PairGeometry(i, j, uv) for i, j, uv in make_matches(poses, depths, FOCAL, pairs)],
                  focal_determined=True)
-    cfg = replace(FAST, loop_check=False)
+    cfg = replace(FAST, loop_check=False, candidate_align_iters=0)
     graph = pair_graph(_inputs(rng, 5), ps, cfg, StageTimer())
     values = start_values(graph, "chain", cfg)
     c = solve(graph, "chain", cfg, StageTimer())
-    assert cfg.candidate_align_iters == 0 and c.start_values is not None and c.verdict.ok
+    assert c.start_values is not None and c.verdict.ok
     assert c.result.init_loss == pytest.approx(c.result.final_loss)  # no iteration ran
     timer = StageTimer()
     full = cloud_alignment(c, timer)
@@ -225,7 +226,7 @@ def test_a_candidate_goes_to_its_bundle_adjustment_after_candidate_align_iters(r
     for v in range(5):  # the full alignment's depth maps, each rescaled (onto the bundle adjustment's tracks)
         k = np.nanmedian(full.depth[v] / alone.depth[v])
         np.testing.assert_allclose(full.depth[v], k * alone.depth[v], rtol=1e-9)
-    ran = solve(graph, "chain", replace(cfg, candidate_align_iters=cfg.align.iters), StageTimer())
+    ran = solve(graph, "chain", replace(cfg, candidate_align_iters=None), StageTimer())
     assert ran.start_values is None and cloud_alignment(ran, StageTimer()) is ran.result
     assert ran.result.final_loss < ran.result.init_loss
     no_ba = solve(graph, "chain", replace(cfg, bundle_adjust=False), StageTimer())
@@ -233,19 +234,20 @@ def test_a_candidate_goes_to_its_bundle_adjustment_after_candidate_align_iters(r
 
 
 def test_the_cloud_runs_the_full_alignment_only_where_it_uses_its_depth_maps(llff6):
-    """`align_images`: with the dense stereo (every view covered) the full global alignment never runs and
-    align.json reports the candidate's iterations (0); without it the cloud comes from the full alignment,
-    reported with its iterations and losses."""
+    """`align_images` with `candidate_align_iters=0`: with the dense stereo (every view covered) the full global
+    alignment never runs and align.json reports the candidate's iterations (0); without it the cloud comes from
+    the full alignment, reported with its iterations and losses."""
     from mvgeo.align.api import PREVIEW
     from mvgeo.align.dense_stereo import DenseStereoConfig
     from mvgeo.common.imageio import list_images
 
     files = list_images(llff6 / "images")
-    with_stereo = align_images(files, replace(PREVIEW, seed=0))
+    short = replace(PREVIEW, seed=0, candidate_align_iters=0)
+    with_stereo = align_images(files, short)
     st = with_stereo.stats
     assert st.dense_stereo is not None and st.dense_stereo.views_with_alignment_depth == []
     assert st.iterations == 0 and st.init_loss == pytest.approx(st.final_loss)
-    without = align_images(files, replace(PREVIEW, seed=0, dense_stereo=DenseStereoConfig(enabled=False)))
+    without = align_images(files, replace(short, dense_stereo=DenseStereoConfig(enabled=False)))
     assert without.stats.iterations == PREVIEW.align.iters and without.stats.final_loss < without.stats.init_loss
     # The same cameras either way (the cloud does not feed back into the poses).
     np.testing.assert_array_equal(np.stack(list(with_stereo.sparse_model.cam_from_world_by_name().values())),
