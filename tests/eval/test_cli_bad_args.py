@@ -85,7 +85,7 @@ def test_the_denoise_stage_trains_on_the_configured_device(tmp_path, monkeypatch
 
     seen = []
 
-    def recording(images, config, *, seed, device):
+    def recording(images, config, *, seed, device, noise_sigma=None):
         seen.append(device)
         raise Stop
 

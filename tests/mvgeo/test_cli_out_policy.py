@@ -40,7 +40,7 @@ def instant_align(monkeypatch):
 
     calls = []
 
-    def fake(paths, cfg, intrinsics=None):
+    def fake(paths, cfg, intrinsics=None, cloud_images=None):
         calls.append(paths)
         return _result([p.name for p in paths])
 
