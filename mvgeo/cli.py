@@ -34,9 +34,7 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--pointmap-size", type=int_range(8), default=128, help="long side of the dense pointmaps (px)")
     a.add_argument("--pairs", default="auto", help="complete | window:K | auto (complete up to 24 images)")
     a.add_argument("--shared-focal", action="store_true", help="one focal for all views")
-    a.add_argument("--iters", type=nonneg_int, default=100,
-                   help="global alignment iterations, run for the cloud where it uses the alignment's depth maps "
-                        "(default 100)")
+    a.add_argument("--iters", type=nonneg_int, default=100, help="global alignment iterations (default 100)")
     a.add_argument("--align-stride", type=positive_int, default=4,
                    help="global alignment on every K-th pixel row/column (default 4; 1 = all pixels)")
     a.add_argument("--ba", action=argparse.BooleanOptionalAction, default=True,

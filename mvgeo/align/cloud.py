@@ -150,25 +150,20 @@ def _stereo_maps(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult |
 
 def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | None,
                 pairs: Sequence[tuple[int, int]], matches: Sequence[tuple[int, int, np.ndarray]], config,
-                timer: StageTimer, grid_to_align: float,
-                aligned: Callable[[], GlobalAlignResult] | None = None) -> DenseCloud:
+                timer: StageTimer, grid_to_align: float, aligned: Callable[[], GlobalAlignResult]) -> DenseCloud:
     """The output cloud of the chosen solution (module docstring). `config`: `AlignConfig`; `pairs`: the
     pairs with dense pointmaps (the stereo partners); `matches`: every verified pair's matches; `res`: the
     solution (cameras); `aligned`: gives `res` with the depth maps of the full global alignment
     (`mvgeo.align.solve.cloud_alignment`; it may be called more than once and should keep its result), called
-    only where the cloud uses them (default: `res`'s own)."""
+    only where the cloud uses them."""
     n = len(inputs)
     report = None
-
-    def full() -> GlobalAlignResult:
-        return res if aligned is None else aligned()
-
     if config.dense_stereo.enabled:
         depth_maps, conf_maps, K_grid, report = _stereo_maps(inputs, res, ba, pairs, matches, config, timer,
-                                                             grid_to_align, full)
+                                                             grid_to_align, aligned)
         pts_maps = [backproject_depth(d, k, T) for d, k, T in zip(depth_maps, K_grid, res.cam_from_world, strict=True)]
     else:
-        res = full()
+        res = aligned()
         depth_maps, conf_maps, pts_maps = res.depth, res.conf, res.pts_world
         Hp, Wp = res.depth[0].shape
         if inputs.K_align is not None:  # known intrinsics at the pointmap grid (our pixel convention: exact)
