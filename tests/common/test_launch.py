@@ -48,8 +48,11 @@ def test_ctrl_c_while_the_module_loads_exits_130_without_traceback(tmp_path):
         "def main():\n    return 0\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
     code = "import sys; from mvgeo.common.launch import _launch; sys.exit(_launch('slow_cli', None))"
-    proc = subprocess.Popen([sys.executable, "-c", code],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # A shell without job control starts background commands with SIGINT ignored, and an ignored SIGINT
+    # stays ignored across exec (Python then installs no handler): the child gets the default disposition,
+    # as a command typed at a terminal has, however the test run itself was started.
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 30
         while not ready.exists():
