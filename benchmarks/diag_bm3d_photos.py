@@ -21,8 +21,7 @@ import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
 import torch
 # isort: on
 
-from denoise.clipping import clipped_sides, undo_clipping_bias
-from denoise.images import image_to_tensor, tensor_to_image
+from denoise.self_supervised import _undo_clipping
 from mvgeo.common.imageio import read_image, write_image
 
 
@@ -55,12 +54,9 @@ def main() -> int:
     t = time.perf_counter()
     plain = [np.clip(bm3d.bm3d_rgb(y, sigma_psd=sigma), 0, 1).astype(np.float32) for y in noisy]
     seconds = (time.perf_counter() - t) / len(names)
-    unclip = []
-    for y, x in zip(noisy, plain, strict=True):
-        low, high = clipped_sides(y)
-        if low or high:  # as the denoise stage treats the network's output (`denoise_with_method`)
-            x = tensor_to_image(undo_clipping_bias(image_to_tensor(x), torch.tensor(sigma), low=low, high=high), like=x)
-        unclip.append(np.clip(x, 0, 1).astype(np.float32))
+    # The denoise stage's own correction of a network's output (`denoise_with_method`), at the true sigma.
+    sigmas = [torch.tensor(sigma, dtype=torch.float32)] * len(names)
+    unclip = [np.clip(x, 0, 1).astype(np.float32) for x in _undo_clipping(noisy, plain, sigmas, clean_sigma=0.0)]
     for kind, photos in (("bm3d", plain), ("bm3d_unclip", unclip)):
         (args.out / kind).mkdir(parents=True, exist_ok=False)
         for n, x in zip(names, photos, strict=True):
