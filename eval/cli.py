@@ -93,6 +93,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, method=args.denoiser))
     if args.keep_noisy is not None:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, keep_noisy=args.keep_noisy))
+    if args.wiener is not None:
+        config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, wiener=args.wiener))
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
@@ -270,6 +272,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--keep-noisy", type=float, default=None, metavar="K",
                      help="fraction of the noisy photo kept in round 1's photos, (1 - K) * denoised + K * noisy, "
                           "0 <= K < 1 (the splat averages the noise across views, not the blur). Default: the "
+                          "preset's")
+    run.add_argument("--wiener", action=argparse.BooleanOptionalAction, default=None,
+                     help="refine round 1's denoised photos with the sliding-window DCT Wiener step (the noisy "
+                          "photo shrunk by the gains the network's output implies; denoise.wiener). Default: the "
                           "preset's")
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")

@@ -37,6 +37,7 @@ from mvgeo.common.errors import ConfigError
 if TYPE_CHECKING:
     from denoise.n2v import N2VConfig
     from denoise.round2 import Round2Config
+    from denoise.wiener import WienerConfig
     from mvgeo.align import AlignConfig
     from splat.train import TrainConfig
 
@@ -81,6 +82,7 @@ class DenoiseStageSettings:
         keep_noisy: fraction of the noisy photo in the written photos (`DenoiseSettings.keep_noisy`).
         choose_objective: `n2v.method` is replaced by `denoise.self_supervised.choose_objective`'s choice
             for the photos (`DenoiseSettings.method="auto"`; `n2v.method` is then "r2r").
+        wiener: the DCT Wiener step on the network's outputs (`DenoiseSettings.wiener`); None: off.
     """
 
     n2v: N2VConfig
@@ -88,6 +90,7 @@ class DenoiseStageSettings:
     device: str
     keep_noisy: float = 0.0
     choose_objective: bool = False
+    wiener: WienerConfig | None = None
 
 
 @dataclass(frozen=True)
@@ -270,6 +273,8 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
     def seed(stage: str) -> int:
         return stage_seed(config.seed, r, stage)
 
+    from denoise.wiener import WienerConfig  # scipy: resolved when called, as the component configs are
+
     later = r >= 2
     align = AlignStageSettings(align_config(config.align, seed=seed("align")),
                                reuse_intrinsics=config.align.reuse_intrinsics if later else None,
@@ -283,7 +288,8 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
         splat=SplatStageSettings(train_config(config.splat, seed=seed("splat")), config.device),
         render=RenderStageSettings(config.device),
         denoise=None if later else DenoiseStageSettings(n2v_config(d), d.passes, config.device, d.keep_noisy,
-                                                               choose_objective=d.method == "auto"),
+                                                               choose_objective=d.method == "auto",
+                                                               wiener=WienerConfig() if d.wiener else None),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
         refine=RefineStageSettings(round2_config(d), d.passes, config.device) if later else None)
 
