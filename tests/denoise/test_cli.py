@@ -19,13 +19,18 @@ from tests.denoise._synth import add_noise, smooth_scene
 from tests.denoise.test_view_selection import _ring_poses
 
 
-def test_n2v_cli_writes_outputs(tmp_path, rng):
-    src = tmp_path / "noisy"
+def _three_photos(src, rng):
+    """A folder of noisy photos: 8-bit colour `a.png`, 16-bit colour `b16.png`, 8-bit gray `c_gray.png`."""
     src.mkdir()
     write_image(src / "a.png", add_noise(rng, smooth_scene(rng, 40, 44), 0.1))
     write_image(src / "b16.png", add_noise(rng, smooth_scene(rng, 40, 44), 0.1), bits=16)
     gray = (add_noise(rng, smooth_scene(rng, 36, 30), 0.1)[..., 0] * 255).round().astype(np.uint8)
     cv2.imwrite(str(src / "c_gray.png"), gray)
+    return src
+
+
+def test_n2v_cli_writes_outputs(tmp_path, rng):
+    src = _three_photos(tmp_path / "noisy", rng)
     out = tmp_path / "out"
     rc = main(["n2v", str(src), "--out", str(out), "--steps", "3", "--passes", "2", "--preset", "fast",
                "--noise-model", "curve"])
@@ -45,12 +50,7 @@ def test_n2v_cli_writes_outputs(tmp_path, rng):
 def test_n2v_cli_wiener_refines_colour_16_bit_and_gray_photos(tmp_path, rng):
     # --wiener with R2R and a per-pixel noise map (the curve model): colour, 16-bit and gray photos come out in
     # their formats, and differ from the same run without the step.
-    src = tmp_path / "noisy"
-    src.mkdir()
-    write_image(src / "a.png", add_noise(rng, smooth_scene(rng, 40, 44), 0.1))
-    write_image(src / "b16.png", add_noise(rng, smooth_scene(rng, 40, 44), 0.1), bits=16)
-    gray = (add_noise(rng, smooth_scene(rng, 36, 30), 0.1)[..., 0] * 255).round().astype(np.uint8)
-    cv2.imwrite(str(src / "c_gray.png"), gray)
+    src = _three_photos(tmp_path / "noisy", rng)
     args = ["--steps", "3", "--passes", "1", "--preset", "fast", "--method", "r2r", "--noise-model", "curve"]
     assert main(["n2v", str(src), "--out", str(tmp_path / "plain"), *args]) == 0
     assert main(["n2v", str(src), "--out", str(tmp_path / "w"), *args, "--wiener"]) == 0
