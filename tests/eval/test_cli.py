@@ -77,6 +77,23 @@ def test_run_pipeline_flags(tmp_path, monkeypatch, flag, expected):
                                            else "denoised")
 
 
+@pytest.mark.parametrize(("flag", "expected"), [
+    ([], True), (["--no-wiener"], False), (["--preset", "fast"], False), (["--preset", "fast", "--wiener"], True),
+])
+def test_run_wiener_flag(tmp_path, monkeypatch, flag, expected):
+    seen = {}
+
+    def fake_run(images_dir, out, config, force=False):
+        seen["config"] = config
+        raise SystemExit(0)
+
+    monkeypatch.setattr(eval.cli, "run_pipeline", fake_run)
+    with pytest.raises(SystemExit):
+        main(["run", str(make_scene(tmp_path / "images", n=4)), "--out", str(tmp_path / "out"), "--views", "4",
+              *flag])
+    assert seen["config"].denoise.wiener is expected
+
+
 def test_run_corrupt_image(tmp_path, capsys):
     scene = make_scene(tmp_path / "images", n=4)
     (scene / "view_002.png").write_bytes(b"\x89PNG broken")
