@@ -4,7 +4,8 @@ Takes the noisy photos, a folder of their denoised versions (the pilots: e.g. an
 `product/round1/denoised`, the `default` preset's R2R photos after the clipping correction, written before
 the step was part of the preset) and the clean photos. For each variant `BLOCKxSTEP`, every noisy photo is
 filtered with the Wiener gains of its pilot at the noise std given (`--sigma`, in 1/255) or the one the
-denoise stage estimates (`denoise.self_supervised.r2r_noise_std`), then mapped through the clipped-noise
+denoise stage estimates (`denoise.self_supervised.r2r_noise_std`), by the denoise stage's own step
+(`denoise.self_supervised._refined`), then mapped through the clipped-noise
 inverse on the sides where the noisy photo is clipped (`_undo_clipping`, as the denoise stage does after
 the step). Prints the photos' PSNR in all, dark, bright and textured (`diag_bm3d_photos._split_psnr`) and
 the seconds per photo; with `--write OUT`, writes each variant's photos to `OUT/BLOCKxSTEP/` (for
@@ -29,8 +30,8 @@ import torch
 
 from diag_bm3d_photos import _split_psnr  # noqa: E402
 
-from denoise.self_supervised import _undo_clipping, r2r_noise_std  # noqa: E402
-from denoise.wiener import WienerConfig, dct_wiener  # noqa: E402
+from denoise.self_supervised import _refined, _undo_clipping, r2r_noise_std  # noqa: E402
+from denoise.wiener import WienerConfig  # noqa: E402
 from mvgeo.common.imageio import read_image, write_image  # noqa: E402
 
 
@@ -54,10 +55,7 @@ def main() -> int:
         block, step = (int(x) for x in v.split("x"))
         cfg = WienerConfig(block_px=block, step_px=step)
         t = time.perf_counter()
-        refined = []
-        for y, p, s in zip(noisy, pilots, stds, strict=True):
-            s = s if np.isscalar(s) else np.moveaxis(s.numpy(), 0, -1)
-            refined.append(np.clip(dct_wiener(y, p, s, cfg), 0, 1))
+        refined = _refined(noisy, pilots, sig_t, 0.0, cfg)  # the denoise stage's own step
         seconds = (time.perf_counter() - t) / len(names)
         photos = [np.clip(x, 0, 1) for x in _undo_clipping(noisy, refined, sig_t, clean_sigma=0.0)]
         print(f"{v}: {_split_psnr(dict(zip(names, photos, strict=True)), args.clean_dir)}; {seconds:.2f} s per photo",

@@ -370,14 +370,14 @@ def _refined(noisy: Sequence[np.ndarray], out: list[np.ndarray], sigmas: Sequenc
         if estimate_noise_sigma(img) < clean_sigma:
             refined.append(den)
             continue
-        y = np.asarray(img, np.float32)
+        y, d = np.asarray(img, np.float32), np.asarray(den, np.float32)
         gray = y.ndim == 2 or y.shape[-1] == 1
+        if gray:
+            y, d = y.reshape(y.shape[:2]), d.reshape(y.shape[:2])
         s = sigma.detach().cpu().numpy()
         if s.ndim == 3:  # [C, H, W] per pixel -> (H, W, 3), or (H, W) for a gray photo (the channels' RMS)
             s = np.sqrt(np.mean(s ** 2, axis=0)) if gray else np.moveaxis(s, 0, -1)
-        shape = y.shape
-        x = dct_wiener(y.reshape(shape[:2]) if gray else y, np.asarray(den, np.float32).reshape(
-            shape[:2] if gray else shape), s, config)
+        x = dct_wiener(y, d, s, config)
         refined.append(np.clip(x, 0.0, 1.0).astype(np.float32).reshape(np.shape(den)))
     return refined
 
