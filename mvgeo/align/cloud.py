@@ -112,7 +112,8 @@ def reposed(res: GlobalAlignResult, cam_from_world: np.ndarray, focal_px: np.nda
 
 def _stereo_maps(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | None, pairs, matches, config,
                  timer: StageTimer, grid_to_align: float, aligned: Callable[[], GlobalAlignResult]):
-    """Depth and confidence maps by flow stereo with the final cameras, their grids' K, and the report."""
+    """Depth and confidence maps by flow stereo with the final cameras, their grids' K, the masks of their
+    measured (not hole-filled) pixels, and the report."""
     Wa, Ha = inputs.align_wh
     with timer.stage("dense_stereo"):
         K_a = (np.asarray(inputs.K_align, np.float64) if inputs.K_align is not None  # known: its principal point
@@ -145,7 +146,7 @@ def _stereo_maps(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult |
         fraction_filled=[round(float(m.mean()), 4) for m in filled], views_with_alignment_depth=from_alignment,
         track_depth_ratio=None if ratio is None else [round(float(k), 4) for k in ratio],
         track_log_mad=None if spread is None else [None if np.isnan(m) else round(float(m), 4) for m in spread])
-    return depth_maps, conf_maps, list(stereo.K), report
+    return depth_maps, conf_maps, list(stereo.K), [~m for m in filled], report
 
 
 def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | None,
@@ -157,10 +158,10 @@ def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | 
     (`mvgeo.align.solve.cloud_alignment`; it may be called more than once and should keep its result), called
     only where the cloud uses them."""
     n = len(inputs)
-    report = None
+    report, measured = None, None
     if config.dense_stereo.enabled:
-        depth_maps, conf_maps, K_grid, report = _stereo_maps(inputs, res, ba, pairs, matches, config, timer,
-                                                             grid_to_align, aligned)
+        depth_maps, conf_maps, K_grid, measured, report = _stereo_maps(inputs, res, ba, pairs, matches, config,
+                                                                       timer, grid_to_align, aligned)
         pts_maps = [backproject_depth(d, k, T) for d, k, T in zip(depth_maps, K_grid, res.cam_from_world, strict=True)]
     else:
         res = aligned()
@@ -175,7 +176,7 @@ def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | 
         keep = covisibility_keep(pts_maps, depth_maps, conf_maps, res.cam_from_world, K_grid,
                                  rel_depth_tol=config.covisibility_rel_tol,
                                  consistency_rel_tol=config.consistency_rel_tol,
-                                 free_space_rel_tol=config.free_space_rel_tol)
+                                 free_space_rel_tol=config.free_space_rel_tol, measured=measured)
         xyz, rgb, conf, pix = [], [], [], []
         for v in range(n):
             Hg, Wg = depth_maps[v].shape

@@ -22,8 +22,9 @@ On DTU scan24 the table's holes keep most of their fill (13-67 % of each view's 
 without the limit), and the denoised photos' splat gains 4.2 dB held out (docs/bench/pipeline.md).
 
 The filled points are checked downstream like any other (co-visibility, multi-view consistency and
-free-space pruning in `mvgeo.align.api`): a filled point that another view sees through, or that the
-views which see its direction do not confirm, is dropped there.
+free-space pruning, `mvgeo.align.scene.covisibility_keep`): a filled point that another view sees
+through, or that the views which see its direction do not confirm, is dropped there. A filled pixel is no
+evidence against other views' points: it neither confirms them nor carves them away.
 """
 
 from __future__ import annotations

@@ -94,6 +94,25 @@ def test_free_space_check_drops_points_another_view_sees_through():
     assert keep[0].all()
 
 
+def test_filled_depth_neither_carves_nor_vetoes_measured_points():
+    """View 1's depth is a hole-filled guess at 3.0 behind the plane at 2.0 that view 0 measured: as evidence
+    it would see through every view-0 point (free space) and confirm none (consistency), dropping them all.
+    Marked as filled (not measured), it drops nothing; measured, it drops everything."""
+    H, W, f = 6, 8, 8.0
+    cam = np.concatenate([np.eye(3), np.zeros((3, 1))], 1)
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    d0, d1 = np.full((H, W), 2.0), np.full((H, W), 3.0)
+    pts0, pts1 = pixel_rays(H, W, f) * d0[..., None], pixel_rays(H, W, f) * d1[..., None]
+    conf0, conf1 = np.full((H, W), 3.0), np.full((H, W), 2.5)
+    args = ([pts0, pts1], [d0, d1], [conf0, conf1], np.stack([cam, cam]), [K, K])
+    tols = {"rel_depth_tol": 0.03, "consistency_rel_tol": 0.05, "free_space_rel_tol": 0.05}
+    measured = [np.ones((H, W), bool), np.zeros((H, W), bool)]
+    assert covisibility_keep(*args, **tols, measured=measured)[0].all()
+    assert not covisibility_keep(*args, **tols)[0].any()
+    # View 1's own filled points stay subject to view 0's measured depth, which sees them and contradicts them.
+    assert not covisibility_keep(*args, **tols, measured=measured)[1].any()
+
+
 def test_voxel_downsample_budget_and_confidence(rng):
     pts = rng.random((5000, 3))
     conf = rng.random(5000)
@@ -123,7 +142,7 @@ def test_pixel_downsample_keeps_the_best_point_per_cell_and_meets_the_budget():
     assert set(conf[top]) <= set(np.sort(conf)[-50:])  # each is its view's best: among the top scores
 
 
-def _covisibility_reference(pts, depth, conf, cams, Ks, rel_tol, cons_tol, free_tol):
+def _covisibility_reference(pts, depth, conf, cams, Ks, rel_tol, cons_tol, free_tol, measured=None):
     """`covisibility_keep`'s docstring, pixel by pixel (slow, obvious)."""
     keep = []
     for a in range(len(pts)):
@@ -146,6 +165,8 @@ def _covisibility_reference(pts, depth, conf, cams, Ks, rel_tol, cons_tol, free_
                     db, cb = depth[b][int(np.floor(v)), int(np.floor(u))], conf[b][int(np.floor(v)), int(np.floor(u))]
                     if abs(x[2] - db) < rel_tol * db and (cb > conf[a][r, c] or (cb == conf[a][r, c] and b < a)):
                         drop = True
+                    if measured is not None and not measured[b][int(np.floor(v)), int(np.floor(u))]:
+                        continue  # a filled pixel: no evidence for the checks below
                     if cons_tol > 0:
                         confirmed |= bool(abs(x[2] - db) < cons_tol * db)
                         seen |= bool(np.isfinite(db) and db > 0)
@@ -177,9 +198,13 @@ def test_covisibility_matches_the_pixel_loop_with_any_number_of_threads(rng, wor
         conf.append(rng.integers(1, 4, (H, W)).astype(float))  # small integers: ties happen
     cams = np.stack(cams)
     args = (pts, depth, conf, cams, [K] * 4)
-    for tols in [(0.03, 0.0, 0.0), (0.03, 0.05, 0.05)]:
+    measured = [rng.random((H, W)) < 0.7 for _ in range(4)]  # the other pixels' depths count as filled
+    for tols, meas in [((0.03, 0.0, 0.0), None), ((0.03, 0.05, 0.05), None), ((0.03, 0.05, 0.05), measured)]:
         got = covisibility_keep(*args, rel_depth_tol=tols[0], consistency_rel_tol=tols[1],
-                                free_space_rel_tol=tols[2], workers=workers)
-        want = _covisibility_reference(*args, *tols)
+                                free_space_rel_tol=tols[2], measured=meas, workers=workers)
+        want = _covisibility_reference(*args, *tols, measured=meas)
         assert all(np.array_equal(g, w) for g, w in zip(got, want, strict=True))
         assert 0 < sum(int(g.sum()) for g in got) < 4 * H * W  # some dropped, some kept: the test can fail
+    # The filled pixels' evidence is ignored, not every pixel's: the masks differ from the run without it.
+    unmasked = covisibility_keep(*args, rel_depth_tol=0.03, consistency_rel_tol=0.05, free_space_rel_tol=0.05)
+    assert any(not np.array_equal(g, w) for g, w in zip(got, unmasked, strict=True))
