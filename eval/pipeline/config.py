@@ -243,7 +243,9 @@ class PipelineConfig:
 #:   (up to 100k), the `instantsplat` splat (1000 iterations; with the 300 of `quick` the demo's denoised
 #:   views were +1.12 dB over the noisy splat's, with 1000 +1.67); with the noisy-photo fusion
 #:   (`fuse_noisy_splat`), without which its novel views are blurrier than those of a splat of the noisy
-#:   photos (lower SSIM, higher LPIPS).
+#:   photos (lower SSIM, higher LPIPS); round 1's photos refined by the DCT Wiener step (on `make demo`'s
+#:   scene 25.08 / 0.744 / 0.131 held out against 24.86 / 0.734 / 0.145 without it; on DTU scan24 at sigma
+#:   25, seed 0, 24.28 / 0.700 / 0.195 against 23.90 / 0.693 / 0.218; docs/bench/pipeline_demo.md).
 #: - `default`: round 1 only, with the UNet trained by Recorrupted-to-Recorrupted for 2000 steps instead
 #:   of N2V's 400, its photos refined by the DCT Wiener step (`DenoiseSettings.wiener`: on DTU scan24 at
 #:   sigma 25, 25.16 / 0.809 / 0.149 held out against 25.04 / 0.798 / 0.162 without it, three seeds; with
@@ -276,7 +278,7 @@ _ONE_ROUND = PipelineConfig(rounds=1, stop_when_unrefined=True,
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         fuse_noisy_splat=True, stop_when_unrefined=True,
-        denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40),
+        denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40, wiener=True),
         # PREVIEW thins its cloud to 20k points; at 256x192 and 12 views the splat started from
         # every point (~60k) scored +0.5 dB / LPIPS -0.09..-0.17 held out for 15-40 % more splat time
         # (docs/bench/pipeline.md, "the splat's point budget").

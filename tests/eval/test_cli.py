@@ -78,7 +78,7 @@ def test_run_pipeline_flags(tmp_path, monkeypatch, flag, expected):
 
 
 @pytest.mark.parametrize(("flag", "expected"), [
-    ([], True), (["--no-wiener"], False), (["--preset", "fast"], False), (["--preset", "fast", "--wiener"], True),
+    ([], True), (["--no-wiener"], False), (["--preset", "fast"], True), (["--preset", "fast", "--no-wiener"], False),
 ])
 def test_run_wiener_flag(tmp_path, monkeypatch, flag, expected):
     seen = {}
