@@ -36,6 +36,7 @@ from splat.ply import read_gaussian_ply  # noqa: E402
 
 
 def render_depths(run: Path):
+    """stem -> (depth (H, W), alpha (H, W), K (3, 3), cam_from_world (4, 4)) of the round-1 splat at its poses."""
     sparse = read_sparse_model(run / "round1" / "sparse" / "0")
     model = read_gaussian_ply(run / "round1" / "point_cloud.ply", device="cpu")
     out = {}
@@ -53,7 +54,8 @@ def render_depths(run: Path):
 
 
 def warp_index(geo_i, geo_j, depth_tol):
-    """(rows, cols, valid) of view j's pixel seen at each pixel of view i (nearest pixel)."""
+    """View j's pixel seen at each pixel of view i: (rows, cols) of the nearest pixel, the valid mask (in both
+    views, both depths agree within `depth_tol`), and the bilinear corners and fractions (r0, c0, fx, fy)."""
     d_i, a_i, K_i, T_i = geo_i
     d_j, a_j, K_j, T_j = geo_j
     h, w = d_i.shape
@@ -81,6 +83,8 @@ def warp_index(geo_i, geo_j, depth_tol):
 
 
 def sample(img, r, c, bil):
+    """img at the warp (nearest where `bil` is None, else bilinear), and the sum of squared weights (a sample's
+    noise variance over the photo's)."""
     if bil is None:
         return img[r, c], 1.0
     r0, c0, fx, fy = bil
@@ -91,6 +95,7 @@ def sample(img, r, c, bil):
 
 
 def box3(x):
+    """3 x 3 box mean."""
     from scipy.ndimage import uniform_filter
     return uniform_filter(x, size=3, mode="nearest")
 
@@ -101,7 +106,6 @@ def main() -> int:
     ap.add_argument("clean_dir", type=Path)
     ap.add_argument("--tau", type=float, nargs="+", default=[0.06])
     ap.add_argument("--depth-tol", type=float, default=0.01)
-    ap.add_argument("--max-views", type=int, default=11)
     ap.add_argument("--block", type=int, default=12)
     ap.add_argument("--interp", choices=["nearest", "bilinear"], default="nearest")
     ap.add_argument("--pilot", choices=["den", "mvden"], default="den")
