@@ -9,10 +9,15 @@ denoise stage estimates (`denoise.self_supervised.r2r_noise_std`), by the denois
 inverse on the sides where the noisy photo is clipped (`_undo_clipping`, as the denoise stage does after
 the step). Prints the photos' PSNR in all, dark, bright and textured (`diag_bm3d_photos._split_psnr`) and
 the seconds per photo; with `--write OUT`, writes each variant's photos to `OUT/BLOCKxSTEP/` (for
-`benchmarks/diag_splat_inputs.py ... dir:OUT/8x2`).
+`benchmarks/diag_splat_inputs.py ... dir:OUT/8x2`). The variant `pilot` is the pilots as they are.
+
+With `--grouped`, each variant's photos are then refined by the grouped Wiener step
+(`denoise.grouped_wiener`, its default configuration) as the denoise stage runs it (`_then_grouped`: the
+variant's photos as pilots, the clipped-noise inverse after), printed as `VARIANT+grouped` (written to
+`OUT/VARIANT+grouped/`).
 
 Usage: .venv/bin/python benchmarks/diag_wiener_photos.py NOISY_DIR PILOT_DIR CLEAN_DIR [--sigma 25]
-           [--write OUT] [--variants BLOCKxSTEP ...]   (default variants: 8x2 8x1 12x2 6x1)
+           [--write OUT] [--variants BLOCKxSTEP|pilot ...] [--grouped]   (default variants: 8x2 8x1 12x2 6x1)
 """
 import argparse
 import sys
@@ -30,7 +35,8 @@ import torch
 
 from diag_bm3d_photos import _split_psnr  # noqa: E402
 
-from denoise.self_supervised import _refined, _undo_clipping, r2r_noise_std  # noqa: E402
+from denoise.grouped_wiener import GroupedWienerConfig  # noqa: E402
+from denoise.self_supervised import _grouped, _refined, _undo_clipping, r2r_noise_std  # noqa: E402
 from denoise.wiener import WienerConfig  # noqa: E402
 from mvgeo.common.imageio import read_image, write_image  # noqa: E402
 
@@ -43,6 +49,7 @@ def main() -> int:
     ap.add_argument("--variants", nargs="+", default=["8x2", "8x1", "12x2", "6x1"], help="BLOCKxSTEP ...")
     ap.add_argument("--sigma", type=float, default=None, help="the noise std in 1/255 (default: estimated)")
     ap.add_argument("--write", type=Path, default=None)
+    ap.add_argument("--grouped", action="store_true", help="also each variant then the grouped Wiener step")
     args = ap.parse_args()
     names = sorted(p.name for p in args.pilot_dir.iterdir() if p.suffix == ".png")
     noisy = [read_image(args.noisy_dir / n) for n in names]
@@ -51,19 +58,30 @@ def main() -> int:
     sig_t = [torch.as_tensor(s, dtype=torch.float32) for s in stds]
     print(f"pilot: {_split_psnr(dict(zip(names, pilots, strict=True)), args.clean_dir)}")
     print(f"noisy: {_split_psnr(dict(zip(names, noisy, strict=True)), args.clean_dir)}")
-    for v in args.variants:
-        block, step = (int(x) for x in v.split("x"))
-        cfg = WienerConfig(block_px=block, step_px=step)
-        t = time.perf_counter()
-        refined = _refined(noisy, pilots, sig_t, 0.0, cfg)  # the denoise stage's own step
-        seconds = (time.perf_counter() - t) / len(names)
-        photos = [np.clip(x, 0, 1) for x in _undo_clipping(noisy, refined, sig_t, clean_sigma=0.0)]
-        print(f"{v}: {_split_psnr(dict(zip(names, photos, strict=True)), args.clean_dir)}; {seconds:.2f} s per photo",
-              flush=True)
+
+    def report(name: str, photos: list[np.ndarray], seconds: float) -> None:
+        scores = _split_psnr(dict(zip(names, photos, strict=True)), args.clean_dir)
+        print(f"{name}: {scores}; {seconds:.2f} s per photo", flush=True)
         if args.write is not None:
-            (args.write / v).mkdir(parents=True, exist_ok=False)
+            (args.write / name).mkdir(parents=True, exist_ok=False)
             for n, x in zip(names, photos, strict=True):
-                write_image(args.write / v / n, x)
+                write_image(args.write / name / n, x)
+
+    for v in args.variants:
+        t = time.perf_counter()
+        if v == "pilot":
+            photos = pilots
+        else:
+            block, step = (int(x) for x in v.split("x"))
+            cfg = WienerConfig(block_px=block, step_px=step)
+            refined = _refined(noisy, pilots, sig_t, 0.0, cfg)  # the denoise stage's own step
+            photos = [np.clip(x, 0, 1) for x in _undo_clipping(noisy, refined, sig_t, clean_sigma=0.0)]
+        report(v, photos, (time.perf_counter() - t) / len(names))
+        if args.grouped:
+            t = time.perf_counter()
+            grouped = _grouped(noisy, photos, sig_t, 0.0, GroupedWienerConfig(), clipped_domain=True)  # `_then_grouped`
+            grouped = [np.clip(x, 0, 1) for x in _undo_clipping(noisy, grouped, sig_t, clean_sigma=0.0)]
+            report(f"{v}+grouped", grouped, (time.perf_counter() - t) / len(names))
     return 0
 
 

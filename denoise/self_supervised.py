@@ -54,7 +54,14 @@ from typing import Literal
 import numpy as np
 import torch
 
-from denoise.clipping import clipped_sides, dark_clipped_fraction, undo_clipping_bias
+from denoise.clipping import (
+    clipped_mean,
+    clipped_sides,
+    clipped_variance,
+    dark_clipped_fraction,
+    undo_clipping_bias,
+)
+from denoise.grouped_wiener import GroupedWienerConfig, grouped_wiener
 from denoise.images import image_to_tensor, images_to_tensors, tensor_to_image
 from denoise.inference import (
     CLEAN_SIGMA,
@@ -282,7 +289,8 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
                         seed: int = 0, noise_sigma: NoiseStd = None,
                         tile_px: int = TILE_PX, margin_px: int = MARGIN_PX, clean_sigma: float = CLEAN_SIGMA,
                         noise_model: NoiseModel = "auto", undo_clipping: bool = True,
-                        wiener: WienerConfig | None = None) -> list[np.ndarray]:
+                        wiener: WienerConfig | None = None,
+                        grouped: GroupedWienerConfig | None = None) -> list[np.ndarray]:
     """Denoise `images` with a model trained by ``config.method``.
 
     - ``"n2v"``: `denoise.inference.denoise_images` (K maskings, centre-pixel fusion);
@@ -313,6 +321,9 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
         wiener: refine each network output with the sliding-window DCT Wiener step (`denoise.wiener`: the
             noisy photo shrunk by the gains the output implies, at the noise std above), before the
             clipping correction; None: the network's output as it is.
+        grouped: then the grouped Wiener step (`denoise.grouped_wiener`: similar patches of the noisy photo
+            filtered together with the statistics of the photo so far, at the same noise std), followed by
+            the clipping correction again; None: off.
 
     Returns:
         Denoised images, float32 in ``[0, 1]``, each in the layout of its input.
@@ -324,10 +335,11 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
             raise InputError("n2v's fusion takes one noise_sigma for all images")
         out = denoise_images(model, images, passes=passes, seed=seed, tile_px=tile_px, margin_px=margin_px,
                              clean_sigma=clean_sigma, noise_sigma=noise_sigma, noise_model=noise_model)
-        if wiener is None:
+        if wiener is None and grouped is None:
             return out
         stds = [torch.as_tensor(s, dtype=torch.float32) for s in _sigmas(images, noise_sigma, noise_model)]
-        return _refined(images, out, stds, clean_sigma, wiener)
+        out = out if wiener is None else _refined(images, out, stds, clean_sigma, wiener)
+        return out if grouped is None else _grouped(images, out, stds, clean_sigma, grouped)
     device = next(model.unet.parameters()).device
 
     def sigmas() -> list[torch.Tensor]:
@@ -337,7 +349,7 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
         out = denoise_one_pass(model, images, tile_px=tile_px, margin_px=margin_px, clean_sigma=clean_sigma)
         sig = sigmas()
         out = out if wiener is None else _refined(images, out, sig, clean_sigma, wiener)
-        return _undo_clipping(images, out, sig, clean_sigma) if undo_clipping else out
+        return _then_grouped(images, out, sig, clean_sigma, undo_clipping, grouped)
     sig = sigmas()
     gen = torch.Generator(device=device).manual_seed(seed)
     model.unet.eval()
@@ -358,7 +370,59 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
 
             out.append(tensor_to_image(mean_of_passes(x, max(passes, 1), draw, predict)[0], like=img))
     out = out if wiener is None else _refined(images, out, sig, clean_sigma, wiener)
-    return _undo_clipping(images, out, sig, clean_sigma) if undo_clipping else out
+    return _then_grouped(images, out, sig, clean_sigma, undo_clipping, grouped)
+
+
+def _then_grouped(noisy: Sequence[np.ndarray], out: list[np.ndarray], sigmas: Sequence[torch.Tensor],
+                  clean_sigma: float, undo_clipping: bool, grouped: GroupedWienerConfig | None) -> list[np.ndarray]:
+    """The clipping correction (`undo_clipping`), then, with `grouped`, the grouped Wiener step on the
+    corrected photos as pilots, in the clipped photo's domain (`_grouped`), and the correction once more."""
+    out = _undo_clipping(noisy, out, sigmas, clean_sigma) if undo_clipping else out
+    if grouped is None:
+        return out
+    out = _grouped(noisy, out, sigmas, clean_sigma, grouped, clipped_domain=undo_clipping)
+    return _undo_clipping(noisy, out, sigmas, clean_sigma) if undo_clipping else out
+
+
+def _grouped(noisy: Sequence[np.ndarray], out: list[np.ndarray], sigmas: Sequence[torch.Tensor], clean_sigma: float,
+             config: GroupedWienerConfig, *, clipped_domain: bool = False) -> list[np.ndarray]:
+    """`grouped_wiener` of each noisy photo with its current estimate as the pilot, clipped to [0, 1], one photo
+    per thread (`run_tasks`); images returned unchanged as clean (noise below `clean_sigma`) stay so.
+
+    With `clipped_domain`, a photo clipped at 0 or 1 (`clipped_sides`) is filtered where its noisy values live:
+    the pilot (a clean-value estimate) becomes the clipped photo's expected value (`clipped_mean`) and the
+    noise std the clipped noise's (`clipped_variance`, smaller near 0 and 1), so the noisy patches, the
+    pilot's statistics and the noise model agree; the output is then an estimate of the clipped mean, for
+    `undo_clipping_bias`. On DTU scan24 at sigma 25 the clean-value pilot instead lost 8 dB in the black
+    regions (docs/bench/denoise_real.md, "The grouped Wiener step")."""
+    def one(item: tuple[np.ndarray, np.ndarray, torch.Tensor]) -> np.ndarray:
+        img, den, sigma = item
+        if estimate_noise_sigma(img) < clean_sigma:
+            return den
+        y, d = np.asarray(img, np.float32), np.asarray(den, np.float32)
+        gray = y.ndim == 2 or y.shape[-1] == 1
+        std = _std_map(sigma, gray)
+        low, high = clipped_sides(img) if clipped_domain else (False, False)
+        if low or high:
+            x, s = image_to_tensor(den), sigma.detach().cpu()
+            d = tensor_to_image(clipped_mean(x, s, low=low, high=high), like=den)
+            std = tensor_to_image(clipped_variance(x, s, low=low, high=high).sqrt(), like=den)
+        if gray:
+            y, d = y.reshape(y.shape[:2]), np.asarray(d).reshape(y.shape[:2])
+            std = std if np.ndim(std) < 2 else np.asarray(std).reshape(y.shape[:2])
+        x = grouped_wiener(y, d, std, config)
+        return np.clip(x, 0.0, 1.0).astype(np.float32).reshape(np.shape(den))
+
+    return run_tasks(one, list(zip(noisy, out, sigmas, strict=True)))
+
+
+def _std_map(sigma: torch.Tensor, gray: bool) -> np.ndarray:
+    """A noise std as the numpy Wiener steps take it: one number, ``(H, W, 3)``, or ``(H, W)`` for a gray photo
+    (``[C, H, W]`` per-pixel maps moved channel-last; a gray photo's is the channels' RMS)."""
+    s = sigma.detach().cpu().numpy()
+    if s.ndim == 3:
+        s = np.sqrt(np.mean(s ** 2, axis=0)) if gray else np.moveaxis(s, 0, -1)
+    return s
 
 
 def _refined(noisy: Sequence[np.ndarray], out: list[np.ndarray], sigmas: Sequence[torch.Tensor], clean_sigma: float,
@@ -374,10 +438,7 @@ def _refined(noisy: Sequence[np.ndarray], out: list[np.ndarray], sigmas: Sequenc
         gray = y.ndim == 2 or y.shape[-1] == 1
         if gray:
             y, d = y.reshape(y.shape[:2]), d.reshape(y.shape[:2])
-        s = sigma.detach().cpu().numpy()
-        if s.ndim == 3:  # [C, H, W] per pixel -> (H, W, 3), or (H, W) for a gray photo (the channels' RMS)
-            s = np.sqrt(np.mean(s ** 2, axis=0)) if gray else np.moveaxis(s, 0, -1)
-        x = dct_wiener(y, d, s, config)
+        x = dct_wiener(y, d, _std_map(sigma, gray), config)
         refined.append(np.clip(x, 0.0, 1.0).astype(np.float32).reshape(np.shape(den)))
     return refined
 

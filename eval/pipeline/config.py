@@ -54,6 +54,9 @@ class DenoiseSettings:
             (`denoise.wiener`: the noisy photo shrunk by the gains each output implies; about half a second
             per 384 x 384 photo on one core). On DTU scan24 at sigma 25 it lifts R2R's photos 0.9 dB, on the
             temple ring Neighbor2Neighbor's 1.8 dB (docs/bench/denoise_real.md, "The DCT Wiener step").
+        grouped_wiener: then the grouped Wiener step (`denoise.grouped_wiener`: similar 5 x 5 patches of the
+            noisy photo filtered together with the covariance of the photo so far; about 6 s per 384 x 384
+            photo on one core; docs/bench/denoise_real.md, "The grouped Wiener step").
     """
 
     n2v_preset: str = "default"
@@ -65,6 +68,7 @@ class DenoiseSettings:
     round2_loss: Round2Loss = "joint"
     keep_noisy: float = 0.0
     wiener: bool = False
+    grouped_wiener: bool = False
 
 
 @dataclass(frozen=True)
@@ -273,7 +277,7 @@ class PipelineConfig:
 #: poses, the previous round's noisy-photo splat (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md),
 #: and stop after a round whose refine kept the previous network (`stop_when_unrefined`).
 _ONE_ROUND = PipelineConfig(rounds=1, stop_when_unrefined=True,
-                            denoise=DenoiseSettings(method="auto", n2v_steps=2000, wiener=True),
+                            denoise=DenoiseSettings(method="auto", n2v_steps=2000, wiener=True, grouped_wiener=True),
                             align=AlignSettings(photos="noisy_first"))
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(

@@ -35,6 +35,7 @@ from eval.pipeline.hashing import hash_json
 from mvgeo.common.errors import ConfigError
 
 if TYPE_CHECKING:
+    from denoise.grouped_wiener import GroupedWienerConfig
     from denoise.n2v import N2VConfig
     from denoise.round2 import Round2Config
     from denoise.wiener import WienerConfig
@@ -83,6 +84,7 @@ class DenoiseStageSettings:
         choose_objective: `n2v.method` is replaced by `denoise.self_supervised.choose_objective`'s choice
             for the photos (`DenoiseSettings.method="auto"`; `n2v.method` is then "r2r").
         wiener: the DCT Wiener step on the network's outputs (`DenoiseSettings.wiener`); None: off.
+        grouped: the grouped Wiener step after it (`DenoiseSettings.grouped_wiener`); None: off.
     """
 
     n2v: N2VConfig
@@ -91,6 +93,7 @@ class DenoiseStageSettings:
     keep_noisy: float = 0.0
     choose_objective: bool = False
     wiener: WienerConfig | None = None
+    grouped: GroupedWienerConfig | None = None
 
 
 @dataclass(frozen=True)
@@ -273,6 +276,7 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
     def seed(stage: str) -> int:
         return stage_seed(config.seed, r, stage)
 
+    from denoise.grouped_wiener import GroupedWienerConfig
     from denoise.wiener import WienerConfig  # scipy: resolved when called, as the component configs are
 
     later = r >= 2
@@ -289,7 +293,9 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
         render=RenderStageSettings(config.device),
         denoise=None if later else DenoiseStageSettings(n2v_config(d), d.passes, config.device, d.keep_noisy,
                                                                choose_objective=d.method == "auto",
-                                                               wiener=WienerConfig() if d.wiener else None),
+                                                               wiener=WienerConfig() if d.wiener else None,
+                                                               grouped=GroupedWienerConfig() if d.grouped_wiener
+                                                               else None),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
         refine=RefineStageSettings(round2_config(d), d.passes, config.device) if later else None)
 

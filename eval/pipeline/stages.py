@@ -124,7 +124,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         given = None if n2v.method == "n2v" else stds
         model = train_with_method(list(noisy.values()), n2v, seed=ctx.seed, device=s.device, noise_sigma=given)
         out = denoise_with_method(model, list(noisy.values()), n2v, passes=s.passes, seed=ctx.seed,
-                                  noise_sigma=given, wiener=s.wiener)
+                                  noise_sigma=given, wiener=s.wiener, grouped=s.grouped)
     if s.keep_noisy > 0:
         out = [(1.0 - s.keep_noisy) * d + s.keep_noisy * y for d, y in zip(out, noisy.values(), strict=True)]
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))

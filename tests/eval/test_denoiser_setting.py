@@ -180,6 +180,45 @@ def test_the_wiener_step_is_a_setting_of_round_1_that_reruns_the_denoise_stage(t
     assert tiny.calls["denoise"] == 2  # its key holds the step's configuration
 
 
+def test_the_grouped_wiener_step_is_a_setting_of_default_and_best(tmp_path):
+    from denoise.grouped_wiener import GroupedWienerConfig
+
+    for name in ("default", "best"):
+        assert round_settings(preset(name), 1).denoise.grouped == GroupedWienerConfig()
+    assert round_settings(preset("fast"), 1).denoise.grouped is None
+    scene = make_scene(tmp_path / "images", n=5)
+    out = tmp_path / "out"
+    cfg = dataclasses.replace(preset("fast", views=3, rounds=1), fuse_noisy_splat=False)
+    tiny = TinyStages()
+    run_pipeline(scene, out, cfg, stages=tiny.stages())
+    on = dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, grouped_wiener=True))
+    run_pipeline(scene, out, on, stages=tiny.stages())
+    assert tiny.calls["denoise"] == 2  # its key holds the step's configuration
+
+
+def test_the_real_stage_applies_the_grouped_wiener_step(tmp_path):
+    # On a textured photo the grouped step after the DCT step brings the stage's photos closer to the clean
+    # one than the DCT step alone (0.15x its error on this smooth, self-similar pattern).
+    rng = np.random.default_rng(2)
+    yy, xx = np.mgrid[0:40, 0:48] / 3.0
+    base = 0.5 + 0.2 * np.sin(xx) * np.cos(0.7 * yy)
+    clean = np.stack([base, 0.9 * base, 1.0 - base], axis=-1).astype(np.float32)
+    noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
+    write_views(tmp_path / "noisy", noisy)
+    outs = {}
+    for grouped in (False, True):
+        settings = round_settings(dataclasses.replace(preset("fast", rounds=1), denoise=DenoiseSettings(
+            n2v_preset="fast", n2v_steps=30, method="r2r", wiener=True, grouped_wiener=grouped)), 1).denoise
+        assert (settings.grouped is not None) == grouped
+        work = tmp_path / f"work{grouped}"
+        work.mkdir()
+        denoise(StageContext(name="denoise", work_dir=work, inputs={"noisy": tmp_path / "noisy"},
+                             settings=dataclasses.replace(settings, device="cpu"), seed=0))
+        outs[grouped] = read_views(work / "denoised")
+    err = {g: np.mean([(outs[g][k] - clean) ** 2 for k in noisy]) for g in outs}
+    assert err[True] < 0.5 * err[False], err
+
+
 def test_the_real_stage_applies_the_wiener_step(tmp_path):
     # The stage with the step writes what the stage without it writes, refined: closer to the clean photo on a
     # textured one (a 30-step network leaves most of the texture to recover; 0.55x its error here).

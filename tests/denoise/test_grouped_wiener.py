@@ -1,0 +1,135 @@
+"""`denoise.grouped_wiener`: the grouped Wiener step against a group-by-group reference, and what it must do."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from denoise.grouped_wiener import GroupedWienerConfig, grouped_wiener, search_offsets
+from denoise.wiener import OPPONENT, dct_wiener
+
+
+def _reference(noisy: np.ndarray, pilot: np.ndarray, std: np.ndarray, cfg: GroupedWienerConfig) -> np.ndarray:
+    """One reference patch at a time, distances by explicit slicing, the Wiener estimate by a dense solve:
+    the definition the fast path vectorises. Colour photos ``(H, W, 3)``, `std` per pixel and channel."""
+    H, W, C = noisy.shape
+    p, rad, n = cfg.patch_px, cfg.search_radius_px, cfg.group_size
+    y, b = noisy @ OPPONENT.T, pilot @ OPPONENT.T
+    var = np.maximum((std ** 2) @ (OPPONENT ** 2).T, 1e-6)
+    clipped = (noisy <= 0) | (noisy >= 1)
+    rows = sorted(set(range(0, H - p + 1, cfg.stride_px)) | {H - p})
+    cols = sorted(set(range(0, W - p + 1, cfg.stride_px)) | {W - p})
+    num, den = np.zeros((H, W, C)), np.zeros((H, W))
+    for r in rows:
+        for c in cols:
+            cands = []
+            for dy in range(-rad, rad + 1):
+                for dx in range(-rad, rad + 1):
+                    rr, cc = r + dy, c + dx
+                    if 0 <= rr <= H - p and 0 <= cc <= W - p:
+                        diff = b[r:r + p, c:c + p] - b[rr:rr + p, cc:cc + p]
+                        dist = -1.0 if dy == dx == 0 else float(np.sum(diff ** 2))
+                        cands.append((dist, rr, cc))
+            group = [(rr, cc) for _, rr, cc in sorted(cands)[:n]]
+            Y = np.stack([y[rr:rr + p, cc:cc + p].ravel() for rr, cc in group])
+            B = np.stack([b[rr:rr + p, cc:cc + p].ravel() for rr, cc in group])
+            share = np.mean([clipped[rr:rr + p, cc:cc + p] for rr, cc in group])
+            S = np.diag(np.tile(np.mean([var[rr:rr + p, cc:cc + p] for rr, cc in group], axis=(0, 1, 2)), p * p))
+            cov = np.cov(B, rowvar=False)
+            m = B.mean(0) if share > cfg.clipped_share else Y.mean(0)
+            X = m + (cov @ np.linalg.solve(cov + S, (Y - m).T)).T
+            for (rr, cc), x in zip(group, X, strict=True):
+                num[rr:rr + p, cc:cc + p] += x.reshape(p, p, C)
+                den[rr:rr + p, cc:cc + p] += 1
+    return (num / den[..., None]) @ OPPONENT
+
+
+def _photo(rng: np.random.Generator, shape: tuple[int, int], sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth random colour photo with bright parts (so some noisy values clip), and its clipped noisy copy."""
+    H, W = shape
+    yy, xx = np.mgrid[0:H, 0:W] / 4.0
+    base = 0.55 + 0.45 * np.sin(xx + rng.uniform(0, 6)) * np.cos(0.8 * yy)
+    clean = np.clip(np.stack([base, 0.8 * base + 0.1, 1.0 - 0.7 * base], axis=-1), 0, 1)
+    return clean, np.clip(clean + rng.normal(0, sigma, clean.shape), 0, 1)
+
+
+@pytest.mark.parametrize("shape,patch,radius,group,stride", [((14, 13), 3, 2, 6, 2), ((11, 16), 4, 3, 10, 3),
+                                                             ((9, 9), 2, 1, 4, 1)])
+def test_the_fast_path_matches_the_group_by_group_reference(shape, patch, radius, group, stride):
+    rng = np.random.default_rng(shape[0])
+    clean, noisy = _photo(rng, shape, 0.15)
+    pilot = clean + rng.normal(0, 0.02, clean.shape)  # a pilot close to the clean photo, no ties in distances
+    std = rng.uniform(0.05, 0.2, noisy.shape)  # per pixel and channel (signal-dependent noise)
+    cfg = GroupedWienerConfig(patch_px=patch, search_radius_px=radius, group_size=group, stride_px=stride,
+                              clipped_share=0.05, groups_per_chunk=7)  # several chunks
+    assert ((noisy == 0) | (noisy == 1)).mean() > 0.02  # the clipped-share rule is exercised
+    got = grouped_wiener(noisy, pilot, std, cfg)
+    ref = _reference(noisy, pilot, std, cfg)
+    # float32 groups against a float64 reference: values ~1, errors ~1e-6.
+    np.testing.assert_allclose(got, ref, atol=2e-5)
+
+
+def test_one_std_for_all_pixels_is_the_constant_map_and_gray_is_one_channel():
+    rng = np.random.default_rng(3)
+    clean, noisy = _photo(rng, (15, 17), 0.1)
+    cfg = GroupedWienerConfig(patch_px=3, search_radius_px=2, group_size=8, stride_px=2)
+    np.testing.assert_array_equal(grouped_wiener(noisy, clean, 0.1, cfg),
+                                  grouped_wiener(noisy, clean, np.full(noisy.shape, 0.1), cfg))
+    gray = grouped_wiener(noisy[..., 0], clean[..., 0], 0.1, cfg)
+    assert gray.shape == noisy.shape[:2] and gray.dtype == np.float32
+    # Gray: each group's filter on one channel; as accurate as the pilot's statistics allow.
+    assert np.mean((gray - clean[..., 0]) ** 2) < 0.5 * np.mean((noisy[..., 0] - clean[..., 0]) ** 2)
+
+
+def test_a_noise_free_photo_comes_back_as_it_is():
+    rng = np.random.default_rng(4)
+    _, photo = _photo(rng, (20, 18), 0.1)
+    out = grouped_wiener(photo, photo, 0.0, GroupedWienerConfig(patch_px=3, search_radius_px=3, group_size=12))
+    np.testing.assert_allclose(out, photo, atol=1e-4)
+
+
+def test_grouping_beats_the_blockwise_dct_step_on_a_repetitive_texture():
+    # A periodic colour texture (bricks, tiles): each patch has many noisy twins in the search window,
+    # which the grouped step averages and the block-by-block DCT step cannot. Pilot: the DCT step with the
+    # noisy photo as its own pilot (the plain empirical Wiener filter); then each step once more with that
+    # pilot, at the true sigma. The grouped step must cut the pilot's error by a quarter (0.68x measured)
+    # and beat the DCT step's second pass (0.87x of its error measured).
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:64, 0:64]
+    tile = rng.uniform(0.2, 0.8, (4, 4, 3))  # 25 exact twins of each patch within the default +-10 px
+    clean = tile[yy % 4, xx % 4]
+    noisy = np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1)
+    pilot = dct_wiener(noisy, noisy, 0.1)
+    mse = {k: float(np.mean((x - clean) ** 2)) for k, x in [
+        ("noisy", noisy), ("pilot", pilot), ("dct", dct_wiener(noisy, pilot, 0.1)),
+        ("grouped", grouped_wiener(noisy, pilot, 0.1))]}
+    assert mse["pilot"] < mse["noisy"], mse
+    assert mse["grouped"] < 0.75 * mse["pilot"] and mse["grouped"] < mse["dct"], mse
+
+
+def test_photos_smaller_than_the_search_window_or_a_patch():
+    rng = np.random.default_rng(6)
+    clean, noisy = _photo(rng, (7, 9), 0.1)
+    out = grouped_wiener(noisy, clean, 0.1, GroupedWienerConfig(search_radius_px=10, group_size=40))
+    assert out.shape == noisy.shape and np.isfinite(out).all()
+    assert np.mean((out - clean) ** 2) < np.mean((noisy - clean) ** 2)
+    tiny = grouped_wiener(noisy[:3, :3], clean[:3, :3], 0.1)  # smaller than a 5-px patch: the pilot
+    np.testing.assert_allclose(tiny, clean[:3, :3], atol=1e-6)
+
+
+def test_search_offsets_put_zero_in_the_middle():
+    off = search_offsets(2)
+    assert off.shape == (25, 2) and tuple(off[len(off) // 2]) == (0, 0)
+
+
+@pytest.mark.parametrize("kwargs", [dict(patch_px=0), dict(search_radius_px=-1), dict(group_size=1),
+                                    dict(search_radius_px=1, group_size=10), dict(stride_px=0),
+                                    dict(clipped_share=1.5), dict(groups_per_chunk=0)])
+def test_invalid_configs_are_refused(kwargs):
+    with pytest.raises(ValueError, match="GroupedWienerConfig"):
+        GroupedWienerConfig(**kwargs)
+
+
+def test_mismatched_shapes_are_refused():
+    with pytest.raises(ValueError, match="must both be"):
+        grouped_wiener(np.zeros((8, 8, 3)), np.zeros((8, 9, 3)), 0.1)
