@@ -128,7 +128,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                     if m in METHODS and not METHODS[m].ground_truth_poses]
     config = EvalConfig(methods=tuple(dict.fromkeys(methods)), seeds=args.seeds, preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
-                        device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser)
+                        device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser,
+                        grouped_wiener=args.grouped_wiener)
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
     with (resumable_output_dir(plan), output_lock(out),
@@ -330,6 +331,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--device", default="cpu", help=DEVICE_HELP + "; default cpu")
     ev.add_argument("--denoiser", choices=DENOISE_METHODS, default="n2v",
                     help="round 1's objective for the N2V methods (default n2v; others: one-round methods only)")
+    ev.add_argument("--grouped-wiener", action=argparse.BooleanOptionalAction, default=None,
+                    help="the grouped Wiener step on or off for every method that trains the UNet (default: the "
+                         "preset's; an A/B comparison evaluates each setting into its own --out)")
     ev.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
                     help=MAX_SIZE_HELP + " (the clean images and ground-truth cameras are scaled alike)")
     ev.add_argument("--size", type=_size_wh, default=None, metavar="WxH",

@@ -89,7 +89,7 @@ from splat.render import render_views
 if TYPE_CHECKING:
     from eval.distributed import RayExecutor
 
-__all__ = ["FAILED_RUN_ERRORS", "HELDOUT_DIR", "EvalConfig", "EvalTask",
+__all__ = ["FAILED_RUN_ERRORS", "HELDOUT_DIR", "EvalConfig", "EvalTask", "base_pipeline_config",
            "check_eval_outputs", "copy_train_inputs", "evaluate_dataset", "heldout_record",
            "run_task", "save_heldout_references", "save_heldout_renders", "scene_dataset", "score_reconstruction",
            "share_keys"]
@@ -120,6 +120,20 @@ def _about_run_folder(exc: Exception, seed_dir: Path) -> bool:
     return isinstance(exc, InputError) and path is not None and Path(path).parent == seed_dir
 
 
+def base_pipeline_config(config: EvalConfig, views: int) -> PipelineConfig:
+    """The pipeline configuration every method of an evaluation starts from: `config.preset` at the working
+    size (`max_size=None`), with K = `views` and the evaluation's overrides."""
+    base = dataclasses.replace(preset(config.preset, views=views, device=config.device), max_size=None)
+    if config.splat_iters is not None:
+        base = dataclasses.replace(base, splat=dataclasses.replace(base.splat, iters=config.splat_iters))
+    if config.allow_focal_prior:
+        base = dataclasses.replace(base, align=dataclasses.replace(base.align, max_focal_log_std=FOCAL_PRIOR_OK))
+    if config.grouped_wiener is not None:
+        base = dataclasses.replace(base, denoise=dataclasses.replace(base.denoise,
+                                                                     grouped_wiener=config.grouped_wiener))
+    return base
+
+
 @dataclass(frozen=True)
 class EvalConfig:
     """Settings of `evaluate_dataset`.
@@ -137,6 +151,9 @@ class EvalConfig:
             the held-out scores and pose errors then show the cost.
         denoiser: round 1's objective for the N2V-family methods (`DenoiseSettings.method`); other
             than "n2v" only methods of one round may run, in folders named after it (`n2v_r2r`, ...).
+        grouped_wiener: the grouped Wiener step on or off for every method that trains the UNet
+            (`DenoiseSettings.grouped_wiener`); None: the preset's. For A/B measurements: evaluate each
+            setting into its own output folder.
     """
 
     methods: tuple[str, ...] = ("instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs")
@@ -148,6 +165,7 @@ class EvalConfig:
     device: str = "cpu"
     allow_focal_prior: bool = True
     denoiser: DenoiseMethod = "n2v"
+    grouped_wiener: bool | None = None
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.methods if m not in METHODS]
@@ -526,11 +544,7 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     k = config.views or min(12, len(dataset.train))
     # The dataset is at its working size already (`denoise-gs eval --max-size`, eval.pipeline.inputs):
     # the runs keep it, so renders and the clean images stay pixel-aligned.
-    base = dataclasses.replace(preset(config.preset, views=k, device=config.device), max_size=None)
-    if config.splat_iters is not None:
-        base = dataclasses.replace(base, splat=dataclasses.replace(base.splat, iters=config.splat_iters))
-    if config.allow_focal_prior:
-        base = dataclasses.replace(base, align=dataclasses.replace(base.align, max_focal_log_std=FOCAL_PRIOR_OK))
+    base = base_pipeline_config(config, k)
     methods = config.selected()
     for m in methods:  # a preset a component lacks fails here, before any compute
         check_settings(m.pipeline_config(base, config.denoiser))

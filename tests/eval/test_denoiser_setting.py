@@ -241,3 +241,15 @@ def test_the_real_stage_applies_the_wiener_step(tmp_path):
         outs[wiener] = read_views(work / "denoised")
     err = {w: np.mean([(outs[w][k] - clean) ** 2 for k in noisy]) for w in outs}
     assert err[True] < 0.9 * err[False], err
+
+
+def test_an_evaluation_can_turn_the_grouped_wiener_step_on_or_off():
+    from eval.evaluate import EvalConfig, base_pipeline_config
+
+    assert base_pipeline_config(EvalConfig(methods=("product",)), 12).denoise.grouped_wiener  # the preset's
+    for on in (False, True):
+        cfg = EvalConfig(methods=("product",), grouped_wiener=on)
+        assert base_pipeline_config(cfg, 12).denoise.grouped_wiener is on
+    fast = EvalConfig(methods=("product",), preset="fast")
+    assert not base_pipeline_config(fast, 12).denoise.grouped_wiener
+    assert base_pipeline_config(dataclasses.replace(fast, grouped_wiener=True), 12).denoise.grouped_wiener
