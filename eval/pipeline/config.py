@@ -254,7 +254,10 @@ class PipelineConfig:
 #:   of N2V's 400, its photos refined by the DCT Wiener step (`DenoiseSettings.wiener`: on DTU scan24 at
 #:   sigma 25, 25.16 / 0.809 / 0.149 held out against 25.04 / 0.798 / 0.162 without it, three seeds; with
 #:   Poisson-Gaussian noise SSIM and LPIPS better, PSNR 0.14 dB lower; docs/bench/pipeline.md, "The DCT
-#:   Wiener step"); no fusion; the alignment on the noisy photos first (`AlignSettings.photos`). On DTU
+#:   Wiener step"), then by the grouped Wiener step (`DenoiseSettings.grouped_wiener`: on DTU scan24 at sigma
+#:   25, 25.18 / 0.818 / 0.133 held out against 25.07 / 0.808 / 0.149 without it, three seeds; docs/bench/
+#:   pipeline.md, "The grouped Wiener step through the splat"); no fusion; the alignment on the noisy photos
+#:   first (`AlignSettings.photos`). On DTU
 #:   scan24 (sigma 25/255) its photos are 29.5 dB against N2V's 25.8, and splatted with the true cameras
 #:   they score 24.93 / 0.806 / 0.134 against the N2V two-round product's 24.41 / 0.732 / 0.198 (PSNR /
 #:   SSIM / LPIPS); fusing them with the noisy splat's render costs 0.4 dB and 0.07 SSIM there, and round
@@ -263,9 +266,10 @@ class PipelineConfig:
 #:   train Neighbor2Neighbor instead (`DenoiseSettings.method="auto"`): on the temple ring's black
 #:   background R2R's recorruption does not hold (its photos 27.1 dB against 34.3). The paper's loop is
 #:   `--denoiser n2v --rounds 2` (`denoise-gs eval`'s `denoise_gs`, `denoise_gs_fused`).
-#: - `best`: the `default` (the Wiener step included: it lifts `best`'s photos 0.67 dB on DTU scan24; `best`'s
-#:   held-out figures below predate it) with a 2000-iteration splat (about twice the splat's time) and the UNet at width
-#:   32 (`denoise.n2v.N2V_PRESETS["wide"]`, about 2.3x the denoiser's CPU time per training step; every method
+#: - `best`: the `default` (both Wiener steps included: the DCT step lifts `best`'s photos 0.67 dB on DTU
+#:   scan24; `best`'s held-out figures below predate both) with a 2000-iteration splat (about twice the
+#:   splat's time) and the UNet at width 32 (`denoise.n2v.N2V_PRESETS["wide"]`, about 2.3x the denoiser's
+#:   CPU time per training step; every method
 #:   that trains the UNet under `best` trains it at width 32). The longer splat alone, on DTU scan24 at
 #:   sigma 25, three seeds: 25.06 / 0.792 / 0.152 against `default`'s 24.87 / 0.792 / 0.166 held out; with the
 #:   wider UNet, seed 0: 25.36 / 0.804 / 0.135 against 25.13 / 0.794 / 0.154 (its photos 31.13 dB / 0.856
