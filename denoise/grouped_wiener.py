@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from denoise.wiener import OPPONENT
+from denoise.wiener import OPPONENT, block_origins, box_sums
 
 __all__ = ["GroupedWienerConfig", "grouped_wiener", "search_offsets"]
 
@@ -68,12 +68,6 @@ class GroupedWienerConfig:
             raise ValueError(f"invalid GroupedWienerConfig {self}: clipped_share must be in [0, 1]")
 
 
-def _origins(n: int, p: int, step: int) -> np.ndarray:
-    """Patch origins along one axis: every `step` px, and one ending at the edge."""
-    o = np.arange(0, n - p + 1, step)
-    return o if o[-1] == n - p else np.append(o, n - p)
-
-
 def search_offsets(radius: int) -> np.ndarray:
     """``(K, 2)`` int offsets ``(dy, dx)`` of the search window, row-major; ``(0, 0)`` at index ``K // 2``."""
     r = np.arange(-radius, radius + 1)
@@ -96,9 +90,7 @@ def _patch_distances(pilot: np.ndarray, ref_y: np.ndarray, ref_x: np.ndarray, pa
         diff = pilot[y0:y1, x0:x1] - pilot[y0 + dy:y1 + dy, x0 + dx:x1 + dx]
         sq = np.zeros((H, W), np.float64)
         sq[y0:y1, x0:x1] = np.einsum("ijc,ijc->ij", diff, diff)
-        ii = np.zeros((H + 1, W + 1))
-        ii[1:, 1:] = sq.cumsum(0).cumsum(1)
-        box = ii[patch:, patch:] - ii[:-patch, patch:] - ii[patch:, :-patch] + ii[:-patch, :-patch]
+        box = box_sums(sq, patch)
         ty, tx = ref_y + dy, ref_x + dx
         ok = (ty >= 0) & (ty < Hp) & (tx >= 0) & (tx < Wp)
         dist[ok, k] = box[ref_y[ok], ref_x[ok]]
@@ -140,8 +132,8 @@ def grouped_wiener(noisy: np.ndarray, pilot: np.ndarray, sigma: float | np.ndarr
     # keeps the Cholesky factorisation positive definite. A noise-free photo comes back as it is.
     var = np.maximum(var, 1e-6)
 
-    ref_y, ref_x = (a.ravel() for a in np.meshgrid(_origins(H, p, config.stride_px),
-                                                   _origins(W, p, config.stride_px), indexing="ij"))
+    ref_y, ref_x = (a.ravel() for a in np.meshgrid(block_origins(H, p, config.stride_px),
+                                                   block_origins(W, p, config.stride_px), indexing="ij"))
     offsets = search_offsets(config.search_radius_px)
     dist = _patch_distances(b, ref_y, ref_x, p, offsets)
     dist[:, len(offsets) // 2] = -1.0  # the reference is always in its own group, ties or not

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.fft import dctn, idctn
 
-__all__ = ["OPPONENT", "WienerConfig", "dct_wiener", "dct_wiener_gray"]
+__all__ = ["OPPONENT", "WienerConfig", "block_origins", "box_sums", "dct_wiener", "dct_wiener_gray"]
 
 #: Orthonormal opponent colour transform (rows: luminance, red-blue, green-magenta): ``opp = OPPONENT @ rgb``.
 OPPONENT = np.array([[1.0, 1.0, 1.0], [1.0, 0.0, -1.0], [1.0, -2.0, 1.0]]) / np.array(
@@ -58,10 +58,17 @@ class WienerConfig:
                              "rows_per_chunk >= 1")
 
 
-def _origins(n: int, block: int, step: int) -> np.ndarray:
-    """Block origins along one axis: every `step` px, and one ending at the edge."""
+def block_origins(n: int, block: int, step: int) -> np.ndarray:
+    """Block origins along one axis of length `n`: every `step` px, and one ending at the edge."""
     o = np.arange(0, n - block + 1, step)
     return o if o[-1] == n - block else np.append(o, n - block)
+
+
+def box_sums(a: np.ndarray, block: int) -> np.ndarray:
+    """Sum of the ``(H, W)`` array `a` over every ``block x block`` window, by an integral image:
+    ``(H - block + 1, W - block + 1)``, entry ``(i, j)`` for the window whose top-left pixel is ``(i, j)``."""
+    ii = np.pad(np.cumsum(np.cumsum(a, 0), 1), ((1, 0), (1, 0)))
+    return ii[block:, block:] - ii[:-block, block:] - ii[block:, :-block] + ii[:-block, :-block]
 
 
 def dct_wiener_gray(noisy: np.ndarray, pilot: np.ndarray, variance: float | np.ndarray,
@@ -84,12 +91,10 @@ def dct_wiener_gray(noisy: np.ndarray, pilot: np.ndarray, variance: float | np.n
     b = config.block_px
     if H < b or W < b:
         return p.copy()
-    ys, xs = _origins(H, b, config.step_px), _origins(W, b, config.step_px)
+    ys, xs = block_origins(H, b, config.step_px), block_origins(W, b, config.step_px)
     var = np.broadcast_to(np.asarray(variance, np.float64), (H, W))
-    # Mean pixel variance of every block (an integral image), floored so a noise-free photo comes back as is.
-    ii = np.pad(np.cumsum(np.cumsum(var, 0), 1), ((1, 0), (1, 0)))
-    block_var = (ii[b:, b:] - ii[:-b, b:] - ii[b:, :-b] + ii[:-b, :-b]) / (b * b)
-    block_var = np.maximum(block_var, 1e-12)
+    # Mean pixel variance of every block, floored so a noise-free photo comes back as is.
+    block_var = np.maximum(box_sums(var, b) / (b * b), 1e-12)
     Y_all, P_all = sliding_window_view(y, (b, b)), sliding_window_view(p, (b, b))
     num = np.zeros((H, W))
     den = np.zeros((H, W))
