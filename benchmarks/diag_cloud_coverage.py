@@ -1,10 +1,11 @@
 """How much of each view the alignment's dense cloud covers, with and without hole-filled depth as evidence.
 
 Aligns a folder of photos with a pipeline preset's round-1 alignment settings (`mvgeo.align.align_images`),
-twice: as the product does (`covisibility_keep` takes evidence for its consistency and free-space checks
-from measured depth only) and with every pixel's depth as evidence, filled ones included (the code before
-2026-11-29). For each variant and view: the cloud's points that project into the view, and the cells of an
-8 x 8 grid over the view with fewer than 20 of them (a region the splat starts without Gaussians).
+twice: as the product does (`covisibility_keep`: a measured point takes evidence for its consistency and
+free-space checks from measured depth only, a filled point from every pixel) and with every pixel's depth
+as evidence for every point. For each variant and view: the cloud's points that project into the view, and
+the cells of an 8 x 8 grid over the view with fewer than 20 of them (a region the splat starts without
+Gaussians).
 
 Usage: .venv/bin/python benchmarks/diag_cloud_coverage.py PHOTOS_DIR [--preset fast]
 
@@ -62,8 +63,8 @@ def main() -> int:
         return product(*a, **kw)
 
     results = {}
-    for label, fn in (("measured depth as evidence (product)", product),
-                      ("every pixel as evidence (before)", every_pixel_as_evidence)):
+    for label, fn in (("product (measured points: measured evidence only)", product),
+                      ("every pixel as evidence for every point", every_pixel_as_evidence)):
         cloud.covisibility_keep = fn
         t = time.perf_counter()
         res = align_images(files, cfg)

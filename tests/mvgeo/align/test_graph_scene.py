@@ -113,6 +113,24 @@ def test_filled_depth_neither_carves_nor_vetoes_measured_points():
     assert not covisibility_keep(*args, **tols, measured=measured)[1].any()
 
 
+def test_filled_points_are_checked_against_other_filled_depth():
+    """Guesses are checked against guesses: with both views filled, view 1's guess at 3.0 sees through view
+    0's guess at 2.0 and confirms none of it, so view 0's filled points go (as a backdrop no stereo measures
+    must not keep every interpolated point); where view 1's guess agrees (2.02), they stay."""
+    H, W, f = 6, 8, 8.0
+    cam = np.concatenate([np.eye(3), np.zeros((3, 1))], 1)
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    tols = {"rel_depth_tol": 0.0, "consistency_rel_tol": 0.05, "free_space_rel_tol": 0.05}
+    none_measured = [np.zeros((H, W), bool), np.zeros((H, W), bool)]
+    conf = [np.full((H, W), 3.0), np.full((H, W), 2.5)]
+    d0 = np.full((H, W), 2.0)
+    for d1_value, kept in [(3.0, False), (2.02, True)]:
+        d1 = np.full((H, W), d1_value)
+        pts = [pixel_rays(H, W, f) * d0[..., None], pixel_rays(H, W, f) * d1[..., None]]
+        keep = covisibility_keep(pts, [d0, d1], conf, np.stack([cam, cam]), [K, K], **tols, measured=none_measured)
+        assert keep[0].all() == kept and keep[0].any() == kept
+
+
 def test_voxel_downsample_budget_and_confidence(rng):
     pts = rng.random((5000, 3))
     conf = rng.random(5000)
@@ -165,8 +183,9 @@ def _covisibility_reference(pts, depth, conf, cams, Ks, rel_tol, cons_tol, free_
                     db, cb = depth[b][int(np.floor(v)), int(np.floor(u))], conf[b][int(np.floor(v)), int(np.floor(u))]
                     if abs(x[2] - db) < rel_tol * db and (cb > conf[a][r, c] or (cb == conf[a][r, c] and b < a)):
                         drop = True
-                    if measured is not None and not measured[b][int(np.floor(v)), int(np.floor(u))]:
-                        continue  # a filled pixel: no evidence for the checks below
+                    if (measured is not None and measured[a][r, c]
+                            and not measured[b][int(np.floor(v)), int(np.floor(u))]):
+                        continue  # a filled pixel: no evidence against a measured point in the checks below
                     if cons_tol > 0:
                         confirmed |= bool(abs(x[2] - db) < cons_tol * db)
                         seen |= bool(np.isfinite(db) and db > 0)
