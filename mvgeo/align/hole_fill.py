@@ -23,8 +23,9 @@ without the limit), and the denoised photos' splat gains 4.2 dB held out (docs/b
 
 The filled points are checked downstream like any other (co-visibility, multi-view consistency and
 free-space pruning, `mvgeo.align.scene.covisibility_keep`): a filled point that another view sees
-through, or that the views which see its direction do not confirm, is dropped there. A filled pixel is no
-evidence against other views' points: it neither confirms them nor carves them away.
+through, or that the views which see its direction do not confirm (filled depth included), is dropped
+there. A filled pixel is no evidence about other views' measured points: it neither confirms them nor
+carves them away.
 """
 
 from __future__ import annotations
