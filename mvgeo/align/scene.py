@@ -54,7 +54,7 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
             pruning uses every pixel. Without the first rule one view whose holes were filled too far away
             (its stereo covered 18 % of it on a DTU scan24 run) carved a whole facade out of the other
             views' points; without the second the filled points of a background no stereo measures (the
-            temple ring's black backdrop, 60-88 % of each view filled) went unchecked, and the clean photos'
+            temple ring's black backdrop, 57-88 % of each view filled) went unchecked, and the clean photos'
             splat at the true cameras held out 2.5 dB lower.
         workers: threads over the views (default: one per core); the masks do not depend on it.
     """
