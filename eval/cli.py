@@ -27,7 +27,7 @@ from eval.pipeline.inputs import working_dataset
 from eval.pipeline.lock import output_lock
 from eval.pipeline.validate import MIN_IMAGE_SIZE_PX
 from eval.real.cli import add_dataset_parser
-from eval.results import write_results
+from eval.results import carried_rows, merge_rows, write_results
 from mvgeo.common.argtypes import int_range, nonneg_int, positive_int, seed
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
@@ -138,11 +138,28 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         validate_dataset_folder(folder)
         dataset = validate_dataset_folder(working_dataset(folder, out, args.max_size))
         title = f"denoise-gs eval: {name}"
+        settings = _eval_settings(config, dataset.root, name, args)
+        earlier = carried_rows(out, settings, {(name, m, s) for m in config.methods for s in range(config.seeds)})
+        if earlier.note:
+            _log.warning("%s", earlier.note)
         rows = evaluate_dataset(dataset, out, config, scene=name, executor=executor,
-                                on_row=lambda rs: write_results(out, rs, title=title + " (in progress)"))
-        _, md = write_results(out, rows, title=title)
-    print(f"results: {md}")
+                                on_row=lambda rs: write_results(out, merge_rows(earlier.rows, rs),
+                                                                title=title + " (in progress)", settings=settings))
+        _, md = write_results(out, merge_rows(earlier.rows, rows), title=title, settings=settings)
+    kept = sorted({r.method for r in earlier.rows})
+    print(f"results: {md}" + (f" (with the earlier rows of {', '.join(kept)})" if kept else ""))
     return 0
+
+
+def _eval_settings(config: EvalConfig, dataset_root: Path, scene: str, args: argparse.Namespace) -> dict:
+    """What makes the rows of two `denoise-gs eval` invocations into one folder comparable: the dataset's
+    files, every setting but the methods and seeds, and the project code (`eval.results.carried_rows`)."""
+    from eval.distributed import project_code
+    from eval.pipeline.hashing import hash_json, hash_path
+
+    kept = {k: v for k, v in dataclasses.asdict(config).items() if k not in ("methods", "seeds")}
+    return {"scene": scene, "dataset": hash_path(dataset_root), "max_size": args.max_size,
+            "code": hash_json(project_code()), **kept}
 
 
 def _parse_grid(items: Sequence[str] | None, knobs: Sequence[str] | None) -> dict[str, tuple]:

@@ -14,8 +14,8 @@ from __future__ import annotations
 import io
 import json
 import math
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +24,9 @@ import numpy as np
 from eval.pipeline.stage import check_outputs_owned, commit_written
 from mvgeo.common.atomic import atomic_write_bytes, atomic_write_text
 
-__all__ = ["METRICS", "RESULTS_OUTPUTS", "RESULTS_RECORD", "RunScores", "SummaryCell", "check_results_owned",
-           "plot_bars", "results_markdown", "save_figure", "summarise", "write_results"]
+__all__ = ["METRICS", "RESULTS_OUTPUTS", "RESULTS_RECORD", "CarriedRows", "RunScores", "SummaryCell",
+           "carried_rows", "check_results_owned", "merge_rows", "plot_bars", "results_markdown", "save_figure",
+           "summarise", "write_results"]
 
 #: What `write_results` (and `eval.cost.write_cost_results`) write in OUT, and the name of their record
 #: (`OUT/stages/<name>.json`).
@@ -241,26 +242,102 @@ def check_results_owned(out: Path) -> None:
     check_outputs_owned(Path(out), RESULTS_RECORD, RESULTS_OUTPUTS)
 
 
-def write_results(out: Path, rows: Sequence[RunScores], *, title: str = "Evaluation") -> tuple[Path, Path]:
+def write_results(out: Path, rows: Sequence[RunScores], *, title: str = "Evaluation",
+                  settings: Mapping[str, Any] | None = None) -> tuple[Path, Path]:
     """Write `results.json` (rows + summary; NaN -> null), `results.md` and `figures/<metric>.png` into `out`
     (committed with a record, see the module docstring).
+
+    Args:
+        settings: JSON-able description of what produced the rows (the evaluation's settings and the code's
+            digest), stored in `results.json` as "settings"; `carried_rows` keeps rows of an earlier
+            invocation only when it matches.
 
     Raises:
         UnownedOutputError: those files in `out` include some it did not write or that changed (nothing is
             replaced).
     """
     out = Path(out)
-    commit_written(out, RESULTS_RECORD, RESULTS_OUTPUTS, lambda work: _write_result_files(out, work, rows, title))
+    commit_written(out, RESULTS_RECORD, RESULTS_OUTPUTS,
+                   lambda work: _write_result_files(out, work, rows, title, settings))
     return out / "results.json", out / "results.md"
 
 
-def _write_result_files(out: Path, dest: Path, rows: Sequence[RunScores], title: str) -> None:
+@dataclass(frozen=True)
+class CarriedRows:
+    """What `carried_rows` keeps of an earlier invocation's `results.json`.
+
+    Attributes:
+        rows: its rows for runs the new invocation does not make, in their order.
+        note: why nothing was kept although there were rows ("" when everything eligible was kept, or there
+            was nothing to keep).
+    """
+
+    rows: tuple[RunScores, ...]
+    note: str = ""
+
+
+def carried_rows(out: Path, settings: Mapping[str, Any], rerun: Collection[tuple[str, str, int]]) -> CarriedRows:
+    """The rows of an earlier `denoise-gs eval` into `out` that its tables keep beside this invocation's.
+
+    An evaluation into an existing folder (e.g. one method now, another later; its stages are reused) extends
+    the earlier table instead of replacing it, but only when the earlier rows come from the same settings
+    (`settings`, compared as stored: the dataset, the preset and every option that changes a score, and the
+    project code's digest); otherwise they would not be comparable and none are kept (`note` says why).
+    Rows whose (scene, method, seed) is in `rerun` are left out: this invocation writes them anew.
+    """
+    path = Path(out) / "results.json"
+    if not path.is_file():
+        return CarriedRows(())
+    try:
+        data = json.loads(path.read_text())
+        runs = data.get("runs", [])
+        before = data.get("settings")
+        rows = tuple(_row_from_json(r) for r in runs)
+    except (OSError, ValueError, TypeError, AttributeError, KeyError) as exc:
+        return CarriedRows((), f"{path} could not be read ({exc}); its rows are not kept")
+    if not rows:
+        return CarriedRows(())
+    if before != _json_safe(dict(settings)):
+        changed = sorted(k for k in set(before or {}) | set(settings)
+                         if (before or {}).get(k) != _json_safe(settings.get(k)))
+        why = "it records no settings" if before is None else "its settings differ: " + ", ".join(changed)
+        return CarriedRows((), f"the {len(rows)} earlier row(s) in {path} are not kept ({why}); evaluate "
+                               f"into another --out to keep both")
+    rerun = set(rerun)
+    return CarriedRows(tuple(r for r in rows if (r.scene, r.method, r.seed) not in rerun))
+
+
+def merge_rows(earlier: Sequence[RunScores], rows: Sequence[RunScores]) -> list[RunScores]:
+    """`earlier` rows without the runs `rows` holds, then `rows`: one row per (scene, method, seed)."""
+    new = {(r.scene, r.method, r.seed) for r in rows}
+    return [r for r in earlier if (r.scene, r.method, r.seed) not in new] + list(rows)
+
+
+_FLOAT_FIELDS = {f.name for f in fields(RunScores) if f.type in ("float", float)}
+
+
+def _row_from_json(d: Mapping[str, Any]) -> RunScores:
+    """A `RunScores` from its `results.json` form (null -> NaN, the per-view metrics included)."""
+    def num(x: Any) -> float:
+        return float("nan") if x is None else float(x)
+
+    known = {f.name for f in fields(RunScores)}
+    kw = {k: (num(v) if k in _FLOAT_FIELDS else v) for k, v in d.items() if k in known}
+    kw["per_view"] = {v: {m: num(x) for m, x in ms.items()} for v, ms in (d.get("per_view") or {}).items()}
+    kw["seed"] = int(d["seed"])
+    return RunScores(**kw)
+
+
+def _write_result_files(out: Path, dest: Path, rows: Sequence[RunScores], title: str,
+                        settings: Mapping[str, Any] | None) -> None:
     """The results of the evaluation in `out` (held-out renders read from `out/heldout/`), written into `dest`."""
     summary = {s: {m: {k: asdict(c) for k, c in cells.items()} for m, cells in ms.items()}
                for s, ms in summarise(rows).items()}
     json_path, md_path = dest / "results.json", dest / "results.md"
-    atomic_write_text(json_path, json.dumps(_json_safe({"runs": [asdict(r) for r in rows], "summary": summary}),
-                                            indent=2) + "\n")
+    content: dict[str, Any] = {"runs": [asdict(r) for r in rows], "summary": summary}
+    if settings is not None:
+        content["settings"] = dict(settings)
+    atomic_write_text(json_path, json.dumps(_json_safe(content), indent=2) + "\n")
     md = results_markdown(rows, title=title)
     figs = []
     for metric in ("psnr_db", "ssim", "lpips"):

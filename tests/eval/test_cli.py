@@ -245,3 +245,35 @@ def test_gt_pose_variants_add_one_row_per_method_with_estimated_poses(tmp_path, 
                                "n2v_fused_round1@gt_poses")
     assert [m.name for m in eval.evaluate.EvalConfig(methods=seen["methods"]).selected()][-2:] == [
         "instantsplat@gt_poses", "n2v_fused_round1@gt_poses"]
+
+
+def test_eval_into_the_same_folder_extends_its_table_with_the_same_settings(tmp_path, monkeypatch, capsys):
+    """One method now, another later into the same --out: one table with both; other settings replace it."""
+    from eval.results import RunScores
+
+    def fake(dataset, out, config, *, scene, **kw):
+        psnr = {"instantsplat": 22.0, "product": 25.0}
+        return [RunScores(scene, m, s, psnr[m] + s, 0.5, 0.2) for m in config.methods for s in range(config.seeds)]
+
+    monkeypatch.setattr(eval.cli, "evaluate_dataset", fake)
+    root = tiny_dataset(tmp_path / "data").root
+    shutil.copytree(root / "images", root / "clean")
+    out = tmp_path / "out"
+
+    def runs():
+        return [(r["method"], r["seed"], r["psnr_db"]) for r in json.loads((out / "results.json").read_text())["runs"]]
+
+    assert main(["eval", str(root), "--out", str(out), "--seeds", "2", "--methods", "instantsplat"]) == 0
+    assert main(["eval", str(root), "--out", str(out), "--seeds", "1", "--methods", "product"]) == 0
+    assert runs() == [("instantsplat", 0, 22.0), ("instantsplat", 1, 23.0), ("product", 0, 25.0)]
+    md = (out / "results.md").read_text()
+    assert "| instantsplat |" in md and "| product |" in md
+    # The same run again replaces its row, not adds one.
+    assert main(["eval", str(root), "--out", str(out), "--seeds", "1", "--methods", "instantsplat"]) == 0
+    assert runs() == [("instantsplat", 1, 23.0), ("product", 0, 25.0), ("instantsplat", 0, 22.0)]
+    # Another preset: the earlier rows are not comparable, so the table is this invocation's alone, with a warning.
+    capsys.readouterr()
+    assert main(["eval", str(root), "--out", str(out), "--seeds", "1", "--methods", "product",
+                 "--preset", "fast"]) == 0
+    assert runs() == [("product", 0, 25.0)]
+    assert "settings differ: preset" in capsys.readouterr().err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -69,3 +70,38 @@ def test_heldout_grid_from_saved_renders(tmp_path):
     # write_results puts it into results.md for each scene that has saved renders
     _, md = write_results(tmp_path / "out", [RunScores("llff_like", "denoise_gs", 0, 20.0, 0.5, 0.3)], title="t")
     assert "figures/heldout_llff_like.png" in md.read_text()
+
+
+def _same(a, b):
+    """Rows equal field by field, NaN equal to NaN (RunScores' own == compares NaN unequal)."""
+    return json.dumps([asdict(r) for r in a], sort_keys=True) == json.dumps([asdict(r) for r in b], sort_keys=True)
+
+
+def test_earlier_rows_are_carried_only_with_the_same_settings(tmp_path):
+    from eval.results import carried_rows, merge_rows
+
+    settings = {"scene": "llff_like", "preset": "default", "splat_iters": None, "code": "abc"}
+    rows = _rows()
+    rows[0] = RunScores("llff_like", "instantsplat", 0, 20.0, 0.5, 0.4, per_view={"v0": {"psnr_db": 20.0,
+                                                                                         "lpips": float("nan")}})
+    write_results(tmp_path, rows, settings=settings)
+
+    # Same settings: every row back (NaN metrics and per-view ones included), minus the runs made again.
+    kept = carried_rows(tmp_path, dict(settings), rerun=set())
+    assert kept.note == "" and _same(kept.rows, rows)
+    kept = carried_rows(tmp_path, settings, rerun={("llff_like", "denoise_gs", 1), ("poisson", "denoise_gs", 0)})
+    assert [(r.method, r.seed) for r in kept.rows] == [("instantsplat", 0), ("denoise_gs", 0),
+                                                        ("instantsplat", 1), ("instantsplat", 2), ("denoise_gs", 2)]
+    # A new run of a carried key replaces it; new keys come after the earlier rows.
+    new = [RunScores("llff_like", "denoise_gs", 1, 30.0, 0.8, 0.1), RunScores("llff_like", "oracle", 0, 31.0, 0.9, 0.1)]
+    merged = merge_rows(kept.rows, new)
+    assert [(r.method, r.seed, r.psnr_db) for r in merged][-2:] == [("denoise_gs", 1, 30.0), ("oracle", 0, 31.0)]
+    assert len({(r.scene, r.method, r.seed) for r in merged}) == len(merged) == 7
+
+    # Other settings (or none recorded, or an unreadable file): nothing kept, and the note says why.
+    other = carried_rows(tmp_path, {**settings, "preset": "fast"}, rerun=set())
+    assert other.rows == () and "preset" in other.note and "scene" not in other.note
+    write_results(tmp_path, rows)
+    assert carried_rows(tmp_path, settings, set()).rows == ()
+    assert "no settings" in carried_rows(tmp_path, settings, set()).note
+    assert carried_rows(tmp_path / "nothing_here", settings, set()) == type(other)(())
