@@ -53,6 +53,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from mvgeo.align.checks import views_hinged
 from mvgeo.align.graph import components
 from mvgeo.align.init import chain_contradicted_fraction, choose_start, other_start, pair_relative_rotations
 from mvgeo.align.inputs import AlignInputs
@@ -105,6 +106,11 @@ def _pruned(c: Candidate, config, timer: StageTimer) -> Candidate | None:
     present = {(p.i, p.j) for p in c.pairs.predictions} | {(g.i, g.j) for g in c.pairs.geometries}
     gone = {(b.i, b.j) for b in c.bad} & present
     loose = set(loose_views(c.ba, config.max_centre_std_ratio)) if config.allow_partial else set()
+    unsupported: set[int] = set()
+    if config.allow_partial and config.reject_unsupported_views:  # views held by one pair PnP does not confirm
+        confirmed = {x.view for x in c.located if x.ok}
+        unsupported = set(views_hinged(c.checks, c.bad, len(c.inputs))) - confirmed - loose
+        loose |= unsupported
     if not gone and not loose:
         return None
     pairs = c.pairs.without_pairs(gone)
@@ -115,8 +121,9 @@ def _pruned(c: Candidate, config, timer: StageTimer) -> Candidate | None:
     if len(keep) < 2:
         return None
     names = c.inputs.names
-    lost = [Unregistered(names[v], "its position is not determined by the feature tracks" if v in loose else
-                         "its pairs are inconsistent with the reconstruction of the others")
+    lost = [Unregistered(names[v], "its pose is not supported by its pairs nor by PnP on the others' points"
+                         if v in unsupported else "its position is not determined by the feature tracks" if v in loose
+                         else "its pairs are inconsistent with the reconstruction of the others")
             for v in range(len(names)) if v not in keep]
     dropped = c.dropped + sorted((names[i], names[j]) for i, j in gone)
     _log.warning("solving again without %d pairs the result does not explain %s%s", len(gone), sorted(gone),

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from mvgeo.align.bundle import BundleResult, bundle_adjust
-from mvgeo.align.checks import PairCheck, views_cut_off
+from mvgeo.align.checks import PairCheck, views_cut_off, views_hinged
 from mvgeo.align.cloud import reposed
 from mvgeo.align.global_align import GlobalAlignConfig, GlobalAlignResult, focal_estimates, global_align
 from mvgeo.align.graph import components
@@ -323,13 +323,13 @@ def adjust_and_judge(graph: PairGraph, start: str, res: GlobalAlignResult, align
                               min_explained=config.min_pair_explained, max_rotation_deg=config.max_pair_rotation_deg)
     located: list[Located] = []
     if ba is not None and feats is not None and config.reject_unsupported_views and config.locate_cut_off_views:
-        cut = views_cut_off(checks, bad, n)
+        cut = sorted(set(views_cut_off(checks, bad, n)) | set(views_hinged(checks, bad, n)))
         if cut:
             with timer.stage("locate"):
                 located = locate_cut_off(res.cam_from_world, res.focal_px * s, inputs.align_wh, feats, checks, bad,
                                          cut)
-            _log.info("views cut off by contradicted pairs, located by PnP on the main group's points (view: "
-                      "inliers, deg from the solution): %s", ", ".join(
+            _log.info("views cut off by contradicted pairs or held by one pair, located by PnP on the main group's "
+                      "points (view: inliers, deg from the solution): %s", ", ".join(
                           f"{inputs.names[x.view]}: {x.n_inliers}, {x.rotation_deg:.2f}" for x in located))
     # A focal prior (EXIF) the bundle adjustment keeps within `refocus_min_change` determines the focal as
     # well as agreeing pairs do: the data do not contradict it. Only for pairs computed at the prior: pairs

@@ -5,11 +5,15 @@ Four reasons to refuse a solution, checked in this order (`verdict`):
 - `pairs_contradicted`: the verified pairs the solution does not explain (too few matches within
   `AlignConfig.consistency_px` Sampson distance, or a relative rotation more than `max_pair_rotation_deg`
   off the one the matches imply, `judge_pairs`) hold more than `max_unexplained_fraction` of all verified
-  matches: the solution as a whole is wrong;
+  matches: the solution as a whole is wrong. The pairs of a view that PnP on the main group's points puts
+  where the solution does (`located_views`) do not count (`contradicting`): three views have shown that
+  their pair evidence is the ambiguous one (a weak pair's linear essential matrix 10-30 deg off, see
+  `mvgeo.align.locate`), not the solution;
 - `views_unsupported`: views linked to the main group of views only by contradicted pairs, e.g. a view
   whose every verified pair is contradicted, or a group hinged on them (`views_cut_off`,
-  `reject_unsupported_views`), unless PnP on the main group's points puts the view where the solution
-  does (`mvgeo.align.locate`, `locate_cut_off_views`);
+  `reject_unsupported_views`), and views held by a single explained pair (`views_hinged`), unless PnP on
+  the main group's points puts the view where the solution does (`mvgeo.align.locate`,
+  `locate_cut_off_views`);
 - `positions_undetermined`: the bundle adjustment leaves a camera centre uncertain by more than
   `max_centre_std_ratio` times the median distance between neighbouring cameras;
 - `focal_undetermined`: neither a pair nor a focal prior the adjustment keeps (EXIF) determined the focal, and
@@ -24,10 +28,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mvgeo.align.bundle import BundleResult
-from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_cut_off
+from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_cut_off, views_hinged
 from mvgeo.common.errors import AlignmentRefusedError
 
-__all__ = ["Reason", "Verdict", "centre_std_ratio", "judge_pairs", "loose_views", "mostly_unexplained", "verdict"]
+__all__ = ["Reason", "Verdict", "centre_std_ratio", "contradicting", "judge_pairs", "loose_views", "mostly_unexplained",
+           "verdict"]
 
 REASON_KINDS = ("pairs_contradicted", "views_unsupported", "positions_undetermined", "focal_undetermined")
 
@@ -78,6 +83,22 @@ def judge_pairs(cam_from_world: np.ndarray, focal_align_px: np.ndarray, size_wh:
     return checks, bad
 
 
+def contradicting(bad: Sequence[PairCheck], located_views: Sequence[int] = (),
+                  unsupported_views: Sequence[int] = ()) -> list[PairCheck]:
+    """The failing pairs that count against the solution as a whole: those of `bad` except the pairs of a view
+    in `located_views` (PnP on the main group's points puts it where the solution does) whose other view is
+    not in `unsupported_views` (cut off and not located: that view, not the pair, may be what is wrong).
+
+    Measured on DTU scan24 at sigma 50/255 (12 views, 19 verified pairs): the chained start's solution, 0.78
+    deg median and every view within 2.3 deg, failed the rotation check on four weak pairs, two of each of
+    two views that PnP located 1.1 and 2.5 deg from it (34 and 25 inliers); with those pairs counted it was
+    refused as a whole and the averaged start's solution, which follows one of those pairs' rotations, was
+    returned with a view 17.5 deg off.
+    """
+    located, unsupported = set(located_views), set(unsupported_views)
+    return [c for c in bad if not ({c.i, c.j} & located and not {c.i, c.j} & unsupported)]
+
+
 def mostly_unexplained(checks: Sequence[PairCheck], bad: Sequence[PairCheck], max_fraction: float) -> bool:
     """The failing pairs hold more than `max_fraction` of all verified matches (not one weakly linked view)."""
     total = sum(c.n_matches for c in checks)
@@ -122,11 +143,15 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
     main group's points locate where the solution puts them (`mvgeo.align.locate`), not refused as cut off."""
     reasons = []
     max_rot = config.max_pair_rotation_deg
-    if mostly_unexplained(checks, bad, config.max_unexplained_fraction):
-        total, unexplained = sum(c.n_matches for c in checks), sum(c.n_matches for c in bad)
-        listing = ", ".join(_pair_phrase(c, names, max_rot) for c in bad)[:1500]
-        reasons.append(Reason("pairs_contradicted", tuple(sorted({names[v] for c in bad for v in (c.i, c.j)})), (
-            f"the reconstruction is inconsistent with {len(bad)} of {len(checks)} verified image pairs "
+    located = set(located_views)
+    orphans = views_cut_off(checks, bad, len(names)) if config.reject_unsupported_views else []
+    orphans = [v for v in orphans if v not in located]
+    against = contradicting(bad, located_views, orphans)
+    if mostly_unexplained(checks, against, config.max_unexplained_fraction):
+        total, unexplained = sum(c.n_matches for c in checks), sum(c.n_matches for c in against)
+        listing = ", ".join(_pair_phrase(c, names, max_rot) for c in against)[:1500]
+        reasons.append(Reason("pairs_contradicted", tuple(sorted({names[v] for c in against for v in (c.i, c.j)})), (
+            f"the reconstruction is inconsistent with {len(against)} of {len(checks)} verified image pairs "
             f"({unexplained} of {total} matches unexplained; explained fraction per pair, and the rotation "
             f"where the result turns the pair more than {max_rot:g} deg away from the one its matches imply: "
             f"{listing}). Likely causes: too little overlap between neighbouring views (e.g. an orbit with large "
@@ -135,9 +160,16 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
             + (". The bundle adjustment is off: the dense alignment alone is this coarse" if ba is None else "")),
             "enable the bundle adjustment (--ba)" if ba is None
             else "add views between the existing ones, or pass the calibration with --intrinsics"))
-    orphans = views_cut_off(checks, bad, len(names)) if config.reject_unsupported_views else []
-    located = set(located_views)
-    orphans = [v for v in orphans if v not in located]
+    hinged = ([v for v in views_hinged(checks, bad, len(names)) if v not in located]
+              if config.reject_unsupported_views else [])
+    if hinged:
+        reasons.append(Reason("views_unsupported", tuple(names[v] for v in hinged), (
+            f"{len(hinged)} of {len(names)} views rest on a single verified image pair each "
+            f"({', '.join(names[v] for v in hinged)}), and PnP on the other views' points does not put them where "
+            "the reconstruction does: one weak pair's relative pose can be tens of degrees off while its matches "
+            "still fit it. Likely causes: too little overlap between these views and their neighbours, or too "
+            "few matches (noise, blur, little texture)"),
+            "add views between the existing ones, or pass --allow-partial to register the others"))
     if orphans:
         cut = set(orphans)
         links = [c for c in bad if (c.i in cut) != (c.j in cut)]  # the contradicted pairs to the main group

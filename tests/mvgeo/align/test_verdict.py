@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 
 from mvgeo.align.bundle import BundleResult
-from mvgeo.align.checks import PairCheck
+from mvgeo.align.checks import PairCheck, views_cut_off, views_hinged
 from mvgeo.align.config import AlignConfig
 from mvgeo.align.verdict import (
     REASON_KINDS,
     Reason,
     Verdict,
     centre_std_ratio,
+    contradicting,
     judge_pairs,
     loose_views,
     mostly_unexplained,
@@ -35,9 +36,9 @@ def _result(centres, centre_std, focal_log_std=0.01):
                         centre_std=np.asarray(centre_std, float))
 
 
-def _judge(checks, bad, *, ba=None, focal_determined=True, why="", config=None, names=NAMES):
+def _judge(checks, bad, *, ba=None, focal_determined=True, why="", config=None, names=NAMES, located=()):
     return verdict(checks, bad, names, ba=ba, focal_determined=focal_determined, focal_undetermined_why=why,
-                   config=config or AlignConfig())
+                   config=config or AlignConfig(), located_views=located)
 
 
 # A ring of five consistent pairs with many matches (views 0-4), and view 5 tied to it by two pairs.
@@ -69,8 +70,9 @@ def test_coincident_centres_count_as_undetermined():
 
 
 def test_an_accepted_solution_has_no_reason():
+    # view 5 rests on its one pair (0, 5): accepted where PnP on the others' points confirms it
     v = _judge(RING + [PairCheck(0, 5, 40, 0.9, 1.0)], [],
-               ba=_result([[k, 0, 0] for k in range(6)], [0.01] * 6))
+               ba=_result([[k, 0, 0] for k in range(6)], [0.01] * 6), located=(5,))
     assert v.ok and v.reasons == ()
     assert Verdict().ok
 
@@ -107,16 +109,52 @@ def test_a_view_the_main_groups_points_locate_is_not_refused():
     assert [r.views for r in other.reasons] == [("view_005.png",)]
 
 
-def test_one_consistent_pair_is_enough():
+def test_one_consistent_pair_is_enough_where_pnp_confirms_the_view():
     wrong = [PairCheck(4, 5, 30, 0.23, 72.0)]
-    assert _judge(RING + [PairCheck(0, 5, 40, 0.9, 1.0)] + wrong, wrong).ok
+    assert _judge(RING + [PairCheck(0, 5, 40, 0.9, 1.0)] + wrong, wrong, located=(5,)).ok
+
+
+def test_a_view_held_by_one_pair_is_unsupported_unless_pnp_confirms_it():
+    """One weak pair's relative pose can be tens of degrees off while its matches fit it (DTU scan24 at sigma
+    50: a view 17.5 deg off, its other pair contradicted): nothing but PnP on the other views' points checks it."""
+    one = RING + [PairCheck(0, 5, 40, 0.9, 1.0)]
+    assert views_hinged(one, [], 6) == [5]
+    v = _judge(one, [])
+    assert [(r.kind, r.views) for r in v.reasons] == [("views_unsupported", ("view_005.png",))]
+    assert "rest on a single verified image pair" in v.reasons[0].message and "--allow-partial" in v.reasons[0].fix
+    assert _judge(one, [], located=(5,)).ok
+    assert _judge(one, [], config=AlignConfig(reject_unsupported_views=False)).ok
+    # two explained pairs hold it; a contradicted second pair does not
+    assert views_hinged(one + [PairCheck(4, 5, 40, 0.9, 1.0)], [], 6) == []
+    wrong = [PairCheck(4, 5, 30, 0.23, 72.0)]
+    assert views_hinged(one + wrong, wrong, 6) == [5]
+    # a view cut off by contradicted pairs is not also "hinged"; two views held by their one pair are nothing to
+    # locate on
+    cut = [PairCheck(0, 5, 40, 0.2, 30.0)]
+    assert views_hinged(RING + cut, cut, 6) == [] and views_cut_off(RING + cut, cut, 6) == [5]
+    assert views_hinged([PairCheck(0, 1, 40, 0.9, 1.0), PairCheck(1, 2, 40, 0.2, 30.0)],
+                        [PairCheck(1, 2, 40, 0.2, 30.0)], 3) == []
+
+
+def test_pairs_of_views_pnp_confirms_do_not_count_against_the_whole():
+    """The chained start's right solution on DTU scan24 at sigma 50 failed the rotation check on weak pairs of two
+    views PnP put where it does: those pairs are the ambiguous evidence, not the solution."""
+    weak = [PairCheck(0, 5, 400, 0.95, 19.0), PairCheck(4, 5, 400, 0.97, 23.0), PairCheck(1, 3, 30, 0.97, 12.0)]
+    checks = RING + weak
+    assert mostly_unexplained(checks, weak, 0.1)  # 830 of 5830 matches
+    assert [r.kind for r in _judge(checks, weak).reasons] == ["pairs_contradicted", "views_unsupported"]
+    assert contradicting(weak, (5,)) == [weak[2]]
+    assert _judge(checks, weak, located=(5,)).ok  # 30 of 5830 left against it
+    heavy = [PairCheck(1, 3, 2000, 0.3, 12.0)]
+    assert [r.kind for r in _judge(checks[:-1] + heavy, weak[:2] + heavy, located=(5,)).reasons] == [
+        "pairs_contradicted"]
 
 
 def test_pairs_contradicted_names_the_views_of_the_failing_pairs():
     bad = [PairCheck(1, 2, 1000, 0.2, 40.0), PairCheck(3, 4, 1000, 0.3, 1.0)]
     checks = [c for c in RING if (c.i, c.j) not in {(1, 2), (3, 4)}] + bad
     assert mostly_unexplained(checks, bad, 0.1)
-    v = _judge(checks, bad)
+    v = _judge(checks, bad, located=(1, 4))  # {0, 1, 4}: views 1 and 4 rest on one pair each, PnP confirms them
     # every view keeps a consistent pair, but {2, 3} is linked to {0, 1, 4} only by the two contradicted pairs
     assert [r.kind for r in v.reasons] == ["pairs_contradicted", "views_unsupported"]
     assert v.reasons[1].views == ("view_002.png", "view_003.png")
@@ -125,15 +163,16 @@ def test_pairs_contradicted_names_the_views_of_the_failing_pairs():
     assert "inconsistent with 2 of 5 verified image pairs (2000 of 5000 matches unexplained" in r.message
     assert "(view_001.png, view_002.png): 20% rotation 40 deg off its matches" in r.message
     assert "no image pair determines the focal length" not in r.message
-    assert "no image pair determines the focal length" in _judge(checks, bad, focal_determined=False).reasons[0].message
+    assert "no image pair determines the focal length" in _judge(checks, bad, focal_determined=False,
+                                                                  located=(1, 4)).reasons[0].message
     assert "bundle adjustment is off" in r.message and r.fix == "enable the bundle adjustment (--ba)"  # none given
-    assert [r.kind for r in _judge(checks, bad, config=AlignConfig(max_unexplained_fraction=0.5)).reasons] == [
-        "views_unsupported"]
+    assert [r.kind for r in _judge(checks, bad, config=AlignConfig(max_unexplained_fraction=0.5),
+                                   located=(1, 4)).reasons] == ["views_unsupported"]
 
 
 def test_positions_undetermined_names_the_loose_views():
     ba = _result([[k, 0, 0] for k in range(6)], [0.01, 0.01, 0.01, 0.01, 0.01, 4.0])
-    v = _judge(RING + [PairCheck(0, 5, 40, 0.9, 1.0)], [], ba=ba)
+    v = _judge(RING + [PairCheck(0, 5, 40, 0.9, 1.0)], [], ba=ba, located=(5,))
     assert [(r.kind, r.views) for r in v.reasons] == [("positions_undetermined", ("view_005.png",))]
     assert "view_005.png (4)" in v.reasons[0].message and "1 of 6 views" in v.reasons[0].message
     assert _judge(RING, [], ba=ba, config=AlignConfig(max_centre_std_ratio=0.0)).ok
