@@ -19,51 +19,29 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from bench_real import scene_scale
 
 import eval.cli  # noqa: F401  first: the thread policy and cv2 before pycolmap
+from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _rot(T) -> np.ndarray:
-    return np.asarray(T.matrix() if hasattr(T, "matrix") else T)[:3, :3]
-
-
 def _errors(model_dir: Path, reference: Path) -> str:
+    """`compare_poses` on the registered views, and the worst view (the median of its pairs' errors)."""
     est = read_sparse_model(model_dir).cam_from_world_by_name()
-    ref = read_sparse_model(reference).cam_from_world_by_name()
-    names = sorted(n for n in est if n in ref)
-    n = len(names)
+    ref = {n: T for n, T in read_sparse_model(reference).cam_from_world_by_name().items() if n in est}
+    m = compare_poses(est, ref)
+    n = len(m.names)
     err = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i + 1, n):
-            d = (_rot(est[names[j]]) @ _rot(est[names[i]]).T) @ (_rot(ref[names[j]]) @ _rot(ref[names[i]]).T).T
-            err[i, j] = err[j, i] = np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1)))
+    err[np.triu_indices(n, 1)] = m.rotation_deg  # `relative_pose_errors`' pair order
+    err += err.T
     per_view = [float(np.median(np.delete(err[i], i))) for i in range(n)]
     worst = int(np.argmax(per_view))
-    iu = np.triu_indices(n, 1)
-    C_e = np.array([-_rot(est[m]).T @ np.asarray(est[m].matrix() if hasattr(est[m], "matrix") else est[m])[:3, 3]
-                    for m in names])
-    C_r = np.array([-_rot(ref[m]).T @ np.asarray(ref[m].matrix() if hasattr(ref[m], "matrix") else ref[m])[:3, 3]
-                    for m in names])
-    ate = _ate_over_scale(C_e, C_r)
-    return (f"{n} views, {np.median(err[iu]):.2f} deg, worst view {per_view[worst]:.1f} deg ({names[worst]}), "
-            f"ATE/scale {ate:.4f}")
-
-
-def _ate_over_scale(C_e: np.ndarray, C_r: np.ndarray) -> float:
-    """RMSE of the centres after the least-squares similarity (Umeyama), over the reference's RMS spread."""
-    me, mr = C_e.mean(0), C_r.mean(0)
-    E, R_ = C_e - me, C_r - mr
-    U, S, Vt = np.linalg.svd(R_.T @ E)
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    Rm = U @ D @ Vt
-    s = np.trace(np.diag(S) @ D) / (E ** 2).sum()
-    aligned = s * E @ Rm.T + mr
-    scale = np.sqrt((R_ ** 2).sum(1).mean())
-    return float(np.sqrt(((aligned - C_r) ** 2).sum(1).mean()) / scale)
+    ate = m.ate.rmse / scene_scale(ref) if m.ate is not None else float("nan")
+    return (f"{n} views, {m.median_rotation_deg:.2f} deg, worst view {per_view[worst]:.1f} deg "
+            f"({m.names[worst]}), ATE/scale {ate:.4f}")
 
 
 def _align(checkout: Path, images: Path, out: Path, reference: Path) -> str:
