@@ -11,6 +11,12 @@ the one before it (`chain_after`), so a shared stage is computed once, by the fi
 finds it in the stage cache; chains run in parallel. The output lock of each run folder
 (`eval.pipeline.lock`) stays the safety net: a second writer is refused, never interleaved.
 
+Order: given each unit's expected cost, the units are submitted longest remaining chain first
+(`submission_order`: a unit's cost plus the costliest chain of units that wait for it), so the long runs
+start first and the short ones fill in at the end, instead of a long run starting last beside an idle
+worker. Ray starts ready tasks of one kind in the order they were submitted; the results still come
+back in the input order.
+
 Threads: each task gets `cpus_per_task` CPUs from Ray (1 by default) and runs with as many torch,
 compositor, BLAS and OpenCV threads (`mvgeo.common.threads`), so N tasks on N CPUs do not
 oversubscribe the cores; `ClusterSettings.task_threads` overrides the count. The denoiser runs every
@@ -57,7 +63,7 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.progress import progress_bar
 
 __all__ = ["PROJECT_PACKAGES", "ClusterSettings", "RayExecutor", "chain_after", "check_ray_address", "project_code",
-           "project_roots", "ray_cluster", "warm_slots", "worker_env"]
+           "project_roots", "ray_cluster", "submission_order", "warm_slots", "worker_env"]
 
 _log = logging.getLogger(__name__)
 
@@ -167,6 +173,35 @@ def chain_after(keys: Sequence[Sequence[Hashable]]) -> list[tuple[int, ...]]:
         for x in k:
             last[x] = i
     return after
+
+
+def submission_order(after: Sequence[Sequence[int]], cost: Sequence[float]) -> list[int]:
+    """The units in the order to submit them: highest level first, the list-scheduling rule for a task
+    graph on a few workers.
+
+    A unit's level is its cost plus the largest level among the units that wait for it (the remaining
+    chain it starts). Units are taken by decreasing level, ties in the serial order. With positive costs a
+    unit's level exceeds every waiting unit's, so each unit comes after the units it waits for.
+
+    Args:
+        after: for each unit, the indices of earlier units it waits for (`chain_after`).
+        cost: for each unit, its expected cost (> 0, any unit, e.g. seconds).
+
+    Returns:
+        A permutation of `range(len(after))`.
+    """
+    n = len(after)
+    if len(cost) != n:
+        raise ValueError(f"cost has {len(cost)} entries for {n} units")
+    if any(not (c > 0) for c in cost):  # also refuses NaN
+        raise ValueError(f"costs must be positive, got {list(cost)}")
+    level = [float(c) for c in cost]
+    for i in range(n - 1, -1, -1):  # the units waiting for i come after it in the serial order
+        for d in after[i]:
+            if not 0 <= d < i:
+                raise ValueError(f"unit {i} waits for {d}: only earlier units are allowed (the serial order)")
+            level[d] = max(level[d], float(cost[d]) + level[i])
+    return sorted(range(n), key=lambda i: (-level[i], i))
 
 
 def _task_threads() -> int:
@@ -346,13 +381,16 @@ class RayExecutor:
         return list(self._warming)
 
     def run(self, fn: Callable[[Any], Any], items: Sequence[Any], *, after: Sequence[Sequence[int]] | None = None,
-            desc: str = "tasks", on_done: Callable[[Mapping[int, Any]], None] | None = None) -> list[Any]:
+            cost: Sequence[float] | None = None, desc: str = "tasks",
+            on_done: Callable[[Mapping[int, Any]], None] | None = None) -> list[Any]:
         """`[fn(item) for item in items]`, each call a Ray task, run in parallel as the graph allows.
 
         Args:
             fn: a picklable function (module level) of one item.
             items: the units, in the serial order.
             after: for each unit, the indices of earlier units it must wait for (default none).
+            cost: for each unit, its expected cost (> 0): submitted in `submission_order`. None: in the
+                input order.
             desc: the progress bar's label (a bar over finished tasks; `DGS_NO_PROGRESS=1` hides it).
             on_done: called after each finished task with index -> result of every finished task.
 
@@ -370,13 +408,14 @@ class RayExecutor:
         for i, deps in enumerate(after):
             if any(not 0 <= d < i for d in deps):
                 raise ValueError(f"unit {i} waits for {deps}: only earlier units are allowed (the serial order)")
+        order = list(range(len(items))) if cost is None else submission_order(after, cost)
         remote = ray.remote(_run_unit).options(num_cpus=self.settings.cpus_per_task,
                                                num_gpus=self.settings.gpus_per_task, max_retries=0)
         fn_ref = ray.put(fn)
         code = project_code()
-        refs = []
-        for item, deps in zip(items, after, strict=True):
-            refs.append(remote.remote(fn_ref, item, self.settings.task_threads, code, *(refs[d] for d in deps)))
+        refs: list[Any] = [None] * len(items)
+        for i in order:  # a unit comes after the units it waits for: their refs exist
+            refs[i] = remote.remote(fn_ref, items[i], self.settings.task_threads, code, *(refs[d] for d in after[i]))
         index = {ref: i for i, ref in enumerate(refs)}
         done: dict[int, Any] = {}
         pending = list(refs)

@@ -73,6 +73,7 @@ from eval.pipeline.stage import (
     commit_written,
 )
 from eval.pipeline.stage_settings import check_settings, round_settings
+from eval.pipeline.stages import MODEL_FILE
 from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import write_views
 from eval.results import RunScores, check_results_owned
@@ -91,8 +92,8 @@ if TYPE_CHECKING:
 
 __all__ = ["FAILED_RUN_ERRORS", "HELDOUT_DIR", "EvalConfig", "EvalTask", "base_pipeline_config",
            "check_eval_outputs", "copy_train_inputs", "evaluate_dataset", "heldout_record",
-           "run_task", "save_heldout_references", "save_heldout_renders", "scene_dataset", "score_reconstruction",
-           "share_keys"]
+           "expected_costs", "run_task", "save_heldout_references", "save_heldout_renders", "scene_dataset",
+           "score_reconstruction", "share_keys"]
 
 _log = logging.getLogger(__name__)
 
@@ -515,6 +516,42 @@ def share_keys(task: EvalTask) -> tuple[tuple[str, int, str], ...]:
     return tuple((task.scene, task.seed, f) for f in task.method.runs_after(task.config.denoiser))
 
 
+#: The parts of a run, in relative units, for the order the runs start in on a cluster
+#: (`eval.distributed.submission_order`). Measured on DTU scan24 at sigma 25 (docs/bench/pipeline.md,
+#: `runs/eval_s25_rule2*`): a round's alignment, splat and held-out scoring about 300 s (`instantsplat`,
+#: 294-297 s), a learned denoiser about 450 s more (`product`, 746-752 s), a ground-truth-pose variant's own
+#: splat and scoring about 350 s (`product@gt_poses` 1075-1087 s, its product's included), the scoring
+#: alone a few seconds. Only their ratios matter.
+ROUND_COST, LEARNED_DENOISER_COST, GT_SPLAT_COST, SCORING_COST = 1.0, 1.5, 1.2, 0.02
+
+
+def _method_cost(method: EvalMethod, task: EvalTask, rounds_done: dict[tuple[str, int, str], int]) -> float:
+    """The work of running `method` in `task`'s seed folder that `rounds_done` (folder key -> rounds an earlier
+    run completed there) does not hold already; records what it adds."""
+    denoiser = task.config.denoiser
+    if method.gt_pose_variant_of is not None:  # its method and its points' method run first (`reconstruct`)
+        before = [m for m in (method.gt_pose_variant_of, method.gt_pose_points_from) if m is not None]
+        return GT_SPLAT_COST + sum(_method_cost(m, task, rounds_done) for m in before)
+    if method.ground_truth_poses:
+        return GT_SPLAT_COST
+    rounds = method.pipeline_config(task.base, denoiser).rounds
+    learned = MODEL_FILE in method.stages(task.dataset).denoise_outputs
+    key = (task.scene, task.seed, method.folder(denoiser))
+    have = rounds_done.get(key, 0)
+    if method.shares_round1_with is not None:  # round 1 is linked in from that family's folder
+        have = max(have, min(1, rounds_done.get((task.scene, task.seed, method.shares_round1_with), 0)))
+    rounds_done[key] = max(have, rounds)
+    return max(rounds - have, 0) * (ROUND_COST + (LEARNED_DENOISER_COST if learned else 0.0))
+
+
+def expected_costs(tasks: Sequence[EvalTask]) -> list[float]:
+    """Each task's expected cost, in `ROUND_COST` units: the rounds, denoiser and ground-truth-pose splat it
+    runs that no earlier task (in the serial order) has run for it, plus its scoring (so every cost is
+    positive: `eval.distributed.submission_order`)."""
+    rounds_done: dict[tuple[str, int, str], int] = {}
+    return [SCORING_COST + _method_cost(t.method, t, rounds_done) for t in tasks]
+
+
 def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, scene: str,
                      on_row: Callable[[list[RunScores]], None] | None = None,
                      executor: RayExecutor | None = None) -> list[RunScores]:
@@ -524,8 +561,9 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     evaluation keeps what it measured).
 
     `executor` (`eval.distributed.ray_cluster`): the runs are Ray tasks, those of one folder
-    (`share_keys`) in order, the others in parallel; the rows come back in the serial order (seeds,
-    then methods), and `on_row` gets the finished ones in that order. None: one after another here.
+    (`share_keys`) in order, the others in parallel, the longest chains of runs started first
+    (`expected_costs`); the rows come back in the serial order (seeds, then methods), and `on_row` gets
+    the finished ones in that order. None: one after another here.
 
     Before any run, every file the evaluation (and `eval.results.write_results` into `out`) may replace is
     checked to be one it wrote (`check_eval_outputs`).
@@ -561,7 +599,7 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
                 on_row([done[i] for i in sorted(done)])
 
         return executor.run(run_task, tasks, after=chain_after([share_keys(t) for t in tasks]),
-                            desc=f"eval {scene}", on_done=finished)
+                            cost=expected_costs(tasks), desc=f"eval {scene}", on_done=finished)
     rows: list[RunScores] = []
     for task in tasks:
         _log.info("eval %s: %s, seed %d", scene, task.method.name, task.seed)

@@ -27,8 +27,16 @@ import eval.evaluate
 import eval.methods
 from eval.cli import main
 from eval.cost import CostConfig, run_cost_sweep
-from eval.distributed import ClusterSettings, RayExecutor, chain_after, check_ray_address, ray_cluster, warm_slots
-from eval.evaluate import EvalConfig, evaluate_dataset, share_keys
+from eval.distributed import (
+    ClusterSettings,
+    RayExecutor,
+    chain_after,
+    check_ray_address,
+    ray_cluster,
+    submission_order,
+    warm_slots,
+)
+from eval.evaluate import EvalConfig, evaluate_dataset, expected_costs, share_keys
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.common.errors import InputError
@@ -133,6 +141,85 @@ def test_share_keys_chain_a_family_the_ablations_and_the_gt_pose_variants(tmp_pa
     assert after == [(), (), (1,), (2,), (), (3, 4), (), (), (7,), (8,), (), (9, 10)]
 
 
+def _levels_by_paths(after, cost):
+    """Reference: each unit's level as the costliest path of waiting units from it, every path enumerated."""
+    waiting = collections.defaultdict(list)
+    for i, deps in enumerate(after):
+        for d in deps:
+            waiting[d].append(i)
+
+    def longest(i):
+        return cost[i] + max((longest(j) for j in waiting[i]), default=0.0)
+
+    return [longest(i) for i in range(len(after))]
+
+
+def _makespan(order, after, cost, workers):
+    """List scheduling by hand: `workers` take the first unit of `order` whose waits are over, whenever free."""
+    end, free, left = {}, [0.0] * workers, list(order)
+    while left:
+        w = min(range(workers), key=lambda k: free[k])
+        ready = [i for i in left if all(d in end for d in after[i])]
+        i = ready[0]
+        start = max([free[w], *(end[d] for d in after[i])])
+        end[i] = free[w] = start + cost[i]
+        left.remove(i)
+    return max(end.values())
+
+
+def test_submission_order_takes_the_longest_remaining_chain_first():
+    # two short and two long independent runs in the serial order (oracle, n2v, oracle, n2v): the long
+    # ones first, so on two workers they run side by side and the short ones fill in after them
+    after, cost = [(), (), (), ()], [1.0, 2.5, 1.0, 2.5]
+    order = submission_order(after, cost)
+    assert order == [1, 3, 0, 2]
+    assert _makespan(order, after, cost, 2) == 3.5 < _makespan(range(4), after, cost, 2) == 4.5
+    # a chain's head carries the chain: a (1) then its variant (1.2) outranks a lone run of 2
+    assert submission_order([(), (0,), ()], [1.0, 1.2, 2.0]) == [0, 2, 1]
+    assert submission_order([], []) == []
+    with pytest.raises(ValueError, match="positive"):
+        submission_order([()], [0.0])
+    with pytest.raises(ValueError, match="positive"):
+        submission_order([()], [math.nan])
+    with pytest.raises(ValueError, match="earlier units"):
+        submission_order([(1,), ()], [1.0, 1.0])
+
+
+def test_submission_order_matches_the_levels_of_every_path():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        n = int(rng.integers(1, 9))
+        after = [tuple(sorted({int(d) for d in rng.integers(0, i, size=rng.integers(0, 3))})) if i else ()
+                 for i in range(n)]
+        cost = [float(c) for c in rng.uniform(0.1, 3.0, n)]
+        order = submission_order(after, cost)
+        assert sorted(order) == list(range(n))
+        position = {u: k for k, u in enumerate(order)}
+        assert all(position[d] < position[i] for i, deps in enumerate(after) for d in deps)
+        levels = _levels_by_paths(after, cost)
+        assert [levels[u] for u in order] == sorted(levels, reverse=True)
+
+
+def test_expected_costs_count_what_an_earlier_run_has_not_done(tmp_path, dataset):
+    cfg = EvalConfig(methods=("instantsplat",), seeds=1, preset="fast")
+    names = ("instantsplat", "n2v_round1", "denoise_gs", "ablate_no_selection", "oracle_clean", "n2v_round1@gt_poses",
+             "product@gt_poses", "product")
+    tasks = [eval.evaluate.EvalTask("s", eval.methods.METHODS[m], 0, dataset, preset("fast"), tmp_path, tmp_path, cfg)
+             for m in names]
+    r, d, g, s = (eval.evaluate.ROUND_COST, eval.evaluate.LEARNED_DENOISER_COST, eval.evaluate.GT_SPLAT_COST,
+                  eval.evaluate.SCORING_COST)
+    assert expected_costs(tasks) == pytest.approx([
+        s + r,                  # instantsplat: one round, no denoiser to train
+        s + r + d,              # n2v_round1: one round with the denoiser
+        s + r + d,              # denoise_gs: its second round in the same folder
+        s + r + d,              # ablate_no_selection: round 2 only, round 1 linked in
+        s + r,                  # oracle_clean
+        s + g,                  # n2v_round1@gt_poses: its method and its points' ran before it
+        s + g + 2 * (r + d),    # product@gt_poses: runs the product first (`fast`: two rounds)
+        s,                      # product: done by the variant before it
+    ])
+
+
 def rendezvous(item):
     """(name, start, end, met): "wait" waits (up to 120 s) for the file `flag` that "signal" writes, so
     it ends only if both ran at once; "fail" raises; anything else returns at once. "signal" reports the
@@ -166,6 +253,26 @@ def test_executor_keeps_the_order_and_the_graph(cluster, tmp_path):
     assert [len(d) for d in seen] == [1, 2, 3] and seen[-1] == [0, 1, 2]  # after each finished task
     with pytest.raises(ValueError, match="earlier units"):
         ex.run(rendezvous, items, after=[(1,), (), ()])
+
+
+def started(item):
+    """(name, start time) after sleeping `item`'s seconds."""
+    name, seconds = item
+    start = time.time()
+    time.sleep(seconds)
+    return name, start
+
+
+def test_executor_starts_the_costliest_units_first(cluster):
+    ex, _ = cluster
+    items = [("short0", 1.0), ("short1", 1.0), ("long0", 1.0), ("long1", 1.0)]
+    res = ex.run(started, items, cost=[1.0, 1.0, 5.0, 5.0])
+    assert [r[0] for r in res] == ["short0", "short1", "long0", "long1"]  # the input order
+    start = dict(res)
+    # two CPUs: the two long ones start together, the short ones only when a CPU is free (a second later)
+    assert max(start["long0"], start["long1"]) + 0.5 < min(start["short0"], start["short1"])
+    with pytest.raises(ValueError, match="cost has 1 entries"):
+        ex.run(started, items, cost=[1.0])
 
 
 def thread_counts(item):
