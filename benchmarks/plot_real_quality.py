@@ -1,6 +1,6 @@
 """One figure of the held-out quality on real photos: per set, the noisy-photo splat (b), the product, the
-product with the true cameras and the clean photos with the true cameras (the ceiling of a perfect denoiser
-through the same front end), PSNR and LPIPS, mean and sample std over seeds.
+product with the true cameras, the clean photos with their own cameras (a perfect denoiser through the same
+front end) and with the true cameras, PSNR and LPIPS, mean and sample std over seeds.
 
 Each set is given as `LABEL=RESULTS[,RESULTS...]`: `results.json` files of `denoise-gs eval` runs on that set,
 whose rows are pooled (one evaluation may hold the product, another the baselines); a method missing from a
@@ -20,8 +20,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 METHODS = {"instantsplat": "(b) splat of the noisy photos", "product": "product (own cameras)",
-           "product@gt_poses": "product, true cameras", "oracle_clean@gt_poses": "clean photos, true cameras"}
-COLOURS = {"instantsplat": "#9e9e9e", "product": "#1f77b4", "product@gt_poses": "#7fb2e5",
+           "product@gt_poses": "product, true cameras", "oracle_clean": "clean photos (own cameras)",
+           "oracle_clean@gt_poses": "clean photos, true cameras"}
+COLOURS = {"instantsplat": "#9e9e9e", "product": "#1f77b4", "product@gt_poses": "#7fb2e5", "oracle_clean": "#98df8a",
            "oracle_clean@gt_poses": "#2ca02c"}
 
 
