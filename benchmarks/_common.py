@@ -1,16 +1,35 @@
-"""Helpers for benchmark scripts: timing, peak memory, and writing a fragment."""
+"""Helpers for benchmark scripts: timing, peak memory, writing a fragment, a worktree of a base commit."""
 
 from __future__ import annotations
 
+import contextlib
 import resource
+import shutil
+import subprocess
 import sys
+import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+
+@contextlib.contextmanager
+def base_worktree(commit: str, prefix: str = "base_") -> Iterator[Path]:
+    """A temporary detached `git worktree` of `commit` (the code to compare this checkout with), inside a
+    temporary folder that the caller may use for its own files too; both removed at the end of the block.
+    Yields the worktree's path (its parent is the temporary folder)."""
+    work = Path(tempfile.mkdtemp(prefix=prefix))
+    tree = work / "base"
+    subprocess.run(["git", "worktree", "add", "--detach", "-q", str(tree), commit], cwd=ROOT, check=True)
+    try:
+        yield tree
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=ROOT, check=False)
+        shutil.rmtree(work, ignore_errors=True)
 
 
 def time_call(fn: Callable[[], object], *, repeat: int = 3, warmup: int = 1) -> float:

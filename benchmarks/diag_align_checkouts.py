@@ -15,17 +15,15 @@ import json
 import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
+from _common import ROOT, base_worktree
 from bench_real import scene_scale
 
 import eval.cli  # noqa: F401  first: the thread policy and cv2 before pycolmap
 from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _errors(model_dir: Path, reference: Path) -> str:
@@ -54,10 +52,8 @@ def _align(checkout: Path, images: Path, out: Path, reference: Path) -> str:
 
 
 def main(base: str, datasets: list[Path]) -> int:
-    work = Path(tempfile.mkdtemp(prefix="align_ab_"))
-    base_tree = work / "base"
-    subprocess.run(["git", "worktree", "add", "--detach", "-q", str(base_tree), base], cwd=ROOT, check=True)
-    try:
+    with base_worktree(base, prefix="align_ab_") as base_tree:
+        work = base_tree.parent
         print(f"| set | base `{base}` | this checkout |")
         print("|---|---|---|")
         for k, ds in enumerate(datasets):
@@ -72,9 +68,6 @@ def main(base: str, datasets: list[Path]) -> int:
                 order.reverse()
             row = {who: _align(tree, images, work / f"out_{who}_{k}", ds / "sparse" / "0") for who, tree in order}
             print(f"| {ds.name} | {row['base']} | {row['this']} |", flush=True)
-    finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(base_tree)], cwd=ROOT, check=False)
-        shutil.rmtree(work, ignore_errors=True)
     return 0
 
 

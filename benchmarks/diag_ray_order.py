@@ -17,15 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT  # noqa: E402
+from _common import ROOT, base_worktree  # noqa: E402
 
 SWEEP = ["eval", "llff_like", "--preset", "fast", "--splat-iters", "300", "--size", "128x96", "--scene-views", "8",
          "--seeds", "2", "--methods", "instantsplat", "n2v_round1"]
@@ -51,10 +49,8 @@ def main() -> int:
     ap.add_argument("base", help="the commit to compare with (e.g. the one before the change)")
     ap.add_argument("--repeats", type=int, default=2)
     args = ap.parse_args()
-    work = Path(tempfile.mkdtemp(prefix="ray_order_"))
-    base_tree = work / "base"
-    subprocess.run(["git", "worktree", "add", "--detach", "-q", str(base_tree), args.base], cwd=ROOT, check=True)
-    try:
+    with base_worktree(args.base, prefix="ray_order_") as base_tree:
+        work = base_tree.parent
         serial_s, serial_rows = _eval(ROOT, work / "serial", [])
         print(f"serial (this checkout): {serial_s:.1f} s, load {os.getloadavg()[0]:.1f}", flush=True)
         walls: dict[str, list[float]] = {"base": [], "this": []}
@@ -68,9 +64,6 @@ def main() -> int:
         for who in walls:
             print(f"{who}: {' / '.join(f'{s:.1f}' for s in walls[who])} s; "
                   f"{' / '.join(f'{s / serial_s:.2f}x' for s in walls[who])}")
-    finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(base_tree)], cwd=ROOT, check=False)
-        shutil.rmtree(work, ignore_errors=True)
     return 0
 
 
