@@ -318,8 +318,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "estimates anew each round (the paper's loop)")
     run.add_argument("--align-photos", choices=ALIGN_PHOTOS, default=None,
                      help="round 1's alignment input: the noisy photos, and the denoised ones where those are "
-                          "refused (noisy_first), or the denoised ones (the paper's). Default: the preset's "
-                          "(noisy_first with default and best, denoised with fast)")
+                          "refused (noisy_first); both, keeping the alignment whose camera centres are better "
+                          "determined (better_of); or the denoised ones (the paper's). Default: the preset's "
+                          "(better_of with default and best, denoised with fast)")
     run.add_argument("--intrinsics", type=Path, default=None, metavar="FILE",
                      help="the photos' calibration at their size: a COLMAP cameras.txt with one camera, or an "
                           "mrcal .cameramodel, without lens distortion (undistort the photos first). Every "

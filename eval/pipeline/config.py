@@ -23,9 +23,9 @@ DenoiseMethod = Literal["n2v", "neighbor2neighbor", "r2r", "auto"]
 DENOISE_METHODS: tuple[str, ...] = ("n2v", "neighbor2neighbor", "r2r", "auto")
 ReuseIntrinsics = Literal["auto", "always", "never"]
 ReuseGeometry = Literal["auto", "never"]
-AlignPhotos = Literal["denoised", "noisy_first"]
+AlignPhotos = Literal["denoised", "noisy_first", "better_of"]
 #: The values of `AlignSettings.photos`.
-ALIGN_PHOTOS: tuple[str, ...] = ("denoised", "noisy_first")
+ALIGN_PHOTOS: tuple[str, ...] = ("denoised", "noisy_first", "better_of")
 
 
 @dataclass(frozen=True)
@@ -107,8 +107,10 @@ class AlignSettings:
             aligned, until views cut off by contradicted pairs were located by PnP (`mvgeo.align.locate`):
             they align at 0.91 deg now (docs/bench/pipeline.md). After the noisy photos, the denoised ones
             are matched with the noisy photos' detector (`eval.pipeline.stages.denoised_photos_config`): R2R's photos at
-            sigma 50 align so (1.1 deg) and were refused with the clean-photo one. Rounds >= 2 align the
-            round's denoised photos.
+            sigma 50 align so (1.1 deg) and were refused with the clean-photo one. "better_of" aligns both
+            (the denoised ones with the noisy photos' detector) and keeps the alignment whose camera centres
+            the bundle adjustment determines better (`eval.pipeline.stages.better_determined`; either one
+            where the other is refused). Rounds >= 2 align the round's denoised photos.
         intrinsics: the photos' calibration at their input size (a COLMAP cameras.txt with one camera, or
             an mrcal .cameramodel), without lens distortion (the splat trains on the photos as they are);
             None: estimated. Every round's alignment uses it instead of estimating the focal length
@@ -219,7 +221,7 @@ class PipelineConfig:
                               expected="'auto', 'always' or 'never'")
         if self.align.photos not in ALIGN_PHOTOS:
             raise ConfigError(f"unknown value {self.align.photos!r}", key="align.photos",
-                              expected="'denoised' or 'noisy_first'")
+                              expected="'denoised', 'noisy_first' or 'better_of'")
         if self.align.reuse_geometry not in ("auto", "never"):
             raise ConfigError(f"unknown value {self.align.reuse_geometry!r}", key="align.reuse_geometry",
                               expected="'auto' or 'never'")
@@ -282,7 +284,7 @@ class PipelineConfig:
 #: and stop after a round whose refine kept the previous network (`stop_when_unrefined`).
 _ONE_ROUND = PipelineConfig(rounds=1, stop_when_unrefined=True,
                             denoise=DenoiseSettings(method="auto", n2v_steps=2000, wiener=True, grouped_wiener=True),
-                            align=AlignSettings(photos="noisy_first"))
+                            align=AlignSettings(photos="better_of"))
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         fuse_noisy_splat=True, stop_when_unrefined=True,

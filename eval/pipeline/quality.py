@@ -62,6 +62,7 @@ class AlignQuality:
 
     Attributes:
         photos: which photos were aligned ("noisy" or "denoised"; None where not recorded).
+        photos_reason: why those, where round 1 aligned both (`AlignSettings.photos` "better_of"); else None.
         focal_source: where the focal length came from, in words.
         focal_px: median focal length over the views (alignment pixels); focal_log_std: its standard
             deviation in log units from the bundle adjustment (0.01 = 1 %), NaN without one.
@@ -90,6 +91,7 @@ class AlignQuality:
     start: str
     n_candidates: int
     least_constrained: list[tuple[str, float]] = field(default_factory=list)
+    photos_reason: str | None = None
 
 
 @dataclass(frozen=True)
@@ -190,6 +192,7 @@ def _align_quality(stats: AlignStats, summary: Mapping) -> AlignQuality:
         n_registered=stats.n_registered, n_images=stats.n_images,
         unregistered=[(u.name, u.reason) for u in stats.unregistered],
         photos=photos.get("aligned") if isinstance(photos, Mapping) else None,
+        photos_reason=photos.get("reason") if isinstance(photos, Mapping) else None,
         align_size_wh=list(stats.align_size_wh), focal_source=_focal_source(stats),
         focal_px=float(np.median(focals)) if focals else nan,
         focal_log_std=ba.focal_log_std if ba is not None and not stats.known_intrinsics else nan,
@@ -295,6 +298,8 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
             photos = f" ({a.photos} photos)" if a.photos else ""
             lines.append(f"- alignment{photos}: **{a.n_registered} of {a.n_images} views registered**" +
                          "".join(f"; `{n}` left out: {why}" for n, why in a.unregistered))
+            if a.photos_reason:
+                lines.append(f"  - of the noisy and the denoised photos' alignments, {a.photos_reason}")
             std = (f", log-std {_fmt(a.focal_log_std, '.3f')} ({_fmt(100 * a.focal_log_std, '.1f')} %)"
                    if math.isfinite(a.focal_log_std) else "")
             w, h = a.align_size_wh

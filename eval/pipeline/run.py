@@ -123,7 +123,7 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
     label = f"round{r}"
     # `working`: the prepare stage's sizes.json carries the input photos' EXIF focal (the align stage's prior).
     inputs, upstream = {"images": rd / "denoised", "working": working}, (images,)
-    if settings.align.noisy_first:  # round 1: the noisy working photos, aligned first (AlignSettings.photos)
+    if settings.align.reads_noisy:  # round 1: the noisy working photos are aligned too (AlignSettings.photos)
         inputs["noisy"] = working
     if previous is not None:  # the previous round's calibration (eval.pipeline.calibration)
         inputs["previous_align"] = previous.dir / "align"

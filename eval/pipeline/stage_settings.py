@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from eval.pipeline.config import (
+    AlignPhotos,
     AlignSettings,
     DenoiseSettings,
     PipelineConfig,
@@ -119,14 +120,19 @@ class AlignStageSettings:
         align: the alignment configuration, seed included.
         reuse_intrinsics, reuse_geometry: `AlignSettings`' rules for rounds >= 2; None in round 1,
             which has no previous round (so that changing them never re-runs round 1).
-        noisy_first: round 1 with `AlignSettings.photos` "noisy_first": align the noisy photos, and the
-            denoised ones where those are refused (False: the denoised photos, as the paper).
+        photos: which photos round 1 aligns (`AlignSettings.photos`); rounds >= 2 align their denoised
+            photos ("denoised").
     """
 
     align: AlignConfig
     reuse_intrinsics: ReuseIntrinsics | None = None
     reuse_geometry: ReuseGeometry | None = None
-    noisy_first: bool = False
+    photos: AlignPhotos = "denoised"
+
+    @property
+    def reads_noisy(self) -> bool:
+        """Whether the stage aligns the noisy photos too (it then needs them as an input)."""
+        return self.photos != "denoised"
 
 
 @dataclass(frozen=True)
@@ -283,7 +289,7 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
     align = AlignStageSettings(align_config(config.align, seed=seed("align")),
                                reuse_intrinsics=config.align.reuse_intrinsics if later else None,
                                reuse_geometry=config.align.reuse_geometry if later else None,
-                               noisy_first=not later and config.align.photos == "noisy_first")
+                               photos="denoised" if later else config.align.photos)
     fuse = FuseStageSettings(train_config(config.splat, seed=seed("fuse")), config.device,
                              reuse_noisy_splat=config.reuse_noisy_splat if later else None) \
         if config.fuse_noisy_splat else None

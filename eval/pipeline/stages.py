@@ -36,6 +36,7 @@ from eval.pipeline.calibration import (
     GEOMETRY_KEY,
     INHERITED_KEY,
     GeometryChoice,
+    centre_std_over_spacing,
     choose_geometry,
     focal_log_std,
     prefer_previous,
@@ -140,9 +141,9 @@ PHOTOS_KEY = "aligned_photos"
 
 def align(ctx: StageContext) -> Mapping[str, object]:
     """Pose-free alignment of the denoised images (`mvgeo.align`), written as `mvgeo align` writes it
-    (`ctx.settings`: `AlignStageSettings`). With `noisy_first` (round 1), the noisy photos
-    (`ctx.inputs["noisy"]`, under the denoised photos' names) are aligned first and the denoised ones only
-    where the noisy ones are refused."""
+    (`ctx.settings`: `AlignStageSettings`). In round 1 with `AlignSettings.photos` "noisy_first" or "better_of",
+    the noisy photos (`ctx.inputs["noisy"]`, under the denoised photos' names) are aligned too
+    (`_align_first_round`)."""
     from mvgeo.align import align_images, write_align_result
 
     s = ctx.settings
@@ -161,8 +162,8 @@ def align(ctx: StageContext) -> Mapping[str, object]:
             _log.info("no focal prior from the input photos' EXIF: %s", no_prior)
     previous = ctx.inputs.get("previous_align")
     if previous is None:
-        noisy = view_files(ctx.inputs["noisy"]) if s.noisy_first else None
-        res = _align_first_round(align_images, files, noisy, cfg)
+        noisy = view_files(ctx.inputs["noisy"]) if s.reads_noisy else None
+        res = _align_first_round(align_images, files, noisy, cfg, keep_better=s.photos == "better_of")
     else:
         res = _align_keeping_better_geometry(align_images, files, cfg, Path(previous), mode,
                                              s.reuse_geometry or "never")
@@ -189,32 +190,82 @@ def working_camera(intrinsics: Path, image: Path) -> Camera:
     return read_intrinsics(intrinsics).scaled(w, h)
 
 
-def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] | None, cfg):
-    """Round 1: the noisy photos under the denoised photos' names when `noisy` is given (stem -> file), with
-    the dense cloud made of the denoised `files` (`align_images`' `cloud_images`), and the denoised `files`
-    alone where those are refused or not given; which ones in `PHOTOS_KEY`.
+def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] | None, cfg, *,
+                       keep_better: bool = False):
+    """Round 1's alignment; which photos it used in `PHOTOS_KEY`.
 
-    After the noisy photos were refused, the denoised ones are matched with the detector for noisy photos
-    (`denoised_photos_config`)."""
+    Without `noisy` (stem -> file): the denoised `files`. With it, the noisy photos under the denoised
+    photos' names, with the dense cloud (the splat's start) made of the denoised `files` (`align_images`'
+    `cloud_images`); then
+    - `keep_better` False ("noisy_first"): the denoised `files` only where the noisy photos are refused;
+    - `keep_better` True ("better_of"): the denoised `files` as well, and the alignment whose camera
+      centres the bundle adjustment determines better (`better_determined`); either one where the other
+      is refused.
+    The denoised photos are matched with the detector for noisy photos once noisy photos were tried
+    (`denoised_photos_config`). Both refused: the denoised photos' refusal is raised.
+    """
     photos: dict[str, object] = {"aligned": "denoised"}
+    from_noisy = None
     if noisy is not None:
         try:
             # The poses from the noisy photos, the dense cloud (the splat's start) from the denoised ones.
-            res = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files], cloud_images=files)
-            res.stats.annotations[PHOTOS_KEY] = {"aligned": "noisy"}
-            return res
+            from_noisy = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files],
+                                      cloud_images=files)
+            if not keep_better:
+                from_noisy.stats.annotations[PHOTOS_KEY] = {"aligned": "noisy"}
+                return from_noisy
         except (AlignmentRefusedError, DisconnectedViewsError) as exc:
             reason = str(exc).splitlines()[0]
             _log.warning("the noisy photos were refused by the alignment (%s); aligning the denoised ones",
                          reason[:300])
             photos["noisy_refused"] = reason[:1000]
-            cfg = denoised_photos_config(cfg)
+        cfg = denoised_photos_config(cfg)
     try:
         res = align_images(files, cfg)
     except (AlignmentRefusedError, DisconnectedViewsError) as exc:
-        raise as_pipeline_refusal(exc) from exc
+        if from_noisy is None:
+            raise as_pipeline_refusal(exc) from exc
+        _log.warning("the denoised photos were refused by the alignment (%s); keeping the noisy photos' poses",
+                     str(exc).splitlines()[0][:300])
+        from_noisy.stats.annotations[PHOTOS_KEY] = {"aligned": "noisy",
+                                                    "denoised_refused": str(exc).splitlines()[0][:1000]}
+        return from_noisy
+    if from_noisy is not None:
+        views = [f.name for f in files]
+        keep_denoised, record = better_determined(res.sparse_model, res.stats, from_noisy.sparse_model,
+                                                  from_noisy.stats, views)
+        chosen = res if keep_denoised else from_noisy
+        chosen.stats.annotations[PHOTOS_KEY] = {"aligned": "denoised" if keep_denoised else "noisy", **record}
+        _log.info("round 1 keeps %s", record["reason"])
+        return chosen
     res.stats.annotations[PHOTOS_KEY] = photos
     return res
+
+
+def better_determined(denoised_model: SparseModel, denoised_stats: AlignStats, noisy_model: SparseModel,
+                      noisy_stats: AlignStats, views: list[str]) -> tuple[bool, dict[str, object]]:
+    """Whether the denoised photos' alignment determines the `views`' camera centres better than the
+    noisy photos' (`AlignSettings.photos` "better_of"), and a JSON record of why.
+
+    Each alignment's measure is the median over `views` of the bundle adjustment's camera-centre standard
+    deviation over the cameras' median nearest-neighbour spacing (`calibration.centre_std_over_spacing`,
+    the measure rounds >= 2 choose geometry by): no ground truth. An alignment that registers fewer of the
+    views loses; an unknown measure keeps the noisy photos' alignment (the "noisy_first" choice).
+    """
+    counts = [sum(v in set(m.names) for v in views) for m in (denoised_model, noisy_model)]
+    stds = [centre_std_over_spacing(m, st, views) for m, st in ((denoised_model, denoised_stats),
+                                                                 (noisy_model, noisy_stats))]
+    medians = [None if d is None else float(np.median(list(d.values()))) for d in stds]
+    record: dict[str, object] = {"registered": {"denoised": counts[0], "noisy": counts[1]},
+                                 "centre_std_over_spacing": {"denoised": medians[0], "noisy": medians[1]}}
+    if counts[0] != counts[1]:
+        keep, why = counts[0] > counts[1], "it registers more of the views"
+    elif medians[0] is None or medians[1] is None:
+        keep, why = False, "a camera-centre uncertainty is unknown: the noisy photos' alignment is kept"
+    else:
+        keep, why = medians[0] < medians[1], "its camera centres are better determined (bundle adjustment)"
+    record["reason"] = f"the {'denoised' if keep else 'noisy'} photos' alignment: {why}"
+    return keep, record
 
 
 def denoised_photos_config(cfg):

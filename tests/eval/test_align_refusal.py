@@ -89,7 +89,7 @@ def test_noisy_first_aligns_the_noisy_photos_under_the_denoised_names(tmp_path, 
 
     monkeypatch.setattr(mvgeo.align, "align_images", record)
     ctx = StageContext("align", tmp_path / "work", {"images": denoised, "noisy": noisy},
-                       AlignStageSettings(AlignConfig(), noisy_first=True), 0)
+                       AlignStageSettings(AlignConfig(), photos="noisy_first"), 0)
     with pytest.raises(_Stop):
         align(ctx)
     # the dense cloud (the splat's start) from the denoised photos
@@ -111,7 +111,7 @@ def test_noisy_first_falls_back_to_the_denoised_photos_and_reports_their_refusal
 
     monkeypatch.setattr(mvgeo.align, "align_images", refuse_both)
     ctx = StageContext("align", tmp_path / "work", {"images": denoised, "noisy": noisy},
-                       AlignStageSettings(AlignConfig(), noisy_first=True), 0)
+                       AlignStageSettings(AlignConfig(), photos="noisy_first"), 0)
     with pytest.raises(AlignmentRefusedError) as info:
         align(ctx)
     assert calls == ["noisy", "denoised"]

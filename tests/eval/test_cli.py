@@ -73,8 +73,8 @@ def test_run_pipeline_flags(tmp_path, monkeypatch, flag, expected):
         main(["run", str(make_scene(tmp_path / "images", n=4)), "--out", str(tmp_path / "out"), "--views", "4",
               *flag])
     assert (seen["config"].align.reuse_intrinsics, seen["config"].fuse_noisy_splat) == expected
-    assert seen["config"].align.photos == ("noisy_first" if "fast" not in flag or "noisy_first" in flag
-                                           else "denoised")
+    expected_photos = ("noisy_first" if "noisy_first" in flag else "denoised" if "fast" in flag else "better_of")
+    assert seen["config"].align.photos == expected_photos
 
 
 @pytest.mark.parametrize(("flag", "expected"), [

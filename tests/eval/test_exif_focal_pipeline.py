@@ -89,7 +89,7 @@ def test_noisy_first_aligns_with_the_prior_too(tmp_path, monkeypatch):
 
     monkeypatch.setattr(mvgeo.align, "align_images", refuse)
     ctx = StageContext("align", tmp_path / "w", {"images": denoised, "noisy": working, "working": working},
-                       AlignStageSettings(AlignConfig(), noisy_first=True), 0)
+                       AlignStageSettings(AlignConfig(), photos="noisy_first"), 0)
     with pytest.raises(DisconnectedViewsError):
         align(ctx)
     prior = {"focal_prior": FocalPrior(35.0, "exif")}

@@ -69,12 +69,12 @@ def test_product_runs_each_preset_as_shipped(name):
     assert METHODS["product"].folder("r2r") == "product" and METHODS["product"].row_label("r2r") == "product"
 
 
-def test_the_paper_loop_aligns_the_denoised_photos_and_the_default_the_noisy_first():
+def test_the_paper_loop_aligns_the_denoised_photos_and_the_default_the_better_of_both():
     base = preset("default", views=4)
-    assert base.align.photos == "noisy_first"
+    assert base.align.photos == "better_of"
     for name in ("instantsplat", "oracle_clean", "n2v_round1", "denoise_gs", "ablate_no_selection"):
         assert METHODS[name].pipeline_config(base).align.photos == "denoised", name  # (b), oracle: their photos
-    assert METHODS["product"].pipeline_config(base).align.photos == "noisy_first"
+    assert METHODS["product"].pipeline_config(base).align.photos == "better_of"
     assert METHODS["oracle_clean"].pipeline_config(base) == METHODS["instantsplat"].pipeline_config(base)
     assert METHODS["oracle_clean"].family == "oracle_clean"  # (b)'s settings, its own folder
     gt = METHODS["3dgs_gt_poses"]

@@ -81,7 +81,7 @@ def _stage(name: str, outputs: dict, summary: dict) -> StageResult:
                        outputs_digest="")
 
 
-def _round(tmp_path: Path, stats, *, with_splat: bool = True) -> RoundResult:
+def _round(tmp_path: Path, stats, *, with_splat: bool = True, photos: dict | None = None) -> RoundResult:
     rd = tmp_path / "round1"
     (rd / "align").mkdir(parents=True)
     stats.write(rd / "align" / "align.json")
@@ -94,7 +94,8 @@ def _round(tmp_path: Path, stats, *, with_splat: bool = True) -> RoundResult:
     np.savez(rd / "align" / "points.npz", xyz=np.random.default_rng(1).normal(size=(500, 3)))
     stages = {"denoise": _stage("denoise", {}, {"train": {"loss": {"first": 1.25, "last": 0.5, "count": 400}},
                                                "objective": "r2r", "dark_clipped_fraction": 0.024}),
-              "align": _stage("align", {"align": rd / "align"}, {"registered": 4, "photos": {"aligned": "noisy"}})}
+              "align": _stage("align", {"align": rd / "align"},
+                              {"registered": 4, "photos": photos or {"aligned": "noisy"}})}
     if with_splat:
         img = np.full((48, 64, 3), 0.5, np.float32)
         for k, n in enumerate(names):
@@ -136,6 +137,19 @@ def test_round_quality_reads_the_stages_and_align_json(tmp_path):
                  "1234 Gaussians in 42 s", "lowest `002`"):
         assert part in text, part
     assert q.to_json()["align"]["least_constrained"][0] == ["000.png", 0.04]
+
+
+def test_the_report_says_which_photos_round1_kept_and_why(tmp_path):
+    """`AlignSettings.photos` "better_of": the report names the kept alignment and the reason recorded."""
+    stats = align_stats(n_registered=4, focal_px={f"{i:03d}.png": 512.0 for i in range(4)})
+    reason = "the denoised photos' alignment: its camera centres are better determined (bundle adjustment)"
+    q = round_quality(_round(tmp_path, stats, with_splat=False, photos={
+        "aligned": "denoised", "reason": reason, "centre_std_over_spacing": {"denoised": 0.006, "noisy": 0.007}}))
+    assert (q.align.photos, q.align.photos_reason) == ("denoised", reason)
+    text = "\n".join(quality_lines([q]))
+    assert "alignment (denoised photos)" in text and f"the noisy and the denoised photos' alignments, {reason}" in text
+    plain = round_quality(_round(tmp_path / "plain", stats, with_splat=False))
+    assert plain.align.photos_reason is None and "alignments," not in "\n".join(quality_lines([plain]))
 
 
 def test_focal_source_names_the_calibration_or_the_prior(tmp_path):

@@ -292,3 +292,97 @@ def test_every_preset_fuses_and_keeps_better_cameras():
                                 align=dataclasses.replace(PRESETS["fast"].align, reuse_intrinsics="never",
                                                           reuse_geometry="never"))
     assert not paper.fuse_noisy_splat and paper.align.reuse_geometry == "never"
+
+
+class _PhotoAlign:
+    """Stands in for `mvgeo.align.align_images` in round 1: one prepared alignment (or error) for the noisy
+    photos (folder "noisy") and one for the denoised photos (folder "denoised"); records the calls."""
+
+    def __init__(self, noisy, denoised):
+        self.by_folder, self.calls = {"noisy": noisy, "denoised": denoised}, []
+
+    def __call__(self, files, cfg, names=None, cloud_images=None):
+        folder = files[0].parent.name
+        self.calls.append((folder, cfg.pairwise.sensitive_below_noise,
+                           None if cloud_images is None else cloud_images[0].parent.name))
+        made = self.by_folder[folder]
+        if isinstance(made, Exception):
+            raise made
+        model, stats = made
+        stats = dataclasses.replace(stats, annotations=dict(stats.annotations))
+        return AlignResult(model, np.zeros((2, 3)), np.zeros((2, 3), np.uint8), np.ones(2), stats)
+
+
+def _round1_files(tmp_path):
+    denoised = [tmp_path / "denoised" / v for v in ALL]
+    noisy = {v.rsplit(".", 1)[0]: tmp_path / "noisy" / v for v in ALL}
+    return denoised, noisy
+
+
+@pytest.mark.parametrize(("noisy", "denoised", "kept"), [("round1_poor", "round1_good", "denoised"),
+                                                         ("round1_good", "round1_poor", "noisy")])
+def test_better_of_keeps_the_photos_whose_centres_are_better_determined(tmp_path, alignments, noisy, denoised,
+                                                                        kept):
+    """`AlignSettings.photos` "better_of": both alignments run and the one with the smaller bundle-adjustment
+    centre uncertainty is kept; the ground truth confirms it is the closer one."""
+    from eval.pipeline.stages import PHOTOS_KEY, _align_first_round
+    from mvgeo.align import AlignConfig
+
+    files, noisy_files = _round1_files(tmp_path)
+    fake = _PhotoAlign(alignments[noisy], alignments[denoised])
+    res = _align_first_round(fake, files, noisy_files, AlignConfig(), keep_better=True)
+    chosen = alignments[noisy if kept == "noisy" else denoised]
+    assert res.sparse_model is chosen[0]
+    other = alignments[denoised if kept == "noisy" else noisy]
+    assert _relative_rotation_error_deg(res.sparse_model, ALL) < _relative_rotation_error_deg(other[0], ALL)
+    record = res.stats.annotations[PHOTOS_KEY]
+    assert record["aligned"] == kept
+    stds = record["centre_std_over_spacing"]
+    assert stds[kept] < stds["denoised" if kept == "noisy" else "noisy"]
+    # the noisy photos with the configured detector and the denoised cloud, the denoised photos with the
+    # detector for noisy photos (`denoised_photos_config`)
+    default = AlignConfig().pairwise.sensitive_below_noise
+    assert fake.calls == [("noisy", default, "denoised"), ("denoised", 0.0, None)]
+
+
+def test_better_of_with_one_refusal_keeps_the_other(tmp_path, alignments):
+    from eval.pipeline.stages import PHOTOS_KEY, _align_first_round
+    from mvgeo.align import AlignConfig
+
+    files, noisy_files = _round1_files(tmp_path)
+    refused = AlignmentRefusedError("the positions of 1 of 8 views do not determine the cameras",
+                                    kind="positions_undetermined", views=(ALL[3],), fix="pass --allow-partial")
+    res = _align_first_round(_PhotoAlign(alignments["round1_poor"], refused), files, noisy_files, AlignConfig(),
+                             keep_better=True)
+    assert res.sparse_model is alignments["round1_poor"][0]
+    assert res.stats.annotations[PHOTOS_KEY]["aligned"] == "noisy"
+    assert "do not determine" in res.stats.annotations[PHOTOS_KEY]["denoised_refused"]
+    res = _align_first_round(_PhotoAlign(refused, alignments["round1_poor"]), files, noisy_files, AlignConfig(),
+                             keep_better=True)
+    assert res.sparse_model is alignments["round1_poor"][0]
+    assert res.stats.annotations[PHOTOS_KEY] == {"aligned": "denoised", "noisy_refused": str(refused).splitlines()[0]}
+    # both refused: the denoised photos' refusal, with the pipeline's fix
+    with pytest.raises(AlignmentRefusedError) as info:
+        _align_first_round(_PhotoAlign(refused, refused), files, noisy_files, AlignConfig(), keep_better=True)
+    assert "pass --allow-partial" not in str(info.value.fix)
+    # "noisy_first" never aligns the denoised photos once the noisy ones align
+    fake = _PhotoAlign(alignments["round1_poor"], alignments["round1_good"])
+    res = _align_first_round(fake, files, noisy_files, AlignConfig(), keep_better=False)
+    assert res.sparse_model is alignments["round1_poor"][0] and [c[0] for c in fake.calls] == ["noisy"]
+
+
+def test_better_of_without_a_known_uncertainty_keeps_the_noisy_photos(alignments):
+    from eval.pipeline.stages import better_determined
+
+    good_model, good_stats = alignments["round1_good"]
+    poor_model, poor_stats = alignments["round1_poor"]
+    unknown = dataclasses.replace(good_stats, bundle_adjustment=None)
+    keep, record = better_determined(good_model, unknown, poor_model, poor_stats, ALL)
+    assert not keep and record["centre_std_over_spacing"]["denoised"] is None
+    keep, _ = better_determined(good_model, good_stats, poor_model, poor_stats, ALL)
+    assert keep
+    # fewer registered views lose whatever their uncertainty
+    fewer = SparseModel(good_model.cameras, [good_model.image(v) for v in ALL[:-1]], good_model.points_xyz,
+                        good_model.points_rgb)
+    keep, record = better_determined(fewer, good_stats, poor_model, poor_stats, ALL)
+    assert not keep and record["registered"] == {"denoised": 7, "noisy": 8}
