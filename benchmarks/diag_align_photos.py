@@ -2,7 +2,7 @@
 
 `AlignSettings.photos="better_of"` (the `default` and `best` presets) aligns the noisy photos (dense cloud
 from the denoised ones) and the denoised photos (with the noisy photos' detector), and keeps the alignment
-whose camera centres the bundle adjustment determines better (`eval.pipeline.stages.better_determined`), with
+whose camera centres the bundle adjustment determines better (`eval.pipeline.calibration.better_determined`), with
 no ground truth. This repeats both alignments for finished runs and prints, for each, what the rule sees (the
 median camera-centre standard deviation over the cameras' spacing), the choice, and what the ground truth says
 (median rotation error and ATE after a Sim(3) registration), so the rule can be checked on every set.
@@ -20,9 +20,9 @@ import numpy as np
 import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
 from eval.evaluate import FOCAL_PRIOR_OK
 from eval.pipeline import preset
-from eval.pipeline.calibration import centre_std_over_spacing
+from eval.pipeline.calibration import better_determined, centre_std_over_spacing
 from eval.pipeline.stage_settings import round_settings
-from eval.pipeline.stages import better_determined, denoised_photos_config
+from eval.pipeline.stages import denoised_photos_config
 from mvgeo.align import align_images
 from mvgeo.common.errors import AlignmentRefusedError, DisconnectedViewsError
 from mvgeo.metrics import compare_poses

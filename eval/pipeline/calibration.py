@@ -44,6 +44,9 @@ alignment failing on its geometry (refused as degenerate, or its photos no longe
 round r-1's; an unknown figure (no bundle adjustment, fewer than 3 views) loses to a known one, and
 two unknown keep round r's own. The decision and its numbers go into align.json
 under `GEOMETRY_KEY` (`GeometryChoice`).
+
+Round 1 with `AlignSettings.photos` "better_of" chooses between its noisy and its denoised photos'
+alignments by the same figure (`better_determined`).
 """
 
 from __future__ import annotations
@@ -61,8 +64,8 @@ from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 
-__all__ = ["GEOMETRY_KEY", "INHERITED_KEY", "GeometryChoice", "centre_std_over_spacing", "choose_geometry",
-           "focal_log_std", "previous_calibration", "prefer_previous", "restricted_ratios"]
+__all__ = ["GEOMETRY_KEY", "INHERITED_KEY", "GeometryChoice", "better_determined", "centre_std_over_spacing",
+           "choose_geometry", "focal_log_std", "previous_calibration", "prefer_previous", "restricted_ratios"]
 
 #: align.json key of a round whose calibration came from the previous round.
 INHERITED_KEY = "intrinsics_from_previous_round"
@@ -211,6 +214,30 @@ def _median(per_view: Mapping[str, float] | None) -> float | None:
         return None
     value = float(np.median(list(per_view.values())))
     return value if np.isfinite(value) else None
+
+
+def better_determined(denoised_model: SparseModel, denoised_stats: AlignStats, noisy_model: SparseModel,
+                      noisy_stats: AlignStats, views: Sequence[str]) -> tuple[bool, dict[str, object]]:
+    """Round 1 with `AlignSettings.photos` "better_of": whether the denoised photos' alignment determines the
+    `views`' camera centres better than the noisy photos', and a JSON record of why.
+
+    Each alignment's measure is the one `choose_geometry` compares: the median over `views` of
+    `centre_std_over_spacing` (no ground truth). An alignment that registers fewer of the views loses; an
+    unknown measure keeps the noisy photos' alignment (the "noisy_first" choice).
+    """
+    counts = [len(set(views) & set(m.names)) for m in (denoised_model, noisy_model)]
+    medians = [_median(centre_std_over_spacing(m, st, views))
+               for m, st in ((denoised_model, denoised_stats), (noisy_model, noisy_stats))]
+    record: dict[str, object] = {"registered": {"denoised": counts[0], "noisy": counts[1]},
+                                 "centre_std_over_spacing": {"denoised": medians[0], "noisy": medians[1]}}
+    if counts[0] != counts[1]:
+        keep, why = counts[0] > counts[1], "it registers more of the views"
+    elif medians[0] is None or medians[1] is None:
+        keep, why = False, "a camera-centre uncertainty is unknown: the noisy photos' alignment is kept"
+    else:
+        keep, why = medians[0] < medians[1], "its camera centres are better determined (bundle adjustment)"
+    record["reason"] = f"the {'denoised' if keep else 'noisy'} photos' alignment: {why}"
+    return keep, record
 
 
 def choose_geometry(mode: ReuseGeometry, views: Sequence[str], previous: tuple[SparseModel, AlignStats],

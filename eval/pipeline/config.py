@@ -109,7 +109,7 @@ class AlignSettings:
             are matched with the noisy photos' detector (`eval.pipeline.stages.denoised_photos_config`): R2R's photos at
             sigma 50 align so (1.1 deg) and were refused with the clean-photo one. "better_of" aligns both
             (the denoised ones with the noisy photos' detector) and keeps the alignment whose camera centres
-            the bundle adjustment determines better (`eval.pipeline.stages.better_determined`; either one
+            the bundle adjustment determines better (`eval.pipeline.calibration.better_determined`; either one
             where the other is refused). Rounds >= 2 align the round's denoised photos.
         intrinsics: the photos' calibration at their input size (a COLMAP cameras.txt with one camera, or
             an mrcal .cameramodel), without lens distortion (the splat trains on the photos as they are);

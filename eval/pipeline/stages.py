@@ -36,7 +36,7 @@ from eval.pipeline.calibration import (
     GEOMETRY_KEY,
     INHERITED_KEY,
     GeometryChoice,
-    centre_std_over_spacing,
+    better_determined,
     choose_geometry,
     focal_log_std,
     prefer_previous,
@@ -225,10 +225,10 @@ def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] |
     except (AlignmentRefusedError, DisconnectedViewsError) as exc:
         if from_noisy is None:
             raise as_pipeline_refusal(exc) from exc
+        reason = str(exc).splitlines()[0]
         _log.warning("the denoised photos were refused by the alignment (%s); keeping the noisy photos' poses",
-                     str(exc).splitlines()[0][:300])
-        from_noisy.stats.annotations[PHOTOS_KEY] = {"aligned": "noisy",
-                                                    "denoised_refused": str(exc).splitlines()[0][:1000]}
+                     reason[:300])
+        from_noisy.stats.annotations[PHOTOS_KEY] = {"aligned": "noisy", "denoised_refused": reason[:1000]}
         return from_noisy
     if from_noisy is not None:
         views = [f.name for f in files]
@@ -240,32 +240,6 @@ def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] |
         return chosen
     res.stats.annotations[PHOTOS_KEY] = photos
     return res
-
-
-def better_determined(denoised_model: SparseModel, denoised_stats: AlignStats, noisy_model: SparseModel,
-                      noisy_stats: AlignStats, views: list[str]) -> tuple[bool, dict[str, object]]:
-    """Whether the denoised photos' alignment determines the `views`' camera centres better than the
-    noisy photos' (`AlignSettings.photos` "better_of"), and a JSON record of why.
-
-    Each alignment's measure is the median over `views` of the bundle adjustment's camera-centre standard
-    deviation over the cameras' median nearest-neighbour spacing (`calibration.centre_std_over_spacing`,
-    the measure rounds >= 2 choose geometry by): no ground truth. An alignment that registers fewer of the
-    views loses; an unknown measure keeps the noisy photos' alignment (the "noisy_first" choice).
-    """
-    counts = [sum(v in set(m.names) for v in views) for m in (denoised_model, noisy_model)]
-    stds = [centre_std_over_spacing(m, st, views) for m, st in ((denoised_model, denoised_stats),
-                                                                 (noisy_model, noisy_stats))]
-    medians = [None if d is None else float(np.median(list(d.values()))) for d in stds]
-    record: dict[str, object] = {"registered": {"denoised": counts[0], "noisy": counts[1]},
-                                 "centre_std_over_spacing": {"denoised": medians[0], "noisy": medians[1]}}
-    if counts[0] != counts[1]:
-        keep, why = counts[0] > counts[1], "it registers more of the views"
-    elif medians[0] is None or medians[1] is None:
-        keep, why = False, "a camera-centre uncertainty is unknown: the noisy photos' alignment is kept"
-    else:
-        keep, why = medians[0] < medians[1], "its camera centres are better determined (bundle adjustment)"
-    record["reason"] = f"the {'denoised' if keep else 'noisy'} photos' alignment: {why}"
-    return keep, record
 
 
 def denoised_photos_config(cfg):

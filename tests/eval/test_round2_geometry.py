@@ -372,7 +372,7 @@ def test_better_of_with_one_refusal_keeps_the_other(tmp_path, alignments):
 
 
 def test_better_of_without_a_known_uncertainty_keeps_the_noisy_photos(alignments):
-    from eval.pipeline.stages import better_determined
+    from eval.pipeline.calibration import better_determined
 
     good_model, good_stats = alignments["round1_good"]
     poor_model, poor_stats = alignments["round1_poor"]
