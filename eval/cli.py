@@ -28,7 +28,7 @@ from eval.pipeline.lock import output_lock
 from eval.pipeline.validate import MIN_IMAGE_SIZE_PX
 from eval.real.cli import add_dataset_parser
 from eval.results import carried_rows, merge_rows, write_results
-from mvgeo.common.argtypes import int_range, nonneg_int, positive_int, seed
+from mvgeo.common.argtypes import fraction, int_range, nonneg_int, positive_int, seed
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
@@ -98,6 +98,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.grouped_wiener is not None:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise,
                                                                          grouped_wiener=args.grouped_wiener))
+    if args.noisy_detail is not None:
+        config = dataclasses.replace(config, splat=dataclasses.replace(config.splat, noisy_detail=args.noisy_detail))
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
@@ -129,7 +131,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     config = EvalConfig(methods=tuple(dict.fromkeys(methods)), seeds=args.seeds, preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
                         device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser,
-                        grouped_wiener=args.grouped_wiener)
+                        grouped_wiener=args.grouped_wiener, noisy_detail=args.noisy_detail)
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
     with (resumable_output_dir(plan), output_lock(out),
@@ -302,6 +304,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="then the grouped Wiener step (similar patches of the noisy photo filtered together with "
                           "the statistics of the photo so far; denoise.grouped_wiener; about 6 s per 384x384 photo "
                           "on one core). Default: the preset's")
+    run.add_argument("--noisy-detail", type=fraction, default=None, metavar="W",
+                     help="extension, not in the paper: the fraction W of the noisy photo's finest band that the "
+                          "splat's target takes back, denoised + W * highpass(noisy - denoised) (the splat keeps "
+                          "the texture every view shows and averages the noise; denoise.detail). 0 = off. "
+                          "Default: the preset's (0.2 with default and best, 0 with fast)")
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",
@@ -352,6 +359,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--grouped-wiener", action=argparse.BooleanOptionalAction, default=None,
                     help="the grouped Wiener step on or off for every method that trains the UNet (default: the "
                          "preset's; an A/B comparison evaluates each setting into its own --out)")
+    ev.add_argument("--noisy-detail", type=fraction, default=None, metavar="W",
+                    help="the noisy photos' band in the product's splat target (see `run --noisy-detail`; the "
+                         "paper's loop, the baselines and the oracle train on their photos as they are). "
+                         "Default: the preset's")
     ev.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
                     help=MAX_SIZE_HELP + " (the clean images and ground-truth cameras are scaled alike)")
     ev.add_argument("--size", type=_size_wh, default=None, metavar="WxH",

@@ -132,6 +132,8 @@ def base_pipeline_config(config: EvalConfig, views: int) -> PipelineConfig:
     if config.grouped_wiener is not None:
         base = dataclasses.replace(base, denoise=dataclasses.replace(base.denoise,
                                                                      grouped_wiener=config.grouped_wiener))
+    if config.noisy_detail is not None:
+        base = dataclasses.replace(base, splat=dataclasses.replace(base.splat, noisy_detail=config.noisy_detail))
     return base
 
 
@@ -155,6 +157,9 @@ class EvalConfig:
         grouped_wiener: the grouped Wiener step on or off for every method that trains the UNet
             (`DenoiseSettings.grouped_wiener`); None: the preset's. For A/B measurements: evaluate each
             setting into its own output folder.
+        noisy_detail: the noisy photos' band in the splat's target (`SplatSettings.noisy_detail`) for the
+            methods that take the preset's (`product`; the paper's loop, the baselines and the oracle train
+            on their photos as they are); None: the preset's. For A/B measurements, as `grouped_wiener`.
     """
 
     methods: tuple[str, ...] = ("instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs")
@@ -167,6 +172,7 @@ class EvalConfig:
     allow_focal_prior: bool = True
     denoiser: DenoiseMethod = "n2v"
     grouped_wiener: bool | None = None
+    noisy_detail: float | None = None
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.methods if m not in METHODS]
@@ -181,6 +187,8 @@ class EvalConfig:
                              f"{', '.join(multi_round)}", fix=f"use {', '.join(one_round)}")
         if self.seeds < 1:
             raise InputError(f"--seeds must be at least 1, got {self.seeds}")
+        if self.noisy_detail is not None and not 0.0 <= self.noisy_detail <= 1.0:
+            raise InputError(f"--noisy-detail must be in [0, 1], got {self.noisy_detail}")
         preset(self.preset)
 
     def selected(self) -> list[EvalMethod]:

@@ -44,7 +44,7 @@ from eval.baselines import (
 from eval.pipeline import PipelineConfig, PipelineStages, StageRunner, StageSpec, product_stages, run_pipeline
 from eval.pipeline.config import DenoiseMethod
 from eval.pipeline.run import RUN_COMMAND
-from eval.pipeline.stage_settings import SplatStageSettings, stage_seed, train_config
+from eval.pipeline.stage_settings import splat_stage_settings, stage_seed
 from eval.pipeline.stages import STAGE_CODE
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.common.errors import DegenerateGeometryError, DisconnectedViewsError
@@ -59,17 +59,21 @@ _log = logging.getLogger(__name__)
 # ----------------------------------------------------------------- how each method sets up the pipeline
 def paper_loop(base: PipelineConfig) -> PipelineConfig:
     """The paper's loop, whatever the preset says: N2V (the methods that take `--denoiser` replace it), no
-    noisy-photo fusion, the denoised photos aligned, each round's own alignment, every round run."""
+    noisy-photo fusion, splats trained on the round's photos as they are (no noisy-photo band,
+    `SplatSettings.noisy_detail`), the denoised photos aligned, each round's own alignment, every round run.
+    The baselines and the clean-photo oracle run it too: their splats see their own photos only."""
     return dataclasses.replace(base, fuse_noisy_splat=False, stop_when_unrefined=False,
+                               splat=dataclasses.replace(base.splat, noisy_detail=0.0),
                                denoise=dataclasses.replace(base.denoise, method="n2v"),
                                align=dataclasses.replace(base.align, reuse_geometry="never", photos="denoised"))
 
 
 def fused_loop(base: PipelineConfig) -> PipelineConfig:
-    """The extension: each splat trains on the fused photos, a round 2 whose own alignment pins the
-    views less well keeps round 1's geometry (`AlignSettings.reuse_geometry`); whether a round whose refine
-    kept the previous network ends the loop is the preset's (`PipelineConfig.stop_when_unrefined`)."""
-    return dataclasses.replace(base, fuse_noisy_splat=True,
+    """The extension: each splat trains on the fused photos (and nothing more: no noisy-photo band), a round
+    2 whose own alignment pins the views less well keeps round 1's geometry (`AlignSettings.reuse_geometry`);
+    whether a round whose refine kept the previous network ends the loop is the preset's
+    (`PipelineConfig.stop_when_unrefined`)."""
+    return dataclasses.replace(base, fuse_noisy_splat=True, splat=dataclasses.replace(base.splat, noisy_detail=0.0),
                                align=dataclasses.replace(base.align, reuse_geometry="auto"))
 
 
@@ -91,7 +95,8 @@ def charbonnier_round2(base: PipelineConfig) -> PipelineConfig:
 
 def gt_poses_splat(base: PipelineConfig) -> PipelineConfig:
     """(a): the splat preset for known poses (`splat.train.TRAIN_PRESETS["gt_poses"]`: no pose learning)."""
-    return dataclasses.replace(paper_loop(base), splat=dataclasses.replace(base.splat, preset="gt_poses"))
+    cfg = paper_loop(base)
+    return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, preset="gt_poses"))
 
 
 # ----------------------------------------------------------------- which stages each method runs
@@ -316,10 +321,12 @@ def splat_photos(round_dir: Path) -> Path:
 
 
 def _splat_on_ground_truth(stages: PipelineStages, config: PipelineConfig, dataset: DatasetFolder, inputs: Path,
-                           folder: Path, estimate: Path | None = None) -> Reconstruction:
+                           folder: Path, estimate: Path | None = None, noisy: Path | None = None) -> Reconstruction:
     """(a) and the `@gt_poses` variants: `gt_align` then the pipeline's splat stage on the photos in
     `inputs`, in `folder/round1` (resumable like the pipeline's rounds). `estimate`: a pipeline round
-    folder whose alignment points initialise the splat (a variant's points' method; `gt_align`)."""
+    folder whose alignment points initialise the splat (a variant's points' method; `gt_align`).
+    `noisy`: the noisy working photos of `inputs`' views, whose finest band the splat's target takes back
+    under `config.splat.noisy_detail` (default `inputs` itself, which adds nothing)."""
     rd = folder / "round1"
     runner = StageRunner()
     align_inputs = gt_align_inputs(dataset, estimate)
@@ -327,10 +334,12 @@ def _splat_on_ground_truth(stages: PipelineStages, config: PipelineConfig, datas
                               hashed_inputs=tuple(align_inputs), settings=GtAlignSettings(tuple(dataset.train)),
                               code=STAGE_CODE["splat"]), label="gt_poses/align")
     seed = stage_seed(config.seed, 1, "splat")
+    settings = splat_stage_settings(config, seed=seed)
+    splat_inputs, hashed = {"images": inputs, "align": rd / "align"}, ("images",)
+    if settings.noisy_detail.weight > 0:
+        splat_inputs["noisy"], hashed = (inputs if noisy is None else noisy), ("images", "noisy")
     sp = runner.run(StageSpec("splat", rd, stages.splat, ("sparse", "point_cloud.ply"),
-                              inputs={"images": inputs, "align": rd / "align"}, hashed_inputs=("images",),
-                              upstream=(al,), settings=SplatStageSettings(train_config(config.splat, seed=seed),
-                                                                          config.device),
+                              inputs=splat_inputs, hashed_inputs=hashed, upstream=(al,), settings=settings,
                               seed=seed, code=stages.code.get("splat", ())), label="gt_poses/splat")
     return Reconstruction(rd, False, float(al.seconds + sp.seconds))
 
@@ -381,7 +390,7 @@ def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig
         points = own if method.gt_pose_points_from in (None, method.gt_pose_variant_of) else reconstruct(
             method.gt_pose_points_from, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs, seed_dir=seed_dir)
         rec = _splat_on_ground_truth(stages, config, dataset, splat_photos(own.round_dir), folder,
-                                     estimate=points.round_dir)
+                                     estimate=points.round_dir, noisy=own.round_dir.parent / "inputs")
         return dataclasses.replace(rec, seconds=own.seconds + rec.seconds)
     if method.ground_truth_poses:
         return _splat_on_ground_truth(stages, config, dataset, inputs, folder)

@@ -136,10 +136,20 @@ class SplatSettings:
     Attributes:
         preset: name of a `splat.train.TRAIN_PRESETS` entry ("instantsplat", "quick", ...).
         iters: training iterations; None keeps the preset's.
+        noisy_detail: extension, not in the paper: the fraction ``w`` of the noisy photo's finest band
+            that the splat's target takes back, ``denoised + w * highpass(noisy - denoised)``
+            (`denoise.detail.noisy_detail_target`; 0 = off, the paper's target). The denoiser's texture
+            differs from view to view and the splat averages it into a blur; the noisy photo's texture is
+            the same in every view and its noise is not, so the splat keeps the one and averages the other.
+            Costs nothing measurable. docs/bench/pipeline.md, "The noisy photos' fine detail in the
+            splat's target".
+        noisy_detail_sigma_px: the band's Gaussian, standard deviation in pixels at the working size.
     """
 
     preset: str = "instantsplat"
     iters: int | None = None
+    noisy_detail: float = 0.0
+    noisy_detail_sigma_px: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -235,6 +245,12 @@ class PipelineConfig:
                            ("splat.iters", self.splat.iters)):
             if value is not None and value < 1:
                 raise ConfigError(f"must be positive, got {value}", key=key)
+        if not 0.0 <= self.splat.noisy_detail <= 1.0:
+            raise ConfigError(f"must be in [0, 1], got {self.splat.noisy_detail}", key="splat.noisy_detail",
+                              expected="a fraction of the noisy photo's finest band, 0 <= w <= 1 (0: off)")
+        if not self.splat.noisy_detail_sigma_px > 0.0:
+            raise ConfigError(f"must be positive, got {self.splat.noisy_detail_sigma_px}",
+                              key="splat.noisy_detail_sigma_px", expected="a blur in pixels > 0")
 
     def to_dict(self) -> dict:
         """Plain JSON-able dict (for hashing and report.json)."""
@@ -287,7 +303,7 @@ class PipelineConfig:
 #: and stop after a round whose refine kept the previous network (`stop_when_unrefined`).
 _ONE_ROUND = PipelineConfig(rounds=1, stop_when_unrefined=True,
                             denoise=DenoiseSettings(method="auto", n2v_steps=2000, wiener=True, grouped_wiener=True),
-                            align=AlignSettings(photos="better_of"))
+                            align=AlignSettings(photos="better_of"), splat=SplatSettings(noisy_detail=0.2))
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         fuse_noisy_splat=True, stop_when_unrefined=True,
@@ -303,7 +319,7 @@ PRESETS: dict[str, PipelineConfig] = {
     ),
     "default": _ONE_ROUND,
     "best": dataclasses.replace(_ONE_ROUND, denoise=dataclasses.replace(_ONE_ROUND.denoise, n2v_preset="wide"),
-                                splat=SplatSettings(preset="instantsplat", iters=2000)),
+                                splat=SplatSettings(preset="instantsplat", iters=2000, noisy_detail=0.2)),
 }
 
 

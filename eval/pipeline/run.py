@@ -154,8 +154,11 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
                         label=f"{label}/fuse")
         out["fuse"] = fu
         splat_images, splat_upstream = rd / "fused", (images, al, fu)
+    splat_inputs = {"images": splat_images, "align": rd / "align"}
+    if settings.splat.noisy_detail.weight > 0:  # the target takes back the noisy photos' finest band
+        splat_inputs["noisy"] = working
     sp = runner.run(StageSpec("splat", rd, stages.splat, SCENE_OUTPUTS["splat"],
-                              inputs={"images": splat_images, "align": rd / "align"}, upstream=splat_upstream,
+                              inputs=splat_inputs, upstream=splat_upstream,
                               settings=settings.splat, seed=stage_seed(config.seed, r, "splat"),
                               code=stages.code.get("splat", ())),
                     label=f"{label}/splat")

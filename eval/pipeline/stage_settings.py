@@ -23,6 +23,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from denoise.detail import NoisyDetail  # numpy only
 from eval.pipeline.config import (
     AlignPhotos,
     AlignSettings,
@@ -142,10 +143,13 @@ class SplatStageSettings:
     Attributes:
         train: the training configuration, seed included.
         device: torch device.
+        noisy_detail: the noisy photos' finest band in the target (`PipelineConfig.splat.noisy_detail`);
+            weight 0 trains on the round's images as they are.
     """
 
     train: TrainConfig
     device: str
+    noisy_detail: NoisyDetail = NoisyDetail()
 
 
 @dataclass(frozen=True)
@@ -271,6 +275,13 @@ def train_config(settings: SplatSettings, *, seed: int) -> TrainConfig:
     return _replace_given(TRAIN_PRESETS[settings.preset], iters=settings.iters, seed=seed)
 
 
+def splat_stage_settings(config: PipelineConfig, *, seed: int) -> SplatStageSettings:
+    """The splat stage's settings under `config` (its training configuration with `seed`, and the noisy
+    photos' band in its target); the pipeline's rounds and `eval`'s true-camera splats use the same."""
+    return SplatStageSettings(train_config(config.splat, seed=seed), config.device,
+                              NoisyDetail(config.splat.noisy_detail, config.splat.noisy_detail_sigma_px))
+
+
 def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
     """The typed settings of round `round_index`'s stages under `config`.
 
@@ -295,7 +306,7 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
         if config.fuse_noisy_splat else None
     return RoundSettings(
         index=r, align=align, fuse=fuse,
-        splat=SplatStageSettings(train_config(config.splat, seed=seed("splat")), config.device),
+        splat=splat_stage_settings(config, seed=seed("splat")),
         render=RenderStageSettings(config.device),
         denoise=None if later else DenoiseStageSettings(n2v_config(d), d.passes, config.device, d.keep_noisy,
                                                                choose_objective=d.method == "auto",

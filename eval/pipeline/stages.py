@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from denoise.detail import NoisyDetail, noisy_detail_target, noisy_detail_weight  # numpy and cv2 only
 from eval.pipeline.calibration import (
     GEOMETRY_KEY,
     INHERITED_KEY,
@@ -46,7 +47,7 @@ from eval.pipeline.calibration import (
 from eval.pipeline.hashing import file_sha256
 from eval.pipeline.inputs import working_focal_prior
 from eval.pipeline.stage import StageContext, StageFn
-from eval.pipeline.stage_settings import SplatStageSettings
+from eval.pipeline.stage_settings import FuseStageSettings, SplatStageSettings
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.align.stats import AlignStats
 from mvgeo.camera import Camera
@@ -352,36 +353,66 @@ def _align_with_previous_calibration(align_images, files: list[Path], cfg, previ
     return res
 
 
-def _train_splat(images_dir: Path, align_dir: Path, s: SplatStageSettings):
+def _train_splat(images_dir: Path, align_dir: Path, s: SplatStageSettings | FuseStageSettings,
+                 noisy_dir: Path | None = None):
     """(training result, alignment's sparse model, view stems): a splat on `images_dir`'s views,
-    initialised from the alignment in `align_dir`."""
+    initialised from the alignment in `align_dir`; with `noisy_dir` (and `s.noisy_detail.weight > 0`)
+    its targets take back the noisy photos' finest band (`denoise.detail.noisy_detail_target`)."""
     from splat.train import train_gaussians
 
     sparse = read_sparse_model(align_dir / "sparse" / "0")
     pts = np.load(align_dir / "points.npz")
     stems = [n.rsplit(".", 1)[0] for n in sparse.names]
     images = read_views(images_dir, stems)
+    weights = None
+    if noisy_dir is not None:
+        images, weights = noisy_detail_targets(images, read_views(noisy_dir, stems), s.noisy_detail)
     cameras = [sparse.camera_of(n) for n in sparse.names]
     cam_from_world = np.stack([sparse.image(n).cam_from_world for n in sparse.names])
     res = train_gaussians(list(images.values()), cameras, cam_from_world, pts["xyz"], pts["rgb"], s.train,
                           device=s.device)
-    return res, sparse, stems
+    return res, sparse, stems, weights
+
+
+def noisy_detail_targets(images: Mapping[str, np.ndarray], noisy: Mapping[str, np.ndarray], detail: NoisyDetail
+                         ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """(stem -> the splat's target, stem -> the weight it took): each view's `noisy_detail_target`, its weight
+    scaled by the noisy photo's noise std as the denoiser estimates it (`r2r_noise_std`; a per-pixel map's
+    median, as `report.md` states it)."""
+    from denoise.self_supervised import r2r_noise_std
+
+    targets, weights = {}, {}
+    for k, img in images.items():
+        sigma = r2r_noise_std(noisy[k])
+        sigma = float(sigma.median()) if not isinstance(sigma, float | int) else float(sigma)
+        weights[k] = noisy_detail_weight(detail, sigma)
+        targets[k] = noisy_detail_target(img, noisy[k], detail, sigma)
+    return targets, weights
 
 
 def splat(ctx: StageContext) -> Mapping[str, object]:
     """Gaussian splatting with pose optimisation, initialised from the alignment (`ctx.settings`:
-    `SplatStageSettings`)."""
+    `SplatStageSettings`). With `noisy_detail.weight > 0` the runner also passes the noisy working photos
+    (`ctx.inputs["noisy"]`), whose finest band the targets take back (`PipelineConfig.splat.noisy_detail`)."""
     from splat.ply import write_gaussian_ply
 
-    res, sparse, stems = _train_splat(ctx.inputs["images"], ctx.inputs["align"], ctx.settings)
+    s: SplatStageSettings = ctx.settings
+    noisy = None
+    if s.noisy_detail.weight > 0:
+        if "noisy" not in ctx.inputs:
+            raise ValueError("splat: noisy_detail is on but the runner passed no noisy photos (inputs['noisy'])")
+        noisy = ctx.inputs["noisy"]
+    res, sparse, stems, weights = _train_splat(ctx.inputs["images"], ctx.inputs["align"], s, noisy)
     write_gaussian_ply(ctx.work_dir / "point_cloud.ply", res.model)
     optimised = [PosedImage(im.name, im.camera_id, np.asarray(res.cam_from_world_optimized[i])[:3])
                  for i, im in enumerate(sparse.images)]
     write_sparse_model(ctx.work_dir / "sparse" / "0",
                        SparseModel(sparse.cameras, optimised, sparse.points_xyz, sparse.points_rgb), binary=True)
     history = dataclasses.asdict(res.history) if dataclasses.is_dataclass(res.history) else res.history
-    return {"views": stems, "train": _history_summary(history),
-            "timings_s": dict(res.timings_s)}
+    summary: dict[str, object] = {"views": stems, "train": _history_summary(history)}
+    if weights is not None:
+        summary["noisy_detail"] = {**dataclasses.asdict(s.noisy_detail), "weights": weights}
+    return {**summary, "timings_s": dict(res.timings_s)}
 
 
 #: Weight of the noisy photos' render in `fuse` (the denoised photo gets 1 - FUSE_WEIGHT): the plain mean
@@ -523,7 +554,7 @@ def fuse(ctx: StageContext) -> Mapping[str, object]:
     else:
         from splat.render import render_views
 
-        res, sparse, stems = _train_splat(ctx.inputs["noisy"], ctx.inputs["align"], s)
+        res, sparse, stems, _ = _train_splat(ctx.inputs["noisy"], ctx.inputs["align"], s)
         cameras = [sparse.camera_of(n) for n in sparse.names]
         cam_from_world = np.stack([np.asarray(m)[:3] for m in res.cam_from_world_optimized])
         renders = dict(zip(stems, render_views(res.model, cameras, cam_from_world), strict=True))
