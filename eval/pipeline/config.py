@@ -141,7 +141,9 @@ class SplatSettings:
             (`denoise.detail.noisy_detail_target`; 0 = off, the paper's target). The denoiser's texture
             differs from view to view and the splat averages it into a blur; the noisy photo's texture is
             the same in every view and its noise is not, so the splat keeps the one and averages the other.
-            Costs nothing measurable. docs/bench/pipeline.md, "The noisy photos' fine detail in the
+            Above a noise std of 25/255 (the denoiser's estimate) the weight is scaled by (25/255) / sigma,
+            so the noise it adds stays at ``w * 25/255`` (`denoise.detail.noisy_detail_weight`). Costs a blur
+            and a noise estimate per photo. docs/bench/pipeline.md, "The noisy photos' finest band in the
             splat's target".
         noisy_detail_sigma_px: the band's Gaussian, standard deviation in pixels at the working size.
     """
@@ -278,7 +280,9 @@ class PipelineConfig:
 #:   and the denoised ones and keeps the alignment whose camera centres are better determined
 #:   (`AlignSettings.photos="better_of"`: on DTU scan24 at sigma 25 the denoised photos' on every seed, held
 #:   out 25.59 / 0.824 / 0.128 against 25.32 / 0.819 / 0.130 with the noisy photos' alone, three seeds;
-#:   docs/bench/pipeline.md, "Round 1 keeps the better-determined of two alignments"). On DTU
+#:   docs/bench/pipeline.md, "Round 1 keeps the better-determined of two alignments"); the splat trains on
+#:   the denoised photos plus 0.2 of the noisy photos' finest band (`SplatSettings.noisy_detail`, scaled down
+#:   above sigma 25/255; docs/bench/pipeline.md, "The noisy photos' finest band in the splat's target"). On DTU
 #:   scan24 (sigma 25/255) its photos are 29.5 dB against N2V's 25.8, and splatted with the true cameras
 #:   they score 24.93 / 0.806 / 0.134 against the N2V two-round product's 24.41 / 0.732 / 0.198 (PSNR /
 #:   SSIM / LPIPS); fusing them with the noisy splat's render costs 0.4 dB and 0.07 SSIM there, and round

@@ -8,6 +8,7 @@ variance; refine = a blur blended toward the previous render.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections import Counter
@@ -155,6 +156,18 @@ class TinyStages:
     def stages(self) -> PipelineStages:
         return PipelineStages(denoise=self.denoise, align=self.align, splat=self.splat, render=self.render,
                               select=self.select, refine=self.refine, fuse=self.fuse)
+
+    def spied(self, name: str, record) -> tuple[PipelineStages, list]:
+        """(the stages with stage `name` wrapped, the list it fills): each call appends `record(ctx)`, then
+        runs the stage."""
+        seen: list = []
+        stage = getattr(self, name)
+
+        def spy(ctx: StageContext):
+            seen.append(record(ctx))
+            return stage(ctx)
+
+        return dataclasses.replace(self.stages(), **{name: spy}), seen
 
 
 def tiny_dataset(root: Path):

@@ -19,14 +19,8 @@ from tests.eval._tiny_stages import TinyStages, make_scene
 
 def test_the_splat_reads_the_noisy_photos_only_when_asked(tmp_path):
     scene = make_scene(tmp_path / "images", n=5)
-    seen = []
-    tiny = TinyStages()
-
-    def splat(ctx):
-        seen.append((ctx.work_dir.parent.name, ctx.inputs.get("noisy"), ctx.settings.noisy_detail))
-        return tiny.splat(ctx)
-
-    stages = dataclasses.replace(tiny.stages(), splat=splat)
+    stages, seen = TinyStages().spied(
+        "splat", lambda ctx: (ctx.work_dir.parent.name, ctx.inputs.get("noisy"), ctx.settings.noisy_detail))
     cfg = dataclasses.replace(preset("fast", views=3, rounds=2), fuse_noisy_splat=False)
     run_pipeline(scene, tmp_path / "plain", cfg, stages=stages)
     assert [(r, n) for r, n, _ in seen] == [("round1", None), ("round2", None)]
