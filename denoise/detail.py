@@ -2,7 +2,7 @@
 
 A single-image denoiser removes noise and fine texture together, and what it keeps of the texture differs
 from view to view (each view's guess). A splat trained on such photos averages those guesses into a blur: on
-`llff_like` (seed 0, 256x192) the `default` product's splat rendered its own training views at LPIPS 0.229
+`llff_like` (seed 0, 256x192) the `default` product's splat rendered its own training views at LPIPS 0.230
 against 0.133 for the photos it trained on; on DTU scan24 at sigma 25 at 0.122 against 0.071, where a splat of
 the clean photos reproduces them at 0.041 (docs/bench/pipeline.md, "The noisy photos' finest band in the
 splat's target").
