@@ -28,6 +28,7 @@ import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
 from denoise.detail import NoisyDetail
 from eval.evaluate import EvalConfig, _score_scene, score_reconstruction
 from eval.pipeline.config import PRESETS
+from eval.pipeline.inputs import WORKING_DIR
 from eval.pipeline.stage_settings import stage_seed, train_config
 from eval.pipeline.stages import noisy_detail_targets
 from eval.pipeline.validate import validate_dataset_folder
@@ -43,7 +44,7 @@ def _retrain(dataset, run: Path, align_dir: Path, detail: NoisyDetail, seed: int
     sparse = read_sparse_model(align_dir / "sparse" / "0")
     pts = np.load(align_dir / "points.npz")
     stems = [n.rsplit(".", 1)[0] for n in sparse.names]
-    denoised, noisy = read_views(run / "round1" / "denoised", stems), read_views(run / "inputs", stems)
+    denoised, noisy = read_views(run / "round1" / "denoised", stems), read_views(run / WORKING_DIR, stems)
     targets, weights = noisy_detail_targets(denoised, noisy, detail)  # as the splat stage builds them
     images = [targets[k] for k in stems]
     cams = [sparse.camera_of(n) for n in sparse.names]

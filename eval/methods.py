@@ -43,6 +43,7 @@ from eval.baselines import (
 )
 from eval.pipeline import PipelineConfig, PipelineStages, StageRunner, StageSpec, product_stages, run_pipeline
 from eval.pipeline.config import DenoiseMethod
+from eval.pipeline.inputs import WORKING_DIR
 from eval.pipeline.run import RUN_COMMAND
 from eval.pipeline.stage_settings import splat_stage_settings, stage_seed
 from eval.pipeline.stages import STAGE_CODE
@@ -390,7 +391,7 @@ def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig
         points = own if method.gt_pose_points_from in (None, method.gt_pose_variant_of) else reconstruct(
             method.gt_pose_points_from, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs, seed_dir=seed_dir)
         rec = _splat_on_ground_truth(stages, config, dataset, splat_photos(own.round_dir), folder,
-                                     estimate=points.round_dir, noisy=own.round_dir.parent / "inputs")
+                                     estimate=points.round_dir, noisy=own.round_dir.parent / WORKING_DIR)
         return dataclasses.replace(rec, seconds=own.seconds + rec.seconds)
     if method.ground_truth_poses:
         return _splat_on_ground_truth(stages, config, dataset, inputs, folder)
