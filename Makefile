@@ -38,10 +38,10 @@ bench: $(STAMP)
 
 # The main job on the built-in `llff_like` scene (forward-facing, Gaussian noise sigma 25/255),
 # reduced for 2 CPU cores: 256x192 images, 10 views (8 training + 2 held out), K = 6 views in
-# round 2, the `fast` preset (which fuses each round's denoised photos with a splat of the noisy
-# ones, `PipelineConfig.fuse_noisy_splat`). `denoise-gs run` reconstructs the 8 noisy training photos
+# round 2, the `fast` preset (whose splat takes back half of the noisy photos' finest band,
+# `SplatSettings.noisy_detail`). `denoise-gs run` reconstructs the 8 noisy training photos
 # (poses, splat scene, renders, report.md) in the folder where `denoise-gs eval` looks for its
-# `denoise_gs_fused` run, so the evaluation reuses it and only adds the InstantSplat-style baseline
+# `product` run, so the evaluation reuses it and only adds the InstantSplat-style baseline
 # and the held-out scoring (PSNR/SSIM/LPIPS against the clean images, pose errors). `--max-size 0`
 # (work at the input size) because `denoise-gs eval` runs its pipelines so, and the setting enters the
 # stage keys: with the default 512 the evaluation would run the whole pipeline again.
@@ -57,16 +57,16 @@ DEMO_EVAL := $(DEMO_OUT)/eval
 demo: $(STAMP)
 	test -f $(DEMO_DATA)/split.json || $(VENV)/bin/data-synth render llff_like --out $(DEMO_DATA) --size $(DEMO_SIZE) --views $(DEMO_VIEWS)
 	$(PY) -m eval.prime_demo $(DEMO_DATA) $(DEMO_EVAL)
-	$(VENV)/bin/denoise-gs run $(DEMO_EVAL)/inputs/llff_like --out $(DEMO_EVAL)/runs/llff_like/seed0/n2v_fused --preset fast --views $(DEMO_K) --seed 0 --allow-focal-prior --max-size 0
+	$(VENV)/bin/denoise-gs run $(DEMO_EVAL)/inputs/llff_like --out $(DEMO_EVAL)/runs/llff_like/seed0/product --preset fast --views $(DEMO_K) --seed 0 --allow-focal-prior --max-size 0
 	$(VENV)/bin/denoise-gs eval $(DEMO_DATA) --out $(DEMO_EVAL) --preset fast --seeds 1 --views $(DEMO_K) \
-		--methods instantsplat denoise_gs_fused
+		--methods instantsplat product
 	@echo
-	@echo "pipeline report:   $(DEMO_EVAL)/runs/llff_like/seed0/n2v_fused/report.md"
+	@echo "pipeline report:   $(DEMO_EVAL)/runs/llff_like/seed0/product/report.md"
 	@echo "evaluation report: $(DEMO_EVAL)/results.md"
 
 demo-eval: demo
 	$(VENV)/bin/denoise-gs eval $(DEMO_DATA) --out $(DEMO_EVAL) --preset fast --seeds 1 --views $(DEMO_K) \
-		--methods 3dgs_gt_poses instantsplat nlm_instantsplat n2v_round1 denoise_gs denoise_gs_fused
+		--methods 3dgs_gt_poses instantsplat nlm_instantsplat n2v_round1 denoise_gs denoise_gs_fused product
 	@echo
 	@echo "evaluation report: $(DEMO_EVAL)/results.md"
 

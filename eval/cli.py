@@ -308,7 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="extension, not in the paper: the fraction W of the noisy photo's finest band that the "
                           "splat's target takes back, denoised + W * highpass(noisy - denoised) (the splat keeps "
                           "the texture every view shows and averages the noise; denoise.detail). 0 = off. "
-                          "Default: the preset's (0.2 with default and best, 0 with fast)")
+                          "Default: the preset's (0.2 with default and best, 0.5 with fast)")
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",
@@ -317,8 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--fuse-noisy-splat", action=argparse.BooleanOptionalAction, default=None,
                      help="extension, not in the paper: each round's splat trains on the mean of the denoised "
                           "photo and the render of a splat of the noisy photos (one more splat per round). "
-                          "Default: the preset's (on with fast, off with default and best); "
-                          "--no-fuse-noisy-splat runs the paper's loop")
+                          "Default: off in every preset (the splat takes the noisy photos' finest band "
+                          "instead: --noisy-detail)")
     run.add_argument("--reuse-intrinsics", choices=("auto", "always", "never"), default=None,
                      help="rounds >= 2: auto (default) keeps the better-determined of the round's own focal "
                           "estimate and the previous round's; always takes the previous round's; never "

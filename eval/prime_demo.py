@@ -1,6 +1,6 @@
 """`make demo`'s first step: open `denoise-gs eval`'s output folder and put the scene's training photos in it.
 
-The demo runs `denoise-gs run` on `EVAL/inputs/SCENE` into `EVAL/runs/SCENE/seed0/n2v_fused` (to show a
+The demo runs `denoise-gs run` on `EVAL/inputs/SCENE` into `EVAL/runs/SCENE/seed0/product` (to show a
 pipeline report), then `denoise-gs eval DATASET --out EVAL`, which resumes in that folder and reuses the
 run. The folder is opened here as `denoise-gs eval` opens it (`prepare_output` with `resume=True`: a new or
 empty folder, or a previous `denoise-gs eval` output; anything else is refused), so the evaluation later

@@ -169,9 +169,10 @@ class PipelineConfig:
             the same alignment (`eval.pipeline.stages.fuse`). The two estimates of the clean image err
             differently (the denoiser removes fine texture; the splat of the noisy photos keeps it and
             averages the noise across views), so their mean is better than either. Costs one more
-            splat training per round. On in every preset: on the scenes measured it raised the held-out
-            PSNR and lowered the LPIPS of the paper's loop (docs/bench/pipeline.md,
-            docs/bench/pipeline_demo.md). `denoise-gs eval`'s `n2v_round1` and `denoise_gs` keep the
+            splat training per round. On the scenes measured it raised the held-out PSNR and lowered the
+            LPIPS of the paper's loop (docs/bench/pipeline.md, docs/bench/pipeline_demo.md); the noisy
+            photos' finest band in the splat's target (`SplatSettings.noisy_detail`) does more for less
+            and replaced it in every preset. `denoise-gs eval`'s `n2v_round1` and `denoise_gs` keep the
             paper's loop (off); `n2v_fused_round1` and `denoise_gs_fused` turn it on.
         reuse_noisy_splat: with `fuse_noisy_splat`, rounds >= 2 only (round 1's stage keys ignore it):
             when the round's alignment of its views is the previous round's (cameras and cam_from_world
@@ -265,11 +266,15 @@ class PipelineConfig:
 #: - `fast`: what `make demo` and the tests run, minutes on 2 CPU cores: N2V's short preset with 2
 #:   inference passes, 40 round-2 fine-tuning steps, the preview alignment with every point kept
 #:   (up to 100k), the `instantsplat` splat (1000 iterations; with the 300 of `quick` the demo's denoised
-#:   views were +1.12 dB over the noisy splat's, with 1000 +1.67); with the noisy-photo fusion
-#:   (`fuse_noisy_splat`), without which its novel views are blurrier than those of a splat of the noisy
-#:   photos (lower SSIM, higher LPIPS); round 1's photos refined by the DCT Wiener step (on `make demo`'s
-#:   scene 25.08 / 0.744 / 0.131 held out against 24.86 / 0.734 / 0.145 without it; on DTU scan24 at sigma
-#:   25, seed 0, 24.28 / 0.700 / 0.195 against 23.90 / 0.693 / 0.218; docs/bench/pipeline_demo.md).
+#:   views were +1.12 dB over the noisy splat's, with 1000 +1.67); round 1's photos refined by the DCT
+#:   Wiener step (on `make demo`'s scene 25.08 / 0.744 / 0.131 held out against 24.86 / 0.734 / 0.145
+#:   without it); the splat trains on the denoised photos plus 0.5 of the noisy photos' finest band
+#:   (`SplatSettings.noisy_detail`, scaled down above sigma 25/255), without which N2V's novel views are
+#:   blurrier than those of a splat of the noisy photos. The band replaced the noisy-photo fusion
+#:   (`fuse_noisy_splat`, one more splat training per round): seed 0, held out, band against fusion, `make
+#:   demo`'s scene 25.13 / 0.746 / 0.129 against 25.08 / 0.744 / 0.131 with 116 s of stages against 196 s;
+#:   DTU scan24 at sigma 25 24.53 / 0.750 / 0.153 against 24.28 / 0.700 / 0.195, 242 s against 391 s
+#:   (docs/bench/pipeline_demo.md, "The noisy band instead of the fusion in `fast`").
 #: - `default`: round 1 only, with the UNet trained by Recorrupted-to-Recorrupted for 2000 steps instead
 #:   of N2V's 400, its photos refined by the DCT Wiener step (`DenoiseSettings.wiener`: on DTU scan24 at
 #:   sigma 25, 25.16 / 0.809 / 0.149 held out against 25.04 / 0.798 / 0.162 without it, three seeds; with
@@ -310,7 +315,7 @@ _ONE_ROUND = PipelineConfig(rounds=1, stop_when_unrefined=True,
                             align=AlignSettings(photos="better_of"), splat=SplatSettings(noisy_detail=0.2))
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
-        fuse_noisy_splat=True, stop_when_unrefined=True,
+        rounds=1, stop_when_unrefined=True,
         denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40, wiener=True),
         # PREVIEW thins its cloud to 20k points; at 256x192 and 12 views the splat started from
         # every point (~60k) scored +0.5 dB / LPIPS -0.09..-0.17 held out for 15-40 % more splat time
@@ -319,7 +324,7 @@ PRESETS: dict[str, PipelineConfig] = {
         # The `instantsplat` splat (1000 iterations), as `default`'s: on `make demo`'s scene the noisy
         # photos' splat gains nothing from it over 300 (23.30 -> 23.23 dB) and the denoised ones +0.47 dB,
         # LPIPS -0.13 (docs/bench/pipeline_demo.md, "the splat's length").
-        splat=SplatSettings(),
+        splat=SplatSettings(noisy_detail=0.5),
     ),
     "default": _ONE_ROUND,
     "best": dataclasses.replace(_ONE_ROUND, denoise=dataclasses.replace(_ONE_ROUND.denoise, n2v_preset="wide"),

@@ -31,7 +31,8 @@ def test_run_missing_folder(tmp_path, capsys):
 
 def test_run_fewer_images_than_views(tmp_path, capsys):
     scene = make_scene(tmp_path / "images", n=4)
-    assert main(["run", str(scene), "--out", str(tmp_path / "out"), "--views", "6", "--preset", "fast"]) == 2
+    assert main(["run", str(scene), "--out", str(tmp_path / "out"), "--views", "6", "--preset", "fast",
+                 "--rounds", "2"]) == 2
     err = _err(capsys)
     assert "4 images but --views 6" in err and "--views 4" in err
     assert not (tmp_path / "out").exists()
@@ -56,9 +57,9 @@ def test_run_bad_values(tmp_path, capsys):
     (["--fuse-noisy-splat"], ("auto", True)),
     (["--reuse-intrinsics", "never"], ("never", False)),
     (["--no-fuse-noisy-splat"], ("auto", False)),
-    (["--preset", "fast"], ("auto", True)),
-    (["--preset", "fast", "--no-fuse-noisy-splat"], ("auto", False)),
-    (["--preset", "fast", "--align-photos", "noisy_first"], ("auto", True)),
+    (["--preset", "fast"], ("auto", False)),  # `fast` takes the noisy band instead
+    (["--preset", "fast", "--fuse-noisy-splat"], ("auto", True)),
+    (["--preset", "fast", "--align-photos", "noisy_first"], ("auto", False)),
 ])
 def test_run_pipeline_flags(tmp_path, monkeypatch, flag, expected):
 

@@ -204,7 +204,8 @@ def test_expected_costs_count_what_an_earlier_run_has_not_done(tmp_path, dataset
     cfg = EvalConfig(methods=("instantsplat",), seeds=1, preset="fast")
     names = ("instantsplat", "n2v_round1", "denoise_gs", "ablate_no_selection", "oracle_clean", "n2v_round1@gt_poses",
              "product@gt_poses", "product")
-    tasks = [eval.evaluate.EvalTask("s", eval.methods.METHODS[m], 0, dataset, preset("fast"), tmp_path, tmp_path, cfg)
+    base = preset("fast", rounds=2)
+    tasks = [eval.evaluate.EvalTask("s", eval.methods.METHODS[m], 0, dataset, base, tmp_path, tmp_path, cfg)
              for m in names]
     r, d, g, s = (eval.evaluate.ROUND_COST, eval.evaluate.LEARNED_DENOISER_COST, eval.evaluate.GT_SPLAT_COST,
                   eval.evaluate.SCORING_COST)
@@ -215,7 +216,7 @@ def test_expected_costs_count_what_an_earlier_run_has_not_done(tmp_path, dataset
         s + r + d,              # ablate_no_selection: round 2 only, round 1 linked in
         s + r,                  # oracle_clean
         s + g,                  # n2v_round1@gt_poses: its method and its points' ran before it
-        s + g + 2 * (r + d),    # product@gt_poses: runs the product first (`fast`: two rounds)
+        s + g + 2 * (r + d),    # product@gt_poses: runs the product first (here: two rounds)
         s,                      # product: done by the variant before it
     ])
 

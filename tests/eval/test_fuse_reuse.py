@@ -227,7 +227,7 @@ def test_setting_off_trains_and_changing_it_reruns_round2_fuse_only(tmp_path, tr
 
 
 def test_fuse_settings_hold_the_setting_in_later_rounds_only():
-    cfg = preset("fast", rounds=3)
+    cfg = dataclasses.replace(preset("fast", rounds=3), fuse_noisy_splat=True)
     assert cfg.reuse_noisy_splat
     assert round_settings(cfg, 1).fuse.reuse_noisy_splat is None
     assert round_settings(cfg, 2).fuse.reuse_noisy_splat is True

@@ -168,7 +168,7 @@ def test_bad_inputs_fail_before_any_stage(tmp_path, scene):
     tiny = TinyStages()
     out = tmp_path / "out"
     with pytest.raises(InputError, match="--views 12"):
-        run_pipeline(scene, out, preset("fast", views=12), stages=tiny.stages())
+        run_pipeline(scene, out, preset("fast", views=12, rounds=2), stages=tiny.stages())
     # With one round there is no selection, so K > N is fine.
     with pytest.raises(InputError, match="does not exist"):
         run_pipeline(tmp_path / "nope", out, _cfg(), stages=tiny.stages())

@@ -370,7 +370,9 @@ def test_round_settings_are_the_component_configs():
     assert r1.select is None and r1.refine is None and r2.denoise is None
     assert (r2.select.views, r2.select.select_views) == (cfg.views, True)
     assert r2.refine.round2 == Round2Config(steps=cfg.denoise.round2_steps)
-    assert r1.fuse is not None and r1.fuse.train.seed != r1.splat.train.seed  # `fast` fuses
+    assert r1.fuse is None and r1.splat.noisy_detail.weight == 0.5  # `fast` takes the noisy band, no fusion
+    fused = round_settings(dataclasses.replace(cfg, fuse_noisy_splat=True), 1)
+    assert fused.fuse is not None and fused.fuse.train.seed != fused.splat.train.seed
     charb = round2_config(DenoiseSettings(round2_loss="charbonnier"))
     assert charb.loss == "charbonnier" and round2_config(DenoiseSettings()).loss == Round2Config().loss
     assert train_config(SplatSettings(preset="quick", iters=17), seed=2).iters == 17
@@ -384,7 +386,7 @@ def test_round_settings_are_the_component_configs():
 ])
 def test_unknown_component_presets_are_config_errors(change, key):
     with pytest.raises(ConfigError, match=key) as exc:
-        check_settings(dataclasses.replace(preset("fast"), **change))
+        check_settings(dataclasses.replace(preset("fast", rounds=2), **change))
     assert "turbo" in str(exc.value)
 
 

@@ -21,7 +21,7 @@ def test_the_splat_reads_the_noisy_photos_only_when_asked(tmp_path):
     scene = make_scene(tmp_path / "images", n=5)
     stages, seen = TinyStages().spied(
         "splat", lambda ctx: (ctx.work_dir.parent.name, ctx.inputs.get("noisy"), ctx.settings.noisy_detail))
-    cfg = dataclasses.replace(preset("fast", views=3, rounds=2), fuse_noisy_splat=False)
+    cfg = dataclasses.replace(preset("fast", views=3, rounds=2), splat=SplatSettings(noisy_detail=0.0))
     run_pipeline(scene, tmp_path / "plain", cfg, stages=stages)
     assert [(r, n) for r, n, _ in seen] == [("round1", None), ("round2", None)]
     assert all(d == NoisyDetail(0.0) for *_, d in seen)
@@ -86,7 +86,7 @@ def test_only_the_product_takes_the_presets_band():
 
     base = preset("default")
     assert base.splat.noisy_detail == 0.2 and preset("best").splat.noisy_detail == 0.2
-    assert preset("fast").splat.noisy_detail == 0.0
+    assert preset("fast").splat.noisy_detail == 0.5
     for name in ("instantsplat", "nlm_instantsplat", "3dgs_gt_poses", "oracle_clean", "n2v_round1", "denoise_gs",
                  "denoise_gs_fused", "ablate_charbonnier"):
         assert METHODS[name].pipeline_config(base).splat.noisy_detail == 0.0, name
