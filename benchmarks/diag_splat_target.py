@@ -3,7 +3,8 @@
 Everything before the splat (the working photos, the denoised photos, the alignment) is the run's own; only the
 splat's training target changes: `--noisy-detail W` trains on ``denoised + w * highpass(noisy - denoised)``
 with ``w = W * min(1, (25/255) / sigma)`` (`eval.pipeline.stages.noisy_detail_targets`, as the splat stage
-builds it; `--fixed-weight`: ``w = W``). With the run's own setting the
+builds it; `--fixed-weight`: ``w = W``; `--band-in-dark-clipped`: the band in dark clipped regions too). With
+the run's own setting the
 splat and the held-out scores repeat the run's to the last digit (checked on `llff_like` seed 0: 25.65 / 0.724 /
 0.239 both ways), so a sweep of the target costs one splat training per point instead of a whole run.
 
@@ -76,6 +77,8 @@ def main() -> int:
     ap.add_argument("--noisy-detail", type=float, nargs="+", required=True, help="weights W to train with")
     ap.add_argument("--sigma-px", type=float, default=1.0)
     ap.add_argument("--fixed-weight", action="store_true", help="W on every photo, whatever its noise level")
+    ap.add_argument("--band-in-dark-clipped", action="store_true",
+                    help="the band in dark clipped regions too (NoisyDetail.skip_dark_clipped=False)")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--true-cameras", type=Path, default=None, help="a @gt_poses variant's run folder")
     ap.add_argument("--out", type=Path, default=None, help="keep the splats here (default: a temporary folder)")
@@ -87,9 +90,11 @@ def main() -> int:
             out = (args.out or Path(tmp)) / f"w{w:g}"
             out.mkdir(parents=True, exist_ok=args.out is None)
             reference = None if args.fixed_weight else NoisyDetail().reference_std
-            row = _retrain(dataset, args.run, align_dir, NoisyDetail(w, args.sigma_px, reference), args.seed,
-                           args.preset, out, args.true_cameras is not None)
+            detail = NoisyDetail(w, args.sigma_px, reference, skip_dark_clipped=not args.band_in_dark_clipped)
+            row = _retrain(dataset, args.run, align_dir, detail, args.seed, args.preset, out,
+                           args.true_cameras is not None)
             print(json.dumps({"run": str(args.run), "seed": args.seed, "noisy_detail": w, "sigma_px": args.sigma_px,
+                              "band_in_dark_clipped": args.band_in_dark_clipped,
                               **{k: round(v, 4) for k, v in row.items()}}), flush=True)
     return 0
 

@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["DARK_CLIPPED_BLUR_PX", "DARK_CLIPPED_MIN_LOCAL", "MIN_CLIPPED_FRACTION", "clipped_mean", "clipped_sides",
-           "clipped_variance", "dark_clipped_fraction", "undo_clipping_bias"]
+           "clipped_variance", "dark_clipped_fraction", "dark_clipped_mask", "undo_clipping_bias"]
 
 #: A side of a photo counts as clipped when at least this fraction of its values sit exactly on it.
 #: Unclipped noise puts no value exactly on 0 or 1 (8-bit: only where x is within half a level of it
@@ -130,13 +130,23 @@ def clipped_sides(noisy: np.ndarray, *, min_fraction: float = MIN_CLIPPED_FRACTI
 
 def dark_clipped_fraction(noisy: np.ndarray, *, blur_px: float = DARK_CLIPPED_BLUR_PX,
                           min_local: float = DARK_CLIPPED_MIN_LOCAL) -> float:
-    """Fraction of a noisy photo's pixels that lie in a dark clipped region: in some channel, at least
-    `min_local` of the values in their neighbourhood (Gaussian weights of std `blur_px`) are exactly 0.
+    """Fraction of a noisy photo's pixels that lie in a dark clipped region (`dark_clipped_mask`).
 
     Such a region is black (or nearly) under noise clipped at 0: a black background, a shadow. Scattered
     zeros in dark texture (values a few noise std above 0) stay below `min_local`. Measured on the real
     sets at sigma 25/255: the temple ring's photos 0.47-0.72 (their black background), DTU scan24's 0.00-0.11
     (mean 0.03; its clipped values are mostly blown highlights, at 1).
+
+    Args:
+        noisy: ``(H, W, C)`` or ``(H, W)`` photo in ``[0, 1]``.
+    """
+    return float(dark_clipped_mask(noisy, blur_px=blur_px, min_local=min_local).mean())
+
+
+def dark_clipped_mask(noisy: np.ndarray, *, blur_px: float = DARK_CLIPPED_BLUR_PX,
+                      min_local: float = DARK_CLIPPED_MIN_LOCAL) -> np.ndarray:
+    """``(H, W)`` bool: the pixels in a dark clipped region, where in some channel at least `min_local` of the
+    values in their neighbourhood (Gaussian weights of std `blur_px`) are exactly 0.
 
     Args:
         noisy: ``(H, W, C)`` or ``(H, W)`` photo in ``[0, 1]``.
@@ -150,4 +160,4 @@ def dark_clipped_fraction(noisy: np.ndarray, *, blur_px: float = DARK_CLIPPED_BL
     dark = local >= min_local
     if dark.ndim == 3:
         dark = dark.any(axis=2)
-    return float(dark.mean())
+    return dark

@@ -142,7 +142,8 @@ class SplatSettings:
             differs from view to view and the splat averages it into a blur; the noisy photo's texture is
             the same in every view and its noise is not, so the splat keeps the one and averages the other.
             Above a noise std of 25/255 (the denoiser's estimate) the weight is scaled by (25/255) / sigma,
-            so the noise it adds stays at ``w * 25/255`` (`denoise.detail.noisy_detail_weight`). Costs a blur
+            so the noise it adds stays at ``w * 25/255`` (`denoise.detail.noisy_detail_weight`); dark clipped
+            regions (a black background, whose band is rectified noise) get none of it. Costs a blur
             and a noise estimate per photo. docs/bench/pipeline.md, "The noisy photos' finest band in the
             splat's target".
         noisy_detail_sigma_px: the band's Gaussian, standard deviation in pixels at the working size.

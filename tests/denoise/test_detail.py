@@ -98,3 +98,21 @@ def test_bad_arguments_are_refused():
         NoisyDetail(0.5, 0.0)
     with pytest.raises(ValueError, match="reference_std"):
         NoisyDetail(0.5, 1.0, 0.0)
+
+
+def test_no_band_in_a_dark_clipped_region():
+    """A black background under noise clipped at 0 (the temple ring's): its band is rectified noise, so the
+    target there is the denoised photo; elsewhere the band is added as without the rule."""
+    from denoise.clipping import dark_clipped_mask
+
+    rng = np.random.default_rng(3)
+    den = np.full((40, 60, 3), 0.5, np.float32)
+    den[:, :30] = 0.0  # the left half is black
+    noisy = np.clip(den + rng.normal(0, 25 / 255, den.shape), 0, 1).astype(np.float32)
+    dark = dark_clipped_mask(noisy)
+    assert dark[:, :20].all() and not dark[:, 40:].any()  # the black half, not the grey one
+    skip = noisy_detail_target(den, noisy, NoisyDetail(0.5))
+    keep = noisy_detail_target(den, noisy, NoisyDetail(0.5, skip_dark_clipped=False))
+    np.testing.assert_array_equal(skip[dark], den[dark])
+    np.testing.assert_array_equal(skip[~dark], keep[~dark])
+    assert keep[:, :20].mean() > 1e-3  # without the rule the black half gets the rectified noise's positive part
