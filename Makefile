@@ -37,9 +37,9 @@ bench: $(STAMP)
 	$(PY) benchmarks/run_all.py $(ONLY)
 
 # The main job on the built-in `llff_like` scene (forward-facing, Gaussian noise sigma 25/255),
-# reduced for 2 CPU cores: 256x192 images, 10 views (8 training + 2 held out), K = 6 views in
-# round 2, the `fast` preset (whose splat takes back half of the noisy photos' finest band,
-# `SplatSettings.noisy_detail`). `denoise-gs run` reconstructs the 8 noisy training photos
+# reduced for 2 CPU cores: 256x192 images, 10 views (8 training + 2 held out), the `fast` preset
+# (one round; its splat takes back half of the noisy photos' finest band, `SplatSettings.noisy_detail`;
+# K = 6 views would apply to a second round, `--rounds 2`). `denoise-gs run` reconstructs the 8 noisy training photos
 # (poses, splat scene, renders, report.md) in the folder where `denoise-gs eval` looks for its
 # `product` run, so the evaluation reuses it and only adds the InstantSplat-style baseline
 # and the held-out scoring (PSNR/SSIM/LPIPS against the clean images, pose errors). `--max-size 0`

@@ -264,8 +264,10 @@ class PipelineConfig:
 #: Named presets; held-out figures and end-to-end times are in docs/bench/pipeline.md (`default`,
 #: `best`, three seeds) and docs/bench/pipeline_demo.md (`fast`, `make demo`).
 #:
-#: - `fast`: what `make demo` and the tests run, minutes on 2 CPU cores: N2V's short preset with 2
-#:   inference passes, 40 round-2 fine-tuning steps, the preview alignment with every point kept
+#: - `fast`: what `make demo` and the tests run, minutes on 2 CPU cores: one round of N2V's short preset
+#:   with 2 inference passes (with `--rounds 2`, 40 round-2 fine-tuning steps and the stop when the refine
+#:   keeps the previous network; round 2 lowered DTU scan24 with Poisson-Gaussian noise by 1.07 dB held
+#:   out, docs/bench/pipeline_demo.md), the preview alignment with every point kept
 #:   (up to 100k), the `instantsplat` splat (1000 iterations; with the 300 of `quick` the demo's denoised
 #:   views were +1.12 dB over the noisy splat's, with 1000 +1.67); round 1's photos refined by the DCT
 #:   Wiener step (on `make demo`'s scene 25.08 / 0.744 / 0.131 held out against 24.86 / 0.734 / 0.145
