@@ -352,7 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--views", type=int_range(2), default=None,
                     help="K for rounds >= 2 (default min(12, training views))")
     ev.add_argument("--pose-fit-iters", type=nonneg_int, default=None, help="held-out pose refinement steps")
-    ev.add_argument("--splat-iters", type=positive_int, default=None, help="splat training iterations (all methods)")
+    ev.add_argument("--splat-iters", type=positive_int, default=None,
+                    help="splat training iterations of every method (default: the preset's for product and "
+                         "oracle_clean, InstantSplat's 1000 for the baselines and the paper's loop)")
     ev.add_argument("--device", default="cpu", help=DEVICE_HELP + "; default cpu")
     ev.add_argument("--denoiser", choices=DENOISE_METHODS, default="n2v",
                     help="round 1's objective for the N2V methods (default n2v; others: one-round methods only)")

@@ -25,9 +25,11 @@ training images with the ground-truth poses, initialised from the ground-truth
 depth maps (an oracle initialisation, so it is an optimistic baseline) or,
 without depth maps, from the ground-truth model's points.
 
-`oracle_clean` is a reference, not a competitor: (b)'s alignment and splat on the
-*clean* training photos, i.e. a perfect denoiser. It is the ceiling of every
-denoise-then-reconstruct method with the same settings.
+`oracle_clean` is a reference, not a competitor: (b)'s alignment and the preset's
+splat (the product's length) on the *clean* training photos, i.e. a perfect
+denoiser. It is the ceiling of every denoise-then-reconstruct method with the
+same settings. The baselines and the paper's loop splat for InstantSplat's 1000
+iterations under every preset (`eval.methods.paper_loop`).
 
 Each (scene, method, seed) is one call, `run_task(EvalTask)`, whose argument is
 plain picklable data. A method that cannot handle the input, by a documented
@@ -60,7 +62,7 @@ import numpy as np
 from eval.distributed import chain_after
 from eval.heldout import map_cameras_local
 from eval.image_metrics import score_images
-from eval.methods import METHODS, EvalMethod, reconstruct
+from eval.methods import METHODS, EvalMethod, reconstruct, with_splat_iters
 from eval.pipeline import PipelineConfig, preset
 from eval.pipeline.config import DENOISE_METHODS, DenoiseMethod
 from eval.pipeline.run import RUN_COMMAND, SCENE_OUTPUTS, planned_run_outputs
@@ -125,8 +127,6 @@ def base_pipeline_config(config: EvalConfig, views: int) -> PipelineConfig:
     """The pipeline configuration every method of an evaluation starts from: `config.preset` at the working
     size (`max_size=None`), with K = `views` and the evaluation's overrides."""
     base = dataclasses.replace(preset(config.preset, views=views, device=config.device), max_size=None)
-    if config.splat_iters is not None:
-        base = dataclasses.replace(base, splat=dataclasses.replace(base.splat, iters=config.splat_iters))
     if config.allow_focal_prior:
         base = dataclasses.replace(base, align=dataclasses.replace(base.align, max_focal_log_std=FOCAL_PRIOR_OK))
     if config.grouped_wiener is not None:
@@ -147,7 +147,9 @@ class EvalConfig:
         preset: pipeline preset for every method.
         views: K for rounds >= 2; None = min(12, number of training views).
         pose_fit_iters: held-out pose refinement steps; None = `splat`'s default.
-        splat_iters: splat training iterations for every method; None = the preset's.
+        splat_iters: splat training iterations for every method, the baselines' included; None = each
+            method's own: the preset's for the product and the clean-photo oracle, InstantSplat's 1000
+            for the baselines and the paper's loop (`eval.methods.paper_loop`).
         device: torch device.
         allow_focal_prior: let alignment keep an undetermined focal length (the prior or its
             estimate) instead of refusing (`AlignSettings.max_focal_log_std`), as InstantSplat does;
@@ -193,7 +195,8 @@ class EvalConfig:
 
     def selected(self) -> list[EvalMethod]:
         """The chosen methods in the registry's order (the ablations after the round 1 they share)."""
-        return [m for m in METHODS.values() if m.name in self.methods]
+        chosen = [m for m in METHODS.values() if m.name in self.methods]
+        return chosen if self.splat_iters is None else [with_splat_iters(m, self.splat_iters) for m in chosen]
 
 
 # ----------------------------------------------------------------- helpers

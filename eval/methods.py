@@ -8,7 +8,8 @@ the pipeline, which stages it runs, and the folder it runs in.
   `rounds_4`; the Table 2 ablations `ablate_no_selection`, `ablate_charbonnier`;
 - the extension `n2v_fused_round1`, `denoise_gs_fused` (`PipelineConfig.fuse_noisy_splat`);
 - `product`: the preset exactly as `denoise-gs run` ships it (its denoiser, rounds and fusion);
-- the reference `oracle_clean`: (b) on the *clean* training photos, a perfect denoiser;
+- the reference `oracle_clean`: the *clean* training photos through (b)'s alignment and the preset's splat,
+  a perfect denoiser;
 - `<method>@gt_poses` for every method with estimated poses: the photos its (last) splat trained on,
   splatted again with the ground-truth cameras (`gt_pose_variant`), so that the denoising's effect is
   seen apart from the method's pose error.
@@ -52,7 +53,7 @@ from mvgeo.common.errors import DegenerateGeometryError, DisconnectedViewsError
 from mvgeo.common.output import read_manifest, write_manifest
 
 __all__ = ["GT_POSES_SUFFIX", "METHODS", "ORACLE_CLEAN", "EvalMethod", "Reconstruction", "gt_pose_variant",
-           "reconstruct", "share_round1", "splat_photos"]
+           "reconstruct", "share_round1", "splat_photos", "with_splat_iters"]
 
 _log = logging.getLogger(__name__)
 
@@ -61,12 +62,22 @@ _log = logging.getLogger(__name__)
 def paper_loop(base: PipelineConfig) -> PipelineConfig:
     """The paper's loop, whatever the preset says: N2V (the methods that take `--denoiser` replace it), no
     noisy-photo fusion, splats trained on the round's photos as they are (no noisy-photo band,
-    `SplatSettings.noisy_detail`), the denoised photos aligned, each round's own alignment, every round run.
-    The baselines and the clean-photo oracle run it too: their splats see their own photos only."""
+    `SplatSettings.noisy_detail`) for InstantSplat's 1000 iterations (the `splat.train` preset's own
+    length, whatever the preset's product splat runs), the denoised photos aligned, each round's own
+    alignment, every round run. The baselines run it too: their splats see their own photos only, in their
+    own recipe (the noisy photos' splat loses 0.7 dB from a second thousand iterations on DTU scan24,
+    docs/bench/splat_length_real.md: a longer one would flatter the product)."""
     return dataclasses.replace(base, fuse_noisy_splat=False, stop_when_unrefined=False,
-                               splat=dataclasses.replace(base.splat, noisy_detail=0.0),
+                               splat=dataclasses.replace(base.splat, noisy_detail=0.0, iters=None),
                                denoise=dataclasses.replace(base.denoise, method="n2v"),
                                align=dataclasses.replace(base.align, reuse_geometry="never", photos="denoised"))
+
+
+def clean_oracle(base: PipelineConfig) -> PipelineConfig:
+    """`oracle_clean`: the paper's loop with the preset's splat length: the clean photos splatted as the
+    product splats its denoised ones, so that the product's gap to it is its denoising's."""
+    cfg = paper_loop(base)
+    return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, iters=base.splat.iters))
 
 
 def fused_loop(base: PipelineConfig) -> PipelineConfig:
@@ -210,6 +221,27 @@ class _WithGtPosesSplat:
         return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, preset="gt_poses"))
 
 
+@dataclass(frozen=True)
+class _WithSplatIters:
+    """A method's settings with its splat trained for `iters` iterations (a value: equal after pickling)."""
+
+    configure: Callable[[PipelineConfig], PipelineConfig]
+    iters: int
+
+    def __call__(self, base: PipelineConfig) -> PipelineConfig:
+        cfg = self.configure(base)
+        return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, iters=self.iters))
+
+
+def with_splat_iters(method: EvalMethod, iters: int) -> EvalMethod:
+    """`method` with every splat it runs (a ground-truth-pose variant's method and points included) trained
+    for `iters` iterations, the baselines' too (`denoise-gs eval --splat-iters`)."""
+    of, points = method.gt_pose_variant_of, method.gt_pose_points_from
+    return dataclasses.replace(method, configure=_WithSplatIters(method.configure, iters),
+                               gt_pose_variant_of=None if of is None else with_splat_iters(of, iters),
+                               gt_pose_points_from=None if points is None else with_splat_iters(points, iters))
+
+
 def gt_pose_variant(method: EvalMethod, points_from: EvalMethod) -> EvalMethod:
     """`<method>@gt_poses`: the photos `method`'s last splat trained on (its denoised photos, or the fused
     ones), splatted with the ground-truth cameras and no pose learning, initialised from `points_from`'s
@@ -231,8 +263,8 @@ def gt_pose_variant(method: EvalMethod, points_from: EvalMethod) -> EvalMethod:
 
 #: The reference on the clean photos, also the source of every ground-truth-pose variant's initial points
 #: (`gt_pose_variant`).
-ORACLE_CLEAN = EvalMethod("oracle_clean", "oracle_clean", "reference: (b) on the clean photos", 1, paper_loop,
-                          oracle_clean_stages)
+ORACLE_CLEAN = EvalMethod("oracle_clean", "oracle_clean", "reference: the clean photos through (b)'s alignment and "
+                          "the preset's splat", 1, clean_oracle, oracle_clean_stages)
 
 
 def _registry(*methods: EvalMethod) -> dict[str, EvalMethod]:

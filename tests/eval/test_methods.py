@@ -75,12 +75,29 @@ def test_the_paper_loop_aligns_the_denoised_photos_and_the_default_the_better_of
     for name in ("instantsplat", "oracle_clean", "n2v_round1", "denoise_gs", "ablate_no_selection"):
         assert METHODS[name].pipeline_config(base).align.photos == "denoised", name  # (b), oracle: their photos
     assert METHODS["product"].pipeline_config(base).align.photos == "better_of"
-    assert METHODS["oracle_clean"].pipeline_config(base) == METHODS["instantsplat"].pipeline_config(base)
-    assert METHODS["oracle_clean"].family == "oracle_clean"  # (b)'s settings, its own folder
+    oracle, b = METHODS["oracle_clean"].pipeline_config(base), METHODS["instantsplat"].pipeline_config(base)
+    assert oracle == dataclasses.replace(b, splat=oracle.splat)  # (b)'s settings but the splat's length ...
+    assert METHODS["oracle_clean"].family == "oracle_clean"  # ... in its own folder
     gt = METHODS["3dgs_gt_poses"]
     assert gt.ground_truth_poses and gt.pipeline_config(base).splat.preset == "gt_poses"
-    assert gt.pipeline_config(base).splat.iters == base.splat.iters
+    assert gt.pipeline_config(base).splat.iters is None  # InstantSplat's, as (b)'s
     assert [m.name for m in METHODS.values() if m.ground_truth_poses] == ["3dgs_gt_poses", *VARIANTS]
+
+
+@pytest.mark.parametrize("name", ["fast", "default", "best"])
+def test_the_baselines_splat_for_instantsplats_length_the_product_and_the_oracle_for_the_presets(name):
+    base = preset(name, views=4)
+    for m in ("instantsplat", "nlm_instantsplat", "3dgs_gt_poses", "n2v_round1", "denoise_gs",
+              "instantsplat@gt_poses", "denoise_gs@gt_poses"):
+        assert METHODS[m].pipeline_config(base).splat.iters is None, m  # splat.train's "instantsplat": 1000
+    for m in ("product", "oracle_clean", "product@gt_poses", "oracle_clean@gt_poses", "n2v_fused_round1"):
+        assert METHODS[m].pipeline_config(base).splat.iters == base.splat.iters, m
+    # --splat-iters: every splat a method runs, its ground-truth-pose variant's method and points included
+    for m in EvalConfig(methods=("instantsplat", "product@gt_poses"), splat_iters=300).selected():
+        for each in (m, m.gt_pose_variant_of, m.gt_pose_points_from):
+            assert each is None or each.pipeline_config(base).splat.iters == 300, each.name
+        assert pickle.loads(pickle.dumps(m)) == m  # still a value (sent to Ray workers)
+    assert EvalConfig(methods=("product",)).selected() == [METHODS["product"]]
 
 
 def test_a_gt_pose_variant_is_its_method_with_the_known_pose_splat():
