@@ -4,7 +4,9 @@ front end) and with the true cameras, PSNR and LPIPS, mean and sample std over s
 
 Each set is given as `LABEL=RESULTS[,RESULTS...]`: `results.json` files of `denoise-gs eval` runs on that set,
 whose rows are pooled (one evaluation may hold the product, another the baselines); a method missing from a
-set is left out of its group. A dashed mark shows (b) + 3 dB, issue 23's goal for the product.
+set is left out of its group. `RESULTS#method[+method...]` takes only those methods' rows from that file (e.g. the
+product of an evaluation whose references ran at another splat length). A dashed mark shows (b) + 3 dB, issue
+23's goal for the product.
 
 Usage: .venv/bin/python benchmarks/plot_real_quality.py OUT.png "LABEL=runs/a/results.json,runs/b/results.json" ...
 """
@@ -26,14 +28,16 @@ COLOURS = {"instantsplat": "#9e9e9e", "product": "#1f77b4", "product@gt_poses": 
            "oracle_clean@gt_poses": "#2ca02c"}
 
 
-def _pooled(files: list[Path]) -> dict[str, dict[str, list[float]]]:
-    """method -> metric -> values over seeds (failed runs left out)."""
+def _pooled(files: list[str]) -> dict[str, dict[str, list[float]]]:
+    """method -> metric -> values over seeds (failed runs left out); `FILE#m1+m2` keeps only those methods."""
     out: dict[str, dict[str, list[float]]] = {}
     seen: set[tuple[str, int]] = set()
-    for f in files:
-        for r in json.loads(f.read_text())["runs"]:
+    for spec in files:
+        f, _, only = spec.partition("#")
+        keep = set(only.split("+")) if only else set(METHODS)
+        for r in json.loads(Path(f).read_text())["runs"]:
             key = (r["method"], r["seed"])
-            if r["method"] not in METHODS or key in seen or r.get("error") or r["psnr_db"] is None:
+            if r["method"] not in keep & set(METHODS) or key in seen or r.get("error") or r["psnr_db"] is None:
                 continue
             seen.add(key)
             for m in ("psnr_db", "lpips"):
@@ -52,7 +56,7 @@ def main() -> int:
         if not files:
             print(f"{spec!r}: expected LABEL=results.json[,...]", file=sys.stderr)
             return 2
-        sets.append((label, _pooled([Path(f) for f in files.split(",")])))
+        sets.append((label, _pooled(files.split(","))))
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.4))
     width = 0.8 / len(METHODS)
     for ax, metric, label in ((axes[0], "psnr_db", "held-out PSNR (dB), higher is better"),
