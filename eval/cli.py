@@ -274,16 +274,19 @@ def build_parser() -> argparse.ArgumentParser:
     add_common_args(parser)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    run = sub.add_parser("run", help="run the pipeline (denoise, align, splat; the N2V presets two rounds) on a "
-                                     "folder of noisy images")
+    run = sub.add_parser("run", help="run the pipeline (denoise, align, splat; one round, --rounds 2 for the "
+                                     "paper's second) on a folder of noisy images")
     run.add_argument("images_dir", type=Path,
                      help="folder of noisy images (PNG/JPEG/TIFF/WebP; HEIC and raw photos: convert them first)")
     run.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP)
-    run.add_argument("--preset", choices=sorted(PRESETS), default="default", help="settings preset")
+    run.add_argument("--preset", choices=sorted(PRESETS), default="default",
+                     help="settings preset: fast (N2V, a 1000-iteration splat; make demo's), default (R2R or "
+                          "Neighbor2Neighbor with the Wiener steps, a 2000-iteration splat), best (default with "
+                          "the UNet at width 32)")
     run.add_argument("--views", type=int_range(2), default=None,
                      help="K views kept for rounds >= 2 (default 12); needs at least K images")
     run.add_argument("--rounds", type=positive_int, default=None,
-                     help="1 = round 1 only; default: the preset's (1 with default and best, 2 with fast)")
+                     help="1 = round 1 only (every preset's); 2 adds the paper's second round (N2V only)")
     run.add_argument("--seed", type=seed, default=None, help="master seed (default 0)")
     run.add_argument("--device", default=None, help=DEVICE_HELP + "; default cpu")
     run.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
