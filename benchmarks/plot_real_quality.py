@@ -34,10 +34,10 @@ def _pooled(files: list[str]) -> dict[str, dict[str, list[float]]]:
     seen: set[tuple[str, int]] = set()
     for spec in files:
         f, _, only = spec.partition("#")
-        keep = set(only.split("+")) if only else set(METHODS)
+        keep = set(only.split("+")) & set(METHODS) if only else set(METHODS)
         for r in json.loads(Path(f).read_text())["runs"]:
             key = (r["method"], r["seed"])
-            if r["method"] not in keep & set(METHODS) or key in seen or r.get("error") or r["psnr_db"] is None:
+            if r["method"] not in keep or key in seen or r.get("error") or r["psnr_db"] is None:
                 continue
             seen.add(key)
             for m in ("psnr_db", "lpips"):
