@@ -1,8 +1,8 @@
 """Whole-pipeline time per preset, image size and view count, with held-out quality alongside.
 
-Each configuration is one `denoise-gs eval llff_like --methods denoise_gs_fused --seeds 1` in its own
-process (the full two-round pipeline with the noisy-photo fusion, then held-out pose fitting and
-scoring): `--preset P --size WxH --scene-views V`. `llff_like` holds out every 8th view, so 14 scene
+Each configuration is one `denoise-gs eval llff_like --methods product --seeds 1` in its own
+process (the preset's whole pipeline, as `denoise-gs run` runs it, then held-out pose fitting and
+scoring): `--preset P --size WxH --scene-views V`. `--method M` times another evaluation method. `llff_like` holds out every 8th view, so 14 scene
 views give 12 training views and 20 give 17. Reported per run: the pipeline's recorded seconds (all
 stages of both rounds, from the run's report.json), the evaluation's wall time (pipeline + held-out
 pose fitting + scoring), the seconds per stage, the splat trainer's sub-steps where the report
@@ -10,7 +10,7 @@ records them, held-out PSNR / SSIM / LPIPS, and the machine's load before and af
 
 Usage:
     .venv/bin/python benchmarks/bench_pipeline_speed.py [--configs=fast:256x192:12,default:504x378:17]
-        [--out=runs/bench_pipeline_speed] [--summarise]
+        [--method=product] [--out=runs/bench_pipeline_speed_product] [--summarise]
 
 `--configs` defaults to every combination of the `fast` and `default` presets, 256x192 and
 504x378, 12 and 17 training views (eight runs; hours on 2 cores). Output folders are kept, so an
@@ -40,16 +40,16 @@ def _load() -> str:
     return " / ".join(f"{x:.1f}" for x in os.getloadavg())
 
 
-def run_one(spec: str, out_root: Path) -> Path:
+def run_one(spec: str, out_root: Path, method: str) -> Path:
     preset, size, views = spec.split(":")
     n_train = int(views)
     if n_train not in TRAIN_TO_SCENE_VIEWS:
         raise SystemExit(f"--configs: training views must be one of {sorted(TRAIN_TO_SCENE_VIEWS)}, got {views}")
     out = out_root / f"{preset}_{size}_{n_train}"
     cmd = [str(ROOT / ".venv/bin/denoise-gs"), "eval", SCENE, "--out", str(out), "--seeds", "1",
-           "--methods", "denoise_gs_fused", "--preset", preset, "--size", size,
+           "--methods", method, "--preset", preset, "--size", size,
            "--scene-views", str(TRAIN_TO_SCENE_VIEWS[n_train]), "--max-size", "0"]
-    meta = {"spec": spec, "command": " ".join(cmd[1:]), "load_before": _load()}
+    meta = {"spec": spec, "method": method, "command": " ".join(cmd[1:]), "load_before": _load()}
     start = time.perf_counter()
     env = dict(os.environ, DGS_NO_PROGRESS="1", OMP_WAIT_POLICY=os.environ.get("OMP_WAIT_POLICY", "PASSIVE"))
     proc = subprocess.run(cmd, cwd=ROOT, env=env, check=False, capture_output=True, text=True)
@@ -76,7 +76,7 @@ def summarise(out_root: Path) -> tuple[list[list[object]], str, list[str]]:
             rows.append([preset, size, views, "failed", "", "", "", "", meta["load_before"]])
             continue
         results = json.loads((out / "results.json").read_text())
-        run = next(r for r in results["runs"] if r["method"] == "denoise_gs_fused")
+        run = next(r for r in results["runs"] if r["method"] == meta.get("method", "denoise_gs_fused"))
         report = json.loads(next((out / "runs").glob("*/seed0/*/report.json")).read_text())
         stages = report["seconds_per_stage_recorded"]
         pipeline_s = sum(stages.values())
@@ -113,20 +113,21 @@ def _splat_substeps(out: Path) -> dict[str, dict[str, float]]:
 
 def main(argv: list[str]) -> int:
     configs = cli_option("configs", ",".join(DEFAULT_CONFIGS)).split(",")
-    out_root = Path(cli_option("out", str(ROOT / "runs" / "bench_pipeline_speed")))
+    method = cli_option("method", "product")
+    out_root = Path(cli_option("out", str(ROOT / "runs" / f"bench_pipeline_speed_{method}")))
     out_root.mkdir(parents=True, exist_ok=True)
     if "--summarise" not in argv:
         for spec in configs:
             print(f"[{time.strftime('%H:%M:%S')}] {spec} (load {_load()})", flush=True)
-            run_one(spec, out_root)
+            run_one(spec, out_root, method)
     rows, details, found = summarise(out_root)
     body = (
         "Reproduce: `.venv/bin/python benchmarks/bench_pipeline_speed.py --configs="
-        f"{','.join(found)}` (`make bench ONLY=pipeline_speed` runs all eight configurations; each run "
+        f"{','.join(found)} --method={method}` (`make bench ONLY=pipeline_speed` runs all eight configurations; each run "
         "is its own process, one after the other; `--summarise` rebuilds this page from the runs kept "
         "under `--out`).\n\n"
-        f"`denoise-gs eval {SCENE} --methods denoise_gs_fused --seeds 1` per configuration: both rounds "
-        "with the noisy-photo fusion, then held-out pose fitting and scoring against the clean test views. "
+        f"`denoise-gs eval {SCENE} --methods {method} --seeds 1` per configuration: the preset's pipeline "
+        "as `denoise-gs run` runs it, then held-out pose fitting and scoring against the clean test views. "
         "`pipeline min`: the stages' recorded time (the user's wait for `denoise-gs run`); `eval min`: "
         "the whole evaluation. 2 shared CPU cores; the load column says how busy the machine was. "
         "Goal: `default` at 504x378 with 17 views in 15 minutes or less. Before/after figures for the "
