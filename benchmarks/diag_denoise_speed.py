@@ -3,16 +3,16 @@
 Times what the pipeline's denoise stage does (`denoise.self_supervised.train_with_method`, then
 `denoise_with_method`, under the stage's fixed torch thread count) on the 12 noisy training photos of a
 dataset: R2R training steps of the `default` preset's UNet (width 16) and the `best` preset's (width 32), and
-the 8-pass inference over the 12 photos; with `--tasks dct,grouped`, the two Wiener steps. The base
-commit's files are extracted with `git archive` into a temporary folder (the repository's history is
-needed; nothing is registered in it); the two code versions run as separate processes, alternating, `--repeats` times, so both see the same machine load. A diagnostic,
-not part of `make bench`: it compares against a chosen commit. With `--quality`
-both versions also train the `default` network for its full 2000 steps (seed 0) and the photos are scored
-against `clean/` (PSNR, SSIM): a faster path must give the same photos up to float round-off.
+the 8-pass inference over the 12 photos; with `--tasks dct,grouped`, the two Wiener steps. The base commit's
+files are extracted with `git archive` into a temporary folder (the repository's history is needed; nothing is
+registered in it); the two code versions run as separate processes, alternating, `--repeats` times, so both
+see the same machine load. A diagnostic, not part of `make bench`: it compares against a chosen commit. With
+`--quality` both versions also train the `default` network for its full 2000 steps (seed 0) and the photos are
+scored against `clean/` (PSNR, SSIM): a faster path must give the same photos up to float round-off.
 
-Without a dataset argument the DTU scan24 photos of `../shared/data` are imported (12 training views,
-sigma 25/255, seed 0) into a temporary folder; without `../shared/data` the built-in `llff_like` scene is
-rendered at 384x288 (the benchmark then says so).
+Without a dataset argument the DTU scan24 photos of `../shared/data` are imported (12 training views, sigma
+25/255, seed 0) into a temporary folder; without `../shared/data` the built-in `llff_like` scene is rendered
+at 384x288 (the benchmark then says so).
 
 Usage: .venv/bin/python benchmarks/diag_denoise_speed.py [--dataset DIR] [--base REF] [--repeats N]
            [--steps S] [--quality] [--tasks train,infer,dct,grouped] [--page NAME]
