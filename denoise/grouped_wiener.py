@@ -99,15 +99,13 @@ def _patch_distances(pilot: np.ndarray, ref_y: np.ndarray, ref_x: np.ndarray, pa
     pixel-wise squared differences of ``o`` are computed once, and the reference ``r``'s distance at ``-o``
     is the window sum of ``o``'s at ``r - o``. `search_offsets` is symmetric, so half of them are computed."""
     H, W = pilot.shape[:2]
-    Hp, Wp = H - patch + 1, W - patch + 1
     dist = np.full((len(ref_y), len(offsets)), np.inf, np.float32)
     index = {(int(dy), int(dx)): k for k, (dy, dx) in enumerate(offsets)}
     done = np.zeros(len(offsets), bool)
-
-    def fill(k: int, ty: np.ndarray, tx: np.ndarray, oy: np.ndarray, ox: np.ndarray, box: np.ndarray) -> None:
-        # references whose partner patch (ty, tx) is inside; the window sum of the differences at origin (oy, ox)
-        ok = (ty >= 0) & (ty < Hp) & (tx >= 0) & (tx < Wp)
-        dist[ok, k] = box[oy[ok], ox[ok]]
+    # Window sums are read from a frame of inf `reach` px wide on every side: a patch partly outside the
+    # photo reads inf, the reference's distance to it.
+    reach = int(np.abs(offsets).max()) if len(offsets) else 0
+    frame = np.full((H + 2 * reach, W + 2 * reach), np.inf)
 
     for k, (dy, dx) in enumerate(offsets):
         if done[k]:
@@ -120,9 +118,13 @@ def _patch_distances(pilot: np.ndarray, ref_y: np.ndarray, ref_x: np.ndarray, pa
             continue
         diff = pilot[y0:y1, x0:x1] - pilot[y0 + dy:y1 + dy, x0 + dx:x1 + dx]
         box = _window_sums(np.einsum("ijc,ijc->ij", diff, diff), patch)  # entry (i, j): origin (y0 + i, x0 + j)
-        fill(k, ref_y + dy, ref_x + dx, ref_y - y0, ref_x - x0, box)
-        if mirror != k:  # the pair (r, r - o) is the pair (r - o, r) of offset o
-            fill(mirror, ref_y - dy, ref_x - dx, ref_y - dy - y0, ref_x - dx - x0, box)
+        # The frame holds o's window sums at their origins, inf at every origin where the pair (r, r + o)
+        # leaves the photo.
+        frame.fill(np.inf)
+        frame[reach + y0:reach + y0 + box.shape[0], reach + x0:reach + x0 + box.shape[1]] = box
+        dist[:, k] = frame[reach + ref_y, reach + ref_x]
+        if mirror != k:  # the pair (r, r - o) is the pair (r - o, r) of offset o: o's sum at origin r - o
+            dist[:, mirror] = frame[reach + ref_y - dy, reach + ref_x - dx]
     return dist
 
 
