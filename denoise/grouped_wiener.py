@@ -225,7 +225,7 @@ def _wiener_rows(Yc: torch.Tensor, Bc: torch.Tensor, S: torch.Tensor) -> torch.T
     identity): with ``A = Bc / sqrt(n - 1)``, ``(A^T A + S)^-1 A^T A = S^-1 A^T (I + A S^-1 A^T)^-1 A``.
     Both ways factor a matrix of the same condition number, ``1 + lambda_max(C) / min(S)``; the ``n x n``
     one costs about half the arithmetic and a solve with ``n`` instead of ``d`` right-hand sides (the
-    `denoise-gs` photos: docs/bench/denoise_speed.md). Otherwise the ``d x d`` system is solved directly.
+    step measured in docs/bench/denoise_wiener_speed.md). Otherwise the ``d x d`` system is solved directly.
     """
     n, d = Bc.shape[1], Bc.shape[2]
     if n < d:
