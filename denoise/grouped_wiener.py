@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from denoise.wiener import OPPONENT, block_origins, box_sums
+from denoise.wiener import OPPONENT, block_origins
 
 __all__ = ["GroupedWienerConfig", "grouped_wiener", "search_offsets"]
 
@@ -75,25 +75,56 @@ def search_offsets(radius: int) -> np.ndarray:
     return np.stack([dy.ravel(), dx.ravel()], axis=1)
 
 
+def _window_sums(a: np.ndarray, block: int) -> np.ndarray:
+    """Sum of the ``(h, w)`` array `a` over every ``block x block`` window, ``(h - block + 1, w - block + 1)``,
+    by ``2 * block`` shifted additions (rows, then columns). The sum of a window depends only on the values
+    in it, not on where the window lies: translated windows of the same values give the same bits (an
+    integral image's differences do not), which `_patch_distances`' symmetry relies on."""
+    h, w = a.shape
+    rows = a[:h - block + 1].copy()
+    for i in range(1, block):
+        rows += a[i:h - block + 1 + i]
+    out = rows[:, :w - block + 1].copy()
+    for j in range(1, block):
+        out += rows[:, j:w - block + 1 + j]
+    return out
+
+
 def _patch_distances(pilot: np.ndarray, ref_y: np.ndarray, ref_x: np.ndarray, patch: int,
                      offsets: np.ndarray) -> np.ndarray:
     """``(R, K)`` squared distances between each reference patch of `pilot` ``(H, W, C)`` and the patch at
-    each offset (``inf`` where that patch leaves the photo)."""
+    each offset (``inf`` where that patch leaves the photo).
+
+    The distances at offset ``o`` and at ``-o`` are the same patch pairs seen from either end: the
+    pixel-wise squared differences of ``o`` are computed once, and the reference ``r``'s distance at ``-o``
+    is the window sum of ``o``'s at ``r - o``. `search_offsets` is symmetric, so half of them are computed."""
     H, W = pilot.shape[:2]
-    Hp, Wp = H - patch + 1, W - patch + 1
     dist = np.full((len(ref_y), len(offsets)), np.inf, np.float32)
+    index = {(int(dy), int(dx)): k for k, (dy, dx) in enumerate(offsets)}
+    done = np.zeros(len(offsets), bool)
+    # Window sums are read from a frame of inf `reach` px wide on every side: a patch partly outside the
+    # photo reads inf, the reference's distance to it.
+    reach = int(np.abs(offsets).max()) if len(offsets) else 0
+    frame = np.full((H + 2 * reach, W + 2 * reach), np.inf)
+
     for k, (dy, dx) in enumerate(offsets):
+        if done[k]:
+            continue
+        mirror = index.get((-int(dy), -int(dx)), k)
+        done[k] = done[mirror] = True
         # Pixel-wise squared difference between (i, j) and (i + dy, j + dx), where both are inside.
         y0, y1, x0, x1 = max(0, -dy), min(H, H - dy), max(0, -dx), min(W, W - dx)
         if y1 - y0 < patch or x1 - x0 < patch:  # no patch at this offset stays inside the photo
             continue
         diff = pilot[y0:y1, x0:x1] - pilot[y0 + dy:y1 + dy, x0 + dx:x1 + dx]
-        sq = np.zeros((H, W), np.float64)
-        sq[y0:y1, x0:x1] = np.einsum("ijc,ijc->ij", diff, diff)
-        box = box_sums(sq, patch)
-        ty, tx = ref_y + dy, ref_x + dx
-        ok = (ty >= 0) & (ty < Hp) & (tx >= 0) & (tx < Wp)
-        dist[ok, k] = box[ref_y[ok], ref_x[ok]]
+        box = _window_sums(np.einsum("ijc,ijc->ij", diff, diff), patch)  # entry (i, j): origin (y0 + i, x0 + j)
+        # The frame holds o's window sums at their origins, inf at every origin where the pair (r, r + o)
+        # leaves the photo.
+        frame.fill(np.inf)
+        frame[reach + y0:reach + y0 + box.shape[0], reach + x0:reach + x0 + box.shape[1]] = box
+        dist[:, k] = frame[reach + ref_y, reach + ref_x]
+        if mirror != k:  # the pair (r, r - o) is the pair (r - o, r) of offset o: o's sum at origin r - o
+            dist[:, mirror] = frame[reach + ref_y - dy, reach + ref_x - dx]
     return dist
 
 
@@ -145,37 +176,66 @@ def grouped_wiener(noisy: np.ndarray, pilot: np.ndarray, sigma: float | np.ndarr
     chosen[outside] = len(offsets) // 2
 
     dy, dx = np.meshgrid(np.arange(p), np.arange(p), indexing="ij")
-    dy, dx = dy.ravel(), dx.ravel()
+    within = torch.from_numpy(dy.ravel() * W + dx.ravel())  # a patch's pixels from its origin, flat (row-major)
+    # Per patch origin: the patch's mean noise variance per channel and its count of clipped values (over the
+    # channels); a group's are the means and the sum of its patches' (all patches have p^2 pixels).
+    v_win = np.zeros((H, W, C))
+    c_win = np.zeros((H, W))
+    clipped = ((y_rgb <= 0.0) | (y_rgb >= 1.0)).sum(axis=2).astype(np.float64)  # values, not pixels
+    for c in range(C):
+        v_win[:H - p + 1, :W - p + 1, c] = _window_sums(var[..., c], p) / (p * p)
+    c_win[:H - p + 1, :W - p + 1] = _window_sums(clipped, p)
     # Groups in float32 (the covariance is regularised by the noise's, at least 1e-6 per pixel and usually
     # ~1e-3: well conditioned), sums in float64.
-    y_t, b_t = torch.from_numpy(y.astype(np.float32)), torch.from_numpy(b.astype(np.float32))
-    v_t = torch.from_numpy(var.astype(np.float32))
-    clipped_t = torch.from_numpy((y_rgb <= 0.0) | (y_rgb >= 1.0))  # (H, W, C): values, not pixels
+    y_f = torch.from_numpy(y.astype(np.float32).reshape(H * W, C))
+    b_f = torch.from_numpy(b.astype(np.float32).reshape(H * W, C))
+    v_f = torch.from_numpy(v_win.astype(np.float32).reshape(H * W, C))
+    c_f = torch.from_numpy(c_win.reshape(H * W))
     num = torch.zeros((H * W, C), dtype=torch.float64)
     den = torch.zeros(H * W, dtype=torch.float64)
     d = p * p * C
     for c0 in range(0, len(ref_y), config.groups_per_chunk):
         rows = slice(c0, c0 + config.groups_per_chunk)
-        oy = ref_y[rows, None] + offsets[chosen[rows], 0]  # (r, n) patch origins
-        ox = ref_x[rows, None] + offsets[chosen[rows], 1]
-        gy = torch.from_numpy(oy[:, :, None] + dy)  # (r, n, p^2) pixel rows
-        gx = torch.from_numpy(ox[:, :, None] + dx)
-        r = gy.shape[0]
-        Y = y_t[gy, gx].reshape(r, n, d)  # (r, n, p^2, C) -> (r, n, d), pixel-major
-        B = b_t[gy, gx].reshape(r, n, d)
-        noise_var = v_t[gy, gx].mean(dim=(1, 2))  # (r, C): the group's mean variance per channel
+        origin = torch.from_numpy((ref_y[rows, None] + offsets[chosen[rows], 0]) * W
+                                  + ref_x[rows, None] + offsets[chosen[rows], 1])  # (r, n) patch origins, flat
+        r = origin.shape[0]
+        flat = (origin[:, :, None] + within).reshape(-1)  # (r * n * p^2) pixels
+        Y = y_f[flat].reshape(r, n, d)  # (r, n, p^2, C) -> (r, n, d), pixel-major
+        B = b_f[flat].reshape(r, n, d)
+        noise_var = v_f[origin].mean(dim=1)  # (r, C): the group's mean variance per channel
         S = noise_var[:, None, :].expand(r, p * p, C).reshape(r, d)
         mean_b = B.mean(dim=1, keepdim=True)
         Bc = B - mean_b
-        cov = Bc.transpose(1, 2) @ Bc / (n - 1)
-        share = clipped_t[gy, gx].reshape(r, -1).to(torch.float32).mean(dim=1)
+        share = c_f[origin].sum(dim=1) / (n * d)  # the share of the group's noisy values at 0 or 1
         mean = torch.where((share > config.clipped_share)[:, None, None], mean_b, Y.mean(dim=1, keepdim=True))
-        # x - m = C (C + S)^-1 (y - m); as row vectors (y - m)^T (C + S)^-1 C, both matrices symmetric.
-        chol = torch.linalg.cholesky(cov + torch.diag_embed(S))
-        gain = torch.cholesky_solve(cov, chol)  # (C + S)^-1 C
-        X = mean + (Y - mean) @ gain
-        flat = (gy * W + gx).reshape(-1)
+        X = mean + _wiener_rows(Y - mean, Bc, S)
         num.index_add_(0, flat, X.reshape(-1, C).to(torch.float64))
         den.index_add_(0, flat, torch.ones(flat.numel(), dtype=torch.float64))
     out = (num / den[:, None]).reshape(H, W, C).numpy() @ to_work
     return (out[..., 0] if gray else out).astype(np.float32)
+
+
+def _wiener_rows(Yc: torch.Tensor, Bc: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
+    """``(Y - m) (C + S)^-1 C`` per group: the centred noisy patches `Yc` ``(r, n, d)`` as rows through the
+    Wiener gain of the pilot's covariance ``C = Bc^T Bc / (n - 1)`` (`Bc`: the centred pilot patches,
+    ``(r, n, d)``) and the diagonal noise covariance `S` ``(r, d)``; row vectors, both matrices symmetric.
+
+    With fewer patches than dimensions (``n < d``: colour groups, 40 patches of 75 values) ``C`` has rank at
+    most ``n - 1`` and the gain is solved in the group's ``n``-dimensional space instead (the push-through
+    identity): with ``A = Bc / sqrt(n - 1)``, ``(A^T A + S)^-1 A^T A = S^-1 A^T (I + A S^-1 A^T)^-1 A``.
+    Both ways factor a matrix of the same condition number, ``1 + lambda_max(C) / min(S)``; the ``n x n``
+    one costs about half the arithmetic and a solve with ``n`` instead of ``d`` right-hand sides (the
+    step measured in docs/bench/denoise_wiener_speed.md). Otherwise the ``d x d`` system is solved directly.
+    """
+    n, d = Bc.shape[1], Bc.shape[2]
+    if n < d:
+        A = Bc / float(np.sqrt(n - 1))
+        A_s = A / S[:, None, :]  # A S^-1
+        M = A_s @ A.transpose(1, 2)  # A S^-1 A^T, (r, n, n)
+        M.diagonal(dim1=1, dim2=2).add_(1.0)
+        Z = Yc @ A_s.transpose(1, 2)  # (Y - m) S^-1 A^T, (r, n, n)
+        # Z M^-1 = (M^-1 Z^T)^T, M symmetric.
+        return torch.cholesky_solve(Z.transpose(1, 2), torch.linalg.cholesky(M)).transpose(1, 2) @ A
+    cov = Bc.transpose(1, 2) @ Bc / (n - 1)
+    chol = torch.linalg.cholesky(cov + torch.diag_embed(S))
+    return Yc @ torch.cholesky_solve(cov, chol)  # (C + S)^-1 C

@@ -107,12 +107,40 @@ def dct_wiener_gray(noisy: np.ndarray, pilot: np.ndarray, variance: float | np.n
         est = idctn(gain * Y, axes=(2, 3), norm="ortho")
         weight = 1.0 / (v[:, :, 0, 0] * np.sum(gain * gain, axis=(2, 3)) + 1e-12 * v[:, :, 0, 0])
         est *= weight[:, :, None, None]
+        row_parts, col_parts = _strided_parts(rows), _strided_parts(xs)
         for dy in range(b):
             for dx in range(b):
-                idx = np.ix_(rows + dy, xs + dx)
-                num[idx] += est[:, :, dy, dx]
-                den[idx] += weight
+                for src_r, dst_r in row_parts:
+                    for src_c, dst_c in col_parts:
+                        dst = _shifted(dst_r, dst_c, dy, dx)
+                        num[dst] += est[src_r, src_c, dy, dx]
+                        den[dst] += weight[src_r, src_c]
     return num / den
+
+
+def _strided_parts(idx: np.ndarray) -> list[tuple[slice, slice | np.ndarray]]:
+    """Increasing unique indices as (positions in `idx`, the indices) parts: the longest evenly spaced run
+    from the start as a slice (`block_origins` are evenly spaced but for a last one at the edge), the rest
+    as an index array. Strided views add in place without numpy's fancy-indexing cost; every target
+    element gets the same additions in the same order either way."""
+    k = min(len(idx), 2)
+    step = int(idx[1] - idx[0]) if len(idx) > 1 else 1
+    while k < len(idx) and idx[k] - idx[k - 1] == step:
+        k += 1
+    parts: list[tuple[slice, slice | np.ndarray]] = [(slice(0, k), slice(int(idx[0]), int(idx[k - 1]) + 1, step))]
+    if k < len(idx):
+        parts.append((slice(k, len(idx)), idx[k:]))
+    return parts
+
+
+def _shifted(rows: slice | np.ndarray, cols: slice | np.ndarray, dy: int, dx: int):
+    """The index of ``(rows + dy) x (cols + dx)`` for `_strided_parts`' parts (slices or index arrays)."""
+    def shift(part, by):
+        return slice(part.start + by, part.stop + by, part.step) if isinstance(part, slice) else part + by
+
+    r, c = shift(rows, dy), shift(cols, dx)
+    return np.ix_(r, c) if not isinstance(r, slice) and not isinstance(c, slice) else (
+        (r[:, None], c) if not isinstance(r, slice) else (r, c))
 
 
 def dct_wiener(noisy: np.ndarray, pilot: np.ndarray, sigma: float | np.ndarray,

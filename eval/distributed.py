@@ -499,9 +499,11 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
         with _connected(ray, {**kwargs, "address": settings.address}, settings, None, preload, tasks) as executor:
             yield executor
         return
-    # Short path: Ray's Unix sockets live in it (at most 107 bytes).
+    # Short path: Ray's Unix sockets live in it (at most 107 bytes). The workers run at the driver's niceness,
+    # as the serial path's work does; Ray's own default (15) starves them beside any other work on the machine.
     temp_dir = tempfile.mkdtemp(prefix="dgs-ray-")
-    kwargs.update(num_cpus=settings.workers, object_store_memory=LOCAL_OBJECT_STORE_BYTES, _temp_dir=temp_dir)
+    kwargs.update(num_cpus=settings.workers, object_store_memory=LOCAL_OBJECT_STORE_BYTES, _temp_dir=temp_dir,
+                  _system_config={"worker_niceness": os.nice(0)})
     with _loopback_only(), _connected(ray, kwargs, settings, temp_dir, preload, tasks) as executor:
         yield executor
 

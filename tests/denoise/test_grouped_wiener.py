@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-from denoise.grouped_wiener import GroupedWienerConfig, grouped_wiener, search_offsets
+from denoise.grouped_wiener import GroupedWienerConfig, _wiener_rows, grouped_wiener, search_offsets
 from denoise.wiener import OPPONENT, dct_wiener
 
 
@@ -54,7 +55,8 @@ def _photo(rng: np.random.Generator, shape: tuple[int, int], sigma: float) -> tu
 
 
 @pytest.mark.parametrize("shape,patch,radius,group,stride", [((14, 13), 3, 2, 6, 2), ((11, 16), 4, 3, 10, 3),
-                                                             ((9, 9), 2, 1, 4, 1)])
+                                                             ((9, 9), 2, 1, 4, 1),
+                                                             ((12, 11), 2, 3, 14, 2)])  # n >= d: the d x d solve
 def test_the_fast_path_matches_the_group_by_group_reference(shape, patch, radius, group, stride):
     rng = np.random.default_rng(shape[0])
     clean, noisy = _photo(rng, shape, 0.15)
@@ -67,6 +69,25 @@ def test_the_fast_path_matches_the_group_by_group_reference(shape, patch, radius
     ref = _reference(noisy, pilot, std, cfg)
     # float32 groups against a float64 reference: values ~1, errors ~1e-6.
     np.testing.assert_allclose(got, ref, atol=2e-5)
+
+
+@pytest.mark.parametrize("n,d", [(6, 27), (40, 75), (39, 40)])
+def test_the_groups_n_dimensional_solve_is_the_d_dimensional_wiener_gain(n, d):
+    """`_wiener_rows` with fewer patches than dimensions (the push-through identity) against
+    ``(Y - m) (C + S)^-1 C`` solved in float64 by `np.linalg.solve`; noise variances from 1e-6 (the floor)
+    to 0.04, pilot patches with a spread like a photo's (0.3)."""
+    rng = np.random.default_rng(n + d)
+    B = rng.normal(0.5, 0.3, (5, n, d))
+    Bc = B - B.mean(axis=1, keepdims=True)
+    Yc = rng.normal(0, 0.2, (5, n, d))
+    S = 10.0 ** rng.uniform(-6, np.log10(0.04), (5, d))
+    got = _wiener_rows(*(torch.from_numpy(a.astype(np.float32)) for a in (Yc, Bc, S))).numpy()
+    for g in range(5):
+        C = Bc[g].T @ Bc[g] / (n - 1)
+        ref = (np.linalg.solve(C + np.diag(S[g]), C).T @ Yc[g].T).T  # (Y - m) (C + S)^-1 C
+        # float32 against float64, through a system of condition number up to ~1e6 (S at its floor): the
+        # rows' values are ~0.2-1 and agree to 2e-3 relative; the d x d float32 solve does no better.
+        np.testing.assert_allclose(got[g], ref, atol=2e-3 * np.abs(ref).max())
 
 
 def test_one_std_for_all_pixels_is_the_constant_map_and_gray_is_one_channel():

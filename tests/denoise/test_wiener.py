@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from denoise.wiener import OPPONENT, WienerConfig, dct_wiener, dct_wiener_gray
+from denoise.wiener import OPPONENT, WienerConfig, _strided_parts, dct_wiener, dct_wiener_gray
 
 
 def _dct_matrix(n: int) -> np.ndarray:
@@ -167,3 +167,13 @@ def test_denoise_with_method_refines_the_network_output_before_the_clipping_corr
         raw1 = denoise_with_method(model, noisy, cfg, passes=1, seed=1, noise_sigma=stds, undo_clipping=False)
         ref = np.clip(dct_wiener(noisy[0], raw1[0], stds[0].permute(1, 2, 0).numpy(), wcfg), 0, 1)
         np.testing.assert_allclose(out[0], ref, atol=1e-6)
+
+
+@pytest.mark.parametrize("idx", [[0, 2, 4, 6, 7], [3], [0, 5], [1, 2, 3], [0, 3, 6, 8, 9]])
+def test_strided_parts_cover_the_indices_in_order(idx):
+    idx = np.asarray(idx)
+    got = []
+    for src, dst in _strided_parts(idx):
+        np.testing.assert_array_equal(np.arange(len(idx))[src], np.arange(src.start, src.stop))
+        got += list(np.arange(dst.start, dst.stop, dst.step) if isinstance(dst, slice) else dst)
+    assert got == list(idx)

@@ -293,6 +293,18 @@ def test_tasks_run_with_their_cpus_or_the_given_threads(cluster):
     assert three.run(thread_counts, [0]) == [(3, 3)]
 
 
+def niceness(item):
+    """The task's process niceness."""
+    return os.nice(0)
+
+
+def test_tasks_run_at_the_drivers_niceness(cluster):
+    """Ray starts its workers at niceness 15, where any other process on the node starves them; a local
+    cluster's run at the driver's, as the serial path's work does."""
+    ex, _ = cluster
+    assert ex.run(niceness, [0, 1]) == [os.nice(0)] * 2
+
+
 def test_executor_raises_a_task_error_as_its_own_type(cluster):
     ex, _ = cluster
     with pytest.raises(KeyError, match="no action for b"):
