@@ -1,22 +1,21 @@
 """Whole-pipeline time per preset, image size and view count, with held-out quality alongside.
 
-Each configuration is one `denoise-gs eval llff_like --methods product --seeds 1` in its own
-process (the preset's whole pipeline, as `denoise-gs run` runs it, then held-out pose fitting and
-scoring): `--preset P --size WxH --scene-views V`. `--method M` times another evaluation method. `llff_like` holds out every 8th view, so 14 scene
-views give 12 training views and 20 give 17. Reported per run: the pipeline's recorded seconds (all
-stages of both rounds, from the run's report.json), the evaluation's wall time (pipeline + held-out
-pose fitting + scoring), the seconds per stage, the splat trainer's sub-steps where the report
-records them, held-out PSNR / SSIM / LPIPS, and the machine's load before and after.
+Each configuration is one `denoise-gs eval llff_like --methods product --seeds 1` in its own process (the
+preset's whole pipeline, as `denoise-gs run` runs it, then held-out pose fitting and scoring): `--preset P
+--size WxH --scene-views V`. `--method M` times another evaluation method. `llff_like` holds out every 8th
+view, so 14 scene views give 12 training views and 20 give 17. Reported per run: the pipeline's recorded
+seconds (every stage of every round, from the run's report.json), the evaluation's wall time (pipeline +
+held-out pose fitting + scoring), the seconds per stage, the splat trainer's sub-steps where the report records
+them, held-out PSNR / SSIM / LPIPS, and the machine's load before and after.
 
 Usage:
     .venv/bin/python benchmarks/bench_pipeline_speed.py [--configs=fast:256x192:12,default:504x378:17]
         [--method=product] [--out=runs/bench_pipeline_speed_product] [--summarise]
 
-`--configs` defaults to every combination of the `fast` and `default` presets, 256x192 and
-504x378, 12 and 17 training views (eight runs; hours on 2 cores). Output folders are kept, so an
-interrupted benchmark resumes (each eval output is resumable); the fragment docs/bench/pipeline_speed.md
-lists the runs found under `--out`, not only those of this invocation.
-"""
+`--configs` defaults to every combination of the `fast` and `default` presets, 256x192 and 504x378, 12 and 17
+training views (eight runs; hours on 2 cores). Output folders are kept, so an interrupted benchmark resumes
+(each eval output is resumable); the fragment docs/bench/pipeline_speed.md lists the runs found under `--out`,
+not only those of this invocation."""
 
 from __future__ import annotations
 
@@ -123,9 +122,9 @@ def main(argv: list[str]) -> int:
     rows, details, found = summarise(out_root)
     body = (
         "Reproduce: `.venv/bin/python benchmarks/bench_pipeline_speed.py --configs="
-        f"{','.join(found)} --method={method}` (`make bench ONLY=pipeline_speed` runs all eight configurations; each run "
-        "is its own process, one after the other; `--summarise` rebuilds this page from the runs kept "
-        "under `--out`).\n\n"
+        f"{','.join(found)} --method={method}` (`make bench ONLY=pipeline_speed` runs all eight "
+        "configurations; each run is its own process, one after the other; `--summarise` rebuilds this page "
+        "from the runs kept under `--out`).\n\n"
         f"`denoise-gs eval {SCENE} --methods {method} --seeds 1` per configuration: the preset's pipeline "
         "as `denoise-gs run` runs it, then held-out pose fitting and scoring against the clean test views. "
         "`pipeline min`: the stages' recorded time (the user's wait for `denoise-gs run`); `eval min`: "
