@@ -60,14 +60,18 @@ def test_undetermined_focal_is_a_specific_failure(small_scene):
 
 
 def test_pure_rotation_is_a_specific_failure(small_scene):
-    # Crops of one image = a camera rotating about its centre (approximately): no baseline.
+    # Crops of one image = a camera rotating about its centre (approximately): no baseline. The pairs fail the
+    # parallax test, or (on a 2-core Intel Xeon, where one pair's median parallax passes) the views that rest
+    # on that one pair are not confirmed by PnP: a named refusal either way, never a result.
     from mvgeo.common.imageio import read_image
 
     img = read_image(list_images(small_scene / "images")[0])
     views = [np.ascontiguousarray(img[10:110, dx:dx + 130]) for dx in (0, 10, 20)]
     with pytest.raises((InputError, DegenerateGeometryError)) as info:
         align_images(views, FAST)
-    assert "disconnected" in str(info.value) or "rotation" in str(info.value) or "baseline" in str(info.value)
+    message = str(info.value)
+    assert any(reason in message for reason in ("disconnected", "rotation", "baseline",
+                                                 "rest on a single verified image pair")), message
 
 
 @pytest.mark.slow
