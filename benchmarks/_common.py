@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import platform
 import resource
 import shutil
 import subprocess
@@ -61,6 +62,17 @@ def first_train_views(data: Path, n: int):
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far, MiB (Linux ru_maxrss is KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def cpu_model() -> str:
+    """The CPU's model name (Linux `/proc/cpuinfo`), else what `platform` knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown CPU"
 
 
 def md_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:

@@ -23,7 +23,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from _common import md_table, peak_rss_mb, write_fragment  # noqa: E402
+from _common import cpu_model, md_table, peak_rss_mb, write_fragment  # noqa: E402
 
 from denoise.inference import denoise_images  # noqa: E402
 from denoise.n2v import n2v_preset, train_n2v  # noqa: E402
@@ -292,7 +292,7 @@ def run_real(scene: str, data_dir: Path, *, views: int, crop_px: int, steps: int
         print(scene, rows[-1], flush=True)
     result = {"scene": scene, "views": names, "crop_px": crop_px, "sigma_8bit": sigma_8bit, "seed": seed,
               "steps": base.steps, "lr": base.lr, "rows": rows, "load": list(os.getloadavg()),
-              "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cpu": _cpu_name(),
+              "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cpu": cpu_model(),
               "device": _device_name(device)}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / f"{scene}.json").write_text(json.dumps(result, indent=2))
@@ -308,16 +308,6 @@ def _device_name(device: str) -> str:
     if str(device).startswith("cuda"):
         return f"{torch.cuda.get_device_name(0)} (torch {torch.__version__})"
     return f"CPU, torch {torch.__version__} single-threaded"
-
-
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown CPU"
 
 
 def main_real(argv: list[str]) -> None:
@@ -453,7 +443,7 @@ def run_multiview(data_dir: Path, *, views: int, crop_px: int, steps: int | None
               "depth_coverage": [float(np.isfinite(d).mean()) for d in inp["depths"]],
               "target_coverage_crop": float(np.mean([(cnt > 0).mean() for _, cnt in targets_c])),
               "target_diagnostics": diag, "rows": rows, "load": list(os.getloadavg()),
-              "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cpu": _cpu_name(),
+              "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cpu": cpu_model(),
               "device": _device_name(device)}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "multiview_dtu_scan24.json").write_text(json.dumps(result, indent=2))
@@ -707,7 +697,7 @@ def main_careamics(argv: list[str]) -> None:
                               seed=args.seed, peer_steps=[int(x) for x in args.peer_steps.split(",")])
     load = os.getloadavg()
     cmd = "python benchmarks/bench_denoise.py careamics " + " ".join(argv)
-    body = (f"Machine: {_cpu_name()}, {os.cpu_count()} cores; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; "
+    body = (f"Machine: {cpu_model()}, {os.cpu_count()} cores; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; "
             f"load average at the end {load[0]:.1f} / {load[1]:.1f} (1 / 5 min).\n\n"
             f"The 12 views of each set as docs/bench/denoise_real.md (192 px centre crops), Gaussian noise sigma "
             f"{args.sigma:g}/255 (seed {args.seed}, clipped to [0, 1]); every method trains on batches of 8 patches "

@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT, md_table, write_fragment  # noqa: E402
+from _common import ROOT, cpu_model, md_table, write_fragment  # noqa: E402
 
 ARGS = ["eval", "llff_like", "--preset", "fast", "--splat-iters", "300"]
 SWEEPS = {"oracle": ["--size", "256x192", "--scene-views", "12", "--seeds", "4", "--methods", "oracle_clean"],
@@ -43,13 +43,6 @@ SWEEPS = {"oracle": ["--size", "256x192", "--scene-views", "12", "--seeds", "4",
           "n2v_256": ["--size", "256x192", "--scene-views", "12", "--seeds", "4", "--methods", "n2v_round1"]}
 SCORE_KEYS = ("scene", "method", "seed", "psnr_db", "ssim", "lpips", "rot_err_deg", "ate", "per_view", "error")
 GOAL_RATIO = 0.8
-
-
-def _cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
 
 
 def _run(out: Path, sweep: list[str], extra: list[str]) -> tuple[float, list[dict], float, float]:
@@ -117,7 +110,7 @@ def main() -> int:
     body = f"""Command (serial, then with `--workers 2`; fresh out folders):
 `.venv/bin/denoise-gs {' '.join(ARGS)} SWEEP --out OUT [--workers 2]`
 
-Machine: {os.cpu_count()} cores ({_cpu_model()}), Python {platform.python_version()}; 1-minute load average
+Machine: {os.cpu_count()} cores ({cpu_model()}), Python {platform.python_version()}; 1-minute load average
 ({'; '.join(loads)}). Measured {now}. The serial process runs torch with its default {threads} threads, each
 Ray task with one (the denoiser one per piece of work, on as many Python threads as the run has
 torch threads; the scoring with 1).

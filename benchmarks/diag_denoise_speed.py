@@ -133,15 +133,6 @@ def _wiener_step(kind: str, images: list, names: list[str], dataset: Path) -> di
             "psnr": float(np.mean(psnr)), "out": [np.asarray(out[0], np.float32).tolist()]}
 
 
-def _cpu() -> str:
-    """The CPU's model name (Linux), or "unknown CPU"."""
-    try:
-        line = next(ln for ln in Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        return "unknown CPU"
-    return line.split(":", 1)[1].strip()
-
-
 def _dataset(arg: Path | None, tmp: Path) -> tuple[Path, str]:
     if arg is not None:
         return arg, f"`{arg}`"
@@ -188,7 +179,7 @@ def main() -> None:
     import numpy as np
 
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from _common import md_table, write_fragment
+    from _common import cpu_model, md_table, write_fragment
 
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
@@ -231,7 +222,7 @@ def main() -> None:
             ob, ot = outputs[("base", task)], outputs[("this", task)]
             diff = float(np.max(np.abs(np.array(ob["out"]) - np.array(ot["out"]))))
             steps.append([names[task], f"{ob['psnr']:.3f}", f"{ot['psnr']:.3f}", f"{diff:.2g}"])
-    body = [f"Photos: {what}. Machine: {_cpu()}, {os.cpu_count()} cores. Base: commit `{args.base}`; this: the "
+    body = [f"Photos: {what}. Machine: {cpu_model()}, {os.cpu_count()} cores. Base: commit `{args.base}`; this: the "
             "checkout. Each cell is the fastest of "
             f"{args.repeats} runs, the two versions alternating, each in its own process with torch's default "
             f"threads and the denoise stage's thread settings. Load average (1/5/15 min) at start "

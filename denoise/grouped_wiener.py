@@ -97,21 +97,21 @@ def _patch_distances(pilot: np.ndarray, ref_y: np.ndarray, ref_x: np.ndarray, pa
 
     The distances at offset ``o`` and at ``-o`` are the same patch pairs seen from either end: the
     pixel-wise squared differences of ``o`` are computed once, and the reference ``r``'s distance at ``-o``
-    is the window sum of ``o``'s at ``r - o``. `search_offsets` is symmetric, so half of them are computed."""
+    is the window sum of ``o``'s at ``r - o``. In `search_offsets`' order offset ``K - 1 - k`` is ``-offsets[k]``,
+    so the first half (and the centre) are computed."""
+    if not np.array_equal(offsets[::-1], -offsets):
+        raise ValueError("offsets must be ordered as search_offsets orders them (offsets[K - 1 - k] = -offsets[k])")
     H, W = pilot.shape[:2]
-    dist = np.full((len(ref_y), len(offsets)), np.inf, np.float32)
-    index = {(int(dy), int(dx)): k for k, (dy, dx) in enumerate(offsets)}
-    done = np.zeros(len(offsets), bool)
+    K = len(offsets)
+    dist = np.full((len(ref_y), K), np.inf, np.float32)
     # Window sums are read from a frame of inf `reach` px wide on every side: a patch partly outside the
     # photo reads inf, the reference's distance to it.
     reach = int(np.abs(offsets).max()) if len(offsets) else 0
     frame = np.full((H + 2 * reach, W + 2 * reach), np.inf)
 
-    for k, (dy, dx) in enumerate(offsets):
-        if done[k]:
-            continue
-        mirror = index.get((-int(dy), -int(dx)), k)
-        done[k] = done[mirror] = True
+    for k in range((K + 1) // 2):
+        dy, dx = (int(v) for v in offsets[k])
+        mirror = K - 1 - k
         # Pixel-wise squared difference between (i, j) and (i + dy, j + dx), where both are inside.
         y0, y1, x0, x1 = max(0, -dy), min(H, H - dy), max(0, -dx), min(W, W - dx)
         if y1 - y0 < patch or x1 - x0 < patch:  # no patch at this offset stays inside the photo

@@ -139,8 +139,8 @@ def _shifted(rows: slice | np.ndarray, cols: slice | np.ndarray, dy: int, dx: in
         return slice(part.start + by, part.stop + by, part.step) if isinstance(part, slice) else part + by
 
     r, c = shift(rows, dy), shift(cols, dx)
-    return np.ix_(r, c) if not isinstance(r, slice) and not isinstance(c, slice) else (
-        (r[:, None], c) if not isinstance(r, slice) else (r, c))
+    # One index array and one slice index their cross product as they are; two arrays need np.ix_.
+    return np.ix_(r, c) if isinstance(r, np.ndarray) and isinstance(c, np.ndarray) else (r, c)
 
 
 def dct_wiener(noisy: np.ndarray, pilot: np.ndarray, sigma: float | np.ndarray,
