@@ -44,7 +44,7 @@ _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / name for name in ("composite.cpp", "sh.cpp", "projection.cpp", "tiles.cpp", "ssim.cpp",
                                        "abi.cpp")]
 _HEADERS = [_CSRC / "kernel_api.h", _CSRC / "parallel.h"]
-_FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-pthread"]
+_FLAGS = ["-O3", "-std=c++17", "-fno-trapping-math", "-fPIC", "-shared", "-pthread"]
 _LIB_NAME = "libsplat_kernels.so"
 
 #: The ABI version this module speaks (`SPLAT_KERNEL_ABI_VERSION` in csrc/kernel_api.h).

@@ -1,7 +1,8 @@
 """The C++ compositor against the torch compositor on raw 2D Gaussians (no projection).
 
 The C++ kernel visits, per tile, only the pixel box of each Gaussian inside which its
-sigma can pass the 1/255 test; the torch path evaluates every (pixel, Gaussian) pair of
+sigma can pass the 1/255 test, each of the box's rows only over the span of the ellipse,
+in groups of four pixels; the torch path evaluates every (pixel, Gaussian) pair of
 the tile. Random conics up to condition number ~1e8 and centres off the image check
 that the box never drops a contribution, and that results do not depend on the thread
 count.
@@ -63,6 +64,41 @@ def test_cpp_matches_torch_compositor(dtype, ill_conditioned):
     # rounding over up to ~150 layers per pixel; 1e-4 relative is far below a dropped
     # contribution (>= 1/255 of a colour).
     tol = 1e-9 if dtype == torch.float64 else 1e-4
+    names = ["accum", "transmittance", "d means2d", "d conics", "d colors", "d opacities"]
+    for name, a, b in zip(names, fast, ref, strict=True):
+        scale = b.abs().max().clamp(min=1.0)
+        assert torch.allclose(a, b, rtol=0, atol=tol * scale), (name, float((a - b).abs().max()))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_thin_tilted_gaussians_lose_no_pixel(dtype):
+    # The kernel narrows each row of a Gaussian's box to the row's span of its ellipse, computed in double with a
+    # margin for the rounding of det = a c - b^2, which is worst for thin Gaussians (condition numbers here up to
+    # ~1e9 in float64). Tilted near 45 degrees, their spans are far narrower than their boxes. A pixel dropped at a rim would
+    # lose at least 1/255 of a colour.
+    width, height = 48, 40
+    g = torch.Generator().manual_seed(7)
+    n = 120
+    means2d = torch.rand(n, 2, generator=g, dtype=dtype) * torch.tensor([width, height], dtype=dtype)
+    angle = 0.785 + 0.3 * (torch.rand(n, generator=g, dtype=dtype) - 0.5)
+    l1 = 0.3 + 0.5 * torch.rand(n, generator=g, dtype=dtype)
+    # Up to e^20 px^2 in float64. float32 stops at e^12 (condition ~5e5): beyond it sigma's float32 rounding
+    # differs between the two paths' expressions by more than the 1/255 threshold, in either kernel version.
+    top = 20 if dtype == torch.float64 else 12
+    l2 = torch.exp(torch.rand(n, generator=g, dtype=dtype) * (top - 2) + 2)
+    c, s = torch.cos(angle), torch.sin(angle)
+    sxx, syy, sxy = l1 * c * c + l2 * s * s, l1 * s * s + l2 * c * c, (l1 - l2) * c * s
+    det = sxx * syy - sxy * sxy
+    conics = torch.stack([syy / det, -sxy / det, sxx / det], -1)
+    opac = 0.2 + 0.7 * torch.rand(n, generator=g, dtype=dtype)
+    colors = torch.rand(n, 4, generator=g, dtype=dtype)
+    depths = torch.rand(n, generator=g, dtype=dtype)
+    r = torch.sqrt(2 * torch.log(opac * 255))
+    extents = torch.stack([r * sxx.sqrt(), r * syy.sqrt()], -1)
+    args = (means2d, conics, colors, opac, extents, depths, opac > 1 / 255)
+    fast = _render(args, width, height, "cpp")
+    ref = _render(args, width, height, "torch")
+    tol = 1e-9 if dtype == torch.float64 else 1e-4  # as in test_cpp_matches_torch_compositor
     names = ["accum", "transmittance", "d means2d", "d conics", "d colors", "d opacities"]
     for name, a, b in zip(names, fast, ref, strict=True):
         scale = b.abs().max().clamp(min=1.0)
