@@ -74,8 +74,8 @@ def test_cpp_matches_torch_compositor(dtype, ill_conditioned):
 def test_thin_tilted_gaussians_lose_no_pixel(dtype):
     # The kernel narrows each row of a Gaussian's box to the row's span of its ellipse, computed in double with a
     # margin for the rounding of det = a c - b^2, which is worst for thin Gaussians (condition numbers here up to
-    # ~1e9 in float64). Tilted near 45 degrees, their spans are far narrower than their boxes. A pixel dropped at a rim would
-    # lose at least 1/255 of a colour.
+    # ~1e9 in float64). Tilted near 45 degrees, their spans are far narrower than their boxes. A pixel dropped at
+    # a rim would lose at least 1/255 of a colour (a span shrunk by 0.05 px fails here at 4e-3).
     width, height = 48, 40
     g = torch.Generator().manual_seed(7)
     n = 120
