@@ -101,8 +101,10 @@ inline void row_span(const Box& bx, const T* gk, int64_t col_lo, int64_t row_lo,
   const double half = std::sqrt(std::max(0.0, double(gk[2]) * bx.s2 - bx.det * dy * dy)) * bx.inv_a + bx.margin;
   // Pixel centre col_lo + cc + 0.5 = mx - dx.
   const double centre = double(gk[0]) + bx.b_over_a * dy - double(col_lo) - 0.5;
-  *lo = std::max(bx.c0, int32_t(std::ceil(centre - half)));
-  *hi = std::min(bx.c1, int32_t(std::floor(centre + half)));
+  // Clamped to the box in double before the conversion, which is undefined beyond int32's range; a NaN (std::max
+  // and std::min return their first argument then) keeps the whole row of the box.
+  *lo = int32_t(std::min(double(bx.c1) + 1.0, std::max(double(bx.c0), std::ceil(centre - half))));
+  *hi = int32_t(std::max(double(bx.c0) - 1.0, std::min(double(bx.c1), std::floor(centre + half))));
 }
 
 template <typename T>
@@ -124,8 +126,8 @@ void gather(int64_t n, int64_t begin, const int64_t* gaussian_ids, const T* mean
   }
 }
 
-// Four adjacent pixels of a row are processed together (GCC's vector extensions: SSE2 on x86-64, NEON on
-// aarch64). Per-lane arithmetic is IEEE and the same sequence of operations as a per-pixel loop, so a
+// Four adjacent pixels of a row are processed together (GCC's vector extensions, which Clang >= 11 also
+// compiles: SSE2 on x86-64, NEON on aarch64). Per-lane arithmetic is IEEE and the same sequence of operations as a per-pixel loop, so a
 // lane's result does not depend on its neighbours; decisions are masks, not branches (a Gaussian's rim
 // makes per-pixel branches unpredictable). The build's -fno-trapping-math (splat/_cpu_kernel.py) lets the
 // compiler turn std::min/std::max and the selects into vector instructions; it changes no value.
@@ -178,7 +180,7 @@ inline void exp_neg(const Lanes<float>::V& sigma, Lanes<float>::V* out) {
   const V q23 = r * 8.3334519073e-3f + 4.1665795894e-2f;
   const V q45 = r * 1.9875691500e-4f + 1.3981999507e-3f;
   const V p = ((q45 * r2 + q23) * r2 + q01) * r2 + r + 1.0f;
-  const M bits = (__builtin_convertvector(n, M) + 127) << 23;  // 2^n, n in [-116, 0]
+  const M bits = (__builtin_convertvector(n, M) + 127) << 23;  // 2^n, n in [-116, 0] (-115 at sigma = 80)
   V scale;
   std::memcpy(&scale, &bits, sizeof scale);
   *out = p * scale;
@@ -286,9 +288,9 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t w
           const M stop = keep & (next_t <= t_min_v);
           const M take = keep & ~stop;
           const V w = select<T>(take, alpha * t, zero);
-          for (int64_t c = 0; c < C; ++c) {
+          for (int64_t c = 0; c < C; ++c) {  // selected, so that a non-finite colour stays in its own pixels
             T* a = &acc[c * NP + p];
-            store4<V>(a, load4<V>(a) + w * col_k[c]);
+            store4<V>(a, load4<V>(a) + select<T>(take, w * col_k[c], zero));
           }
           store4<V>(&trans[p], select<T>(take, next_t, t));
           store4<M>(&last[p], take ? next_last : load4<M>(&last[p]));
@@ -394,9 +396,9 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
           const M graded = valid & (raw <= amax);  // clamped alpha: no gradient to opacity / sigma
           go += select<T>(graded, d_alpha * e, zero);
           const V d_sigma = select<T>(graded, -alpha * d_alpha, zero);
-          s0 += d_sigma;
-          s1 += d_sigma * dx;
-          s2 += d_sigma * dx * dx;
+          s0 += d_sigma;  // and dx selected too: 0 * dx is NaN where a masked-off lane's dx is not finite
+          s1 += select<T>(graded, d_sigma * dx, zero);
+          s2 += select<T>(graded, d_sigma * dx * dx, zero);
         }
         // d sigma / d(a, b, c) = (dx^2 / 2, dx dy, dy^2 / 2); d sigma / d mean = (a dx + b dy, b dx + c dy).
         ga += T(0.5) * s2;

@@ -105,6 +105,55 @@ def test_thin_tilted_gaussians_lose_no_pixel(dtype):
         assert torch.allclose(a, b, rtol=0, atol=tol * scale), (name, float((a - b).abs().max()))
 
 
+def _one_gaussian_args(mean, conic, opacity, colour, dtype):
+    means2d = torch.tensor([mean], dtype=dtype)
+    conics = torch.tensor([conic], dtype=dtype)
+    a, b, c = conic
+    det = a * c - b * b
+    sxx, syy = c / det, a / det  # the covariance's diagonal
+    r = (2 * torch.log(torch.tensor(opacity * 255.0, dtype=torch.float64))).sqrt()
+    extents = torch.tensor([[float(r * sxx**0.5), float(r * syy**0.5)]], dtype=dtype)
+    opac = torch.tensor([opacity], dtype=dtype)
+    colors = torch.tensor([colour], dtype=dtype)
+    return means2d, conics, colors, opac, extents, torch.zeros(1, dtype=dtype), opac > 1 / 255
+
+
+@pytest.mark.parametrize(("conic", "dtype"), [
+    ((1e-18, 0.0, 1.0), torch.float32),  # a horizontal band: its row spans are wider than int32's range
+    ((1e-20, 0.0, 1.0), torch.float64),
+    ((1e-4, -1e-4 * (1 - 1e-15), 1e-4), torch.float64),  # a 45-degree streak, det ~1e-23: a huge span margin
+])
+def test_very_wide_or_nearly_singular_gaussians_render(conic, dtype):
+    width, height = 32, 32
+    args = _one_gaussian_args((16.3, 15.7), conic, 0.8, (0.9, 0.5, 0.2, 1.0), dtype)
+    fast = _render(args, width, height, "cpp")
+    ref = _render(args, width, height, "torch")
+    assert float(ref[0].sum()) > 100  # the Gaussian covers much of the image
+    for name, a, b in zip(["accum", "transmittance"], fast[:2], ref[:2], strict=True):
+        assert torch.allclose(a, b, rtol=0, atol=1e-5), (name, float((a - b).abs().max()))
+
+
+def test_a_non_finite_colour_stays_in_the_pixels_its_gaussian_reaches():
+    # A small Gaussian in front of a large one: the pixels it reaches are those whose colour changes with its
+    # colour; with a NaN colour exactly those pixels are NaN (the kernel evaluates four pixels at a time, and the
+    # others must not pick up 0 * NaN).
+    width, height = 24, 20
+    dtype = torch.float32
+    big = _one_gaussian_args((12.0, 10.0), (0.01, 0.0, 0.01), 0.5, (0.3, 0.3, 0.3, 1.0), dtype)
+
+    def render(colour):
+        small = _one_gaussian_args((6.4, 5.6), (2.0, 0.3, 1.5), 0.9, colour, dtype)
+        args = [torch.cat([s, b]) for s, b in zip(small[:6], big[:6], strict=True)] + [torch.cat([small[6], big[6]])]
+        args[5] = torch.tensor([0.0, 1.0], dtype=dtype)  # the small one in front
+        bins = bin_gaussians(args[0], args[4], args[5], args[6], width, height)
+        acc, _ = composite_tiles(*args[:4], bins, width, height, backend="cpp")
+        return acc[..., 0]
+
+    reached = render((0.0, 0.0, 0.0, 0.0)) != render((1.0, 1.0, 1.0, 1.0))
+    assert 1 <= int(reached.sum()) <= 30
+    assert torch.equal(render((float("nan"), 0.0, 0.0, 0.0)).isnan(), reached)
+
+
 def test_cpp_result_independent_of_thread_count():
     width, height = 70, 50
     args = _random_2d(400, width, height, seed=5, dtype=torch.float32, ill_conditioned=True)
