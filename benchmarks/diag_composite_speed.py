@@ -1,8 +1,10 @@
 """The C++ compositor's speed on real-size views: this checkout's kernels against a base commit's, in one process.
 
-Both versions of `splat/csrc` are compiled (each with the flags of its own `splat/_cpu_kernel.py`) and loaded
-side by side; `splat._cpu_kernel`'s library handle is switched between them, view by view, so both see the same
-machine load. Input: a trained splat and its cameras, a pipeline round folder with `point_cloud.ply` and
+Two libraries are compiled and loaded side by side: this checkout's kernels, and the same kernels with the
+base commit's `splat/csrc/composite.cpp` in place of this checkout's, built with the base's flags (its
+`splat/_cpu_kernel.py`), so that only the compositor differs. `splat._cpu_kernel`'s library handle is
+switched between them, view by view, so both see the same machine load. Input: a trained splat and its
+cameras, a pipeline round folder with `point_cloud.ply` and
 `sparse/0` (for example the real-size run of `benchmarks/bench_pipeline_speed.py --configs=default:504x378:17`).
 Two measurements, each over every view, `--rounds` times:
 
@@ -26,6 +28,7 @@ import ast
 import ctypes
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -60,12 +63,16 @@ def build(csrc: Path, flags: list[str], out: Path) -> ctypes.CDLL:
 
 
 def base_kernels(ref: str, work: Path) -> ctypes.CDLL:
-    """The base commit's `splat/csrc`, extracted with `git archive`, built with its own flags."""
-    tar = subprocess.run(["git", "archive", ref, "splat/csrc", "splat/_cpu_kernel.py"], cwd=ROOT, check=True,
-                         capture_output=True).stdout
+    """This checkout's kernels with the base commit's compositor (extracted with `git archive`), built with the
+    base's flags."""
+    tar = subprocess.run(["git", "archive", ref, "splat/csrc/composite.cpp", "splat/_cpu_kernel.py"], cwd=ROOT,
+                         check=True, capture_output=True).stdout
     subprocess.run(["tar", "-x", "-C", str(work)], input=tar, check=True)
     flags = _flags((work / "splat" / "_cpu_kernel.py").read_text())
-    return build(work / "splat" / "csrc", flags, work / "base.so")
+    csrc = work / "csrc"
+    shutil.copytree(ROOT / "splat" / "csrc", csrc)
+    shutil.copy(work / "splat" / "csrc" / "composite.cpp", csrc / "composite.cpp")
+    return build(csrc, flags, work / "base.so")
 
 
 def load_views(run: Path):
@@ -199,7 +206,8 @@ def main() -> None:
                   f"{sum(st['this']) / sum(st['base']):.2f}x"])
     body = (
         f"Input: `{args.run}` ({model.num_gaussians} Gaussians, {len(views)} views at {width}x{height}, "
-        f"{isect:.0f} tile intersections per view on average). Base: commit `{args.base}`; this: `{this}`. "
+        f"{isect:.0f} tile intersections per view on average). Base: this checkout with commit `{args.base}`'s "
+        f"compositor (`splat/csrc/composite.cpp`, built with that commit's flags); this: `{this}`. "
         f"{args.threads} compositor threads, torch at one thread (the trainer's). Milliseconds per view, mean over "
         f"{args.rounds - 1 if len(views) > 1 else args.rounds} passes over the views after a warm-up pass, the "
         f"two versions alternating view by view. Machine: {cpu_model()}, load (1/5/15 min) {load_before} at the "

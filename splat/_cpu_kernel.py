@@ -48,7 +48,7 @@ _FLAGS = ["-O3", "-std=c++17", "-fno-trapping-math", "-fPIC", "-shared", "-pthre
 _LIB_NAME = "libsplat_kernels.so"
 
 #: The ABI version this module speaks (`SPLAT_KERNEL_ABI_VERSION` in csrc/kernel_api.h).
-_ABI_VERSION = 2
+_ABI_VERSION = 3
 
 
 def _kernel_signatures() -> dict[str, tuple[str, ...]]:
@@ -60,8 +60,8 @@ def _kernel_signatures() -> dict[str, tuple[str, ...]]:
             ("i64",) * 5 + ("i64*", "i64*") + (p,) * 4 + ("i64",) + (p, p, "i32*") + ("f64", "f64", "f64", "i32"))
         table[f"splat_composite_backward_{t}"] = (
             ("i64",) * 5 + ("i64*", "i64*") + (p,) * 4 + ("i64", p, "i32*", p, p, p) + ("f64", "f64", "i32"))
-        table[f"splat_sh_forward_{t}"] = ("i64", "i64", "i32", p, p, "f64*", "f64", p)
-        table[f"splat_sh_backward_{t}"] = ("i64", "i64", "i32", p, p, "f64*", "f64", p, p, p)
+        table[f"splat_sh_forward_{t}"] = ("i64", "i64", "i32", p, p, "f64*", "f64", p, "i32")
+        table[f"splat_sh_backward_{t}"] = ("i64", "i64", "i32", p, p, "f64*", "f64", p, p, p, "i32")
         table[f"splat_project_forward_{t}"] = (
             ("i64",) + (p,) * 6 + ("i64", "i64", "f64", "f64", "f64", "i32", "f64") + (p,) * 5 + ("i32*", "i32"))
         table[f"splat_project_backward_{t}"] = (
@@ -289,29 +289,31 @@ def _constants(basis_constants: torch.Tensor) -> torch.Tensor:
 
 
 def sh_forward(degree: int, sh: torch.Tensor, dirs: torch.Tensor, *, basis_constants: torch.Tensor,
-               norm_eps: float) -> torch.Tensor:
+               norm_eps: float, num_threads: int | None = None) -> torch.Tensor:
     """SH colour (before the +0.5 offset): sh (N, K, 3), dirs (N, 3), contiguous CPU, one float dtype -> (N, 3).
 
     `basis_constants`: (14,) float64, C0, C1, C2[5], C3[7] of `splat.sh`; `norm_eps`: the
-    direction normalisation's epsilon.
+    direction normalisation's epsilon. `num_threads`: worker threads (default `torch.get_num_threads()`);
+    results do not depend on it.
     """
     lib = load()
     cst = _constants(basis_constants)
     out = torch.empty(dirs.shape[0], 3, dtype=sh.dtype)
     getattr(lib, f"splat_sh_forward_{_suffix(sh.dtype)}")(dirs.shape[0], sh.shape[1], degree, _p(sh), _p(dirs),
-                                                         _p(cst), norm_eps, _p(out))
+                                                         _p(cst), norm_eps, _p(out), _threads(num_threads))
     return out
 
 
 def sh_backward(degree: int, sh: torch.Tensor, dirs: torch.Tensor, grad_out: torch.Tensor, *,
-                basis_constants: torch.Tensor, norm_eps: float):
+                basis_constants: torch.Tensor, norm_eps: float, num_threads: int | None = None):
     """Gradients (N, K, 3) of `sh` (zero for bases above `degree`) and (N, 3) of `dirs`."""
     lib = load()
     cst = _constants(basis_constants)
     g_sh = torch.empty_like(sh)
     g_dirs = torch.empty_like(dirs)
     getattr(lib, f"splat_sh_backward_{_suffix(sh.dtype)}")(dirs.shape[0], sh.shape[1], degree, _p(sh), _p(dirs),
-                                                          _p(cst), norm_eps, _p(grad_out), _p(g_sh), _p(g_dirs))
+                                                          _p(cst), norm_eps, _p(grad_out), _p(g_sh), _p(g_dirs),
+                                                          _threads(num_threads))
     return g_sh, g_dirs
 
 

@@ -113,8 +113,10 @@ def rasterize(
         R = cam_from_world[:3, :3]
         cam_centre_world = -(R.T @ cam_from_world[:3, 3])
         # The C++ SH kernel goes with the C++ compositor; backend="torch" stays all-torch (the reference).
-        sh_fn = eval_sh if cfg.backend == "torch" else eval_sh_fast
-        rgb_g = torch.clamp_min(sh_fn(sh_degree, colors, means - cam_centre_world) + 0.5, 0.0)
+        dirs = means - cam_centre_world
+        sh = eval_sh(sh_degree, colors, dirs) if cfg.backend == "torch" \
+            else eval_sh_fast(sh_degree, colors, dirs, num_threads=cfg.num_threads)
+        rgb_g = torch.clamp_min(sh + 0.5, 0.0)
     else:
         rgb_g = colors
     features = torch.cat([rgb_g, proj.depths[:, None]], dim=-1)

@@ -15,7 +15,7 @@
 
 #include <cstdint>
 
-#define SPLAT_KERNEL_ABI_VERSION 2
+#define SPLAT_KERNEL_ABI_VERSION 3
 
 #define SPLAT_DECLARE_KERNELS(T, SUFFIX)                                                                 \
   extern "C" void splat_composite_forward_##SUFFIX(                                                      \
@@ -30,10 +30,11 @@
       const T* grad_accum, const T* grad_transmittance, T* g_rows, double alpha_min, double alpha_max,  \
       int32_t num_threads);                                                                              \
   extern "C" void splat_sh_forward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
-                                             const double* basis_constants, double norm_eps, T* out);      \
+                                             const double* basis_constants, double norm_eps, T* out,       \
+                                             int32_t num_threads);                                         \
   extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
                                               const double* basis_constants, double norm_eps,              \
-                                              const T* grad_out, T* g_sh, T* g_dirs);             \
+                                              const T* grad_out, T* g_sh, T* g_dirs, int32_t num_threads); \
   extern "C" void splat_project_forward_##SUFFIX(                                                        \
       int64_t n, const T* means, const T* quats, const T* scales, const T* opacities,                   \
       const T* cam_from_world, const T* K, int64_t width, int64_t height, double near_plane,            \

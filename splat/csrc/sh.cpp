@@ -7,11 +7,15 @@
 // ctypes (splat/_cpu_kernel.py) with pointers to contiguous arrays (C API: kernel_api.h).
 // The basis constants (C0, C1, C2[5], C3[7], in this order) and eps are arguments, passed from
 // splat/sh.py, where they are defined.
+// Gaussians are independent, so they are split into fixed blocks on up to num_threads threads
+// (splat/csrc/parallel.h); each output is written by one thread, and results do not depend on the count.
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 
 #include "kernel_api.h"
+#include "parallel.h"
 
 namespace {
 
@@ -91,12 +95,22 @@ void unit(const T* d, double norm_eps, T* u, T* norm_out) {
   *norm_out = norm;
 }
 
+// Gaussians per work item: large enough that handing out items costs nothing next to the work.
+constexpr int64_t kBlock = 2048;
+
+template <typename F>
+void for_blocks(int64_t n, int num_threads, F body) {
+  splat_parallel::dynamic_for((n + kBlock - 1) / kBlock, num_threads, [&](int64_t blk) {
+    for (int64_t i = blk * kBlock, end = std::min(n, (blk + 1) * kBlock); i < end; ++i) body(i);
+  });
+}
+
 template <typename T>
 void forward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, const double* constants,
-                  double norm_eps, T* out) {
+                  double norm_eps, T* out, int num_threads) {
   const Constants<T> cst(constants);
   const int nb = (degree + 1) * (degree + 1);
-  for (int64_t i = 0; i < n; ++i) {
+  for_blocks(n, num_threads, [&](int64_t i) {
     T u[3], norm, b[16];
     unit(dirs + 3 * i, norm_eps, u, &norm);
     basis<T>(degree, cst, u[0], u[1], u[2], b, nullptr);
@@ -106,15 +120,15 @@ void forward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, 
       for (int k = 0; k < nb; ++k) acc += b[k] * s[3 * k + c];
       out[3 * i + c] = acc;
     }
-  }
+  });
 }
 
 template <typename T>
 void backward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, const double* constants,
-                   double norm_eps, const T* grad_out, T* g_sh, T* g_dirs) {
+                   double norm_eps, const T* grad_out, T* g_sh, T* g_dirs, int num_threads) {
   const Constants<T> cst(constants);
   const int nb = (degree + 1) * (degree + 1);
-  for (int64_t i = 0; i < n; ++i) {
+  for_blocks(n, num_threads, [&](int64_t i) {
     T u[3], norm, b[16], gb[16][3];
     unit(dirs + 3 * i, norm_eps, u, &norm);
     basis<T>(degree, cst, u[0], u[1], u[2], b, gb);
@@ -141,20 +155,21 @@ void backward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs,
     } else {
       for (int a = 0; a < 3; ++a) gd[a] = du[a] / T(norm_eps);
     }
-  }
+  });
 }
 
 }  // namespace
 
 #define SH_EXPORT(T, SUFFIX)                                                                              \
   extern "C" void splat_sh_forward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
-                                             const double* basis_constants, double norm_eps, T* out) {     \
-    forward_impl<T>(n, K, degree, sh, dirs, basis_constants, norm_eps, out);                              \
+                                             const double* basis_constants, double norm_eps, T* out,       \
+                                             int32_t num_threads) {                                        \
+    forward_impl<T>(n, K, degree, sh, dirs, basis_constants, norm_eps, out, num_threads);                 \
   }                                                                                                       \
   extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
                                               const double* basis_constants, double norm_eps,               \
-                                              const T* grad_out, T* g_sh, T* g_dirs) {                     \
-    backward_impl<T>(n, K, degree, sh, dirs, basis_constants, norm_eps, grad_out, g_sh, g_dirs);          \
+                                              const T* grad_out, T* g_sh, T* g_dirs, int32_t num_threads) { \
+    backward_impl<T>(n, K, degree, sh, dirs, basis_constants, norm_eps, grad_out, g_sh, g_dirs, num_threads); \
   }
 
 SH_EXPORT(float, f32)

@@ -58,6 +58,23 @@ def test_cpp_sh_matches_torch_values_and_gradients(degree, dtype, cpp_kernel):
     assert (results[0][1][:, (degree + 1) ** 2:] == 0).all()
 
 
+def test_cpp_sh_is_independent_of_the_thread_count(cpp_kernel):
+    # 5000 Gaussians: three of the kernel's 2048-Gaussian work items, the last one partial.
+    g = torch.Generator().manual_seed(3)
+    sh = torch.randn(5000, 16, 3, generator=g)
+    dirs = torch.randn(5000, 3, generator=g)
+    w = torch.randn(5000, 3, generator=g)
+    results = []
+    for threads in (1, 3):
+        leaves = [sh.clone().requires_grad_(True), dirs.clone().requires_grad_(True)]
+        out = eval_sh_fast(3, *leaves, num_threads=threads)
+        (out * w).sum().backward()
+        results.append([out.detach(), leaves[0].grad, leaves[1].grad])
+    for a, b in zip(*results, strict=True):
+        assert torch.equal(a, b)
+    assert torch.allclose(results[0][0], eval_sh(3, sh, dirs), atol=2e-5)  # and it is the SH colour
+
+
 def test_cpp_sh_gradcheck(cpp_kernel):
     g = torch.Generator().manual_seed(0)
     sh = torch.randn(5, 16, 3, generator=g, dtype=torch.float64, requires_grad=True)
