@@ -232,6 +232,32 @@ inline typename Lanes<T>::M lane_alpha(const T* gk, T x0, T half_a, T b_dy, T c_
 // its first column on.
 inline int64_t padded(int64_t tw) { return tw + kLanes; }
 
+// Visits Gaussian gk (its box bx) row by row: for each row, group(p, mask, dx, e, raw, alpha) for each group of
+// four pixels of the row's span from its first column on (p: the group's first pixel in the tile's state; mask:
+// the lanes the Gaussian reaches, lane_alpha), then row_end(dy). One definition for both passes, so that they
+// make the same alpha decisions.
+template <typename T, typename Group, typename RowEnd>
+inline void visit_box(const Box& bx, const T* gk, int64_t col_lo, int64_t row_lo, int64_t S, T alpha_min,
+                      T alpha_max, Group group, RowEnd row_end) {
+  typedef typename Lanes<T>::V V;
+  typedef typename Lanes<T>::M M;
+  for (int32_t r = bx.r0; r <= bx.r1; ++r) {
+    const T py = T(row_lo + r) + T(0.5);
+    const T dy = gk[1] - py;
+    // Row constants of sigma = dx (a dx / 2 + b dy) + c dy^2 / 2.
+    const T half_a = T(0.5) * gk[2], b_dy = gk[3] * dy, c_term = T(0.5) * gk[4] * dy * dy;
+    int32_t lo, hi;
+    row_span(bx, gk, col_lo, row_lo, r, &lo, &hi);
+    for (int32_t q = lo; q <= hi; q += kLanes) {
+      V dx, e, raw, alpha;
+      const M mask = lane_alpha<T>(gk, T(col_lo + q) + T(0.5), half_a, b_dy, c_term, alpha_min, alpha_max, &dx, &e,
+                                   &raw, &alpha);
+      group(int64_t(r) * S + q, mask, dx, e, raw, alpha);
+    }
+    row_end(dy);
+  }
+}
+
 // Each tile is processed Gaussian by Gaussian (front to back), visiting each row of the Gaussian's box from the
 // first column of its span (row_span) in groups of 4 pixels; for every pixel the sequence of operations is
 // exactly that of a per-pixel loop over the tile's list, so results do not depend on the order. A pixel the
@@ -269,35 +295,24 @@ void forward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t w
       const T* gk = &g[kStride * k];
       const T* col_k = colors + C * gaussian_ids[begin + k];
       const M next_last = M{} + I(k + 1);
-      for (int32_t r = bx.r0; r <= bx.r1; ++r) {
-        const T py = T(row_lo + r) + T(0.5);
-        const T dy = gk[1] - py;
-        // Row constants of sigma = dx (a dx / 2 + b dy) + c dy^2 / 2 (the same expression in the backward
-        // pass, so both make the same alpha decisions).
-        const T half_a = T(0.5) * gk[2], b_dy = gk[3] * dy, c_term = T(0.5) * gk[4] * dy * dy;
-        int32_t lo, hi;
-        row_span(bx, gk, col_lo, row_lo, r, &lo, &hi);
-        for (int32_t q = lo; q <= hi; q += kLanes) {
-          V dx, e, raw, alpha;
-          M keep = lane_alpha<T>(gk, T(col_lo + q) + T(0.5), half_a, b_dy, c_term, alpha_min, alpha_max, &dx, &e,
-                                 &raw, &alpha);
-          const int64_t p = int64_t(r) * S + q;
-          keep &= load4<M>(&alive[p]);
-          const V t = load4<V>(&trans[p]);
-          const V next_t = t * (one - alpha);
-          const M stop = keep & (next_t <= t_min_v);
-          const M take = keep & ~stop;
-          const V w = select<T>(take, alpha * t, zero);
-          for (int64_t c = 0; c < C; ++c) {  // selected, so that a non-finite colour stays in its own pixels
-            T* a = &acc[c * NP + p];
-            store4<V>(a, load4<V>(a) + select<T>(take, w * col_k[c], zero));
-          }
-          store4<V>(&trans[p], select<T>(take, next_t, t));
-          store4<M>(&last[p], take ? next_last : load4<M>(&last[p]));
-          store4<M>(&alive[p], load4<M>(&alive[p]) & ~stop);
-          for (int l = 0; l < kLanes; ++l) active += stop[l];  // stop lanes are -1
-        }
-      }
+      visit_box(bx, gk, col_lo, row_lo, S, alpha_min, alpha_max,
+                [&](int64_t p, const M& reached, const V&, const V&, const V&, const V& alpha) {
+                  const M keep = reached & load4<M>(&alive[p]);
+                  const V t = load4<V>(&trans[p]);
+                  const V next_t = t * (one - alpha);
+                  const M stop = keep & (next_t <= t_min_v);
+                  const M take = keep & ~stop;
+                  const V w = select<T>(take, alpha * t, zero);
+                  for (int64_t c = 0; c < C; ++c) {  // selected, so that a non-finite colour stays in its pixels
+                    T* a = &acc[c * NP + p];
+                    store4<V>(a, load4<V>(a) + select<T>(take, w * col_k[c], zero));
+                  }
+                  store4<V>(&trans[p], select<T>(take, next_t, t));
+                  store4<M>(&last[p], take ? next_last : load4<M>(&last[p]));
+                  store4<M>(&alive[p], load4<M>(&alive[p]) & ~stop);
+                  for (int l = 0; l < kLanes; ++l) active += stop[l];  // stop lanes are -1
+                },
+                [](T) {});
     }
     for (int64_t r = 0; r < th; ++r) {
       for (int64_t cc = 0; cc < tw; ++cc) {
@@ -366,47 +381,41 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
       // d_sigma, d_sigma dx and d_sigma dx^2 (the row's dy enters once per row), and dL/dopacity.
       V gm0 = zero, gm1 = zero, ga = zero, gb = zero, gcc = zero, go = zero;
       for (int64_t c = 0; c < C; ++c) gcol[c] = zero;
-      for (int32_t r = bx.r0; r <= bx.r1; ++r) {
-        const T py = T(row_lo + r) + T(0.5);
-        const T dy = gk[1] - py;
-        const T half_a = T(0.5) * gk[2], b_dy = gk[3] * dy, c_term = T(0.5) * gk[4] * dy * dy;
-        V s0 = zero, s1 = zero, s2 = zero;
-        int32_t lo, hi;
-        row_span(bx, gk, col_lo, row_lo, r, &lo, &hi);
-        for (int32_t q = lo; q <= hi; q += kLanes) {
-          V dx, e, raw, alpha;
-          M valid = lane_alpha<T>(gk, T(col_lo + q) + T(0.5), half_a, b_dy, c_term, alpha_min, alpha_max, &dx, &e,
-                                  &raw, &alpha);
-          const int64_t p = int64_t(r) * S + q;
-          valid &= kk < load4<M>(&stop[p]);
-          const V one_minus = one - alpha;
-          const V t_after = load4<V>(&trans[p]);
-          const V t_before = t_after / one_minus;
-          const V w = alpha * t_before;
-          V d_alpha = zero;
-          for (int64_t c = 0; c < C; ++c) {
-            T* sp = &s[c * NP + p];
-            const V sc = load4<V>(sp), gcv = load4<V>(&gc[c * NP + p]);
-            gcol[c] += select<T>(valid, w * gcv, zero);
-            d_alpha += (col_k[c] - sc) * gcv;
-            store4<V>(sp, select<T>(valid, alpha * col_k[c] + one_minus * sc, sc));
-          }
-          d_alpha = d_alpha * t_before - load4<V>(&gtf[p]) / one_minus;
-          store4<V>(&trans[p], select<T>(valid, t_before, t_after));
-          const M graded = valid & (raw <= amax);  // clamped alpha: no gradient to opacity / sigma
-          go += select<T>(graded, d_alpha * e, zero);
-          const V d_sigma = select<T>(graded, -alpha * d_alpha, zero);
-          s0 += d_sigma;  // and dx selected too: 0 * dx is NaN where a masked-off lane's dx is not finite
-          s1 += select<T>(graded, d_sigma * dx, zero);
-          s2 += select<T>(graded, d_sigma * dx * dx, zero);
-        }
-        // d sigma / d(a, b, c) = (dx^2 / 2, dx dy, dy^2 / 2); d sigma / d mean = (a dx + b dy, b dx + c dy).
-        ga += T(0.5) * s2;
-        gb += dy * s1;
-        gcc += T(0.5) * dy * dy * s0;
-        gm0 += gk[2] * s1 + gk[3] * dy * s0;
-        gm1 += gk[3] * s1 + gk[4] * dy * s0;
-      }
+      // Per-row sums of d_sigma, d_sigma dx and d_sigma dx^2.
+      V s0 = zero, s1 = zero, s2 = zero;
+      visit_box(bx, gk, col_lo, row_lo, S, alpha_min, alpha_max,
+                [&](int64_t p, const M& reached, const V& dx, const V& e, const V& raw, const V& alpha) {
+                  const M valid = reached & (kk < load4<M>(&stop[p]));
+                  const V one_minus = one - alpha;
+                  const V t_after = load4<V>(&trans[p]);
+                  const V t_before = t_after / one_minus;
+                  const V w = alpha * t_before;
+                  V d_alpha = zero;
+                  for (int64_t c = 0; c < C; ++c) {
+                    T* sp = &s[c * NP + p];
+                    const V sc = load4<V>(sp), gcv = load4<V>(&gc[c * NP + p]);
+                    gcol[c] += select<T>(valid, w * gcv, zero);
+                    d_alpha += (col_k[c] - sc) * gcv;
+                    store4<V>(sp, select<T>(valid, alpha * col_k[c] + one_minus * sc, sc));
+                  }
+                  d_alpha = d_alpha * t_before - load4<V>(&gtf[p]) / one_minus;
+                  store4<V>(&trans[p], select<T>(valid, t_before, t_after));
+                  const M graded = valid & (raw <= amax);  // clamped alpha: no gradient to opacity / sigma
+                  go += select<T>(graded, d_alpha * e, zero);
+                  const V d_sigma = select<T>(graded, -alpha * d_alpha, zero);
+                  s0 += d_sigma;  // and dx selected too: 0 * dx is NaN where a masked-off lane's dx is not finite
+                  s1 += select<T>(graded, d_sigma * dx, zero);
+                  s2 += select<T>(graded, d_sigma * dx * dx, zero);
+                },
+                [&](T dy) {
+                  // d sigma / d(a, b, c) = (dx^2 / 2, dx dy, dy^2 / 2); d sigma / d mean = (a dx + b dy, b dx + c dy).
+                  ga += T(0.5) * s2;
+                  gb += dy * s1;
+                  gcc += T(0.5) * dy * dy * s0;
+                  gm0 += gk[2] * s1 + gk[3] * dy * s0;
+                  gm1 += gk[3] * s1 + gk[4] * dy * s0;
+                  s0 = s1 = s2 = zero;
+                });
       T* row = g_rows + j * (6 + C);  // this row belongs to this tile only
       row[0] = hsum<T>(gm0);
       row[1] = hsum<T>(gm1);
