@@ -66,12 +66,10 @@ def peak_rss_mb() -> float:
 
 def cpu_model() -> str:
     """The CPU's model name (Linux `/proc/cpuinfo`), else what `platform` knows."""
-    try:
+    with contextlib.suppress(OSError):
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
                 return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
     return platform.processor() or platform.machine() or "unknown CPU"
 
 

@@ -53,9 +53,10 @@ def build(csrc: Path, flags: list[str], out: Path) -> ctypes.CDLL:
     signature table (`splat._cpu_kernel.check_library`)."""
     from splat import _cpu_kernel as ck
 
-    sources = [str(csrc / name) for name in ("composite.cpp", "sh.cpp", "projection.cpp", "tiles.cpp", "ssim.cpp",
-                                             "abi.cpp")]
-    cxx = os.environ.get("CXX") or "g++"
+    sources = [str(csrc / src.name) for src in ck._SOURCES]
+    cxx = ck._compiler()
+    if cxx is None:
+        raise SystemExit("no C++ compiler found (g++, or set CXX)")
     subprocess.run([cxx, *flags, f"-I{csrc}", *sources, "-o", str(out)], check=True)
     lib = ctypes.CDLL(str(out))
     ck.check_library(lib)
@@ -96,10 +97,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", type=Path, required=True, help="a round folder with point_cloud.ply and sparse/0")
     ap.add_argument("--base", default=DEFAULT_BASE, help="the commit to compare with (default %(default)s)")
-    ap.add_argument("--rounds", type=int, default=4, help="passes over the views per measurement")
+    ap.add_argument("--rounds", type=int, default=4, help="passes over the views per measurement, the first a "
+                    "warm-up (at least 2)")
     ap.add_argument("--threads", type=int, default=2, help="compositor threads (the trainer's: the cores)")
     ap.add_argument("--page", default="composite_speed", help="docs/bench/NAME.md to write")
     args = ap.parse_args()
+    if args.rounds < 2:
+        ap.error("--rounds must be at least 2: the first pass over the views is a warm-up")
 
     import torch
 
@@ -148,7 +152,7 @@ def main() -> None:
                     rows = ck.backward(bins, m2, con, col, op, width, height, trans, last, g_acc, g_trans,
                                        alpha_min=ALPHA_MIN, alpha_max=ALPHA_MAX, num_threads=args.threads)
                     t2 = time.perf_counter()
-                    if rnd > 0 or len(inputs) == 1:  # the first pass warms up
+                    if rnd > 0:  # the first pass warms up
                         kernel_s[name][0] += t1 - t0
                         kernel_s[name][1] += t2 - t1
                     if rnd == 0:
@@ -174,7 +178,7 @@ def main() -> None:
                     t2 = time.perf_counter()
                     loss.backward()
                     t3 = time.perf_counter()
-                    if rnd > 0 or len(views) == 1:
+                    if rnd > 0:
                         for i, dt in enumerate((t1 - t0, t2 - t1, t3 - t2)):
                             step_s[name][i] += dt
                     if rnd == 0:
@@ -185,7 +189,7 @@ def main() -> None:
     def rel(a, b):
         return float((a - b).abs().max() / b.abs().max().clamp(min=1e-30))
 
-    n = max(1, (args.rounds - 1) * len(views)) if len(views) > 1 else args.rounds
+    n = (args.rounds - 1) * len(views)
     ms = {k: [1e3 * x / n for x in v] for k, v in kernel_s.items()}
     st = {k: [1e3 * x / n for x in v] for k, v in step_s.items()}
     d_fwd = max(max(rel(kernel_out[("this", v)][i], kernel_out[("base", v)][i]) for i in (0, 1))
@@ -209,7 +213,7 @@ def main() -> None:
         f"{isect:.0f} tile intersections per view on average). Base: this checkout with commit `{args.base}`'s "
         f"compositor (`splat/csrc/composite.cpp`, built with that commit's flags); this: `{this}`. "
         f"{args.threads} compositor threads, torch at one thread (the trainer's). Milliseconds per view, mean over "
-        f"{args.rounds - 1 if len(views) > 1 else args.rounds} passes over the views after a warm-up pass, the "
+        f"{args.rounds - 1} passes over the views after a warm-up pass, the "
         f"two versions alternating view by view. Machine: {cpu_model()}, load (1/5/15 min) {load_before} at the "
         f"start, {load_after} at the end.\n\n"
         "The compositing kernels alone:\n\n" + md_table(["kernel", "base (ms)", "this (ms)", "time ratio"], rows1)

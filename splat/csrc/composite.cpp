@@ -17,14 +17,12 @@
 // d opacity, d colour_0 .. d colour_{C-1}] (each tile is owned by one thread, so no atomics); the
 // caller sums rows per Gaussian.
 
-#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <limits>
 #include <algorithm>
 #include <type_traits>
-#include <thread>
 #include <vector>
 
 #include "kernel_api.h"
