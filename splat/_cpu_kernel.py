@@ -48,7 +48,7 @@ _FLAGS = ["-O3", "-std=c++17", "-fno-trapping-math", "-fPIC", "-shared", "-pthre
 _LIB_NAME = "libsplat_kernels.so"
 
 #: The ABI version this module speaks (`SPLAT_KERNEL_ABI_VERSION` in csrc/kernel_api.h).
-_ABI_VERSION = 3
+_ABI_VERSION = 4
 
 
 def _kernel_signatures() -> dict[str, tuple[str, ...]]:
@@ -60,8 +60,10 @@ def _kernel_signatures() -> dict[str, tuple[str, ...]]:
             ("i64",) * 5 + ("i64*", "i64*") + (p,) * 4 + ("i64",) + (p, p, "i32*") + ("f64", "f64", "f64", "i32"))
         table[f"splat_composite_backward_{t}"] = (
             ("i64",) * 5 + ("i64*", "i64*") + (p,) * 4 + ("i64", p, "i32*", p, p, p) + ("f64", "f64", "i32"))
-        table[f"splat_sh_forward_{t}"] = ("i64", "i64", "i32", p, p, "f64*", "f64", p, "i32")
-        table[f"splat_sh_backward_{t}"] = ("i64", "i64", "i32", p, p, "f64*", "f64", p, p, p, "i32")
+        table[f"splat_composite_gather_{t}"] = ("i64", "i64", "i64", "i64*") + (p,) * 5 + ("i32",)
+        table[f"splat_sh_forward_{t}"] = ("i64", "i64", "i32", p, "i64", p, "i64", p, "f64*", "f64", p, "i32")
+        table[f"splat_sh_backward_{t}"] = ("i64", "i64", "i32", p, "i64", p, "i64", p, "f64*", "f64", p, p, p, p,
+                                           "i32")
         table[f"splat_project_forward_{t}"] = (
             ("i64",) + (p,) * 6 + ("i64", "i64", "f64", "f64", "f64", "i32", "f64") + (p,) * 5 + ("i32*", "i32"))
         table[f"splat_project_backward_{t}"] = (
@@ -281,6 +283,19 @@ def backward(bins, means2d, conics, colors, opacities, width, height, trans, las
     return g_rows
 
 
+def gather(gaussian_ids: torch.Tensor, g_rows: torch.Tensor, n: int, *, num_threads: int | None = None):
+    """`backward`'s rows summed per Gaussian (in intersection order from zero, the numbers of one `index_add_`
+    into zeros): d means2d (N, 2), d conics (N, 3), d opacities (N,), d colors (N, C), each contiguous."""
+    lib = load()
+    I, D = g_rows.shape
+    C, dt = D - 6, g_rows.dtype
+    g_m, g_c = torch.empty(n, 2, dtype=dt), torch.empty(n, 3, dtype=dt)
+    g_o, g_col = torch.empty(n, dtype=dt), torch.empty(n, C, dtype=dt)
+    getattr(lib, f"splat_composite_gather_{_suffix(dt)}")(I, n, C, _p(gaussian_ids), _p(g_rows), _p(g_m), _p(g_c),
+                                                          _p(g_o), _p(g_col), _threads(num_threads))
+    return g_m, g_c, g_o, g_col
+
+
 def _constants(basis_constants: torch.Tensor) -> torch.Tensor:
     if basis_constants.dtype != torch.float64 or basis_constants.shape != (14,) or \
             not basis_constants.is_contiguous() or basis_constants.device.type != "cpu":
@@ -288,9 +303,25 @@ def _constants(basis_constants: torch.Tensor) -> torch.Tensor:
     return basis_constants
 
 
-def sh_forward(degree: int, sh: torch.Tensor, dirs: torch.Tensor, *, basis_constants: torch.Tensor,
-               norm_eps: float, num_threads: int | None = None) -> torch.Tensor:
-    """SH colour (before the +0.5 offset): sh (N, K, 3), dirs (N, 3), contiguous CPU, one float dtype -> (N, 3).
+def _bands(sh0: torch.Tensor, shN: torch.Tensor) -> tuple[int, int, int, int, int]:
+    """K, and the pointer and row stride (in elements) of each part, for the kernel's strided bands: each part
+    (N, k, 3) with its last two dimensions dense (a contiguous tensor, or a slice of bands of one)."""
+    for name, t in (("sh0", sh0), ("shN", shN)):
+        dense = t.dim() == 3 and (t.shape[1] == 0 or t.stride(2) == 1) and (t.shape[1] <= 1 or t.stride(1) == 3)
+        if not dense or t.shape[-1] != 3:
+            raise ValueError(f"{name}: expected (N, k, 3) with dense bands, got shape {tuple(t.shape)} "
+                             f"strides {t.stride()}")
+    if sh0.shape[1] != 1 or sh0.shape[0] != shN.shape[0] or sh0.dtype != shN.dtype:
+        raise ValueError(f"sh0 {tuple(sh0.shape)} {sh0.dtype} and shN {tuple(shN.shape)} {shN.dtype}: expected "
+                         "(N, 1, 3) and (N, K - 1, 3) of one dtype")
+    return 1 + shN.shape[1], _p(sh0), sh0.stride(0), _p(shN) if shN.shape[1] else 0, shN.stride(0)
+
+
+def sh_forward(degree: int, sh0: torch.Tensor, shN: torch.Tensor, dirs: torch.Tensor, *,
+               basis_constants: torch.Tensor, norm_eps: float, num_threads: int | None = None) -> torch.Tensor:
+    """SH colour (before the +0.5 offset) -> (N, 3). sh0 (N, 1, 3): the DC band; shN (N, K - 1, 3): the other
+    bands (each with dense bands, e.g. `sh[:, :1]` and `sh[:, 1:]` of a contiguous (N, K, 3) tensor); dirs
+    (N, 3) contiguous; CPU, one float dtype.
 
     `basis_constants`: (14,) float64, C0, C1, C2[5], C3[7] of `splat.sh`; `norm_eps`: the
     direction normalisation's epsilon. `num_threads`: worker threads (default `torch.get_num_threads()`);
@@ -298,23 +329,29 @@ def sh_forward(degree: int, sh: torch.Tensor, dirs: torch.Tensor, *, basis_const
     """
     lib = load()
     cst = _constants(basis_constants)
-    out = torch.empty(dirs.shape[0], 3, dtype=sh.dtype)
-    getattr(lib, f"splat_sh_forward_{_suffix(sh.dtype)}")(dirs.shape[0], sh.shape[1], degree, _p(sh), _p(dirs),
-                                                         _p(cst), norm_eps, _p(out), _threads(num_threads))
+    K, p0, s0, pN, sN = _bands(sh0, shN)
+    out = torch.empty(dirs.shape[0], 3, dtype=sh0.dtype)
+    getattr(lib, f"splat_sh_forward_{_suffix(sh0.dtype)}")(dirs.shape[0], K, degree, p0, s0, pN, sN, _p(dirs),
+                                                          _p(cst), norm_eps, _p(out), _threads(num_threads))
     return out
 
 
-def sh_backward(degree: int, sh: torch.Tensor, dirs: torch.Tensor, grad_out: torch.Tensor, *,
-                basis_constants: torch.Tensor, norm_eps: float, num_threads: int | None = None):
-    """Gradients (N, K, 3) of `sh` (zero for bases above `degree`) and (N, 3) of `dirs`."""
+def sh_backward(degree: int, sh0: torch.Tensor, shN: torch.Tensor, dirs: torch.Tensor, grad_out: torch.Tensor, *,
+                basis_constants: torch.Tensor, norm_eps: float, need_sh: bool = True,
+                num_threads: int | None = None):
+    """Gradients (N, 1, 3) of `sh0` and (N, K - 1, 3) of `shN` (zero for bases above `degree`; both None when
+    not `need_sh`) and (N, 3) of `dirs`."""
     lib = load()
     cst = _constants(basis_constants)
-    g_sh = torch.empty_like(sh)
+    K, p0, s0, pN, sN = _bands(sh0, shN)
+    n = dirs.shape[0]
+    g_sh0 = torch.empty(n, 1, 3, dtype=sh0.dtype) if need_sh else None
+    g_shN = torch.empty(n, K - 1, 3, dtype=sh0.dtype) if need_sh else None
     g_dirs = torch.empty_like(dirs)
-    getattr(lib, f"splat_sh_backward_{_suffix(sh.dtype)}")(dirs.shape[0], sh.shape[1], degree, _p(sh), _p(dirs),
-                                                          _p(cst), norm_eps, _p(grad_out), _p(g_sh), _p(g_dirs),
-                                                          _threads(num_threads))
-    return g_sh, g_dirs
+    getattr(lib, f"splat_sh_backward_{_suffix(sh0.dtype)}")(
+        n, K, degree, p0, s0, pN, sN, _p(dirs), _p(cst), norm_eps, _p(grad_out),
+        _p(g_sh0) if need_sh else 0, _p(g_shN) if need_sh and K > 1 else 0, _p(g_dirs), _threads(num_threads))
+    return g_sh0, g_shN, g_dirs
 
 
 def project_forward(means, quats, scales, opacities, cam_from_world, K, width: int, height: int, *,

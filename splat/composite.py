@@ -103,10 +103,10 @@ class _CompositeCpp(torch.autograd.Function):
         grad_trans = torch.zeros_like(trans) if grad_trans is None else grad_trans.to(dt).contiguous()
         rows = _cpu_kernel.backward(bins, m, c, col, o, ctx.width, ctx.height, trans, last, grad_accum, grad_trans,
                                     alpha_min=ALPHA_MIN, alpha_max=ALPHA_MAX, num_threads=ctx.num_threads)
-        # One deterministic scatter of all per-intersection rows into per-Gaussian sums.
-        per_gaussian = torch.zeros(m.shape[0], rows.shape[1], dtype=dt).index_add_(0, bins.gaussian_ids, rows)
-        out_m, out_c, out_o, out_col = per_gaussian.split([2, 3, 1, col.shape[1]], dim=1)
-        return out_m, out_c, out_col, out_o.reshape(-1), None, None, None, None
+        # One deterministic sum of the per-intersection rows per Gaussian (`_cpu_kernel.gather`).
+        out_m, out_c, out_o, out_col = _cpu_kernel.gather(bins.gaussian_ids, rows, m.shape[0],
+                                                          num_threads=ctx.num_threads)
+        return out_m, out_c, out_col, out_o, None, None, None, None
 
 
 class _RecomputedChunk(torch.autograd.Function):

@@ -133,6 +133,6 @@ class GaussianModel(torch.nn.Module):
                config: RasterConfig | None = None) -> RenderOutput:
         """Render one view with the active SH degree (default: the maximum)."""
         degree = self.sh_degree_max if sh_degree is None else sh_degree
-        return rasterize(self.means, self.quats, self.scales, self.opacities, self.sh,
+        return rasterize(self.means, self.quats, self.scales, self.opacities, self.sh0,
                          cam_from_world.to(self.means), K.to(self.means), width, height,
-                         sh_degree=degree, background=background, config=config)
+                         sh_degree=degree, colors_rest=self.shN, background=background, config=config)

@@ -73,6 +73,7 @@ def rasterize(
     height: int,
     *,
     sh_degree: int | None = None,
+    colors_rest: torch.Tensor | None = None,
     background: torch.Tensor | None = None,
     config: RasterConfig | None = None,
 ) -> RenderOutput:
@@ -90,6 +91,9 @@ def rasterize(
         K: (3, 3) pinhole intrinsics (our pixel convention).
         width, height: image size in pixels (>= 1).
         sh_degree: active SH degree 0..3, or None for plain colours.
+        colors_rest: with `sh_degree`, the SH bands above the DC one, (N, K - 1, 3), when the caller keeps
+            them apart from it (as `GaussianModel` does); `colors` is then the DC band (N, 1, 3). The same as
+            passing `torch.cat([colors, colors_rest], 1)`, without copying every coefficient in each render.
         background: (3,) colour behind the Gaussians (default black).
         config: `RasterConfig` (defaults if None).
 
@@ -101,9 +105,14 @@ def rasterize(
         raise ShapeError(f"image size must be at least 1x1, got {width}x{height}")
     n = means.shape[0]
     if sh_degree is None:
+        if colors_rest is not None:
+            raise ShapeError("colors_rest is SH coefficients; it needs sh_degree")
         check_shape(colors, [n, 3], "colors")
-    else:
+    elif colors_rest is None:
         check_shape(colors, [n, "K", 3], "colors (SH coefficients)")
+    else:
+        check_shape(colors, [n, 1, 3], "colors (the DC band, with colors_rest)")
+        check_shape(colors_rest, [n, "K-1", 3], "colors_rest (SH bands above the DC one)")
     proj = project_gaussians(
         means, quats, scales, opacities, cam_from_world, K, width, height,
         near_plane=cfg.near_plane, far_plane=cfg.far_plane, eps2d=cfg.eps2d, antialiased=cfg.antialiased,
@@ -114,8 +123,10 @@ def rasterize(
         cam_centre_world = -(R.T @ cam_from_world[:3, 3])
         # The C++ SH kernel goes with the C++ compositor; backend="torch" stays all-torch (the reference).
         dirs = means - cam_centre_world
-        sh = eval_sh(sh_degree, colors, dirs) if cfg.backend == "torch" \
-            else eval_sh_fast(sh_degree, colors, dirs, num_threads=cfg.num_threads)
+        if cfg.backend == "torch":
+            sh = eval_sh(sh_degree, colors if colors_rest is None else torch.cat([colors, colors_rest], 1), dirs)
+        else:
+            sh = eval_sh_fast(sh_degree, colors, dirs, sh_rest=colors_rest, num_threads=cfg.num_threads)
         rgb_g = torch.clamp_min(sh + 0.5, 0.0)
     else:
         rgb_g = colors

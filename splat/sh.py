@@ -108,41 +108,63 @@ def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     return (basis[..., :, None] * sh[..., :k, :]).sum(-2)
 
 
-def eval_sh_fast(degree: int, sh: torch.Tensor, dirs: torch.Tensor, *, num_threads: int | None = None) -> torch.Tensor:
+def eval_sh_fast(degree: int, sh: torch.Tensor, dirs: torch.Tensor, *, sh_rest: torch.Tensor | None = None,
+                 num_threads: int | None = None) -> torch.Tensor:
     """`eval_sh` for (N, K, 3) / (N, 3) inputs through the C++ kernel on CPU (float32/float64),
     with a hand-written backward; falls back to `eval_sh` elsewhere. Forward + backward is ~5x
     faster than `eval_sh`'s autograd graph at degree 3 and ~2.5x at degree 1 (17k Gaussians, one
     thread); tested against `eval_sh` (values and gradients) in tests/splat/test_sh.py. `num_threads`:
-    the kernel's threads (default `torch.get_num_threads()`); results do not depend on it."""
+    the kernel's threads (default `torch.get_num_threads()`); results do not depend on it.
+
+    `sh_rest`: the bands above the DC one, (N, K - 1, 3), when the caller keeps them apart (a model's `sh0` and
+    `shN`, which have their own learning rates); `sh` is then the DC band (N, 1, 3). The result and the
+    gradients are those of `eval_sh(degree, torch.cat([sh, sh_rest], 1), dirs)`, without that copy of every
+    coefficient in each render and its split in the backward.
+    """
     from splat import _cpu_kernel
 
+    if sh_rest is not None and (sh.dim() != 3 or sh.shape[1] != 1):
+        raise ValueError(f"with sh_rest, sh is the DC band (N, 1, 3), got {tuple(sh.shape)}")
     k = num_sh_bases(degree)
-    if sh.shape[-2] < k:
-        raise ValueError(f"sh has {sh.shape[-2]} bases, degree {degree} needs {k}")
-    if (sh.device.type != "cpu" or sh.dim() != 3 or dirs.dim() != 2 or sh.dtype != dirs.dtype
+    n_bases = sh.shape[-2] + (0 if sh_rest is None else sh_rest.shape[-2])
+    if n_bases < k:
+        raise ValueError(f"sh has {n_bases} bases, degree {degree} needs {k}")
+    parts = (sh,) if sh_rest is None else (sh, sh_rest)
+    if (any(p.device.type != "cpu" or p.dim() != 3 or p.dtype != dirs.dtype for p in parts) or dirs.dim() != 2
             or sh.dtype not in (torch.float32, torch.float64) or not _cpu_kernel.available()):
-        return eval_sh(degree, sh, dirs)
-    return _ShCpp.apply(degree, sh, dirs, num_threads)
+        return eval_sh(degree, sh if sh_rest is None else torch.cat([sh, sh_rest], 1), dirs)
+    if sh_rest is None:
+        sh = sh.contiguous()
+        sh, sh_rest = sh[:, :1], sh[:, 1:]
+    return _ShCpp.apply(degree, sh, sh_rest, dirs, num_threads)
+
+
+def _dense_bands(t: torch.Tensor) -> torch.Tensor:
+    """`t` (N, k, 3), copied only if its bands are not dense (the kernel's strided read, `_cpu_kernel._bands`)."""
+    ok = t.shape[1] == 0 or (t.stride(2) == 1 and (t.shape[1] == 1 or t.stride(1) == 3))
+    return t if ok else t.contiguous()
 
 
 class _ShCpp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, degree, sh, dirs, num_threads):
+    def forward(ctx, degree, sh0, shN, dirs, num_threads):
         from splat import _cpu_kernel
 
-        sh_c, dirs_c = sh.detach().contiguous(), dirs.detach().contiguous()
+        sh0_c, shN_c, dirs_c = _dense_bands(sh0.detach()), _dense_bands(shN.detach()), dirs.detach().contiguous()
         ctx.degree = degree
         ctx.num_threads = num_threads
-        ctx.save_for_backward(sh_c, dirs_c)
-        return _cpu_kernel.sh_forward(degree, sh_c, dirs_c, basis_constants=_BASIS_CONSTANTS, norm_eps=NORMALIZE_EPS,
-                                      num_threads=num_threads)
+        ctx.save_for_backward(sh0_c, shN_c, dirs_c)
+        return _cpu_kernel.sh_forward(degree, sh0_c, shN_c, dirs_c, basis_constants=_BASIS_CONSTANTS,
+                                      norm_eps=NORMALIZE_EPS, num_threads=num_threads)
 
     @staticmethod
     def backward(ctx, grad_out):
         from splat import _cpu_kernel
 
-        sh_c, dirs_c = ctx.saved_tensors
-        g_sh, g_dirs = _cpu_kernel.sh_backward(ctx.degree, sh_c, dirs_c, grad_out.contiguous(),
-                                               basis_constants=_BASIS_CONSTANTS, norm_eps=NORMALIZE_EPS,
-                                               num_threads=ctx.num_threads)
-        return None, g_sh, g_dirs, None
+        sh0_c, shN_c, dirs_c = ctx.saved_tensors
+        need_sh = ctx.needs_input_grad[1] or ctx.needs_input_grad[2]
+        g_sh0, g_shN, g_dirs = _cpu_kernel.sh_backward(ctx.degree, sh0_c, shN_c, dirs_c, grad_out.contiguous(),
+                                                       basis_constants=_BASIS_CONSTANTS, norm_eps=NORMALIZE_EPS,
+                                                       need_sh=need_sh, num_threads=ctx.num_threads)
+        return (None, g_sh0 if ctx.needs_input_grad[1] else None, g_shN if ctx.needs_input_grad[2] else None,
+                g_dirs if ctx.needs_input_grad[3] else None, None)

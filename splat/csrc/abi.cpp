@@ -47,6 +47,8 @@ const std::string& table() {
                                   SPLAT_SIGNATURE(splat_composite_forward_f64) +
                                   SPLAT_SIGNATURE(splat_composite_backward_f32) +
                                   SPLAT_SIGNATURE(splat_composite_backward_f64) +
+                                  SPLAT_SIGNATURE(splat_composite_gather_f32) +
+                                  SPLAT_SIGNATURE(splat_composite_gather_f64) +
                                   SPLAT_SIGNATURE(splat_sh_forward_f32) + SPLAT_SIGNATURE(splat_sh_forward_f64) +
                                   SPLAT_SIGNATURE(splat_sh_backward_f32) + SPLAT_SIGNATURE(splat_sh_backward_f64) +
                                   SPLAT_SIGNATURE(splat_project_forward_f32) +

@@ -15,7 +15,7 @@
 
 #include <cstdint>
 
-#define SPLAT_KERNEL_ABI_VERSION 3
+#define SPLAT_KERNEL_ABI_VERSION 4
 
 #define SPLAT_DECLARE_KERNELS(T, SUFFIX)                                                                 \
   extern "C" void splat_composite_forward_##SUFFIX(                                                      \
@@ -29,12 +29,18 @@
       const T* colors, const T* opacities, int64_t C, const T* transmittance, const int32_t* last,      \
       const T* grad_accum, const T* grad_transmittance, T* g_rows, double alpha_min, double alpha_max,  \
       int32_t num_threads);                                                                              \
-  extern "C" void splat_sh_forward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
-                                             const double* basis_constants, double norm_eps, T* out,       \
-                                             int32_t num_threads);                                         \
-  extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
-                                              const double* basis_constants, double norm_eps,              \
-                                              const T* grad_out, T* g_sh, T* g_dirs, int32_t num_threads); \
+  extern "C" void splat_composite_gather_##SUFFIX(int64_t I, int64_t N, int64_t C, const int64_t* gaussian_ids, \
+                                                   const T* g_rows, T* g_means2d, T* g_conics, T* g_opacities, \
+                                                   T* g_colors, int32_t num_threads);                       \
+  extern "C" void splat_sh_forward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh0,            \
+                                             int64_t sh0_stride, const T* shN, int64_t shN_stride,         \
+                                             const T* dirs, const double* basis_constants, double norm_eps, \
+                                             T* out, int32_t num_threads);                                 \
+  extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh0,           \
+                                              int64_t sh0_stride, const T* shN, int64_t shN_stride,        \
+                                              const T* dirs, const double* basis_constants, double norm_eps, \
+                                              const T* grad_out, T* g_sh0, T* g_shN, T* g_dirs,            \
+                                              int32_t num_threads);                                        \
   extern "C" void splat_project_forward_##SUFFIX(                                                        \
       int64_t n, const T* means, const T* quats, const T* scales, const T* opacities,                   \
       const T* cam_from_world, const T* K, int64_t width, int64_t height, double near_plane,            \
@@ -66,7 +72,7 @@ SPLAT_DECLARE_KERNELS(double, f64)
 // SPLAT_KERNEL_ABI_VERSION of the compiled library.
 extern "C" int64_t splat_kernel_abi_version();
 // "name(arg,...);..." for every kernel above, with arg codes i32 i64 f32 f64 and a trailing * for
-// pointers (const dropped), e.g. "splat_sh_forward_f32(i64,i64,i32,f32*,f32*,f64*,f64,f32*);".
+// pointers (const dropped), e.g. "splat_sh_forward_f32(i64,i64,i32,f32*,i64,f32*,i64,f32*,f64*,f64,f32*,i32);".
 extern "C" const char* splat_kernel_signatures();
 
 #endif  // SPLAT_KERNEL_API_H_

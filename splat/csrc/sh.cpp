@@ -4,7 +4,9 @@
 //   u = d / max(|d|, eps);  colour_c = sum_{k < (degree+1)^2} B_k(u) sh[k][c].
 // Backward: d sh[k][c] = B_k(u) g_c (zero for unused bases), and d d = (I - u u^T) / |d| * dL/du
 // (dL/du / eps when |d| <= eps, as torch's normalize). Plain C++17, no torch headers; called via
-// ctypes (splat/_cpu_kernel.py) with pointers to contiguous arrays (C API: kernel_api.h).
+// ctypes (splat/_cpu_kernel.py) with pointers to contiguous arrays (C API: kernel_api.h), except the
+// coefficients, which come as two strided parts (the DC band and the rest; `Bands`), so a model that keeps
+// them in two tensors is read without first copying them into one.
 // The basis constants (C0, C1, C2[5], C3[7], in this order) and eps are arguments, passed from
 // splat/sh.py, where they are defined.
 // Gaussians are independent, so they are split into fixed blocks on up to num_threads threads
@@ -105,8 +107,20 @@ void for_blocks(int64_t n, int num_threads, F body) {
   });
 }
 
+// Coefficient rows: band 0 of Gaussian i at sh0 + i * s0, bands 1.. at shN + i * sN (three values per band,
+// adjacent). A contiguous (N, K, 3) array is sh0 = base, shN = base + 3, s0 = sN = 3 K; a model's separate
+// DC and rest tensors (no copy into one array) are s0 = 3, sN = 3 (K - 1).
 template <typename T>
-void forward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, const double* constants,
+struct Bands {
+  const T* sh0;
+  int64_t s0;
+  const T* shN;
+  int64_t sN;
+  const T* band(int64_t i, int k) const { return k == 0 ? sh0 + i * s0 : shN + i * sN + 3 * (k - 1); }
+};
+
+template <typename T>
+void forward_impl(int64_t n, int degree, const Bands<T>& sh, const T* dirs, const double* constants,
                   double norm_eps, T* out, int num_threads) {
   const Constants<T> cst(constants);
   const int nb = (degree + 1) * (degree + 1);
@@ -114,39 +128,44 @@ void forward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, 
     T u[3], norm, b[16];
     unit(dirs + 3 * i, norm_eps, u, &norm);
     basis<T>(degree, cst, u[0], u[1], u[2], b, nullptr);
-    const T* s = sh + i * K * 3;
-    for (int c = 0; c < 3; ++c) {
-      T acc = T(0);
-      for (int k = 0; k < nb; ++k) acc += b[k] * s[3 * k + c];
-      out[3 * i + c] = acc;
+    T acc[3] = {T(0), T(0), T(0)};
+    for (int k = 0; k < nb; ++k) {
+      const T* s = sh.band(i, k);
+      for (int c = 0; c < 3; ++c) acc[c] += b[k] * s[c];
     }
+    for (int c = 0; c < 3; ++c) out[3 * i + c] = acc[c];
   });
 }
 
+// g_sh0 (N, 1, 3) and g_shN (N, K - 1, 3) are dense outputs; either may be null (not wanted). Bands above
+// `degree` get zero gradients.
 template <typename T>
-void backward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs, const double* constants,
-                   double norm_eps, const T* grad_out, T* g_sh, T* g_dirs, int num_threads) {
+void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T* dirs, const double* constants,
+                   double norm_eps, const T* grad_out, T* g_sh0, T* g_shN, T* g_dirs, int num_threads) {
   const Constants<T> cst(constants);
   const int nb = (degree + 1) * (degree + 1);
   for_blocks(n, num_threads, [&](int64_t i) {
     T u[3], norm, b[16], gb[16][3];
     unit(dirs + 3 * i, norm_eps, u, &norm);
     basis<T>(degree, cst, u[0], u[1], u[2], b, gb);
-    const T* s = sh + i * K * 3;
     const T* g = grad_out + 3 * i;
-    T* gs = g_sh + i * K * 3;
     T du[3] = {T(0), T(0), T(0)};
-    for (int k = 0; k < K; ++k) {
-      if (k >= nb) {
-        gs[3 * k] = gs[3 * k + 1] = gs[3 * k + 2] = T(0);
-        continue;
-      }
+    for (int k = 0; k < nb; ++k) {
+      const T* s = sh.band(i, k);
+      T* gs = k == 0 ? g_sh0 : g_shN;
+      if (gs) gs += k == 0 ? 3 * i : 3 * ((K - 1) * i + (k - 1));
       T db = T(0);
       for (int c = 0; c < 3; ++c) {
-        gs[3 * k + c] = b[k] * g[c];
-        db += s[3 * k + c] * g[c];
+        if (gs) gs[c] = b[k] * g[c];
+        db += s[c] * g[c];
       }
       for (int a = 0; a < 3; ++a) du[a] += db * gb[k][a];
+    }
+    if (g_shN) {
+      for (int64_t k = std::max(nb, 1); k < K; ++k) {
+        T* gs = g_shN + 3 * ((K - 1) * i + (k - 1));
+        gs[0] = gs[1] = gs[2] = T(0);
+      }
     }
     T* gd = g_dirs + 3 * i;
     if (norm > T(norm_eps)) {
@@ -161,15 +180,21 @@ void backward_impl(int64_t n, int64_t K, int degree, const T* sh, const T* dirs,
 }  // namespace
 
 #define SH_EXPORT(T, SUFFIX)                                                                              \
-  extern "C" void splat_sh_forward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
+  extern "C" void splat_sh_forward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh0, int64_t sh0_stride, \
+                                             const T* shN, int64_t shN_stride, const T* dirs,               \
                                              const double* basis_constants, double norm_eps, T* out,       \
                                              int32_t num_threads) {                                        \
-    forward_impl<T>(n, K, degree, sh, dirs, basis_constants, norm_eps, out, num_threads);                 \
+    (void)K;                                                                                              \
+    forward_impl<T>(n, degree, Bands<T>{sh0, sh0_stride, shN, shN_stride}, dirs, basis_constants, norm_eps, out, \
+                    num_threads);                                                                         \
   }                                                                                                       \
-  extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh, const T* dirs, \
-                                              const double* basis_constants, double norm_eps,               \
-                                              const T* grad_out, T* g_sh, T* g_dirs, int32_t num_threads) { \
-    backward_impl<T>(n, K, degree, sh, dirs, basis_constants, norm_eps, grad_out, g_sh, g_dirs, num_threads); \
+  extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh0,              \
+                                              int64_t sh0_stride, const T* shN, int64_t shN_stride,         \
+                                              const T* dirs, const double* basis_constants, double norm_eps, \
+                                              const T* grad_out, T* g_sh0, T* g_shN, T* g_dirs,             \
+                                              int32_t num_threads) {                                        \
+    backward_impl<T>(n, K, degree, Bands<T>{sh0, sh0_stride, shN, shN_stride}, dirs, basis_constants, norm_eps, \
+                     grad_out, g_sh0, g_shN, g_dirs, num_threads);                                        \
   }
 
 SH_EXPORT(float, f32)

@@ -161,3 +161,23 @@ def test_cpp_result_independent_of_thread_count():
     three = _render(args, width, height, "cpp", num_threads=3)
     for a, b in zip(one, three, strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gather_is_index_add_into_zeros(threads, dtype, cpp_kernel):
+    """The backward's per-Gaussian sums (`_cpu_kernel.gather`) are the numbers of one `index_add_` of the rows
+    into zeros (the same additions in the same order), split into the four gradients, for any thread count;
+    Gaussians without an intersection get zeros."""
+    from splat import _cpu_kernel
+
+    g = torch.Generator().manual_seed(threads)
+    n, n_rows, C = 20000, 90000, 4
+    ids = torch.randint(0, n - 100, (n_rows,), generator=g)  # the last 100 Gaussians are never hit
+    rows = torch.randn(n_rows, 6 + C, generator=g, dtype=dtype) * torch.rand(n_rows, 1, generator=g, dtype=dtype) * 1e3
+    ref = torch.zeros(n, 6 + C, dtype=dtype).index_add_(0, ids, rows)
+    g_m, g_c, g_o, g_col = _cpu_kernel.gather(ids, rows, n, num_threads=threads)
+    assert torch.equal(g_m, ref[:, :2]) and torch.equal(g_c, ref[:, 2:5])
+    assert torch.equal(g_o, ref[:, 5]) and torch.equal(g_col, ref[:, 6:])
+    assert all(t.is_contiguous() for t in (g_m, g_c, g_o, g_col))
+    assert (g_col[-100:] == 0).all()

@@ -80,3 +80,55 @@ def test_cpp_sh_gradcheck(cpp_kernel):
     sh = torch.randn(5, 16, 3, generator=g, dtype=torch.float64, requires_grad=True)
     dirs = torch.randn(5, 3, generator=g, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda s, d: eval_sh_fast(3, s, d), (sh, dirs), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("k_total", [1, 4, 16])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cpp_sh_with_separate_bands_is_the_one_tensor_result(k_total, dtype, cpp_kernel):
+    """A model's DC band and other bands passed apart (`sh_rest`) give the values and gradients of the joined
+    tensor, bit for bit (the kernel reads the same numbers in the same order), at every degree the bands allow."""
+    g = torch.Generator().manual_seed(k_total)
+    n = 300
+    sh = torch.randn(n, k_total, 3, generator=g, dtype=dtype)
+    dirs = torch.randn(n, 3, generator=g, dtype=dtype)
+    w = torch.randn(n, 3, generator=g, dtype=dtype)
+    for degree in range(int(round(k_total ** 0.5))):
+        joined = [sh.clone().requires_grad_(True), dirs.clone().requires_grad_(True)]
+        out_j = eval_sh_fast(degree, *joined)
+        (out_j * w).sum().backward()
+        parts = [sh[:, :1].clone().requires_grad_(True), sh[:, 1:].clone().requires_grad_(True),
+                 dirs.clone().requires_grad_(True)]
+        out_p = eval_sh_fast(degree, parts[0], parts[2], sh_rest=parts[1])
+        (out_p * w).sum().backward()
+        assert torch.equal(out_p, out_j)
+        assert torch.equal(parts[0].grad, joined[0].grad[:, :1])
+        assert torch.equal(parts[1].grad, joined[0].grad[:, 1:])
+        assert torch.equal(parts[2].grad, joined[1].grad)
+        # and against the torch reference
+        assert torch.allclose(out_p, eval_sh(degree, sh, dirs), rtol=0,
+                              atol=1e-11 if dtype == torch.float64 else 2e-5)
+
+
+def test_cpp_sh_separate_bands_strided_inputs_and_frozen_coefficients(cpp_kernel):
+    """Bands that are not dense (a transposed view) are copied, not misread; with frozen coefficients the
+    backward skips their gradient and still gives the directions' (as the test-time pose fit uses it)."""
+    g = torch.Generator().manual_seed(7)
+    n = 64
+    sh = torch.randn(n, 16, 3, generator=g, dtype=torch.float64)
+    dirs = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    rest_t = sh[:, 1:].transpose(1, 2).contiguous().transpose(1, 2)  # same values, bands not dense
+    assert rest_t.stride(1) != 3
+    d1 = dirs.clone().requires_grad_(True)
+    out = eval_sh_fast(3, sh[:, :1], d1, sh_rest=rest_t)
+    out.sum().backward()
+    d2 = dirs.clone().requires_grad_(True)
+    ref = eval_sh(3, sh, d2)
+    ref.sum().backward()
+    assert torch.allclose(out, ref, rtol=0, atol=1e-12)
+    assert torch.allclose(d1.grad, d2.grad, rtol=0, atol=1e-12)
+    sh0 = sh[:, :1].clone().requires_grad_(True)
+    rest = sh[:, 1:].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b, d: eval_sh_fast(3, a, d, sh_rest=b), (sh0[:5], rest[:5], d2[:5]),
+                                    eps=1e-6, atol=1e-6, rtol=1e-5)
+    with pytest.raises(ValueError, match="DC band"):
+        eval_sh_fast(3, sh, dirs, sh_rest=rest)
