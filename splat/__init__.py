@@ -2,13 +2,15 @@
 
 Layers (conventions: docs/conventions.md; gsplat is the compatibility target):
 
-- kernels: `splat/csrc/composite.cpp` (CPU tile compositor, forward + backward) and
-  `splat/csrc/sh.cpp` (SH colour, forward + backward), built with g++ on first use into
+- kernels: `splat/csrc/composite.cpp` (CPU tile compositor, forward + backward; `gather.cpp` sums its
+  gradient rows per Gaussian), `splat/csrc/sh.cpp` (SH colour, forward + backward), `projection.cpp`,
+  `tiles.cpp` and `ssim.cpp` (the loss), built with g++ on first use into
   ~/.cache/denoise-gs/splat; the plain-torch reference of every stage (`RasterConfig(backend="torch")`);
 - functional: `splat.projection.project_gaussians`, `splat.tiles.bin_gaussians`,
   `splat.composite.composite_tiles`, and the whole pipeline
   `splat.rasterize.rasterize(means, quats, scales, opacities, colors_or_sh, cam_from_world, K, W, H,
-  *, sh_degree, background, config) -> RenderOutput(rgb [3,H,W], alpha [1,H,W], depth [1,H,W])`;
+  *, sh_degree, colors_rest, background, config) -> RenderOutput(rgb [3,H,W], alpha [1,H,W], depth [1,H,W])`
+  (`colors_rest`: SH bands above the DC one kept apart, as `GaussianModel` keeps them);
 - classes: `splat.gaussian_model.GaussianModel` (pre-activation parameters, `from_points`),
   PLY I/O `splat.ply.write_gaussian_ply / read_gaussian_ply` (standard 3DGS layout);
 - training (for the pipeline):

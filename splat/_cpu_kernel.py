@@ -41,8 +41,8 @@ import torch
 _log = logging.getLogger(__name__)
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-_SOURCES = [_CSRC / name for name in ("composite.cpp", "sh.cpp", "projection.cpp", "tiles.cpp", "ssim.cpp",
-                                       "abi.cpp")]
+_SOURCES = [_CSRC / name for name in ("composite.cpp", "gather.cpp", "sh.cpp", "projection.cpp", "tiles.cpp",
+                                       "ssim.cpp", "abi.cpp")]
 _HEADERS = [_CSRC / "kernel_api.h", _CSRC / "parallel.h"]
 _FLAGS = ["-O3", "-std=c++17", "-fno-trapping-math", "-fPIC", "-shared", "-pthread"]
 _LIB_NAME = "libsplat_kernels.so"
@@ -62,8 +62,8 @@ def _kernel_signatures() -> dict[str, tuple[str, ...]]:
             ("i64",) * 5 + ("i64*", "i64*") + (p,) * 4 + ("i64", p, "i32*", p, p, p) + ("f64", "f64", "i32"))
         table[f"splat_composite_gather_{t}"] = ("i64", "i64", "i64", "i64*") + (p,) * 5 + ("i32",)
         table[f"splat_sh_forward_{t}"] = ("i64", "i64", "i32", p, "i64", p, "i64", p, "f64*", "f64", p, "i32")
-        table[f"splat_sh_backward_{t}"] = ("i64", "i64", "i32", p, "i64", p, "i64", p, "f64*", "f64", p, p, p, p,
-                                           "i32")
+        table[f"splat_sh_backward_{t}"] = ("i64", "i64", "i32", p, "i64", p, "i64", p, "f64*", "f64", p, p, "i64", p,
+                                           "i64", p, "i32")
         table[f"splat_project_forward_{t}"] = (
             ("i64",) + (p,) * 6 + ("i64", "i64", "f64", "f64", "f64", "i32", "f64") + (p,) * 5 + ("i32*", "i32"))
         table[f"splat_project_backward_{t}"] = (
@@ -286,8 +286,14 @@ def backward(bins, means2d, conics, colors, opacities, width, height, trans, las
 def gather(gaussian_ids: torch.Tensor, g_rows: torch.Tensor, n: int, *, num_threads: int | None = None):
     """`backward`'s rows summed per Gaussian (in intersection order from zero, the numbers of one `index_add_`
     into zeros): d means2d (N, 2), d conics (N, 3), d opacities (N,), d colors (N, C), each contiguous."""
-    lib = load()
     I, D = g_rows.shape
+    if (gaussian_ids.dtype != torch.int64 or not gaussian_ids.is_contiguous() or gaussian_ids.shape != (I,)
+            or not g_rows.is_contiguous() or D < 6):
+        raise ValueError(f"gather: expected contiguous int64 ids ({I},) and contiguous rows (I, 6 + C), got ids "
+                         f"{tuple(gaussian_ids.shape)} {gaussian_ids.dtype} and rows {tuple(g_rows.shape)}")
+    if I and (int(gaussian_ids.min()) < 0 or int(gaussian_ids.max()) >= n):
+        raise ValueError(f"gather: Gaussian ids must lie in [0, {n})")
+    lib = load()
     C, dt = D - 6, g_rows.dtype
     g_m, g_c = torch.empty(n, 2, dtype=dt), torch.empty(n, 3, dtype=dt)
     g_o, g_col = torch.empty(n, dtype=dt), torch.empty(n, C, dtype=dt)
@@ -303,25 +309,39 @@ def _constants(basis_constants: torch.Tensor) -> torch.Tensor:
     return basis_constants
 
 
-def _bands(sh0: torch.Tensor, shN: torch.Tensor) -> tuple[int, int, int, int, int]:
-    """K, and the pointer and row stride (in elements) of each part, for the kernel's strided bands: each part
-    (N, k, 3) with its last two dimensions dense (a contiguous tensor, or a slice of bands of one)."""
+def dense_bands(t: torch.Tensor) -> bool:
+    """Whether the SH kernel can read (or write) `t` (N, k, 3) in place: its three values per band adjacent and
+    its bands 3 apart (a contiguous tensor, or a slice of bands of one); any row stride."""
+    if t.dim() != 3 or t.shape[-1] != 3:
+        return False
+    return t.numel() == 0 or ((t.stride(2) == 1) and (t.shape[1] <= 1 or t.stride(1) == 3))
+
+
+def _bands(sh0: torch.Tensor, shN: torch.Tensor, degree: int) -> tuple[int, int, int, int, int]:
+    """K, and the pointer and row stride (in elements) of each part, for the kernel's strided bands."""
     for name, t in (("sh0", sh0), ("shN", shN)):
-        dense = t.dim() == 3 and (t.shape[1] == 0 or t.stride(2) == 1) and (t.shape[1] <= 1 or t.stride(1) == 3)
-        if not dense or t.shape[-1] != 3:
+        if not dense_bands(t):
             raise ValueError(f"{name}: expected (N, k, 3) with dense bands, got shape {tuple(t.shape)} "
                              f"strides {t.stride()}")
     if sh0.shape[1] != 1 or sh0.shape[0] != shN.shape[0] or sh0.dtype != shN.dtype:
         raise ValueError(f"sh0 {tuple(sh0.shape)} {sh0.dtype} and shN {tuple(shN.shape)} {shN.dtype}: expected "
                          "(N, 1, 3) and (N, K - 1, 3) of one dtype")
-    return 1 + shN.shape[1], _p(sh0), sh0.stride(0), _p(shN) if shN.shape[1] else 0, shN.stride(0)
+    K = 1 + shN.shape[1]
+    if not 0 <= degree <= 3 or (degree + 1) ** 2 > K:
+        raise ValueError(f"SH degree {degree} needs {(degree + 1) ** 2} bases, the coefficients have {K}")
+    return K, _p(sh0), sh0.stride(0), _p(shN) if shN.shape[1] else 0, shN.stride(0)
+
+
+def _check_rows(name: str, t: torch.Tensor, n: int, dtype: torch.dtype) -> None:
+    if t.shape != (n, 3) or not t.is_contiguous() or t.dtype != dtype:
+        raise ValueError(f"{name}: expected a contiguous ({n}, 3) {dtype} tensor, got {tuple(t.shape)} {t.dtype}")
 
 
 def sh_forward(degree: int, sh0: torch.Tensor, shN: torch.Tensor, dirs: torch.Tensor, *,
                basis_constants: torch.Tensor, norm_eps: float, num_threads: int | None = None) -> torch.Tensor:
     """SH colour (before the +0.5 offset) -> (N, 3). sh0 (N, 1, 3): the DC band; shN (N, K - 1, 3): the other
-    bands (each with dense bands, e.g. `sh[:, :1]` and `sh[:, 1:]` of a contiguous (N, K, 3) tensor); dirs
-    (N, 3) contiguous; CPU, one float dtype.
+    bands (each with dense bands, `dense_bands`, e.g. `sh[:, :1]` and `sh[:, 1:]` of a contiguous (N, K, 3)
+    tensor); dirs (N, 3) contiguous; CPU, one float dtype.
 
     `basis_constants`: (14,) float64, C0, C1, C2[5], C3[7] of `splat.sh`; `norm_eps`: the
     direction normalisation's epsilon. `num_threads`: worker threads (default `torch.get_num_threads()`);
@@ -329,29 +349,41 @@ def sh_forward(degree: int, sh0: torch.Tensor, shN: torch.Tensor, dirs: torch.Te
     """
     lib = load()
     cst = _constants(basis_constants)
-    K, p0, s0, pN, sN = _bands(sh0, shN)
-    out = torch.empty(dirs.shape[0], 3, dtype=sh0.dtype)
-    getattr(lib, f"splat_sh_forward_{_suffix(sh0.dtype)}")(dirs.shape[0], K, degree, p0, s0, pN, sN, _p(dirs),
-                                                          _p(cst), norm_eps, _p(out), _threads(num_threads))
+    K, p0, s0, pN, sN = _bands(sh0, shN, degree)
+    n = sh0.shape[0]
+    _check_rows("dirs", dirs, n, sh0.dtype)
+    out = torch.empty(n, 3, dtype=sh0.dtype)
+    getattr(lib, f"splat_sh_forward_{_suffix(sh0.dtype)}")(n, K, degree, p0, s0, pN, sN, _p(dirs), _p(cst), norm_eps,
+                                                          _p(out), _threads(num_threads))
     return out
 
 
 def sh_backward(degree: int, sh0: torch.Tensor, shN: torch.Tensor, dirs: torch.Tensor, grad_out: torch.Tensor, *,
-                basis_constants: torch.Tensor, norm_eps: float, need_sh: bool = True,
-                num_threads: int | None = None):
-    """Gradients (N, 1, 3) of `sh0` and (N, K - 1, 3) of `shN` (zero for bases above `degree`; both None when
-    not `need_sh`) and (N, 3) of `dirs`."""
+                g_sh0: torch.Tensor | None = None, g_shN: torch.Tensor | None = None, basis_constants: torch.Tensor,
+                norm_eps: float, num_threads: int | None = None) -> torch.Tensor:
+    """The gradient (N, 3) of `dirs`; the coefficients' gradients are written into `g_sh0` and `g_shN` when they
+    are given: tensors of `sh0`'s and `shN`'s shapes with dense bands (e.g. the two slices of one (N, K, 3)
+    buffer), zero for the bases above `degree`."""
     lib = load()
     cst = _constants(basis_constants)
-    K, p0, s0, pN, sN = _bands(sh0, shN)
-    n = dirs.shape[0]
-    g_sh0 = torch.empty(n, 1, 3, dtype=sh0.dtype) if need_sh else None
-    g_shN = torch.empty(n, K - 1, 3, dtype=sh0.dtype) if need_sh else None
-    g_dirs = torch.empty_like(dirs)
+    K, p0, s0, pN, sN = _bands(sh0, shN, degree)
+    n = sh0.shape[0]
+    _check_rows("dirs", dirs, n, sh0.dtype)
+    _check_rows("grad_out", grad_out, n, sh0.dtype)
+    outs = []
+    for name, g, like in (("g_sh0", g_sh0, sh0), ("g_shN", g_shN, shN)):
+        if g is None:
+            outs += [0, 0]
+            continue
+        if g.shape != like.shape or g.dtype != like.dtype or not dense_bands(g):
+            raise ValueError(f"{name}: expected {tuple(like.shape)} {like.dtype} with dense bands, got "
+                             f"{tuple(g.shape)} {g.dtype} strides {g.stride()}")
+        outs += [_p(g) if g.numel() else 0, g.stride(0)]
+    g_dirs = torch.empty(n, 3, dtype=sh0.dtype)
     getattr(lib, f"splat_sh_backward_{_suffix(sh0.dtype)}")(
-        n, K, degree, p0, s0, pN, sN, _p(dirs), _p(cst), norm_eps, _p(grad_out),
-        _p(g_sh0) if need_sh else 0, _p(g_shN) if need_sh and K > 1 else 0, _p(g_dirs), _threads(num_threads))
-    return g_sh0, g_shN, g_dirs
+        n, K, degree, p0, s0, pN, sN, _p(dirs), _p(cst), norm_eps, _p(grad_out), *outs, _p(g_dirs),
+        _threads(num_threads))
+    return g_dirs
 
 
 def project_forward(means, quats, scales, opacities, cam_from_world, K, width: int, height: int, *,

@@ -133,26 +133,26 @@ def eval_sh_fast(degree: int, sh: torch.Tensor, dirs: torch.Tensor, *, sh_rest: 
     if (any(p.device.type != "cpu" or p.dim() != 3 or p.dtype != dirs.dtype for p in parts) or dirs.dim() != 2
             or sh.dtype not in (torch.float32, torch.float64) or not _cpu_kernel.available()):
         return eval_sh(degree, sh if sh_rest is None else torch.cat([sh, sh_rest], 1), dirs)
-    if sh_rest is None:
-        sh = sh.contiguous()
-        sh, sh_rest = sh[:, :1], sh[:, 1:]
     return _ShCpp.apply(degree, sh, sh_rest, dirs, num_threads)
 
 
-def _dense_bands(t: torch.Tensor) -> torch.Tensor:
-    """`t` (N, k, 3), copied only if its bands are not dense (the kernel's strided read, `_cpu_kernel._bands`)."""
-    ok = t.shape[1] == 0 or (t.stride(2) == 1 and (t.shape[1] == 1 or t.stride(1) == 3))
-    return t if ok else t.contiguous()
-
-
 class _ShCpp(torch.autograd.Function):
+    """The C++ SH kernel: `sh` (N, K, 3) joined, or (N, 1, 3) with `sh_rest` (N, K - 1, 3) apart; each part's
+    gradient is written in its own layout (one (N, K, 3) buffer for the joined tensor, two for the parts) and
+    only when that part needs one."""
+
     @staticmethod
-    def forward(ctx, degree, sh0, shN, dirs, num_threads):
+    def forward(ctx, degree, sh, sh_rest, dirs, num_threads):
         from splat import _cpu_kernel
 
-        sh0_c, shN_c, dirs_c = _dense_bands(sh0.detach()), _dense_bands(shN.detach()), dirs.detach().contiguous()
-        ctx.degree = degree
-        ctx.num_threads = num_threads
+        if sh_rest is None:
+            joined = sh.detach().contiguous()
+            sh0_c, shN_c = joined[:, :1], joined[:, 1:]
+        else:
+            sh0_c, shN_c = (t if _cpu_kernel.dense_bands(t) else t.contiguous()
+                            for t in (sh.detach(), sh_rest.detach()))
+        dirs_c = dirs.detach().contiguous()
+        ctx.degree, ctx.num_threads, ctx.joined = degree, num_threads, sh_rest is None
         ctx.save_for_backward(sh0_c, shN_c, dirs_c)
         return _cpu_kernel.sh_forward(degree, sh0_c, shN_c, dirs_c, basis_constants=_BASIS_CONSTANTS,
                                       norm_eps=NORMALIZE_EPS, num_threads=num_threads)
@@ -162,9 +162,16 @@ class _ShCpp(torch.autograd.Function):
         from splat import _cpu_kernel
 
         sh0_c, shN_c, dirs_c = ctx.saved_tensors
-        need_sh = ctx.needs_input_grad[1] or ctx.needs_input_grad[2]
-        g_sh0, g_shN, g_dirs = _cpu_kernel.sh_backward(ctx.degree, sh0_c, shN_c, dirs_c, grad_out.contiguous(),
-                                                       basis_constants=_BASIS_CONSTANTS, norm_eps=NORMALIZE_EPS,
-                                                       need_sh=need_sh, num_threads=ctx.num_threads)
-        return (None, g_sh0 if ctx.needs_input_grad[1] else None, g_shN if ctx.needs_input_grad[2] else None,
-                g_dirs if ctx.needs_input_grad[3] else None, None)
+        n, k_rest = sh0_c.shape[0], shN_c.shape[1]
+        g_sh = g_rest = None
+        if ctx.joined:
+            if ctx.needs_input_grad[1]:
+                g_sh = torch.empty(n, 1 + k_rest, 3, dtype=sh0_c.dtype)
+            g_sh0, g_shN = (None, None) if g_sh is None else (g_sh[:, :1], g_sh[:, 1:])
+        else:
+            g_sh0 = g_sh = torch.empty(n, 1, 3, dtype=sh0_c.dtype) if ctx.needs_input_grad[1] else None
+            g_shN = g_rest = torch.empty(n, k_rest, 3, dtype=sh0_c.dtype) if ctx.needs_input_grad[2] else None
+        g_dirs = _cpu_kernel.sh_backward(ctx.degree, sh0_c, shN_c, dirs_c, grad_out.contiguous(), g_sh0=g_sh0,
+                                         g_shN=g_shN, basis_constants=_BASIS_CONSTANTS, norm_eps=NORMALIZE_EPS,
+                                         num_threads=ctx.num_threads)
+        return None, g_sh, g_rest, g_dirs if ctx.needs_input_grad[3] else None, None

@@ -14,8 +14,8 @@
 // TRANSMITTANCE_MIN) and splat/projection.py (ALPHA_MIN): they are defined there only.
 // Outputs: accum (H, W, C) = sum_i c_i alpha_i T_i and T_final (H, W).
 // The backward writes one gradient row per tile intersection, [d mean_x, d mean_y, d a, d b, d c,
-// d opacity, d colour_0 .. d colour_{C-1}] (each tile is owned by one thread, so no atomics); the
-// caller sums rows per Gaussian.
+// d opacity, d colour_0 .. d colour_{C-1}] (each tile is owned by one thread, so no atomics);
+// gather.cpp sums them per Gaussian.
 
 #include <cmath>
 #include <cstdint>
@@ -426,39 +426,6 @@ void backward_impl(int64_t tiles_x, int64_t tiles_y, int64_t tile_size, int64_t 
   });
 }
 
-// Per-Gaussian sums of the backward's per-intersection rows, split into the four gradients. Each Gaussian's
-// rows are added in intersection order starting from zero, as one `index_add_` of the rows into zeros adds
-// them, so the sums are the same numbers, whatever the thread count. The Gaussians are split into one range
-// per thread; each thread reads all the ids, which is cheap next to the rows. This replaces that `index_add_`
-// (one small add per row, on one torch thread) and the copies of its column slices.
-template <typename T>
-void gather_impl(int64_t I, int64_t N, int64_t C, const int64_t* ids, const T* rows, T* g_means2d, T* g_conics,
-                 T* g_opacities, T* g_colors, int num_threads) {
-  std::fill(g_means2d, g_means2d + 2 * N, T(0));
-  std::fill(g_conics, g_conics + 3 * N, T(0));
-  std::fill(g_opacities, g_opacities + N, T(0));
-  std::fill(g_colors, g_colors + C * N, T(0));
-  // One range of Gaussians per thread: every range reads all the ids once.
-  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(num_threads, I / 4096));
-  const int64_t kRange = (N + parts - 1) / parts;
-  const int64_t D = 6 + C;
-  splat_parallel::dynamic_for(parts, num_threads, [&](int64_t item) {
-    const int64_t lo = item * kRange, hi = std::min(N, lo + kRange);
-    for (int64_t j = 0; j < I; ++j) {
-      const int64_t g = ids[j];
-      if (g < lo || g >= hi) continue;
-      const T* r = rows + j * D;
-      g_means2d[2 * g] += r[0];
-      g_means2d[2 * g + 1] += r[1];
-      g_conics[3 * g] += r[2];
-      g_conics[3 * g + 1] += r[3];
-      g_conics[3 * g + 2] += r[4];
-      g_opacities[g] += r[5];
-      for (int64_t c = 0; c < C; ++c) g_colors[C * g + c] += r[6 + c];
-    }
-  });
-}
-
 }  // namespace
 
 #define SPLAT_EXPORT(T, SUFFIX)                                                                           \
@@ -481,11 +448,6 @@ void gather_impl(int64_t I, int64_t N, int64_t C, const int64_t* ids, const T* r
     backward_impl<T>(tiles_x, tiles_y, tile_size, width, height, tile_offsets, gaussian_ids, means2d,    \
                      conics, colors, opacities, C, transmittance, last, grad_accum, grad_transmittance,  \
                      g_rows, alpha_min, alpha_max, num_threads);                                         \
-  }                                                                                                       \
-  extern "C" void splat_composite_gather_##SUFFIX(int64_t I, int64_t N, int64_t C, const int64_t* gaussian_ids, \
-                                                   const T* g_rows, T* g_means2d, T* g_conics, T* g_opacities, \
-                                                   T* g_colors, int32_t num_threads) {                      \
-    gather_impl<T>(I, N, C, gaussian_ids, g_rows, g_means2d, g_conics, g_opacities, g_colors, num_threads); \
   }
 
 SPLAT_EXPORT(float, f32)

@@ -1,8 +1,8 @@
 // The C API of the splat CPU kernels: every function the Python side calls through ctypes
-// (splat/_cpu_kernel.py). composite.cpp, sh.cpp, projection.cpp, tiles.cpp and ssim.cpp include this header, so a definition that
-// drifts from its declaration does not compile (two C-linkage functions of one name); abi.cpp
-// exports the ABI version and a signature table generated from these declarations, which the
-// Python side compares with its own table before the first call.
+// (splat/_cpu_kernel.py). composite.cpp, gather.cpp, sh.cpp, projection.cpp, tiles.cpp and ssim.cpp include
+// this header, so a definition that drifts from its declaration does not compile (two C-linkage functions
+// of one name); abi.cpp exports the ABI version and a signature table generated from these declarations,
+// which the Python side compares with its own table before the first call.
 //
 // The compositing rules (alpha bounds, transmittance floor) and the SH basis constants are not
 // defined here: the Python caller passes them as arguments, so they exist once, in Python.
@@ -39,8 +39,8 @@
   extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh0,           \
                                               int64_t sh0_stride, const T* shN, int64_t shN_stride,        \
                                               const T* dirs, const double* basis_constants, double norm_eps, \
-                                              const T* grad_out, T* g_sh0, T* g_shN, T* g_dirs,            \
-                                              int32_t num_threads);                                        \
+                                              const T* grad_out, T* g_sh0, int64_t g_sh0_stride, T* g_shN,  \
+                                              int64_t g_shN_stride, T* g_dirs, int32_t num_threads);       \
   extern "C" void splat_project_forward_##SUFFIX(                                                        \
       int64_t n, const T* means, const T* quats, const T* scales, const T* opacities,                   \
       const T* cam_from_world, const T* K, int64_t width, int64_t height, double near_plane,            \

@@ -137,11 +137,13 @@ void forward_impl(int64_t n, int degree, const Bands<T>& sh, const T* dirs, cons
   });
 }
 
-// g_sh0 (N, 1, 3) and g_shN (N, K - 1, 3) are dense outputs; either may be null (not wanted). Bands above
-// `degree` get zero gradients.
+// The coefficients' gradients are written with the same layout as the inputs' (`Bands`, writable): g_sh0 at
+// g_sh0 + i * gs0, g_shN at g_shN + i * gsN + 3 (k - 1); either may be null (not wanted). Bands above `degree`
+// get zero gradients.
 template <typename T>
 void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T* dirs, const double* constants,
-                   double norm_eps, const T* grad_out, T* g_sh0, T* g_shN, T* g_dirs, int num_threads) {
+                   double norm_eps, const T* grad_out, T* g_sh0, int64_t gs0, T* g_shN, int64_t gsN, T* g_dirs,
+                   int num_threads) {
   const Constants<T> cst(constants);
   const int nb = (degree + 1) * (degree + 1);
   for_blocks(n, num_threads, [&](int64_t i) {
@@ -152,8 +154,7 @@ void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T
     T du[3] = {T(0), T(0), T(0)};
     for (int k = 0; k < nb; ++k) {
       const T* s = sh.band(i, k);
-      T* gs = k == 0 ? g_sh0 : g_shN;
-      if (gs) gs += k == 0 ? 3 * i : 3 * ((K - 1) * i + (k - 1));
+      T* gs = k == 0 ? (g_sh0 ? g_sh0 + i * gs0 : nullptr) : (g_shN ? g_shN + i * gsN + 3 * (k - 1) : nullptr);
       T db = T(0);
       for (int c = 0; c < 3; ++c) {
         if (gs) gs[c] = b[k] * g[c];
@@ -163,7 +164,7 @@ void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T
     }
     if (g_shN) {
       for (int64_t k = std::max(nb, 1); k < K; ++k) {
-        T* gs = g_shN + 3 * ((K - 1) * i + (k - 1));
+        T* gs = g_shN + i * gsN + 3 * (k - 1);
         gs[0] = gs[1] = gs[2] = T(0);
       }
     }
@@ -191,10 +192,10 @@ void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T
   extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh0,              \
                                               int64_t sh0_stride, const T* shN, int64_t shN_stride,         \
                                               const T* dirs, const double* basis_constants, double norm_eps, \
-                                              const T* grad_out, T* g_sh0, T* g_shN, T* g_dirs,             \
-                                              int32_t num_threads) {                                        \
+                                              const T* grad_out, T* g_sh0, int64_t g_sh0_stride, T* g_shN,   \
+                                              int64_t g_shN_stride, T* g_dirs, int32_t num_threads) {       \
     backward_impl<T>(n, K, degree, Bands<T>{sh0, sh0_stride, shN, shN_stride}, dirs, basis_constants, norm_eps, \
-                     grad_out, g_sh0, g_shN, g_dirs, num_threads);                                        \
+                     grad_out, g_sh0, g_sh0_stride, g_shN, g_shN_stride, g_dirs, num_threads);             \
   }
 
 SH_EXPORT(float, f32)

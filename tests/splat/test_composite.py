@@ -181,3 +181,7 @@ def test_gather_is_index_add_into_zeros(threads, dtype, cpp_kernel):
     assert torch.equal(g_o, ref[:, 5]) and torch.equal(g_col, ref[:, 6:])
     assert all(t.is_contiguous() for t in (g_m, g_c, g_o, g_col))
     assert (g_col[-100:] == 0).all()
+    with pytest.raises(ValueError, match=r"\[0, 20000\)"):
+        _cpu_kernel.gather(torch.full((n_rows,), n), rows, n)
+    with pytest.raises(ValueError, match="int64 ids"):
+        _cpu_kernel.gather(ids.to(torch.int32), rows, n)

@@ -108,3 +108,43 @@ def test_gradcheck_small(backend):
     # eps 1e-6 / atol 1e-5: central differences of a smooth function in float64; the
     # alpha thresholds are discontinuities, none of which lies within eps on this scene.
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_sh_bands_apart_render_as_joined(backend):
+    """`colors_rest` (a model's DC band and other bands passed apart, as `GaussianModel.render` passes them) gives
+    the image and every gradient of the joined coefficients, bit for bit: the same numbers in the same order."""
+    width, height = 37, 29
+    cam, K = random_camera(width, height, seed=5)
+    results = []
+    for apart in (False, True):
+        params, delta, _ = _leaves(60, seed=5)
+        sh = params["sh"]
+        sh0 = sh[:, :1].detach().clone().requires_grad_(True)
+        rest = sh[:, 1:].detach().clone().requires_grad_(True)
+        colors = (sh0, rest) if apart else (torch.cat([sh0, rest], 1),)
+        out = rasterize(params["means"], params["quats"], torch.exp(params["log_scales"]),
+                        torch.sigmoid(params["opacity_logits"]), colors[0], se3_exp(delta) @ cam, K, width, height,
+                        sh_degree=3, colors_rest=colors[1] if apart else None, background=torch.full((3,), 0.2,
+                                                                                                   dtype=sh.dtype),
+                        config=RasterConfig(backend=backend))
+        (out.rgb * torch.linspace(-1, 1, out.rgb.numel(), dtype=sh.dtype).reshape(out.rgb.shape)).sum().backward()
+        results.append([out.rgb.detach(), sh0.grad, rest.grad, delta.grad, params["means"].grad])
+    for a, b in zip(*results, strict=True):
+        assert torch.equal(a, b)
+    assert results[0][2].abs().max() > 0  # the higher bands do get a gradient
+
+
+def test_colors_rest_needs_sh_coefficients():
+    from mvgeo.common.errors import ShapeError
+
+    cam, K = random_camera(8, 8, seed=0)
+    params = random_scene(4, seed=0)
+    with pytest.raises(ShapeError, match="colors_rest"):
+        rasterize(params["means"], params["quats"], torch.exp(params["log_scales"]),
+                  torch.sigmoid(params["opacity_logits"]), params["sh"][:, 0], cam, K, 8, 8,
+                  colors_rest=params["sh"][:, 1:])
+    with pytest.raises(ShapeError, match="DC band"):
+        rasterize(params["means"], params["quats"], torch.exp(params["log_scales"]),
+                  torch.sigmoid(params["opacity_logits"]), params["sh"], cam, K, 8, 8, sh_degree=3,
+                  colors_rest=params["sh"][:, 1:])

@@ -110,25 +110,54 @@ def test_cpp_sh_with_separate_bands_is_the_one_tensor_result(k_total, dtype, cpp
 
 
 def test_cpp_sh_separate_bands_strided_inputs_and_frozen_coefficients(cpp_kernel):
-    """Bands that are not dense (a transposed view) are copied, not misread; with frozen coefficients the
-    backward skips their gradient and still gives the directions' (as the test-time pose fit uses it)."""
+    """Bands that are not dense (a transposed view) are copied, not misread; a frozen part gets no gradient and
+    the other parts the reference's (the test-time pose fit freezes both; a colour refit may freeze one)."""
     g = torch.Generator().manual_seed(7)
     n = 64
     sh = torch.randn(n, 16, 3, generator=g, dtype=torch.float64)
     dirs = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    w = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    ref_leaves = [sh.clone().requires_grad_(True), dirs.clone().requires_grad_(True)]
+    ref = eval_sh(3, *ref_leaves)
+    (ref * w).sum().backward()
+    ref_g0, ref_gN, ref_gd = ref_leaves[0].grad[:, :1], ref_leaves[0].grad[:, 1:], ref_leaves[1].grad
     rest_t = sh[:, 1:].transpose(1, 2).contiguous().transpose(1, 2)  # same values, bands not dense
     assert rest_t.stride(1) != 3
-    d1 = dirs.clone().requires_grad_(True)
-    out = eval_sh_fast(3, sh[:, :1], d1, sh_rest=rest_t)
-    out.sum().backward()
-    d2 = dirs.clone().requires_grad_(True)
-    ref = eval_sh(3, sh, d2)
-    ref.sum().backward()
-    assert torch.allclose(out, ref, rtol=0, atol=1e-12)
-    assert torch.allclose(d1.grad, d2.grad, rtol=0, atol=1e-12)
-    sh0 = sh[:, :1].clone().requires_grad_(True)
-    rest = sh[:, 1:].clone().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda a, b, d: eval_sh_fast(3, a, d, sh_rest=b), (sh0[:5], rest[:5], d2[:5]),
+    for train0, trainN in ((False, False), (True, False), (False, True), (True, True)):
+        sh0 = sh[:, :1].clone().requires_grad_(train0)
+        rest = rest_t.clone(memory_format=torch.preserve_format).requires_grad_(trainN)
+        d = dirs.clone().requires_grad_(True)
+        out = eval_sh_fast(3, sh0, d, sh_rest=rest)
+        (out * w).sum().backward()
+        assert torch.allclose(out, ref.detach(), rtol=0, atol=1e-12)
+        assert torch.allclose(d.grad, ref_gd, rtol=0, atol=1e-12)
+        assert (sh0.grad is not None) == train0 and (rest.grad is not None) == trainN
+        if train0:
+            assert torch.allclose(sh0.grad, ref_g0, rtol=0, atol=1e-12)
+        if trainN:
+            assert torch.allclose(rest.grad, ref_gN, rtol=0, atol=1e-12)
+    sh0 = sh[:5, :1].clone().requires_grad_(True)
+    rest = sh[:5, 1:].clone().requires_grad_(True)
+    d5 = dirs[:5].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b, d: eval_sh_fast(3, a, d, sh_rest=b), (sh0, rest, d5),
                                     eps=1e-6, atol=1e-6, rtol=1e-5)
     with pytest.raises(ValueError, match="DC band"):
         eval_sh_fast(3, sh, dirs, sh_rest=rest)
+
+
+def test_cpp_sh_kernel_wrappers_refuse_what_the_kernel_would_misread(cpp_kernel):
+    from splat import _cpu_kernel
+    from splat.sh import _BASIS_CONSTANTS, NORMALIZE_EPS
+
+    sh = torch.randn(10, 4, 3)
+    dirs = torch.randn(10, 3)
+    kw = {"basis_constants": _BASIS_CONSTANTS, "norm_eps": NORMALIZE_EPS}
+    with pytest.raises(ValueError, match="needs 9 bases"):
+        _cpu_kernel.sh_forward(2, sh[:, :1], sh[:, 1:], dirs, **kw)
+    with pytest.raises(ValueError, match="dirs"):
+        _cpu_kernel.sh_forward(1, sh[:, :1], sh[:, 1:], dirs[:9], **kw)
+    with pytest.raises(ValueError, match="g_shN"):
+        _cpu_kernel.sh_backward(1, sh[:, :1], sh[:, 1:], dirs, torch.ones(10, 3), g_shN=torch.empty(10, 4, 3), **kw)
+    # an empty model is fine, whatever torch says its strides are
+    empty = torch.empty(0, 16, 3)
+    assert _cpu_kernel.sh_forward(3, empty[:, :1], empty[:, 1:], torch.empty(0, 3), **kw).shape == (0, 3)
