@@ -1,13 +1,13 @@
 """A splat training step's time: this checkout against a base commit, each in its own process, alternating.
 
-The base commit is checked out into a temporary git worktree (sharing this checkout's `.venv`; its C++ kernels
-are built from its own sources). For each round folder given (`point_cloud.ply` and `sparse/0`, e.g. the demo's
-or the real-size run's `round1`), a child process per version loads the trained Gaussians and cameras and
-times training steps as `splat.train` takes them: the pose correction, the render with SH degree 3, the L1 +
-SSIM loss, the backward and the fused Adam step, on one torch thread and the compositor's `--threads`. The
-versions alternate process by process, `--rounds` times, so both see the same machine load; the table gives
-each run and the ratio of the means. The step's inputs are the same in both (a fixed random target), so only
-the code differs. A diagnostic, not part of `make bench`.
+The base commit is checked out into a temporary git worktree (`_common.base_worktree`, sharing this checkout's
+`.venv`; its C++ kernels are built from its own sources). For each round folder given (`point_cloud.ply` and
+`sparse/0`, e.g. the demo's or the real-size run's `round1`), a child process per version loads the trained
+Gaussians and cameras and times training steps as `splat.train` takes them: the pose correction, the render
+with SH degree 3, the L1 + SSIM loss, the backward and the fused Adam step, on one torch thread and the
+compositor's `--threads`. The versions alternate process by process, `--rounds` times, so both see the same
+machine load; the table gives each run and the ratio of the means. The step's inputs are the same in both (a
+fixed random target), so only the code differs. A diagnostic, not part of `make bench`.
 
 Usage: .venv/bin/python benchmarks/diag_step_speed.py --base REF --run ROUND_DIR [--run ROUND_DIR ...]
            [--rounds N] [--steps S] [--threads T] [--page NAME]   (writes docs/bench/NAME.md, default step_speed)
@@ -19,12 +19,11 @@ import argparse
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT, cpu_model, md_table, write_fragment  # noqa: E402
+from _common import ROOT, base_worktree, cpu_model, md_table, write_fragment  # noqa: E402
 
 # Run in the child, with the checkout under test first on sys.path.
 _CHILD = r'''
@@ -111,22 +110,17 @@ def main() -> None:
     base = _git("rev-parse", "--short", args.base)
     load0 = " / ".join(f"{x:.1f}" for x in os.getloadavg())
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    with tempfile.TemporaryDirectory(prefix="step_speed_") as tmp:
-        wt = Path(tmp) / "base"
-        _git("worktree", "add", "--detach", str(wt), base)
-        try:
-            (wt / ".venv").symlink_to(ROOT / ".venv")
-            times: dict[tuple[Path, str], list[float]] = {}
-            labels: dict[Path, str] = {}
-            for rnd in range(args.rounds):
-                for run in args.run:
-                    for name, checkout in (("base", wt), ("this", ROOT)):
-                        label, ms = _time_steps(checkout, run, args.steps, args.threads)
-                        labels[run] = label
-                        times.setdefault((run, name), []).append(ms)
-                        print(f"round {rnd + 1}: {label}: {name} {ms:.1f} ms/step", file=sys.stderr, flush=True)
-        finally:
-            _git("worktree", "remove", "--force", str(wt))
+    times: dict[tuple[Path, str], list[float]] = {}
+    labels: dict[Path, str] = {}
+    with base_worktree(base, prefix="step_speed_") as wt:
+        (wt / ".venv").symlink_to(ROOT / ".venv")
+        for rnd in range(args.rounds):
+            for run in args.run:
+                for name, checkout in (("base", wt), ("this", ROOT)):
+                    label, ms = _time_steps(checkout, run, args.steps, args.threads)
+                    labels[run] = label
+                    times.setdefault((run, name), []).append(ms)
+                    print(f"round {rnd + 1}: {label}: {name} {ms:.1f} ms/step", file=sys.stderr, flush=True)
     load1 = " / ".join(f"{x:.1f}" for x in os.getloadavg())
     rows = []
     for run in args.run:

@@ -291,8 +291,10 @@ def gather(gaussian_ids: torch.Tensor, g_rows: torch.Tensor, n: int, *, num_thre
             or not g_rows.is_contiguous() or D < 6):
         raise ValueError(f"gather: expected contiguous int64 ids ({I},) and contiguous rows (I, 6 + C), got ids "
                          f"{tuple(gaussian_ids.shape)} {gaussian_ids.dtype} and rows {tuple(g_rows.shape)}")
-    if I and (int(gaussian_ids.min()) < 0 or int(gaussian_ids.max()) >= n):
-        raise ValueError(f"gather: Gaussian ids must lie in [0, {n})")
+    if I:
+        lowest, highest = torch.aminmax(gaussian_ids)
+        if int(lowest) < 0 or int(highest) >= n:
+            raise ValueError(f"gather: Gaussian ids must lie in [0, {n})")
     lib = load()
     C, dt = D - 6, g_rows.dtype
     g_m, g_c = torch.empty(n, 2, dtype=dt), torch.empty(n, 3, dtype=dt)

@@ -21,16 +21,16 @@ namespace {
 template <typename T>
 void gather_impl(int64_t I, int64_t N, int64_t C, const int64_t* ids, const T* rows, T* g_means2d, T* g_conics,
                  T* g_opacities, T* g_colors, int num_threads) {
-  std::fill(g_means2d, g_means2d + 2 * N, T(0));
-  std::fill(g_conics, g_conics + 3 * N, T(0));
-  std::fill(g_opacities, g_opacities + N, T(0));
-  std::fill(g_colors, g_colors + C * N, T(0));
-  // One range of Gaussians per thread: every range reads all the ids once.
+  // One range of Gaussians per thread, which zeroes its outputs and reads all the ids once.
   const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(num_threads, I / 4096));
-  const int64_t kRange = (N + parts - 1) / parts;
+  const int64_t range = (N + parts - 1) / parts;
   const int64_t D = 6 + C;
   splat_parallel::dynamic_for(parts, num_threads, [&](int64_t item) {
-    const int64_t lo = item * kRange, hi = std::min(N, lo + kRange);
+    const int64_t lo = std::min(N, item * range), hi = std::min(N, lo + range);
+    std::fill(g_means2d + 2 * lo, g_means2d + 2 * hi, T(0));
+    std::fill(g_conics + 3 * lo, g_conics + 3 * hi, T(0));
+    std::fill(g_opacities + lo, g_opacities + hi, T(0));
+    std::fill(g_colors + C * lo, g_colors + C * hi, T(0));
     for (int64_t j = 0; j < I; ++j) {
       const int64_t g = ids[j];
       if (g < lo || g >= hi) continue;

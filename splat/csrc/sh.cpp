@@ -110,17 +110,22 @@ void for_blocks(int64_t n, int num_threads, F body) {
 // Coefficient rows: band 0 of Gaussian i at sh0 + i * s0, bands 1.. at shN + i * sN (three values per band,
 // adjacent). A contiguous (N, K, 3) array is sh0 = base, shN = base + 3, s0 = sN = 3 K; a model's separate
 // DC and rest tensors (no copy into one array) are s0 = 3, sN = 3 (K - 1).
-template <typename T>
+// The same layout serves the gradients (P = T, writable), where a part may be null (its gradient not wanted):
+// `band` is then null too.
+template <typename P>
 struct Bands {
-  const T* sh0;
+  P* sh0;
   int64_t s0;
-  const T* shN;
+  P* shN;
   int64_t sN;
-  const T* band(int64_t i, int k) const { return k == 0 ? sh0 + i * s0 : shN + i * sN + 3 * (k - 1); }
+  P* band(int64_t i, int k) const {
+    P* part = k == 0 ? sh0 : shN;
+    return part == nullptr ? nullptr : k == 0 ? part + i * s0 : part + i * sN + 3 * (k - 1);
+  }
 };
 
 template <typename T>
-void forward_impl(int64_t n, int degree, const Bands<T>& sh, const T* dirs, const double* constants,
+void forward_impl(int64_t n, int degree, const Bands<const T>& sh, const T* dirs, const double* constants,
                   double norm_eps, T* out, int num_threads) {
   const Constants<T> cst(constants);
   const int nb = (degree + 1) * (degree + 1);
@@ -137,12 +142,11 @@ void forward_impl(int64_t n, int degree, const Bands<T>& sh, const T* dirs, cons
   });
 }
 
-// The coefficients' gradients are written with the same layout as the inputs' (`Bands`, writable): g_sh0 at
-// g_sh0 + i * gs0, g_shN at g_shN + i * gsN + 3 (k - 1); either may be null (not wanted). Bands above `degree`
-// get zero gradients.
+// The coefficients' gradients are written in the layout of `gsh` (either part may be null: not wanted). Bands
+// above `degree` get zero gradients.
 template <typename T>
-void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T* dirs, const double* constants,
-                   double norm_eps, const T* grad_out, T* g_sh0, int64_t gs0, T* g_shN, int64_t gsN, T* g_dirs,
+void backward_impl(int64_t n, int64_t K, int degree, const Bands<const T>& sh, const T* dirs,
+                   const double* constants, double norm_eps, const T* grad_out, const Bands<T>& gsh, T* g_dirs,
                    int num_threads) {
   const Constants<T> cst(constants);
   const int nb = (degree + 1) * (degree + 1);
@@ -154,7 +158,7 @@ void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T
     T du[3] = {T(0), T(0), T(0)};
     for (int k = 0; k < nb; ++k) {
       const T* s = sh.band(i, k);
-      T* gs = k == 0 ? (g_sh0 ? g_sh0 + i * gs0 : nullptr) : (g_shN ? g_shN + i * gsN + 3 * (k - 1) : nullptr);
+      T* gs = gsh.band(i, k);
       T db = T(0);
       for (int c = 0; c < 3; ++c) {
         if (gs) gs[c] = b[k] * g[c];
@@ -162,11 +166,8 @@ void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T
       }
       for (int a = 0; a < 3; ++a) du[a] += db * gb[k][a];
     }
-    if (g_shN) {
-      for (int64_t k = std::max(nb, 1); k < K; ++k) {
-        T* gs = g_shN + i * gsN + 3 * (k - 1);
-        gs[0] = gs[1] = gs[2] = T(0);
-      }
+    for (int k = std::max(nb, 1); k < K; ++k) {
+      if (T* gs = gsh.band(i, k)) gs[0] = gs[1] = gs[2] = T(0);
     }
     T* gd = g_dirs + 3 * i;
     if (norm > T(norm_eps)) {
@@ -186,7 +187,7 @@ void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T
                                              const double* basis_constants, double norm_eps, T* out,       \
                                              int32_t num_threads) {                                        \
     (void)K;                                                                                              \
-    forward_impl<T>(n, degree, Bands<T>{sh0, sh0_stride, shN, shN_stride}, dirs, basis_constants, norm_eps, out, \
+    forward_impl<T>(n, degree, Bands<const T>{sh0, sh0_stride, shN, shN_stride}, dirs, basis_constants, norm_eps, out, \
                     num_threads);                                                                         \
   }                                                                                                       \
   extern "C" void splat_sh_backward_##SUFFIX(int64_t n, int64_t K, int32_t degree, const T* sh0,              \
@@ -194,8 +195,8 @@ void backward_impl(int64_t n, int64_t K, int degree, const Bands<T>& sh, const T
                                               const T* dirs, const double* basis_constants, double norm_eps, \
                                               const T* grad_out, T* g_sh0, int64_t g_sh0_stride, T* g_shN,   \
                                               int64_t g_shN_stride, T* g_dirs, int32_t num_threads) {       \
-    backward_impl<T>(n, K, degree, Bands<T>{sh0, sh0_stride, shN, shN_stride}, dirs, basis_constants, norm_eps, \
-                     grad_out, g_sh0, g_sh0_stride, g_shN, g_shN_stride, g_dirs, num_threads);             \
+    backward_impl<T>(n, K, degree, Bands<const T>{sh0, sh0_stride, shN, shN_stride}, dirs, basis_constants,       \
+                     norm_eps, grad_out, Bands<T>{g_sh0, g_sh0_stride, g_shN, g_shN_stride}, g_dirs, num_threads); \
   }
 
 SH_EXPORT(float, f32)
