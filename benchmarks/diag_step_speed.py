@@ -5,9 +5,10 @@ The base commit is checked out into a temporary git worktree (`_common.base_work
 `sparse/0`, e.g. the demo's or the real-size run's `round1`), a child process per version loads the trained
 Gaussians and cameras and times training steps as `splat.train` takes them: the pose correction, the render
 with SH degree 3, the L1 + SSIM loss, the backward and the fused Adam step, on one torch thread and the
-compositor's `--threads`. The versions alternate process by process, `--rounds` times, so both see the same
-machine load; the table gives each run and the ratio of the means. The step's inputs are the same in both (a
-fixed random target), so only the code differs. A diagnostic, not part of `make bench`.
+compositor's `--threads`. The versions alternate process by process, `--rounds` times (use an even number: the
+one that goes first alternates too), so both see the same machine load; the table gives each run and the ratio
+of the means. The step's inputs are the same in both (a fixed random target), so only the code differs. A
+diagnostic, not part of `make bench`.
 
 Usage: .venv/bin/python benchmarks/diag_step_speed.py --base REF --run ROUND_DIR [--run ROUND_DIR ...]
            [--rounds N] [--steps S] [--threads T] [--page NAME]   (writes docs/bench/NAME.md, default step_speed)
@@ -116,7 +117,10 @@ def main() -> None:
         (wt / ".venv").symlink_to(ROOT / ".venv")
         for rnd in range(args.rounds):
             for run in args.run:
-                for name, checkout in (("base", wt), ("this", ROOT)):
+                # Which version runs first alternates from round to round: with the same code on both sides,
+                # the second process of a pair measured 2-12 % slower, an order effect that this cancels.
+                pair = (("base", wt), ("this", ROOT))
+                for name, checkout in pair if rnd % 2 == 0 else pair[::-1]:
                     label, ms = _time_steps(checkout, run, args.steps, args.threads)
                     labels[run] = label
                     times.setdefault((run, name), []).append(ms)
@@ -133,7 +137,7 @@ def main() -> None:
             f"load average (1 / 5 / 15 min) {load0} before, {load1} after. Each cell: one process's mean over "
             f"{args.steps} training steps after a warm-up pass over the views (render with SH degree 3, L1 + SSIM "
             f"loss, backward, fused Adam; one torch thread, {args.threads} compositor threads); the versions "
-            "alternate process by process.\n\n")
+            "alternate process by process, and the one that goes first alternates from round to round.\n\n")
     body += md_table(["Gaussians, size", "base (ms/step), each process", "this (ms/step), each process",
                       "base mean", "this mean", "this / base"], rows)
     path = write_fragment(args.page, "A training step: this checkout against a base commit", body,
