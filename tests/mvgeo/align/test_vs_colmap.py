@@ -5,7 +5,7 @@ import pytest
 
 from mvgeo.align.api import AlignConfig, align_images
 from mvgeo.align.colmap_sfm import run_colmap
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.errors import AlignmentRefusedError
 from mvgeo.common.imageio import list_images
 from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
@@ -75,8 +75,8 @@ def test_object_ring_is_usable_or_a_specific_failure(tmp_path):
     gt = read_sparse_model(d / "sparse" / "0").cam_from_world_by_name()
     try:
         res = align_images(list_images(d / "images"), AlignConfig())
-    except DegenerateGeometryError as exc:
-        assert "inconsistent" in str(exc) or "focal length is not determined" in str(exc)
+    except AlignmentRefusedError as exc:  # a named reason; on a 2-core Intel Xeon: a view held by one pair
+        assert exc.kind in ("pairs_contradicted", "focal_undetermined", "views_unsupported"), exc
         return
     m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)
     assert m.registered_fraction == 1.0 and m.median_rotation_deg < 1.0
