@@ -39,12 +39,13 @@ bench: $(STAMP)
 # The main job on the built-in `llff_like` scene (forward-facing, Gaussian noise sigma 25/255),
 # reduced for 2 CPU cores: 256x192 images, 10 views (8 training + 2 held out), the `fast` preset
 # (one round; its splat takes back half of the noisy photos' finest band, `SplatSettings.noisy_detail`;
-# K = 6 views would apply to a second round, `--rounds 2`). `denoise-gs run` reconstructs the 8 noisy training photos
-# (poses, splat scene, renders, report.md) in the folder where `denoise-gs eval` looks for its
-# `product` run, so the evaluation reuses it and only adds the InstantSplat-style baseline
-# and the held-out scoring (PSNR/SSIM/LPIPS against the clean images, pose errors). `--max-size 0`
-# (work at the input size) because `denoise-gs eval` runs its pipelines so, and the setting enters the
-# stage keys: with the default 512 the evaluation would run the whole pipeline again.
+# K = 6 views would apply to a second round, `--rounds 2`). `denoise-gs eval` runs the product on the
+# 8 noisy training photos (poses, splat scene, renders, report.md in runs/llff_like/seed0/product) and
+# the InstantSplat-style baseline (b), then scores both on the held-out views (PSNR/SSIM/LPIPS against
+# the clean images, pose errors). The two runs are independent, so with DEMO_WORKERS=2 (the default
+# where the machine has 2 cores or more) they run side by side as two one-core Ray tasks: the same
+# scores to the last digit, about 0.8x the wall time of one after the other on 2 cores
+# (docs/bench/pipeline_demo.md); DEMO_WORKERS=1 runs them in turn without Ray.
 # `make demo-eval` adds the other baselines (3DGS with true poses, NLM + InstantSplat, round 1 only).
 # 256x192 rather than 160x120: at 160x120 the views often do not determine the focal length and the
 # alignment of the denoised photos was several degrees off (docs/benchmarks.md, pipeline demo).
@@ -52,21 +53,21 @@ DEMO_OUT ?= runs/demo
 DEMO_SIZE ?= 256x192
 DEMO_VIEWS ?= 10
 DEMO_K ?= 6
+DEMO_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); if [ "$$n" -ge 2 ]; then echo 2; else echo 1; fi)
 DEMO_DATA := $(DEMO_OUT)/llff_like
 DEMO_EVAL := $(DEMO_OUT)/eval
 demo: $(STAMP)
 	test -f $(DEMO_DATA)/split.json || $(VENV)/bin/data-synth render llff_like --out $(DEMO_DATA) --size $(DEMO_SIZE) --views $(DEMO_VIEWS)
-	$(PY) -m eval.prime_demo $(DEMO_DATA) $(DEMO_EVAL)
-	$(VENV)/bin/denoise-gs run $(DEMO_EVAL)/inputs/llff_like --out $(DEMO_EVAL)/runs/llff_like/seed0/product --preset fast --views $(DEMO_K) --seed 0 --allow-focal-prior --max-size 0
 	$(VENV)/bin/denoise-gs eval $(DEMO_DATA) --out $(DEMO_EVAL) --preset fast --seeds 1 --views $(DEMO_K) \
-		--methods instantsplat product
+		--methods instantsplat product --workers $(DEMO_WORKERS)
 	@echo
 	@echo "pipeline report:   $(DEMO_EVAL)/runs/llff_like/seed0/product/report.md"
 	@echo "evaluation report: $(DEMO_EVAL)/results.md"
 
 demo-eval: demo
 	$(VENV)/bin/denoise-gs eval $(DEMO_DATA) --out $(DEMO_EVAL) --preset fast --seeds 1 --views $(DEMO_K) \
-		--methods 3dgs_gt_poses instantsplat nlm_instantsplat n2v_round1 denoise_gs denoise_gs_fused product
+		--methods 3dgs_gt_poses instantsplat nlm_instantsplat n2v_round1 denoise_gs denoise_gs_fused product \
+		--workers $(DEMO_WORKERS)
 	@echo
 	@echo "evaluation report: $(DEMO_EVAL)/results.md"
 

@@ -334,11 +334,21 @@ def test_working_dataset_refuses_a_user_folder_at_its_path(tmp_path):
     assert not [p for p in (out / "data").iterdir() if p.name.startswith(".")]
 
 
-def test_eval_cli_refuses_a_user_folder_at_the_working_dataset(root, tmp_path, capsys):
-    from eval.prime_demo import main as prime
+def _open_eval_folder(root, out):
+    """`out` opened as `denoise-gs eval` opens it (its manifest, the scene's training photos in inputs/),
+    before any of its runs."""
+    from eval.evaluate import copy_train_inputs
+    from eval.pipeline import validate_dataset_folder
+    from mvgeo.common.output import prepare_output, resumable_output_dir
 
+    dataset = validate_dataset_folder(root)
+    with resumable_output_dir(prepare_output(out, command="denoise-gs eval", inputs=[root], resume=True)) as folder:
+        copy_train_inputs(dataset, folder / "inputs" / dataset.root.name)
+
+
+def test_eval_cli_refuses_a_user_folder_at_the_working_dataset(root, tmp_path, capsys):
     out = tmp_path / "ev1"
-    assert prime([str(root), str(out)]) == 0  # an eval folder, as `make demo` opens it
+    _open_eval_folder(root, out)
     mine = out / "data" / f"{SCENE}_max32" / "notes.txt"
     mine.parent.mkdir(parents=True)
     mine.write_text("mine")
@@ -348,15 +358,14 @@ def test_eval_cli_refuses_a_user_folder_at_the_working_dataset(root, tmp_path, c
     assert mine.read_text() == "mine" and sorted(os.listdir(out / "data")) == [f"{SCENE}_max32"]
 
 
-def test_eval_resumes_a_primed_folder_with_a_run_in_it(root, tmp_path, monkeypatch, capsys):
-    """`make demo`: the folder opened by eval.prime_demo, a `denoise-gs run` into one of its run folders,
-    then the evaluation, which reuses that run."""
+def test_eval_resumes_a_folder_with_a_run_in_it(root, tmp_path, monkeypatch, capsys):
+    """An evaluation folder with a `denoise-gs run` made into one of its run folders (same settings): the
+    evaluation reuses that run and only scores it."""
     from eval.pipeline import run_pipeline
-    from eval.prime_demo import main as prime
 
     h = Harness(monkeypatch)
     out = tmp_path / "ev1"
-    assert prime([str(root), str(out)]) == 0
+    _open_eval_folder(root, out)
     config = METHODS["instantsplat"].pipeline_config(dataclasses.replace(
         preset("fast", views=5), max_size=None,
         align=dataclasses.replace(preset("fast").align, max_focal_log_std=eval.evaluate.FOCAL_PRIOR_OK)))
