@@ -9,7 +9,13 @@ does not depend on the order), then with `--workers 2` from the base commit's co
 folder and its own process with its working folder at the code it runs (the workers import the driver's
 code). Prints the wall seconds and whether every score field of every row equals the serial run's.
 
-Run: `.venv/bin/python benchmarks/diag_ray_order.py BASE [--repeats 2]` (about 8 minutes on 2 cores).
+`--sweep gt`: the ground-truth-pose variants instead (`eval.evaluate.task_graph`), `--seeds 1 --methods
+instantsplat oracle_clean instantsplat@gt_poses oracle_clean@gt_poses` on the same scene: two runs, then two
+variants that each read their method's run and oracle_clean's points. `--sweep gt_n2v` adds `n2v_round1` and
+its variant (the denoiser's training is then the longest chain).
+
+Run: `.venv/bin/python benchmarks/diag_ray_order.py BASE [--repeats 2] [--sweep order|gt]` (about 8 minutes on
+2 cores for `order`).
 """
 
 from __future__ import annotations
@@ -25,17 +31,21 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import ROOT, base_worktree  # noqa: E402
 
-SWEEP = ["eval", "llff_like", "--preset", "fast", "--splat-iters", "300", "--size", "128x96", "--scene-views", "8",
-         "--seeds", "2", "--methods", "instantsplat", "n2v_round1"]
+SCENE = ["eval", "llff_like", "--preset", "fast", "--splat-iters", "300", "--size", "128x96", "--scene-views", "8"]
+SWEEPS = {"order": [*SCENE, "--seeds", "2", "--methods", "instantsplat", "n2v_round1"],
+          "gt": [*SCENE, "--seeds", "1", "--methods", "instantsplat", "oracle_clean", "instantsplat@gt_poses",
+                 "oracle_clean@gt_poses"],
+          "gt_n2v": [*SCENE, "--seeds", "1", "--methods", "instantsplat", "n2v_round1", "oracle_clean",
+                     "instantsplat@gt_poses", "n2v_round1@gt_poses", "oracle_clean@gt_poses"]}
 SCORES = ("method", "seed", "psnr_db", "ssim", "lpips", "rot_err_deg", "ate", "per_view", "error")
 
 
-def _eval(tree: Path, out: Path, extra: list[str]) -> tuple[float, list[dict]]:
+def _eval(tree: Path, out: Path, sweep: list[str], extra: list[str]) -> tuple[float, list[dict]]:
     """(wall seconds, score fields of the rows) of one `denoise-gs eval` with `tree`'s code."""
     env = {**os.environ, "DGS_NO_PROGRESS": "1", "OMP_WAIT_POLICY": "PASSIVE", "PYTHONPATH": str(tree)}
     code = "import sys; from eval.cli import main; sys.exit(main(sys.argv[1:]))"
     start = time.perf_counter()
-    run = subprocess.run([sys.executable, "-c", code, *SWEEP, "--out", str(out), *extra], cwd=tree, env=env,
+    run = subprocess.run([sys.executable, "-c", code, *sweep, "--out", str(out), *extra], cwd=tree, env=env,
                          capture_output=True, text=True)
     wall = time.perf_counter() - start
     if run.returncode != 0:
@@ -48,15 +58,18 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("base", help="the commit to compare with (e.g. the one before the change)")
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--sweep", choices=sorted(SWEEPS), default="order")
     args = ap.parse_args()
+    sweep = SWEEPS[args.sweep]
+    print(" ".join(["denoise-gs", *sweep]), flush=True)
     with base_worktree(args.base, prefix="ray_order_") as base_tree:
         work = base_tree.parent
-        serial_s, serial_rows = _eval(ROOT, work / "serial", [])
+        serial_s, serial_rows = _eval(ROOT, work / "serial", sweep, [])
         print(f"serial (this checkout): {serial_s:.1f} s, load {os.getloadavg()[0]:.1f}", flush=True)
         walls: dict[str, list[float]] = {"base": [], "this": []}
         for k in range(args.repeats):
             for who, tree in (("base", base_tree), ("this", ROOT)):
-                s, rows = _eval(tree, work / f"{who}{k}", ["--workers", "2"])
+                s, rows = _eval(tree, work / f"{who}{k}", sweep, ["--workers", "2"])
                 walls[who].append(s)
                 print(f"--workers 2, {who}: {s:.1f} s ({s / serial_s:.2f}x the serial), scores "
                       f"{'identical' if rows == serial_rows else 'DIFFERENT'}, load {os.getloadavg()[0]:.1f}",

@@ -8,8 +8,11 @@ and `results.md` are the serial run's.
 The task graph: units that write the same pipeline folder (methods of one family and seed, e.g.
 `n2v_round1` then `denoise_gs`, and the ablations that link its round 1) form a chain: each waits for
 the one before it (`chain_after`), so a shared stage is computed once, by the first, and the next
-finds it in the stage cache; chains run in parallel. The output lock of each run folder
-(`eval.pipeline.lock`) stays the safety net: a second writer is refused, never interleaved.
+finds it in the stage cache; chains run in parallel. A unit that only reads a folder an earlier unit
+finished (a ground-truth-pose variant reads its method's run and the clean photos' alignment points)
+waits for that writer but not for the other readers, so the variants run side by side. The output lock of
+each run folder (`eval.pipeline.lock`) stays the safety net: the tasks take it in turn, never
+interleaved (a reader holds it for the seconds it takes to find the folder's stages complete).
 
 Order: given each unit's expected cost, the units are submitted longest remaining chain first
 (`submission_order`: a unit's cost plus the costliest chain of units that wait for it), so the long runs
@@ -155,23 +158,38 @@ def check_ray_address(address: str) -> None:
                          fix="start the head with `ray start --head` and give the address it prints") from None
 
 
-def chain_after(keys: Sequence[Sequence[Hashable]]) -> list[tuple[int, ...]]:
-    """The task graph of units that share state by key: unit i waits for the previous unit with each of
-    its keys.
+def chain_after(keys: Sequence[Sequence[Hashable]],
+                reads: Sequence[Sequence[Hashable]] | None = None) -> list[tuple[int, ...]]:
+    """The task graph of units that share state by key, as readers and writers.
+
+    A unit waits for the last earlier writer of every key it writes or reads; a writer also waits for
+    every unit that read one of its keys since that key's last writer. Readers of a key between two
+    writers do not wait for each other: they run side by side.
 
     Args:
-        keys: per unit, in the serial order, its keys (units with a common key write or read the same
+        keys: per unit, in the serial order, the keys it writes (units with a common key write the same
             folder).
+        reads: per unit, the keys it only reads (None: no unit only reads). A key a unit both writes and
+            reads counts as written.
 
     Returns:
         For each unit, the indices of the earlier units it must wait for (sorted, possibly empty).
     """
-    last: dict[Hashable, int] = {}
+    reads = [()] * len(keys) if reads is None else reads
+    if len(reads) != len(keys):
+        raise ValueError(f"reads has {len(reads)} entries for {len(keys)} units")
+    writer: dict[Hashable, int] = {}
+    readers: dict[Hashable, list[int]] = {}
     after = []
-    for i, k in enumerate(keys):
-        after.append(tuple(sorted({last[x] for x in k if x in last})))
-        for x in k:
-            last[x] = i
+    for i, (w, r) in enumerate(zip(keys, reads, strict=True)):
+        only_read = [x for x in r if x not in set(w)]
+        deps = {writer[x] for x in (*w, *only_read) if x in writer}
+        deps.update(j for x in w for j in readers.get(x, ()))
+        after.append(tuple(sorted(deps)))
+        for x in w:
+            writer[x], readers[x] = i, []
+        for x in only_read:
+            readers.setdefault(x, []).append(i)
     return after
 
 

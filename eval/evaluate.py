@@ -95,7 +95,7 @@ if TYPE_CHECKING:
 __all__ = ["FAILED_RUN_ERRORS", "HELDOUT_DIR", "EvalConfig", "EvalTask", "base_pipeline_config",
            "check_eval_outputs", "copy_train_inputs", "evaluate_dataset", "heldout_record",
            "expected_costs", "run_task", "save_heldout_references", "save_heldout_renders", "scene_dataset",
-           "score_reconstruction", "share_keys"]
+           "score_reconstruction", "share_keys", "task_graph"]
 
 _log = logging.getLogger(__name__)
 
@@ -520,11 +520,42 @@ def check_eval_outputs(tasks: Sequence[EvalTask]) -> None:
 
 
 def share_keys(task: EvalTask) -> tuple[tuple[str, int, str], ...]:
-    """The pipeline folders a task writes or reads as (scene, seed, folder) keys; a task runs after the last
-    earlier task with any of its keys. The ablations key on the folder whose round 1 they link
-    (`EvalMethod.shares_round1_with`), a `@gt_poses` variant on its method's folder and its points'
-    method's (`EvalMethod.runs_after`), so they run after those."""
+    """The pipeline folders a task writes or reads as (scene, seed, folder) keys. The ablations key on the
+    folder whose round 1 they link (`EvalMethod.shares_round1_with`), a `@gt_poses` variant on its method's
+    folder and its points' method's (`EvalMethod.runs_after`)."""
     return tuple((task.scene, task.seed, f) for f in task.method.runs_after(task.config.denoiser))
+
+
+def task_graph(tasks: Sequence[EvalTask]) -> list[tuple[int, ...]]:
+    """For each task (in the serial order), the earlier tasks it waits for (`eval.distributed.chain_after`).
+
+    A task writes the folders of `share_keys`, and runs after the last earlier task with any of them;
+    but a `@gt_poses` variant only reads its method's and its points' method's folders where an earlier
+    task of the same scene and seed runs that method: it waits for that task, not for the other variants
+    reading the same folder (every variant reads `oracle_clean`'s points), so the variants' splats run
+    side by side. Where no earlier task runs the method, the variant runs it, and writes its folder; the
+    later variants then read it.
+    """
+    ran: set[tuple[str, int, str]] = set()  # (scene, seed, method name) of the methods earlier tasks run
+    writes, reads = [], []
+    for t in tasks:
+        m, denoiser = t.method, t.config.denoiser
+        if m.gt_pose_variant_of is None:
+            writes.append(share_keys(t))
+            reads.append(())
+            ran.add((t.scene, t.seed, m.name))
+            continue
+        w: list[tuple[str, int, str]] = []
+        r: list[tuple[str, int, str]] = []
+        for needed in (m.gt_pose_variant_of, m.gt_pose_points_from):
+            if needed is None:
+                continue
+            keys = [(t.scene, t.seed, f) for f in needed.runs_after(denoiser)]
+            (r if (t.scene, t.seed, needed.name) in ran else w).extend(keys)
+            ran.add((t.scene, t.seed, needed.name))  # run by now, by an earlier task or by this one
+        writes.append(tuple(dict.fromkeys(w)))
+        reads.append(tuple(dict.fromkeys(r)))
+    return chain_after(writes, reads)
 
 
 #: The parts of a run, in relative units, for the order the runs start in on a cluster
@@ -571,8 +602,8 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
     `on_row(rows_so_far)` is called after each run (the CLI rewrites results.md, so an interrupted
     evaluation keeps what it measured).
 
-    `executor` (`eval.distributed.ray_cluster`): the runs are Ray tasks, those of one folder
-    (`share_keys`) in order, the others in parallel, the longest chains of runs started first
+    `executor` (`eval.distributed.ray_cluster`): the runs are Ray tasks, the writers of one folder
+    (`task_graph`) in order, the others in parallel, the longest chains of runs started first
     (`expected_costs`); the rows come back in the serial order (seeds, then methods), and `on_row` gets
     the finished ones in that order. None: one after another here.
 
@@ -609,7 +640,7 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
             if on_row is not None:
                 on_row([done[i] for i in sorted(done)])
 
-        return executor.run(run_task, tasks, after=chain_after([share_keys(t) for t in tasks]),
+        return executor.run(run_task, tasks, after=task_graph(tasks),
                             cost=expected_costs(tasks), desc=f"eval {scene}", on_done=finished)
     rows: list[RunScores] = []
     for task in tasks:

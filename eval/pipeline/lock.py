@@ -43,11 +43,17 @@ def _holds_a_pid_or_nothing(fd: int) -> bool:
 
 
 @contextlib.contextmanager
-def output_lock(out: str | Path) -> Iterator[None]:
+def output_lock(out: str | Path, *, wait: bool = False) -> Iterator[None]:
     """Hold the lock of folder `out` (created if needed) for the block's lifetime.
 
+    Args:
+        out: the folder.
+        wait: where another process holds the lock, wait until it lets go (`denoise-gs eval`'s tasks that
+            only read a finished run folder: each checks the folder's stages under the lock, one after
+            the other) instead of raising.
+
     Raises:
-        InputError: another process (or another holder in this process) has it.
+        InputError: another process (or another holder in this process) has it, and `wait` is False.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -63,7 +69,7 @@ def output_lock(out: str | Path) -> Iterator[None]:
             raise InputError(f"{LOCK_NAME} in the output folder is not a lock file", path=lock,
                              fix="move it away if it is yours, or choose another --out; nothing was changed")
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
         except BlockingIOError:
             pid = _owner_pid(fd)  # None while the owner has not written it yet: still a live owner
             os.close(fd)

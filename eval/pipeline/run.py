@@ -202,7 +202,8 @@ def _published(out: Path, stages: PipelineStages) -> list[tuple[Path, str, tuple
 
 
 def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig, *,
-                 stages: PipelineStages | None = None, force: bool = False) -> PipelineResult:
+                 stages: PipelineStages | None = None, force: bool = False,
+                 wait_for_lock: bool = False) -> PipelineResult:
     """Run (or resume) Denoise-GS on a folder of noisy, unposed images.
 
     Args:
@@ -213,6 +214,9 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         config: settings (see `eval.pipeline.config.PRESETS`).
         stages: the stage functions; default the product's (`product_stages()`).
         force: re-run every stage even when complete outputs exist.
+        wait_for_lock: where another process is running in `out`, wait for it to finish instead of raising
+            (`eval.pipeline.lock.output_lock`); `denoise-gs eval` sets it, whose task graph lets only
+            tasks that find the folder's stages complete meet there.
 
     Resuming changes only files the run wrote. Before any stage runs, the committed outputs of every stage
     this run may run, and the published result (`scene.splat`, `view/`, `cameras/`, the report files), are
@@ -265,7 +269,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
     _hash_stage_code(stages)
     rounds: list[RoundResult] = []
     stopped: StoppedRound | None = None
-    with resumable_output_dir(plan), output_lock(out):
+    with resumable_output_dir(plan), output_lock(out, wait=wait_for_lock):
         _check_run_outputs(out, stages, settings)  # before anything is changed
         # The working images (upright, long side <= max_size): every stage reads these, not the inputs.
         prep = runner.run(StageSpec(WORKING_DIR, out, prepare_inputs, (WORKING_DIR,), inputs={"noisy": images_dir},

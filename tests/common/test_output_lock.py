@@ -137,6 +137,29 @@ def test_live_holder_is_named_and_its_exit_releases_the_lock(tmp_path):
     assert not (out / LOCK_NAME).exists()
 
 
+def test_wait_takes_the_lock_when_the_holder_lets_go(tmp_path):
+    """`wait=True` (the evaluation's readers of a finished run): no error, the lock once the holder is gone."""
+    import threading
+
+    out = tmp_path / "out"
+    pid, stop = _hold_in_child(out)
+    released = threading.Event()
+
+    def release_later() -> None:
+        time.sleep(0.3)
+        released.set()
+        os.close(stop)  # the child leaves its `with` block and exits
+
+    threading.Thread(target=release_later).start()
+    try:
+        with output_lock(out, wait=True):
+            assert released.is_set()  # not before the holder let go
+            assert (out / LOCK_NAME).read_text().strip() == str(os.getpid())
+    finally:
+        os.waitpid(pid, 0)
+    assert not (out / LOCK_NAME).exists()
+
+
 def test_killed_holder_releases_the_lock(tmp_path):
     out = tmp_path / "out"
     pid, stop = _hold_in_child(out)

@@ -36,7 +36,7 @@ from eval.distributed import (
     submission_order,
     warm_slots,
 )
-from eval.evaluate import EvalConfig, evaluate_dataset, expected_costs, share_keys
+from eval.evaluate import EvalConfig, evaluate_dataset, expected_costs, share_keys, task_graph
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.common.errors import InputError
@@ -139,6 +139,59 @@ def test_share_keys_chain_a_family_the_ablations_and_the_gt_pose_variants(tmp_pa
     # seed 0: instantsplat alone; n2v_round1 -> denoise_gs -> ablate_no_selection; the variant after the last
     # of its method's folder and after oracle_clean (its points); seed 1 likewise, apart.
     assert after == [(), (), (1,), (2,), (), (3, 4), (), (), (7,), (8,), (), (9, 10)]
+
+
+def _chain_after_by_scan(writes, reads):
+    """Reference: unit i waits for unit j < i when j writes a key i writes or reads, or j reads a key i
+    writes, and no unit between them writes that key (each pair judged on its own, by scanning)."""
+    after = []
+    for i in range(len(writes)):
+        deps = set()
+        for j in range(i):
+            for x in {*writes[i], *reads[i]}:
+                j_writes, j_reads = x in writes[j], x in reads[j] and x not in writes[j]
+                i_writes = x in writes[i]
+                if not (j_writes or (j_reads and i_writes)):
+                    continue
+                if not any(x in writes[k] for k in range(j + 1, i)):
+                    deps.add(j)
+        after.append(tuple(sorted(deps)))
+    return after
+
+
+def test_chain_after_lets_the_readers_of_a_key_run_side_by_side():
+    # w: writes a, then three readers of a, then a writer of a waits for all three, then a reader for it
+    writes = [("a",), (), (), ("b",), ("a",), ()]
+    reads = [(), ("a",), ("a",), ("a",), (), ("a", "b")]
+    assert chain_after(writes, reads) == [(), (0,), (0,), (0,), (0, 1, 2, 3), (3, 4)]
+    # a key both written and read counts as written: the next reader waits for it
+    assert chain_after([("a",), ("a",), ()], [(), ("a",), ("a",)]) == [(), (0,), (1,)]
+    with pytest.raises(ValueError, match="reads has 1 entries for 2 units"):
+        chain_after([(), ()], [()])
+    # against the pairwise scan, on random graphs of 4 keys
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        n = int(rng.integers(1, 9))
+        writes = [tuple(k for k in "abcd" if rng.random() < 0.3) for _ in range(n)]
+        reads = [tuple(k for k in "abcd" if rng.random() < 0.3) for _ in range(n)]
+        assert chain_after(writes, reads) == _chain_after_by_scan(writes, reads)
+        assert chain_after(writes) == _chain_after_by_scan(writes, [()] * n)
+
+
+def test_task_graph_runs_the_gt_pose_variants_side_by_side(tmp_path, dataset):
+    cfg = EvalConfig(methods=("instantsplat",), seeds=1, preset="fast")
+    names = ("instantsplat", "oracle_clean", "instantsplat@gt_poses", "oracle_clean@gt_poses", "n2v_round1@gt_poses")
+    tasks = [eval.evaluate.EvalTask("s", eval.methods.METHODS[m], seed, dataset, preset("fast"), tmp_path, tmp_path,
+                                    cfg)
+             for seed in (0, 1) for m in names]
+    # the variants read the runs before them (instantsplat, oracle_clean) and wait only for those; the
+    # n2v_round1 variant runs n2v_round1 itself (no earlier task does) and only reads oracle_clean's points
+    assert task_graph(tasks) == [(), (), (0, 1), (1,), (1,), (), (), (5, 6), (6,), (6,)]
+    # where every key was written, as before: one chain through oracle_clean's folder
+    assert chain_after([share_keys(t) for t in tasks])[:5] == [(), (), (0, 1), (2,), (3,)]
+    # without the methods they need, the first variant runs oracle_clean and the others read it after it
+    alone = [t for t in tasks if "@" in t.method.name and t.seed == 0]
+    assert task_graph(alone) == [(), (0,), (0,)]
 
 
 def _levels_by_paths(after, cost):
@@ -388,6 +441,26 @@ def test_eval_on_ray_gives_the_serial_rows(cluster, dataset, tmp_path, monkeypat
     assert ray_calls[("denoise", "runs/s/seed0/n2v/round1")] == 1
     assert ("denoise", "runs/s/seed0/ablate_no_selection/round1") not in ray_calls  # linked from n2v
     assert ("refine", "runs/s/seed1/ablate_no_selection/round2") in ray_calls
+
+
+def test_gt_pose_variants_on_ray_read_the_runs_before_them(cluster, dataset, tmp_path, monkeypatch):
+    """The variants read instantsplat's and oracle_clean's finished runs side by side (`task_graph`), taking
+    the run folders' locks in turn: the serial rows, and every stage computed once."""
+    ex, log = cluster
+    config = EvalConfig(methods=("instantsplat", "oracle_clean", "instantsplat@gt_poses", "oracle_clean@gt_poses",
+                                 "n2v_round1@gt_poses"), seeds=1, preset="fast")
+    serial_log = tmp_path / "serial_calls.log"
+    install_tiny(serial_log, monkeypatch.setattr)
+    serial_out, ray_out = tmp_path / "serial", tmp_path / "ray"
+    serial = evaluate_dataset(dataset, serial_out, config, scene="s")
+    rows = evaluate_dataset(dataset, ray_out, config, scene="s", executor=ex)
+    assert [r.method for r in rows] == [m.name for m in config.selected()]  # the registry's order
+    assert all(not r.error and math.isfinite(r.psnr_db) for r in rows)
+    assert [dataclasses.replace(r, seconds=0.0) for r in rows] == [dataclasses.replace(r, seconds=0.0)
+                                                                    for r in serial]
+    ray_calls, serial_calls = _calls(log, ray_out), _calls(serial_log, serial_out)
+    assert ray_calls == serial_calls and set(ray_calls.values()) == {1}
+    assert ray_calls[("splat", "runs/s/seed0/oracle_clean@gt_poses/round1")] == 1
 
 
 def test_cost_sweep_on_ray_gives_the_serial_rows(cluster, dataset, tmp_path):
