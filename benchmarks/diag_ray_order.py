@@ -14,7 +14,7 @@ instantsplat oracle_clean instantsplat@gt_poses oracle_clean@gt_poses` on the sa
 variants that each read their method's run and oracle_clean's points. `--sweep gt_n2v` adds `n2v_round1` and
 its variant (the denoiser's training is then the longest chain).
 
-Run: `.venv/bin/python benchmarks/diag_ray_order.py BASE [--repeats 2] [--sweep order|gt]` (about 8 minutes on
+Run: `.venv/bin/python benchmarks/diag_ray_order.py BASE [--repeats 2] [--sweep order|gt|gt_n2v]` (about 8 minutes on
 2 cores for `order`).
 """
 

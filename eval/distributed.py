@@ -9,10 +9,12 @@ The task graph: units that write the same pipeline folder (methods of one family
 `n2v_round1` then `denoise_gs`, and the ablations that link its round 1) form a chain: each waits for
 the one before it (`chain_after`), so a shared stage is computed once, by the first, and the next
 finds it in the stage cache; chains run in parallel. A unit that only reads a folder an earlier unit
-finished (a ground-truth-pose variant reads its method's run and the clean photos' alignment points)
-waits for that writer but not for the other readers, so the variants run side by side. The output lock of
-each run folder (`eval.pipeline.lock`) stays the safety net: the tasks take it in turn, never
-interleaved (a reader holds it for the seconds it takes to find the folder's stages complete).
+ran (a ground-truth-pose variant reads its method's run and the clean photos' alignment points) waits
+for that writer but not for the other readers, so the variants run side by side. The output lock of
+each run folder (`eval.pipeline.lock`) stays the safety net for the writers: a second one is refused,
+never interleaved. The readers take it in turn (`output_lock(wait=True)`): each holds it for the
+seconds it takes to find the folder's stages complete, or, where the run it reads failed, to run the
+failed stage again.
 
 Order: given each unit's expected cost, the units are submitted longest remaining chain first
 (`submission_order`: a unit's cost plus the costliest chain of units that wait for it), so the long runs

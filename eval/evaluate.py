@@ -531,12 +531,13 @@ def task_graph(tasks: Sequence[EvalTask]) -> list[tuple[int, ...]]:
 
     A task writes the folders of `share_keys`, and runs after the last earlier task with any of them;
     but a `@gt_poses` variant only reads its method's and its points' method's folders where an earlier
-    task of the same scene and seed runs that method: it waits for that task, not for the other variants
-    reading the same folder (every variant reads `oracle_clean`'s points), so the variants' splats run
-    side by side. Where no earlier task runs the method, the variant runs it, and writes its folder; the
-    later variants then read it.
+    task of the same scene and seed has run that method (each folder judged on its own): it waits for that
+    task, not for the other variants reading the same folder (every variant reads `oracle_clean`'s
+    points), so the variants' splats run side by side. Where no earlier task has run the method, the
+    variant runs it, and writes its folder. A variant counts as having run its own method (`reconstruct`
+    starts with it), not its points' method: it never gets to that one where its own method fails.
     """
-    ran: set[tuple[str, int, str]] = set()  # (scene, seed, method name) of the methods earlier tasks run
+    ran: set[tuple[str, int, str]] = set()  # (scene, seed, method name) of the methods earlier tasks ran
     writes, reads = [], []
     for t in tasks:
         m, denoiser = t.method, t.config.denoiser
@@ -552,7 +553,7 @@ def task_graph(tasks: Sequence[EvalTask]) -> list[tuple[int, ...]]:
                 continue
             keys = [(t.scene, t.seed, f) for f in needed.runs_after(denoiser)]
             (r if (t.scene, t.seed, needed.name) in ran else w).extend(keys)
-            ran.add((t.scene, t.seed, needed.name))  # run by now, by an earlier task or by this one
+        ran.add((t.scene, t.seed, m.gt_pose_variant_of.name))
         writes.append(tuple(dict.fromkeys(w)))
         reads.append(tuple(dict.fromkeys(r)))
     return chain_after(writes, reads)

@@ -401,10 +401,14 @@ def _denoised_before_refusal(method: EvalMethod, config: PipelineConfig, folder:
 
 
 def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig, *, seed: int,
-                denoiser: DenoiseMethod, inputs: Path, seed_dir: Path) -> Reconstruction:
+                denoiser: DenoiseMethod, inputs: Path, seed_dir: Path, wait_for_lock: bool = False) -> Reconstruction:
     """Run (or resume) `method` with `seed` on the noisy training photos in `inputs`, in
     `seed_dir/<its folder>`. A `@gt_poses` variant runs (or resumes) its method and its points' method
     first; its seconds are the method's plus its own splat's.
+
+    `wait_for_lock`: where another process holds the run folder, wait for it instead of raising
+    (`run_pipeline`). A variant sets it for its method's and its points' method's runs, which other
+    variants of the evaluation may be reading at the same time (`eval.evaluate.task_graph`).
 
     Raises:
         Whatever the stages raise (`InputError`, `DegenerateGeometryError` for inputs the method
@@ -416,12 +420,13 @@ def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig
     if method.gt_pose_variant_of is not None:
         try:
             own = reconstruct(method.gt_pose_variant_of, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs,
-                              seed_dir=seed_dir)
+                              seed_dir=seed_dir, wait_for_lock=True)
         except (DegenerateGeometryError, DisconnectedViewsError) as err:
             own_method = method.gt_pose_variant_of
             own = _denoised_before_refusal(own_method, config, seed_dir / own_method.folder(denoiser), err)
         points = own if method.gt_pose_points_from in (None, method.gt_pose_variant_of) else reconstruct(
-            method.gt_pose_points_from, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs, seed_dir=seed_dir)
+            method.gt_pose_points_from, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs, seed_dir=seed_dir,
+            wait_for_lock=True)
         rec = _splat_on_ground_truth(stages, config, dataset, splat_photos(own.round_dir), folder,
                                      estimate=points.round_dir, noisy=own.round_dir.parent / WORKING_DIR)
         return dataclasses.replace(rec, seconds=own.seconds + rec.seconds)
@@ -429,9 +434,7 @@ def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig
         return _splat_on_ground_truth(stages, config, dataset, inputs, folder)
     if method.shares_round1_with is not None:
         share_round1(seed_dir / method.shares_round1_with, folder)
-    # Several ground-truth-pose variants may open a finished run at once (`eval.evaluate.task_graph`):
-    # each waits its turn at the folder's lock, and finds every stage complete.
-    res = run_pipeline(inputs, folder, config, stages=stages, wait_for_lock=True)
+    res = run_pipeline(inputs, folder, config, stages=stages, wait_for_lock=wait_for_lock)
     ran = [*res.rounds, *([res.stopped] if res.stopped is not None else [])]  # a stopped round's stages cost too
     seconds = float(sum(st.seconds for rd in ran for st in rd.stages.values()))
     return Reconstruction(res.rounds[-1].dir, True, seconds)

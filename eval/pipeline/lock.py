@@ -48,9 +48,11 @@ def output_lock(out: str | Path, *, wait: bool = False) -> Iterator[None]:
 
     Args:
         out: the folder.
-        wait: where another process holds the lock, wait until it lets go (`denoise-gs eval`'s tasks that
-            only read a finished run folder: each checks the folder's stages under the lock, one after
-            the other) instead of raising.
+        wait: where another process holds the lock, wait until it lets go instead of raising, however long
+            that takes (`denoise-gs eval`'s ground-truth-pose variants, which read the runs they start
+            from: they check the folder's stages under the lock one after the other). Never with a holder
+            in this process: the lock is per open file, so a second `output_lock` of the same folder in
+            one process would wait for itself.
 
     Raises:
         InputError: another process (or another holder in this process) has it, and `wait` is False.

@@ -215,8 +215,8 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         stages: the stage functions; default the product's (`product_stages()`).
         force: re-run every stage even when complete outputs exist.
         wait_for_lock: where another process is running in `out`, wait for it to finish instead of raising
-            (`eval.pipeline.lock.output_lock`); `denoise-gs eval` sets it, whose task graph lets only
-            tasks that find the folder's stages complete meet there.
+            (`eval.pipeline.lock.output_lock`). `denoise-gs eval`'s ground-truth-pose variants set it for the
+            runs they start from, which several of them may read at once (`eval.evaluate.task_graph`).
 
     Resuming changes only files the run wrote. Before any stage runs, the committed outputs of every stage
     this run may run, and the published result (`scene.splat`, `view/`, `cameras/`, the report files), are

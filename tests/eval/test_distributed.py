@@ -189,9 +189,15 @@ def test_task_graph_runs_the_gt_pose_variants_side_by_side(tmp_path, dataset):
     assert task_graph(tasks) == [(), (), (0, 1), (1,), (1,), (), (), (5, 6), (6,), (6,)]
     # where every key was written, as before: one chain through oracle_clean's folder
     assert chain_after([share_keys(t) for t in tasks])[:5] == [(), (), (0, 1), (2,), (3,)]
-    # without the methods they need, the first variant runs oracle_clean and the others read it after it
+    # without the methods they need: oracle_clean's variant runs it as its own method, and the variant after
+    # it reads it; instantsplat's variant before it also runs oracle_clean (for its points), but only after
+    # instantsplat, which may fail first: so oracle_clean's variant still writes, after it
     alone = [t for t in tasks if "@" in t.method.name and t.seed == 0]
-    assert task_graph(alone) == [(), (0,), (0,)]
+    assert [t.method.name for t in alone] == ["instantsplat@gt_poses", "oracle_clean@gt_poses", "n2v_round1@gt_poses"]
+    assert task_graph(alone) == [(), (0,), (1,)]
+    variants = [eval.evaluate.EvalTask("s", eval.methods.METHODS[m], 0, dataset, preset("fast"), tmp_path, tmp_path,
+                                       cfg) for m in ("instantsplat@gt_poses", "product@gt_poses", "n2v_round1@gt_poses")]
+    assert task_graph(variants) == [(), (0,), (1,)]  # oracle_clean's folder written by each in turn
 
 
 def _levels_by_paths(after, cost):
