@@ -195,8 +195,9 @@ def test_task_graph_runs_the_gt_pose_variants_side_by_side(tmp_path, dataset):
     alone = [t for t in tasks if "@" in t.method.name and t.seed == 0]
     assert [t.method.name for t in alone] == ["instantsplat@gt_poses", "oracle_clean@gt_poses", "n2v_round1@gt_poses"]
     assert task_graph(alone) == [(), (0,), (1,)]
+    names = ("instantsplat@gt_poses", "product@gt_poses", "n2v_round1@gt_poses")
     variants = [eval.evaluate.EvalTask("s", eval.methods.METHODS[m], 0, dataset, preset("fast"), tmp_path, tmp_path,
-                                       cfg) for m in ("instantsplat@gt_poses", "product@gt_poses", "n2v_round1@gt_poses")]
+                                       cfg) for m in names]
     assert task_graph(variants) == [(), (0,), (1,)]  # oracle_clean's folder written by each in turn
 
 
