@@ -184,7 +184,8 @@ def chain_after(keys: Sequence[Sequence[Hashable]],
     readers: dict[Hashable, list[int]] = {}
     after = []
     for i, (w, r) in enumerate(zip(keys, reads, strict=True)):
-        only_read = [x for x in r if x not in set(w)]
+        written = set(w)
+        only_read = [x for x in r if x not in written]
         deps = {writer[x] for x in (*w, *only_read) if x in writer}
         deps.update(j for x in w for j in readers.get(x, ()))
         after.append(tuple(sorted(deps)))
