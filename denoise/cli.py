@@ -29,7 +29,7 @@ from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.deps import cv2
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
-from mvgeo.common.imageio import list_images, read_image, write_image
+from mvgeo.common.imageio import check_distinct_stems, list_images, read_image, write_image
 from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file, write_output_file
 from mvgeo.common.timing import StageTimer
 
@@ -69,6 +69,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     plan = prepare_output(args.out, command="denoise n2v", inputs=[args.images_dir], overwrite=args.overwrite)
     files = list_images(args.images_dir)
+    check_distinct_stems([f.name for f in files], path=args.images_dir)  # one output file per image
     images = [read_image(f, gray_to_rgb=False) for f in files]  # gray stays (H, W, 1): written back as gray
     for f, img in zip(files, images, strict=True):
         if min(img.shape[:2]) < MIN_SIDE_PX:

@@ -28,12 +28,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mvgeo.common.argtypes import positive_int, seed
+from mvgeo.common.argtypes import int_range, positive_int, seed
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
-from mvgeo.common.imageio import write_image
+from mvgeo.common.imageio import check_distinct_stems, write_image
 from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output, prepare_output_file, write_output_file
 from mvgeo.common.timing import StageTimer
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
@@ -118,6 +118,7 @@ def _render(args) -> int:
     sparse = read_sparse_model(Path(args.cameras))
     if not sparse.images:
         raise InputError("the camera model has no images to render", path=args.cameras)
+    check_distinct_stems(sparse.names, path=args.cameras)  # one output file per view
     cams = [sparse.camera_of(n) for n in sparse.names]
     poses = np.stack([im.cam_from_world for im in sparse.images])
     with torch.no_grad():
@@ -213,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("model", help="`splat train` output folder (or a 3DGS point_cloud.ply)")
     vw.add_argument("--cameras", default=None, help="COLMAP model whose cameras are drawn (default: MODEL/sparse/0)")
     vw.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this machine only)")
-    vw.add_argument("--port", type=int, default=8080)
+    vw.add_argument("--port", type=int_range(0, 65535), default=8080, help="TCP port, 0-65535 (default 8080)")
     vw.set_defaults(func=_view)
     return parser
 

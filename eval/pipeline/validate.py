@@ -189,7 +189,33 @@ def validate_dataset_folder(root: Path) -> DatasetFolder:
         if name not in clean:
             raise InputError(f"held-out view {name!r} has no clean image", path=root / "clean")
     _one_orientation({n: images[n] for n in train}, root / "images")
+    _sizes_match_cameras(root, [images[n] for n in train] + [clean[n] for n in test])
     return DatasetFolder(root, train, test, images, clean)
+
+
+def _sizes_match_cameras(root: Path, files: list[Path]) -> None:
+    """Refuse an image whose size is not its ground-truth camera's (`sparse/0`): the methods splat the noisy
+    training photos with those cameras and score the held-out clean ones against renders of them, so a
+    mismatch would fail after the training, or score the wrong pixels. Views the model lacks, and a model
+    that cannot be read, are left to the steps that read the cameras."""
+    from mvgeo.sparse_model import read_sparse_model
+
+    try:
+        model = read_sparse_model(root / "sparse" / "0")
+    except InputError:  # no or no readable model: reported by the steps that read the cameras
+        return
+    by_stem = {Path(n).stem: n for n in model.names}
+    for path in files:
+        name = by_stem.get(path.stem)
+        size = _upright_size(path)
+        if name is None or size is None:
+            continue
+        cam = model.camera_of(name)
+        if size != (cam.width, cam.height):
+            raise InputError(f"the image is {size[0]}x{size[1]} but its camera in sparse/0 is {cam.width}x"
+                             f"{cam.height}", path=path,
+                             fix="give every image of images/ and clean/ its camera's size (re-import or "
+                                 "re-render the dataset)")
 
 
 def _upright_size(path: Path) -> tuple[int, int] | None:

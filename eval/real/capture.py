@@ -81,6 +81,8 @@ class Capture:
     def __post_init__(self) -> None:
         if not self.views:
             raise InputError(f"the {self.kind} capture has no views", path=self.source)
+        for v in self.views:
+            _check_camera(v, self.kind, self.source)
         names = [v.name for v in self.views]
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
@@ -91,6 +93,27 @@ class Capture:
     def inputs(self) -> tuple[Path, ...]:
         """Every path the capture was read from (the source and the images' folders): an output must not touch them."""
         return tuple(dict.fromkeys([Path(self.source), *(v.image_path.parent for v in self.views)]))
+
+
+#: Where each reader finds the cameras (named in the errors of `_check_camera`).
+CAMERA_FILES = {"llff": "poses_bounds.npy", "colmap": "the model's cameras.txt / cameras.bin and images.*",
+                "middlebury": "the *_par.txt file", "dtu": "cameras.npz"}
+
+
+def _check_camera(view: CaptureView, kind: str, source: Path) -> None:
+    """Refuse a camera no image can have: a focal length that is not a positive finite number, a
+    non-finite parameter or pose (e.g. an all-zero DTU `world_mat`, a COLMAP focal of 0)."""
+    cam = view.camera
+    where = CAMERA_FILES.get(kind, "the camera file")
+    fix = f"check view {view.name!r} in {where}"
+    if not np.all(np.isfinite(cam.params)):
+        raise InputError(f"view {view.name!r}: camera parameters {cam.params.tolist()} are not all finite",
+                         path=source, fix=fix)
+    if not (cam.fx > 0 and cam.fy > 0):
+        raise InputError(f"view {view.name!r}: focal length {cam.fx:g} x {cam.fy:g} px; it must be positive",
+                         path=source, fix=fix)
+    if not np.all(np.isfinite(view.cam_from_world)):
+        raise InputError(f"view {view.name!r}: its pose (cam_from_world) is not finite", path=source, fix=fix)
 
 
 def rotation_checked(R: np.ndarray, *, what: str, path: Path, tol: float = 1e-5) -> np.ndarray:

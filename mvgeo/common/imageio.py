@@ -8,6 +8,7 @@ this module stays light (`tests/common/test_import_light.py`).
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -61,6 +62,23 @@ def list_images(folder: str | Path) -> list[Path]:
         raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder", path=folder,
                          fix="put PNG/JPEG images directly in this folder")
     return files
+
+
+def check_distinct_stems(names: Sequence[str], *, path: str | Path) -> None:
+    """Refuse file names that share a stem (`a.png` and `a.jpg`): a command that writes `<stem>.png` per
+    input would write one over the other.
+
+    Raises:
+        InputError: naming the first two clashing names and `path`.
+    """
+    seen: dict[str, str] = {}
+    for name in names:
+        stem = Path(name).stem
+        if stem in seen:
+            raise InputError(f"two images share the name {stem!r} ({seen[stem]}, {name}); the outputs are named "
+                             "by stem, so one would replace the other", path=path,
+                             fix="rename or remove one of them")
+        seen[stem] = name
 
 
 def jpeg_exif_orientation(data: bytes | np.ndarray) -> int:

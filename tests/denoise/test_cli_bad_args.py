@@ -106,3 +106,10 @@ def test_n2v_and_round2_run_on_cuda(rng):
     tuned, report = refine_round2(gpu, images, out, Round2Config(steps=5, batch_size=2, patch_px=16), seed=0)
     assert isinstance(tuned, N2VModel) and np.isfinite(report.loss_after)
     assert all(p.device.type == "cuda" for p in tuned.unet.parameters())
+
+
+def test_n2v_images_sharing_a_stem_are_refused(noisy, tmp_path, capsys, no_training, rng):
+    """`a.png` and `a.jpg` would both be written as `a.png`: one result would silently replace the other."""
+    write_image(noisy / "a.jpg", add_noise(rng, smooth_scene(rng, 32, 40), 0.1))
+    assert_refused(main, ["n2v", noisy, "--out", tmp_path / "out", "--steps", "2"], capsys, inputs=[noisy],
+                   watch=[tmp_path], message=["two images share the name 'a'", "a.jpg", "a.png", "fix:"])

@@ -447,3 +447,47 @@ def test_camera_check_transfer_error_is_small_with_true_cameras(tmp_path, rng):
     off = box_coverage(tmp_path, (-1, -1, -0.01), (0, 0, 0.01), threshold=0.0, chroma_threshold=-1.0)
     # The plane covers about 3/4 of each view; all of it lies inside its own box, a quarter of it in a quarter box.
     assert min(cov.values()) > 0.99 and max(off.values()) < 0.35, (cov, off)
+
+
+# -- impossible cameras ----------------------------------------------------------------------------
+
+
+def test_colmap_camera_with_zero_focal_is_refused(tmp_path, rng):
+    _write_colmap(tmp_path / "col", rng)
+    model = read_sparse_model(tmp_path / "col" / "sparse" / "0")
+    cams = dict(model.cameras)
+    cams[1] = Camera.pinhole(0.0, 0.0, 32.0, 24.0, 64, 48)
+    write_sparse_model(tmp_path / "col" / "sparse" / "0", SparseModel(cams, model.images, model.points_xyz,
+                                                                      model.points_rgb), binary=True)
+    with pytest.raises(InputError, match=r"focal length 0 x 0 px; it must be positive") as err:
+        import_dataset("colmap", tmp_path / "col", tmp_path / "ds")
+    assert "cameras.txt / cameras.bin" in str(err.value)
+    assert not (tmp_path / "ds").exists()
+
+
+def _write_dtu(folder, rng, n=3):
+    """A DTU scan folder at MonoSDF's 384x384: world_mat_i = K [R | t] at 1600x1200, scale_mat_i = I."""
+    (folder / "images").mkdir(parents=True)
+    K = np.array([[2892.3, 0.0, 823.2], [0.0, 2883.2, 619.1], [0.0, 0.0, 1.0]])
+    mats = {}
+    for i, cfw in enumerate(_rig(n, rng)):
+        world = np.eye(4)
+        world[:3] = K @ cfw[:3]
+        mats[f"world_mat_{i}"], mats[f"scale_mat_{i}"] = world, np.eye(4)
+        _image(folder / "images" / f"{i:06d}.png", 384, 384, value=0.5)
+    np.savez(folder / "cameras.npz", **mats)
+    return mats
+
+
+def test_dtu_singular_projection_is_refused_with_exit_2(tmp_path, rng, capsys, _keep_logging):
+    mats = _write_dtu(tmp_path / "dtu", rng)
+    assert len(import_dataset("dtu", tmp_path / "dtu", tmp_path / "ok", test=1).name) > 0
+    mats["world_mat_1"] = np.zeros((4, 4))
+    np.savez(tmp_path / "dtu" / "cameras.npz", **mats)
+    capsys.readouterr()
+    assert main(["dataset", "import", "dtu", str(tmp_path / "dtu"), "--out", str(tmp_path / "bad"),
+                 "--test", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "view 1: world_mat_1 @ scale_mat_1 is not a camera projection" in err and "cameras.npz" in err, err
+    assert "Traceback" not in err and "RuntimeWarning" not in err, err
+    assert not (tmp_path / "bad").exists()

@@ -148,3 +148,29 @@ def test_a_turned_photo_that_is_also_downscaled_is_reported_as_resized(tmp_path)
     assert summary["turned"] == ["view_001"] and summary["resized"] == ["view_000", "view_001", "view_002"]
     assert json.loads((out / WORKING_DIR / SIZES_FILE).read_text())["view_001"] == {
         "input": [96, 128], "working": [64, 48], "focal_35mm": None, "turned": 1}
+
+
+def test_an_evaluation_image_of_another_size_than_its_camera_is_refused(tmp_path):
+    """A clean or noisy image whose size is not its camera's is named before any method runs (it failed after
+    the training, or only as a failed run)."""
+    from eval.pipeline import validate_dataset_folder
+    from mvgeo.camera import Camera
+    from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model
+
+    root = tmp_path / "ds"
+    make_scene(root / "images", n=4, size_wh=(64, 48))
+    make_scene(root / "clean", n=4, size_wh=(64, 48))
+    images = [PosedImage(f"view_00{i}.png", 1, np.hstack([np.eye(3), [[0.0], [0.0], [float(i)]]])) for i in range(4)]
+    write_sparse_model(root / "sparse" / "0", SparseModel({1: Camera.pinhole(50.0, 50.0, 32.0, 24.0, 64, 48)}, images,
+                                                          np.zeros((0, 3)), np.zeros((0, 3), np.uint8)), binary=False)
+    (root / "split.json").write_text(json.dumps({"train": [f"view_00{i}.png" for i in range(3)],
+                                                 "test": ["view_003.png"]}))
+    assert validate_dataset_folder(root).test == ["view_003"]
+    write_image(root / "clean" / "view_003.png", np.zeros((20, 20, 3), np.float32))
+    with pytest.raises(InputError, match=r"20x20 but its camera in sparse/0 is 64x48") as err:
+        validate_dataset_folder(root)
+    assert err.value.path == root / "clean" / "view_003.png"
+    write_image(root / "clean" / "view_003.png", np.zeros((48, 64, 3), np.float32))
+    write_image(root / "images" / "view_001.png", np.zeros((30, 40, 3), np.float32))
+    with pytest.raises(InputError, match=r"40x30 but its camera in sparse/0 is 64x48"):
+        validate_dataset_folder(root)

@@ -62,3 +62,29 @@ def test_render_cuda_index_beyond_the_gpus(dataset, tmp_path, capsys, monkeypatc
     assert_refused(main, ["render", model, "--cameras", dataset / "sparse" / "0", "--out", out,
                           "--device", "cuda:3"], capsys, inputs=[dataset, model], watch=[tmp_path],
                    message="1 CUDA device")
+
+
+def test_render_views_sharing_a_stem_are_refused(dataset, tmp_path, capsys, monkeypatch, no_training):
+    """Renders are written as `<stem>.png`: two cameras named `v.png` and `v.jpg` would write one file."""
+    import splat.cli
+    from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
+
+    sparse = read_sparse_model(dataset / "sparse" / "0")
+    first = sparse.images[0]
+    clash = PosedImage(first.name.rsplit(".", 1)[0] + ".jpg", first.camera_id, first.cam_from_world)
+    cameras = tmp_path / "cameras"
+    write_sparse_model(cameras, SparseModel(sparse.cameras, [*sparse.images, clash], sparse.points_xyz,
+                                            sparse.points_rgb), binary=False)
+    model = tmp_path / "model.ply"
+    model.write_bytes(b"ply\n")  # never read: the names are refused first
+    monkeypatch.setattr(splat.cli, "read_gaussian_ply", lambda *a, **k: None)
+    assert_refused(main, ["render", model, "--cameras", cameras, "--out", tmp_path / "renders"], capsys,
+                   inputs=[dataset, model, cameras], watch=[tmp_path], message="two images share the name")
+
+
+@pytest.mark.parametrize("port", ["99999", "-1", "http"])
+def test_view_port_out_of_range_is_refused(dataset, tmp_path, capsys, port):
+    model = tmp_path / "model.ply"
+    model.write_bytes(b"ply\n")
+    assert_refused(main, ["view", model, "--port", port], capsys, inputs=[model], watch=[tmp_path],
+                   message="argument --port")
