@@ -166,8 +166,9 @@ def _export(args) -> int:
 
 
 def _view(args) -> int:
-    from splat.viewer import serve
+    from splat.viewer import check_listen_address, serve
 
+    check_listen_address(args.host, args.port)  # before the model loads
     model, sparse = _model_and_cameras(args)
     serve(model, sparse, host=args.host, port=args.port)
     return 0

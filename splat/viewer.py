@@ -165,6 +165,30 @@ def _viser():
     return viser
 
 
+def check_listen_address(host: str, port: int) -> None:
+    """Refuse an address the viewer could not listen on, before the server starts: viser binds in a thread of
+    its own, so a bad host or a busy port would otherwise leave a thread's traceback and a process that
+    waits forever.
+
+    Raises:
+        InputError: an unknown host (`--host`), or a port that cannot be bound (`--port`: in use, or
+            privileged).
+    """
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError, OverflowError) as exc:
+        raise InputError(f"cannot listen on host {host!r}: {exc}", fix="pass an address of this machine as --host "
+                         "(127.0.0.1, the default; 0.0.0.0 for every interface)") from None
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(addr)
+        except OSError as exc:
+            raise InputError(f"cannot listen on {host}:{port}: {exc.strerror or exc}",
+                             fix="pass another --port (0 picks a free one), or stop what uses this one") from None
+
+
 def _free_port(host: str) -> int:
     with socket.socket() as s:
         s.bind((host, 0))
@@ -218,6 +242,7 @@ def serve(model: GaussianModel, sparse: SparseModel | None = None, *, host: str 
           stop: threading.Event | None = None) -> None:
     """Serve the scene live on http://host:port until Ctrl-C (or until `stop` is set)."""
     viser = _viser()
+    check_listen_address(host, port)
     server = viser.ViserServer(host=host, port=port, verbose=False)
     stop = stop or threading.Event()
     try:

@@ -88,3 +88,19 @@ def test_view_port_out_of_range_is_refused(dataset, tmp_path, capsys, port):
     model.write_bytes(b"ply\n")
     assert_refused(main, ["view", model, "--port", port], capsys, inputs=[model], watch=[tmp_path],
                    message="argument --port")
+
+
+def test_view_host_or_busy_port_is_refused_before_loading(tmp_path, capsys):
+    """viser binds in its own thread: a bad host or a busy port left a traceback and a process waiting forever."""
+    import socket
+
+    model = tmp_path / "model.ply"
+    model.write_bytes(b"ply\n")  # never read: the address is refused first
+    assert_refused(main, ["view", model, "--host", "256.1.1.1"], capsys, inputs=[model], watch=[tmp_path],
+                   message=["cannot listen on host '256.1.1.1'", "--host"])
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert_refused(main, ["view", model, "--port", str(port)], capsys, inputs=[model], watch=[tmp_path],
+                       message=[f"cannot listen on 127.0.0.1:{port}", "--port"])
