@@ -95,9 +95,20 @@ def test_sqpnp_ransac_fails_instead_of_raising_on_coinciding_points():
     cv2.setRNGSeed(0)
     kw = dict(reprojection_px=4.0, iterations=200, confidence=0.999)
     assert sqpnp_ransac(obj, uv, K, **kw) == (False, None, None, None)
-    # On spread points it is OpenCV's result: the identity pose the pixels were made with.
+    # On spread points it is OpenCV's result (the same RNG seed, the same call) ...
     good, uv_good, _ = _nearly_coinciding(np.random.default_rng(2), 0, 30)
+    cv2.setRNGSeed(0)
     ok, rvec, tvec, inliers = sqpnp_ransac(good, uv_good, K, **kw)
-    assert ok and len(inliers) >= 25
-    np.testing.assert_allclose(rvec.ravel(), 0.0, atol=1e-2)
-    np.testing.assert_allclose(tvec.ravel(), 0.0, atol=2e-2)
+    cv2.setRNGSeed(0)
+    ok_cv, rvec_cv, tvec_cv, inliers_cv = cv2.solvePnPRansac(good, uv_good, K, None, reprojectionError=4.0,
+                                                             iterationsCount=200, confidence=0.999,
+                                                             flags=cv2.SOLVEPNP_SQPNP)
+    assert ok and ok_cv and len(inliers) >= 25
+    np.testing.assert_array_equal(inliers, inliers_cv)
+    np.testing.assert_array_equal(rvec, rvec_cv)
+    np.testing.assert_array_equal(tvec, tvec_cv)
+    # ... near the identity pose the pixels were made with. With 0.5 px noise on 30 points about 5 units away
+    # at f = 500 px, draws 2-7 of this setup land within 1.9e-3 rad and 8.4e-3 units of it (measured; this
+    # draw 6e-4 and 3.7e-3); the bounds allow the worst of them with a little margin.
+    np.testing.assert_allclose(rvec.ravel(), 0.0, atol=3e-3)
+    np.testing.assert_allclose(tvec.ravel(), 0.0, atol=1.5e-2)

@@ -122,7 +122,49 @@ def test_solve_lm_converges_from_perturbed_state_and_reports_focal_uncertainty(r
     r = project(R1, t1, lf1, X1, pb)[0]
     assert np.sqrt(np.mean(r**2)) < 1e-4  # exact data: the minimum is zero
     assert np.exp(lf1[0]) == pytest.approx(f, rel=1e-4)
-    assert log_focal_std(R1, t1, lf1, X1, pb, 1.0)[0] >= 0.0
+    # Exact data: no residual, so no uncertainty (the variance is the residual variance times (J^T J)^-1).
+    assert log_focal_std(R1, t1, lf1, X1, pb, 1.0)[0] == pytest.approx(0.0, abs=1e-9)
+
+
+def _dense_log_focal_std_reference(R, t, logf, X, pb, sigma2):
+    """Slow, obvious `log_focal_std`: the central-difference Jacobian of every residual with respect to every
+    pose but view 0's (fixed), the focal and every point; the focal's entry of sigma2 (J^T J)^+ (the scale
+    gauge is left in J: its null direction does not move the focal, so the focal's variance is the same for
+    every generalised inverse)."""
+    n, P = len(R), len(X)
+    eps = 1e-6
+
+    def res(x):
+        R_, t_ = R.copy(), t.copy()
+        for v in range(1, n):
+            d = x[6 * (v - 1):6 * v]
+            R_[v] = so3_exp(d[:3]) @ R[v]
+            t_[v] = t[v] + d[3:]
+        k = 6 * (n - 1)
+        return project(R_, t_, logf + x[k:k + 1], X + x[k + 1:].reshape(P, 3), pb)[0].ravel()
+
+    m = 6 * (n - 1) + 1 + 3 * P
+    J = np.stack([(res(eps * e) - res(-eps * e)) / (2 * eps) for e in np.eye(m)], axis=1)
+    cov = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True) * sigma2
+    return float(np.sqrt(cov[6 * (n - 1), 6 * (n - 1)]))
+
+
+def test_log_focal_std_matches_dense_reference(rng):
+    """The reduced camera system's pseudo-inverse against the dense one with finite-difference Jacobians
+    (Huber scale huge: IRLS weights all 1, the same least-squares problem)."""
+    X, poses, uv, f = _scene(rng, n_views=4, n_pts=15, noise_px=0.5)
+    n, P = 4, 15
+    pb = LMProblem(np.repeat(np.arange(n), P), np.tile(np.arange(P), n), uv.reshape(-1, 2),
+                   np.zeros(n, np.int64), np.array([W / 2, H / 2]))
+    R, t, logf, Xs, _ = solve_lm(poses[:, :, :3].copy(), poses[:, :, 3].copy(), np.array([np.log(f)]), X.copy(),
+                                 pb, huber_px=1e12)
+    fast = log_focal_std(R, t, logf, Xs, pb, huber_px=1e12)[0]
+    r = project(R, t, logf, Xs, pb)[0]
+    sigma2 = float(np.sum(r * r)) / (r.size - (6 * (n - 1) + 1) - 3 * P)
+    ref = _dense_log_focal_std_reference(R, t, logf, Xs, pb, sigma2)
+    assert fast > 0
+    # Finite differences of the residuals (eps 1e-6): ~1e-6 relative; the pseudo-inverses drop the one gauge.
+    assert fast == pytest.approx(ref, rel=1e-4)
 
 
 
