@@ -114,11 +114,11 @@ def _render(args) -> int:
     plan = prepare_output(args.out, command="splat render", inputs=[model_dir, args.cameras],
                           overwrite=args.overwrite)
     ply = model_dir / "point_cloud.ply" if model_dir.is_dir() else model_dir
-    model = read_gaussian_ply(ply, device=device)
     sparse = read_sparse_model(Path(args.cameras))
     if not sparse.images:
         raise InputError("the camera model has no images to render", path=args.cameras)
     check_distinct_stems(sparse.names, path=args.cameras)  # one output file per view
+    model = read_gaussian_ply(ply, device=device)
     cams = [sparse.camera_of(n) for n in sparse.names]
     poses = np.stack([im.cam_from_world for im in sparse.images])
     with torch.no_grad():

@@ -166,27 +166,27 @@ def _viser():
 
 
 def check_listen_address(host: str, port: int) -> None:
-    """Refuse an address the viewer could not listen on, before the server starts: viser binds in a thread of
-    its own, so a bad host or a busy port would otherwise leave a thread's traceback and a process that
-    waits forever.
+    """Refuse a host the viewer could not listen on, before the server starts: viser binds in a thread of its
+    own and, where binding fails, tries the next ports for ever, so an unknown host, or an address that is
+    not this machine's, left a process waiting with no message. A busy port is not refused: viser serves on
+    the next free one and `serve` prints the one it took.
 
     Raises:
-        InputError: an unknown host (`--host`), or a port that cannot be bound (`--port`: in use, or
-            privileged).
+        InputError: `--host` does not resolve, or is not an address of this machine; `--port` is not a port.
     """
+    host_fix = "pass an address of this machine as --host (127.0.0.1, the default; 0.0.0.0 for every interface)"
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except (socket.gaierror, UnicodeError, OverflowError) as exc:
-        raise InputError(f"cannot listen on host {host!r}: {exc}", fix="pass an address of this machine as --host "
-                         "(127.0.0.1, the default; 0.0.0.0 for every interface)") from None
+    except OverflowError:
+        raise InputError(f"--port {port} is not a TCP port", fix="pass a port from 0 to 65535") from None
+    except (socket.gaierror, UnicodeError) as exc:
+        raise InputError(f"cannot listen on host {host!r}: {exc}", fix=host_fix) from None
     family, kind, proto, _, addr = infos[0]
     with socket.socket(family, kind, proto) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            s.bind(addr)
+            s.bind((addr[0], 0, *addr[2:]))  # any free port: only the host is tested here
         except OSError as exc:
-            raise InputError(f"cannot listen on {host}:{port}: {exc.strerror or exc}",
-                             fix="pass another --port (0 picks a free one), or stop what uses this one") from None
+            raise InputError(f"cannot listen on host {host!r}: {exc.strerror or exc}", fix=host_fix) from None
 
 
 def _free_port(host: str) -> int:

@@ -189,7 +189,8 @@ def validate_dataset_folder(root: Path) -> DatasetFolder:
         if name not in clean:
             raise InputError(f"held-out view {name!r} has no clean image", path=root / "clean")
     _one_orientation({n: images[n] for n in train}, root / "images")
-    _sizes_match_cameras(root, [images[n] for n in train] + [clean[n] for n in test])
+    # clean/ of the training views too, where there is one: `oracle_clean` splats them
+    _sizes_match_cameras(root, [images[n] for n in train] + [clean[n] for n in train + test if n in clean])
     return DatasetFolder(root, train, test, images, clean)
 
 

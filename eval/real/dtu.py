@@ -61,9 +61,9 @@ def dtu_cameras(npz_path: Path, n: int, *, size_wh: tuple[int, int] = (384, 384)
                                  fix="keep one world_mat_i / scale_mat_i per image in images/")
             if data[key].shape != (4, 4):
                 raise InputError(f"{key} must be 4x4, got {data[key].shape}", path=npz_path)
-        P = (data[keys[0]].astype(np.float64) @ data[keys[1]].astype(np.float64))[:3]
-        scale = max(float(np.abs(P[:, :3]).max()), 1e-300) if np.all(np.isfinite(P)) else np.nan
-        if not abs(np.linalg.det(P[:, :3] / scale)) > 1e-12:  # also catches a non-finite P (nan)
+        world, scale = (data[key].astype(np.float64) for key in keys)
+        P = (world @ scale)[:3] if np.all(np.isfinite(world)) and np.all(np.isfinite(scale)) else None
+        if P is None or not abs(np.linalg.det(P[:, :3] / max(float(np.abs(P[:, :3]).max()), 1e-300))) > 1e-12:
             raise InputError(f"view {i}: world_mat_{i} @ scale_mat_{i} is not a camera projection (its left 3x3 "
                              "is singular or not finite)", path=npz_path,
                              fix=f"check world_mat_{i} and scale_mat_{i}")

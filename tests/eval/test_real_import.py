@@ -491,3 +491,11 @@ def test_dtu_singular_projection_is_refused_with_exit_2(tmp_path, rng, capsys, _
     assert "view 1: world_mat_1 @ scale_mat_1 is not a camera projection" in err and "cameras.npz" in err, err
     assert "Traceback" not in err and "RuntimeWarning" not in err, err
     assert not (tmp_path / "bad").exists()
+    mats["world_mat_1"] = np.full((4, 4), np.nan)
+    np.savez(tmp_path / "dtu" / "cameras.npz", **mats)
+    assert main(["dataset", "import", "dtu", str(tmp_path / "dtu"), "--out", str(tmp_path / "bad"),
+                 "--test", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "view 1: world_mat_1 @ scale_mat_1 is not a camera projection" in err, err
+    assert "Traceback" not in err and "Warning" not in err, err
+    assert not (tmp_path / "bad").exists()

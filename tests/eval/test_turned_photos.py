@@ -171,6 +171,10 @@ def test_an_evaluation_image_of_another_size_than_its_camera_is_refused(tmp_path
         validate_dataset_folder(root)
     assert err.value.path == root / "clean" / "view_003.png"
     write_image(root / "clean" / "view_003.png", np.zeros((48, 64, 3), np.float32))
+    write_image(root / "clean" / "view_000.png", np.zeros((20, 20, 3), np.float32))  # oracle_clean splats it
+    with pytest.raises(InputError, match=r"20x20 but its camera in sparse/0 is 64x48"):
+        validate_dataset_folder(root)
+    write_image(root / "clean" / "view_000.png", np.zeros((48, 64, 3), np.float32))
     write_image(root / "images" / "view_001.png", np.zeros((30, 40, 3), np.float32))
     with pytest.raises(InputError, match=r"40x30 but its camera in sparse/0 is 64x48"):
         validate_dataset_folder(root)
