@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -35,6 +36,22 @@ def machine_line() -> str:
         pass
     return (f"{os.cpu_count()} cores ({cpu}), Python {platform.python_version()}, torch {torch.__version__}, "
             f"torch threads {torch.get_num_threads()}")
+
+
+_LINK = re.compile(r"(\]\()([^)\s]+)(\))")
+
+
+def relink(text: str) -> str:
+    """A fragment of docs/bench/ with its relative links rewritten for docs/benchmarks.md, one folder up:
+    `x.md` -> `bench/x.md`, `../x` -> `x`; absolute, anchor-only and URL links stay."""
+    def fix(m: re.Match) -> str:
+        target = m.group(2)
+        if target.startswith(("#", "/", "http://", "https://", "mailto:")):
+            return m.group(0)
+        target = target[3:] if target.startswith("../") else "bench/" + target
+        return m.group(1) + target + m.group(3)
+
+    return _LINK.sub(fix, text)
 
 
 def main(argv: list[str]) -> int:
@@ -69,7 +86,7 @@ def main(argv: list[str]) -> int:
         f"Last machine: {machine_line()}.\n",
     ]
     for frag in sorted(FRAGMENTS.glob("*.md")):
-        parts.append(frag.read_text().rstrip() + "\n")
+        parts.append(relink(frag.read_text().rstrip()) + "\n")
     (ROOT / "docs" / "benchmarks.md").write_text("\n".join(parts))
     if failed:
         print(f"failed: {', '.join(failed)}", file=sys.stderr)

@@ -158,7 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the noisy image shrunk by the gains the output implies; about +0.9-1.8 dB on real photos)")
     p.add_argument("--grouped-wiener", action="store_true",
                    help="then the grouped Wiener step (denoise.grouped_wiener: similar patches of the noisy image "
-                        "filtered together with the statistics of the output so far; about 6 s per 384x384 photo)")
+                        "filtered together with the statistics of the output so far; about 1.5 s per 384x384 photo "
+                        "on 2 cores)")
     p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--device", default="cpu", help=DEVICE_HELP + " (training and inference); default cpu")
     p.set_defaults(func=_cmd_n2v)

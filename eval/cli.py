@@ -305,8 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "preset's")
     run.add_argument("--grouped-wiener", action=argparse.BooleanOptionalAction, default=None,
                      help="then the grouped Wiener step (similar patches of the noisy photo filtered together with "
-                          "the statistics of the photo so far; denoise.grouped_wiener; about 6 s per 384x384 photo "
-                          "on one core). Default: the preset's")
+                          "the statistics of the photo so far; denoise.grouped_wiener; about 1.5 s per 384x384 photo "
+                          "on 2 cores). Default: the preset's")
     run.add_argument("--noisy-detail", type=fraction, default=None, metavar="W",
                      help="extension, not in the paper: the fraction W of the noisy photo's finest band that the "
                           "splat's target takes back, denoised + W * highpass(noisy - denoised) (the splat keeps "

@@ -55,8 +55,9 @@ class DenoiseSettings:
             per 384 x 384 photo on one core). On DTU scan24 at sigma 25 it lifts R2R's photos 0.9 dB, on the
             temple ring Neighbor2Neighbor's 1.8 dB (docs/bench/denoise_real.md, "The DCT Wiener step").
         grouped_wiener: then the grouped Wiener step (`denoise.grouped_wiener`: similar 5 x 5 patches of the
-            noisy photo filtered together with the covariance of the photo so far; about 6 s per 384 x 384
-            photo on one core; docs/bench/denoise_real.md, "The grouped Wiener step").
+            noisy photo filtered together with the covariance of the photo so far; about 1.5 s per 384 x 384
+            photo on 2 cores, docs/bench/denoise_wiener_speed.md; docs/bench/denoise_real.md, "The grouped
+            Wiener step").
     """
 
     n2v_preset: str = "default"
