@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from mvgeo.common.errors import InputError
-from mvgeo.common.imageio import list_images, read_image, write_image
+from mvgeo.common.imageio import check_distinct_stems, list_images, read_image, write_image
 
 __all__ = ["read_views", "view_files", "write_views"]
 
@@ -21,15 +21,11 @@ def view_files(folder: Path) -> dict[str, Path]:
     """Stem -> image file in `folder`, sorted by stem.
 
     Raises:
-        InputError: no images, or two files share a stem (`a.png` and `a.jpg`).
+        InputError: no images, or two files share a stem, case aside (`a.png` and `A.jpg`).
     """
-    files: dict[str, Path] = {}
-    for p in list_images(folder):
-        if p.stem in files:
-            raise InputError(f"two images share the name {p.stem!r} ({files[p.stem].name}, {p.name})",
-                             path=folder, fix="rename or remove one of them")
-        files[p.stem] = p
-    return dict(sorted(files.items()))
+    paths = list_images(folder)
+    check_distinct_stems([p.name for p in paths], path=folder)
+    return dict(sorted((p.stem, p) for p in paths))
 
 
 def read_views(folder: Path, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:

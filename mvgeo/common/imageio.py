@@ -65,8 +65,9 @@ def list_images(folder: str | Path) -> list[Path]:
 
 
 def check_distinct_stems(names: Sequence[str], *, path: str | Path) -> None:
-    """Refuse file names that share a stem (`a.png` and `a.jpg`): a command that writes `<stem>.png` per
-    input would write one over the other.
+    """Refuse file names that share a stem (`a.png` and `a.jpg`), ignoring case (`A.png` and `a.jpg`): a
+    command that writes `<stem>.png` per input would write one over the other, and on a case-insensitive
+    file system (macOS, Windows) `A.png` is `a.png`.
 
     Raises:
         InputError: naming the first two clashing names and `path`.
@@ -74,11 +75,11 @@ def check_distinct_stems(names: Sequence[str], *, path: str | Path) -> None:
     seen: dict[str, str] = {}
     for name in names:
         stem = Path(name).stem
-        if stem in seen:
-            raise InputError(f"two images share the name {stem!r} ({seen[stem]}, {name}); the outputs are named "
-                             "by stem, so one would replace the other", path=path,
+        if stem.casefold() in seen:
+            raise InputError(f"two images share the name {stem!r} ({seen[stem.casefold()]}, {name}); the outputs "
+                             "are named by stem (case aside), so one would replace the other", path=path,
                              fix="rename or remove one of them")
-        seen[stem] = name
+        seen[stem.casefold()] = name
 
 
 def jpeg_exif_orientation(data: bytes | np.ndarray) -> int:
