@@ -62,8 +62,9 @@ def dtu_cameras(npz_path: Path, n: int, *, size_wh: tuple[int, int] = (384, 384)
             if data[key].shape != (4, 4):
                 raise InputError(f"{key} must be 4x4, got {data[key].shape}", path=npz_path)
         world, scale = (data[key].astype(np.float64) for key in keys)
-        P = (world @ scale)[:3] if np.all(np.isfinite(world)) and np.all(np.isfinite(scale)) else None
-        if P is None or not abs(np.linalg.det(P[:, :3] / max(float(np.abs(P[:, :3]).max()), 1e-300))) > 1e-12:
+        finite = np.isfinite(world).all() and np.isfinite(scale).all()  # before the product: no NaN warnings
+        P = (world @ scale)[:3] if finite else None
+        if P is None or abs(np.linalg.det(P[:, :3] / max(np.abs(P[:, :3]).max(), 1e-300))) <= 1e-12:
             raise InputError(f"view {i}: world_mat_{i} @ scale_mat_{i} is not a camera projection (its left 3x3 "
                              "is singular or not finite)", path=npz_path,
                              fix=f"check world_mat_{i} and scale_mat_{i}")
