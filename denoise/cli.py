@@ -20,10 +20,11 @@ from denoise.grouped_wiener import GroupedWienerConfig
 from denoise.inference import NOISE_MODELS
 from denoise.model import save_checkpoint
 from denoise.n2v import METHODS, N2V_PRESETS, n2v_preset
+from denoise.pixel_shuffle import MAX_STRIDE, choose_stride, shuffled, unshuffled
 from denoise.self_supervised import choose_objective, denoise_with_method, train_with_method
 from denoise.view_selection import select_views
 from denoise.wiener import WienerConfig
-from mvgeo.common.argtypes import nonneg_int, positive_int, seed
+from mvgeo.common.argtypes import int_range, nonneg_int, positive_int, seed
 from mvgeo.common.atomic import atomic_output_dir, atomic_write_text
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.deps import cv2
@@ -77,19 +78,36 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
                              f"{MIN_SIDE_PX}x{MIN_SIDE_PX}", path=f, fix="remove it from the folder")
     overrides = {} if args.steps is None else {"steps": args.steps}
     chosen = {}
+    stride = args.pd_stride
+    if stride == 0:
+        measured = choose_stride(images)
+        stride = measured.stride
+        chosen["noise_lag_correlation"] = {str(k): v for k, v in measured.lag_correlation.items()}
+    chosen["pd_stride"] = stride
+    work = images
+    small = [f for f, img in zip(files, images, strict=True) if min(img.shape[:2]) < MIN_SIDE_PX * stride]
+    if small:
+        raise InputError(f"image is too small for --pd-stride {stride}: its sub-images would be under "
+                         f"{MIN_SIDE_PX} px", path=small[0], fix="give a smaller --pd-stride, or 1")
+    if stride > 1:
+        _log.info("denoising the %d x %d pixel-shuffled sub-images of each image (noise correlated between "
+                  "neighbouring pixels: %s)", stride, stride, chosen.get("noise_lag_correlation", "as given"))
+        work = shuffled(images, stride)
     method = args.method
     if method == "auto":
-        choice = choose_objective(images)
+        choice = choose_objective(work)
         method = choice.method
         chosen = {"objective_rule": "auto", "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
     config = n2v_preset(args.preset, **overrides, method=method)
     timer = StageTimer()
     with timer.stage("train"):
-        model = train_with_method(images, config, seed=args.seed, device=device, noise_model=args.noise_model)
+        model = train_with_method(work, config, seed=args.seed, device=device, noise_model=args.noise_model)
     with timer.stage("denoise"):
-        out = denoise_with_method(model, images, config, passes=args.passes, seed=args.seed,
+        out = denoise_with_method(model, work, config, passes=args.passes, seed=args.seed,
                                   noise_model=args.noise_model, wiener=WienerConfig() if args.wiener else None,
                                   grouped=GroupedWienerConfig() if args.grouped_wiener else None)
+        if stride > 1:
+            out = unshuffled(out, stride, [im.shape for im in images])
     with atomic_output_dir(plan) as tmp:
         (tmp / "images").mkdir()
         for f, img in zip(files, out, strict=True):
@@ -160,6 +178,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="then the grouped Wiener step (denoise.grouped_wiener: similar patches of the noisy image "
                         "filtered together with the statistics of the output so far; about 1.5 s per 384x384 photo "
                         "on 2 cores)")
+    p.add_argument("--pd-stride", type=int_range(0, MAX_STRIDE), default=0, metavar="N",
+                   help="denoise the pixel-shuffled sub-images of every N-th pixel, for noise correlated between "
+                        "neighbouring pixels as a camera's demosaicing leaves it (denoise.pixel_shuffle). 0 "
+                        f"(default) = measured from the images (1 for independent noise), 1 = off, 2-{MAX_STRIDE} = "
+                        "that stride")
     p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--device", default="cpu", help=DEVICE_HELP + " (training and inference); default cpu")
     p.set_defaults(func=_cmd_n2v)

@@ -100,9 +100,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
                                                                          grouped_wiener=args.grouped_wiener))
     if args.noisy_detail is not None:
         config = dataclasses.replace(config, splat=dataclasses.replace(config.splat, noisy_detail=args.noisy_detail))
+    if args.pd_stride is not None:
+        config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, pd_stride=args.pd_stride))
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
+
+
+PD_STRIDE_HELP = ("extension, not in the paper: round 1 denoises pixel-shuffled sub-images of every N-th pixel, for "
+                  "noise correlated between neighbouring pixels as a camera's demosaicing leaves it "
+                  "(denoise.pixel_shuffle). 0 = measured from the photos (1 for independent noise), 1 = off, 2-4 = "
+                  "that stride. Default: 0")
 
 
 def _allow_focal_prior(config):
@@ -131,7 +139,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     config = EvalConfig(methods=tuple(dict.fromkeys(methods)), seeds=args.seeds, preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
                         device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser,
-                        grouped_wiener=args.grouped_wiener, noisy_detail=args.noisy_detail)
+                        grouped_wiener=args.grouped_wiener, noisy_detail=args.noisy_detail,
+                        pd_stride=args.pd_stride)
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
     with (resumable_output_dir(plan), output_lock(out),
@@ -312,6 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "splat's target takes back, denoised + W * highpass(noisy - denoised) (the splat keeps "
                           "the texture every view shows and averages the noise; denoise.detail). 0 = off. "
                           "Default: the preset's (0.2 with default and best, 0.5 with fast)")
+    run.add_argument("--pd-stride", type=int_range(0, 4), default=None, metavar="N", help=PD_STRIDE_HELP)
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",
@@ -368,6 +378,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the noisy photos' band in the product's splat target (see `run --noisy-detail`; the "
                          "paper's loop, the baselines and the oracle train on their photos as they are). "
                          "Default: the preset's")
+    ev.add_argument("--pd-stride", type=int_range(0, 4), default=None, metavar="N",
+                    help="round 1's pixel-shuffle stride for every method that trains the UNet (see `run "
+                         "--pd-stride`; an A/B comparison evaluates each setting into its own --out)")
     ev.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
                     help=MAX_SIZE_HELP + " (the clean images and ground-truth cameras are scaled alike)")
     ev.add_argument("--size", type=_size_wh, default=None, metavar="WxH",

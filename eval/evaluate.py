@@ -134,6 +134,8 @@ def base_pipeline_config(config: EvalConfig, views: int) -> PipelineConfig:
                                                                      grouped_wiener=config.grouped_wiener))
     if config.noisy_detail is not None:
         base = dataclasses.replace(base, splat=dataclasses.replace(base.splat, noisy_detail=config.noisy_detail))
+    if config.pd_stride is not None:
+        base = dataclasses.replace(base, denoise=dataclasses.replace(base.denoise, pd_stride=config.pd_stride))
     return base
 
 
@@ -162,6 +164,8 @@ class EvalConfig:
         noisy_detail: the noisy photos' band in the splat's target (`SplatSettings.noisy_detail`) for the
             methods that take the preset's (`product`; the paper's loop, the baselines and the oracle train
             on their photos as they are); None: the preset's. For A/B measurements, as `grouped_wiener`.
+        pd_stride: round 1's pixel-shuffle stride for every method that trains the UNet
+            (`DenoiseSettings.pd_stride`); None: the preset's. For A/B measurements, as `grouped_wiener`.
     """
 
     methods: tuple[str, ...] = ("instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs")
@@ -175,6 +179,7 @@ class EvalConfig:
     denoiser: DenoiseMethod = "n2v"
     grouped_wiener: bool | None = None
     noisy_detail: float | None = None
+    pd_stride: int | None = None
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.methods if m not in METHODS]

@@ -58,6 +58,10 @@ class DenoiseSettings:
             noisy photo filtered together with the covariance of the photo so far; about 1.5 s per 384 x 384
             photo on 2 cores, docs/bench/denoise_wiener_speed.md; docs/bench/denoise_real.md, "The grouped
             Wiener step").
+        pd_stride: round 1 denoises pixel-shuffled sub-images of every `pd_stride`-th pixel
+            (`denoise.pixel_shuffle`), for noise correlated between neighbouring pixels as a camera's
+            demosaicing leaves it; 0 (default): the stride `denoise.pixel_shuffle.choose_stride` measures
+            from the photos, 1 for independent noise (then nothing changes); 1: off; 2 to 4: that stride.
     """
 
     n2v_preset: str = "default"
@@ -70,6 +74,7 @@ class DenoiseSettings:
     keep_noisy: float = 0.0
     wiener: bool = False
     grouped_wiener: bool = False
+    pd_stride: int = 0
 
 
 @dataclass(frozen=True)
@@ -228,6 +233,11 @@ class PipelineConfig:
         if not 0.0 <= self.denoise.keep_noisy < 1.0:
             raise ConfigError(f"must be in [0, 1), got {self.denoise.keep_noisy}", key="denoise.keep_noisy",
                               expected="a fraction of the noisy photo, 0 <= k < 1")
+        from denoise.pixel_shuffle import MAX_STRIDE
+
+        if not (isinstance(self.denoise.pd_stride, int) and 0 <= self.denoise.pd_stride <= MAX_STRIDE):
+            raise ConfigError(f"must be an integer from 0 to {MAX_STRIDE}, got {self.denoise.pd_stride!r}",
+                              key="denoise.pd_stride", expected="0 (measured from the photos), 1 (off) or a stride")
         if self.denoise.round2_loss not in ("joint", "charbonnier"):
             raise ConfigError(f"unknown loss {self.denoise.round2_loss!r}", key="denoise.round2_loss",
                               expected="'joint' or 'charbonnier'")

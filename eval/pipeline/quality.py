@@ -54,6 +54,10 @@ class DenoiseQuality:
     #: (noise that grows with the intensity, e.g. shot noise).
     noise_std_255: dict[str, float] = field(default_factory=dict)
     signal_dependent: list[str] = field(default_factory=list)
+    #: round 1: the pixel-shuffle stride the photos were denoised at (1: none; None: not recorded) and the
+    #: noise's correlation between pixels 1, 2, ... apart that chose it (`denoise.pixel_shuffle`).
+    pd_stride: int | None = None
+    noise_lag_correlation: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -165,7 +169,10 @@ def _denoise_quality(summary: Mapping, kind: str) -> DenoiseQuality:
                           loss_first=first, loss_last=last, steps=count,
                           restarts=len(summary.get("training_restarts", [])), kind=kind,
                           noise_std_255={str(k): float(v) for k, v in summary.get("noise_std_255", {}).items()},
-                          signal_dependent=list(summary.get("signal_dependent", [])))
+                          signal_dependent=list(summary.get("signal_dependent", [])),
+                          pd_stride=summary.get("pd_stride"),
+                          noise_lag_correlation={str(k): float(v)
+                                                 for k, v in summary.get("noise_lag_correlation", {}).items()})
 
 
 def _focal_source(stats: AlignStats) -> str:
@@ -293,6 +300,11 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
                    "each one's per-pixel level" if d.signal_dependent else "")
             lines.append(f"- noise level of the {len(v)} photos as the denoiser estimates it: median "
                          f"{np.median(v):.1f}/255 (from {v.min():.1f} to {v.max():.1f}){dep}")
+        if d is not None and d.pd_stride is not None and d.pd_stride > 1:
+            rho = ", ".join(f"{v:.2f} at {k} px" for k, v in d.noise_lag_correlation.items())
+            lines.append(f"- the noise is correlated between neighbouring pixels{f' ({rho})' if rho else ''}, as a "
+                         f"camera's demosaicing leaves it: the photos were denoised as {d.pd_stride} x "
+                         f"{d.pd_stride} pixel-shuffled sub-images")
         a = q.align
         if a is not None:
             photos = f" ({a.photos} photos)" if a.photos else ""

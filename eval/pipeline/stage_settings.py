@@ -87,6 +87,8 @@ class DenoiseStageSettings:
             for the photos (`DenoiseSettings.method="auto"`; `n2v.method` is then "r2r").
         wiener: the DCT Wiener step on the network's outputs (`DenoiseSettings.wiener`); None: off.
         grouped: the grouped Wiener step after it (`DenoiseSettings.grouped_wiener`); None: off.
+        pd_stride: pixel-shuffle stride of the denoising (`DenoiseSettings.pd_stride`): 0 measured from the
+            photos, 1 off.
     """
 
     n2v: N2VConfig
@@ -96,6 +98,7 @@ class DenoiseStageSettings:
     choose_objective: bool = False
     wiener: WienerConfig | None = None
     grouped: GroupedWienerConfig | None = None
+    pd_stride: int = 0
 
 
 @dataclass(frozen=True)
@@ -312,7 +315,7 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
                                                                choose_objective=d.method == "auto",
                                                                wiener=WienerConfig() if d.wiener else None,
                                                                grouped=GroupedWienerConfig() if d.grouped_wiener
-                                                               else None),
+                                                               else None, pd_stride=d.pd_stride),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
         refine=RefineStageSettings(round2_config(d), d.passes, config.device) if later else None)
 

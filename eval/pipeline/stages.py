@@ -104,36 +104,63 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     """Round 1: train the UNet on all noisy images with `n2v.method` (with `choose_objective`, the one
     `denoise.self_supervised.choose_objective` picks for them, recorded in the summary as `objective`),
     denoise them all (`ctx.settings`: `DenoiseStageSettings`); with `keep_noisy` k, `denoised/` holds
-    ``(1 - k) * network output + k * noisy photo``."""
+    ``(1 - k) * network output + k * noisy photo``. Where the photos' noise is correlated between
+    neighbouring pixels (`pd_stride` 0: `denoise.pixel_shuffle.choose_stride` measures it) all of this runs
+    on their pixel-shuffled sub-images, put back together after (`denoise.pixel_shuffle`)."""
     from denoise.model import save_checkpoint
-    from denoise.parallel import one_thread_per_task
-    from denoise.self_supervised import choose_objective, denoise_with_method, r2r_noise_std, train_with_method
+    from denoise.pixel_shuffle import choose_stride, merge_std, shuffled, unshuffled
+    from denoise.self_supervised import choose_objective
     from eval.pipeline.quality import noise_levels
 
     s = ctx.settings
     noisy = read_views(ctx.inputs["noisy"])
+    photos = list(noisy.values())
+    shuffle: dict[str, object] = {}
+    stride = s.pd_stride
+    if stride == 0:
+        measured = choose_stride(photos)
+        stride = measured.stride
+        shuffle = {"noise_lag_correlation": {str(k): v for k, v in measured.lag_correlation.items()}}
+    shuffle["pd_stride"] = stride
+    if stride > 1:
+        _log.info("the photos' noise is correlated between neighbouring pixels (%s): denoising their %d x %d "
+                  "pixel-shuffled sub-images", shuffle.get("noise_lag_correlation", "given"), stride, stride)
+        photos = shuffled(photos, stride)
     n2v, chosen = s.n2v, {}
     if s.choose_objective:
-        choice = choose_objective(list(noisy.values()))
+        choice = choose_objective(photos)
         n2v = dataclasses.replace(n2v, method=choice.method)
         chosen = {"objective": choice.method, "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
-    # One torch thread per task for training and inference alike (`denoise.parallel`): the UNet's outputs
-    # differ in the last float bits between thread counts, enough to flip a PNG level now and then.
-    with one_thread_per_task():
-        # Each photo's noise std, estimated once: R2R's recorruption and both networks' clipping correction
-        # use it, and the report records it (N2V's fusion estimates its own).
-        stds = [r2r_noise_std(im) for im in noisy.values()]
-        given = None if n2v.method == "n2v" else stds
-        model = train_with_method(list(noisy.values()), n2v, seed=ctx.seed, device=s.device, noise_sigma=given)
-        out = denoise_with_method(model, list(noisy.values()), n2v, passes=s.passes, seed=ctx.seed,
-                                  noise_sigma=given, wiener=s.wiener, grouped=s.grouped)
+    out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed)
+    if stride > 1:
+        n = stride * stride
+        out = unshuffled(out, stride, [im.shape for im in noisy.values()])
+        stds = [merge_std(stds[i * n:(i + 1) * n], stride, im.shape) for i, im in enumerate(noisy.values())]
     if s.keep_noisy > 0:
         out = [(1.0 - s.keep_noisy) * d + s.keep_noisy * y for d, y in zip(out, noisy.values(), strict=True)]
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
     restarts = {"training_restarts": model.restarts} if model.restarts else {}  # a diverged training, restarted
-    return {"views": list(noisy), "train": _history_summary(model.history), **chosen, **restarts,
+    return {"views": list(noisy), "train": _history_summary(model.history), **chosen, **restarts, **shuffle,
             **noise_levels(noisy, stds)}  # the report's noise level
+
+
+def _denoise_photos(photos: list[np.ndarray], n2v, s, seed: int):
+    """(denoised photos, each photo's noise std, the trained model): the denoise stage's network and steps."""
+    from denoise.parallel import one_thread_per_task
+    from denoise.self_supervised import denoise_with_method, r2r_noise_std, train_with_method
+
+    # One torch thread per task for training and inference alike (`denoise.parallel`): the UNet's outputs
+    # differ in the last float bits between thread counts, enough to flip a PNG level now and then.
+    with one_thread_per_task():
+        # Each photo's noise std, estimated once: R2R's recorruption and both networks' clipping correction
+        # use it, and the report records it (N2V's fusion estimates its own).
+        stds = [r2r_noise_std(im) for im in photos]
+        given = None if n2v.method == "n2v" else stds
+        model = train_with_method(photos, n2v, seed=seed, device=s.device, noise_sigma=given)
+        out = denoise_with_method(model, photos, n2v, passes=s.passes, seed=seed, noise_sigma=given,
+                                  wiener=s.wiener, grouped=s.grouped)
+    return out, stds, model
 
 
 #: The align stage's record of which photos it aligned (`AlignSettings.photos`), in align.json.

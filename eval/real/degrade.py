@@ -11,6 +11,10 @@ Spec strings (`--noise`):
 - ``poisson-gaussian:A,S``: ``y = clip(A Poisson(x / A) + N(0, (S/255)^2))``,
   so ``Var[y | x] = A x + (S/255)^2`` on the [0, 1] scale (A: the shot-noise
   gain, 1 / full-well electrons; S: the read noise on the 0..255 scale).
+- ``bayer-pg:A,S``: the same noise on the RGGB Bayer mosaic of the photo, then
+  bilinear demosaicing: ``y = clip(x + D(n))`` (`data_synth.effects.noise.bayer_noise`).
+  The noise is correlated between neighbouring pixels and between channels, as a
+  camera's raw-to-RGB step leaves it; the image itself keeps its detail.
 
 Noise is added to the (resized, quantised) clean image in [0, 1] float,
 clipped to [0, 1] (a file holds nothing else; a sensor saturates too) and
@@ -36,8 +40,8 @@ from mvgeo.common.errors import InputError
 
 __all__ = ["Degradation", "parse_noise"]
 
-_FIX = "write none, gaussian:SIGMA_8BIT (e.g. gaussian:25) or poisson-gaussian:GAIN,READ_SIGMA_8BIT " \
-       "(e.g. poisson-gaussian:0.01,5)"
+_FIX = "write none, gaussian:SIGMA_8BIT (e.g. gaussian:25), poisson-gaussian:GAIN,READ_SIGMA_8BIT " \
+       "(e.g. poisson-gaussian:0.01,5) or bayer-pg:GAIN,READ_SIGMA_8BIT (e.g. bayer-pg:0.01,5)"
 
 
 @dataclass(frozen=True)
@@ -46,7 +50,7 @@ class Degradation:
 
     Attributes:
         spec: the text as given (normalised: lower case, no spaces).
-        effect: the `data_synth` effect name ("gaussian", "poisson_gaussian"), None for no noise.
+        effect: the `data_synth` effect name ("gaussian", "poisson_gaussian", "bayer_noise"), None for no noise.
         params: the effect's parameters, as `data_synth` names them (e.g. {"sigma_8bit": 25.0}).
     """
 
@@ -64,7 +68,10 @@ class Degradation:
             return None
         formula = {"gaussian": "y = clip(x + N(0, (sigma_8bit/255)^2)), x in [0, 1]",
                    "poisson_gaussian": "y = clip(gain * Poisson(x / gain) + N(0, (read_sigma_8bit/255)^2)), "
-                                       "Var[y|x] = gain x + (read_sigma_8bit/255)^2"}[self.effect]
+                                       "Var[y|x] = gain x + (read_sigma_8bit/255)^2",
+                   "bayer_noise": "y = clip(x + D(n)), n = gain * Poisson(m / gain) - m "
+                                  "+ N(0, (read_sigma_8bit/255)^2) on the RGGB mosaic m of x, "
+                                  "D = bilinear demosaicing"}[self.effect]
         return {"model": self.effect, "spec": self.spec, "params": dict(self.params), "formula": formula,
                 "seed": int(seed), "stream": "numpy default_rng([seed, crc32(view name), 0]) per view"}
 
@@ -109,6 +116,9 @@ def parse_noise(text: str | None) -> Degradation:
     elif kind in ("poisson-gaussian", "poisson_gaussian"):
         gain, read = _numbers(args, 2, spec)
         deg = Degradation(spec, "poisson_gaussian", {"gain": gain, "read_sigma_8bit": read})
+    elif kind in ("bayer-pg", "bayer_pg"):
+        gain, read = _numbers(args, 2, spec)
+        deg = Degradation(spec, "bayer_noise", {"gain": gain, "read_sigma_8bit": read})
     else:
         raise InputError(f"unknown noise model {kind!r} in --noise {spec!r}", fix=_FIX)
     from data_synth.effects import parse_effect

@@ -21,8 +21,8 @@ def _fx(*tables):
 
 
 def test_all_issue_effects_are_registered():
-    assert {"gaussian", "poisson_gaussian", "defocus_blur", "motion_blur", "exposure", "vignetting", "jpeg",
-            "quantize"} <= set(EFFECTS)
+    assert {"gaussian", "poisson_gaussian", "bayer_noise", "defocus_blur", "motion_blur", "exposure", "vignetting",
+            "jpeg", "quantize"} <= set(EFFECTS)
 
 
 @pytest.mark.parametrize("table", [{"type": "gaussian", "sigma_8bit": 25.0}, {"type": "gaussian", "sigma": 25 / 255}])
@@ -44,6 +44,61 @@ def test_poisson_gaussian_variance_is_affine_in_signal():
         # 120,000 samples: the variance estimate has relative s.e. ~0.4 %; 3 % tolerance.
         assert np.var(out) == pytest.approx(gain * level + read**2, rel=0.03)
         assert np.mean(out) == pytest.approx(level, abs=4 * np.sqrt((gain * level + read**2) / img.size))
+
+
+def _demosaic_reference(mosaic: np.ndarray) -> np.ndarray:
+    """Per pixel and colour: the sample if the pixel is that colour's site, else the mean of that colour's
+    sites among the 8 neighbours inside the image (RGGB from the top-left)."""
+    H, W = mosaic.shape
+    colour = [[0, 1], [1, 2]]
+    out = np.zeros((H, W, 3))
+    for y in range(H):
+        for x in range(W):
+            for c in range(3):
+                if colour[y % 2][x % 2] == c:
+                    out[y, x, c] = mosaic[y, x]
+                    continue
+                vals = [mosaic[y + dy, x + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                        if (dy or dx) and 0 <= y + dy < H and 0 <= x + dx < W
+                        and colour[(y + dy) % 2][(x + dx) % 2] == c]
+                out[y, x, c] = np.mean(vals)
+    return out
+
+
+@pytest.mark.parametrize("shape", [(6, 8), (7, 9)])
+def test_bilinear_demosaic_matches_the_per_pixel_definition(shape, rng):
+    from data_synth.effects.noise import bilinear_demosaic
+
+    mosaic = rng.normal(size=shape)
+    np.testing.assert_allclose(bilinear_demosaic(mosaic), _demosaic_reference(mosaic), atol=1e-12)
+
+
+def test_bayer_noise_is_correlated_between_neighbours_and_has_the_demosaiced_variance():
+    from data_synth.effects.noise import bayer_channel_of
+
+    gain, read, level = 0.01, 5 / 255, 0.5
+    img = np.full((130, 130, 3), level, np.float32)
+    eff = _fx({"type": "bayer_noise", "gain": gain, "read_sigma": read, "clip": False})
+    n = np.stack([apply_effects(img, eff, seed=s, ctx=_ctx()) - img for s in range(12)])[:, 1:-1, 1:-1]
+    v = gain * level + read**2  # a site's variance
+    chan = bayer_channel_of(130, 130)[1:-1, 1:-1]
+    # Per colour: its own sites carry v, a site between two of its sites v / 2, between four v / 4.
+    # Red: 1/4 own, 1/2 between two, 1/4 between four -> 0.5625 v; green: 1/2 own, 1/2 between four -> 0.625 v.
+    # ~200,000 samples per colour: the variance's s.e. is ~0.3 %; 3 % tolerance.
+    assert np.var(n[..., 0]) == pytest.approx(0.5625 * v, rel=0.03)
+    assert np.var(n[..., 1]) == pytest.approx(0.625 * v, rel=0.03)
+    assert np.var(n[..., 2]) == pytest.approx(0.5625 * v, rel=0.03)
+    own = np.broadcast_to(chan == 1, n.shape[:3])
+    assert np.var(n[..., 1][own]) == pytest.approx(v, rel=0.03)
+    # Horizontal neighbours of green: an own site next to one interpolated from it and three others;
+    # Poisson-Gaussian noise has none (|r| < 0.02 at these sample counts).
+    g = n[..., 1]
+    r = np.corrcoef(g[:, :, :-1].ravel(), g[:, :, 1:].ravel())[0, 1]
+    assert r > 0.3
+    pg = apply_effects(img, _fx({"type": "poisson_gaussian", "gain": gain, "read_sigma": read, "clip": False}),
+                       seed=0, ctx=_ctx()) - img
+    assert abs(np.corrcoef(pg[:, :-1, 1].ravel(), pg[:, 1:, 1].ravel())[0, 1]) < 0.02
+    assert abs(np.mean(n)) < 4 * np.sqrt(v / n.size)
 
 
 @pytest.mark.parametrize("table", [

@@ -122,3 +122,25 @@ def test_n2v_cli_auto_method_chooses_from_the_photos(tmp_path):
     report = json.loads((out / "report.json").read_text())
     assert report["method"] == "neighbor2neighbor" and report["objective_rule"] == "auto"
     assert report["dark_clipped_fraction"] > 0.5
+
+
+def test_n2v_cli_pixel_shuffle_keeps_shapes_and_records_the_stride(tmp_path, rng, capsys):
+    # Colour, 16-bit and gray photos through stride 2: each comes back whole, in its own format. With the
+    # stride measured (0), white noise gets none.
+    src = _three_photos(tmp_path / "noisy", rng)
+    out = tmp_path / "out"
+    assert main(["n2v", str(src), "--out", str(out), "--steps", "2", "--passes", "1", "--preset", "fast",
+                 "--pd-stride", "2"]) == 0
+    assert cv2.imread(str(out / "images" / "a.png")).shape == (40, 44, 3)
+    assert cv2.imread(str(out / "images" / "c_gray.png"), cv2.IMREAD_UNCHANGED).shape == (36, 30)
+    assert json.loads((out / "report.json").read_text())["pd_stride"] == 2
+    assert main(["n2v", str(src), "--out", str(tmp_path / "auto"), "--steps", "2", "--passes", "1",
+                 "--preset", "fast"]) == 0
+    report = json.loads((tmp_path / "auto" / "report.json").read_text())
+    assert report["pd_stride"] == 1  # photos this small are not measured: no stride
+    tiny = tmp_path / "tiny"
+    tiny.mkdir()
+    write_image(tiny / "t.png", add_noise(rng, smooth_scene(rng, 7, 9), 0.1))
+    assert main(["n2v", str(tiny), "--out", str(tmp_path / "t_out"), "--steps", "2", "--pd-stride", "4"]) == 2
+    err = capsys.readouterr().err
+    assert "t.png" in err and "--pd-stride" in err and not (tmp_path / "t_out").exists()

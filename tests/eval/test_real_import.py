@@ -349,8 +349,10 @@ def test_poisson_gaussian_noise_variance_follows_the_signal(tmp_path, rng):
 def test_parse_noise_rejects_what_it_does_not_know():
     assert parse_noise(None).is_none and parse_noise("none").is_none
     assert parse_noise("Gaussian: 10").params == {"sigma_8bit": 10.0}
+    assert parse_noise("bayer-pg:0.01,5").effect == "bayer_noise"
     for bad, msg in [("gauss:3", "unknown noise model"), ("gaussian:", "expected 1 number"),
                      ("gaussian:1,2", "expected 1 number"), ("poisson-gaussian:0.1", "expected 2 numbers"),
+                     ("bayer-pg:0.01", "expected 2 numbers"), ("bayer-pg:0,5", "out of range"),
                      ("gaussian:-3", "out of range")]:
         with pytest.raises(InputError, match=msg):
             parse_noise(bad)
