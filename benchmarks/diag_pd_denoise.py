@@ -1,8 +1,8 @@
 """Round 1's denoise stage (the `default` preset's) on a dataset's training photos at a pixel-shuffle stride.
 
 Writes OUT/denoised/ (score it with `benchmarks/diag_photo_scores.py DATASET/clean OUT/denoised`) and prints
-the stage's time, the stride it ran at and, for stride 0, the noise correlations that chose it
-(`denoise.pixel_shuffle`). The photos are those of the dataset's split.json `train` list.
+the stage's time, the stride it ran at and, for stride 0, the noise levels by stride that chose it
+(`denoise.pixel_shuffle.choose_stride`). The photos are those of the dataset's split.json `train` list.
 
 Usage: .venv/bin/python benchmarks/diag_pd_denoise.py DATASET STRIDE OUT
 (DATASET: a `denoise-gs dataset import` folder; STRIDE: 0 = measured, 1 = off, 2-4)
@@ -34,7 +34,8 @@ def main() -> int:
     t = time.perf_counter()
     summary = denoise(StageContext(name="denoise", work_dir=args.out, inputs={"noisy": args.out / "noisy"},
                                    settings=settings, seed=0))
-    print(json.dumps({"stride": summary["pd_stride"], "noise_lag_correlation": summary.get("noise_lag_correlation"),
+    print(json.dumps({"stride": summary["pd_stride"],
+                      "noise_level_by_stride_255": summary.get("noise_level_by_stride_255"),
                       "objective": summary.get("objective"), "seconds": round(time.perf_counter() - t, 1)}))
     return 0
 

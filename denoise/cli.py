@@ -82,7 +82,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
     if stride == 0:
         measured = choose_stride(images)
         stride = measured.stride
-        chosen["noise_lag_correlation"] = {str(k): v for k, v in measured.lag_correlation.items()}
+        chosen["noise_level_by_stride_255"] = {str(k): round(255.0 * v, 2) for k, v in measured.level_by_stride.items()}
     chosen["pd_stride"] = stride
     work = images
     small = [f for f, img in zip(files, images, strict=True) if min(img.shape[:2]) < MIN_SIDE_PX * stride]
@@ -91,7 +91,8 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
                          f"{MIN_SIDE_PX} px", path=small[0], fix="give a smaller --pd-stride, or 1")
     if stride > 1:
         _log.info("denoising the %d x %d pixel-shuffled sub-images of each image (noise correlated between "
-                  "neighbouring pixels: %s)", stride, stride, chosen.get("noise_lag_correlation", "as given"))
+                  "neighbouring pixels; its level /255 by stride: %s)", stride, stride,
+                  chosen.get("noise_level_by_stride_255", "not measured"))
         work = shuffled(images, stride)
     method = args.method
     if method == "auto":

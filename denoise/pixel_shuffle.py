@@ -4,9 +4,9 @@ A camera's demosaicing interpolates each pixel's missing colours from its neighb
 other raw-to-RGB steps filter further), so the noise of a photo is correlated over a few pixels. The
 self-supervised objectives here assume noise independent from pixel to pixel: N2V's blind spot predicts a
 pixel from its neighbours, whose noise then carries the pixel's own; R2R recorrupts with white noise; the
-noise-level estimators (`denoise.noise_level`) difference neighbouring pixels, which cancels correlated
-noise. On bilinearly demosaiced Poisson-Gaussian noise R2R's estimate reads about a fifth of the true
-level and the photos leave the denoiser nearly as noisy as they came (docs/bench/denoise_real.md).
+noise-level estimators (`denoise.noise_level`) see noise that is smooth over a few pixels as image content.
+On bilinearly demosaiced Poisson-Gaussian noise R2R's estimate reads a sixth of the level and the photos
+leave the denoiser nearly as noisy as they came (docs/bench/denoise_real.md).
 
 PD with stride ``s`` splits an image into ``s * s`` sub-images, each of every ``s``-th pixel from one offset
 (`pd_split`); noise correlated over fewer than ``s`` pixels is independent within a sub-image. The
@@ -14,8 +14,10 @@ denoiser runs on the sub-images as on photos, and `pd_merge` puts the pixels bac
 AWGN-based denoiser meets real noises"; Lee et al. 2022, AP-BSN). The price: each sub-image is the scene at
 1/s of the resolution, so the denoiser sees fine texture aliased.
 
-`choose_stride` measures the correlation from the photos (`noise_lag_correlation`) and returns 1 (no PD)
-for independent noise: photos with white or Poisson-Gaussian noise are denoised exactly as without PD.
+`choose_stride` finds the stride from the photos: the noise level the denoiser's own estimator
+(`denoise.noise_level.estimate_noise_sigma_pca`, R2R's) reads on the photos and on their sub-images. For
+noise independent per pixel the two agree; correlated noise reads low on the photos and at its level on the
+sub-images. Photos with white or Poisson-Gaussian noise get stride 1 and are denoised exactly as without PD.
 """
 
 from __future__ import annotations
@@ -25,36 +27,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mvgeo.common.deps import cv2
-
-__all__ = ["MAX_STRIDE", "MIN_NOISE_STD", "RESIDUAL_CORRELATION", "NoiseCorrelation", "choose_stride", "merge_std",
-           "noise_lag_correlation", "pd_merge", "pd_split", "shuffled", "unshuffled"]
+__all__ = ["MAX_PHOTOS", "MAX_STRIDE", "MIN_LEVEL_RATIO", "MIN_NOISE_STD", "NoiseLevels", "choose_stride", "merge_std",
+           "pd_merge", "pd_split", "shuffled", "unshuffled"]
 
 #: The largest stride `choose_stride` returns (16 sub-images; a 384 px photo's are 96 px).
 MAX_STRIDE = 4
-#: Correlation between neighbours (lag 1) above which the noise counts as correlated and PD is used. White
-#: and Poisson-Gaussian noise read -0.07 to 0.01 at lags 1-4 on DTU scan24 and the temple ring (sigma 25 and
-#: 50, Poisson-Gaussian); bilinearly demosaiced Poisson-Gaussian noise reads 0.38 at lag 1 and -0.05 at lag 2
-#: on DTU scan24 (0.51 and 0.00-0.02 on flat synthetic patches, where its true correlations are 0.58 and
-#: 0.13 along rows: the pixels 2 apart share some sensor sites, those 3 apart none).
-MAX_CORRELATION = 0.1
-#: Correlation at lag s under which stride s is taken (the smallest such s >= 2). The larger the stride, the
-#: less of the scene's resolution each sub-image keeps: on DTU scan24's demosaiced noise stride 2 (true
-#: correlation 0.13 left at lag 2) gave 32.61 dB and stride 3 (none left) 32.42 (docs/bench/denoise_real.md).
-RESIDUAL_CORRELATION = 0.2
-#: The lag whose differences stand for uncorrelated noise, and the share of pixels (the flattest) measured.
-FAR_LAG = 7
-FLAT_SHARE = 0.3
-#: Fewest flat pixel pairs (per channel and axis) a measurement takes: the median of fewer is too noisy,
-#: and a small image's "flattest" pixels still hold its shading (a 40 x 44 px synthetic scene with white
-#: noise read correlations of 0.1-0.4). About a 100 x 100 px photo.
-MIN_FLAT_PAIRS = 3000
-#: Below this noise std (in [0, 1] units, from the far differences over the flattest pixels) the photos
-#: count as having white noise or none, and no stride is chosen: the clean photos of DTU scan24 and of the
-#: temple ring read 6.4 and 5.7 /255 there (texture), with lag-1 correlations of 0.17 and 0.50 (texture's, not
-#: noise's); bilinearly demosaiced Poisson-Gaussian noise of gain 0.01 and read noise 5/255 reads 12.8 /255,
-#: sigma 25/255 white noise 24.9.
+#: The noise counts as correlated where the photos' noise level reads under this fraction of their stride-2
+#: sub-images'. Independent noise reads 0.98-1.01 (DTU scan24 and the temple ring at sigma 25 and 50 and
+#: with Poisson-Gaussian noise, the synthetic llff_like at sigma 25); bilinearly demosaiced Poisson-Gaussian
+#: noise 0.16. A larger stride is taken while the next one still reads more than 1 / this as much noise.
+MIN_LEVEL_RATIO = 0.8
+#: Below this noise level in the stride-2 sub-images ([0, 1] units) no stride is chosen: a clean photo's
+#: texture reads as a little noise that grows with the stride (the synthetic llff_like's clean views: 2.7,
+#: 5.7, 8.9 /255 at strides 1-3; DTU scan24's clean photos 0.8 and 1.3).
 MIN_NOISE_STD = 8.0 / 255.0
+#: Photos the levels are read on at most, spread over the list (about 0.3 s a photo and stride on one core
+#: at 384 x 384).
+MAX_PHOTOS = 6
 
 
 def pd_split(image: np.ndarray, stride: int) -> list[np.ndarray]:
@@ -114,107 +103,47 @@ def merge_std(parts: Sequence, stride: int, shape: tuple[int, ...]):
 
 
 @dataclass(frozen=True)
-class NoiseCorrelation:
-    """What `choose_stride` measured.
+class NoiseLevels:
+    """What `choose_stride` read.
 
     Attributes:
-        stride: the chosen PD stride (1: the noise is independent between neighbouring pixels, or the
-            photos are clean).
-        lag_correlation: {lag: correlation of the noise between pixels that far apart}, median over the
-            photos and mean over channels and the two axes, for lags 1 .. `MAX_STRIDE`.
-        noise_std: the noise std at `FAR_LAG` in [0, 1] units (median over photos and channels).
+        stride: the chosen PD stride (1: the noise is independent between neighbouring pixels, or weak).
+        level_by_stride: {stride: the noise std the PCA estimator reads on the sub-images at that stride,
+            [0, 1] units}, the median over each photo's sub-images, then over the photos read; stride 1 is the
+            photos themselves. Strides past the one that decided are not read.
     """
 
     stride: int
-    lag_correlation: dict[int, float]
-    noise_std: float
+    level_by_stride: dict[int, float]
 
 
-def noise_lag_correlation(image: np.ndarray, lags: Sequence[int] = (1, 2, 3, 4)) -> np.ndarray:
-    """Correlation of a photo's noise between pixels `lags` apart, from its differences in flat regions.
+def _level(images: Sequence[np.ndarray], stride: int) -> float:
+    from denoise.noise_level import estimate_noise_sigma_pca
 
-    For noise of std s and correlation rho_k at lag k on a locally constant signal, the difference of two
-    pixels k apart has mean square ``2 s^2 (1 - rho_k)``; at `FAR_LAG` the noise is taken as uncorrelated, so
-    ``rho_k = 1 - (RMS_k / RMS_far)^2`` with the root mean square differences. Means of squares, not medians:
-    demosaiced noise has another variance at each site of the Bayer cell, so pairs at odd and even lags mix
-    other variances, and only the mean of the squares averages them alike (medians read 0.33 at lag 2 on
-    bilinearly demosaiced noise whose correlation there is 0.13). The pairs measured are
-    the pairs whose segment is among the `FLAT_SHARE` flattest (the largest gradient of the photo smoothed at
-    2 px between the two pixels) away from clipping (smoothed values in [0.08, 0.92]), so that texture and
-    edges add little to the differences.
-
-    Args:
-        image: (H, W, 3) in [0, 1] (or (H, W)); at least 2 * `FAR_LAG` pixels on each side.
-
-    Returns:
-        (C, len(lags) + 1): per channel, the correlations (the mean of the horizontal and vertical
-        estimates), then the noise std from the far differences (``RMS_far / sqrt 2``); NaN where
-        fewer than `MIN_FLAT_PAIRS` pairs are flat and unclipped.
-    """
-    a = np.asarray(image, np.float64)
-    if a.ndim == 2:
-        a = a[:, :, None]
-    if min(a.shape[:2]) < 2 * FAR_LAG:
-        raise ValueError(f"image {a.shape[:2]} too small to measure the noise's correlation")
-    out = np.zeros((a.shape[2], len(lags) + 1))
-    for c in range(a.shape[2]):
-        y = a[:, :, c]
-        smooth = cv2.GaussianBlur(y, (0, 0), 2.0)
-        grad = np.hypot(cv2.Sobel(smooth, cv2.CV_64F, 1, 0), cv2.Sobel(smooth, cv2.CV_64F, 0, 1))
-        out[c] = np.mean([_lag_correlation_along(y, smooth, grad, axis, lags) for axis in (0, 1)], axis=0)
-    return out
-
-
-def _shifted_pairs(arr: np.ndarray, k: int, axis: int) -> tuple[np.ndarray, np.ndarray]:
-    """The pixels of `arr` and those `k` further along `axis`, as two equal arrays."""
-    return (arr[k:], arr[:-k]) if axis == 0 else (arr[:, k:], arr[:, :-k])
-
-
-def _lag_correlation_along(y, smooth, grad, axis: int, lags: Sequence[int]) -> np.ndarray:
-    """`noise_lag_correlation` of one channel along one axis: (len(lags) + 1,), the noise std last."""
-    def usable(k):  # unclipped pairs, and the largest gradient on the segment between them
-        s1, s2 = _shifted_pairs(smooth, k, axis)
-        n = s1.shape[axis]
-        seg = np.maximum.reduce([np.take(grad, np.arange(m, m + n), axis=axis) for m in range(k + 1)])
-        return (np.minimum(s1, s2) > 0.08) & (np.maximum(s1, s2) < 0.92), seg
-
-    def rms(k, sel):
-        y1, y2 = _shifted_pairs(y, k, axis)
-        return float(np.sqrt(np.mean((y1 - y2)[sel] ** 2))) if sel.any() else 0.0
-
-    ok_far, g_far = usable(FAR_LAG)
-    if FLAT_SHARE * ok_far.sum() < MIN_FLAT_PAIRS:
-        return np.full(len(lags) + 1, np.nan)
-    flat = np.quantile(g_far[ok_far], FLAT_SHARE)
-    far = rms(FAR_LAG, ok_far & (g_far <= flat))
-    row = []
-    for k in lags:
-        ok, g = usable(k)
-        row.append(1.0 - (rms(k, ok & (g <= flat)) / far) ** 2 if far > 0 else 0.0)
-    return np.array(row + [far / np.sqrt(2.0)])
+    return float(np.median([np.median([estimate_noise_sigma_pca(p) for p in pd_split(im, stride)])
+                            for im in images]))
 
 
 def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
-                  max_correlation: float = MAX_CORRELATION) -> NoiseCorrelation:
-    """1 (no PD) where the noise's correlation between neighbours is under `max_correlation`; else the smallest
-    stride s >= 2 whose lag-s correlation is under `RESIDUAL_CORRELATION` (`max_stride` if none is).
+                  min_ratio: float = MIN_LEVEL_RATIO) -> NoiseLevels:
+    """1 (no PD) where the noise level reads about the same on the photos as on their stride-2 sub-images
+    (at least `min_ratio` of it), or is weak (under `MIN_NOISE_STD` there); else the smallest stride s >= 2
+    whose level is at least `min_ratio` of stride s + 1's (`max_stride` at most).
 
-    The correlation at each lag is the median over the photos of `noise_lag_correlation`'s mean over
-    channels. Photos with noise under
-    `MIN_NOISE_STD` get 1, and so do photos too small to measure (under `MIN_FLAT_PAIRS` flat pairs, or
-    2 * `FAR_LAG` px a side).
+    Reads at most `MAX_PHOTOS` photos, spread over the list; photos whose stride-`max_stride` sub-images
+    would be under 16 px a side are not read, and without any other the stride is 1.
     """
-    lags = tuple(range(1, max_stride + 1))
-    images = [im for im in images if min(np.shape(im)[:2]) >= 2 * FAR_LAG]
-    per_photo = np.array([noise_lag_correlation(im, lags).mean(axis=0) for im in images]).reshape(-1, len(lags) + 1)
-    per_photo = per_photo[np.isfinite(per_photo).all(axis=1)]  # (N, lags + 1), the measurable photos
-    if not len(per_photo):
-        return NoiseCorrelation(1, {}, float("nan"))
-    rho = np.median(per_photo[:, :-1], axis=0)
-    std = float(np.median(per_photo[:, -1]))
-    stride = 1 if rho[0] < max_correlation else next(
-        (k for k, r in zip(lags[1:], rho[1:], strict=True) if r < RESIDUAL_CORRELATION), max_stride)
-    if std < MIN_NOISE_STD:
-        stride = 1
-    return NoiseCorrelation(int(stride), {int(k): round(float(r), 4) for k, r in zip(lags, rho, strict=True)},
-                            round(std, 6))
+    big = [im for im in images if min(np.shape(im)[:2]) >= 16 * max_stride]
+    if not big:
+        return NoiseLevels(1, {})
+    pick = big if len(big) <= MAX_PHOTOS else [big[int(i)] for i in np.linspace(0, len(big) - 1, MAX_PHOTOS)]
+    level = {1: _level(pick, 1), 2: _level(pick, 2)}
+    stride = 1
+    if level[2] >= MIN_NOISE_STD and level[1] < min_ratio * level[2]:
+        stride = 2
+        while stride < max_stride:
+            level[stride + 1] = _level(pick, stride + 1)
+            if level[stride] >= min_ratio * level[stride + 1]:
+                break
+            stride += 1
+    return NoiseLevels(stride, {k: round(v, 6) for k, v in level.items()})

@@ -55,9 +55,10 @@ class DenoiseQuality:
     noise_std_255: dict[str, float] = field(default_factory=dict)
     signal_dependent: list[str] = field(default_factory=list)
     #: round 1: the pixel-shuffle stride the photos were denoised at (1: none; None: not recorded) and the
-    #: noise's correlation between pixels 1, 2, ... apart that chose it (`denoise.pixel_shuffle`).
+    #: noise level (/255) read on the photos and on their sub-images by stride that chose it
+    #: (`denoise.pixel_shuffle.choose_stride`).
     pd_stride: int | None = None
-    noise_lag_correlation: dict[str, float] = field(default_factory=dict)
+    noise_level_by_stride_255: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -171,8 +172,8 @@ def _denoise_quality(summary: Mapping, kind: str) -> DenoiseQuality:
                           noise_std_255={str(k): float(v) for k, v in summary.get("noise_std_255", {}).items()},
                           signal_dependent=list(summary.get("signal_dependent", [])),
                           pd_stride=summary.get("pd_stride"),
-                          noise_lag_correlation={str(k): float(v)
-                                                 for k, v in summary.get("noise_lag_correlation", {}).items()})
+                          noise_level_by_stride_255={str(k): float(v) for k, v
+                                                     in summary.get("noise_level_by_stride_255", {}).items()})
 
 
 def _focal_source(stats: AlignStats) -> str:
@@ -301,10 +302,10 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
             lines.append(f"- noise level of the {len(v)} photos as the denoiser estimates it: median "
                          f"{np.median(v):.1f}/255 (from {v.min():.1f} to {v.max():.1f}){dep}")
         if d is not None and d.pd_stride is not None and d.pd_stride > 1:
-            rho = ", ".join(f"{v:.2f} at {k} px" for k, v in d.noise_lag_correlation.items())
-            lines.append(f"- the noise is correlated between neighbouring pixels{f' ({rho})' if rho else ''}, as a "
-                         f"camera's demosaicing leaves it: the photos were denoised as {d.pd_stride} x "
-                         f"{d.pd_stride} pixel-shuffled sub-images")
+            read = ", ".join(f"{v:.1f}/255 at stride {k}" for k, v in d.noise_level_by_stride_255.items())
+            lines.append(f"- the noise is correlated between neighbouring pixels, as a camera's demosaicing leaves it"
+                         f"{f' (its level read on the photos and their sub-images: {read})' if read else ''}: the "
+                         f"photos were denoised as {d.pd_stride} x {d.pd_stride} pixel-shuffled sub-images")
         a = q.align
         if a is not None:
             photos = f" ({a.photos} photos)" if a.photos else ""

@@ -120,11 +120,13 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     if stride == 0:
         measured = choose_stride(photos)
         stride = measured.stride
-        shuffle = {"noise_lag_correlation": {str(k): v for k, v in measured.lag_correlation.items()}}
+        shuffle = {"noise_level_by_stride_255": {str(k): round(255.0 * v, 2)
+                                                 for k, v in measured.level_by_stride.items()}}
     shuffle["pd_stride"] = stride
     if stride > 1:
-        _log.info("the photos' noise is correlated between neighbouring pixels (%s): denoising their %d x %d "
-                  "pixel-shuffled sub-images", shuffle.get("noise_lag_correlation", "given"), stride, stride)
+        _log.info("the photos' noise is correlated between neighbouring pixels (its level /255 by stride: %s): "
+                  "denoising their %d x %d pixel-shuffled sub-images",
+                  shuffle.get("noise_level_by_stride_255", "not measured"), stride, stride)
         photos = shuffled(photos, stride)
     n2v, chosen = s.n2v, {}
     if s.choose_objective:

@@ -1,4 +1,4 @@
-"""Pixel-shuffle downsampling: split and merge, the noise's correlation, the stride chosen from it."""
+"""Pixel-shuffle downsampling: split and merge, and the stride chosen from the noise levels it reads."""
 
 from __future__ import annotations
 
@@ -8,11 +8,9 @@ import torch
 
 from data_synth.effects import EffectContext, apply_effects, parse_effect
 from denoise.pixel_shuffle import (
-    MIN_NOISE_STD,
-    RESIDUAL_CORRELATION,
+    MIN_LEVEL_RATIO,
     choose_stride,
     merge_std,
-    noise_lag_correlation,
     pd_merge,
     pd_split,
     shuffled,
@@ -49,44 +47,49 @@ def _smooth_scene(rng, h=160, w=160):
     return np.repeat(np.repeat(levels, 40, axis=0), 40, axis=1)[:h, :w].astype(np.float32)
 
 
-def test_white_noise_reads_uncorrelated(rng):
-    img = _smooth_scene(rng) + rng.normal(0, 0.05, (160, 160, 3)).astype(np.float32)
-    rho = noise_lag_correlation(img)
-    # 2 x ~7,000 flat pixel pairs per lag and channel: a mean square's relative s.e. is sqrt(2 / 7000) = 1.7 %,
-    # the ratio of two about 2.4 %; 0.1 is about four of them.
-    assert np.abs(rho[:, :4]).max() < 0.1
-    assert rho[:, 4] == pytest.approx(0.05, rel=0.05)  # the noise std, from the far differences
-
-
-def test_two_tap_noise_has_the_correlation_of_its_filter(rng):
-    # n = (w + w shifted by one column) / sqrt 2: correlation 0.5 between horizontal neighbours, 0 beyond
-    # and 0 vertically, so the mean over the two axes is 0.25 at lag 1 and 0 at lags 2-4.
-    w = rng.normal(0, 0.05, (160, 161, 3))
-    n = (w[:, 1:] + w[:, :-1]) / np.sqrt(2.0)
-    rho = noise_lag_correlation(_smooth_scene(rng) + n.astype(np.float32)).mean(axis=0)
-    assert rho[0] == pytest.approx(0.25, abs=0.06)
-    assert np.abs(rho[1:4]).max() < 0.06
-
-
 def _bayer(img, seed):
     eff = parse_effect({"type": "bayer_noise", "gain": 0.01, "read_sigma_8bit": 5.0}, key="noise", path=None)
     return apply_effects(img, (eff,), seed=seed, ctx=EffectContext("v", np.eye(3)))
 
 
-def test_the_stride_decorrelates_demosaiced_noise_and_is_one_for_white_noise_or_none(rng):
+def test_white_noise_reads_alike_on_photos_and_sub_images_and_gets_no_stride(rng):
+    scenes = [_smooth_scene(rng) + rng.normal(0, 0.05, (160, 160, 3)).astype(np.float32) for _ in range(3)]
+    read = choose_stride(scenes)
+    assert read.stride == 1 and set(read.level_by_stride) == {1, 2}
+    # The PCA estimator on 160 px of white noise: within a few percent of the truth, photo and sub-images.
+    assert read.level_by_stride[1] == pytest.approx(0.05, rel=0.05)
+    assert read.level_by_stride[2] == pytest.approx(0.05, rel=0.05)
+
+
+def test_demosaiced_noise_reads_low_on_the_photos_and_gets_stride_two(rng):
     scenes = [_smooth_scene(rng) for _ in range(3)]
-    # Bilinear demosaicing: a pixel shares sensor sites with its neighbours 1 and 2 pixels away, none 3 away;
-    # the pixels 2 away share fewer (true correlation 0.13 along rows, under RESIDUAL_CORRELATION): stride 2.
-    demosaiced = choose_stride([_bayer(s, k) for k, s in enumerate(scenes)])
-    assert demosaiced.stride == 2
-    assert demosaiced.lag_correlation[1] > 0.4
-    assert demosaiced.lag_correlation[2] < RESIDUAL_CORRELATION and abs(demosaiced.lag_correlation[3]) < 0.1
-    white = choose_stride([s + rng.normal(0, 0.05, s.shape).astype(np.float32) for s in scenes])
-    assert white.stride == 1 and white.lag_correlation[1] < 0.1
-    # Correlated but faint: under the noise floor, no stride.
-    faint = [s + (0.5 * MIN_NOISE_STD) * (_bayer(np.full_like(s, 0.5), k) - 0.5) / 0.05
-             for k, s in enumerate(scenes)]
+    read = choose_stride([_bayer(s, k) for k, s in enumerate(scenes)])
+    # Bilinear demosaicing: a pixel shares sensor sites with its neighbours 1 and 2 pixels away, none 3
+    # away; the estimator sees the photos' noise as content, the sub-images' as noise.
+    assert read.stride == 2
+    assert read.level_by_stride[1] < 0.5 * read.level_by_stride[2]
+    assert read.level_by_stride[2] >= MIN_LEVEL_RATIO * read.level_by_stride[3]
+
+
+def test_noise_correlated_over_three_pixels_gets_stride_three(rng):
+    # Each pixel the mean of 3 x 3 independent samples: correlated with every pixel 1 or 2 away (in each
+    # axis), independent of those 3 away. Stride 2's sub-images keep a correlation, stride 3's do not.
+    scenes = [_smooth_scene(rng) for _ in range(3)]
+    noisy = []
+    for s in scenes:
+        w = rng.normal(0, 0.15, (162, 162, 3))
+        n = sum(w[i:i + 160, j:j + 160] for i in range(3) for j in range(3)) / 9.0
+        noisy.append(s + n.astype(np.float32))
+    assert choose_stride(noisy).stride == 3
+
+
+def test_weak_or_unreadable_noise_gets_no_stride(rng):
+    scenes = [_smooth_scene(rng) for _ in range(3)]
+    faint = [s + 0.1 * (_bayer(np.full_like(s, 0.5), k) - 0.5) for k, s in enumerate(scenes)]  # ~1.3/255
     assert choose_stride(faint).stride == 1
+    assert choose_stride([rng.random((40, 200, 3))]).stride == 1  # stride-4 sub-images under 16 px: not read
+    many = [_bayer(s, k) for k, s in enumerate(scenes * 3)]
+    assert choose_stride(many).stride == 2  # nine photos, six of them read
 
 
 def test_shuffled_and_unshuffled_are_inverse_over_a_list(rng):
@@ -97,10 +100,6 @@ def test_shuffled_and_unshuffled_are_inverse_over_a_list(rng):
     assert all(np.array_equal(a, b) for a, b in zip(back, images, strict=True))
     with pytest.raises(ValueError, match="17 sub-images"):
         unshuffled(parts[:17], 3, [im.shape for im in images])
-
-
-def test_photos_too_small_to_measure_get_no_stride(rng):
-    assert choose_stride([rng.random((10, 40, 3))]).stride == 1
 
 
 def test_a_photos_std_is_put_back_together_from_its_sub_images():

@@ -221,3 +221,19 @@ def test_round_one_reports_the_photos_noise_level(tmp_path):
     assert q.denoise.noise_std_255 == levels
     assert f"median {np.median(list(levels.values())):.1f}/255" in "\n".join(quality_lines([q]))
     assert round_quality(rnd).denoise.noise_std_255 == {}  # a summary without the record
+
+
+def test_the_report_says_the_photos_were_denoised_as_pixel_shuffled_sub_images(tmp_path):
+    rnd = _round(tmp_path / "r", align_stats(n_registered=4))
+    levels = {"1": 2.0, "2": 12.6, "3": 11.8}
+
+    def with_summary(**extra):
+        return round_quality(RoundResult(index=1, dir=rnd.dir, stages={**rnd.stages, "denoise": _stage(
+            "denoise", {}, {**rnd.stages["denoise"].summary, **extra})}))
+
+    q = with_summary(pd_stride=2, noise_level_by_stride_255=levels)
+    assert q.denoise.pd_stride == 2 and q.denoise.noise_level_by_stride_255 == levels
+    text = "\n".join(quality_lines([q]))
+    assert "denoised as 2 x 2 pixel-shuffled sub-images" in text and "12.6/255 at stride 2" in text
+    for q in (with_summary(pd_stride=1, noise_level_by_stride_255={"1": 20.0, "2": 20.1}), round_quality(rnd)):
+        assert "pixel-shuffled" not in "\n".join(quality_lines([q]))  # stride 1, or not recorded: no line
