@@ -95,10 +95,10 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
                   chosen.get("noise_level_by_stride_255", "not measured"))
         work = shuffled(images, stride)
     method = args.method
-    if method == "auto":
-        choice = choose_objective(work)
+    if method == "auto":  # on the whole images: the dark fraction's blur is in pixels of the image
+        choice = choose_objective(images)
         method = choice.method
-        chosen = {"objective_rule": "auto", "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
+        chosen.update({"objective_rule": "auto", "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)})
     config = n2v_preset(args.preset, **overrides, method=method)
     timer = StageTimer()
     with timer.stage("train"):

@@ -5,8 +5,8 @@ other raw-to-RGB steps filter further), so the noise of a photo is correlated ov
 self-supervised objectives here assume noise independent from pixel to pixel: N2V's blind spot predicts a
 pixel from its neighbours, whose noise then carries the pixel's own; R2R recorrupts with white noise; the
 noise-level estimators (`denoise.noise_level`) see noise that is smooth over a few pixels as image content.
-On bilinearly demosaiced Poisson-Gaussian noise R2R's estimate reads a sixth of the level and the photos
-leave the denoiser nearly as noisy as they came (docs/bench/denoise_real.md).
+On bilinearly demosaiced Poisson-Gaussian noise R2R's estimate reads under a quarter of the level and the
+photos leave the denoiser nearly as noisy as they came (docs/bench/denoise_real.md).
 
 PD with stride ``s`` splits an image into ``s * s`` sub-images, each of every ``s``-th pixel from one offset
 (`pd_split`); noise correlated over fewer than ``s`` pixels is independent within a sub-image. The
@@ -14,8 +14,9 @@ denoiser runs on the sub-images as on photos, and `pd_merge` puts the pixels bac
 AWGN-based denoiser meets real noises"; Lee et al. 2022, AP-BSN). The price: each sub-image is the scene at
 1/s of the resolution, so the denoiser sees fine texture aliased.
 
-`choose_stride` finds the stride from the photos: the noise level the denoiser's own estimator
-(`denoise.noise_level.estimate_noise_sigma_pca`, R2R's) reads on the photos and on their sub-images. For
+`choose_stride` finds the stride from the photos: the noise level the PCA estimator
+(`denoise.noise_level.estimate_noise_sigma_pca`, which R2R's noise level starts from) reads on the photos and
+on their sub-images. For
 noise independent per pixel the two agree; correlated noise reads low on the photos and at its level on the
 sub-images. Photos with white or Poisson-Gaussian noise get stride 1 and are denoised exactly as without PD.
 """
@@ -38,8 +39,9 @@ MAX_STRIDE = 4
 #: noise 0.16. A larger stride is taken while the next one still reads more than 1 / this as much noise.
 MIN_LEVEL_RATIO = 0.8
 #: Below this noise level in the stride-2 sub-images ([0, 1] units) no stride is chosen: a clean photo's
-#: texture reads as a little noise that grows with the stride (the synthetic llff_like's clean views: 2.7,
-#: 5.7, 8.9 /255 at strides 1-3; DTU scan24's clean photos 0.8 and 1.3).
+#: texture reads as a little noise that grows with the stride (the synthetic llff_like's clean views: 2.6
+#: and 6.4 /255 at strides 1 and 2; DTU scan24's clean photos 0.9 and 1.3). The same scene with independent
+#: noise of 5/255 reads 5.8 and 7.8 (a ratio of 0.75): only this floor keeps such faint noise at stride 1.
 MIN_NOISE_STD = 8.0 / 255.0
 #: Photos the levels are read on at most, spread over the list (about 0.3 s a photo and stride on one core
 #: at 384 x 384).
@@ -97,7 +99,8 @@ def merge_std(parts: Sequence, stride: int, shape: tuple[int, ...]):
     H, W = shape[:2]
     C = next(p for p in parts if isinstance(p, torch.Tensor)).shape[0]
     grid = pd_split(np.zeros((H, W)), stride)
-    maps = [p.permute(1, 2, 0).numpy() if isinstance(p, torch.Tensor) else np.full(g.shape + (C,), float(p))
+    dtype = next(p for p in parts if isinstance(p, torch.Tensor)).numpy().dtype
+    maps = [p.permute(1, 2, 0).numpy() if isinstance(p, torch.Tensor) else np.full(g.shape + (C,), float(p), dtype)
             for p, g in zip(parts, grid, strict=True)]
     return torch.from_numpy(pd_merge(maps, stride, (H, W, C))).permute(2, 0, 1).contiguous()
 

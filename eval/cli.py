@@ -18,6 +18,7 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
+from denoise.pixel_shuffle import MAX_STRIDE
 from eval.distributed import ClusterSettings, check_ray_address, ray_cluster
 from eval.evaluate import EvalConfig, evaluate_dataset, scene_dataset
 from eval.methods import GT_POSES_SUFFIX, METHODS
@@ -110,7 +111,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 PD_STRIDE_HELP = ("extension, not in the paper: round 1 denoises pixel-shuffled sub-images of every N-th pixel, for "
                   "noise correlated between neighbouring pixels as a camera's demosaicing leaves it "
                   "(denoise.pixel_shuffle). 0 = measured from the photos (1 for independent noise), 1 = off, 2-4 = "
-                  "that stride. Default: 0")
+                  "that stride (one round only). Default: 0")
 
 
 def _allow_focal_prior(config):
@@ -321,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "splat's target takes back, denoised + W * highpass(noisy - denoised) (the splat keeps "
                           "the texture every view shows and averages the noise; denoise.detail). 0 = off. "
                           "Default: the preset's (0.2 with default and best, 0.5 with fast)")
-    run.add_argument("--pd-stride", type=int_range(0, 4), default=None, metavar="N", help=PD_STRIDE_HELP)
+    run.add_argument("--pd-stride", type=int_range(0, MAX_STRIDE), default=None, metavar="N", help=PD_STRIDE_HELP)
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",
@@ -378,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the noisy photos' band in the product's splat target (see `run --noisy-detail`; the "
                          "paper's loop, the baselines and the oracle train on their photos as they are). "
                          "Default: the preset's")
-    ev.add_argument("--pd-stride", type=int_range(0, 4), default=None, metavar="N",
+    ev.add_argument("--pd-stride", type=int_range(0, MAX_STRIDE), default=None, metavar="N",
                     help="round 1's pixel-shuffle stride for every method that trains the UNet (see `run "
                          "--pd-stride`; an A/B comparison evaluates each setting into its own --out)")
     ev.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",

@@ -130,6 +130,8 @@ def bayer_noise(image: np.ndarray, params: BayerNoiseParams, ctx: EffectContext,
     sampled colour and 1/2 or 1/4 of the variance elsewhere (the mean of 2 or 4 sites).
     """
     x = np.maximum(np.asarray(image, np.float64), 0.0)
+    if x.ndim != 3 or x.shape[2] != 3:
+        raise ValueError(f"bayer_noise needs an (H, W, 3) RGB image, got shape {x.shape}")
     H, W = x.shape[:2]
     chan = bayer_channel_of(H, W)
     site = np.take_along_axis(x, chan[:, :, None], axis=2)[:, :, 0]

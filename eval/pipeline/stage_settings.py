@@ -88,7 +88,8 @@ class DenoiseStageSettings:
         wiener: the DCT Wiener step on the network's outputs (`DenoiseSettings.wiener`); None: off.
         grouped: the grouped Wiener step after it (`DenoiseSettings.grouped_wiener`); None: off.
         pd_stride: pixel-shuffle stride of the denoising (`DenoiseSettings.pd_stride`): 0 measured from the
-            photos, 1 off.
+            photos, 1 off; always 1 where more rounds follow (their refine stage fine-tunes and applies round
+            1's network on whole photos).
     """
 
     n2v: N2VConfig
@@ -315,7 +316,10 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
                                                                choose_objective=d.method == "auto",
                                                                wiener=WienerConfig() if d.wiener else None,
                                                                grouped=GroupedWienerConfig() if d.grouped_wiener
-                                                               else None, pd_stride=d.pd_stride),
+                                                               else None,
+                                                               # the later rounds fine-tune round 1's network
+                                                               # on whole photos: it learns on them too
+                                                               pd_stride=d.pd_stride if config.rounds == 1 else 1),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
         refine=RefineStageSettings(round2_config(d), d.passes, config.device) if later else None)
 

@@ -115,6 +115,11 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     s = ctx.settings
     noisy = read_views(ctx.inputs["noisy"])
     photos = list(noisy.values())
+    n2v, chosen = s.n2v, {}
+    if s.choose_objective:  # on the whole photos: the dark fraction's blur is in pixels of the photo
+        choice = choose_objective(photos)
+        n2v = dataclasses.replace(n2v, method=choice.method)
+        chosen = {"objective": choice.method, "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
     shuffle: dict[str, object] = {}
     stride = s.pd_stride
     if stride == 0:
@@ -128,11 +133,6 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
                   "denoising their %d x %d pixel-shuffled sub-images",
                   shuffle.get("noise_level_by_stride_255", "not measured"), stride, stride)
         photos = shuffled(photos, stride)
-    n2v, chosen = s.n2v, {}
-    if s.choose_objective:
-        choice = choose_objective(photos)
-        n2v = dataclasses.replace(n2v, method=choice.method)
-        chosen = {"objective": choice.method, "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
     out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed)
     if stride > 1:
         n = stride * stride

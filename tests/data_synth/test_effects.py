@@ -73,6 +73,12 @@ def test_bilinear_demosaic_matches_the_per_pixel_definition(shape, rng):
     np.testing.assert_allclose(bilinear_demosaic(mosaic), _demosaic_reference(mosaic), atol=1e-12)
 
 
+def test_bayer_noise_needs_rgb():
+    eff = _fx({"type": "bayer_noise", "gain": 0.01, "read_sigma": 0.02})
+    with pytest.raises(ValueError, match=r"\(H, W, 3\) RGB"):
+        apply_effects(np.full((8, 8, 1), 0.5, np.float32), eff, seed=0, ctx=_ctx())
+
+
 def test_bayer_noise_is_correlated_between_neighbours_and_has_the_demosaiced_variance():
     from data_synth.effects.noise import bayer_channel_of
 

@@ -134,6 +134,11 @@ def test_n2v_cli_pixel_shuffle_keeps_shapes_and_records_the_stride(tmp_path, rng
     assert cv2.imread(str(out / "images" / "a.png")).shape == (40, 44, 3)
     assert cv2.imread(str(out / "images" / "c_gray.png"), cv2.IMREAD_UNCHANGED).shape == (36, 30)
     assert json.loads((out / "report.json").read_text())["pd_stride"] == 2
+    # With the objective chosen from the photos the report keeps both records.
+    assert main(["n2v", str(src), "--out", str(tmp_path / "out_auto"), "--steps", "2", "--passes", "1",
+                 "--preset", "fast", "--pd-stride", "2", "--method", "auto"]) == 0
+    report = json.loads((tmp_path / "out_auto" / "report.json").read_text())
+    assert report["pd_stride"] == 2 and report["objective_rule"] == "auto" and "dark_clipped_fraction" in report
     assert main(["n2v", str(src), "--out", str(tmp_path / "auto"), "--steps", "2", "--passes", "1",
                  "--preset", "fast"]) == 0
     report = json.loads((tmp_path / "auto" / "report.json").read_text())

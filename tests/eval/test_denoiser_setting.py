@@ -253,7 +253,17 @@ def test_an_evaluation_can_turn_the_grouped_wiener_step_on_or_off():
     assert base_pipeline_config(dataclasses.replace(fast, grouped_wiener=True), 12).denoise.grouped_wiener
 
 
-def test_the_stage_denoises_pixel_shuffled_sub_images_at_the_stride_given(tmp_path):
+def test_the_stage_denoises_pixel_shuffled_sub_images_at_the_stride_given(tmp_path, monkeypatch):
+    import eval.pipeline.stages as stages
+
+    seen = []
+    real = stages._denoise_photos
+
+    def spy(photos, *args, **kwargs):
+        seen.append([p.shape for p in photos])
+        return real(photos, *args, **kwargs)
+
+    monkeypatch.setattr(stages, "_denoise_photos", spy)
     rng = np.random.default_rng(3)
     clean = np.clip(rng.random((1, 1, 3)) * 0.6 + 0.2 + np.zeros((40, 46, 3)), 0, 1).astype(np.float32)
     noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
@@ -269,6 +279,8 @@ def test_the_stage_denoises_pixel_shuffled_sub_images_at_the_stride_given(tmp_pa
         out = read_views(work / "denoised")
         assert {k: v.shape for k, v in out.items()} == {k: v.shape for k, v in noisy.items()}
     assert summaries[2]["pd_stride"] == 2 and summaries[0]["pd_stride"] == 1  # too small to measure: none
+    # Stride 1 denoised the two 40 x 46 photos; stride 2 their eight 20 x 23 sub-images.
+    assert seen == [[(40, 46, 3)] * 2, [(20, 23, 3)] * 8]
     # The report's noise level per photo comes back from its four sub-images' (about the true 0.1).
     assert all(15 < v < 40 for v in summaries[2]["noise_std_255"].values())
 
@@ -276,8 +288,14 @@ def test_the_stage_denoises_pixel_shuffled_sub_images_at_the_stride_given(tmp_pa
 def test_pd_stride_is_validated_and_reaches_the_stage(tmp_path, capsys):
     cfg = preset("default")
     assert cfg.denoise.pd_stride == 0 and round_settings(cfg, 1).denoise.pd_stride == 0
-    with pytest.raises(ConfigError, match="denoise.pd_stride"):
-        dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, pd_stride=5))
+    for bad in (5, -1, True, 2.0):
+        with pytest.raises(ConfigError, match="denoise.pd_stride"):
+            dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, pd_stride=bad))
+    # Rounds >= 2 fine-tune round 1's network on whole photos: round 1 keeps them, and a stride is refused.
+    two = preset("fast", rounds=2)
+    assert two.denoise.pd_stride == 0 and round_settings(two, 1).denoise.pd_stride == 1
+    with pytest.raises(ConfigError, match="one round"):
+        dataclasses.replace(two, denoise=dataclasses.replace(two.denoise, pd_stride=2))
     assert base_pipeline_config(EvalConfig(methods=("product",), pd_stride=3), views=4).denoise.pd_stride == 3
     scene = make_scene(tmp_path / "images", n=3)
     with pytest.raises(SystemExit) as exc:  # argparse's own refusal: exit 2, the option named
