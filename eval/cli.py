@@ -111,7 +111,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 PD_STRIDE_HELP = ("extension, not in the paper: round 1 denoises pixel-shuffled sub-images of every N-th pixel, for "
                   "noise correlated between neighbouring pixels as a camera's demosaicing leaves it "
                   "(denoise.pixel_shuffle). 0 = measured from the photos (1 for independent noise), 1 = off, 2-4 = "
-                  "that stride (one round only). Default: 0")
+                  "that stride. Default: 0")
 
 
 def _allow_focal_prior(config):

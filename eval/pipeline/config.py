@@ -62,9 +62,8 @@ class DenoiseSettings:
         pd_stride: round 1 denoises pixel-shuffled sub-images of every `pd_stride`-th pixel
             (`denoise.pixel_shuffle`), for noise correlated between neighbouring pixels as a camera's
             demosaicing leaves it; 0 (default): the stride `denoise.pixel_shuffle.choose_stride` measures
-            from the photos, 1 for independent noise (then nothing changes); 1: off; 2 to 4: that stride. With
-            rounds >= 2 round 1 keeps the whole photos (the later rounds fine-tune its network on them), so
-            0 means 1 there and a stride is refused.
+            from the photos, 1 for independent noise (then nothing changes); 1: off; 2 to 4: that stride.
+            Rounds >= 2 fine-tune and apply the network on the sub-images of the same stride.
     """
 
     n2v_preset: str = "default"
@@ -242,9 +241,6 @@ class PipelineConfig:
         if isinstance(stride, bool) or not isinstance(stride, numbers.Integral) or not 0 <= stride <= MAX_STRIDE:
             raise ConfigError(f"must be an integer from 0 to {MAX_STRIDE}, got {stride!r}",
                               key="denoise.pd_stride", expected="0 (measured from the photos), 1 (off) or a stride")
-        if stride > 1 and self.rounds >= 2:
-            raise ConfigError(f"a stride of {stride} needs one round: rounds >= 2 fine-tune round 1's network on "
-                              "whole photos", key="denoise.pd_stride", fix="use --rounds 1, or --pd-stride 0 or 1")
         if self.denoise.round2_loss not in ("joint", "charbonnier"):
             raise ConfigError(f"unknown loss {self.denoise.round2_loss!r}", key="denoise.round2_loss",
                               expected="'joint' or 'charbonnier'")

@@ -88,8 +88,7 @@ class DenoiseStageSettings:
         wiener: the DCT Wiener step on the network's outputs (`DenoiseSettings.wiener`); None: off.
         grouped: the grouped Wiener step after it (`DenoiseSettings.grouped_wiener`); None: off.
         pd_stride: pixel-shuffle stride of the denoising (`DenoiseSettings.pd_stride`): 0 measured from the
-            photos, 1 off; always 1 where more rounds follow (their refine stage fine-tunes and applies round
-            1's network on whole photos).
+            photos, 1 off.
     """
 
     n2v: N2VConfig
@@ -110,11 +109,15 @@ class RefineStageSettings:
         round2: the fine-tuning configuration (loss, steps).
         passes: inference maskings averaged per image; 0: one pass on the unmasked image.
         device: torch device.
+        pd_stride: pixel-shuffle stride of the fine-tuning and inference, as round 1's
+            (`DenoiseSettings.pd_stride`: 0 measured from the photos, which gives round 1's stride for the
+            same noise).
     """
 
     round2: Round2Config
     passes: int
     device: str
+    pd_stride: int = 0
 
 
 @dataclass(frozen=True)
@@ -316,12 +319,9 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
                                                                choose_objective=d.method == "auto",
                                                                wiener=WienerConfig() if d.wiener else None,
                                                                grouped=GroupedWienerConfig() if d.grouped_wiener
-                                                               else None,
-                                                               # the later rounds fine-tune round 1's network
-                                                               # on whole photos: it learns on them too
-                                                               pd_stride=d.pd_stride if config.rounds == 1 else 1),
+                                                               else None, pd_stride=d.pd_stride),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
-        refine=RefineStageSettings(round2_config(d), d.passes, config.device) if later else None)
+        refine=RefineStageSettings(round2_config(d), d.passes, config.device, d.pd_stride) if later else None)
 
 
 def check_settings(config: PipelineConfig) -> None:

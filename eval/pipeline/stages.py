@@ -641,10 +641,13 @@ def select(ctx: StageContext) -> Mapping[str, object]:
 
 def refine(ctx: StageContext) -> Mapping[str, object]:
     """Rounds >= 2: fine-tune the UNet against the previous renders on the selected views, denoise them
-    (`ctx.settings`: `RefineStageSettings`)."""
+    (`ctx.settings`: `RefineStageSettings`). Where the photos' noise is correlated between neighbouring
+    pixels, as in round 1 (`denoise`), the photos and the renders are pixel-shuffled alike and the network
+    fine-tuned and applied on the sub-images it learned on."""
     from denoise.inference import denoise_images
     from denoise.model import load_checkpoint, save_checkpoint
     from denoise.parallel import one_thread_per_task
+    from denoise.pixel_shuffle import choose_stride, shuffled, unshuffled
     from denoise.round2 import refine_round2
 
     s = ctx.settings
@@ -652,11 +655,15 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     noisy = read_views(ctx.inputs["noisy"], names)
     renders = read_views(ctx.inputs["renders"], names)
     model = load_checkpoint(ctx.inputs["model"], device=s.device)
+    stride = s.pd_stride or choose_stride(list(noisy.values())).stride
+    photos, targets = list(noisy.values()), list(renders.values())
+    if stride > 1:
+        photos, targets = shuffled(photos, stride), shuffled(targets, stride)
     # Trust target (the render only where it agrees with the photo within the noise) and the
     # blind-spot-loss guard: see denoise.round2.refine_round2.
     # Fine-tuning and inference with one torch thread per task, as in `denoise`: the result would depend on it.
     with one_thread_per_task():
-        model, r2 = refine_round2(model, list(noisy.values()), list(renders.values()), s.round2, seed=ctx.seed)
+        model, r2 = refine_round2(model, photos, targets, s.round2, seed=ctx.seed)
         # Keep the observation blend (denoise.fusion) for the fine-tuned model too: most of round 1's
         # quality comes from it, and without it round 2 fell from 23.97 to 20.92 dB on the demo scene
         # (8 views, 192x144, sigma 25/255).
@@ -665,10 +672,12 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
             # up to the random maskings of inference), so a reverted round changes nothing.
             out = list(read_views(ctx.inputs["previous"], names).values())
         else:
-            out = denoise_images(model, list(noisy.values()), passes=s.passes, seed=ctx.seed, fuse=True)
+            out = denoise_images(model, photos, passes=s.passes, seed=ctx.seed, fuse=True)
+            if stride > 1:
+                out = unshuffled(out, stride, [im.shape for im in noisy.values()])
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
-    return {"views": names, "train": _history_summary(model.history),
+    return {"views": names, "train": _history_summary(model.history), "pd_stride": stride,
             "round2": json.loads(json.dumps(dataclasses.asdict(r2), default=float))}
 
 

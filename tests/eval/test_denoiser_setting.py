@@ -291,14 +291,50 @@ def test_pd_stride_is_validated_and_reaches_the_stage(tmp_path, capsys):
     for bad in (5, -1, True, 2.0):
         with pytest.raises(ConfigError, match="denoise.pd_stride"):
             dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, pd_stride=bad))
-    # Rounds >= 2 fine-tune round 1's network on whole photos: round 1 keeps them, and a stride is refused.
-    two = preset("fast", rounds=2)
-    assert two.denoise.pd_stride == 0 and round_settings(two, 1).denoise.pd_stride == 1
-    with pytest.raises(ConfigError, match="one round"):
-        dataclasses.replace(two, denoise=dataclasses.replace(two.denoise, pd_stride=2))
+    # Round 1's stage settings do not depend on the rounds that follow (their stages are shared); the refine
+    # stage of rounds >= 2 takes the same stride setting.
+    two = dataclasses.replace(preset("fast", rounds=2), denoise=dataclasses.replace(preset("fast").denoise,
+                                                                                      pd_stride=2))
+    assert round_settings(two, 1).denoise == round_settings(dataclasses.replace(two, rounds=1), 1).denoise
+    assert round_settings(two, 2).refine.pd_stride == 2
     assert base_pipeline_config(EvalConfig(methods=("product",), pd_stride=3), views=4).denoise.pd_stride == 3
     scene = make_scene(tmp_path / "images", n=3)
     with pytest.raises(SystemExit) as exc:  # argparse's own refusal: exit 2, the option named
         main(["run", str(scene), "--out", str(tmp_path / "o"), "--pd-stride", "5"])
     assert exc.value.code == 2
     assert "--pd-stride" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_the_refine_stage_fine_tunes_and_denoises_the_sub_images_at_round_1s_stride(tmp_path, monkeypatch):
+    import denoise.round2 as round2
+    from eval.pipeline.stage_settings import RefineStageSettings, round2_config
+    from eval.pipeline.stages import refine
+
+    rng = np.random.default_rng(4)
+    clean = np.clip(rng.random((1, 1, 3)) * 0.6 + 0.2 + np.zeros((40, 46, 3)), 0, 1).astype(np.float32)
+    noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
+    write_views(tmp_path / "noisy", noisy)
+    write_views(tmp_path / "renders", {k: clean for k in noisy})
+    (tmp_path / "selection.json").write_text('{"names": ["v0", "v1"]}')
+    d = DenoiseSettings(n2v_preset="fast", n2v_steps=3, round2_steps=2)
+    (tmp_path / "r1").mkdir()
+    denoise(StageContext(name="denoise", work_dir=tmp_path / "r1", inputs={"noisy": tmp_path / "noisy"},
+                         settings=DenoiseStageSettings(n2v_config(d), passes=1, device="cpu", pd_stride=2), seed=0))
+    seen = []
+    real = round2.refine_round2
+
+    def spy(model, photos, renders, *args, **kwargs):
+        seen.append(([p.shape for p in photos], [r.shape for r in renders]))
+        return real(model, photos, renders, *args, **kwargs)
+
+    monkeypatch.setattr(round2, "refine_round2", spy)
+    (tmp_path / "r2").mkdir()
+    summary = refine(StageContext(
+        name="refine", work_dir=tmp_path / "r2", seed=0,
+        inputs={"selection": tmp_path / "selection.json", "noisy": tmp_path / "noisy", "renders": tmp_path / "renders",
+                "model": tmp_path / "r1" / "n2v_model.pt"},
+        settings=RefineStageSettings(round2_config(d), passes=1, device="cpu", pd_stride=2)))
+    assert summary["pd_stride"] == 2
+    assert seen == [([(20, 23, 3)] * 8, [(20, 23, 3)] * 8)]  # photos and renders shuffled alike
+    assert {k: v.shape for k, v in read_views(tmp_path / "r2" / "denoised").items()} == {"v0": (40, 46, 3),
+                                                                                        "v1": (40, 46, 3)}
