@@ -99,20 +99,8 @@ def bilinear_demosaic(mosaic: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class BayerNoiseParams:
-    gain: float = spec_field(0.01, range=(1e-6, 1.0),
-                             doc="shot-noise gain a of each sensor site: Var = a * x + sigma^2 there")
-    read_sigma: float | None = spec_field(None, range=(0.0, 1.0), doc="read-noise std in [0, 1] units")
-    read_sigma_8bit: float | None = spec_field(None, range=(0.0, 255.0), doc="read-noise std in 8-bit units")
-    clip: bool = spec_field(True, doc="clip the result to [0, 1]")
-
-    def validated(self, *, key: str, path: Path | None) -> BayerNoiseParams:
-        _one_of(self.read_sigma, self.read_sigma_8bit, ("read_sigma", "read_sigma_8bit"), key, path)
-        return self
-
-    @property
-    def read_sigma01(self) -> float:
-        return float(self.read_sigma) if self.read_sigma is not None else float(self.read_sigma_8bit) / 255.0
+class BayerNoiseParams(PoissonGaussianParams):
+    """`PoissonGaussianParams`, drawn at each sensor site of the Bayer mosaic (`bayer_noise`)."""
 
 
 @register_effect("bayer_noise", BayerNoiseParams)

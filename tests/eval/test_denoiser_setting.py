@@ -106,22 +106,32 @@ def test_results_rows_name_the_denoiser():
     assert METHODS["instantsplat"].pipeline_config(preset("fast"), "r2r").denoise.method == "n2v"
 
 
+def _flat_noisy_photos(folder, seed: int, shape=(40, 48, 3)) -> dict[str, np.ndarray]:
+    """Two photos of one flat random colour with noise of std 0.1, written to `folder`."""
+    rng = np.random.default_rng(seed)
+    clean = np.clip(rng.random((1, 1, 3)) * 0.6 + 0.2 + np.zeros(shape), 0, 1).astype(np.float32)
+    noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
+    write_views(folder, noisy)
+    return noisy
+
+
+def _run_denoise_stage(tmp_path, work_name: str, steps: int, **settings):
+    """The real denoise stage (R2R, the fast preset, `steps` steps) on `tmp_path / "noisy"` into
+    `tmp_path / work_name`: (its summary, the photos it wrote)."""
+    work = tmp_path / work_name
+    work.mkdir()
+    stage = DenoiseStageSettings(n2v_config(DenoiseSettings(n2v_preset="fast", n2v_steps=steps, method="r2r")),
+                                 passes=1, device="cpu", **settings)
+    summary = denoise(StageContext(name="denoise", work_dir=work, inputs={"noisy": tmp_path / "noisy"},
+                                   settings=stage, seed=0))
+    return summary, read_views(work / "denoised")
+
+
 def test_keep_noisy_blends_the_noisy_photo_back_in(tmp_path):
     # The stage with keep_noisy k writes (1 - k) * the network's output + k * the noisy photo: against the
     # same seeded stage with k = 0 and the formula (8-bit PNGs: one level of rounding).
-    rng = np.random.default_rng(1)
-    clean = np.clip(rng.random((1, 1, 3)) * 0.6 + 0.2 + np.zeros((40, 48, 3)), 0, 1).astype(np.float32)
-    noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
-    write_views(tmp_path / "noisy", noisy)
-    outs = {}
-    for k in (0.0, 0.3):
-        settings = DenoiseStageSettings(n2v_config(DenoiseSettings(n2v_preset="fast", n2v_steps=5, method="r2r")),
-                                        passes=1, device="cpu", keep_noisy=k)
-        work = tmp_path / f"work{k}"
-        work.mkdir()
-        denoise(StageContext(name="denoise", work_dir=work, inputs={"noisy": tmp_path / "noisy"},
-                             settings=settings, seed=0))
-        outs[k] = read_views(work / "denoised")
+    noisy = _flat_noisy_photos(tmp_path / "noisy", 1)
+    outs = {k: _run_denoise_stage(tmp_path, f"work{k}", 5, keep_noisy=k)[1] for k in (0.0, 0.3)}
     noisy_read = read_views(tmp_path / "noisy")
     for name in noisy:
         expected = 0.7 * outs[0.0][name] + 0.3 * noisy_read[name]
@@ -264,19 +274,10 @@ def test_the_stage_denoises_pixel_shuffled_sub_images_at_the_stride_given(tmp_pa
         return real(photos, *args, **kwargs)
 
     monkeypatch.setattr(stages, "_denoise_photos", spy)
-    rng = np.random.default_rng(3)
-    clean = np.clip(rng.random((1, 1, 3)) * 0.6 + 0.2 + np.zeros((40, 46, 3)), 0, 1).astype(np.float32)
-    noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
-    write_views(tmp_path / "noisy", noisy)
+    noisy = _flat_noisy_photos(tmp_path / "noisy", 3, (40, 46, 3))
     summaries = {}
     for stride in (0, 2):
-        settings = DenoiseStageSettings(n2v_config(DenoiseSettings(n2v_preset="fast", n2v_steps=3, method="r2r")),
-                                        passes=1, device="cpu", pd_stride=stride)
-        work = tmp_path / f"work{stride}"
-        work.mkdir()
-        summaries[stride] = denoise(StageContext(name="denoise", work_dir=work, inputs={"noisy": tmp_path / "noisy"},
-                                                 settings=settings, seed=0))
-        out = read_views(work / "denoised")
+        summaries[stride], out = _run_denoise_stage(tmp_path, f"work{stride}", 3, pd_stride=stride)
         assert {k: v.shape for k, v in out.items()} == {k: v.shape for k, v in noisy.items()}
     assert summaries[2]["pd_stride"] == 2 and summaries[0]["pd_stride"] == 1  # too small to measure: none
     # Stride 1 denoised the two 40 x 46 photos; stride 2 their eight 20 x 23 sub-images.
@@ -310,11 +311,8 @@ def test_the_refine_stage_fine_tunes_and_denoises_the_sub_images_at_round_1s_str
     from eval.pipeline.stage_settings import RefineStageSettings, round2_config
     from eval.pipeline.stages import refine
 
-    rng = np.random.default_rng(4)
-    clean = np.clip(rng.random((1, 1, 3)) * 0.6 + 0.2 + np.zeros((40, 46, 3)), 0, 1).astype(np.float32)
-    noisy = {f"v{i}": np.clip(clean + rng.normal(0, 0.1, clean.shape), 0, 1).astype(np.float32) for i in range(2)}
-    write_views(tmp_path / "noisy", noisy)
-    write_views(tmp_path / "renders", {k: clean for k in noisy})
+    noisy = _flat_noisy_photos(tmp_path / "noisy", 4, (40, 46, 3))
+    write_views(tmp_path / "renders", {k: np.full((40, 46, 3), 0.5, np.float32) for k in noisy})
     (tmp_path / "selection.json").write_text('{"names": ["v0", "v1"]}')
     d = DenoiseSettings(n2v_preset="fast", n2v_steps=3, round2_steps=2)
     (tmp_path / "r1").mkdir()
