@@ -137,3 +137,19 @@ def test_cli_train_and_render_on_cuda(tmp_path, scene):
     assert main(["render", str(out), "--cameras", str(tmp_path / "data" / "sparse" / "0"),
                  "--out", str(tmp_path / "renders"), "--device", "cuda"]) == 0
     assert len(list((tmp_path / "renders").glob("*.png"))) == len(scene["poses"])
+
+
+def test_fit_pose_returns_the_best_pose_it_visited_not_its_last(scene):
+    # A learning rate far too large throws the pose away from a start that is already right: the fit must
+    # return the start (its loss is the lowest it saw), where the last step's pose is far off.
+    from splat.pose_fit import PoseFitConfig
+
+    true = scene["poses"][4]
+    wild = PoseFitConfig(iters=15, lr=0.5, lr_final=0.4)
+    fitted = fit_pose(scene["gt"], scene["images"][4], scene["camera"], true, config=wild)
+    np.testing.assert_allclose(fitted, true, atol=1e-9)
+    # With the default rate from a perturbed start the best pose is a fitted one, not the start.
+    xi = torch.tensor([0.02, -0.015, 0.01, 0.03, -0.02, 0.02], dtype=torch.float64)
+    start = (se3_exp(xi) @ torch.cat([torch.as_tensor(true), torch.tensor([[0, 0, 0, 1.0]], dtype=torch.float64)]))
+    start = start[:3].numpy()
+    assert not np.allclose(fit_pose(scene["gt"], scene["images"][4], scene["camera"], start, iters=20), start)
