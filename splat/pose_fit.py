@@ -95,8 +95,9 @@ def _fit_pose(model, image, camera, cam_from_world_init, iters, cfg: PoseFitConf
         for _ in range(n_iters):
             opt.zero_grad(set_to_none=True)
             loss = loss_at(delta)
-            if float(loss) < best_loss:  # the pose this loss is of: before the step
-                best_loss, best_delta = float(loss), delta.detach().clone()
+            value = float(loss.detach())
+            if value < best_loss:  # the pose this loss is of: before the step
+                best_loss, best_delta = value, delta.detach().clone()
             loss.backward()
             opt.step()
             sched.step()
