@@ -20,7 +20,7 @@ from denoise.grouped_wiener import GroupedWienerConfig
 from denoise.inference import NOISE_MODELS
 from denoise.model import save_checkpoint
 from denoise.n2v import METHODS, N2V_PRESETS, n2v_preset
-from denoise.pixel_shuffle import MAX_STRIDE, choose_stride, shuffled, unshuffled
+from denoise.pixel_shuffle import MAX_STRIDE, shuffled, stride_for, unshuffled
 from denoise.self_supervised import choose_objective, denoise_with_method, train_with_method
 from denoise.view_selection import select_views
 from denoise.wiener import WienerConfig
@@ -77,13 +77,8 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px; N2V needs at least "
                              f"{MIN_SIDE_PX}x{MIN_SIDE_PX}", path=f, fix="remove it from the folder")
     overrides = {} if args.steps is None else {"steps": args.steps}
-    chosen = {}
-    stride = args.pd_stride
-    if stride == 0:
-        measured = choose_stride(images)
-        stride = measured.stride
-        chosen["noise_level_by_stride_255"] = {str(k): round(255.0 * v, 2) for k, v in measured.level_by_stride.items()}
-    chosen["pd_stride"] = stride
+    levels = stride_for(images, args.pd_stride)
+    stride, chosen = levels.stride, levels.record()
     work = images
     small = [f for f, img in zip(files, images, strict=True) if min(img.shape[:2]) < MIN_SIDE_PX * stride]
     if small:

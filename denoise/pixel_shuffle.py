@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["MAX_PHOTOS", "MAX_STRIDE", "MIN_LEVEL_RATIO", "MIN_NOISE_STD", "NoiseLevels", "choose_stride", "merge_std",
-           "pd_merge", "pd_split", "shuffled", "unshuffled"]
+           "pd_merge", "pd_split", "shuffled", "stride_for", "unshuffled"]
 
 #: The largest stride `choose_stride` returns (16 sub-images; a 384 px photo's are 96 px).
 MAX_STRIDE = 4
@@ -97,9 +97,9 @@ def merge_std(parts: Sequence, stride: int, shape: tuple[int, ...]):
     if not any(isinstance(p, torch.Tensor) for p in parts):
         return float(np.mean([float(p) for p in parts]))
     H, W = shape[:2]
-    C = next(p for p in parts if isinstance(p, torch.Tensor)).shape[0]
+    first = next(p for p in parts if isinstance(p, torch.Tensor))
+    C, dtype = first.shape[0], first.numpy().dtype
     grid = pd_split(np.zeros((H, W)), stride)
-    dtype = next(p for p in parts if isinstance(p, torch.Tensor)).numpy().dtype
     maps = [p.permute(1, 2, 0).numpy() if isinstance(p, torch.Tensor) else np.full(g.shape + (C,), float(p), dtype)
             for p, g in zip(parts, grid, strict=True)]
     return torch.from_numpy(pd_merge(maps, stride, (H, W, C))).permute(2, 0, 1).contiguous()
@@ -118,6 +118,16 @@ class NoiseLevels:
 
     stride: int
     level_by_stride: dict[int, float]
+
+    def record(self) -> dict[str, object]:
+        """What a stage summary or report.json records: the stride, and the levels read (/255) if any."""
+        levels = {str(k): round(255.0 * v, 2) for k, v in self.level_by_stride.items()}
+        return {"pd_stride": self.stride, **({"noise_level_by_stride_255": levels} if levels else {})}
+
+
+def stride_for(images: Sequence[np.ndarray], setting: int) -> NoiseLevels:
+    """The stride a `pd_stride` setting gives: `choose_stride` for 0, else the setting (nothing read)."""
+    return choose_stride(images) if setting == 0 else NoiseLevels(int(setting), {})
 
 
 def _level(images: Sequence[np.ndarray], stride: int) -> float:

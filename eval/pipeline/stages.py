@@ -108,7 +108,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     neighbouring pixels (`pd_stride` 0: `denoise.pixel_shuffle.choose_stride` measures it) all of this runs
     on their pixel-shuffled sub-images, put back together after (`denoise.pixel_shuffle`)."""
     from denoise.model import save_checkpoint
-    from denoise.pixel_shuffle import choose_stride, merge_std, shuffled, unshuffled
+    from denoise.pixel_shuffle import merge_std, shuffled, stride_for, unshuffled
     from denoise.self_supervised import choose_objective
     from eval.pipeline.quality import noise_levels
 
@@ -120,14 +120,8 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         choice = choose_objective(photos)
         n2v = dataclasses.replace(n2v, method=choice.method)
         chosen = {"objective": choice.method, "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
-    shuffle: dict[str, object] = {}
-    stride = s.pd_stride
-    if stride == 0:
-        measured = choose_stride(photos)
-        stride = measured.stride
-        shuffle = {"noise_level_by_stride_255": {str(k): round(255.0 * v, 2)
-                                                 for k, v in measured.level_by_stride.items()}}
-    shuffle["pd_stride"] = stride
+    levels = stride_for(photos, s.pd_stride)
+    stride, shuffle = levels.stride, levels.record()
     if stride > 1:
         _log.info("the photos' noise is correlated between neighbouring pixels (its level /255 by stride: %s): "
                   "denoising their %d x %d pixel-shuffled sub-images",
@@ -647,7 +641,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     from denoise.inference import denoise_images
     from denoise.model import load_checkpoint, save_checkpoint
     from denoise.parallel import one_thread_per_task
-    from denoise.pixel_shuffle import choose_stride, shuffled, unshuffled
+    from denoise.pixel_shuffle import shuffled, stride_for, unshuffled
     from denoise.round2 import refine_round2
 
     s = ctx.settings
@@ -655,7 +649,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     noisy = read_views(ctx.inputs["noisy"], names)
     renders = read_views(ctx.inputs["renders"], names)
     model = load_checkpoint(ctx.inputs["model"], device=s.device)
-    stride = s.pd_stride or choose_stride(list(noisy.values())).stride
+    stride = stride_for(list(noisy.values()), s.pd_stride).stride
     photos, targets = list(noisy.values()), list(renders.values())
     if stride > 1:
         photos, targets = shuffled(photos, stride), shuffled(targets, stride)
