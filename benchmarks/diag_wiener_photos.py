@@ -12,12 +12,13 @@ the seconds per photo; with `--write OUT`, writes each variant's photos to `OUT/
 `benchmarks/diag_splat_inputs.py ... dir:OUT/8x2`). The variant `pilot` is the pilots as they are.
 
 With `--grouped`, each variant's photos are then refined by the grouped Wiener step
-(`denoise.grouped_wiener`, its default configuration) as the denoise stage runs it (`_then_grouped`: the
-variant's photos as pilots, the clipped-noise inverse after), printed as `VARIANT+grouped` (written to
-`OUT/VARIANT+grouped/`).
+(`denoise.grouped_wiener`) as the denoise stage runs it (`_then_grouped`: the variant's photos as pilots,
+the clipped-noise inverse after), once per `--grouped-settings` `PATCHxGROUPxSTRIDE` (default `5x40x3`, the
+step's own configuration), printed as `VARIANT+grouped SETTING` (written to `OUT/VARIANT+grouped SETTING/`).
 
 Usage: .venv/bin/python benchmarks/diag_wiener_photos.py NOISY_DIR PILOT_DIR CLEAN_DIR [--sigma 25]
-           [--write OUT] [--variants BLOCKxSTEP|pilot ...] [--grouped]   (default variants: 8x2 8x1 12x2 6x1)
+           [--write OUT] [--variants BLOCKxSTEP|pilot ...] [--grouped [--grouped-settings 5x40x3 ...]]
+           (default variants: 8x2 8x1 12x2 6x1)
 """
 import argparse
 import sys
@@ -50,6 +51,8 @@ def main() -> int:
     ap.add_argument("--sigma", type=float, default=None, help="the noise std in 1/255 (default: estimated)")
     ap.add_argument("--write", type=Path, default=None)
     ap.add_argument("--grouped", action="store_true", help="also each variant then the grouped Wiener step")
+    ap.add_argument("--grouped-settings", nargs="+", default=["5x40x3"],
+                    help="with --grouped: PATCHxGROUPxSTRIDE settings of the grouped step (default 5x40x3, the step's)")
     args = ap.parse_args()
     names = sorted(p.name for p in args.pilot_dir.iterdir() if p.suffix == ".png")
     noisy = [read_image(args.noisy_dir / n) for n in names]
@@ -77,11 +80,13 @@ def main() -> int:
             refined = _refined(noisy, pilots, sig_t, 0.0, cfg)  # the denoise stage's own step
             photos = [np.clip(x, 0, 1) for x in _undo_clipping(noisy, refined, sig_t, clean_sigma=0.0)]
         report(v, photos, (time.perf_counter() - t) / len(names))
-        if args.grouped:
+        for setting in (args.grouped_settings if args.grouped else []):
+            p, n, st = (int(x) for x in setting.split("x"))
             t = time.perf_counter()
-            grouped = _grouped(noisy, photos, sig_t, 0.0, GroupedWienerConfig(), clipped_domain=True)  # `_then_grouped`
+            gcfg = GroupedWienerConfig(patch_px=p, group_size=n, stride_px=st)
+            grouped = _grouped(noisy, photos, sig_t, 0.0, gcfg, clipped_domain=True)  # `_then_grouped`
             grouped = [np.clip(x, 0, 1) for x in _undo_clipping(noisy, grouped, sig_t, clean_sigma=0.0)]
-            report(f"{v}+grouped", grouped, (time.perf_counter() - t) / len(names))
+            report(f"{v}+grouped {setting}", grouped, (time.perf_counter() - t) / len(names))
     return 0
 
 
