@@ -30,7 +30,7 @@ from data_synth.spec import (
     TextureSpec,
 )
 from data_synth.toml_writer import dumps
-from mvgeo.common.errors import ConfigError, InputError
+from mvgeo.common.errors import ConfigError, DegenerateGeometryError, InputError
 
 _ROOT_KEYS = ("base", "scene", "render", "lighting", "camera", "rig", "split", "textures", "objects", "effects")
 _MAX_BASE_DEPTH = 8
@@ -196,15 +196,27 @@ def _as(cls: type, value: Any, key: str, path: Path | None) -> Any:
 
 
 def _check_split(spec: SceneSpec, path: Path | None) -> None:
-    if spec.split.test is None:
-        return
-    from data_synth.rigs import rig_views
+    """The rig's views exist (a look-at camera needs an `up` off its viewing direction), the explicit test
+    names are theirs, and the split leaves at least one training view (nothing trains on a scene without)."""
+    from data_synth.rigs import rig_views, split_views
 
-    names = {v.name for v in rig_views(spec.rig)}
-    for i, name in enumerate(spec.split.test):
+    try:
+        views = rig_views(spec.rig)
+    except DegenerateGeometryError as exc:
+        key = "rig.up" if "`up`" in str(exc) else "rig.look_at"
+        raise ConfigError(str(exc), key=key, path=path,
+                          expected="an up vector not parallel to any camera's viewing direction, and a look-at "
+                                   "point apart from every camera") from exc
+    names = {v.name for v in views}
+    for i, name in enumerate(spec.split.test or []):
         if name not in names:
             raise ConfigError(f"no view named {name!r}", key=f"split.test[{i}]", path=path,
                               expected="names of this rig's views (view_000, ...)")
+    split = split_views([v.name for v in views], spec.split)
+    if not split["train"]:
+        raise ConfigError(f"the split leaves none of the {len(views)} view(s) for training "
+                          f"(test: {', '.join(split['test'])})", key="split", path=path,
+                          expected="more views (--views N) or fewer test views (split.test_every, split.test)")
 
 
 def load_scene(scene: str | Path, *, seed: int | None = None, size_wh: tuple[int, int] | None = None,

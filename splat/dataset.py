@@ -16,6 +16,7 @@ from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.common.jsonio import read_json_object
+from mvgeo.common.npyio import load_numpy
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 
 
@@ -146,11 +147,7 @@ def points_from_depth(data_dir: str | Path, views: TrainingViews, *, stride_px: 
         if not path.exists():
             raise InputError("no depth map for this view", path=path,
                              fix="use --init POINTS.ply or a sparse model with points")
-        try:
-            depth = np.load(path)
-        except (OSError, ValueError, EOFError) as exc:  # ValueError: not a .npy file, or pickled objects
-            raise InputError(f"cannot read a depth map from this file ({exc})", path=path,
-                             fix="write it with numpy.save as an (H, W) float array, or use --init POINTS.ply") from exc
+        depth = load_numpy(path, fix="write it with numpy.save as an (H, W) float array, or use --init POINTS.ply")
         if not isinstance(depth, np.ndarray) or depth.shape != (cam.height, cam.width):
             raise InputError(f"depth map has shape {getattr(depth, 'shape', None)}, its view is "
                              f"{cam.width}x{cam.height} (expected ({cam.height}, {cam.width}))", path=path,

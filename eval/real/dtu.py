@@ -1,6 +1,8 @@
 """DTU captures in the IDR / MonoSDF layout: `images/*.png` plus `cameras.npz`.
 
-`cameras.npz` holds, per view index i (the i-th image in sorted order),
+`cameras.npz` holds, per view index i (image `00000i.png`: the index is the
+image's file name; for names that are not numbers, the i-th image in sorted
+order, and then the file must hold exactly one camera per image),
 `world_mat_i` (4 x 4; its top 3 x 4 is the projection ``K [R | t]`` of the
 original 1600 x 1200 image, world units mm) and `scale_mat_i` (maps the unit
 sphere around the object to world coordinates). We use the normalised world
@@ -16,6 +18,7 @@ the original crop are not documented.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -24,21 +27,26 @@ from eval.real.capture import BoundingSphere, Capture, CaptureView, image_size_w
 from mvgeo.camera import Camera
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import InputError
+from mvgeo.common.npyio import load_numpy
 
-__all__ = ["dtu_cameras", "read_dtu"]
+__all__ = ["camera_indices", "dtu_cameras", "read_dtu"]
+
+_NPZ_FIX = "restore cameras.npz from the dataset's download (world_mat_i / scale_mat_i arrays)"
 
 #: Original DTU pixels -> MonoSDF's 384 x 384 crop (both with pixel centres at integers).
 CROP_384 = np.array([[0.32, 0.0, -0.32 * 200.0], [0.0, 0.32, 0.0], [0.0, 0.0, 1.0]])
 
 
-def dtu_cameras(npz_path: Path, n: int, *, size_wh: tuple[int, int] = (384, 384)
+def dtu_cameras(npz_path: Path, n: int | Sequence[int], *, size_wh: tuple[int, int] = (384, 384)
                 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(K (3, 3) in our pixel convention for images of `size_wh`, cam_from_world (3, 4)) for views 0..n-1.
+    """(K (3, 3) in our pixel convention for images of `size_wh`, cam_from_world (3, 4)) for views 0..n-1,
+    or for the view indices `n` (a sequence).
 
     Raises:
         InputError: a `world_mat_i` / `scale_mat_i` is missing or not 4 x 4, an unsupported image size,
             or a projection that decomposes to a reflection.
     """
+    indices = list(range(n)) if isinstance(n, int) else [int(i) for i in n]
     npz_path = Path(npz_path)
     if tuple(size_wh) == (384, 384):
         to_pixels = CROP_384
@@ -48,16 +56,13 @@ def dtu_cameras(npz_path: Path, n: int, *, size_wh: tuple[int, int] = (384, 384)
         raise InputError(f"DTU images are {size_wh[0]}x{size_wh[1]}; the cameras fit the original 1600x1200 "
                          "images or MonoSDF's 384x384 crop", path=npz_path,
                          fix="import the original or the 384x384 images and resize with --size / --max-size")
-    try:
-        data = np.load(npz_path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read cameras.npz ({exc})", path=npz_path) from exc
+    data = load_numpy(npz_path, fix=_NPZ_FIX)
     out = []
-    for i in range(n):
+    for i in indices:
         keys = (f"world_mat_{i}", f"scale_mat_{i}")
         for key in keys:
             if key not in data:
-                raise InputError(f"cameras.npz has no {key} (image {i} in sorted order)", path=npz_path,
+                raise InputError(f"cameras.npz has no {key} (the camera of image {i})", path=npz_path,
                                  fix="keep one world_mat_i / scale_mat_i per image in images/")
             if data[key].shape != (4, 4):
                 raise InputError(f"{key} must be 4x4, got {data[key].shape}", path=npz_path)
@@ -80,6 +85,22 @@ def dtu_cameras(npz_path: Path, n: int, *, size_wh: tuple[int, int] = (384, 384)
     return out
 
 
+def camera_indices(files: Sequence[Path], npz_path: Path) -> list[int]:
+    """The `cameras.npz` index of each image: its file name's number (`000012.png` -> 12) when every name is
+    one, else its position in sorted order, which needs exactly one camera per image (else a view would get
+    another view's camera: an images folder with a gap shifts every later view)."""
+    stems = [f.stem for f in files]
+    if all(s.isdigit() for s in stems):
+        return [int(s) for s in stems]
+    n_cameras = sum(1 for k in load_numpy(npz_path, fix=_NPZ_FIX).files if k.startswith("world_mat_"))
+    if n_cameras != len(files):
+        raise InputError(f"{len(files)} images whose names are not camera numbers, and {n_cameras} cameras: "
+                         "which camera is which image is ambiguous", path=npz_path,
+                         fix="name the images by their camera index (000000.png for world_mat_0, ...), as the "
+                             "IDR/MonoSDF layout does")
+    return list(range(len(files)))
+
+
 def read_dtu(src: str | Path) -> Capture:
     """Read a DTU scan folder (`images/*.png`, `cameras.npz`); the world is normalised by `scale_mat`.
 
@@ -99,7 +120,7 @@ def read_dtu(src: str | Path) -> Capture:
     if len(sizes) != 1:
         raise InputError(f"the images have different sizes {sorted(sizes)}", path=src / "images")
     (size_wh,) = sizes
-    cams = dtu_cameras(src / "cameras.npz", len(files), size_wh=size_wh)
+    cams = dtu_cameras(src / "cameras.npz", camera_indices(files, src / "cameras.npz"), size_wh=size_wh)
     views = [CaptureView(name=f.stem, image_path=f, camera=Camera.from_K(K, *size_wh), cam_from_world=cfw)
              for f, (K, cfw) in zip(files, cams, strict=True)]
     notes = ("DTU P = world_mat @ scale_mat decomposed; 384x384: u' = 0.32 (u - 200), v' = 0.32 v; "

@@ -46,6 +46,7 @@ from eval.real.capture import Capture, CaptureView, image_size_wh, rotation_chec
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import list_images
+from mvgeo.common.npyio import load_numpy
 
 __all__ = ["cam_from_world_from_llff", "read_llff"]
 
@@ -88,10 +89,7 @@ def read_llff(src: str | Path, *, factor: int | None = None) -> Capture:
     if not npy.is_file():
         raise InputError("not an LLFF capture: no poses_bounds.npy", path=npy,
                          fix="point at the scene folder holding poses_bounds.npy and images/ (LLFF's imgs2poses.py)")
-    try:
-        arr = np.load(npy, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read poses_bounds.npy as a numeric array ({exc})", path=npy) from exc
+    arr = load_numpy(npy, fix="restore poses_bounds.npy (LLFF's imgs2poses.py writes it: an (N, 17) array)")
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] < 1 or not np.issubdtype(arr.dtype, np.number):
         raise InputError(f"poses_bounds.npy must be an (N, 17) number array, got shape {arr.shape} "
                          f"dtype {arr.dtype}", path=npy,

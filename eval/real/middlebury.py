@@ -75,7 +75,12 @@ def read_middlebury(src: str | Path) -> Capture:
             missing image.
     """
     par = find_par_file(Path(src))
-    lines = [(i + 1, ln.split()) for i, ln in enumerate(par.read_text().splitlines()) if ln.strip()]
+    try:
+        text = par.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read the camera file ({getattr(exc, 'strerror', None) or exc})", path=par,
+                         fix="check that it is a readable text file (Middlebury's *_par.txt)") from exc
+    lines = [(i + 1, ln.split()) for i, ln in enumerate(text.splitlines()) if ln.strip()]
     if not lines:
         raise InputError("the camera file is empty", path=par)
     head_no, head = lines[0]

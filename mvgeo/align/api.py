@@ -113,11 +113,21 @@ def _cloud_pixels(inputs: AlignInputs, cloud_images, intrinsics: Camera | None, 
     if len(cloud_images) != len(inputs):
         raise InputError(f"{len(cloud_images)} cloud images for {len(inputs)} images",
                          fix="pass one cloud image per image, in the same order")
-    pixels = load_inputs(cloud_images, names=inputs.names, intrinsics=intrinsics, max_size_px=config.max_size_px)
-    if pixels.input_wh != inputs.input_wh:
-        raise InputError(f"the cloud images are {pixels.input_wh[0]}x{pixels.input_wh[1]}, the images "
-                         f"{inputs.input_wh[0]}x{inputs.input_wh[1]}", fix="pass the same views at the same size")
-    return pixels
+    def same_size(pixels: AlignInputs) -> AlignInputs:
+        if pixels.input_wh != inputs.input_wh:
+            raise InputError(f"the cloud images are {pixels.input_wh[0]}x{pixels.input_wh[1]}, the images "
+                             f"{inputs.input_wh[0]}x{inputs.input_wh[1]}", fix="pass the same views at the same size")
+        return pixels
+
+    try:
+        return same_size(load_inputs(cloud_images, names=inputs.names, intrinsics=intrinsics,
+                                     max_size_px=config.max_size_px))
+    except InputError:
+        if intrinsics is None:
+            raise
+        # The calibration fits the images (checked on them): a size mismatch is the cloud images', say so.
+        same_size(load_inputs(cloud_images, names=inputs.names, intrinsics=None, max_size_px=config.max_size_px))
+        raise
 
 
 def _sparse_model(c: Candidate, cloud: DenseCloud) -> SparseModel:

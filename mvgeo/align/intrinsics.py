@@ -30,8 +30,8 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import exif_focal_35mm
 from mvgeo.sparse_model import read_sparse_model
 
-__all__ = ["FULL_FRAME_DIAGONAL_MM", "FocalPrior", "choose_focal_prior", "common_focal_prior", "exif_focal_prior",
-           "opencv_distortion", "read_intrinsics", "undistort_image"]
+__all__ = ["FULL_FRAME_DIAGONAL_MM", "MAX_FOCAL_PER_SIDE", "FocalPrior", "check_camera", "choose_focal_prior",
+           "common_focal_prior", "exif_focal_prior", "opencv_distortion", "read_intrinsics", "undistort_image"]
 
 _log = logging.getLogger(__name__)
 
@@ -45,17 +45,41 @@ def read_intrinsics(path: str | Path) -> Camera:
     """Read one camera from a COLMAP `cameras.txt` (exactly one camera) or an mrcal `.cameramodel`.
 
     Raises:
-        InputError: missing/unreadable file, several cameras, or an unsupported model.
+        InputError: missing/unreadable file, several cameras, an unsupported model, or a camera no lens has
+            (`check_camera`).
     """
     path = Path(path)
     if not path.is_file():
         raise InputError("intrinsics file does not exist", path=path,
                          fix="pass a COLMAP cameras.txt or an mrcal .cameramodel")
     if path.suffix == ".cameramodel":
-        return _read_mrcal(path)
+        return check_camera(_read_mrcal(path), path)
     if path.suffix == ".txt":
-        return _read_colmap_cameras_txt(path)
+        return check_camera(_read_colmap_cameras_txt(path), path)
     raise InputError("unknown intrinsics format", path=path, fix="use a COLMAP cameras.txt or an mrcal .cameramodel")
+
+
+#: The longest focal length `check_camera` accepts, in multiples of the image's long side: a field of view
+#: of about 0.6 deg (a 1000 mm lens on an APS-C sensor is about 43).
+MAX_FOCAL_PER_SIDE = 100.0
+
+
+def check_camera(camera: Camera, path: str | Path) -> Camera:
+    """`camera` as it is, if a lens can have it: finite parameters, focal lengths positive and at most
+    `MAX_FOCAL_PER_SIDE` times the image's long side. Else an `InputError` naming `path` (a zero focal made
+    the two-view geometry singular; a negative one passed and failed later as a divergence or a
+    disconnected pair graph)."""
+    if not np.all(np.isfinite(camera.params)):
+        raise InputError(f"the camera's parameters are not all finite numbers: {camera.params.tolist()}", path=path,
+                         fix="write the calibration's numbers (fx, fy, cx, cy, ...) in pixels")
+    long_side = max(camera.width, camera.height)
+    for name, f in (("fx", camera.fx), ("fy", camera.fy)):
+        if not 0.0 < f <= MAX_FOCAL_PER_SIDE * long_side:
+            raise InputError(f"focal length {name} = {f:g} px: it must be positive and at most "
+                             f"{MAX_FOCAL_PER_SIDE:g} times the image's long side ({long_side} px)", path=path,
+                             fix="write the focal length in pixels of the image size the file names "
+                                 f"({camera.width}x{camera.height})")
+    return camera
 
 
 def _read_colmap_cameras_txt(path: Path) -> Camera:

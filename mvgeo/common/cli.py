@@ -13,6 +13,7 @@ handler back after that import.
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import signal
 import sys
@@ -55,6 +56,8 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
     - other `DgsError` (e.g. degenerate geometry the user must know about): message, exit 1.
     - argparse usage errors exit 2 (argparse's own behaviour).
     - SIGTERM while `main` runs: one line on stderr, exit 143 (see the module docstring).
+    - a full disk or quota (`OSError` ENOSPC / EDQUOT): message naming the file, no traceback, exit 1. The
+      commands write their outputs atomically, so what the error interrupted is not left as a result.
     """
     args = parser.parse_args(argv)
     setup_logging(getattr(args, "verbose", 0))
@@ -67,6 +70,13 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
     except DgsError as exc:
         logging.getLogger(__name__).debug("failure", exc_info=True)
         print(f"error: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        where = f" while writing {exc.filename}" if exc.filename else ""
+        print(f"error: no space left on the device{where} ({exc.strerror})\n  fix: free some space, or write --out "
+              "to another disk", file=sys.stderr)
         return EXIT_FAILURE
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

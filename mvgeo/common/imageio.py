@@ -37,7 +37,11 @@ def list_images(folder: str | Path) -> list[Path]:
         raise InputError("folder does not exist", path=folder, fix="pass a folder of images")
     if not folder.is_dir():
         raise InputError("not a folder", path=folder, fix="pass a folder of images")
-    entries = list(folder.iterdir())
+    try:
+        entries = list(folder.iterdir())
+    except OSError as exc:
+        raise InputError(f"cannot list the folder ({exc.strerror or exc})", path=folder,
+                         fix="check the folder's permissions (it must be readable and searchable)") from exc
     named = sorted(p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES)
     for p in named:
         try:
@@ -244,7 +248,11 @@ def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError("image file does not exist", path=path)
-    data = np.fromfile(path, dtype=np.uint8)
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise InputError(f"cannot read the image file ({exc.strerror or exc})", path=path,
+                         fix="check the file's permissions (e.g. `chmod u+r`)") from exc
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
         raise InputError("cannot decode image (corrupt or unsupported format)", path=path,

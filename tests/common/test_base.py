@@ -78,6 +78,24 @@ def test_image_errors(tmp_path):
         list_images(empty)
 
 
+def test_unreadable_image_or_folder_is_an_input_error(tmp_path, rng, monkeypatch):
+    """What a file or folder without read permission raises (simulated: the tests may run as root, which
+    permissions do not stop) becomes an InputError naming it, not a traceback."""
+    write_image(tmp_path / "a.png", rng.random((4, 5, 3)))
+
+    def denied(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    with monkeypatch.context() as m:
+        m.setattr(np, "fromfile", denied)
+        with pytest.raises(InputError, match=r"a.png: cannot read the image file \(Permission denied\)"):
+            read_image(tmp_path / "a.png")
+    with monkeypatch.context() as m:
+        m.setattr(type(tmp_path), "iterdir", denied)
+        with pytest.raises(InputError, match=r"cannot list the folder \(Permission denied\)"):
+            list_images(tmp_path)
+
+
 def test_grayscale_is_replicated(tmp_path):
     from mvgeo.common.deps import cv2
 
@@ -136,3 +154,23 @@ def test_list_images_refuses_photos_it_cannot_read_unless_a_readable_copy_is_bes
         (only / f"IMG_{i}.heic").write_bytes(b"heic")
     with pytest.raises(InputError, match="7 photo.*IMG_4.heic and 2 more"):
         list_images(only)
+
+
+def test_a_full_disk_is_a_message_not_a_traceback(capsys):
+    import argparse
+    import errno
+
+    from mvgeo.common.cli import run_cli
+
+    def full(args):
+        raise OSError(errno.ENOSPC, "No space left on device", "/out/model.pt")
+
+    assert run_cli(full, argparse.ArgumentParser(), []) == 1
+    err = capsys.readouterr().err
+    assert "no space left on the device while writing /out/model.pt" in err and "fix:" in err, err
+
+    def denied(args):
+        raise OSError(errno.EACCES, "Permission denied", "/out")
+
+    with pytest.raises(PermissionError):  # not a full disk: not this handler's
+        run_cli(denied, argparse.ArgumentParser(), [])

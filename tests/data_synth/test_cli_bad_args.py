@@ -47,7 +47,7 @@ def test_render_that_does_not_fit_is_refused_before_any_work(tmp_path, capsys, m
     monkeypatch.setattr(data_synth.render, "available_memory_bytes", lambda: 24 * GiB if size[0] == "8" else GiB // 2)
     user_file = tmp_path / "notes.txt"
     user_file.write_text("keep me")
-    err = assert_refused(main, ["render", "llff_like", "--size", size, "--views", "1", "--out", tmp_path / "out"],
+    err = assert_refused(main, ["render", "llff_like", "--size", size, "--views", "2", "--out", tmp_path / "out"],
                          capsys, inputs=[user_file], watch=[tmp_path],
                          message=["GiB of memory", "is available", "fix:", "--size"])
     w, h = (int(v) for v in size.split("x"))
@@ -63,7 +63,7 @@ def test_render_that_fits_goes_ahead(tmp_path, monkeypatch):
 def test_check_render_memory_quotes_a_size_that_fits():
     from data_synth.render import check_render_memory, estimate_render_bytes
 
-    spec = load_scene("llff_like", size_wh=(4000, 3000), views=1)
+    spec = load_scene("llff_like", size_wh=(4000, 3000), views=2)
     need = estimate_render_bytes((4000, 3000), spec.render.supersample)
     with pytest.raises(InputError) as info:
         check_render_memory(spec, available_bytes=need // 4)
@@ -80,7 +80,7 @@ def test_estimate_bounds_a_measured_render():
     from data_synth.render import estimate_render_bytes
 
     w, h = 160, 120
-    spec = load_scene("llff_like", size_wh=(w, h), views=1)
+    spec = load_scene("llff_like", size_wh=(w, h), views=2)
     n = spec.render.supersample
     needs = render_needs(spec)
     renderer = SceneRenderer.from_spec(spec)
@@ -108,3 +108,16 @@ def test_a_scene_file_that_is_not_utf8_is_refused(tmp_path, capsys, no_render, c
     argv = [command, scene] + (["--out", tmp_path / "out"] if command == "render" else [])
     assert_refused(main, argv, capsys, inputs=[scene], watch=[tmp_path, scene.parent],
                    message=[str(scene), "not a UTF-8 text file", "fix:"])
+
+
+def test_a_scene_without_training_views_or_with_up_along_the_view_is_refused(tmp_path, capsys):
+    """One view is a test view under the LLFF split (nothing left to train on); an `up` along the viewing
+    direction has no camera. Both were found only while rendering (exit 0 with an unusable split, or exit 1
+    without the key)."""
+    assert_refused(main, ["render", "llff_like", "--views", "1", "--size", "32x24", "--out", tmp_path / "o1"],
+                   capsys, inputs=[], watch=[tmp_path], message=["key 'split'", "none of the 1 view(s) for training"])
+    scene = tmp_path / "up.toml"
+    scene.write_text('base = "llff_like"\n[rig]\nup = [0, 1, 0]\nlook_at = [0, 4, 1.2]\n')
+    for command in (["render", scene, "--views", "3", "--size", "48x36", "--out", tmp_path / "o2"], ["show", scene]):
+        assert_refused(main, command, capsys, inputs=[scene], watch=[tmp_path],
+                       message=[str(scene), "key 'rig.up'", "parallel to the viewing direction"])

@@ -123,6 +123,10 @@ def test_llff_cameras_put_points_where_the_llff_convention_does(tmp_path, rng, f
 
 def test_llff_bad_inputs_name_the_file(tmp_path, rng):
     _write_llff(tmp_path / "llff", rng, n=4)
+    (tmp_path / "llff" / "poses_bounds.npy").write_text("garbage\n")
+    with pytest.raises(InputError, match=r"poses_bounds.npy: not a NumPy .npy file, or a damaged one") as bad:
+        import_dataset("llff", tmp_path / "llff", tmp_path / "ds")
+    assert "pickle" not in str(bad.value)
     np.save(tmp_path / "llff" / "poses_bounds.npy", np.zeros((4, 15)))
     with pytest.raises(InputError, match=r"poses_bounds.npy.*\(N, 17\).*\(4, 15\)"):
         import_dataset("llff", tmp_path / "llff", tmp_path / "ds")
@@ -221,6 +225,14 @@ def test_middlebury_cameras_match_the_file_projection_plus_half_a_pixel(tmp_path
         uv_file = x[:, :2] / x[:, 2:]  # file convention: top-left pixel centre at (0, 0)
         np.testing.assert_allclose(_project_ours(model, name, X), uv_file + 0.5, atol=1e-6)
     assert json.loads((out / "split.json").read_text())["test"] == ["tmpl0000.png", "tmpl0004.png"]
+
+
+def test_middlebury_unreadable_camera_file_is_named(tmp_path, rng):
+    _write_par(tmp_path / "mb", rng, n=3)
+    (tmp_path / "mb" / "tmpl_par.txt").write_bytes(b"\xff\xfe\x00not text")
+    with pytest.raises(InputError, match=r"tmpl_par.txt: cannot read the camera file"):
+        import_dataset("middlebury", tmp_path / "mb", tmp_path / "ds")
+    assert not (tmp_path / "ds").exists()
 
 
 def test_middlebury_bad_lines_are_named(tmp_path, rng):
@@ -500,4 +512,35 @@ def test_dtu_singular_projection_is_refused_with_exit_2(tmp_path, rng, capsys, _
     err = capsys.readouterr().err
     assert "view 1: world_mat_1 @ scale_mat_1 is not a camera projection" in err, err
     assert "Traceback" not in err and "Warning" not in err, err
+    assert not (tmp_path / "bad").exists()
+
+
+def test_dtu_cameras_follow_the_image_numbers_not_their_order(tmp_path, rng):
+    """An images folder with a gap: each view keeps its own camera (by the number in its name), not the
+    camera of its position in sorted order, which would shift every view after the gap."""
+    from eval.real.dtu import read_dtu
+
+    _write_dtu(tmp_path / "dtu", rng, n=4)
+    full = {v.name: v.cam_from_world for v in read_dtu(tmp_path / "dtu").views}
+    (tmp_path / "dtu" / "images" / "000001.png").unlink()
+    gap = read_dtu(tmp_path / "dtu")
+    assert [v.name for v in gap.views] == ["000000", "000002", "000003"]
+    for v in gap.views:
+        np.testing.assert_allclose(v.cam_from_world, full[v.name], atol=1e-9)
+    # Names that are not numbers: positions, and then exactly one camera per image.
+    for k, f in enumerate(sorted((tmp_path / "dtu" / "images").glob("*.png"))):
+        f.rename(f.with_name(f"view_{'abc'[k]}.png"))
+    with pytest.raises(InputError, match="3 images whose names are not camera numbers, and 4 cameras"):
+        read_dtu(tmp_path / "dtu")
+
+
+def test_dtu_cameras_file_that_is_not_an_archive_is_named(tmp_path, rng, capsys, _keep_logging):
+    _write_dtu(tmp_path / "dtu", rng)
+    (tmp_path / "dtu" / "cameras.npz").write_text("garbage\n")
+    capsys.readouterr()
+    assert main(["dataset", "import", "dtu", str(tmp_path / "dtu"), "--out", str(tmp_path / "bad"),
+                 "--test", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "cameras.npz: not a NumPy .npz archive, or a damaged one" in err, err
+    assert "pickle" not in err and "Traceback" not in err, err
     assert not (tmp_path / "bad").exists()

@@ -115,7 +115,7 @@ def test_train_refuses_a_malformed_split_json(tmp_path, scene, capsys, content, 
                    watch=[tmp_path], message=[str(data / "split.json"), message, "fix:"])
 
 
-@pytest.mark.parametrize(("content", "message"), [(b"not a numpy file", "cannot read a depth map"),
+@pytest.mark.parametrize(("content", "message"), [(b"not a numpy file", "not a NumPy .npy file, or a damaged one"),
                                                   (None, "depth map has shape (3, 4)")])
 def test_train_init_depth_refuses_a_bad_depth_map(tmp_path, scene, capsys, content, message):  # noqa: F811
     data = tmp_path / "data"

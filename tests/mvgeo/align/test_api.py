@@ -85,3 +85,8 @@ def test_the_cloud_is_made_of_the_cloud_images(llff6, llff6_preview):
         align_images(files, PREVIEW, cloud_images=flat[:5])
     with pytest.raises(InputError, match="the cloud images are 128x96"):
         align_images(files, PREVIEW, cloud_images=[f[:96, :128] for f in flat])
+    from mvgeo.camera import Camera
+
+    calibration = Camera.pinhole(200.0, 200.0, 128.0, 96.0, 256, 192)  # fits the images: the cloud's are named
+    with pytest.raises(InputError, match="the cloud images are 128x96, the images 256x192"):
+        align_images(files, PREVIEW, intrinsics=calibration, cloud_images=[f[:96, :128] for f in flat])

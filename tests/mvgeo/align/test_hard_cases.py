@@ -112,6 +112,26 @@ def test_unknown_intrinsics_format_is_input_error(tmp_path):
         read_intrinsics(tmp_path / "cam.yaml")
 
 
+@pytest.mark.parametrize(("params", "message"), [
+    ("0 0 64 48", "focal length fx = 0 px: it must be positive"),
+    ("-100 -100 64 48", "focal length fx = -100 px: it must be positive"),
+    ("100 -100 64 48", "focal length fy = -100 px"),
+    ("1e308 1e308 64 48", "at most 100 times the image's long side"),
+])
+def test_a_camera_no_lens_has_is_refused_naming_the_file(tmp_path, params, message):
+    """A zero focal used to make the two-view geometry singular (a traceback), a negative one failed later as
+    a diverged alignment or a disconnected pair graph; both only after `denoise-gs run`'s denoising."""
+    from mvgeo.align.intrinsics import read_intrinsics
+
+    path = tmp_path / "cameras.txt"
+    path.write_text(f"1 PINHOLE 128 96 {params}\n")
+    with pytest.raises(InputError, match=message) as refused:
+        read_intrinsics(path)
+    assert str(path) in str(refused.value)
+    path.write_text("1 PINHOLE 128 96 100 100 64 48\n")
+    assert read_intrinsics(path).fx == 100.0
+
+
 @pytest.mark.slow
 def test_orbit_view_with_undetermined_position_is_a_specific_failure(tmp_path):
     """object_ring's 21 training views at 256x192 (24-view ring, every 8th view held out: 15 deg steps with
