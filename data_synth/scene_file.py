@@ -203,7 +203,8 @@ def _check_split(spec: SceneSpec, path: Path | None) -> None:
     try:
         views = rig_views(spec.rig)
     except DegenerateGeometryError as exc:
-        key = "rig.up" if "`up`" in str(exc) else "rig.look_at"
+        # A list rig's poses each carry their own up and look-at; the other rigs' come from `rig.up`, `look_at`.
+        key = "rig.poses" if spec.rig.type == "list" else "rig.up" if "`up`" in str(exc) else "rig"
         raise ConfigError(str(exc), key=key, path=path,
                           expected="an up vector not parallel to any camera's viewing direction, and a look-at "
                                    "point apart from every camera") from exc

@@ -18,6 +18,7 @@ the original crop are not documented.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from mvgeo.common.npyio import load_numpy
 
 __all__ = ["camera_indices", "dtu_cameras", "read_dtu"]
 
+_WORLD_MAT = re.compile(r"world_mat_\d+")
 _NPZ_FIX = "restore cameras.npz from the dataset's download (world_mat_i / scale_mat_i arrays)"
 
 #: Original DTU pixels -> MonoSDF's 384 x 384 crop (both with pixel centres at integers).
@@ -56,17 +58,23 @@ def dtu_cameras(npz_path: Path, n: int | Sequence[int], *, size_wh: tuple[int, i
         raise InputError(f"DTU images are {size_wh[0]}x{size_wh[1]}; the cameras fit the original 1600x1200 "
                          "images or MonoSDF's 384x384 crop", path=npz_path,
                          fix="import the original or the 384x384 images and resize with --size / --max-size")
-    data = load_numpy(npz_path, fix=_NPZ_FIX)
+    data = _archive(npz_path)
     out = []
     for i in indices:
         keys = (f"world_mat_{i}", f"scale_mat_{i}")
+        arrays = []
         for key in keys:
             if key not in data:
                 raise InputError(f"cameras.npz has no {key} (the camera of image {i})", path=npz_path,
                                  fix="keep one world_mat_i / scale_mat_i per image in images/")
-            if data[key].shape != (4, 4):
-                raise InputError(f"{key} must be 4x4, got {data[key].shape}", path=npz_path)
-        world, scale = (data[key].astype(np.float64) for key in keys)
+            try:
+                arrays.append(np.asarray(data[key]))
+            except ValueError as exc:  # an object array, which loading without pickles refuses
+                raise InputError(f"{key} is not a number array", path=npz_path, fix=_NPZ_FIX) from exc
+            if arrays[-1].shape != (4, 4) or not np.issubdtype(arrays[-1].dtype, np.number):
+                raise InputError(f"{key} must be a 4x4 number array, got shape {arrays[-1].shape} dtype "
+                                 f"{arrays[-1].dtype}", path=npz_path)
+        world, scale = (a.astype(np.float64) for a in arrays)
         finite = np.isfinite(world).all() and np.isfinite(scale).all()  # before the product: no NaN warnings
         P = (world @ scale)[:3] if finite else None
         if P is None or abs(np.linalg.det(P[:, :3] / max(np.abs(P[:, :3]).max(), 1e-300))) <= 1e-12:
@@ -87,18 +95,23 @@ def dtu_cameras(npz_path: Path, n: int | Sequence[int], *, size_wh: tuple[int, i
 
 def camera_indices(files: Sequence[Path], npz_path: Path) -> list[int]:
     """The `cameras.npz` index of each image: its file name's number (`000012.png` -> 12) when every name is
-    one, else its position in sorted order, which needs exactly one camera per image (else a view would get
-    another view's camera: an images folder with a gap shifts every later view)."""
+    one and has its `world_mat_<number>` (the IDR/MonoSDF layout), else its position in sorted order, which
+    needs exactly one camera per image (else a view would get another view's camera: an images folder with a
+    gap shifts every later view)."""
+    cameras = {int(k[len("world_mat_"):]) for k in _archive(npz_path).files if _WORLD_MAT.fullmatch(k)}
     stems = [f.stem for f in files]
-    if all(s.isdigit() for s in stems):
+    if all(s.isdigit() for s in stems) and {int(s) for s in stems} <= cameras:
         return [int(s) for s in stems]
-    n_cameras = sum(1 for k in load_numpy(npz_path, fix=_NPZ_FIX).files if k.startswith("world_mat_"))
-    if n_cameras != len(files):
-        raise InputError(f"{len(files)} images whose names are not camera numbers, and {n_cameras} cameras: "
-                         "which camera is which image is ambiguous", path=npz_path,
+    if len(cameras) != len(files):
+        raise InputError(f"{len(files)} images, {len(cameras)} cameras, and the images' names are not all "
+                         "camera numbers: which camera is which image is ambiguous", path=npz_path,
                          fix="name the images by their camera index (000000.png for world_mat_0, ...), as the "
                              "IDR/MonoSDF layout does")
     return list(range(len(files)))
+
+
+def _archive(npz_path: Path) -> np.lib.npyio.NpzFile:
+    return load_numpy(npz_path, fix=_NPZ_FIX)
 
 
 def read_dtu(src: str | Path) -> Capture:

@@ -56,8 +56,9 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
     - other `DgsError` (e.g. degenerate geometry the user must know about): message, exit 1.
     - argparse usage errors exit 2 (argparse's own behaviour).
     - SIGTERM while `main` runs: one line on stderr, exit 143 (see the module docstring).
-    - a full disk or quota (`OSError` ENOSPC / EDQUOT): message naming the file, no traceback, exit 1. The
-      commands write their outputs atomically, so what the error interrupted is not left as a result.
+    - a full disk or quota (`OSError` ENOSPC / EDQUOT): one message (naming the file where the system gives
+      it), no traceback, exit 1. The commands write their outputs atomically, so what the error interrupted
+      is not left as a result.
     """
     args = parser.parse_args(argv)
     setup_logging(getattr(args, "verbose", 0))
@@ -75,8 +76,8 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
         if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
         where = f" while writing {exc.filename}" if exc.filename else ""
-        print(f"error: no space left on the device{where} ({exc.strerror})\n  fix: free some space, or write --out "
-              "to another disk", file=sys.stderr)
+        print(f"error: no space left (disk full or quota exceeded){where} ({exc.strerror})\n  fix: free some space, "
+              "or write --out to another disk", file=sys.stderr)
         return EXIT_FAILURE
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

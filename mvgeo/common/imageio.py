@@ -33,15 +33,20 @@ def list_images(folder: str | Path) -> list[Path]:
             the same name.
     """
     folder = Path(folder)
+    try:
+        return _list_images(folder)
+    except PermissionError as exc:  # the folder, a folder above it, or an entry (readable but not searchable)
+        raise InputError(f"cannot read the folder ({exc.strerror or exc})", path=folder,
+                         fix="check the permissions of the folder and those above it (readable and searchable: "
+                             "`chmod u+rx`)") from exc
+
+
+def _list_images(folder: Path) -> list[Path]:
     if not folder.exists():
         raise InputError("folder does not exist", path=folder, fix="pass a folder of images")
     if not folder.is_dir():
         raise InputError("not a folder", path=folder, fix="pass a folder of images")
-    try:
-        entries = list(folder.iterdir())
-    except OSError as exc:
-        raise InputError(f"cannot list the folder ({exc.strerror or exc})", path=folder,
-                         fix="check the folder's permissions (it must be readable and searchable)") from exc
+    entries = list(folder.iterdir())
     named = sorted(p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES)
     for p in named:
         try:

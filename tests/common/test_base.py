@@ -90,10 +90,11 @@ def test_unreadable_image_or_folder_is_an_input_error(tmp_path, rng, monkeypatch
         m.setattr(np, "fromfile", denied)
         with pytest.raises(InputError, match=r"a.png: cannot read the image file \(Permission denied\)"):
             read_image(tmp_path / "a.png")
-    with monkeypatch.context() as m:
-        m.setattr(type(tmp_path), "iterdir", denied)
-        with pytest.raises(InputError, match=r"cannot list the folder \(Permission denied\)"):
-            list_images(tmp_path)
+    for method in ("iterdir", "is_file"):  # not readable; readable but not searchable
+        with monkeypatch.context() as m:
+            m.setattr(type(tmp_path), method, denied)
+            with pytest.raises(InputError, match=r"cannot read the folder \(Permission denied\)"):
+                list_images(tmp_path)
 
 
 def test_grayscale_is_replicated(tmp_path):
@@ -167,7 +168,7 @@ def test_a_full_disk_is_a_message_not_a_traceback(capsys):
 
     assert run_cli(full, argparse.ArgumentParser(), []) == 1
     err = capsys.readouterr().err
-    assert "no space left on the device while writing /out/model.pt" in err and "fix:" in err, err
+    assert "no space left (disk full or quota exceeded) while writing /out/model.pt" in err and "fix:" in err, err
 
     def denied(args):
         raise OSError(errno.EACCES, "Permission denied", "/out")

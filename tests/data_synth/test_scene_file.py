@@ -88,6 +88,7 @@ def test_inheritance_from_a_relative_file(tmp_path):
      "textures.c.colors[0]", "3 entries"),
     (('[rig]\ntype = "list"', '[rig]\ntype = "list"\nradius = 3.0'), "rig.radius", "does not apply"),
     (('look_at = [-0.1, 4.0, 0.7]', 'look_at = [-0.25, -0.2, 0.9]'), "rig.poses[2].look_at", "different"),
+    (('look_at = [-0.1, 4.0, 0.7]', 'look_at = [-0.25, -0.2, 5.0]'), "rig.poses", "parallel to the viewing"),
     (('seed = 3', 'seed = -3'), "scene.seed", "[0, 4.29497e+09]"),
     (('[scene]', '[scen]\nx = 1\n[scene]'), "scen", "one of base"),
 ])

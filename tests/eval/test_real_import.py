@@ -127,6 +127,10 @@ def test_llff_bad_inputs_name_the_file(tmp_path, rng):
     with pytest.raises(InputError, match=r"poses_bounds.npy: not a NumPy .npy file, or a damaged one") as bad:
         import_dataset("llff", tmp_path / "llff", tmp_path / "ds")
     assert "pickle" not in str(bad.value)
+    np.savez(tmp_path / "llff" / "pb.npz", a=np.zeros((4, 17)))  # an archive under the array's name
+    (tmp_path / "llff" / "pb.npz").replace(tmp_path / "llff" / "poses_bounds.npy")
+    with pytest.raises(InputError, match=r"poses_bounds.npy: is an .npz archive, not a single .npy array"):
+        import_dataset("llff", tmp_path / "llff", tmp_path / "ds")
     np.save(tmp_path / "llff" / "poses_bounds.npy", np.zeros((4, 15)))
     with pytest.raises(InputError, match=r"poses_bounds.npy.*\(N, 17\).*\(4, 15\)"):
         import_dataset("llff", tmp_path / "llff", tmp_path / "ds")
@@ -227,7 +231,7 @@ def test_middlebury_cameras_match_the_file_projection_plus_half_a_pixel(tmp_path
     assert json.loads((out / "split.json").read_text())["test"] == ["tmpl0000.png", "tmpl0004.png"]
 
 
-def test_middlebury_unreadable_camera_file_is_named(tmp_path, rng):
+def test_middlebury_camera_file_that_is_not_text_is_named(tmp_path, rng):
     _write_par(tmp_path / "mb", rng, n=3)
     (tmp_path / "mb" / "tmpl_par.txt").write_bytes(b"\xff\xfe\x00not text")
     with pytest.raises(InputError, match=r"tmpl_par.txt: cannot read the camera file"):
@@ -530,8 +534,18 @@ def test_dtu_cameras_follow_the_image_numbers_not_their_order(tmp_path, rng):
     # Names that are not numbers: positions, and then exactly one camera per image.
     for k, f in enumerate(sorted((tmp_path / "dtu" / "images").glob("*.png"))):
         f.rename(f.with_name(f"view_{'abc'[k]}.png"))
-    with pytest.raises(InputError, match="3 images whose names are not camera numbers, and 4 cameras"):
+    with pytest.raises(InputError, match="3 images, 4 cameras, and the images' names are not all camera numbers"):
         read_dtu(tmp_path / "dtu")
+    # Numbers that are not camera indices (a folder numbered from 1), one camera per image: by position.
+    # IDR-style files also hold world_mat_inv_i, which are not cameras.
+    mats = {k: v for k, v in np.load(tmp_path / "dtu" / "cameras.npz").items() if not k.endswith("_3")}
+    mats.update({f"world_mat_inv_{i}": np.linalg.inv(mats[f"world_mat_{i}"]) for i in range(3)})
+    np.savez(tmp_path / "dtu" / "cameras.npz", **mats)
+    for k, f in enumerate(sorted((tmp_path / "dtu" / "images").glob("*.png"))):
+        f.rename(f.with_name(f"{k + 1:04d}.png"))
+    by_position = read_dtu(tmp_path / "dtu").views
+    for k, v in enumerate(by_position):  # the k-th image takes world_mat_k
+        np.testing.assert_allclose(v.cam_from_world, full[f"{k:06d}"], atol=1e-9)
 
 
 def test_dtu_cameras_file_that_is_not_an_archive_is_named(tmp_path, rng, capsys, _keep_logging):
@@ -543,4 +557,11 @@ def test_dtu_cameras_file_that_is_not_an_archive_is_named(tmp_path, rng, capsys,
     err = capsys.readouterr().err
     assert "cameras.npz: not a NumPy .npz archive, or a damaged one" in err, err
     assert "pickle" not in err and "Traceback" not in err, err
+    assert not (tmp_path / "bad").exists()
+    np.save(tmp_path / "dtu" / "cameras.npy", np.eye(4))  # one array saved under the archive's name
+    (tmp_path / "dtu" / "cameras.npy").rename(tmp_path / "dtu" / "cameras.npz")
+    assert main(["dataset", "import", "dtu", str(tmp_path / "dtu"), "--out", str(tmp_path / "bad"),
+                 "--test", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "cameras.npz: holds a single array, not an .npz archive" in err and "Traceback" not in err, err
     assert not (tmp_path / "bad").exists()
