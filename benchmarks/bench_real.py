@@ -133,6 +133,18 @@ def dtu_set(layout: str) -> RealSet | None:
                    {files[v].name: cams[v][1] for v in train}, K)
 
 
+def dtu_for_script(doc: str | None) -> RealSet | None:
+    """The DTU `cluster` set for a diagnosis script's `main`, or None when there is nothing to run: `-h` /
+    `--help` (prints `doc`) or ../shared/data/dtu_scan24 missing (says so)."""
+    if "-h" in sys.argv or "--help" in sys.argv:
+        print(doc)
+        return None
+    s = dtu_set("cluster")
+    if s is None:
+        print("../shared/data/dtu_scan24 is missing: nothing to run")
+    return s
+
+
 def folder_set(folder: Path) -> RealSet | None:
     """A dataset in the project's layout (`images/`/`clean/`, `split.json`, `sparse/0`)."""
     if not (folder / "sparse" / "0").is_dir():

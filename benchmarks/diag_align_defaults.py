@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from _common import cli_option, md_table
-from bench_real import OURS, dtu_set, prepare
+from bench_real import OURS, dtu_for_script, prepare
 
 from mvgeo.align import policy
 from mvgeo.align.api import align_images
@@ -43,12 +43,8 @@ def configurations():
 
 
 def main() -> int:
-    if "-h" in sys.argv or "--help" in sys.argv:
-        print(__doc__)
-        return 0
-    s = dtu_set("cluster")
+    s = dtu_for_script(__doc__)
     if s is None:
-        print("../shared/data/dtu_scan24 is missing: nothing to run")
         return 0
     seeds = [int(x) for x in cli_option("seeds", "0,1,2,3,4,5").split(",")]
     default_refocus = policy.MAX_REFOCUS

@@ -12,7 +12,6 @@ Run: `OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/diag_ga_cost.py [--con
 
 from __future__ import annotations
 
-import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -20,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 from _common import cli_option, md_table
-from bench_real import OURS, dtu_set, exif_focal_35mm_of, prepare
+from bench_real import OURS, dtu_for_script, exif_focal_35mm_of, prepare
 
 import mvgeo.align.solve as solve
 from mvgeo.align.api import align_images
@@ -28,12 +27,8 @@ from mvgeo.common.imageio import list_images, read_image
 
 
 def main() -> int:
-    if "-h" in sys.argv or "--help" in sys.argv:
-        print(__doc__)
-        return 0
-    s = dtu_set("cluster")
+    s = dtu_for_script(__doc__)
     if s is None:
-        print("../shared/data/dtu_scan24 is missing: nothing to run")
         return 0
     configs = [tuple(int(v) for v in c.split("x")) for c in cli_option("configs", "4x100,8x100,4x50,4x0").split(",")]
     repeats = int(cli_option("repeats", "5"))

@@ -17,7 +17,6 @@ Run: `OMP_WAIT_POLICY=PASSIVE .venv/bin/python benchmarks/diag_track_completion.
 from __future__ import annotations
 
 import itertools
-import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -25,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from _common import cli_option, md_table
-from bench_real import OURS, dtu_set, exif_focal_35mm_of, prepare, scene_scale
+from bench_real import OURS, dtu_for_script, exif_focal_35mm_of, prepare, scene_scale
 
 import mvgeo.align.solve as solve
 from mvgeo.align.api import align_images
@@ -47,12 +46,8 @@ def _errors(est: dict, gt: dict) -> tuple[float, float, float]:
 
 
 def main() -> int:
-    if "-h" in sys.argv or "--help" in sys.argv:
-        print(__doc__)
-        return 0
-    s = dtu_set("cluster")
+    s = dtu_for_script(__doc__)
     if s is None:
-        print("../shared/data/dtu_scan24 is missing: nothing to run")
         return 0
     draws = cli_option("seeds", "clean,0,1,2").split(",")
     bands = [float(b) for b in cli_option("bands", "1,2,3").split(",")]
