@@ -58,7 +58,7 @@ def dtu_cameras(npz_path: Path, n: int | Sequence[int], *, size_wh: tuple[int, i
         raise InputError(f"DTU images are {size_wh[0]}x{size_wh[1]}; the cameras fit the original 1600x1200 "
                          "images or MonoSDF's 384x384 crop", path=npz_path,
                          fix="import the original or the 384x384 images and resize with --size / --max-size")
-    data = _archive(npz_path)
+    data = load_numpy(npz_path, fix=_NPZ_FIX)
     out = []
     for i in indices:
         keys = (f"world_mat_{i}", f"scale_mat_{i}")
@@ -98,7 +98,7 @@ def camera_indices(files: Sequence[Path], npz_path: Path) -> list[int]:
     one and has its `world_mat_<number>` (the IDR/MonoSDF layout), else its position in sorted order, which
     needs exactly one camera per image (else a view would get another view's camera: an images folder with a
     gap shifts every later view)."""
-    cameras = {int(k[len("world_mat_"):]) for k in _archive(npz_path).files if _WORLD_MAT.fullmatch(k)}
+    cameras = {int(k[len("world_mat_"):]) for k in load_numpy(npz_path, fix=_NPZ_FIX).files if _WORLD_MAT.fullmatch(k)}
     stems = [f.stem for f in files]
     if all(s.isdigit() for s in stems) and {int(s) for s in stems} <= cameras:
         return [int(s) for s in stems]
@@ -108,10 +108,6 @@ def camera_indices(files: Sequence[Path], npz_path: Path) -> list[int]:
                          fix="name the images by their camera index (000000.png for world_mat_0, ...), as the "
                              "IDR/MonoSDF layout does")
     return list(range(len(files)))
-
-
-def _archive(npz_path: Path) -> np.lib.npyio.NpzFile:
-    return load_numpy(npz_path, fix=_NPZ_FIX)
 
 
 def read_dtu(src: str | Path) -> Capture:
