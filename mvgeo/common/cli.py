@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import errno
 import logging
+import os
 import signal
 import sys
 import threading
@@ -26,6 +27,7 @@ from mvgeo.common.log import setup_logging
 EXIT_INPUT_ERROR = 2
 EXIT_FAILURE = 1
 EXIT_TERMINATED = 128 + signal.SIGTERM
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 
 
 class Terminated(BaseException):
@@ -44,6 +46,16 @@ def _install_sigterm_handler():
     return signal.signal(signal.SIGTERM, _raise_terminated)
 
 
+def _silence_stdout() -> None:
+    """Point file descriptor 1 at /dev/null (after a broken pipe: nothing more can reach the reader)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # stdout replaced by an object without a descriptor (a test's capture)
+        pass
+
+
 def add_common_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-v: debug)")
 
@@ -59,6 +71,9 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
     - a full disk or quota (`OSError` ENOSPC / EDQUOT): one message (naming the file where the system gives
       it), no traceback, exit 1. The commands write their outputs atomically, so what the error interrupted
       is not left as a result.
+    - stdout closed by its reader (`data-synth list | head -3`): quiet, exit 141 (128 + SIGPIPE), as a
+      command killed by SIGPIPE would; stdout is pointed at /dev/null so the interpreter's final flush
+      does not report the same broken pipe.
     """
     args = parser.parse_args(argv)
     setup_logging(getattr(args, "verbose", 0))
@@ -72,6 +87,9 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
         logging.getLogger(__name__).debug("failure", exc_info=True)
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_FAILURE
+    except BrokenPipeError:
+        _silence_stdout()
+        return EXIT_BROKEN_PIPE
     except OSError as exc:
         if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise

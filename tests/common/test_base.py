@@ -175,3 +175,22 @@ def test_a_full_disk_is_a_message_not_a_traceback(capsys):
 
     with pytest.raises(PermissionError):  # not a full disk: not this handler's
         run_cli(denied, argparse.ArgumentParser(), [])
+
+
+def test_a_reader_that_stops_early_is_not_a_traceback():
+    """`data-synth list | head -1`: the closed pipe ends the command quietly with 141 (128 + SIGPIPE)."""
+    import subprocess
+    import sys
+
+    code = ("import argparse, sys\n"
+            "from mvgeo.common.cli import run_cli\n"
+            "def main(args):\n"
+            "    for i in range(100000):\n"
+            "        print('line', i)\n"
+            "sys.exit(run_cli(main, argparse.ArgumentParser(), []))\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout.readline().startswith(b"line 0")
+    proc.stdout.close()  # the reader stops, as `head -1` does
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
