@@ -14,7 +14,7 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
 1. `inputs`: the images checked, undistorted with known intrinsics, downscaled once (`AlignInputs`).
 2. `features` + `classical_pairs`: SIFT and putative matches, once per image and pair (`MatchSet`); each
    pair's relative pose at one shared focal (the photos' common EXIF 35 mm-equivalent focal,
-   `intrinsics.exif_focal_prior`; else the one at least three pairs' focals agree on, `consensus_focal`;
+   `intrinsics.exif_focal_prior`; else the one at least three pairs' focals agree on, `pair_focal.consensus_focal`;
    else COLMAP's prior; re-estimated by `policy` when the adjustment moves it) and dense pointmaps (`PairSet`,
    defined in `pairs` with the `PointmapModel` protocol a learned DUSt3R/MASt3R wrapper can implement;
    `dense_pairs` holds the flows and the triangulated pointmaps).

@@ -34,6 +34,7 @@ import numpy as np
 from mvgeo.align.dense_pairs import pair_flows, pair_pointmap, rotated_180
 from mvgeo.align.features import MatchSet, detect_and_match, extract_features, match_features
 from mvgeo.align.graph import components, maximum_spanning_tree
+from mvgeo.align.pair_focal import consensus_focal, why_no_focal
 from mvgeo.align.pairs import PairFailure, PairGeometry, PairPrediction, PairSet
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError
@@ -172,52 +173,6 @@ def pointmap_shape(height: int, width: int, long_side_px: int) -> tuple[int, int
     """(H, W) of the pointmap grid for an image, long side `long_side_px` (never upsampled)."""
     s = min(1.0, long_side_px / max(height, width))
     return max(1, round(height * s)), max(1, round(width * s))
-
-
-def consensus_focal(focals_px: Sequence[float], n_tried: int, min_agreeing: int, agree_log: float) -> float | None:
-    """The shared focal that well-determined pair focals agree on, or None.
-
-    The focals within `agree_log` (|log(f / median)|) of their median agree; with at least
-    `min(min_agreeing, n_tried)` of them, and more than half of all, their median is returned.
-
-    Args:
-        focals_px: the well-determined pair focals.
-        n_tried: how many pairs were tried (so that two or three views can still determine it).
-    """
-    if not len(focals_px):
-        return None
-    f = np.asarray(focals_px, np.float64)
-    agree = f[np.abs(np.log(f / np.median(f))) <= agree_log]
-    if len(agree) < min(min_agreeing, n_tried) or 2 * len(agree) <= len(f):
-        return None
-    return float(np.median(agree))
-
-
-def _why_no_focal(rels: Sequence, two_view: TwoViewConfig) -> str:
-    """Why none of the pairs tried determined the focal: counts of the causes, most specific first.
-
-    `rels` are the pairs' uncalibrated relative poses (None: OpenCV's estimator failed on the pair).
-    """
-    if not rels:
-        return "no pair has enough matches to try"
-    planar = sum(r is not None and (r.homography_ratio or 0.0) >= two_view.max_homography_ratio for r in rels)
-    failed = sum(r is None or (not r.success and (r.homography_ratio or 0.0) < two_view.max_homography_ratio)
-                 for r in rels)
-    disagree = sorted(round(float(r.focal_px)) for r in rels if r is not None and r.success
-                      and r.focal_well_determined and (r.homography_ratio or 0.0) < two_view.max_homography_ratio)
-    loose = len(rels) - planar - failed - len(disagree)
-    parts = []
-    if planar:
-        parts.append(f"in {planar} a homography explains at least {two_view.max_homography_ratio:.0%} of the "
-                     "matches (a planar scene, or a camera rotating about its centre: no baseline)")
-    if loose:
-        parts.append(f"in {loose} the focal is too uncertain (e.g. an object-centric orbit)")
-    if failed:
-        parts.append(f"{failed} gave no relative pose")
-    if disagree:
-        parts.append(f"{len(disagree)} well-determined focal{'s' if len(disagree) != 1 else ''} "
-                     f"({', '.join(map(str, disagree))} px) too few to agree")
-    return f"of the {len(rels)} pair{'s' if len(rels) != 1 else ''} tried, " + "; ".join(parts)
 
 
 def select_dense_pairs(n: int, inliers: dict[tuple[int, int], int], top_k: int) -> list[tuple[int, int]]:
@@ -443,7 +398,7 @@ class ClassicalPointmapModel:
         f = self.config.focal_prior * max(Wa, Ha)
         _log.warning("no pair determines the focal length; using the prior %.2f * max(W, H) = %.1f px",
                      self.config.focal_prior, f)
-        return f, False, _why_no_focal(rels, self.config.two_view)
+        return f, False, why_no_focal(rels, self.config.two_view)
 
     def _dense(self, images, small, K_align, i: int, j: int, rel, u1, u2, *, flows=None) -> PairPrediction:
         """Pair (i, j)'s pointmaps; `flows(i, j, a, b, R)` returns its flows (default `pair_flows`)."""
