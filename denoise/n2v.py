@@ -151,7 +151,7 @@ class N2VConfig:
 
 
 #: Named presets. ``fast``: the demo (about a minute of training on one core, width 8);
-#: ``default``: about two minutes on one core (width 16); ``wide``: the default at width 32, about 2.3x its
+#: ``default``: about two minutes on one core (width 16); ``wide``: the default at width 32, 2.3-2.6x its
 #: CPU time per training step: on the whole real photos at 2000 R2R steps +0.25-0.6 dB and +0.007-0.019
 #: SSIM (DTU scan24, sigma 25 and Poisson-Gaussian; docs/bench/denoise_real.md, "the network's size"); ``n2v2``:
 #: the default with the N2V2 anti-checkerboard options. Measurements: see `N2VConfig`.

@@ -322,7 +322,7 @@ class PipelineConfig:
 #:   `--denoiser n2v --rounds 2` (`denoise-gs eval`'s `denoise_gs`, `denoise_gs_fused`).
 #: - `best`: the `default` (both Wiener steps and the 2000-iteration splat included: the DCT step lifts
 #:   `best`'s photos 0.67 dB on DTU scan24; `best`'s held-out figures below predate both Wiener steps) with
-#:   the UNet at width 32 (`denoise.n2v.N2V_PRESETS["wide"]`, about 2.3x the denoiser's CPU time per
+#:   the UNet at width 32 (`denoise.n2v.N2V_PRESETS["wide"]`, 2.3-2.6x the denoiser's CPU time per
 #:   training step; every method that trains the UNet under `best` trains it at width 32). Measured before
 #:   the Wiener steps, on DTU scan24 at sigma 25: the longer splat alone, three seeds, 25.06 / 0.792 / 0.152
 #:   against 24.87 / 0.792 / 0.166 held out; with the wider UNet, seed 0: 25.36 / 0.804 / 0.135 against

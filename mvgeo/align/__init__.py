@@ -19,9 +19,11 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
    defined in `pairs` with the `PointmapModel` protocol a learned DUSt3R/MASt3R wrapper can implement;
    `dense_pairs` holds the flows and the triangulated pointmaps).
 3. `solve`: the pair graph (loop check `loops`, connectivity `graph`), then one candidate: initial poses
-   (`init`: DUSt3R's chaining, or rotation averaging `rotation_averaging` then positions), DUSt3R's global
-   alignment (`global_align`, objective in `alignment_objective`), bundle adjustment on every verified
-   pair's tracks (`bundle`, `bundle_lm`), and a `verdict` with typed reasons naming the views (raised as
+   (`init`: DUSt3R's chaining, with the pairs' own relative poses in `pose_chain`, or rotation averaging
+   `rotation_averaging` then positions), DUSt3R's global alignment (`global_align`, objective in
+   `alignment_objective`, pointmap rays and Procrustes in `pointmap_geometry`), bundle adjustment on every
+   verified pair's tracks (`bundle`, `bundle_lm`), and a `verdict` (the pair-consistency tests in `checks`)
+   with typed reasons naming the views (raised as
    `mvgeo.common.errors.AlignmentRefusedError`: kind, views, message and fix). Views the verdict would
    cut off (every link contradicted) are first located by PnP on points the main group triangulates from
    guided matches (`locate`, `guided`).

@@ -61,7 +61,7 @@ class AlignConfig:
             alignment, or with `allow_partial` is left out: the feature tracks do not determine its
             position. 0: off. Reported in align.json `bundle_adjustment.centre_std_ratio`.
         reject_unsupported_views: a view all of whose verified pairs are inconsistent with the result
-            (`mvgeo.align.checks.views_without_consistent_pair`) fails the alignment, or with
+            (`mvgeo.align.checks.views_cut_off`) fails the alignment, or with
             `allow_partial` is left out, whatever share of the matches its pairs hold (True).
         locate_cut_off_views: before refusing such views (with the bundle adjustment and a pair model with
             features), try to locate each by PnP on points the main group's explained pairs triangulate at
