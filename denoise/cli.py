@@ -87,7 +87,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
     if stride > 1:
         _log.info("denoising the %d x %d pixel-shuffled sub-images of each image (noise correlated between "
                   "neighbouring pixels; its level /255 by stride: %s)", stride, stride,
-                  chosen.get("noise_level_by_stride_255", "not measured"))
+                  levels.levels_255())
         work = shuffled(images, stride)
     method = args.method
     if method == "auto":  # on the whole images: the dark fraction's blur is in pixels of the image

@@ -119,6 +119,10 @@ class NoiseLevels:
     stride: int
     level_by_stride: dict[int, float]
 
+    def levels_255(self) -> str:
+        """The levels read, /255, for a log line ("not measured" when none were read)."""
+        return ", ".join(f"{k}: {255.0 * v:.1f}" for k, v in self.level_by_stride.items()) or "not measured"
+
     def record(self) -> dict[str, object]:
         """What a stage summary or report.json records: the stride, and the levels read (/255) if any."""
         levels = {str(k): round(255.0 * v, 2) for k, v in self.level_by_stride.items()}

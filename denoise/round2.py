@@ -26,7 +26,8 @@ image, nothing tuned to a scene); see its docstring.
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Literal
 
@@ -344,6 +345,27 @@ class Round2Report:
     loss_after: float = float("nan")
     loss_gain_se: float = float("nan")
     reverted: bool = False
+
+    def to_json(self) -> dict[str, object]:
+        """The report as JSON values (a stage summary's ``round2``); `from_json` reads it back."""
+        return {"render_weight": [float(w) for w in self.render_weight], "loss_before": float(self.loss_before),
+                "loss_after": float(self.loss_after), "loss_gain_se": float(self.loss_gain_se),
+                "reverted": bool(self.reverted)}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, object]) -> Round2Report:
+        """The report `to_json` wrote (a missing field keeps its default)."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+    def kept_previous_because(self) -> str:
+        """Why the guard kept the previous network, in words ("" when it did not)."""
+        if not self.reverted:
+            return ""
+        by = (f", standard error of the difference {self.loss_gain_se:.2g}"
+              if math.isfinite(self.loss_gain_se) else "")
+        return (f"the fine-tuned network did not lower the blind-spot loss measurably ({self.loss_before:.6f} "
+                f"before, {self.loss_after:.6f} after{by}), so the previous network and images were kept")
 
 
 def refine_round2(model: N2VModel, noisy_images: Sequence[np.ndarray], renders: Sequence[np.ndarray],

@@ -125,7 +125,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     if stride > 1:
         _log.info("the photos' noise is correlated between neighbouring pixels (its level /255 by stride: %s): "
                   "denoising their %d x %d pixel-shuffled sub-images",
-                  shuffle.get("noise_level_by_stride_255", "not measured"), stride, stride)
+                  levels.levels_255(), stride, stride)
         photos = shuffled(photos, stride)
     out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed)
     if stride > 1:
@@ -672,20 +672,19 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
     return {"views": names, "train": _history_summary(model.history), "pd_stride": stride,
-            "round2": json.loads(json.dumps(dataclasses.asdict(r2), default=float))}
+            "round2": r2.to_json()}
 
 
 def refine_kept_previous(summary: Mapping[str, object]) -> tuple[bool, str]:
     """(True when the refine stage whose summary this is kept the previous network, why in words): the
     blind-spot-loss guard's decision as `refine` records it (False for a summary without one)."""
+    from denoise.round2 import Round2Report  # torch: the refine stage has loaded it already
+
     r2 = summary.get("round2")
-    if not isinstance(r2, Mapping) or not r2.get("reverted"):
+    if not isinstance(r2, Mapping):
         return False, ""
-    se = r2.get("loss_gain_se")
-    by = f", standard error of the difference {float(se):.2g}" if se is not None else ""
-    return True, (f"the fine-tuned network did not lower the blind-spot loss measurably "
-                  f"({float(r2['loss_before']):.6f} before, {float(r2['loss_after']):.6f} after{by}), so the "
-                  "previous network and images were kept")
+    report = Round2Report.from_json(r2)
+    return report.reverted, report.kept_previous_because()
 
 
 #: The code each product stage runs besides `eval/pipeline/stages.py`: all of `eval.pipeline` (views'

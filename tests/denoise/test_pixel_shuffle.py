@@ -110,3 +110,10 @@ def test_a_photos_std_is_put_back_together_from_its_sub_images():
     expected = full.clone()
     expected[:, 1::2, 1::2] = 0.5
     assert merged.dtype == torch.float32 and torch.equal(merged, expected)
+
+
+def test_noise_levels_log_line_lists_the_levels_read():
+    from denoise.pixel_shuffle import NoiseLevels
+
+    assert NoiseLevels(2, {1: 10 / 255, 2: 20 / 255}).levels_255() == "1: 10.0, 2: 20.0"
+    assert NoiseLevels(1, {}).levels_255() == "not measured"

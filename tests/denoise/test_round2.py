@@ -76,3 +76,20 @@ def test_finetune_input_errors(rng):
         finetune_round2(model, [img], [], Round2Config(steps=1))
     with pytest.raises(InputError, match="render"):
         finetune_round2(model, [img], [img[:8]], Round2Config(steps=1))
+
+
+def test_round2_report_round_trips_through_json_and_says_why_it_kept_the_network():
+    import json
+
+    from denoise.round2 import Round2Report
+
+    kept = Round2Report(render_weight=[0.25, 0.5], loss_before=0.0123, loss_after=0.0125, loss_gain_se=3e-5,
+                        reverted=True)
+    back = Round2Report.from_json(json.loads(json.dumps(kept.to_json())))
+    assert back == kept
+    why = back.kept_previous_because()
+    assert "0.012300 before, 0.012500 after, standard error of the difference 3e-05" in why, why
+    assert Round2Report(reverted=False).kept_previous_because() == ""
+    # a report written before a field existed reads with that field's default; unknown keys are ignored
+    old = Round2Report.from_json({"reverted": True, "loss_before": 1.0, "loss_after": 2.0, "extra": 1})
+    assert old.render_weight == [] and "standard error" not in old.kept_previous_because()
