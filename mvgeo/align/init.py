@@ -141,8 +141,19 @@ def other_start(start: str) -> str:
 
 def initial_values(start: str, pairs: PairSet, sizes_hw: Sequence[tuple[int, int]], focal_init_px: np.ndarray | None,
                    align: GlobalAlignConfig, grid_to_align: float, align_wh: tuple[int, int]
-                   ) -> tuple[GlobalAlignConfig, AlignInit | None]:
-    """The global alignment's config and initial values for `start`.
+                   ) -> tuple[GlobalAlignConfig, AlignInit | None, str]:
+    """The global alignment's config and initial values for `start`, and how they were made.
+
+    "chain" is DUSt3R's start: the pairs' pointmaps chained by Procrustes along a maximum spanning tree
+    (`global_align.init_from_spanning_tree`; made by "chained_pointmaps"). "averaged" takes the first of
+    these that succeeds, each a weaker use of the same pairs:
+
+    1. "averaged_positions": rotation averaging, then global positioning of the cameras on the tracks
+       (`translation_averaging.global_positions`), each view's depths from its strongest pair;
+    2. "averaged_rotations": the averaged rotations with positions chained from the pairs' own translations
+       (`init_from_averaged_rotations`; where the tracks do not determine the positions);
+    3. "chained_pair_poses": init None, so that `global_align` chains the pairs' own relative poses
+       (`pose_chain.init_from_pair_poses`; where the rotations do not connect the views).
 
     Args:
         start: "chain" or "averaged".
@@ -151,8 +162,8 @@ def initial_values(start: str, pairs: PairSet, sizes_hw: Sequence[tuple[int, int
         align: the configured `GlobalAlignConfig`; grid_to_align: alignment pixels per grid pixel.
 
     Returns:
-        (config, init): the chained start's values are DUSt3R's (`global_align.init_from_spanning_tree`); init
-        None lets `global_align` initialise itself (config.init says how).
+        (config, init, made_by): init None lets `global_align` initialise itself (config.init says how);
+        made_by names the way above, recorded in the candidate's summary (`AlignStats.candidates`).
 
     Raises:
         DegenerateGeometryError: the chained start cannot chain or pose a view.
@@ -163,7 +174,8 @@ def initial_values(start: str, pairs: PairSet, sizes_hw: Sequence[tuple[int, int
         f = np.full(n, float(np.exp(np.mean(np.log(f)))))
     f = np.asarray(f, float)
     if start == "chain":
-        return replace(align, init="procrustes"), init_from_spanning_tree(pairs.predictions, sizes_hw, focal_init_px=f)
+        init = init_from_spanning_tree(pairs.predictions, sizes_hw, focal_init_px=f)
+        return replace(align, init="procrustes"), init, "chained_pointmaps"
     align = replace(align, init="pair_poses")
     W, H = align_wh
     K = np.array([[[fv * grid_to_align, 0.0, W / 2.0], [0.0, fv * grid_to_align, H / 2.0], [0.0, 0.0, 1.0]]
@@ -172,15 +184,15 @@ def initial_values(start: str, pairs: PairSet, sizes_hw: Sequence[tuple[int, int
         rel, weight = pair_rotations(pairs.matches, K, pairs.predictions)
         R = average_rotations(n, rel, weight).R_cam_from_world
         placed = global_positions(R, K, pairs.matches)
-        return align, init_from_positions(pairs.predictions, sizes_hw, placed.cam_from_world, f)
+        return align, init_from_positions(pairs.predictions, sizes_hw, placed.cam_from_world, f), "averaged_positions"
     except DegenerateGeometryError as exc:
         _log.warning("rotation averaging and global positioning gave no start (%s); chaining the pairs' poses", exc)
     try:
         return align, init_from_averaged_rotations(pairs.predictions, pairs.matches, sizes_hw, f, grid_to_align,
-                                                   align_wh)
+                                                   align_wh), "averaged_rotations"
     except DegenerateGeometryError as exc:
         _log.warning("rotation averaging gave no initialisation (%s); chaining the pairs' own poses", exc)
-        return align, None
+        return align, None, "chained_pair_poses"
 
 
 def init_from_positions(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]],

@@ -5,7 +5,9 @@ order, at most `AlignConfig.max_candidates` in all; each candidate adds the succ
 generation ends when no candidate calls for one:
 
 1. the first start (`mvgeo.align.init.choose_start`; for "auto" it measures the chained start's initial values
-   against the pairs, and those values are reused when chaining goes first) on the pair graph;
+   against the pairs, and those values are reused when chaining goes first) on the pair graph. The averaged
+   start's own fallbacks (global positioning, then chained positions, then the chained pair poses) are
+   `mvgeo.align.init.initial_values`'s, recorded as each candidate's `start_made_by`;
 2. focal re-estimation: without known intrinsics, a candidate whose bundle adjustment moved the shared
    focal by more than `refocus_min_change` (log) from the focal its pairs assumed is not self-consistent:
    the pair geometry is computed again at the adjusted focal from the same features and matches
@@ -152,7 +154,7 @@ def _summary(c: Candidate) -> CandidateSummary:
                             bundle_focal_px=None if c.ba is None else round(c.bundle_focal_px, 2),
                             refocused=c.graph.refocused > 0, n_pairs_dropped=len(c.dropped),
                             explained_fraction=round(c.explained_fraction, 4),
-                            reasons=[r.kind for r in c.verdict.reasons])
+                            reasons=[r.kind for r in c.verdict.reasons], start_made_by=c.start_made_by)
 
 
 def _first_start(graph: PairGraph, config, timer: StageTimer) -> tuple[str, float | None, StartValues | None]:

@@ -147,6 +147,7 @@ class Candidate:
         relocated: the views `relocate` moved to their PnP pose before this candidate's adjustment.
         start_values: the start's initial values, from which `cloud_alignment` runs the global alignment
             in full (None where the candidate ran it in full already).
+        start_made_by: how the start's initial values were made (`StartValues.made_by`).
     """
 
     start: str
@@ -165,6 +166,7 @@ class Candidate:
     located: list[Located] = field(default_factory=list)
     relocated: list[Located] = field(default_factory=list)
     start_values: StartValues | None = None
+    start_made_by: str = ""
 
     @property
     def explained_fraction(self) -> float:
@@ -186,12 +188,14 @@ class StartValues:
         start: "chain" or "averaged"; align_config: the global alignment's config for it.
         init: the initial values, or None (`global_align` initialises itself, as `align_config.init` says).
         focal_init_px: (N,) known focals on the pointmap grid, or None (estimated from the pairs).
+        made_by: how the values were made (`mvgeo.align.init.initial_values`).
     """
 
     start: str
     align_config: GlobalAlignConfig
     init: AlignInit | None
     focal_init_px: np.ndarray | None
+    made_by: str = ""
 
 
 def start_values(graph: PairGraph, start: str, config, *, inputs: AlignInputs | None = None,
@@ -211,9 +215,9 @@ def start_values(graph: PairGraph, start: str, config, *, inputs: AlignInputs | 
         W0, H0 = inputs.input_wh
         focal_init = np.full(n, 0.5 * (inputs.intrinsics.fx * Wp / W0 + inputs.intrinsics.fy * Hp / H0))
         align_cfg = replace(align_cfg, optimize_focal=False)
-    align_cfg, init = initial_values(start, pairs, [(Hp, Wp)] * n, focal_init, align_cfg, graph.grid_to_align,
-                                     inputs.align_wh)
-    return StartValues(start, align_cfg, init, focal_init)
+    align_cfg, init, made_by = initial_values(start, pairs, [(Hp, Wp)] * n, focal_init, align_cfg,
+                                              graph.grid_to_align, inputs.align_wh)
+    return StartValues(start, align_cfg, init, focal_init, made_by)
 
 
 def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: AlignInputs | None = None,
@@ -240,7 +244,7 @@ def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: Al
                            focal_init_px=values.focal_init_px, init=values.init)
     c = adjust_and_judge(graph, start, res, values.align_config, config, timer, inputs=inputs, pairs=pairs,
                          dropped=dropped, unregistered=unregistered)
-    return replace(c, start_values=later)
+    return replace(c, start_values=later, start_made_by=values.made_by)
 
 
 def cloud_alignment(c: Candidate, timer: StageTimer) -> GlobalAlignResult:
@@ -389,7 +393,8 @@ def relocate(c: Candidate, config, timer: StageTimer) -> Candidate | None:
     if bend > LOCATE_MAX_ROTATION_DEG:
         _log.warning("re-posing moved the other views' relative rotations by up to %.1f deg: not kept", bend)
         return None
-    return replace(new, start_values=c.start_values)  # its views' depth maps come from the same start
+    # its views' depth maps come from the same start
+    return replace(new, start_values=c.start_values, start_made_by=c.start_made_by)
 
 
 def main_group_change_deg(before: np.ndarray, after: np.ndarray, moved: set[int]) -> float:

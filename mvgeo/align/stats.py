@@ -135,6 +135,8 @@ class CandidateSummary:
         reasons: the verdict's reason kinds (empty: accepted).
         chosen: the selection rule kept this one.
         error: the error that stopped it before a verdict (e.g. a disconnected graph), else "".
+        start_made_by: how its start's initial values were made (`mvgeo.align.init.initial_values`:
+            "chained_pointmaps", "averaged_positions", "averaged_rotations" or "chained_pair_poses").
     """
 
     start: str
@@ -146,6 +148,7 @@ class CandidateSummary:
     reasons: list[str]
     chosen: bool = False
     error: str = ""
+    start_made_by: str = ""
 
 
 @dataclass

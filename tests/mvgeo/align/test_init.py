@@ -85,8 +85,8 @@ def test_the_chain_start_is_dusts_spanning_tree_chaining(rng, known, shared_foca
     sizes = [d.shape for d in depths]
     focal = np.full(4, FOCAL) if known else None
     align = GlobalAlignConfig(init="pair_poses", shared_focal=shared_focal, optimize_focal=not known)
-    cfg, init = initial_values("chain", _pair_set(preds), sizes, focal, align, 1.0, (32, 24))
-    assert cfg.init == "procrustes"
+    cfg, init, made_by = initial_values("chain", _pair_set(preds), sizes, focal, align, 1.0, (32, 24))
+    assert cfg.init == "procrustes" and made_by == "chained_pointmaps"
     given = global_align(preds, sizes, config=replace(cfg, iters=5), focal_init_px=focal, init=init)
     itself = global_align(preds, sizes, config=replace(cfg, iters=5), focal_init_px=focal)
     np.testing.assert_array_equal(given.cam_from_world, itself.cam_from_world)
@@ -109,9 +109,10 @@ def test_the_averaged_start_is_exact_on_exact_pointmaps_and_tracks(rng, caplog):
     assert min(len(uv) for *_, uv in matches) > 20
     sizes = [d.shape for d in depths]
     with caplog.at_level("WARNING", logger="mvgeo.align.init"):
-        cfg, init = initial_values("averaged", _pair_set(preds, matches), sizes, np.full(5, FOCAL),
-                                   GlobalAlignConfig(), 1.0, (32, 24))
+        cfg, init, made_by = initial_values("averaged", _pair_set(preds, matches), sizes, np.full(5, FOCAL),
+                                            GlobalAlignConfig(), 1.0, (32, 24))
     assert cfg.init == "pair_poses" and init is not None and not caplog.text  # positioned on the tracks
+    assert made_by == "averaged_positions"
     names = [str(k) for k in range(5)]
     m = compare_poses(dict(zip(names, init.cam_from_world, strict=True)), dict(zip(names, poses, strict=True)))
     assert m.median_rotation_deg < 0.01 and m.ate.rmse < 1e-3, m
@@ -128,9 +129,9 @@ def test_the_averaged_start_without_tracks_chains_the_pair_translations(rng, cap
         p.focal_i_px = p.focal_j_px = FOCAL * (1.0 + 0.04 * (k % 2))
     sizes = [d.shape for d in depths]
     with caplog.at_level("WARNING", logger="mvgeo.align.init"):
-        cfg, init = initial_values("averaged", _pair_set(preds), sizes, None,
-                                   GlobalAlignConfig(shared_focal=shared_focal), 1.0, (32, 24))
-    assert "chaining the pairs' poses" in caplog.text
+        cfg, init, made_by = initial_values("averaged", _pair_set(preds), sizes, None,
+                                            GlobalAlignConfig(shared_focal=shared_focal), 1.0, (32, 24))
+    assert "chaining the pairs' poses" in caplog.text and made_by == "averaged_rotations"
     assert cfg.init == "pair_poses" and init is not None
     if shared_focal:
         np.testing.assert_allclose(init.focal_px, init.focal_px[0])
@@ -149,9 +150,10 @@ def test_the_averaged_start_falls_back_to_the_pair_poses_when_averaging_fails(rn
     monkeypatch.setattr(init_mod, "init_from_averaged_rotations", fails)
     poses, depths = make_views(3)
     preds = make_pairs(poses, depths, FOCAL, rng)
-    cfg, init = initial_values("averaged", _pair_set(preds), [d.shape for d in depths], None, GlobalAlignConfig(),
-                               1.0, (32, 24))
+    cfg, init, made_by = initial_values("averaged", _pair_set(preds), [d.shape for d in depths], None,
+                                        GlobalAlignConfig(), 1.0, (32, 24))
     assert cfg.init == "pair_poses" and init is None  # `global_align` chains the pairs' own poses
+    assert made_by == "chained_pair_poses"
 
 
 def test_pair_pose_chaining_init_is_exact_on_exact_pointmaps(rng):

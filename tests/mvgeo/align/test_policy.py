@@ -378,6 +378,7 @@ def test_a_failed_chained_start_is_replaced_by_the_averaged_start(llff6, flipped
     assert cands[0].start == "chain" and "pairs_contradicted" in cands[0].reasons and not cands[0].chosen
     chosen = [c for c in cands if c.chosen]
     assert len(chosen) == 1 and chosen[0].start == "averaged" and chosen[0].reasons == []
+    assert chosen[0].start_made_by == "averaged_positions"  # the tracks placed the cameras
     assert res.stats.initial_poses == "averaged"
     assert res.stats.chain_start_contradicted is None  # a configured start: nothing measured
     gt = read_sparse_model(llff6 / "sparse" / "0")
@@ -411,6 +412,7 @@ def test_no_other_candidate_when_the_first_start_passes(llff6_preview):
     assert [(c.start, c.chosen, c.reasons, c.refocused) for c in stats.candidates] == [
         ("chain", False, [], False), ("chain", True, [], True)]
     assert stats.initial_poses == "chain"
+    assert [c.start_made_by for c in stats.candidates] == ["chained_pointmaps"] * 2  # DUSt3R's chained start
     assert 0.0 <= stats.chain_start_contradicted <= init_mod.CHAIN_MAX_CONTRADICTED  # measured by "auto"
     assert AlignStats.from_json(stats.to_json()).chain_start_contradicted == stats.chain_start_contradicted
     first, c = stats.candidates

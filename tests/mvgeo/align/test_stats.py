@@ -35,7 +35,8 @@ def _stats(**changes) -> AlignStats:
                                       track_depth_ratio=[1.0, 1.001, 0.999], track_log_mad=[0.01, None, 0.02]),
         focal_determined_by_pairs=True, sensitive_features=False, initial_poses="averaged",
         candidates=[CandidateSummary("chain", 205.0, 210.5, False, 0, 0.61, ["pairs_contradicted"]),
-                    CandidateSummary("averaged", 205.0, 210.4, False, 0, 0.99, [], chosen=True),
+                    CandidateSummary("averaged", 205.0, 210.4, False, 0, 0.99, [], chosen=True,
+                                     start_made_by="averaged_positions"),
                     CandidateSummary("chain", None, None, False, 0, 0.0, [], error="the pair graph is disconnected")],
         pairs_dropped_as_inconsistent=[["a.png", "c.png"]], pair_consistency_min=0.62,
         pairs_inconsistent=[InconsistentPair("a.png", "c.png", 0.4, 12.5), InconsistentPair("b.png", "c.png", 0.3,
@@ -69,7 +70,7 @@ def test_the_file_is_one_flat_document_with_the_annotations_on_top(tmp_path):
     assert raw["bundle_adjustment"]["reproj_rms_after_px"] == 0.4  # nested figures keep their names
     assert raw["candidates"][1] == {"start": "averaged", "pairs_focal_px": 205.0, "bundle_focal_px": 210.4,
                                     "refocused": False, "n_pairs_dropped": 0, "explained_fraction": 0.99,
-                                    "reasons": [], "chosen": True, "error": ""}
+                                    "reasons": [], "chosen": True, "error": "", "start_made_by": "averaged_positions"}
     assert AlignStats.read(tmp_path / "align.json") == s
 
 
