@@ -101,7 +101,8 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
     with timer.stage("denoise"):
         out = denoise_with_method(model, work, config, passes=args.passes, seed=args.seed,
                                   noise_model=args.noise_model, wiener=WienerConfig() if args.wiener else None,
-                                  grouped=GroupedWienerConfig() if args.grouped_wiener else None)
+                                  grouped=GroupedWienerConfig(passes=args.grouped_wiener_passes)
+                                  if args.grouped_wiener else None)
         if stride > 1:
             out = unshuffled(out, stride, [im.shape for im in images])
     with atomic_output_dir(plan) as tmp:
@@ -114,7 +115,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
             "images": [f.name for f in files], "preset": args.preset, "method": config.method,
             "steps": config.steps,
             "passes": args.passes, "noise_model": args.noise_model, "seed": args.seed, "wiener": args.wiener,
-            "grouped_wiener": args.grouped_wiener,
+            "grouped_wiener": args.grouped_wiener, "grouped_wiener_passes": args.grouped_wiener_passes,
             "final_loss": float(np.mean(model.history[-20:])),
             "timing_s": timer.as_dict(), **chosen}, indent=2))
     _log.info("wrote %d denoised images, model.pt and contact_sheet.png to %s", len(out), args.out)
@@ -174,6 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="then the grouped Wiener step (denoise.grouped_wiener: similar patches of the noisy image "
                         "filtered together with the statistics of the output so far; about 1.5 s per 384x384 photo "
                         "on 2 cores)")
+    p.add_argument("--grouped-wiener-passes", type=positive_int, default=1, metavar="N",
+                   help="with --grouped-wiener: N passes of it, each with the previous one's output as its pilot "
+                        "and 80 patches per group after the first (default 1)")
     p.add_argument("--pd-stride", type=int_range(0, MAX_STRIDE), default=0, metavar="N",
                    help="denoise the pixel-shuffled sub-images of every N-th pixel, for noise correlated between "
                         "neighbouring pixels as a camera's demosaicing leaves it (denoise.pixel_shuffle). 0 "

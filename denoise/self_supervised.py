@@ -61,7 +61,7 @@ from denoise.clipping import (
     dark_clipped_fraction,
     undo_clipping_bias,
 )
-from denoise.grouped_wiener import GroupedWienerConfig, grouped_wiener
+from denoise.grouped_wiener import GroupedWienerConfig, grouped_wiener, pass_configs
 from denoise.images import image_to_tensor, images_to_tensors, tensor_to_image
 from denoise.inference import (
     CLEAN_SIGMA,
@@ -339,7 +339,9 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
             return out
         stds = [torch.as_tensor(s, dtype=torch.float32) for s in _sigmas(images, noise_sigma, noise_model)]
         out = out if wiener is None else _refined(images, out, stds, clean_sigma, wiener)
-        return out if grouped is None else _grouped(images, out, stds, clean_sigma, grouped)
+        for cfg in [] if grouped is None else pass_configs(grouped):
+            out = _grouped(images, out, stds, clean_sigma, cfg)
+        return out
     device = next(model.unet.parameters()).device
 
     def sigmas() -> list[torch.Tensor]:
@@ -376,12 +378,13 @@ def denoise_with_method(model: N2VModel, images: Sequence[np.ndarray], config: N
 def _then_grouped(noisy: Sequence[np.ndarray], out: list[np.ndarray], sigmas: Sequence[torch.Tensor],
                   clean_sigma: float, undo_clipping: bool, grouped: GroupedWienerConfig | None) -> list[np.ndarray]:
     """The clipping correction (`undo_clipping`), then, with `grouped`, the grouped Wiener step on the
-    corrected photos as pilots, in the clipped photo's domain (`_grouped`), and the correction once more."""
+    corrected photos as pilots, in the clipped photo's domain (`_grouped`), and the correction once more;
+    `grouped.passes` times, each pass's output the next one's pilot (`pass_configs`)."""
     out = _undo_clipping(noisy, out, sigmas, clean_sigma) if undo_clipping else out
-    if grouped is None:
-        return out
-    out = _grouped(noisy, out, sigmas, clean_sigma, grouped, clipped_domain=undo_clipping)
-    return _undo_clipping(noisy, out, sigmas, clean_sigma) if undo_clipping else out
+    for cfg in [] if grouped is None else pass_configs(grouped):
+        out = _grouped(noisy, out, sigmas, clean_sigma, cfg, clipped_domain=undo_clipping)
+        out = _undo_clipping(noisy, out, sigmas, clean_sigma) if undo_clipping else out
+    return out
 
 
 def _grouped(noisy: Sequence[np.ndarray], out: list[np.ndarray], sigmas: Sequence[torch.Tensor], clean_sigma: float,

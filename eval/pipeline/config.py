@@ -59,6 +59,8 @@ class DenoiseSettings:
             noisy photo filtered together with the covariance of the photo so far; about 1.5 s per 384 x 384
             photo on 2 cores, docs/bench/denoise_wiener_speed.md; docs/bench/denoise_real.md, "The grouped
             Wiener step").
+        grouped_wiener_passes: with `grouped_wiener`, how many passes of it, each with the previous one's
+            output as its pilot and 80 patches per group after the first (`GroupedWienerConfig.passes`).
         pd_stride: round 1 denoises pixel-shuffled sub-images of every `pd_stride`-th pixel
             (`denoise.pixel_shuffle`), for noise correlated between neighbouring pixels as a camera's
             demosaicing leaves it; 0 (default): the stride `denoise.pixel_shuffle.choose_stride` measures
@@ -76,6 +78,7 @@ class DenoiseSettings:
     keep_noisy: float = 0.0
     wiener: bool = False
     grouped_wiener: bool = False
+    grouped_wiener_passes: int = 1
     pd_stride: int = 0
 
 
@@ -235,6 +238,10 @@ class PipelineConfig:
         if not 0.0 <= self.denoise.keep_noisy < 1.0:
             raise ConfigError(f"must be in [0, 1), got {self.denoise.keep_noisy}", key="denoise.keep_noisy",
                               expected="a fraction of the noisy photo, 0 <= k < 1")
+        passes = self.denoise.grouped_wiener_passes
+        if isinstance(passes, bool) or not isinstance(passes, numbers.Integral) or passes < 1:
+            raise ConfigError(f"must be an integer >= 1, got {passes!r}", key="denoise.grouped_wiener_passes",
+                              expected="1 (one pass) or more")
         from denoise.pixel_shuffle import MAX_STRIDE
 
         stride = self.denoise.pd_stride

@@ -318,7 +318,8 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
         denoise=None if later else DenoiseStageSettings(n2v_config(d), d.passes, config.device, d.keep_noisy,
                                                                choose_objective=d.method == "auto",
                                                                wiener=WienerConfig() if d.wiener else None,
-                                                               grouped=GroupedWienerConfig() if d.grouped_wiener
+                                                               grouped=GroupedWienerConfig(passes=d.grouped_wiener_passes)
+                                                               if d.grouped_wiener
                                                                else None, pd_stride=d.pd_stride),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
         refine=RefineStageSettings(round2_config(d), d.passes, config.device, d.pd_stride) if later else None)

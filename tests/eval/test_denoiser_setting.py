@@ -336,3 +336,19 @@ def test_the_refine_stage_fine_tunes_and_denoises_the_sub_images_at_round_1s_str
     assert seen == [([(20, 23, 3)] * 8, [(20, 23, 3)] * 8)]  # photos and renders shuffled alike
     assert {k: v.shape for k, v in read_views(tmp_path / "r2" / "denoised").items()} == {"v0": (40, 46, 3),
                                                                                         "v1": (40, 46, 3)}
+
+
+def test_grouped_wiener_passes_are_validated_and_reach_the_stage(tmp_path):
+    from denoise.grouped_wiener import GroupedWienerConfig
+
+    cfg = preset("default")
+    assert cfg.denoise.grouped_wiener_passes == 1
+    for bad in (0, -1, True, 2.0):
+        with pytest.raises(ConfigError, match="denoise.grouped_wiener_passes"):
+            dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, grouped_wiener_passes=bad))
+    two = dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, grouped_wiener_passes=2))
+    assert round_settings(two, 1).denoise.grouped == GroupedWienerConfig(passes=2)
+    scene = make_scene(tmp_path / "images", n=3)
+    with pytest.raises(SystemExit) as exc:  # argparse's own refusal: exit 2, the option named
+        main(["run", str(scene), "--out", str(tmp_path / "o"), "--grouped-wiener-passes", "0"])
+    assert exc.value.code == 2
