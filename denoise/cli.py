@@ -95,6 +95,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
         method = choice.method
         chosen.update({"objective_rule": "auto", "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)})
     config = n2v_preset(args.preset, **overrides, method=method)
+    grouped = args.grouped_wiener or args.grouped_wiener_passes > 1
     timer = StageTimer()
     with timer.stage("train"):
         model = train_with_method(work, config, seed=args.seed, device=device, noise_model=args.noise_model)
@@ -102,7 +103,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
         out = denoise_with_method(model, work, config, passes=args.passes, seed=args.seed,
                                   noise_model=args.noise_model, wiener=WienerConfig() if args.wiener else None,
                                   grouped=GroupedWienerConfig(passes=args.grouped_wiener_passes)
-                                  if args.grouped_wiener else None)
+                                  if grouped else None)
         if stride > 1:
             out = unshuffled(out, stride, [im.shape for im in images])
     with atomic_output_dir(plan) as tmp:
@@ -115,7 +116,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
             "images": [f.name for f in files], "preset": args.preset, "method": config.method,
             "steps": config.steps,
             "passes": args.passes, "noise_model": args.noise_model, "seed": args.seed, "wiener": args.wiener,
-            "grouped_wiener": args.grouped_wiener, "grouped_wiener_passes": args.grouped_wiener_passes,
+            "grouped_wiener": grouped, "grouped_wiener_passes": args.grouped_wiener_passes if grouped else 0,
             "final_loss": float(np.mean(model.history[-20:])),
             "timing_s": timer.as_dict(), **chosen}, indent=2))
     _log.info("wrote %d denoised images, model.pt and contact_sheet.png to %s", len(out), args.out)
@@ -176,8 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "filtered together with the statistics of the output so far; about 1.5 s per 384x384 photo "
                         "on 2 cores)")
     p.add_argument("--grouped-wiener-passes", type=positive_int, default=1, metavar="N",
-                   help="with --grouped-wiener: N passes of it, each with the previous one's output as its pilot "
-                        "and 80 patches per group after the first (default 1)")
+                   help="N passes of the grouped Wiener step (N > 1 turns it on), each with the previous one's "
+                        "output as its pilot and 80 patches per group after the first (default 1)")
     p.add_argument("--pd-stride", type=int_range(0, MAX_STRIDE), default=0, metavar="N",
                    help="denoise the pixel-shuffled sub-images of every N-th pixel, for noise correlated between "
                         "neighbouring pixels as a camera's demosaicing leaves it (denoise.pixel_shuffle). 0 "

@@ -100,6 +100,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise,
                                                                          grouped_wiener=args.grouped_wiener))
     if args.grouped_wiener_passes is not None:
+        if args.grouped_wiener is False:
+            raise InputError(f"--no-grouped-wiener turns the step off, --grouped-wiener-passes "
+                             f"{args.grouped_wiener_passes} asks for passes of it",
+                             fix="give one of the two options")
         config = dataclasses.replace(config, denoise=dataclasses.replace(
             config.denoise, grouped_wiener=True, grouped_wiener_passes=args.grouped_wiener_passes))
     if args.noisy_detail is not None:
@@ -323,7 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--grouped-wiener-passes", type=positive_int, default=None, metavar="N",
                      help="run the grouped Wiener step N times (turns it on), each pass with the previous one's "
                           "output as its pilot and 80 patches per group after the first: +0.14 to +0.28 dB on the "
-                          "photos of four real sets with N = 2, at about 4 s more per 384x384 photo on 2 cores. "
+                          "photos of four real sets with N = 2, at 5-6 s more per 384x384 photo on 2 cores. "
                           "Default: the preset's (1)")
     run.add_argument("--noisy-detail", type=fraction, default=None, metavar="W",
                      help="extension, not in the paper: the fraction W of the noisy photo's finest band that the "

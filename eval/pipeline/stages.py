@@ -678,7 +678,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
 def refine_kept_previous(summary: Mapping[str, object]) -> tuple[bool, str]:
     """(True when the refine stage whose summary this is kept the previous network, why in words): the
     blind-spot-loss guard's decision as `refine` records it (False for a summary without one)."""
-    from denoise.round2 import Round2Report  # torch: the refine stage has loaded it already
+    from denoise.round2 import Round2Report  # imports torch: kept out of this module's import
 
     r2 = summary.get("round2")
     if not isinstance(r2, Mapping):

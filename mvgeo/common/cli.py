@@ -16,6 +16,7 @@ import argparse
 import errno
 import logging
 import os
+import select
 import signal
 import sys
 import threading
@@ -46,6 +47,16 @@ def _install_sigterm_handler():
     return signal.signal(signal.SIGTERM, _raise_terminated)
 
 
+def _stdout_reader_gone() -> bool:
+    """Whether stdout is a pipe whose reader has closed it (poll reports an error on the descriptor)."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poller.poll(0))
+    except (OSError, ValueError, AttributeError):  # no descriptor (a test's capture), or no poll
+        return False
+
+
 def _silence_stdout() -> None:
     """Point file descriptor 1 at /dev/null (after a broken pipe: nothing more can reach the reader)."""
     try:
@@ -73,7 +84,8 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
       is not left as a result.
     - stdout closed by its reader (`data-synth list | head -3`): quiet, exit 141 (128 + SIGPIPE), as a
       command killed by SIGPIPE would; stdout is pointed at /dev/null so the interpreter's final flush
-      does not report the same broken pipe.
+      does not report the same broken pipe. A broken pipe while stdout is still read (a subprocess's, a
+      socket's) is a failure and is raised.
     """
     args = parser.parse_args(argv)
     setup_logging(getattr(args, "verbose", 0))
@@ -88,6 +100,8 @@ def run_cli(main: Callable[[argparse.Namespace], int | None], parser: argparse.A
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_FAILURE
     except BrokenPipeError:
+        if not _stdout_reader_gone():
+            raise  # another pipe (a subprocess, a socket): a failure, not a reader that stopped
         _silence_stdout()
         return EXIT_BROKEN_PIPE
     except OSError as exc:

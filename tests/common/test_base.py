@@ -194,3 +194,16 @@ def test_a_reader_that_stops_early_is_not_a_traceback():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+def test_a_broken_pipe_that_is_not_stdout_is_raised():
+    """A command that writes to a dead subprocess's stdin fails: that is not a reader of its output stopping."""
+    import argparse
+
+    from mvgeo.common.cli import run_cli
+
+    def main(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    with pytest.raises(BrokenPipeError):
+        run_cli(main, argparse.ArgumentParser(), [])

@@ -62,6 +62,22 @@ def test_n2v_cli_wiener_refines_colour_16_bit_and_gray_photos(tmp_path, rng):
         assert np.abs(a.astype(np.float64) - b).max() > 0
 
 
+def test_n2v_cli_grouped_wiener_passes(tmp_path, rng):
+    # --grouped-wiener-passes 2 turns the grouped step on and runs it twice: the photos differ from one pass,
+    # and the report says what ran (without the step, no passes).
+    src = _three_photos(tmp_path / "noisy", rng)
+    args = ["--steps", "3", "--passes", "1", "--preset", "fast", "--method", "r2r", "--seed", "1"]
+    assert main(["n2v", str(src), "--out", str(tmp_path / "one"), *args, "--grouped-wiener"]) == 0
+    assert main(["n2v", str(src), "--out", str(tmp_path / "two"), *args, "--grouped-wiener-passes", "2"]) == 0
+    assert main(["n2v", str(src), "--out", str(tmp_path / "none"), *args]) == 0
+    reports = {k: json.loads((tmp_path / k / "report.json").read_text()) for k in ("one", "two", "none")}
+    assert [(r["grouped_wiener"], r["grouped_wiener_passes"]) for r in reports.values()] == [
+        (True, 1), (True, 2), (False, 0)]
+    a = cv2.imread(str(tmp_path / "one" / "images" / "a.png"), cv2.IMREAD_UNCHANGED)
+    b = cv2.imread(str(tmp_path / "two" / "images" / "a.png"), cv2.IMREAD_UNCHANGED)
+    assert np.abs(a.astype(np.float64) - b).max() > 0
+
+
 def test_n2v_cli_input_errors(tmp_path, capsys):
     assert main(["n2v", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
     (tmp_path / "bad").mkdir()

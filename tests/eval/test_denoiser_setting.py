@@ -352,3 +352,21 @@ def test_grouped_wiener_passes_are_validated_and_reach_the_stage(tmp_path):
     with pytest.raises(SystemExit) as exc:  # argparse's own refusal: exit 2, the option named
         main(["run", str(scene), "--out", str(tmp_path / "o"), "--grouped-wiener-passes", "0"])
     assert exc.value.code == 2
+
+
+def test_grouped_wiener_passes_on_the_command_line(tmp_path, monkeypatch, capsys):
+    import eval.cli as cli
+
+    seen = []
+    monkeypatch.setattr(cli, "run_pipeline", lambda images, out, config, force: seen.append(config) or _Result())
+    scene = make_scene(tmp_path / "images", n=3)
+    assert main(["run", str(scene), "--out", str(tmp_path / "o"), "--preset", "fast",
+                 "--grouped-wiener-passes", "2"]) == 0
+    assert seen[-1].denoise.grouped_wiener and seen[-1].denoise.grouped_wiener_passes == 2  # turns the step on
+    assert main(["run", str(scene), "--out", str(tmp_path / "o"), "--no-grouped-wiener",
+                 "--grouped-wiener-passes", "2"]) == 2  # contradictory: refused, nothing run
+    assert len(seen) == 1 and "give one of the two options" in capsys.readouterr().err
+
+
+class _Result:
+    report_md = "report.md"
