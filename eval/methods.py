@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import logging
 import os
 import shutil
@@ -46,6 +45,7 @@ from eval.pipeline import PipelineConfig, PipelineStages, StageRunner, StageSpec
 from eval.pipeline.config import DenoiseMethod
 from eval.pipeline.inputs import WORKING_DIR
 from eval.pipeline.run import RUN_COMMAND
+from eval.pipeline.stage import completed_seconds
 from eval.pipeline.stage_settings import splat_stage_settings, stage_seed
 from eval.pipeline.stages import STAGE_CODE
 from eval.pipeline.validate import DatasetFolder
@@ -385,19 +385,14 @@ def _denoised_before_refusal(method: EvalMethod, config: PipelineConfig, folder:
     what its denoising does with the true cameras. Re-raises `err` where round 1 did not get that far, or
     where the splat would have trained on fused photos (they need the noisy photos' splat)."""
     rd = folder / "round1"
-    record = rd / "stages" / "denoise.json"
-    if config.fuse_noisy_splat or not record.is_file() or (rd / "stages" / "splat.json").is_file():
+    if config.fuse_noisy_splat or (rd / "stages" / "splat.json").is_file():
         raise err
-    try:
-        done = json.loads(record.read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # not a record the stage wrote
-        done = None
-    # not a record, or a commit that was cut short
-    if not isinstance(done, dict) or done.get("pending") or not isinstance(done.get("seconds"), int | float):
+    seconds = completed_seconds(rd, "denoise")  # None: no record, or a commit that was cut short
+    if seconds is None:
         raise err
     _log.warning("%s: its alignment refused the photos (%s); the ground-truth-pose variant splats round 1's "
                  "denoised photos", method.name, str(err).split(":")[0])
-    return Reconstruction(rd, True, float(done["seconds"]))
+    return Reconstruction(rd, True, seconds)
 
 
 def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig, *, seed: int,

@@ -345,6 +345,17 @@ def _read_record(record: Path) -> tuple[dict | None, str]:
     return rec, ""
 
 
+def completed_seconds(stage_dir: Path, name: str) -> float | None:
+    """The seconds stage `name` took, from its record in `stage_dir`, where that record is a completed
+    commit's; None where there is no record, it is not one this module wrote, or its commit was cut short
+    (a pending record)."""
+    rec, _ = _read_record(_record_file(stage_dir, name))
+    if rec is None or rec.get("pending") or isinstance(rec.get("seconds"), bool) \
+            or not isinstance(rec.get("seconds"), int | float):
+        return None
+    return float(rec["seconds"])
+
+
 def _record_problems(stage_dir: Path, name: str) -> list[str]:
     """Why stage `name` may not write its record `stages/<name>.json` (as `unowned_outputs` words it): the
     record folder is not a folder, or a file of that name is not a record of stage `name` (a symbolic link,

@@ -3,6 +3,7 @@ it holds, never a crash, and nothing is replaced."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 
 import pytest
@@ -117,3 +118,30 @@ def test_the_toolkits_own_json_files_deeply_nested_give_typed_errors_or_not_ours
     with pytest.raises(DisconnectedViewsError) as exc:
         _denoised_before_refusal(METHODS["product"], preset("default"), tmp_path / "m", refusal)
     assert exc.value is refusal
+
+
+def test_completed_seconds_reads_only_a_completed_record(tmp_path):
+    """`completed_seconds`: a record a finished commit wrote gives its seconds; a pending one (a commit cut
+    short), none, one without a number, or one that is not JSON give None. `_denoised_before_refusal`
+    splats round 1's photos only on the first."""
+    from eval.methods import METHODS, _denoised_before_refusal
+    from eval.pipeline import preset
+    from eval.pipeline.stage import RECORD_DIR, completed_seconds
+    from mvgeo.common.errors import DisconnectedViewsError
+
+    rd = tmp_path / "m" / "round1"
+    (rd / RECORD_DIR).mkdir(parents=True)
+    record = rd / RECORD_DIR / "denoise.json"
+    assert completed_seconds(rd, "denoise") is None
+    cfg = dataclasses.replace(preset("default"), fuse_noisy_splat=False)
+    refusal = DisconnectedViewsError("the pair graph is disconnected")
+    for text in ('{"name": "denoise", "pending": true, "seconds": 3.0}', '{"seconds": "3"}', '{"seconds": true}',
+                 "[1]", "not json"):
+        record.write_text(text)
+        assert completed_seconds(rd, "denoise") is None, text
+        with pytest.raises(DisconnectedViewsError):
+            _denoised_before_refusal(METHODS["product"], cfg, tmp_path / "m", refusal)
+    record.write_text('{"name": "denoise", "seconds": 12.5}')
+    assert completed_seconds(rd, "denoise") == 12.5
+    rec = _denoised_before_refusal(METHODS["product"], cfg, tmp_path / "m", refusal)
+    assert rec.round_dir == rd and rec.seconds == 12.5
