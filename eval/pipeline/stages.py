@@ -288,13 +288,13 @@ def as_pipeline_refusal(exc: DegenerateGeometryError | DisconnectedViewsError):
     registers every photo or stops. Its fix names the photos to leave out (by stem: the input photos'
     extensions may differ from the working PNGs') or what to add. Other errors come back unchanged.
     """
-    stems = sorted(Path(v).stem for v in getattr(exc, "views", ()))
+    if not isinstance(exc, DisconnectedViewsError | AlignmentRefusedError):
+        return exc
+    stems = sorted(Path(v).stem for v in exc.views)
     if isinstance(exc, DisconnectedViewsError):
         return DisconnectedViewsError(exc.message, views=exc.views, path=exc.path, fix=(
             f"leave the photos {stems} out of the input folder (no usable pair relates them to the others), or "
             "add photos that overlap them" if stems else exc.fix))
-    if not isinstance(exc, AlignmentRefusedError):
-        return exc
     if exc.kind in ("views_unsupported", "positions_undetermined") and stems:
         fix = (f"leave the photos {stems} out of the input folder, or add photos between them and their "
                "neighbours (`mvgeo align --allow-partial` on the photos registers the others and shows which)")
