@@ -65,6 +65,12 @@ def photo(kind: str, name: str, rng: np.random.Generator) -> np.ndarray:
     sys.exit(f"unknown kind {kind!r}: clean, clean+noise:S, noisy, round1:SUB[:A] or dir:PATH")
 
 
+# The variant's own config sets InstantSplat's splat length (`eval.methods.paper_loop`): --splat-iters is
+# applied after it, so that it is the length trained.
+config = variant.pipeline_config(base)
+config = dataclasses.replace(config, splat=dataclasses.replace(config.splat, iters=args.splat_iters))
+print(f"splat: {config.splat.iters} iterations, the noisy photos' band at weight {config.splat.noisy_detail}",
+      flush=True)
 print("| training photos | PSNR | SSIM | LPIPS |\n|---|---|---|---|", flush=True)
 for k, kind in enumerate(args.kinds):
     folder = args.out / f"{k:02d}"
@@ -72,7 +78,7 @@ for k, kind in enumerate(args.kinds):
     rng = np.random.default_rng(7)
     for name in names:
         write_image(folder / "photos" / name, np.clip(photo(kind, name, rng), 0.0, 1.0).astype(np.float32))
-    rec = _splat_on_ground_truth(variant.stages(dataset), variant.pipeline_config(base), dataset, folder / "photos",
+    rec = _splat_on_ground_truth(variant.stages(dataset), config, dataset, folder / "photos",
                                  folder / "run", estimate=args.seed_dir / ORACLE_CLEAN.folder() / "round1")
     m = held_out_at_true_poses(rec.round_dir, dataset)
     print(f"| {kind} | {m['psnr_db']:.2f} | {m['ssim']:.3f} | {m['lpips']:.3f} |", flush=True)
