@@ -147,8 +147,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     config = EvalConfig(methods=tuple(dict.fromkeys(methods)), seeds=args.seeds, preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
                         device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser,
-                        grouped_wiener=args.grouped_wiener, noisy_detail=args.noisy_detail,
-                        pd_stride=args.pd_stride)
+                        grouped_wiener=args.grouped_wiener, grouped_wiener_passes=args.grouped_wiener_passes,
+                        noisy_detail=args.noisy_detail, pd_stride=args.pd_stride)
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
     with (resumable_output_dir(plan), output_lock(out),
@@ -387,6 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--grouped-wiener", action=argparse.BooleanOptionalAction, default=None,
                     help="the grouped Wiener step on or off for every method that trains the UNet (default: the "
                          "preset's; an A/B comparison evaluates each setting into its own --out)")
+    ev.add_argument("--grouped-wiener-passes", type=positive_int, default=None, metavar="N",
+                    help="passes of the grouped Wiener step for every method that trains the UNet (see `run "
+                         "--grouped-wiener-passes`; an A/B comparison evaluates each setting into its own --out)")
     ev.add_argument("--noisy-detail", type=fraction, default=None, metavar="W",
                     help="the noisy photos' band in the product's splat target (see `run --noisy-detail`; the "
                          "paper's loop, the baselines and the oracle train on their photos as they are). "

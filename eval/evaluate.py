@@ -132,6 +132,9 @@ def base_pipeline_config(config: EvalConfig, views: int) -> PipelineConfig:
     if config.grouped_wiener is not None:
         base = dataclasses.replace(base, denoise=dataclasses.replace(base.denoise,
                                                                      grouped_wiener=config.grouped_wiener))
+    if config.grouped_wiener_passes is not None:
+        base = dataclasses.replace(base, denoise=dataclasses.replace(
+            base.denoise, grouped_wiener=True, grouped_wiener_passes=config.grouped_wiener_passes))
     if config.noisy_detail is not None:
         base = dataclasses.replace(base, splat=dataclasses.replace(base.splat, noisy_detail=config.noisy_detail))
     if config.pd_stride is not None:
@@ -161,6 +164,8 @@ class EvalConfig:
         grouped_wiener: the grouped Wiener step on or off for every method that trains the UNet
             (`DenoiseSettings.grouped_wiener`); None: the preset's. For A/B measurements: evaluate each
             setting into its own output folder.
+        grouped_wiener_passes: passes of the grouped Wiener step (`DenoiseSettings.grouped_wiener_passes`;
+            it turns the step on); None: the preset's. For A/B measurements, as `grouped_wiener`.
         noisy_detail: the noisy photos' band in the splat's target (`SplatSettings.noisy_detail`) for the
             methods that take the preset's (`product`; the paper's loop, the baselines and the oracle train
             on their photos as they are); None: the preset's. For A/B measurements, as `grouped_wiener`.
@@ -178,6 +183,7 @@ class EvalConfig:
     allow_focal_prior: bool = True
     denoiser: DenoiseMethod = "n2v"
     grouped_wiener: bool | None = None
+    grouped_wiener_passes: int | None = None
     noisy_detail: float | None = None
     pd_stride: int | None = None
 
@@ -194,6 +200,9 @@ class EvalConfig:
                              f"{', '.join(multi_round)}", fix=f"use {', '.join(one_round)}")
         if self.seeds < 1:
             raise InputError(f"--seeds must be at least 1, got {self.seeds}")
+        if self.grouped_wiener_passes is not None and (self.grouped_wiener is False or self.grouped_wiener_passes < 1):
+            raise InputError(f"--grouped-wiener-passes {self.grouped_wiener_passes} needs the step on and at least "
+                             "one pass", fix="give one of --no-grouped-wiener and --grouped-wiener-passes N >= 1")
         if self.noisy_detail is not None and not 0.0 <= self.noisy_detail <= 1.0:
             raise InputError(f"--noisy-detail must be in [0, 1], got {self.noisy_detail}")
         preset(self.preset)

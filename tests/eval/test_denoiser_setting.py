@@ -370,3 +370,13 @@ def test_grouped_wiener_passes_on_the_command_line(tmp_path, monkeypatch, capsys
 
 class _Result:
     report_md = "report.md"
+
+
+def test_an_evaluation_can_set_the_grouped_wiener_passes():
+    from mvgeo.common.errors import InputError
+
+    base = base_pipeline_config(EvalConfig(methods=("product",), preset="fast", grouped_wiener_passes=2), views=4)
+    assert base.denoise.grouped_wiener and base.denoise.grouped_wiener_passes == 2  # turned on, as `run` does
+    assert base_pipeline_config(EvalConfig(methods=("product",)), views=4).denoise.grouped_wiener_passes == 1
+    with pytest.raises(InputError, match="grouped-wiener-passes"):
+        EvalConfig(methods=("product",), grouped_wiener=False, grouped_wiener_passes=2)
