@@ -84,9 +84,7 @@ def pass_configs(config: GroupedWienerConfig) -> list[GroupedWienerConfig]:
     """One single-pass config per pass of `config`: the first as given, the later ones with
     `later_group_size` patches per group."""
     one = replace(config, passes=1)
-    if config.passes == 1:
-        return [one]
-    return [one] + [replace(one, group_size=config.later_group_size)] * (config.passes - 1)
+    return [one] + [replace(one, group_size=config.later_group_size) for _ in range(config.passes - 1)]
 
 
 def search_offsets(radius: int) -> np.ndarray:

@@ -350,10 +350,10 @@ def completed_seconds(stage_dir: Path, name: str) -> float | None:
     commit's; None where there is no record, it is not one this module wrote, or its commit was cut short
     (a pending record)."""
     rec, _ = _read_record(_record_file(stage_dir, name))
-    if rec is None or rec.get("pending") or isinstance(rec.get("seconds"), bool) \
-            or not isinstance(rec.get("seconds"), int | float):
+    seconds = None if rec is None or rec.get("pending") else rec.get("seconds")
+    if isinstance(seconds, bool) or not isinstance(seconds, int | float):
         return None
-    return float(rec["seconds"])
+    return float(seconds)
 
 
 def _record_problems(stage_dir: Path, name: str) -> list[str]:

@@ -13,6 +13,7 @@ handler back after that import.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import logging
 import os
@@ -59,12 +60,10 @@ def _stdout_reader_gone() -> bool:
 
 def _silence_stdout() -> None:
     """Point file descriptor 1 at /dev/null (after a broken pipe: nothing more can reach the reader)."""
-    try:
+    with contextlib.suppress(OSError, ValueError):  # ValueError: stdout without a descriptor (a test's capture)
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         os.close(devnull)
-    except (OSError, ValueError):  # stdout replaced by an object without a descriptor (a test's capture)
-        pass
 
 
 def add_common_args(parser: argparse.ArgumentParser) -> None:
