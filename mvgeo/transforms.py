@@ -23,6 +23,7 @@ at and near angle 0; the logarithm goes through the quaternion with
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -188,6 +189,7 @@ _D_SERIES = np.array(
 # The closed forms of C and D cancel catastrophically (relative error ~ eps / t^2);
 # below this angle the series (8 terms, next term < 1e-17 relative at t = 0.5) is used.
 _SERIES_ANGLE = 0.5
+_C_SERIES_FLOATS = tuple(float(c) for c in _C_SERIES)
 
 
 def _poly_t2(coeffs: np.ndarray, theta2: np.ndarray) -> np.ndarray:
@@ -212,6 +214,38 @@ def _so3_coeffs(theta2: np.ndarray):
     tc = np.sqrt(t2c)
     C = np.where(series, _poly_t2(_C_SERIES, theta2), (tc - np.sin(tc)) / (t2c * tc))
     return A, B, C
+
+
+def so3_exp_and_left_jacobian(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(so3_exp(omega), so3_left_jacobian(omega))`` of one rotation vector, sharing one evaluation of
+    the coefficients in scalar arithmetic: the same formulas as `R_from_axis_angle` and
+    `so3_left_jacobian` (the tests compare them) without their per-call array checks, for inner loops
+    over one small rotation (a two-view refinement's Jacobian).
+
+    Args:
+        omega: (3,) rotation vector, radians.
+
+    Returns:
+        R (3, 3), J_l (3, 3), float64.
+    """
+    x, y, z = float(omega[0]), float(omega[1]), float(omega[2])
+    t2 = x * x + y * y + z * z
+    if t2 < _SMALL_ANGLE**2:
+        A, B = 1 - t2 / 6 + t2 * t2 / 120, 0.5 - t2 / 24 + t2 * t2 / 720
+    else:
+        t = math.sqrt(t2)
+        A, B = math.sin(t) / t, 2 * (math.sin(t / 2) / t) ** 2
+    if t2 < _SERIES_ANGLE**2:
+        C = 0.0
+        for c in _C_SERIES_FLOATS[::-1]:
+            C = C * t2 + c
+    else:
+        t = math.sqrt(t2)
+        C = (t - math.sin(t)) / (t2 * t)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    K2 = K @ K
+    eye = np.eye(3)
+    return eye + A * K + B * K2, eye + B * K + C * K2
 
 
 def R_from_axis_angle(omega) -> np.ndarray:

@@ -18,7 +18,7 @@ and is the reference in the tests):
 2. Pose from E: the four decompositions, cheirality by Lee–Civera mid2
    triangulation of the inliers (`mvgeo.triangulate`).
 3. Levenberg–Marquardt refinement of ``(R, t)`` (and ``log f``) on the
-   inliers' Sampson distances (scipy ``least_squares``), then inliers are
+   inliers' Sampson distances (`mvgeo.dense_lm`), then inliers are
    re-selected with the refined model.
 
 Focal length from F (uncalibrated, shared focal, principal point at the
@@ -40,10 +40,11 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from scipy.optimize import least_squares, minimize_scalar
+from scipy.optimize import minimize_scalar
 
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import ShapeError, check_shape
+from mvgeo.dense_lm import dense_lm
 from mvgeo.epipolar import (
     decompose_essential,
     essential_5point,
@@ -56,7 +57,7 @@ from mvgeo.epipolar import (
     sampson_distance,
 )
 from mvgeo.ransac import RansacConfig, ransac
-from mvgeo.transforms import skew, so3_exp, so3_left_jacobian
+from mvgeo.transforms import so3_exp_and_left_jacobian
 from mvgeo.triangulate import TriangulationCriteria, _two_view_in_front_pm, triangulate_two_view
 
 __all__ = [
@@ -264,13 +265,17 @@ class _SampsonProblem:
         self._cache: tuple[bytes, tuple] | None = None
 
     def unpack(self, p):
+        """(w, R, t, |t0 + B b|, log f or None) of parameters `p`."""
+        return self._unpack(p)[:5]
+
+    def _unpack(self, p):
         n_f = self.n_f
         w = p[n_f:n_f + 3]
-        R = so3_exp(w) @ self.R0
+        Rw, Jl = so3_exp_and_left_jacobian(w)
         tu = self.t0 + self.B @ p[n_f + 3:n_f + 5]
-        norm = float(np.linalg.norm(tu))
+        norm = float(np.sqrt(tu @ tu))
         lf = None if self.log_f0 is None else self.log_f0 + p[0]
-        return w, R, tu / norm, norm, lf
+        return w, Rw @ self.R0, tu / norm, norm, lf, Jl
 
     def _Kinv(self, lf):
         if lf is None:
@@ -283,16 +288,16 @@ class _SampsonProblem:
         key = p.tobytes()
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
-        w, R, t, norm, lf = self.unpack(p)
+        w, R, t, norm, lf, Jl = self._unpack(p)
         K1i, K2i = self._Kinv(lf)
-        E = skew(t) @ R
+        E = _hat(t) @ R
         F = K2i.T @ E @ K1i
         Fx1 = self.h1 @ F.T
         Ftx2 = self.h2 @ F
-        num = np.sum(self.h2 * Fx1, axis=1)
+        num = (self.h2 * Fx1).sum(axis=1)
         den = np.sqrt(Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2)
         den = np.maximum(den, 1e-300)
-        out = (w, R, t, norm, lf, K1i, K2i, E, Fx1, Ftx2, num, den)
+        out = (R, t, norm, lf, Jl, K1i, K2i, E, Fx1, Ftx2, num, den)
         self._cache = (key, out)
         return out
 
@@ -301,32 +306,38 @@ class _SampsonProblem:
         return num / den
 
     def jacobian(self, p) -> np.ndarray:
-        w, R, t, norm, lf, K1i, K2i, E, Fx1, Ftx2, num, den = self._eval(p)
-        h1, h2 = self.h1, self.h2
-        # d r / d F_ij, (N, 3, 3): r = num / den, num = h2^T F h1, den^2 = (F h1)_0^2 + (F h1)_1^2
-        # + (F^T h2)_0^2 + (F^T h2)_1^2.
-        dnum = h2[:, :, None] * h1[:, None, :]
-        dden2 = np.zeros_like(dnum)
-        dden2[:, 0, :] += 2.0 * Fx1[:, 0, None] * h1
-        dden2[:, 1, :] += 2.0 * Fx1[:, 1, None] * h1
-        dden2[:, :, 0] += 2.0 * Ftx2[:, 0, None] * h2
-        dden2[:, :, 1] += 2.0 * Ftx2[:, 1, None] * h2
-        dr_dF = (dnum / den[:, None, None] - (num / (2.0 * den**3))[:, None, None] * dden2).reshape(len(h1), 9)
-        # d F / d p, (9, n_p).
-        dF = []
+        R, t, norm, lf, Jl, K1i, K2i, E, Fx1, Ftx2, num, den = self._eval(p)
+        # dF / dp_k, (n_p, 3, 3): the focal's, then [t]_x [J_l e_k]_x R (rotation), then
+        # [P B e_m]_x R with P the projection onto the sphere's tangent plane at t (translation).
+        P = (np.eye(3) - np.outer(t, t)) / norm
+        M = np.concatenate([_hat(t) @ _hat_rows(Jl.T) @ R, _hat_rows((P @ self.B).T) @ R])
+        dF = K2i.T @ M @ K1i
         if lf is not None:
             D = K1i.copy()
             D[2] = 0.0
-            D = -D
-            dF.append(D.T @ E @ K1i + K2i.T @ E @ D)
-        Jl = so3_left_jacobian(w)
-        tx = skew(t)
-        for k in range(3):
-            dF.append(K2i.T @ (tx @ skew(Jl[:, k]) @ R) @ K1i)
-        P = (np.eye(3) - np.outer(t, t)) / norm
-        for m in range(2):
-            dF.append(K2i.T @ (skew(P @ self.B[:, m]) @ R) @ K1i)
-        return dr_dF @ np.stack([d.reshape(9) for d in dF], axis=1)
+            dF = np.concatenate([-(D.T @ E @ K1i + K2i.T @ E @ D)[None], dF])
+        # r = num / den with num = h2^T F h1 and den^2 = (F h1)_0^2 + (F h1)_1^2 + (F^T h2)_0^2 + (F^T h2)_1^2:
+        # dr = dnum / den - num / (2 den^3) dden2, each along dF_k.
+        n, k = len(self.h1), len(dF)
+        G1 = (self.h1 @ dF.reshape(3 * k, 3).T).reshape(n, k, 3)  # dF_k h1
+        G2 = (self.h2 @ dF.transpose(1, 0, 2).reshape(3, 3 * k)).reshape(n, k, 3)  # dF_k^T h2
+        dnum = (G1 * self.h2[:, None, :]).sum(axis=2)
+        dden2 = 2.0 * (Fx1[:, None, 0] * G1[:, :, 0] + Fx1[:, None, 1] * G1[:, :, 1]
+                       + Ftx2[:, None, 0] * G2[:, :, 0] + Ftx2[:, None, 1] * G2[:, :, 1])
+        return dnum / den[:, None] - (num / (2.0 * den**3))[:, None] * dden2
+
+
+def _hat(v: np.ndarray) -> np.ndarray:
+    """``[v]_x`` of one 3-vector (`mvgeo.transforms.skew` without its array checks, for inner loops)."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _hat_rows(v: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) ``[v_k]_x`` of the rows of `v` (K, 3)."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
 
 
 def _refine(u1, u2, K1, K2, R0, t0, noise_floor_px: float, *, log_f0: float | None = None,
@@ -337,8 +348,7 @@ def _refine(u1, u2, K1, K2, R0, t0, noise_floor_px: float, *, log_f0: float | No
     and the log-focal is refined too. Returns R, t, f (or None), rel_std of f (or None).
     """
     prob = _SampsonProblem(u1, u2, K1, K2, R0, t0, log_f0, principal_px)
-    p0 = np.zeros(prob.n_f + 5)
-    sol = least_squares(prob.residuals, p0, jac=prob.jacobian, method="lm", x_scale="jac", max_nfev=200)
+    sol = dense_lm(prob.residuals, prob.jacobian, np.zeros(prob.n_f + 5), max_nfev=200)
     _, R, t, _, lf = prob.unpack(sol.x)
     rel_std = None
     if log_f0 is not None:

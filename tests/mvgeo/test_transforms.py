@@ -76,6 +76,18 @@ def test_so3_left_jacobian_against_central_differences_and_se3_block(rng, angle)
     np.testing.assert_allclose(tf.se3_exp(np.concatenate([omega, v]))[:3, 3], J @ v, atol=1e-12)
 
 
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 1e-4, 1e-3, 0.3, 0.49999, 0.5, 0.50001, 2.5, np.pi])
+def test_so3_exp_and_left_jacobian_equal_the_array_versions(rng, angle):
+    """The scalar path (`so3_exp_and_left_jacobian`, used in the two-view refinement's inner loop) equals
+    `so3_exp` and `so3_left_jacobian` on either side of both series switches (1e-4 and 0.5 rad): the same
+    formulas, so only rounding separates them (1e-15)."""
+    axis = rng.normal(size=3)
+    omega = angle * axis / np.linalg.norm(axis)
+    R, J = tf.so3_exp_and_left_jacobian(omega)
+    np.testing.assert_allclose(R, tf.so3_exp(omega), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(J, tf.so3_left_jacobian(omega), rtol=0, atol=1e-15)
+
+
 def test_so3_log_exactly_pi_and_identity():
     for axis in np.eye(3):
         R = tf.so3_exp(np.pi * axis)
