@@ -18,7 +18,7 @@ and is the reference in the tests):
 2. Pose from E: the four decompositions, cheirality by Lee–Civera mid2
    triangulation of the inliers (`mvgeo.triangulate`).
 3. Levenberg–Marquardt refinement of ``(R, t)`` (and ``log f``) on the
-   inliers' Sampson distances (`mvgeo.dense_lm`), then inliers are
+   inliers' Sampson distances (scipy ``least_squares``), then inliers are
    re-selected with the refined model.
 
 Focal length from F (uncalibrated, shared focal, principal point at the
@@ -40,11 +40,10 @@ from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
-from scipy.optimize import minimize_scalar
+from scipy.optimize import least_squares, minimize_scalar
 
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import ShapeError, check_shape
-from mvgeo.dense_lm import dense_lm
 from mvgeo.epipolar import (
     decompose_essential,
     essential_5point,
@@ -348,7 +347,8 @@ def _refine(u1, u2, K1, K2, R0, t0, noise_floor_px: float, *, log_f0: float | No
     and the log-focal is refined too. Returns R, t, f (or None), rel_std of f (or None).
     """
     prob = _SampsonProblem(u1, u2, K1, K2, R0, t0, log_f0, principal_px)
-    sol = dense_lm(prob.residuals, prob.jacobian, np.zeros(prob.n_f + 5), max_nfev=200)
+    sol = least_squares(prob.residuals, np.zeros(prob.n_f + 5), jac=prob.jacobian, method="lm", x_scale="jac",
+                        max_nfev=200)
     _, R, t, _, lf = prob.unpack(sol.x)
     rel_std = None
     if log_f0 is not None:

@@ -21,7 +21,7 @@ from mvgeo.align.policy import choose_solution
 from mvgeo.align.solve import Candidate
 from mvgeo.align.stats import AlignStats, Unregistered
 from mvgeo.align.verdict import Reason, Verdict
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError
 from mvgeo.common.imageio import list_images
 from mvgeo.common.timing import StageTimer
 from mvgeo.metrics import compare_poses
@@ -445,13 +445,14 @@ def test_a_focal_far_off_is_re_estimated(llff6):
     with pytest.raises(DegenerateGeometryError, match="inconsistent"):
         align_images(files, dataclasses.replace(alone, locate_cut_off_views=False))
     # Without the re-estimation, the relocation (PnP of the four views cut off on the two others' points,
-    # `mvgeo.align.solve.relocate`) is a close call: on a 2-core AMD EPYC it recovered (0.06 deg, 207.3 px;
-    # 2026-11-27), on a 2-core Intel Xeon the same code refuses (4 of 15 pairs inconsistent; 2026-11-30): the
-    # CPUs' float rounding differs. Either is the contract: a correct result or a named refusal.
+    # `mvgeo.align.solve.relocate`) is a close call that the CPUs' float rounding decides: on a 2-core AMD EPYC
+    # it recovered (0.06 deg, 207.3 px; 2026-11-27) and later refused because the adjustment leaves the focal
+    # 45 % uncertain (2026-12-01); on a 2-core Intel Xeon it refuses with 4 of 15 pairs inconsistent
+    # (2026-11-30). Any of these is the contract: a correct result or a refusal naming why.
     try:
         moved = align_images(files, alone)
-    except DegenerateGeometryError as exc:
-        assert "inconsistent" in str(exc), exc
+    except AlignmentRefusedError as exc:
+        assert exc.kind in ("pairs_contradicted", "focal_undetermined"), exc
     else:
         assert [v.outcome for v in moved.stats.views_located_by_points] == ["re-posed"] * 4
         m = compare_poses(moved.sparse_model.cam_from_world_by_name(),
