@@ -142,7 +142,7 @@ def main() -> int:
         if len(loss):
             row.update(loss_max=round(float(loss.max()), 4), loss_last50=round(float(np.median(loss[-50:])), 4))
         if model.restarts:  # the divergence guard restarted the training (its losses: the last run's)
-            row["restarts"] = model.restarts
+            row["restarts"] = [r.to_json() for r in model.restarts]
         if args.time_steps:
             row["s_per_step"] = round(train_s / args.time_steps, 4)
         else:

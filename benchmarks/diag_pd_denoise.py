@@ -18,6 +18,7 @@ from eval.pipeline import preset
 from eval.pipeline.stage import StageContext
 from eval.pipeline.stage_settings import round_settings
 from eval.pipeline.stages import denoise
+from eval.pipeline.summaries import DenoiseSummary
 from eval.pipeline.views import read_views, write_views
 
 
@@ -32,11 +33,10 @@ def main() -> int:
     write_views(args.out / "noisy", {k: v for k, v in read_views(args.dataset / "images").items() if k in train})
     settings = dataclasses.replace(round_settings(preset("default"), 1).denoise, pd_stride=args.stride)
     t = time.perf_counter()
-    summary = denoise(StageContext(name="denoise", work_dir=args.out, inputs={"noisy": args.out / "noisy"},
-                                   settings=settings, seed=0))
-    print(json.dumps({"stride": summary["pd_stride"],
-                      "noise_level_by_stride_255": summary.get("noise_level_by_stride_255"),
-                      "objective": summary.get("objective"), "seconds": round(time.perf_counter() - t, 1)}))
+    summary = DenoiseSummary.from_json(denoise(StageContext(
+        name="denoise", work_dir=args.out, inputs={"noisy": args.out / "noisy"}, settings=settings, seed=0)))
+    print(json.dumps({"stride": summary.pd_stride, "noise_level_by_stride_255": summary.noise_level_by_stride_255,
+                      "objective": summary.objective, "seconds": round(time.perf_counter() - t, 1)}))
     return 0
 
 

@@ -21,6 +21,7 @@ def main() -> None:
 
     from denoise.model import load_checkpoint
     from denoise.round2 import blind_spot_blocks, guard_decision, spread_cells
+    from eval.pipeline.summaries import RefineSummary
     from eval.pipeline.views import read_views
 
     ap = argparse.ArgumentParser()
@@ -35,8 +36,9 @@ def main() -> None:
         before_model = load_checkpoint(run / "round1" / "n2v_model.pt")
         after_model = load_checkpoint(run / "round2" / "n2v_model.pt")
         record = json.loads((run / "round2" / "stages" / "refine.json").read_text())
-        r2 = (record.get("summary") or {}).get("round2", {})
-        print(run, "recorded:", {k: r2.get(k) for k in ("loss_before", "loss_after", "loss_gain_se", "reverted")})
+        r2 = RefineSummary.from_json(record.get("summary") or {}).round2_report()
+        print(run, "recorded:", None if r2 is None else {"loss_before": r2.loss_before, "loss_after": r2.loss_after,
+                                                         "loss_gain_se": r2.loss_gain_se, "reverted": r2.reverted})
         cells = spread_cells(args.cells)
         before = blind_spot_blocks(before_model, ys, seed=args.seed, cells=cells)[0]
         after = blind_spot_blocks(after_model, ys, seed=args.seed, cells=cells)[0]

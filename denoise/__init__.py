@@ -28,6 +28,7 @@ _EXPORTS = {
     "N2VModel": "denoise.model", "load_checkpoint": "denoise.model", "save_checkpoint": "denoise.model",
     "N2V_PRESETS": "denoise.n2v", "N2VConfig": "denoise.n2v", "n2v_preset": "denoise.n2v",
     "train_n2v": "denoise.n2v",
+    "TrainingRestart": "denoise.training_restart",
     "Round2Config": "denoise.round2", "finetune_round2": "denoise.round2", "joint_loss": "denoise.round2",
     "UNet": "denoise.unet", "UNetConfig": "denoise.unet",
     "Selection": "denoise.view_selection", "select_views": "denoise.view_selection",

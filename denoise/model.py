@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from denoise.training_restart import TrainingRestart
 from denoise.unet import UNet, UNetConfig
 from mvgeo.common.atomic import atomic_write_bytes
 from mvgeo.common.errors import InputError, check_shape
@@ -33,8 +34,8 @@ class N2VModel:
         alpha: residual scale.
         mask_prob, replacement, radius: the training masking, reused by K-pass inference.
         history: training losses, one per step (round 1, then round 2 appended).
-        restarts: the trainings `denoise.n2v.optimise_unet` abandoned as diverging and started again:
-            ``{"step": ..., "lr": ...}`` each (not saved in checkpoints).
+        restarts: the trainings `denoise.n2v.optimise_unet` abandoned as diverging and started again, in
+            order (not saved in checkpoints: they describe one training, not the weights).
         blind_spot: the network was trained blind-spot only (round 1), so inference may
             fuse its prediction with the ignored centre pixel (`denoise.fusion`); round 2
             trains on the full input and clears it.
@@ -49,7 +50,7 @@ class N2VModel:
     radius: int = 5
     history: list[float] = field(default_factory=list)
     blind_spot: bool = True
-    restarts: list[dict] = field(default_factory=list)
+    restarts: list[TrainingRestart] = field(default_factory=list)
 
     STD_FLOOR = 1e-2
 

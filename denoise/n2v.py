@@ -25,6 +25,7 @@ from denoise.masking import REPLACEMENTS, Replacement, mask_pixels
 from denoise.model import N2VModel
 from denoise.parallel import in_parallel, one_thread_per_task, run_tasks
 from denoise.patches import effective_patch_px, sample_patches
+from denoise.training_restart import TrainingRestart
 from denoise.unet import UNet, UNetConfig
 from mvgeo.common.errors import ConfigError, DgsError
 from mvgeo.common.progress import progress_bar
@@ -429,7 +430,7 @@ def optimise_unet(model: N2VModel, config: N2VConfig, batch_at_step: Callable[[i
                      desc, at, lr, lr * 0.5)
         unet.load_state_dict(start)
         del model.history[n_history:]
-        model.restarts.append({"step": int(at), "lr": float(lr)})
+        model.restarts.append(TrainingRestart(step=int(at), lr=float(lr)))
         lr *= 0.5
     unet.eval()
     return model

@@ -123,9 +123,14 @@ class NoiseLevels:
         """The levels read, /255, for a log line ("not measured" when none were read)."""
         return ", ".join(f"{k}: {255.0 * v:.1f}" for k, v in self.level_by_stride.items()) or "not measured"
 
+    def levels_by_stride_255(self) -> dict[str, float]:
+        """The levels read, /255 rounded to 0.01, keyed by the stride as a string (a JSON key); empty when
+        none were read."""
+        return {str(k): round(255.0 * v, 2) for k, v in self.level_by_stride.items()}
+
     def record(self) -> dict[str, object]:
-        """What a stage summary or report.json records: the stride, and the levels read (/255) if any."""
-        levels = {str(k): round(255.0 * v, 2) for k, v in self.level_by_stride.items()}
+        """What `denoise n2v`'s report.json records: the stride, and the levels read (/255) if any."""
+        levels = self.levels_by_stride_255()
         return {"pd_stride": self.stride, **({"noise_level_by_stride_255": levels} if levels else {})}
 
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from denoise.noise_level import estimate_noise_sigma
 from eval.pipeline.stage import StageContext
+from eval.pipeline.summaries import AlignSummary, DenoiseSummary
 from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import read_views, write_views
 from mvgeo.common.errors import InputError
@@ -34,7 +35,7 @@ CLASSICAL_DENOISE_OUTPUTS = ("denoised",)
 def identity_denoise(ctx: StageContext) -> Mapping[str, object]:
     """(b): no denoising; the noisy images go to alignment and splatting as they are."""
     write_views(ctx.work_dir / "denoised", read_views(ctx.inputs["noisy"]))
-    return {"denoiser": "none"}
+    return DenoiseSummary(denoiser="none").to_json()
 
 
 def nlm_denoise(ctx: StageContext) -> Mapping[str, object]:
@@ -48,7 +49,7 @@ def nlm_denoise(ctx: StageContext) -> Mapping[str, object]:
                                      patch_distance=6, channel_axis=-1).astype(np.float32)
         sigmas[name] = sigma
     write_views(ctx.work_dir / "denoised", out)
-    return {"denoiser": "skimage.denoise_nl_means", "sigma_est": sigmas}
+    return DenoiseSummary(denoiser="skimage.denoise_nl_means", sigma_est=sigmas).to_json()
 
 
 def oracle_clean_denoise(clean_files: Mapping[str, Path], ctx: StageContext) -> Mapping[str, object]:
@@ -66,7 +67,7 @@ def oracle_clean_denoise(clean_files: Mapping[str, Path], ctx: StageContext) -> 
     if missing:
         raise InputError(f"oracle_clean: no clean image for {missing}", fix="use a dataset with clean/ for every view")
     write_views(ctx.work_dir / "denoised", {n: read_image(clean_files[n]) for n in noisy})
-    return {"denoiser": "oracle (clean photos)"}
+    return DenoiseSummary(denoiser="oracle (clean photos)").to_json()
 
 
 @dataclass(frozen=True)
@@ -169,4 +170,5 @@ def gt_align(dataset: DatasetFolder, ctx: StageContext) -> Mapping[str, object]:
     write_sparse_model(out / "sparse" / "0", SparseModel(cameras, images), binary=True)
     np.savez(out / "points.npz", xyz=np.asarray(xyz, np.float64), rgb=np.asarray(rgb, np.uint8),
              conf=np.ones(len(xyz)))
-    return {"registered": len(images), "points": int(len(xyz)), "poses": "ground truth", "points_from": source}
+    return AlignSummary(registered=len(images), points=int(len(xyz)), poses="ground truth",
+                        points_from=source).to_json()

@@ -16,8 +16,9 @@ modes (`eval.pipeline.AlignSettings`):
 - "always": align with the previous round's calibration fixed (one alignment);
 - "never": every round estimates its own (the paper's loop).
 
-The uncertainty travels with a reused calibration (`INHERITED_KEY` in
-align.json), so round 3 compares against what round 1 measured.
+The uncertainty travels with a reused calibration (`InheritedCalibration`,
+in align.json under `INHERITED_KEY`: `eval.pipeline.align_decisions`), so
+round 3 compares against what round 1 measured.
 
 Poses (`reuse_geometry`, `choose_geometry`): round r re-aligns from its K
 selected views only, and fewer views pin each camera less; on a real
@@ -43,7 +44,7 @@ alignment failing on its geometry (refused as degenerate, or its photos no longe
 `DisconnectedViewsError`, seen on DTU scan24 at sigma 50 after round 2's re-denoising), hands over
 round r-1's; an unknown figure (no bundle adjustment, fewer than 3 views) loses to a known one, and
 two unknown keep round r's own. The decision and its numbers go into align.json
-under `GEOMETRY_KEY` (`GeometryChoice`).
+under `GEOMETRY_KEY` (`GeometryChoice`, `eval.pipeline.align_decisions`).
 
 Round 1 with `AlignSettings.photos` "better_of" chooses between its noisy and its denoised photos'
 alignments by the same figure (`better_determined`).
@@ -51,37 +52,37 @@ alignments by the same figure (`better_determined`).
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from eval.pipeline.align_decisions import (
+    AlignDecisions,
+    GeometryChoice,
+    InheritedCalibration,
+    PerPhotos,
+    PhotosComparison,
+)
 from eval.pipeline.config import ReuseGeometry, ReuseIntrinsics
 from mvgeo.align.stats import AlignStats
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 
-__all__ = ["GEOMETRY_KEY", "INHERITED_KEY", "GeometryChoice", "better_determined", "centre_std_over_spacing",
-           "choose_geometry", "focal_log_std", "previous_calibration", "prefer_previous", "restricted_ratios"]
-
-#: align.json key of a round whose calibration came from the previous round.
-INHERITED_KEY = "intrinsics_from_previous_round"
-#: align.json key of the rounds >= 2 decision between this round's poses and the previous round's.
-GEOMETRY_KEY = "geometry_from_previous_round"
+__all__ = ["better_determined", "centre_std_over_spacing", "choose_geometry", "focal_log_std", "previous_calibration",
+           "prefer_previous", "restricted_ratios"]
 
 
-def focal_log_std(stats: AlignStats) -> float | None:
-    """The focal-length uncertainty (std of log f) an alignment's `stats` report; None when unknown.
+def focal_log_std(stats: AlignStats, *, inherited: InheritedCalibration | None) -> float | None:
+    """The focal-length uncertainty (std of log f) of an alignment; None when unknown.
 
-    An estimated focal has the bundle adjustment's figure (absent without the adjustment); a
-    calibration inherited from an earlier round carries that round's figure.
+    An estimated focal has the bundle adjustment's figure in `stats` (absent without the adjustment); a
+    calibration inherited from an earlier round (`stats.known_intrinsics`, `inherited` the align stage's
+    record of it) carries that round's figure. A calibration the user gave (`inherited` None) has none.
     """
     if stats.known_intrinsics:
-        inherited = stats.annotations.get(INHERITED_KEY)
-        value = inherited.get("focal_log_std") if isinstance(inherited, Mapping) else None
+        value = None if inherited is None else inherited.focal_log_std
     else:
         value = None if stats.bundle_adjustment is None else stats.bundle_adjustment.focal_log_std
     if value is None or not np.isfinite(float(value)):
@@ -111,7 +112,8 @@ def previous_calibration(align_dir: Path) -> tuple[Camera, float | None]:
     (width, height), = sizes
     fx, fy, cx, cy = np.median(np.array([[c.fx, c.fy, c.cx, c.cy] for c in cams]), axis=0)
     stats = AlignStats.read(stats_file)
-    return Camera.pinhole(fx, fy, cx, cy, width, height), focal_log_std(stats)
+    inherited = AlignDecisions.read(stats_file).inherited
+    return Camera.pinhole(fx, fy, cx, cy, width, height), focal_log_std(stats, inherited=inherited)
 
 
 def prefer_previous(mode: ReuseIntrinsics, previous_std: float | None, current_std: float | None) -> bool:
@@ -178,37 +180,6 @@ def restricted_ratios(model: SparseModel, stats: AlignStats, views: Sequence[str
     return None if per_view is None else [per_view[v] for v in views]
 
 
-@dataclass(frozen=True)
-class GeometryChoice:
-    """A round's choice between its own alignment and the previous round's, for the same views.
-
-    Attributes:
-        used_previous: True: the round's splat starts from the previous round's poses, intrinsics and points.
-        reason: the rule that decided, in words.
-        views: the round's (selected) view names.
-        previous_registered, current_registered: how many of `views` each alignment registered
-            (current: 0 when this round's alignment failed).
-        previous_centre_std, current_centre_std: median over `views` of the camera-centre std in units of
-            their median nearest-neighbour spacing (`centre_std_over_spacing`); None when unknown.
-        current_error: this round's alignment error message, when it failed.
-    """
-
-    used_previous: bool
-    reason: str
-    views: tuple[str, ...]
-    previous_registered: int
-    current_registered: int
-    previous_centre_std: float | None
-    current_centre_std: float | None
-    current_error: str | None = None
-
-    def to_dict(self) -> dict[str, object]:
-        """JSON-able dict (align.json `GEOMETRY_KEY`)."""
-        d = dataclasses.asdict(self)
-        d["views"] = list(self.views)
-        return d
-
-
 def _median(per_view: Mapping[str, float] | None) -> float | None:
     if per_view is None:
         return None
@@ -217,27 +188,26 @@ def _median(per_view: Mapping[str, float] | None) -> float | None:
 
 
 def better_determined(denoised_model: SparseModel, denoised_stats: AlignStats, noisy_model: SparseModel,
-                      noisy_stats: AlignStats, views: Sequence[str]) -> tuple[bool, dict[str, object]]:
+                      noisy_stats: AlignStats, views: Sequence[str]) -> tuple[bool, PhotosComparison]:
     """Round 1 with `AlignSettings.photos` "better_of": whether the denoised photos' alignment determines the
-    `views`' camera centres better than the noisy photos', and a JSON record of why.
+    `views`' camera centres better than the noisy photos', and the figures and rule that decided.
 
     Each alignment's measure is the one `choose_geometry` compares: the median over `views` of
     `centre_std_over_spacing` (no ground truth). An alignment that registers fewer of the views loses; an
     unknown measure keeps the noisy photos' alignment (the "noisy_first" choice).
     """
-    counts = [len(set(views) & set(m.names)) for m in (denoised_model, noisy_model)]
-    medians = [_median(centre_std_over_spacing(m, st, views))
-               for m, st in ((denoised_model, denoised_stats), (noisy_model, noisy_stats))]
-    record: dict[str, object] = {"registered": {"denoised": counts[0], "noisy": counts[1]},
-                                 "centre_std_over_spacing": {"denoised": medians[0], "noisy": medians[1]}}
-    if counts[0] != counts[1]:
-        keep, why = counts[0] > counts[1], "it registers more of the views"
-    elif medians[0] is None or medians[1] is None:
+    counts = PerPhotos(denoised=len(set(views) & set(denoised_model.names)),
+                       noisy=len(set(views) & set(noisy_model.names)))
+    medians = PerPhotos(denoised=_median(centre_std_over_spacing(denoised_model, denoised_stats, views)),
+                        noisy=_median(centre_std_over_spacing(noisy_model, noisy_stats, views)))
+    if counts.denoised != counts.noisy:
+        keep, why = counts.denoised > counts.noisy, "it registers more of the views"
+    elif medians.denoised is None or medians.noisy is None:
         keep, why = False, "a camera-centre uncertainty is unknown: the noisy photos' alignment is kept"
     else:
-        keep, why = medians[0] < medians[1], "its camera centres are better determined (bundle adjustment)"
-    record["reason"] = f"the {'denoised' if keep else 'noisy'} photos' alignment: {why}"
-    return keep, record
+        keep, why = medians.denoised < medians.noisy, "its camera centres are better determined (bundle adjustment)"
+    reason = f"the {'denoised' if keep else 'noisy'} photos' alignment: {why}"
+    return keep, PhotosComparison(registered=counts, centre_std_over_spacing=medians, reason=reason)
 
 
 def choose_geometry(mode: ReuseGeometry, views: Sequence[str], previous: tuple[SparseModel, AlignStats],

@@ -18,6 +18,7 @@ and `sizes.json` records `turned: 1` for it; its camera in `cameras/input/` is t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections import Counter
@@ -32,6 +33,7 @@ from eval.pipeline.stage import (
     commit_written,
     verify_outputs,
 )
+from eval.pipeline.summaries import InputsSummary, WorkingSize
 from eval.pipeline.views import view_files, write_views
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import exif_focal_35mm, read_image
@@ -79,28 +81,26 @@ def resize_area(img: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
 
 def prepare_inputs(ctx: StageContext) -> Mapping[str, object]:
     """Stage `inputs`: `ctx.inputs["noisy"]` -> `WORKING_DIR/<stem>.png` at the working size
-    (`ctx.settings`: `InputsStageSettings`) and `WORKING_DIR/sizes.json`."""
+    (`ctx.settings`: `InputsStageSettings`) and `WORKING_DIR/sizes.json`; returns an `InputsSummary`'s JSON."""
     max_size = ctx.settings.max_size
     out = ctx.work_dir / WORKING_DIR
-    sizes: dict[str, dict[str, object]] = {}
+    sizes: dict[str, WorkingSize] = {}
     images = {}
     for stem, path in view_files(Path(ctx.inputs["noisy"])).items():
         img = read_image(path)
         size = working_size(img.shape[1], img.shape[0], max_size)
         images[stem] = resize_area(img, size)
-        sizes[stem] = {"input": [img.shape[1], img.shape[0]], "working": list(size),
-                       "focal_35mm": exif_focal_35mm(path)}
-    ref = reference_working_size([tuple(v["working"]) for v in sizes.values()])
-    for stem, v in sizes.items():
-        if tuple(v["working"]) != ref and tuple(v["working"]) == ref[::-1]:  # a photo turned by 90 degrees
+        sizes[stem] = WorkingSize((img.shape[1], img.shape[0]), (int(size[0]), int(size[1])), exif_focal_35mm(path))
+    ref = reference_working_size([v.working_wh for v in sizes.values()])
+    for stem, v in list(sizes.items()):
+        if v.working_wh != ref and v.working_wh == ref[::-1]:  # a photo turned by 90 degrees
             images[stem] = np.ascontiguousarray(np.rot90(images[stem], k=1))
-            v["working"], v["turned"] = list(ref), 1
+            sizes[stem] = dataclasses.replace(v, working_wh=(int(ref[0]), int(ref[1])), turned=1)
     write_views(out, images)
-    (out / SIZES_FILE).write_text(json.dumps(sizes, indent=2) + "\n")
-    resized = sorted(s for s, v in sizes.items()
-                     if v["input"] != (v["working"][::-1] if v.get("turned") else v["working"]))
-    turned = sorted(s for s, v in sizes.items() if v.get("turned"))
-    return {"max_size": max_size, "sizes": sizes, "resized": resized, **({"turned": turned} if turned else {})}
+    (out / SIZES_FILE).write_text(json.dumps({k: v.to_json() for k, v in sizes.items()}, indent=2) + "\n")
+    resized = sorted(s for s, v in sizes.items() if v.input_wh != (v.working_wh[::-1] if v.turned else v.working_wh))
+    turned = sorted(s for s, v in sizes.items() if v.turned)
+    return InputsSummary(max_size=max_size, sizes=sizes, resized=resized, turned=turned or None).to_json()
 
 
 def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int] | int]]:

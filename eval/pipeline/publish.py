@@ -23,6 +23,7 @@ import numpy as np
 
 from eval.pipeline.inputs import read_sizes
 from eval.pipeline.stage import StageContext
+from eval.pipeline.summaries import ExportSummary
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
@@ -100,7 +101,7 @@ def input_size_cameras(sparse: SparseModel, sizes: Mapping[str, Mapping[str, obj
 
 def export(ctx: StageContext) -> Mapping[str, object]:
     """Write `scene.splat`, `view/` and `cameras/` for the scene `ctx.inputs["scene"]` (a 3DGS PLY), the
-    cameras `ctx.inputs["sparse"]/0` and the sizes `ctx.inputs["sizes"]`."""
+    cameras `ctx.inputs["sparse"]/0` and the sizes `ctx.inputs["sizes"]`; returns an `ExportSummary`'s JSON."""
     # splat loads torch: imported when the stage runs, not when this module is imported.
     from splat.export import write_splat
     from splat.ply import read_gaussian_ply
@@ -116,6 +117,6 @@ def export(ctx: StageContext) -> Mapping[str, object]:
     write_sparse_model(work / "cameras" / "working", sparse, binary=False)
     full = input_size_cameras(sparse, sizes)
     write_sparse_model(work / "cameras" / "input", full, binary=False)
-    return {"num_gaussians": model.num_gaussians, "splat_bytes": (work / "scene.splat").stat().st_size,
-            "working_size": sorted({f"{c.width}x{c.height}" for c in sparse.cameras.values()}),
-            "input_size": sorted({f"{c.width}x{c.height}" for c in full.cameras.values()})}
+    return ExportSummary(num_gaussians=model.num_gaussians, splat_bytes=(work / "scene.splat").stat().st_size,
+                         working_size=sorted({f"{c.width}x{c.height}" for c in sparse.cameras.values()}),
+                         input_size=sorted({f"{c.width}x{c.height}" for c in full.cameras.values()})).to_json()

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from eval.pipeline.rounds import RoundResult
+from eval.pipeline.summaries import AlignSummary, DenoiseSummary, PhotoNoise, RefineSummary, SplatSummary
 from eval.pipeline.views import view_files
 from mvgeo.align.stats import AlignStats
 from mvgeo.common.errors import InputError
@@ -133,18 +134,11 @@ class RoundQuality:
         return json.loads(json.dumps(dataclasses.asdict(self), allow_nan=True))
 
 
-def _first_last(summary: Mapping, key: str) -> tuple[float | None, float | None, int | None]:
-    h = summary.get("train", {}).get(key) if isinstance(summary.get("train"), Mapping) else None
-    if not isinstance(h, Mapping):
-        return None, None, None
-    return float(h["first"]), float(h["last"]), int(h["count"])
-
-
-def noise_levels(images: Mapping[str, np.ndarray], stds: Sequence[object] | None = None) -> dict[str, object]:
-    """The denoise stage's record of its photos' noise: {"noise_std_255": view -> std /255,
-    "signal_dependent": [views whose noise grows with the intensity]}, as the default denoiser estimates it
-    (`r2r_noise_std`; a per-pixel map's median). `stds`: those estimates, one per image in order, where the
-    caller has them already (default: estimated here)."""
+def noise_levels(images: Mapping[str, np.ndarray], stds: Sequence[object] | None = None) -> PhotoNoise:
+    """The denoise stage's record of its photos' noise: each view's std /255 and the views whose noise grows
+    with the intensity, as the default denoiser estimates it (`r2r_noise_std`; a per-pixel map's median).
+    `stds`: those estimates, one per image in order, where the caller has them already (default: estimated
+    here)."""
     import torch
 
     from denoise.self_supervised import r2r_noise_std
@@ -159,21 +153,29 @@ def noise_levels(images: Mapping[str, np.ndarray], stds: Sequence[object] | None
             sigma = float(sigma.median())
             dependent.append(name)
         levels[name] = 255.0 * float(sigma)
-    return {"noise_std_255": levels, "signal_dependent": dependent}
+    return PhotoNoise(levels, dependent)
 
 
-def _denoise_quality(summary: Mapping, kind: str) -> DenoiseQuality:
-    first, last, count = _first_last(summary, "loss")
-    frac = summary.get("dark_clipped_fraction")
-    return DenoiseQuality(objective=summary.get("objective"),
-                          dark_clipped_fraction=None if frac is None else float(frac),
-                          loss_first=first, loss_last=last, steps=count,
-                          restarts=len(summary.get("training_restarts", [])), kind=kind,
-                          noise_std_255={str(k): float(v) for k, v in summary.get("noise_std_255", {}).items()},
-                          signal_dependent=list(summary.get("signal_dependent", [])),
-                          pd_stride=summary.get("pd_stride"),
-                          noise_level_by_stride_255={str(k): float(v) for k, v
-                                                     in summary.get("noise_level_by_stride_255", {}).items()})
+def _denoise_quality(summary: DenoiseSummary) -> DenoiseQuality:
+    """Round 1's denoiser from its stage's summary."""
+    loss, noise = summary.loss, summary.noise or PhotoNoise()
+    return DenoiseQuality(objective=summary.objective, dark_clipped_fraction=summary.dark_clipped_fraction,
+                          loss_first=None if loss is None else loss.first,
+                          loss_last=None if loss is None else loss.last,
+                          steps=None if loss is None else loss.count,
+                          restarts=len(summary.training_restarts), kind="training",
+                          noise_std_255=dict(noise.noise_std_255), signal_dependent=list(noise.signal_dependent),
+                          pd_stride=summary.pd_stride,
+                          noise_level_by_stride_255=dict(summary.noise_level_by_stride_255 or {}))
+
+
+def _fine_tuning_quality(summary: RefineSummary) -> DenoiseQuality:
+    """A later round's fine-tuning from its refine stage's summary (no objective choice or noise record)."""
+    loss = summary.loss
+    return DenoiseQuality(objective=None, dark_clipped_fraction=None,
+                          loss_first=None if loss is None else loss.first,
+                          loss_last=None if loss is None else loss.last,
+                          steps=None if loss is None else loss.count, kind="fine-tuning", pd_stride=summary.pd_stride)
 
 
 def _focal_source(stats: AlignStats) -> str:
@@ -187,7 +189,7 @@ def _focal_source(stats: AlignStats) -> str:
     return "not determined by any pair: started at the generic prior, set by the bundle adjustment"
 
 
-def _align_quality(stats: AlignStats, summary: Mapping) -> AlignQuality:
+def _align_quality(stats: AlignStats, summary: AlignSummary) -> AlignQuality:
     ba = stats.bundle_adjustment
     nan = float("nan")
     focals = [f for f in stats.focal_px.values() if f is not None and math.isfinite(f)]
@@ -195,12 +197,12 @@ def _align_quality(stats: AlignStats, summary: Mapping) -> AlignQuality:
     if ba is not None and ba.centre_std_ratio and ba.views and len(ba.centre_std_ratio) == len(ba.views):
         order = np.argsort(ba.centre_std_ratio, kind="stable")[::-1][:LEAST_CONSTRAINED]
         least = [(ba.views[i], float(ba.centre_std_ratio[i])) for i in order]
-    photos = summary.get("photos")
+    photos = summary.photos
     return AlignQuality(
         n_registered=stats.n_registered, n_images=stats.n_images,
         unregistered=[(u.name, u.reason) for u in stats.unregistered],
-        photos=photos.get("aligned") if isinstance(photos, Mapping) else None,
-        photos_reason=photos.get("reason") if isinstance(photos, Mapping) else None,
+        photos=photos.aligned if photos is not None else None,
+        photos_reason=photos.comparison.reason if photos is not None and photos.comparison is not None else None,
         align_size_wh=list(stats.align_size_wh), focal_source=_focal_source(stats),
         focal_px=float(np.median(focals)) if focals else nan,
         focal_log_std=ba.focal_log_std if ba is not None and not stats.known_intrinsics else nan,
@@ -234,13 +236,9 @@ def fit_psnr_db(renders_dir: Path, photos_dir: Path) -> dict[str, float]:
     return out
 
 
-def _splat_quality(summary: Mapping, rd: Path, photos: str) -> SplatQuality:
-    _, gaussians, _ = _first_last(summary, "num_gaussians")
-    timings = summary.get("timings_s")
-    seconds = timings.get("optimize") if isinstance(timings, Mapping) else None
-    return SplatQuality(fit_psnr_db=fit_psnr_db(rd / "renders", rd / photos),
-                        n_gaussians=None if gaussians is None else int(gaussians),
-                        seconds=None if seconds is None else float(seconds))
+def _splat_quality(summary: SplatSummary, rd: Path, photos: str) -> SplatQuality:
+    return SplatQuality(fit_psnr_db=fit_psnr_db(rd / "renders", rd / photos), n_gaussians=summary.num_gaussians,
+                        seconds=summary.optimize_s)
 
 
 def _align_json(rnd: RoundResult) -> Path | None:
@@ -254,13 +252,17 @@ def _align_json(rnd: RoundResult) -> Path | None:
 
 
 def round_quality(rnd: RoundResult) -> RoundQuality:
-    """The self-checks of round `rnd` from its stages' summaries and its `align.json`.
+    """The self-checks of round `rnd` from its stages' summaries (`eval.pipeline.summaries`) and its
+    `align.json`.
 
     Raises:
         InputError: the round's align.json cannot be read.
     """
-    denoise, kind = ((rnd.stages["denoise"], "training") if "denoise" in rnd.stages
-                     else (rnd.stages.get("refine"), "fine-tuning"))
+    denoise = None
+    if "denoise" in rnd.stages:
+        denoise = _denoise_quality(DenoiseSummary.from_json(rnd.stages["denoise"].summary))
+    elif "refine" in rnd.stages:
+        denoise = _fine_tuning_quality(RefineSummary.from_json(rnd.stages["refine"].summary))
     align_json = _align_json(rnd)
     align = None
     if align_json is not None:
@@ -269,12 +271,11 @@ def round_quality(rnd: RoundResult) -> RoundQuality:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise InputError(f"cannot read the alignment's report: {exc}", path=align_json,
                              fix="run again with --force to recompute the round's alignment") from exc
-        align = _align_quality(stats, rnd.stages["align"].summary)
+        align = _align_quality(stats, AlignSummary.from_json(rnd.stages["align"].summary))
     splat = rnd.stages.get("splat")
-    return RoundQuality(index=rnd.index,
-                        denoise=_denoise_quality(denoise.summary, kind) if denoise is not None else None,
-                        align=align,
-                        splat=_splat_quality(splat.summary, rnd.dir, "fused" if "fuse" in rnd.stages else "denoised")
+    return RoundQuality(index=rnd.index, denoise=denoise, align=align,
+                        splat=_splat_quality(SplatSummary.from_json(splat.summary), rnd.dir,
+                                             "fused" if "fuse" in rnd.stages else "denoised")
                         if splat is not None else None)
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +18,7 @@ from eval.pipeline.config import PipelineConfig
 from eval.pipeline.quality import quality_lines, round_camera_plot, round_quality
 from eval.pipeline.rounds import RoundResult, StoppedRound
 from eval.pipeline.stage import StageResult, commit_written
+from eval.pipeline.summaries import ExportSummary, InputsSummary, SelectSummary, WorkingSize
 from eval.pipeline.views import view_files
 from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import InputError
@@ -68,16 +69,16 @@ def _contact_sheet_png(dest: Path, images_dir: Path, rd: Path, r: int) -> Path |
     return path
 
 
-def _size_lines(config: PipelineConfig, sizes: dict) -> list[str]:
+def _size_lines(config: PipelineConfig, sizes: Mapping[str, WorkingSize]) -> list[str]:
     """The report's line on the working resolution: `WxH (from W0xH0)` per distinct pair."""
     if not sizes:
         return []
-    pairs = sorted({(tuple(v["working"]), tuple(v["input"])) for v in sizes.values()})
+    pairs = sorted({(v.working_wh, v.input_wh) for v in sizes.values()})
     shown = ", ".join(f"{w[0]}x{w[1]}" + (f" (from {i[0]}x{i[1]})" if i != w else " (input size)")
                       for w, i in pairs)
     limit = "none (input size)" if config.max_size is None else f"long side <= {config.max_size} px"
     lines = [f"- working size: {shown}; --max-size: {limit}"]
-    turned = sorted(k for k, v in sizes.items() if v.get("turned"))
+    turned = sorted(k for k, v in sizes.items() if v.turned)
     if turned:
         lines.append(f"- turned a quarter counter-clockwise to the others' orientation (portrait among landscape, "
                      f"or the reverse): {', '.join(turned)}; their working images, denoised photos and renders "
@@ -127,10 +128,11 @@ def _write_report_files(out: Path, dest: Path, *, images_dir: Path, config: Pipe
             stages.append({"round": rnd.index, "stage": name, "key": res.key, "skipped": res.skipped,
                            "seconds": round(res.seconds, 4), "summary": res.summary})
             if name == "select":
-                selected[f"round{rnd.index}"] = list(res.summary.get("selected", []))
+                selected[f"round{rnd.index}"] = list(SelectSummary.from_json(res.summary).selected)
     noisy_dir = out / "inputs" if working is not None else images_dir  # same size as the renders
     sheets = {rnd.index: _contact_sheet_png(dest, noisy_dir, rnd.dir, rnd.index) for rnd in rounds}
-    sizes = dict(working.summary.get("sizes", {})) if working is not None else {}
+    sizes = InputsSummary.from_json(working.summary).sizes if working is not None else {}
+    export = ExportSummary.from_json(exported.summary) if exported is not None else None
     quality = [round_quality(rnd) for rnd in rounds]
     camera_plots = {rnd.index: round_camera_plot(dest, rnd) for rnd in rounds}
     report = {
@@ -145,8 +147,8 @@ def _write_report_files(out: Path, dest: Path, *, images_dir: Path, config: Pipe
         "stopped": None if stopped is None else {"round": stopped.index, "reason": stopped.reason},
         "contact_sheets": {f"round{k}": str(v.relative_to(dest)) for k, v in sheets.items() if v is not None},
         "max_size": config.max_size,
-        "image_sizes": sizes,
-        "export": dict(exported.summary) if exported is not None else None,
+        "image_sizes": {k: v.to_json() for k, v in sizes.items()},
+        "export": export.to_json() if export is not None else None,
         "quality": {f"round{q.index}": q.to_json() for q in quality},
         "camera_plots": {f"round{k}": str(v.relative_to(dest)) for k, v in camera_plots.items() if v is not None},
     }
@@ -159,9 +161,9 @@ def _write_report_files(out: Path, dest: Path, *, images_dir: Path, config: Pipe
     if stopped is not None:
         lines.append(f"- **{stopped.reason}**")
     lines += _size_lines(config, sizes)
-    if exported is not None:
+    if export is not None:
         lines += ["- scene: [`scene.splat`](scene.splat) (antimatter15 .splat, "
-                  f"{exported.summary.get('num_gaussians', '?')} Gaussians) and an offline viewer "
+                  f"{'?' if export.num_gaussians is None else export.num_gaussians} Gaussians) and an offline viewer "
                   "[`view/index.html`](view/index.html) (opens from disk, no network); cameras: "
                   "`cameras/working/` (working size), `cameras/input/` (intrinsics scaled to the input photos)"]
     lines.append("")

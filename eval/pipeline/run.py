@@ -64,7 +64,8 @@ from eval.pipeline.stage import (
     withdraw_outputs,
 )
 from eval.pipeline.stage_settings import InputsStageSettings, RoundSettings, round_settings, stage_seed
-from eval.pipeline.stages import MODEL_FILE, PipelineStages, product_stages, refine_kept_previous
+from eval.pipeline.stages import MODEL_FILE, PipelineStages, product_stages
+from eval.pipeline.summaries import RefineSummary
 from eval.pipeline.validate import validate_run_inputs
 from mvgeo.common.output import prepare_output, resumable_output_dir
 from mvgeo.common.timing import StageTimer
@@ -301,7 +302,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
                 upstream=(sel, model_stage, prev.stages["render"]), settings=rs.refine,
                 seed=stage_seed(config.seed, r, "refine"), code=stages.code.get("refine", ())),
                 label=f"round{r}/refine")
-            kept, why = refine_kept_previous(ref.summary)
+            kept, why = RefineSummary.from_json(ref.summary).kept_previous()
             if kept and config.stop_when_unrefined:
                 stopped = StoppedRound(r, rd, {"select": sel, "refine": ref},
                                        f"round {r} stopped after its refine: {why}; round {prev.index}'s "

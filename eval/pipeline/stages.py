@@ -33,10 +33,15 @@ from pathlib import Path
 import numpy as np
 
 from denoise.detail import NoisyDetail, noisy_detail_target, noisy_detail_weight  # numpy and cv2 only
-from eval.pipeline.calibration import (
-    GEOMETRY_KEY,
-    INHERITED_KEY,
+from eval.pipeline.align_decisions import (
+    AlignDecisions,
+    AlignStageResult,
+    FocalEstimate,
     GeometryChoice,
+    InheritedCalibration,
+    PhotosDecision,
+)
+from eval.pipeline.calibration import (
     better_determined,
     choose_geometry,
     focal_log_std,
@@ -48,6 +53,16 @@ from eval.pipeline.hashing import file_sha256
 from eval.pipeline.inputs import working_focal_prior
 from eval.pipeline.stage import StageContext, StageFn
 from eval.pipeline.stage_settings import FuseStageSettings, SplatStageSettings
+from eval.pipeline.summaries import (
+    DenoiseSummary,
+    FuseSummary,
+    NoisyDetailRecord,
+    RecordedGeometryChoice,
+    RefineSummary,
+    SelectSummary,
+    SplatSummary,
+    history_ends,
+)
 from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.align.stats import AlignStats
 from mvgeo.camera import Camera
@@ -55,7 +70,7 @@ from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, 
 from mvgeo.common.imageio import read_image
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
-__all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "PHOTOS_KEY", "ROTATION_ATOL", "STAGE_CODE",
+__all__ = ["DENOISE_OUTPUTS", "FUSE_WEIGHT", "MODEL_FILE", "ROTATION_ATOL", "STAGE_CODE",
            "NoisySplatReuse", "PipelineStages", "align", "as_pipeline_refusal", "denoise", "fuse", "fuse_images",
            "noisy_splat_reuse", "product_stages", "refine", "render", "select", "splat"]
 
@@ -88,25 +103,14 @@ class PipelineStages:
     denoise_outputs: tuple[str, ...] = DENOISE_OUTPUTS
 
 
-def _history_summary(history: object) -> dict[str, object]:
-    """First/last values of a training history (a list of losses, or a dict of such lists), JSON-able."""
-    out: dict[str, object] = {}
-    if isinstance(history, list | tuple) and history and isinstance(history[-1], int | float):
-        history = {"loss": history}
-    if isinstance(history, Mapping):
-        for k, v in history.items():
-            if isinstance(v, list | tuple) and v and isinstance(v[-1], int | float):
-                out[k] = {"first": float(v[0]), "last": float(v[-1]), "count": len(v)}
-    return out
-
-
 def denoise(ctx: StageContext) -> Mapping[str, object]:
     """Round 1: train the UNet on all noisy images with `n2v.method` (with `choose_objective`, the one
     `denoise.self_supervised.choose_objective` picks for them, recorded in the summary as `objective`),
     denoise them all (`ctx.settings`: `DenoiseStageSettings`); with `keep_noisy` k, `denoised/` holds
     ``(1 - k) * network output + k * noisy photo``. Where the photos' noise is correlated between
     neighbouring pixels (`pd_stride` 0: `denoise.pixel_shuffle.choose_stride` measures it) all of this runs
-    on their pixel-shuffled sub-images, put back together after (`denoise.pixel_shuffle`)."""
+    on their pixel-shuffled sub-images, put back together after (`denoise.pixel_shuffle`). Returns a
+    `DenoiseSummary`'s JSON."""
     from denoise.model import save_checkpoint
     from denoise.pixel_shuffle import merge_std, shuffled, stride_for, unshuffled
     from denoise.self_supervised import choose_objective
@@ -115,13 +119,13 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     s = ctx.settings
     noisy = read_views(ctx.inputs["noisy"])
     photos = list(noisy.values())
-    n2v, chosen = s.n2v, {}
+    n2v, objective, dark_clipped_fraction = s.n2v, None, None
     if s.choose_objective:  # on the whole photos: the dark fraction's blur is in pixels of the photo
         choice = choose_objective(photos)
         n2v = dataclasses.replace(n2v, method=choice.method)
-        chosen = {"objective": choice.method, "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)}
+        objective, dark_clipped_fraction = choice.method, round(choice.dark_clipped_fraction, 4)
     levels = stride_for(photos, s.pd_stride)
-    stride, shuffle = levels.stride, levels.record()
+    stride = levels.stride
     if stride > 1:
         _log.info("the photos' noise is correlated between neighbouring pixels (its level /255 by stride: %s): "
                   "denoising their %d x %d pixel-shuffled sub-images",
@@ -136,9 +140,11 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         out = [(1.0 - s.keep_noisy) * d + s.keep_noisy * y for d, y in zip(out, noisy.values(), strict=True)]
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
-    restarts = {"training_restarts": model.restarts} if model.restarts else {}  # a diverged training, restarted
-    return {"views": list(noisy), "train": _history_summary(model.history), **chosen, **restarts, **shuffle,
-            **noise_levels(noisy, stds)}  # the report's noise level
+    return DenoiseSummary(views=list(noisy), train=history_ends(model.history), objective=objective,
+                          dark_clipped_fraction=dark_clipped_fraction,
+                          training_restarts=list(model.restarts),  # a diverged training, restarted
+                          pd_stride=stride, noise_level_by_stride_255=levels.levels_by_stride_255() or None,
+                          noise=noise_levels(noisy, stds)).to_json()  # the report's noise level
 
 
 def _denoise_photos(photos: list[np.ndarray], n2v, s, seed: int):
@@ -159,16 +165,12 @@ def _denoise_photos(photos: list[np.ndarray], n2v, s, seed: int):
     return out, stds, model
 
 
-#: The align stage's record of which photos it aligned (`AlignSettings.photos`), in align.json.
-PHOTOS_KEY = "aligned_photos"
-
-
 def align(ctx: StageContext) -> Mapping[str, object]:
     """Pose-free alignment of the denoised images (`mvgeo.align`), written as `mvgeo align` writes it
-    (`ctx.settings`: `AlignStageSettings`). In round 1 with `AlignSettings.photos` "noisy_first" or "better_of",
-    the noisy photos (`ctx.inputs["noisy"]`, under the denoised photos' names) are aligned too
-    (`_align_first_round`)."""
-    from mvgeo.align import align_images, write_align_result
+    (`ctx.settings`: `AlignStageSettings`), with the stage's decisions (`AlignDecisions`) in align.json and
+    in the summary. In round 1 with `AlignSettings.photos` "noisy_first" or "better_of", the noisy photos
+    (`ctx.inputs["noisy"]`, under the denoised photos' names) are aligned too (`_align_first_round`)."""
+    from mvgeo.align import align_images
 
     s = ctx.settings
     cfg = s.align
@@ -191,18 +193,19 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     else:
         res = _align_keeping_better_geometry(align_images, files, cfg, Path(previous), mode,
                                              s.reuse_geometry or "never")
-    if no_prior and res.stats.focal_prior is None and not res.stats.known_intrinsics:
-        res.stats.focal_prior_unavailable = f"the input photos: {no_prior}"  # not the working PNGs'
+    aligned = res.alignment
+    if no_prior and aligned.stats.focal_prior is None and not aligned.stats.known_intrinsics:
+        aligned.stats.focal_prior_unavailable = f"the input photos: {no_prior}"  # not the working PNGs'
     out = ctx.work_dir / "align"
-    write_align_result(out, res)  # sparse/0/*.bin, points.ply, align.json
-    np.savez(out / "points.npz", xyz=np.asarray(res.points_xyz, np.float64),
-             rgb=np.asarray(res.points_rgb, np.uint8), conf=np.asarray(res.points_conf, np.float64))
-    summary = {"registered": len(res.sparse_model.images), "points": int(len(res.points_xyz)),
-               "stats": json.loads(json.dumps(res.stats.to_json(), default=str))}
-    if GEOMETRY_KEY in res.stats.annotations:
-        summary["geometry"] = res.stats.annotations[GEOMETRY_KEY]
-    if PHOTOS_KEY in res.stats.annotations:
-        summary["photos"] = res.stats.annotations[PHOTOS_KEY]
+    res.write(out)  # sparse/0/*.bin, points.ply, align.json
+    np.savez(out / "points.npz", xyz=np.asarray(aligned.points_xyz, np.float64),
+             rgb=np.asarray(aligned.points_rgb, np.uint8), conf=np.asarray(aligned.points_conf, np.float64))
+    summary = {"registered": len(aligned.sparse_model.images), "points": int(len(aligned.points_xyz)),
+               "stats": json.loads(json.dumps(res.align_json(), default=str))}
+    if res.decisions.geometry is not None:
+        summary["geometry"] = res.decisions.geometry.to_json()
+    if res.decisions.photos is not None:
+        summary["photos"] = res.decisions.photos.to_json()
     return summary
 
 
@@ -215,8 +218,8 @@ def working_camera(intrinsics: Path, image: Path) -> Camera:
 
 
 def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] | None, cfg, *,
-                       keep_better: bool = False):
-    """Round 1's alignment; which photos it used in `PHOTOS_KEY`.
+                       keep_better: bool = False) -> AlignStageResult:
+    """Round 1's alignment, with which photos it used (`AlignDecisions.photos`).
 
     Without `noisy` (stem -> file): the denoised `files`. With it, the noisy photos under the denoised
     photos' names, with the dense cloud (the splat's start) made of the denoised `files` (`align_images`'
@@ -228,7 +231,7 @@ def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] |
     The denoised photos are matched with the detector for noisy photos once noisy photos were tried
     (`denoised_photos_config`). Both refused: the denoised photos' refusal is raised.
     """
-    photos: dict[str, object] = {"aligned": "denoised"}
+    noisy_refused = None
     from_noisy = None
     if noisy is not None:
         try:
@@ -236,13 +239,12 @@ def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] |
             from_noisy = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files],
                                       cloud_images=files)
             if not keep_better:
-                from_noisy.stats.annotations[PHOTOS_KEY] = {"aligned": "noisy"}
-                return from_noisy
+                return AlignStageResult(from_noisy, AlignDecisions(photos=PhotosDecision("noisy")))
         except (AlignmentRefusedError, DisconnectedViewsError) as exc:
             reason = str(exc).splitlines()[0]
             _log.warning("the noisy photos were refused by the alignment (%s); aligning the denoised ones",
                          reason[:300])
-            photos["noisy_refused"] = reason[:1000]
+            noisy_refused = reason[:1000]
         cfg = denoised_photos_config(cfg)
     try:
         res = align_images(files, cfg)
@@ -252,18 +254,16 @@ def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] |
         reason = str(exc).splitlines()[0]
         _log.warning("the denoised photos were refused by the alignment (%s); keeping the noisy photos' poses",
                      reason[:300])
-        from_noisy.stats.annotations[PHOTOS_KEY] = {"aligned": "noisy", "denoised_refused": reason[:1000]}
-        return from_noisy
+        photos = PhotosDecision("noisy", denoised_refused=reason[:1000])
+        return AlignStageResult(from_noisy, AlignDecisions(photos=photos))
     if from_noisy is not None:
         views = [f.name for f in files]
-        keep_denoised, record = better_determined(res.sparse_model, res.stats, from_noisy.sparse_model,
-                                                  from_noisy.stats, views)
-        chosen = res if keep_denoised else from_noisy
-        chosen.stats.annotations[PHOTOS_KEY] = {"aligned": "denoised" if keep_denoised else "noisy", **record}
-        _log.info("round 1 keeps %s", record["reason"])
-        return chosen
-    res.stats.annotations[PHOTOS_KEY] = photos
-    return res
+        keep_denoised, comparison = better_determined(res.sparse_model, res.stats, from_noisy.sparse_model,
+                                                      from_noisy.stats, views)
+        _log.info("round 1 keeps %s", comparison.reason)
+        photos = PhotosDecision("denoised" if keep_denoised else "noisy", comparison=comparison)
+        return AlignStageResult(res if keep_denoised else from_noisy, AlignDecisions(photos=photos))
+    return AlignStageResult(res, AlignDecisions(photos=PhotosDecision("denoised", noisy_refused=noisy_refused)))
 
 
 def denoised_photos_config(cfg):
@@ -306,13 +306,13 @@ def as_pipeline_refusal(exc: DegenerateGeometryError | DisconnectedViewsError):
 
 
 def _align_keeping_better_geometry(align_images, files: list[Path], cfg, previous: Path, intrinsics_mode: str,
-                                   geometry_mode: str):
+                                   geometry_mode: str) -> AlignStageResult:
     """Rounds >= 2: this round's alignment (with `reuse_intrinsics`), or the previous round's restricted to
-    this round's views when `choose_geometry` prefers it; the `GeometryChoice` goes into align.json."""
+    this round's views when `choose_geometry` prefers it; the choice in `AlignDecisions.geometry`."""
     error: DegenerateGeometryError | DisconnectedViewsError | None = None
     try:
         if intrinsics_mode == "never":
-            res = align_images(files, cfg)
+            res = AlignStageResult(align_images(files, cfg))
         else:
             res = _align_with_previous_calibration(align_images, files, cfg, previous, intrinsics_mode)
     except (DegenerateGeometryError, DisconnectedViewsError) as exc:  # e.g. the K views alone do not pin
@@ -321,20 +321,21 @@ def _align_keeping_better_geometry(align_images, files: list[Path], cfg, previou
     prev_stats = AlignStats.read(previous / "align.json")
     views = [Path(f).name for f in files]
     choice = choose_geometry(geometry_mode, views, (prev_model, prev_stats),
-                             None if res is None else (res.sparse_model, res.stats),
+                             None if res is None else (res.alignment.sparse_model, res.alignment.stats),
                              current_error=None if error is None else str(error)[:500])
     if not choice.used_previous:
         if error is not None:
             raise as_pipeline_refusal(error) from error
-        res.stats.annotations[GEOMETRY_KEY] = choice.to_dict()
-        return res
+        return dataclasses.replace(res, decisions=dataclasses.replace(res.decisions, geometry=choice))
     return _previous_geometry(previous, prev_model, prev_stats, choice)
 
 
-def _previous_geometry(previous: Path, model: SparseModel, stats: AlignStats, choice: GeometryChoice):
+def _previous_geometry(previous: Path, model: SparseModel, stats: AlignStats,
+                       choice: GeometryChoice) -> AlignStageResult:
     """The previous round's alignment as this round's: its cameras and poses of `choice.views`, its
-    points, and its align.json with the uncertainty figures restricted to those views (what the next
-    round compares against) and the choice."""
+    points, its align.json with the uncertainty figures restricted to those views (what the next round
+    compares against), and its decisions (the previous round's photos and calibration records) with
+    `choice` as the geometry one."""
     from mvgeo.align import AlignResult
 
     views = list(choice.views)
@@ -344,36 +345,35 @@ def _previous_geometry(previous: Path, model: SparseModel, stats: AlignStats, ch
     ba = stats.bundle_adjustment
     if ba is not None and ba.centre_std_ratio is not None:
         ba = dataclasses.replace(ba, centre_std_ratio=restricted_ratios(model, stats, views))
-    out_stats = dataclasses.replace(stats, n_images=len(views), n_registered=len(views), bundle_adjustment=ba,
-                                    annotations={**stats.annotations, GEOMETRY_KEY: choice.to_dict()})
+    out_stats = dataclasses.replace(stats, n_images=len(views), n_registered=len(views), bundle_adjustment=ba)
     pts = np.load(previous / "points.npz")
-    return AlignResult(sub, np.asarray(pts["xyz"], np.float64), np.asarray(pts["rgb"], np.uint8),
-                        np.asarray(pts["conf"], np.float64), out_stats)
+    decisions = dataclasses.replace(AlignDecisions.read(previous / "align.json"), geometry=choice)
+    return AlignStageResult(AlignResult(sub, np.asarray(pts["xyz"], np.float64), np.asarray(pts["rgb"], np.uint8),
+                                        np.asarray(pts["conf"], np.float64), out_stats), decisions)
 
 
-def _align_with_previous_calibration(align_images, files: list[Path], cfg, previous: Path, mode: str):
+def _align_with_previous_calibration(align_images, files: list[Path], cfg, previous: Path,
+                                     mode: str) -> AlignStageResult:
     """Rounds >= 2: align, keeping the better-determined of this round's and the previous round's
-    focal (`eval.pipeline.calibration`); the choice and both estimates go into align.json."""
+    focal (`eval.pipeline.calibration`); the choice and both estimates in `AlignDecisions.inherited`."""
     camera, previous_std = previous_calibration(previous)
-    inherited = {"focal_px": 0.5 * (camera.fx + camera.fy), "focal_log_std": previous_std, "mode": mode}
+    offered = InheritedCalibration(focal_px=0.5 * (camera.fx + camera.fy), focal_log_std=previous_std, mode=mode,
+                                   used=True)
     if mode == "auto":
         try:
             res = align_images(files, cfg)
         except DegenerateGeometryError as exc:  # e.g. no pair of this round determines the focal length
-            inherited["estimate_refused"] = str(exc)[:500]
+            offered = dataclasses.replace(offered, estimate_refused=str(exc)[:500])
         else:
-            current_std = focal_log_std(res.stats)
+            current_std = focal_log_std(res.stats, inherited=None)  # estimated here: the bundle adjustment's
             if not prefer_previous("auto", previous_std, current_std):
-                res.stats.annotations[INHERITED_KEY] = {**inherited, "used": False,
-                                                        "estimate_focal_log_std": current_std}
-                return res
+                kept_own = dataclasses.replace(offered, used=False, estimate_focal_log_std=current_std)
+                return AlignStageResult(res, AlignDecisions(inherited=kept_own))
             focals = res.stats.focal_px
-            inherited["estimate_discarded"] = {
-                "focal_px": float(np.median(list(focals.values()))) if focals else None,
-                "focal_log_std": current_std}
+            offered = dataclasses.replace(offered, estimate_discarded=FocalEstimate(
+                focal_px=float(np.median(list(focals.values()))) if focals else None, focal_log_std=current_std))
     res = align_images(files, cfg, intrinsics=camera)
-    res.stats.annotations[INHERITED_KEY] = {**inherited, "used": True}
-    return res
+    return AlignStageResult(res, AlignDecisions(inherited=offered))
 
 
 def _train_splat(images_dir: Path, align_dir: Path, s: SplatStageSettings | FuseStageSettings,
@@ -416,7 +416,8 @@ def noisy_detail_targets(images: Mapping[str, np.ndarray], noisy: Mapping[str, n
 def splat(ctx: StageContext) -> Mapping[str, object]:
     """Gaussian splatting with pose optimisation, initialised from the alignment (`ctx.settings`:
     `SplatStageSettings`). With `noisy_detail.weight > 0` the runner also passes the noisy working photos
-    (`ctx.inputs["noisy"]`), whose finest band the targets take back (`PipelineConfig.splat.noisy_detail`)."""
+    (`ctx.inputs["noisy"]`), whose finest band the targets take back (`PipelineConfig.splat.noisy_detail`).
+    Returns a `SplatSummary`'s JSON."""
     from splat.ply import write_gaussian_ply
 
     s: SplatStageSettings = ctx.settings
@@ -432,10 +433,9 @@ def splat(ctx: StageContext) -> Mapping[str, object]:
     write_sparse_model(ctx.work_dir / "sparse" / "0",
                        SparseModel(sparse.cameras, optimised, sparse.points_xyz, sparse.points_rgb), binary=True)
     history = dataclasses.asdict(res.history) if dataclasses.is_dataclass(res.history) else res.history
-    summary: dict[str, object] = {"views": stems, "train": _history_summary(history)}
-    if weights is not None:
-        summary["noisy_detail"] = {**dataclasses.asdict(s.noisy_detail), "weights": weights}
-    return {**summary, "timings_s": dict(res.timings_s)}
+    detail = NoisyDetailRecord(s.noisy_detail, weights) if weights is not None else None
+    return SplatSummary(views=stems, train=history_ends(history), noisy_detail=detail,
+                        timings_s=dict(res.timings_s)).to_json()
 
 
 #: Weight of the noisy photos' render in `fuse` (the denoised photo gets 1 - FUSE_WEIGHT): the plain mean
@@ -526,15 +526,16 @@ def noisy_splat_reuse(views: Sequence[str], *, align_dir: Path, previous_align_d
     return NoisySplatReuse(True, "the same noisy photos, cameras, poses and points as the previous round's splat")
 
 
-def _recorded_geometry_choice(align_dir: Path) -> dict[str, object] | None:
-    """The align stage's rounds >= 2 decision (align.json `GEOMETRY_KEY`: used_previous, reason), if any."""
+def _recorded_geometry_choice(align_dir: Path) -> RecordedGeometryChoice | None:
+    """The align stage's rounds >= 2 decision in `align_dir`'s align.json (`AlignDecisions.geometry`) as
+    the fuse stage's summary records it (used_previous, reason); None without one."""
     stats_file = align_dir / "align.json"
     if not stats_file.is_file():
         return None
-    choice = AlignStats.read(stats_file).annotations.get(GEOMETRY_KEY)
-    if not isinstance(choice, Mapping):
+    choice = AlignDecisions.read(stats_file).geometry
+    if choice is None:
         return None
-    return {"used_previous": choice.get("used_previous"), "reason": choice.get("reason")}
+    return RecordedGeometryChoice(choice.used_previous, choice.reason)
 
 
 def fuse(ctx: StageContext) -> Mapping[str, object]:
@@ -549,8 +550,8 @@ def fuse(ctx: StageContext) -> Mapping[str, object]:
     Rounds >= 2 with `reuse_noisy_splat` (the runner then passes `previous_align`, `previous_noisy` and
     `previous_noisy_renders`): when `noisy_splat_reuse` finds the previous round's splat trained from
     the same noisy photos, cameras, poses and points, its renders of this round's views are copied
-    (same bytes) instead of training a new splat on a subset of the same photos. The summary says which
-    (`noisy_splat`: "reused" or "trained") and why (`noisy_splat_reason`).
+    (same bytes) instead of training a new splat on a subset of the same photos. The summary (a
+    `FuseSummary`'s JSON) says which (`noisy_splat`: "reused" or "trained") and why (`noisy_splat_reason`).
     """
     s = ctx.settings
     # The alignment's registered views, in its order (those the splat trains on).
@@ -585,15 +586,10 @@ def fuse(ctx: StageContext) -> Mapping[str, object]:
         timings = dict(res.timings_s)
     denoised = read_views(ctx.inputs["images"], stems)
     write_views(ctx.work_dir / "fused", {k: fuse_images(denoised[k], renders[k]) for k in stems})
-    summary: dict[str, object] = {"views": stems, "weight": FUSE_WEIGHT,
-                                  "noisy_splat": "reused" if decision.reused else "trained",
-                                  "noisy_splat_reason": decision.reason}
-    geometry = _recorded_geometry_choice(ctx.inputs["align"])
-    if geometry is not None:
-        summary["align_geometry"] = geometry
-    if timings:
-        summary["timings_s"] = timings
-    return summary
+    return FuseSummary(views=stems, weight=FUSE_WEIGHT, noisy_splat="reused" if decision.reused else "trained",
+                       noisy_splat_reason=decision.reason,
+                       align_geometry=_recorded_geometry_choice(ctx.inputs["align"]),
+                       timings_s=timings or None).to_json()
 
 
 def render(ctx: StageContext) -> Mapping[str, object]:
@@ -614,7 +610,7 @@ def render(ctx: StageContext) -> Mapping[str, object]:
 
 def select(ctx: StageContext) -> Mapping[str, object]:
     """Views for the next round: pose k-means (K = views) + sharpest (Laplacian variance) per cluster
-    (`ctx.settings`: `SelectStageSettings`)."""
+    (`ctx.settings`: `SelectStageSettings`), in selection.json; returns a `SelectSummary`'s JSON."""
     s = ctx.settings
     sparse = read_sparse_model(ctx.inputs["sparse"] / "0")
     stems = [n.rsplit(".", 1)[0] for n in sparse.names]
@@ -630,14 +626,14 @@ def select(ctx: StageContext) -> Mapping[str, object]:
                      "cluster_of": {k: int(v) for k, v in dict(sel.cluster_of).items()},
                      "laplacian_var": {k: float(v) for k, v in dict(sel.laplacian_var).items()}}
     (ctx.work_dir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-    return {"selected": selection["names"], "method": selection["method"]}
+    return SelectSummary(selected=list(selection["names"]), method=selection["method"]).to_json()
 
 
 def refine(ctx: StageContext) -> Mapping[str, object]:
     """Rounds >= 2: fine-tune the UNet against the previous renders on the selected views, denoise them
     (`ctx.settings`: `RefineStageSettings`). Where the photos' noise is correlated between neighbouring
     pixels, as in round 1 (`denoise`), the photos and the renders are pixel-shuffled alike and the network
-    fine-tuned and applied on the sub-images it learned on."""
+    fine-tuned and applied on the sub-images it learned on. Returns a `RefineSummary`'s JSON."""
     from denoise.inference import denoise_images
     from denoise.model import load_checkpoint, save_checkpoint
     from denoise.parallel import one_thread_per_task
@@ -671,20 +667,8 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
                 out = unshuffled(out, stride, [im.shape for im in noisy.values()])
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))
     save_checkpoint(ctx.work_dir / MODEL_FILE, model)
-    return {"views": names, "train": _history_summary(model.history), "pd_stride": stride,
-            "round2": r2.to_json()}
-
-
-def refine_kept_previous(summary: Mapping[str, object]) -> tuple[bool, str]:
-    """(True when the refine stage whose summary this is kept the previous network, why in words): the
-    blind-spot-loss guard's decision as `refine` records it (False for a summary without one)."""
-    from denoise.round2 import Round2Report  # imports torch: kept out of this module's import
-
-    r2 = summary.get("round2")
-    if not isinstance(r2, Mapping):
-        return False, ""
-    report = Round2Report.from_json(r2)
-    return report.reverted, report.kept_previous_because()
+    return RefineSummary(views=list(names), train=history_ends(model.history), pd_stride=stride,
+                         round2=r2.to_json()).to_json()
 
 
 #: The code each product stage runs besides `eval/pipeline/stages.py`: all of `eval.pipeline` (views'

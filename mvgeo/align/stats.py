@@ -1,14 +1,17 @@
 """`AlignStats`: the alignment's report (align.json), typed, with one JSON serializer.
 
-`to_json` writes plain JSON (NaN where a figure does not exist); `from_json` reads it back. Keys a caller
-adds (the `denoise-gs` pipeline's geometry decisions) live in `annotations` and are written as top-level
-keys, so align.json stays one flat document.
+`to_json` writes plain JSON (NaN where a figure does not exist); `from_json` reads it back. A caller that
+records its own decisions about an alignment (the `denoise-gs` pipeline) passes them, already JSON, as
+`extra_keys` when the file is written: they become top-level keys beside the fields, so align.json stays
+one flat document. `from_json` reads the fields only; the caller reads its own keys from the same document
+with its own types, so mvgeo never needs to know them.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -193,21 +196,25 @@ class AlignStats:
     #: contradicts, which chose the first start (`mvgeo.align.init.choose_start`; NaN: no pair has a
     #: rotation); else None.
     chain_start_contradicted: float | None = None
-    annotations: dict[str, Any] = field(default_factory=dict)
 
-    def to_json(self) -> dict[str, Any]:
-        """A JSON-ready dict (annotations as top-level keys)."""
+    def to_json(self, *, extra_keys: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """A JSON-ready dict of the fields, with a caller's `extra_keys` (JSON values) beside them.
+
+        Raises:
+            ValueError: an extra key is the name of a field (it would replace the alignment's own figure).
+        """
         out = dataclasses.asdict(self)
-        extra = out.pop("annotations")
+        extra = dict(extra_keys or {})
         clash = set(extra) & set(out)
         if clash:
-            raise ValueError(f"annotations may not replace align.json fields: {sorted(clash)}")
+            raise ValueError(f"extra keys may not replace align.json fields: {sorted(clash)}")
         return {**out, **extra}
 
     @classmethod
-    def from_json(cls, data: dict[str, Any]) -> AlignStats:
-        """The inverse of `to_json` (keys that are not fields become annotations)."""
-        fields = [f for f in dataclasses.fields(cls) if f.name != "annotations"]
+    def from_json(cls, data: Mapping[str, Any]) -> AlignStats:
+        """The inverse of `to_json`: the fields. Keys that are not fields (a caller's `extra_keys`) are left
+        out; the caller that wrote them reads them from `data` itself."""
+        fields = dataclasses.fields(cls)
         names = {f.name for f in fields}
         # Fields with a default were added later: an older align.json without them still reads.
         required = {f.name for f in fields if f.default is dataclasses.MISSING
@@ -228,10 +235,11 @@ class AlignStats:
         kw["views_located_by_points"] = [LocatedView(**x) for x in kw.get("views_located_by_points", [])]
         if kw.get("focal_prior") is not None:
             kw["focal_prior"] = FocalPriorStats(**kw["focal_prior"])
-        return cls(**kw, annotations={k: v for k, v in data.items() if k not in names})
+        return cls(**kw)
 
-    def write(self, path: Path) -> None:
-        Path(path).write_text(json.dumps(self.to_json(), indent=2, allow_nan=True))
+    def write(self, path: Path, *, extra_keys: Mapping[str, Any] | None = None) -> None:
+        """align.json at `path`: `to_json(extra_keys=extra_keys)`, indented, NaN as NaN."""
+        Path(path).write_text(json.dumps(self.to_json(extra_keys=extra_keys), indent=2, allow_nan=True))
 
     @classmethod
     def read(cls, path: Path) -> AlignStats:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -14,7 +16,8 @@ from mvgeo.sparse_model import write_sparse_model
 __all__ = ["write_align_result", "write_points_ply"]
 
 
-def write_align_result(out: str | Path | OutputPlan, result: AlignResult, *, overwrite: bool = False) -> Path:
+def write_align_result(out: str | Path | OutputPlan, result: AlignResult, *, overwrite: bool = False,
+                       extra_keys: Mapping[str, Any] | None = None) -> Path:
     """Write `OUT/sparse/0/*.bin`, `OUT/points.ply` and `OUT/align.json` atomically.
 
     Args:
@@ -22,18 +25,22 @@ def write_align_result(out: str | Path | OutputPlan, result: AlignResult, *, ove
         result: from `align_images`.
         overwrite: a previous `mvgeo align` output at `out` may be replaced (anything else is refused,
             see `mvgeo.common.output`).
+        extra_keys: a caller's own records about the alignment (JSON values), written into align.json as
+            top-level keys beside `result.stats` (`AlignStats.to_json`). Written here, inside the atomic
+            write, so that the output manifest's digest of align.json covers them.
 
     Returns:
         The folder written.
 
     Raises:
         InputError: `out` is refused by the output policy.
+        ValueError: an extra key is the name of an `AlignStats` field.
     """
     plan = as_output_plan(out, command="mvgeo align", overwrite=overwrite)
     with atomic_output_dir(plan) as tmp:
         write_sparse_model(tmp / "sparse" / "0", result.sparse_model, binary=True)
         write_points_ply(tmp / "points.ply", result.points_xyz, result.points_rgb, result.points_conf)
-        result.stats.write(tmp / "align.json")
+        result.stats.write(tmp / "align.json", extra_keys=extra_keys)
     return plan.out
 
 

@@ -15,7 +15,7 @@ def bundle_stats(*, focal_log_std: float = math.nan, centre_std_ratio: list[floa
 
 
 def align_stats(*, n_registered: int = 0, known_intrinsics: bool = False, bundle_adjustment: BundleStats | None = None,
-                focal_px: dict[str, float] | None = None, annotations: dict | None = None) -> AlignStats:
+                focal_px: dict[str, float] | None = None) -> AlignStats:
     """An `AlignStats` with these fields set and every other one empty."""
     return AlignStats(
         n_images=n_registered, n_registered=n_registered, input_size_wh=[0, 0], align_size_wh=[0, 0],
@@ -25,4 +25,4 @@ def align_stats(*, n_registered: int = 0, known_intrinsics: bool = False, bundle
         bundle_adjustment=bundle_adjustment, dense_stereo=None, focal_determined_by_pairs=True,
         sensitive_features=False, initial_poses="chain", candidates=[], pairs_dropped_as_inconsistent=[],
         pair_consistency_min=math.nan, pairs_inconsistent=[], n_points=0, mean_confidence=math.nan, timings_s={},
-        config={}, annotations=dict(annotations or {}))
+        config={})

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from eval.pipeline import preset, run_pipeline
-from eval.pipeline.calibration import INHERITED_KEY, focal_log_std, prefer_previous, previous_calibration
+from eval.pipeline.align_decisions import INHERITED_KEY, AlignDecisions, FocalEstimate, InheritedCalibration
+from eval.pipeline.calibration import focal_log_std, prefer_previous, previous_calibration
 from eval.pipeline.stages import _align_with_previous_calibration
 from mvgeo.camera import Camera
 from mvgeo.common.errors import ConfigError, DegenerateGeometryError, InputError
@@ -24,19 +25,30 @@ def _align_dir(folder, focals=(210.0, 214.0, 212.0), std=0.02, known=False):
     images = [PosedImage(f"v{i}.png", i + 1, np.hstack([np.eye(3), [[i], [0.0], [0.0]]])) for i in range(len(focals))]
     write_sparse_model(folder / "sparse" / "0", SparseModel(cams, images, np.zeros((0, 3)), np.zeros((0, 3), np.uint8)),
                        binary=True)
-    stats = (align_stats(known_intrinsics=True, annotations={INHERITED_KEY: {"focal_log_std": std}}) if known
-             else align_stats(bundle_adjustment=bundle_stats(focal_log_std=std)))
-    stats.write(folder / "align.json")
+    if known:  # a calibration this round inherited, with the figure of the round that estimated it
+        inherited = InheritedCalibration(focal_px=212.0, focal_log_std=std, mode="always", used=True)
+        align_stats(known_intrinsics=True).write(folder / "align.json",
+                                                 extra_keys=AlignDecisions(inherited=inherited).to_json())
+    else:
+        align_stats(bundle_adjustment=bundle_stats(focal_log_std=std)).write(folder / "align.json")
     return folder
 
 
+def _inherited(std: float | None) -> InheritedCalibration:
+    return InheritedCalibration(focal_px=212.0, focal_log_std=std, mode="auto", used=True)
+
+
 def test_focal_log_std_sources():
-    assert focal_log_std(align_stats(bundle_adjustment=bundle_stats(focal_log_std=0.03))) == 0.03
-    assert focal_log_std(align_stats()) is None  # no bundle adjustment: unknown
-    assert focal_log_std(align_stats(bundle_adjustment=bundle_stats(focal_log_std=float("nan")))) is None
-    inherited = align_stats(known_intrinsics=True, annotations={INHERITED_KEY: {"focal_log_std": 0.01}})
-    assert focal_log_std(inherited) == 0.01
-    assert focal_log_std(align_stats(known_intrinsics=True)) is None  # a user's calibration: no figure
+    estimated = align_stats(bundle_adjustment=bundle_stats(focal_log_std=0.03))
+    assert focal_log_std(estimated, inherited=None) == 0.03
+    assert focal_log_std(align_stats(), inherited=None) is None  # no bundle adjustment: unknown
+    nan = align_stats(bundle_adjustment=bundle_stats(focal_log_std=float("nan")))
+    assert focal_log_std(nan, inherited=None) is None
+    assert focal_log_std(align_stats(known_intrinsics=True), inherited=_inherited(0.01)) == 0.01
+    assert focal_log_std(align_stats(known_intrinsics=True), inherited=_inherited(None)) is None
+    assert focal_log_std(align_stats(known_intrinsics=True), inherited=None) is None  # a user's calibration
+    # an estimated focal is the bundle adjustment's, whatever was offered
+    assert focal_log_std(estimated, inherited=_inherited(0.01)) == 0.03
 
 
 @pytest.mark.parametrize(("mode", "prev", "cur", "expected"), [
@@ -83,23 +95,28 @@ def test_align_stage_keeps_the_better_focal(tmp_path):
     worse = _FakeAlign(std=0.046)
     res = _align_with_previous_calibration(worse, [], None, prev, "auto")
     assert worse.calls[0] is None and worse.calls[1].fx == 212.0  # estimated, then re-aligned with round 1's
-    info = res.stats.annotations[INHERITED_KEY]
-    assert info["used"] and info["focal_log_std"] == 0.02
-    assert info["estimate_discarded"] == {"focal_px": 168.0, "focal_log_std": 0.046}
-    assert focal_log_std(res.stats) == 0.02  # what round 3 will compare against
+    info = res.decisions.inherited
+    assert info.used and info.focal_log_std == 0.02 and info.focal_px == 212.0 and info.mode == "auto"
+    assert info.estimate_discarded == FocalEstimate(focal_px=168.0, focal_log_std=0.046)
+    # align.json keeps the record's keys and values
+    assert res.decisions.to_json()[INHERITED_KEY] == {
+        "focal_px": 212.0, "focal_log_std": 0.02, "mode": "auto",
+        "estimate_discarded": {"focal_px": 168.0, "focal_log_std": 0.046}, "used": True}
+    assert focal_log_std(res.alignment.stats, inherited=info) == 0.02  # what round 3 will compare against
 
     better = _FakeAlign(std=0.01)
     res = _align_with_previous_calibration(better, [], None, prev, "auto")
-    assert better.calls == [None] and res.stats.annotations[INHERITED_KEY]["used"] is False
+    assert better.calls == [None] and res.decisions.inherited.used is False
+    assert res.decisions.inherited.estimate_focal_log_std == 0.01
 
     always = _FakeAlign(std=0.001)
     res = _align_with_previous_calibration(always, [], None, prev, "always")
-    assert len(always.calls) == 1 and always.calls[0].fx == 212.0 and res.stats.annotations[INHERITED_KEY]["used"]
+    assert len(always.calls) == 1 and always.calls[0].fx == 212.0 and res.decisions.inherited.used
 
     refused = _FakeAlign(error=DegenerateGeometryError("the focal length is not determined by these views"))
     res = _align_with_previous_calibration(refused, [], None, prev, "auto")
     assert refused.calls[1].fx == 212.0
-    assert "not determined" in res.stats.annotations[INHERITED_KEY]["estimate_refused"]
+    assert "not determined" in res.decisions.inherited.estimate_refused
 
 
 def test_pipeline_passes_the_previous_alignment_to_later_rounds_only(tmp_path):

@@ -144,7 +144,8 @@ def test_the_report_says_which_photos_round1_kept_and_why(tmp_path):
     stats = align_stats(n_registered=4, focal_px={f"{i:03d}.png": 512.0 for i in range(4)})
     reason = "the denoised photos' alignment: its camera centres are better determined (bundle adjustment)"
     q = round_quality(_round(tmp_path, stats, with_splat=False, photos={
-        "aligned": "denoised", "reason": reason, "centre_std_over_spacing": {"denoised": 0.006, "noisy": 0.007}}))
+        "aligned": "denoised", "registered": {"denoised": 4, "noisy": 4},
+        "centre_std_over_spacing": {"denoised": 0.006, "noisy": 0.007}, "reason": reason}))
     assert (q.align.photos, q.align.photos_reason) == ("denoised", reason)
     text = "\n".join(quality_lines([q]))
     assert "alignment (denoised photos)" in text and f"the noisy and the denoised photos' alignments, {reason}" in text
@@ -210,13 +211,13 @@ def test_round_one_reports_the_photos_noise_level(tmp_path):
     assert noise_levels(photos, [r2r_noise_std(p) for p in photos.values()]) == record  # the stage's estimates
     with pytest.raises(ValueError, match="1 noise estimates for 2 images"):
         noise_levels(photos, [0.1])
-    levels, dependent = record["noise_std_255"], record["signal_dependent"]
+    levels, dependent = record.noise_std_255, record.signal_dependent
     # 10 %: the estimates are 9.88 and 19.94 here (measured); the bound is about an estimator on 128x96 px
     # of a smooth ramp, not a tight fit, while a wrong scale (/255) or swapped images would be off 2x or more.
     assert dependent == [] and levels["v0"] == pytest.approx(10, rel=0.1) and levels["v1"] == pytest.approx(20, rel=0.1)
     rnd = _round(tmp_path / "r", align_stats(n_registered=4))
     recorded = RoundResult(index=1, dir=rnd.dir, stages={**rnd.stages, "denoise": _stage(
-        "denoise", {}, {**rnd.stages["denoise"].summary, **record})})
+        "denoise", {}, {**rnd.stages["denoise"].summary, **record.to_json()})})
     q = round_quality(recorded)
     assert q.denoise.noise_std_255 == levels
     assert f"median {np.median(list(levels.values())):.1f}/255" in "\n".join(quality_lines([q]))

@@ -234,9 +234,9 @@ def test_product_stages_except_alignment(tmp_path):
     assert sorted(p.stem for p in (r2.dir / "denoised").glob("*.png")) == sorted(selected)
     # Round 2 fine-tunes the round-1 UNet: its loss history continues round 1's. The network it keeps is the
     # fine-tuned one (11 steps of history) or, when the guard reverted it, round 1's (8).
-    from eval.pipeline.stages import refine_kept_previous
+    from eval.pipeline.summaries import RefineSummary
 
-    reverted, _ = refine_kept_previous(r2.stages["refine"].summary)
+    reverted, _ = RefineSummary.from_json(r2.stages["refine"].summary).kept_previous()
     steps = 8 if reverted else 11
     assert r2.stages["refine"].summary["train"]["loss"]["count"] == steps
     assert len(load_checkpoint(r2.dir / "n2v_model.pt").history) == steps

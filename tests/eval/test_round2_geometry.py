@@ -11,8 +11,15 @@ import numpy as np
 import pytest
 
 from eval.pipeline import preset, run_pipeline
-from eval.pipeline.calibration import (
+from eval.pipeline.align_decisions import (
     GEOMETRY_KEY,
+    PHOTOS_KEY,
+    AlignDecisions,
+    AlignStageResult,
+    PerPhotos,
+    PhotosDecision,
+)
+from eval.pipeline.calibration import (
     centre_std_over_spacing,
     choose_geometry,
     restricted_ratios,
@@ -182,8 +189,7 @@ class _FakeAlign:
         if self.error is not None:
             raise self.error
         model, stats = self.alignment
-        stats = dataclasses.replace(stats, annotations=dict(stats.annotations))
-        return AlignResult(model, np.zeros((2, 3)), np.zeros((2, 3), np.uint8), np.ones(2), stats)
+        return AlignResult(model, np.zeros((2, 3)), np.zeros((2, 3), np.uint8), np.ones(2), dataclasses.replace(stats))
 
 
 def test_align_stage_hands_round1_geometry_to_round2(tmp_path, alignments):
@@ -191,29 +197,48 @@ def test_align_stage_hands_round1_geometry_to_round2(tmp_path, alignments):
     files = [tmp_path / "round2" / v for v in SELECTED]
     res = _align_keeping_better_geometry(_FakeAlign(alignments["round2_poor"]), files, None, prev_dir, "never", "auto")
     prev_model = alignments["round1_good"][0]
-    assert res.sparse_model.names == SELECTED
+    assert res.alignment.sparse_model.names == SELECTED
     for v in SELECTED:
         # (through the COLMAP binary files: quaternions, hence not bit-exact)
-        np.testing.assert_allclose(res.sparse_model.image(v).cam_from_world, prev_model.image(v).cam_from_world,
-                                   atol=1e-9)
-        assert res.sparse_model.camera_of(v).fx == pytest.approx(prev_model.camera_of(v).fx, rel=1e-12)
-    assert np.allclose(res.points_xyz, prev_model.points_xyz)  # round 1's cloud, in round 1's frame
-    record = res.stats.annotations[GEOMETRY_KEY]
-    assert record["used_previous"] and record["views"] == SELECTED and res.stats.n_registered == 5
+        np.testing.assert_allclose(res.alignment.sparse_model.image(v).cam_from_world,
+                                   prev_model.image(v).cam_from_world, atol=1e-9)
+        assert res.alignment.sparse_model.camera_of(v).fx == pytest.approx(prev_model.camera_of(v).fx, rel=1e-12)
+    assert np.allclose(res.alignment.points_xyz, prev_model.points_xyz)  # round 1's cloud, in round 1's frame
+    record = res.decisions.geometry
+    assert record.used_previous and list(record.views) == SELECTED and res.alignment.stats.n_registered == 5
+    assert res.decisions.to_json()[GEOMETRY_KEY]["views"] == SELECTED  # align.json: a list, as before
     # Round 3 compares against the same figure round 2 measured for round 1.
-    again = choose_geometry("auto", SELECTED, (res.sparse_model, res.stats), alignments["round2_poor"])
-    assert again.previous_centre_std == pytest.approx(record["previous_centre_std"], rel=1e-6)
+    again = choose_geometry("auto", SELECTED, (res.alignment.sparse_model, res.alignment.stats),
+                            alignments["round2_poor"])
+    assert again.previous_centre_std == pytest.approx(record.previous_centre_std, rel=1e-6)
 
     kept = _align_keeping_better_geometry(_FakeAlign(alignments["round2_good"]), files, None,
                                           _write_previous(tmp_path / "poor", *alignments["round1_poor"]),
                                           "never", "auto")
-    assert kept.stats.annotations[GEOMETRY_KEY]["used_previous"] is False
-    assert kept.sparse_model is alignments["round2_good"][0]
+    assert kept.decisions.geometry.used_previous is False
+    assert kept.alignment.sparse_model is alignments["round2_good"][0]
 
     paper = _align_keeping_better_geometry(_FakeAlign(alignments["round2_poor"]), files, None, prev_dir,
                                            "never", "never")
-    assert paper.sparse_model is alignments["round2_poor"][0]
-    assert not paper.stats.annotations[GEOMETRY_KEY]["used_previous"]
+    assert paper.alignment.sparse_model is alignments["round2_poor"][0]
+    assert not paper.decisions.geometry.used_previous
+
+
+def test_a_handed_over_alignment_keeps_the_previous_rounds_records(tmp_path, alignments):
+    """Round 1's records (its photos, a calibration it inherited) travel with its alignment into round 2's
+    align.json; only the geometry record is round 2's."""
+    model, stats = alignments["round1_good"]
+    photos = PhotosDecision("noisy", denoised_refused="the denoised photos were refused")
+    n = len(model.points_xyz)
+    prev_dir = tmp_path / "prev"
+    AlignStageResult(AlignResult(model, model.points_xyz, model.points_rgb, np.full(n, 3.0), stats),
+                     AlignDecisions(photos=photos)).write(prev_dir)
+    np.savez(prev_dir / "points.npz", xyz=model.points_xyz, rgb=model.points_rgb, conf=np.full(n, 3.0))
+    files = [tmp_path / "round2" / v for v in SELECTED]
+    res = _align_keeping_better_geometry(_FakeAlign(alignments["round2_poor"]), files, None, prev_dir, "never", "auto")
+    assert res.decisions.geometry.used_previous and res.decisions.photos == photos
+    res.write(tmp_path / "round2_align")
+    assert AlignDecisions.read(tmp_path / "round2_align" / "align.json") == res.decisions
 
 
 @pytest.mark.parametrize("error", [DegenerateGeometryError("the views do not determine the cameras"),
@@ -228,8 +253,8 @@ def test_align_stage_failure_falls_back_or_raises(tmp_path, alignments, error):
     prev_dir = _write_previous(tmp_path / "prev", *alignments["round1_good"])
     files = [tmp_path / "round2" / v for v in SELECTED]
     res = _align_keeping_better_geometry(_FakeAlign(error=error), files, None, prev_dir, "never", "auto")
-    record = res.stats.annotations[GEOMETRY_KEY]
-    assert record["used_previous"] and "do not determine" in record["current_error"]
+    record = res.decisions.geometry
+    assert record.used_previous and "do not determine" in record.current_error
     with pytest.raises(type(error)) as info:
         _align_keeping_better_geometry(_FakeAlign(error=error), files, None, prev_dir, "never", "never")
     assert "pass --allow-partial" not in str(info.value)  # the pipeline's fix (`as_pipeline_refusal`)
@@ -310,8 +335,7 @@ class _PhotoAlign:
         if isinstance(made, Exception):
             raise made
         model, stats = made
-        stats = dataclasses.replace(stats, annotations=dict(stats.annotations))
-        return AlignResult(model, np.zeros((2, 3)), np.zeros((2, 3), np.uint8), np.ones(2), stats)
+        return AlignResult(model, np.zeros((2, 3)), np.zeros((2, 3), np.uint8), np.ones(2), dataclasses.replace(stats))
 
 
 def _round1_files(tmp_path):
@@ -326,20 +350,22 @@ def test_better_of_keeps_the_photos_whose_centres_are_better_determined(tmp_path
                                                                         kept):
     """`AlignSettings.photos` "better_of": both alignments run and the one with the smaller bundle-adjustment
     centre uncertainty is kept; the ground truth confirms it is the closer one."""
-    from eval.pipeline.stages import PHOTOS_KEY, _align_first_round
+    from eval.pipeline.stages import _align_first_round
     from mvgeo.align import AlignConfig
 
     files, noisy_files = _round1_files(tmp_path)
     fake = _PhotoAlign(alignments[noisy], alignments[denoised])
     res = _align_first_round(fake, files, noisy_files, AlignConfig(), keep_better=True)
     chosen = alignments[noisy if kept == "noisy" else denoised]
-    assert res.sparse_model is chosen[0]
+    assert res.alignment.sparse_model is chosen[0]
     other = alignments[denoised if kept == "noisy" else noisy]
-    assert _relative_rotation_error_deg(res.sparse_model, ALL) < _relative_rotation_error_deg(other[0], ALL)
-    record = res.stats.annotations[PHOTOS_KEY]
-    assert record["aligned"] == kept
-    stds = record["centre_std_over_spacing"]
-    assert stds[kept] < stds["denoised" if kept == "noisy" else "noisy"]
+    assert (_relative_rotation_error_deg(res.alignment.sparse_model, ALL)
+            < _relative_rotation_error_deg(other[0], ALL))
+    record = res.decisions.photos
+    assert record.aligned == kept
+    stds = record.comparison.centre_std_over_spacing
+    assert stds.of(kept) < stds.of("denoised" if kept == "noisy" else "noisy")
+    assert res.decisions.to_json()[PHOTOS_KEY]["aligned"] == kept  # align.json, as before
     # the noisy photos with the configured detector and the denoised cloud, the denoised photos with the
     # detector for noisy photos (`denoised_photos_config`)
     default = AlignConfig().pairwise.sensitive_below_noise
@@ -347,7 +373,7 @@ def test_better_of_keeps_the_photos_whose_centres_are_better_determined(tmp_path
 
 
 def test_better_of_with_one_refusal_keeps_the_other(tmp_path, alignments):
-    from eval.pipeline.stages import PHOTOS_KEY, _align_first_round
+    from eval.pipeline.stages import _align_first_round
     from mvgeo.align import AlignConfig
 
     files, noisy_files = _round1_files(tmp_path)
@@ -355,13 +381,15 @@ def test_better_of_with_one_refusal_keeps_the_other(tmp_path, alignments):
                                     kind="positions_undetermined", views=(ALL[3],), fix="pass --allow-partial")
     res = _align_first_round(_PhotoAlign(alignments["round1_poor"], refused), files, noisy_files, AlignConfig(),
                              keep_better=True)
-    assert res.sparse_model is alignments["round1_poor"][0]
-    assert res.stats.annotations[PHOTOS_KEY]["aligned"] == "noisy"
-    assert "do not determine" in res.stats.annotations[PHOTOS_KEY]["denoised_refused"]
+    assert res.alignment.sparse_model is alignments["round1_poor"][0]
+    assert res.decisions.photos.aligned == "noisy"
+    assert "do not determine" in res.decisions.photos.denoised_refused
     res = _align_first_round(_PhotoAlign(refused, alignments["round1_poor"]), files, noisy_files, AlignConfig(),
                              keep_better=True)
-    assert res.sparse_model is alignments["round1_poor"][0]
-    assert res.stats.annotations[PHOTOS_KEY] == {"aligned": "denoised", "noisy_refused": str(refused).splitlines()[0]}
+    assert res.alignment.sparse_model is alignments["round1_poor"][0]
+    assert res.decisions.photos == PhotosDecision("denoised", noisy_refused=str(refused).splitlines()[0])
+    assert res.decisions.to_json()[PHOTOS_KEY] == {"aligned": "denoised",
+                                                   "noisy_refused": str(refused).splitlines()[0]}
     # both refused: the denoised photos' refusal, with the pipeline's fix
     with pytest.raises(AlignmentRefusedError) as info:
         _align_first_round(_PhotoAlign(refused, refused), files, noisy_files, AlignConfig(), keep_better=True)
@@ -369,7 +397,8 @@ def test_better_of_with_one_refusal_keeps_the_other(tmp_path, alignments):
     # "noisy_first" never aligns the denoised photos once the noisy ones align
     fake = _PhotoAlign(alignments["round1_poor"], alignments["round1_good"])
     res = _align_first_round(fake, files, noisy_files, AlignConfig(), keep_better=False)
-    assert res.sparse_model is alignments["round1_poor"][0] and [c[0] for c in fake.calls] == ["noisy"]
+    assert res.alignment.sparse_model is alignments["round1_poor"][0] and [c[0] for c in fake.calls] == ["noisy"]
+    assert res.decisions.photos == PhotosDecision("noisy")
 
 
 def test_better_of_without_a_known_uncertainty_keeps_the_noisy_photos(alignments):
@@ -379,11 +408,11 @@ def test_better_of_without_a_known_uncertainty_keeps_the_noisy_photos(alignments
     poor_model, poor_stats = alignments["round1_poor"]
     unknown = dataclasses.replace(good_stats, bundle_adjustment=None)
     keep, record = better_determined(good_model, unknown, poor_model, poor_stats, ALL)
-    assert not keep and record["centre_std_over_spacing"]["denoised"] is None
+    assert not keep and record.centre_std_over_spacing.denoised is None
     keep, _ = better_determined(good_model, good_stats, poor_model, poor_stats, ALL)
     assert keep
     # fewer registered views lose whatever their uncertainty
     fewer = SparseModel(good_model.cameras, [good_model.image(v) for v in ALL[:-1]], good_model.points_xyz,
                         good_model.points_rgb)
     keep, record = better_determined(fewer, good_stats, poor_model, poor_stats, ALL)
-    assert not keep and record["registered"] == {"denoised": 7, "noisy": 8}
+    assert not keep and record.registered == PerPhotos(denoised=7, noisy=8)

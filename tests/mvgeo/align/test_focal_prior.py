@@ -86,8 +86,10 @@ def test_an_older_align_json_without_the_prior_still_reads(llff6_preview):
     for key in ("focal_prior", "focal_prior_unavailable", "views_located_by_points"):
         data.pop(key)
     back = AlignStats.from_json(data)
-    assert back.focal_prior is None and back.focal_prior_unavailable == "" and "focal_prior" not in back.annotations
-    assert back.views_located_by_points == []
+    assert back.focal_prior is None and back.focal_prior_unavailable == "" and back.views_located_by_points == []
+    # nothing else changes: the defaults stand for the missing keys
+    assert back == dataclasses.replace(llff6_preview.stats, focal_prior=None, focal_prior_unavailable="",
+                                       views_located_by_points=[])
     with pytest.raises(KeyError, match="n_images"):
         AlignStats.from_json({k: v for k, v in data.items() if k != "n_images"})
 

@@ -1,4 +1,4 @@
-"""`mvgeo.align.stats.AlignStats`: one JSON serializer and its inverse, annotations as top-level keys."""
+"""`mvgeo.align.stats.AlignStats`: one JSON serializer and its inverse; a caller's extra keys at the top level."""
 
 import dataclasses
 import json
@@ -44,8 +44,7 @@ def _stats(**changes) -> AlignStats:
         views_located_by_points=[LocatedView("c.png", 154, 63.8, 4000, "re-posed"),
                                  LocatedView("c.png", 113, 0.11, 4100, "kept")],
         n_points=5000, mean_confidence=4.5, timings_s={"load": 0.1, "total": 2.0},
-        config={"max_size_px": 320, "pairs": {"kind": "complete"}, "seed": 0},
-        annotations={"geometry_round": 2, "calibration": {"source": "reused"}})
+        config={"max_size_px": 320, "pairs": {"kind": "complete"}, "seed": 0})
     return dataclasses.replace(s, **changes)
 
 
@@ -57,21 +56,24 @@ def test_json_round_trip_is_the_identity():
     assert back == s
     assert isinstance(back.bundle_adjustment, BundleStats) and isinstance(back.candidates[1], CandidateSummary)
     assert back.unregistered[0].name == "d.png" and back.bundle_adjustment.centre_std_ratio == [0.01, 0.02, 0.03]
-    for empty in (_stats(bundle_adjustment=None, dense_stereo=None, annotations={}),
+    for empty in (_stats(bundle_adjustment=None, dense_stereo=None),
                   _stats(failed_pairs=[], candidates=[], unregistered=[], pairs_inconsistent=[])):
         assert AlignStats.from_json(json.loads(json.dumps(empty.to_json()))) == empty
 
 
-def test_the_file_is_one_flat_document_with_the_annotations_on_top(tmp_path):
+def test_the_file_is_one_flat_document_with_the_extra_keys_on_top(tmp_path):
     s = _stats()
-    s.write(tmp_path / "align.json")
+    s.write(tmp_path / "align.json", extra_keys={"geometry_round": 2, "calibration": {"source": "reused"}})
     raw = json.loads((tmp_path / "align.json").read_text())
     assert raw["geometry_round"] == 2 and raw["calibration"] == {"source": "reused"} and "annotations" not in raw
+    assert raw == {**s.to_json(), "geometry_round": 2, "calibration": {"source": "reused"}}
     assert raw["bundle_adjustment"]["reproj_rms_after_px"] == 0.4  # nested figures keep their names
     assert raw["candidates"][1] == {"start": "averaged", "pairs_focal_px": 205.0, "bundle_focal_px": 210.4,
                                     "refocused": False, "n_pairs_dropped": 0, "explained_fraction": 0.99,
                                     "reasons": [], "chosen": True, "error": "", "start_made_by": "averaged_positions"}
+    # The fields read back alike; the extra keys are the caller's to read (`from_json` leaves them out).
     assert AlignStats.read(tmp_path / "align.json") == s
+    assert AlignStats.from_json(raw) == AlignStats.from_json(s.to_json()) == s
 
 
 def test_nan_figures_are_written_and_read_back_as_nan(tmp_path):
@@ -84,9 +86,12 @@ def test_nan_figures_are_written_and_read_back_as_nan(tmp_path):
         s, pair_consistency_min=0.0, mean_confidence=0.0)
 
 
-def test_annotations_may_not_replace_a_field():
-    with pytest.raises(ValueError, match=r"annotations may not replace align.json fields: \['n_points'\]"):
-        _stats(annotations={"n_points": 1, "note": "x"}).to_json()
+def test_extra_keys_may_not_replace_a_field(tmp_path):
+    with pytest.raises(ValueError, match=r"extra keys may not replace align.json fields: \['n_points'\]"):
+        _stats().to_json(extra_keys={"n_points": 1, "note": "x"})
+    with pytest.raises(ValueError, match=r"\['n_points'\]"):
+        _stats().write(tmp_path / "align.json", extra_keys={"n_points": 1})
+    assert not (tmp_path / "align.json").exists()
 
 
 def test_a_document_without_a_field_is_refused():
