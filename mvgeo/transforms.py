@@ -39,6 +39,7 @@ __all__ = [
     "so3_log",
     "so3_left_jacobian",
     "skew",
+    "skew_unchecked",
     "project_to_so3",
     "se3_exp",
     "se3_log",
@@ -79,6 +80,12 @@ def skew(v) -> np.ndarray:
     """
     v = _as_f64(v, "v")
     check_shape(v, ["*", 3], "v")
+    return skew_unchecked(v)
+
+
+def skew_unchecked(v: np.ndarray) -> np.ndarray:
+    """`skew` of a float64 (..., 3) array without its input checks, for inner loops (a two-view refinement's
+    Jacobian, the bundle adjustment's)."""
     out = np.zeros(v.shape[:-1] + (3, 3))
     out[..., 0, 1] = -v[..., 2]
     out[..., 0, 2] = v[..., 1]
@@ -228,21 +235,21 @@ def so3_exp_and_left_jacobian(omega: np.ndarray) -> tuple[np.ndarray, np.ndarray
     Returns:
         R (3, 3), J_l (3, 3), float64.
     """
-    x, y, z = float(omega[0]), float(omega[1]), float(omega[2])
+    w = np.asarray(omega, np.float64)
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
     t2 = x * x + y * y + z * z
+    t = math.sqrt(t2)
     if t2 < _SMALL_ANGLE**2:
         A, B = 1 - t2 / 6 + t2 * t2 / 120, 0.5 - t2 / 24 + t2 * t2 / 720
     else:
-        t = math.sqrt(t2)
         A, B = math.sin(t) / t, 2 * (math.sin(t / 2) / t) ** 2
     if t2 < _SERIES_ANGLE**2:
         C = 0.0
         for c in _C_SERIES_FLOATS[::-1]:
             C = C * t2 + c
     else:
-        t = math.sqrt(t2)
         C = (t - math.sin(t)) / (t2 * t)
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    K = skew_unchecked(w)
     K2 = K @ K
     eye = np.eye(3)
     return eye + A * K + B * K2, eye + B * K + C * K2

@@ -56,7 +56,7 @@ from mvgeo.epipolar import (
     sampson_distance,
 )
 from mvgeo.ransac import RansacConfig, ransac
-from mvgeo.transforms import so3_exp_and_left_jacobian
+from mvgeo.transforms import skew_unchecked, so3_exp_and_left_jacobian
 from mvgeo.triangulate import TriangulationCriteria, _two_view_in_front_pm, triangulate_two_view
 
 __all__ = [
@@ -289,7 +289,7 @@ class _SampsonProblem:
             return self._cache[1]
         w, R, t, norm, lf, Jl = self._unpack(p)
         K1i, K2i = self._Kinv(lf)
-        E = _hat(t) @ R
+        E = skew_unchecked(t) @ R
         F = K2i.T @ E @ K1i
         Fx1 = self.h1 @ F.T
         Ftx2 = self.h2 @ F
@@ -309,7 +309,7 @@ class _SampsonProblem:
         # dF / dp_k, (n_p, 3, 3): the focal's, then [t]_x [J_l e_k]_x R (rotation), then
         # [P B e_m]_x R with P the projection onto the sphere's tangent plane at t (translation).
         P = (np.eye(3) - np.outer(t, t)) / norm
-        M = np.concatenate([_hat(t) @ _hat_rows(Jl.T) @ R, _hat_rows((P @ self.B).T) @ R])
+        M = np.concatenate([skew_unchecked(t) @ skew_unchecked(Jl.T) @ R, skew_unchecked((P @ self.B).T) @ R])
         dF = K2i.T @ M @ K1i
         if lf is not None:
             D = K1i.copy()
@@ -324,19 +324,6 @@ class _SampsonProblem:
         dden2 = 2.0 * (Fx1[:, None, 0] * G1[:, :, 0] + Fx1[:, None, 1] * G1[:, :, 1]
                        + Ftx2[:, None, 0] * G2[:, :, 0] + Ftx2[:, None, 1] * G2[:, :, 1])
         return dnum / den[:, None] - (num / (2.0 * den**3))[:, None] * dden2
-
-
-def _hat(v: np.ndarray) -> np.ndarray:
-    """``[v]_x`` of one 3-vector (`mvgeo.transforms.skew` without its array checks, for inner loops)."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _hat_rows(v: np.ndarray) -> np.ndarray:
-    """(K, 3, 3) ``[v_k]_x`` of the rows of `v` (K, 3)."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return out
 
 
 def _refine(u1, u2, K1, K2, R0, t0, noise_floor_px: float, *, log_f0: float | None = None,

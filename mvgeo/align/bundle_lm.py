@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mvgeo.transforms import so3_exp
+from mvgeo.transforms import skew_unchecked, so3_exp
 
 
 @dataclass
@@ -47,12 +47,6 @@ class LMProblem:
     f_index: np.ndarray
     c: np.ndarray
     optimize_focal: bool = True
-
-
-def _skew_batch(v: np.ndarray) -> np.ndarray:
-    z = np.zeros(len(v))
-    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
-                     np.stack([-v[:, 1], v[:, 0], z], -1)], axis=1)
 
 
 def project(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.ndarray, pb: LMProblem):
@@ -103,7 +97,7 @@ def normal_equations(R, t, logf, X, pb: LMProblem, huber_px: float):
     dp[:, 0, 2] = -f * xc[:, 0] * iz * iz
     dp[:, 1, 2] = -f * xc[:, 1] * iz * iz
     Jc = np.zeros((K, 2, 7))
-    Jc[:, :, :3] = -dp @ _skew_batch(RX)
+    Jc[:, :, :3] = -dp @ skew_unchecked(RX)
     Jc[:, :, 3:6] = dp
     if nf:
         Jc[:, :, 6] = r + pb.uv - pb.c  # p - c
