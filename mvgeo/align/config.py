@@ -82,7 +82,9 @@ class AlignConfig:
         bundle_adjust: refine poses and focal(s) by sparse bundle adjustment on the pairs' inlier
             matches after the global alignment (True; needs a model that returns matches).
         bundle: options of the bundle adjustment.
-        seed: RANSAC seed.
+        seed: seed of the project's own RANSAC (`mvgeo.ransac`: the pairs' focal estimates and relative poses
+            with `TwoViewConfig(backend="own")`). The default backend, OpenCV's USAC, draws with its own
+            fixed seed, so with it the result does not depend on this value.
         loop_check: reject verified pairs whose relative rotation contradicts most of the loops of
             three pairs they take part in (`mvgeo.align.loops`: false pairs from repeated structure),
             before the alignment; align.json `pairs_rejected_by_loops`.

@@ -57,7 +57,7 @@ from mvgeo.align.pointmap_geometry import (
 )
 from mvgeo.align.pointmap_geometry import valid_pointmap_pixels as _valid
 from mvgeo.common.deps import cv2
-from mvgeo.common.errors import DegenerateGeometryError, InputError
+from mvgeo.common.errors import DegenerateGeometryError, InputError, UnposedViewsError
 from mvgeo.common.progress import progress_bar
 from mvgeo.common.threads import torch_threads
 from mvgeo.pnp import sqpnp
@@ -183,7 +183,7 @@ def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[
             break
     missing = [v for v in range(n) if v not in pts_world]
     if missing:
-        raise DegenerateGeometryError(f"views {missing} are not connected to the others by any pair")
+        raise UnposedViewsError("not connected to the others by any pair whose pointmaps overlap", views=missing)
     cam_from_world = np.zeros((n, 3, 4))
     depth = []
     for v in range(n):
@@ -191,13 +191,13 @@ def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[
         ok = _valid(conf_world[v], pts_world[v])
         rows, cols = np.nonzero(ok)
         if len(rows) < 6:
-            raise DegenerateGeometryError(f"view {v}: only {len(rows)} confident pixels, cannot estimate its pose")
+            raise UnposedViewsError(f"only {len(rows)} confident pixels, cannot estimate its pose", views=[v])
         uv_cv = np.stack([cols, rows], axis=1).astype(np.float64)  # OpenCV pixel centres at integers (= ours - 0.5)
         K_cv = np.array([[focal_init_px[v], 0, W / 2.0 - 0.5], [0, focal_init_px[v], H / 2.0 - 0.5], [0, 0, 1]])
         obj = pts_world[v][ok]
         okp, rvec, tvec = sqpnp(obj, uv_cv, K_cv)
         if not okp:
-            raise DegenerateGeometryError(f"view {v}: PnP on its chained pointmap failed")
+            raise UnposedViewsError("PnP on its chained pointmap failed", views=[v])
         sub = np.linspace(0, len(obj) - 1, min(len(obj), PNP_REFINE_POINTS)).round().astype(int)
         rvec, tvec = cv2.solvePnPRefineLM(obj[sub], uv_cv[sub], K_cv, None, rvec, tvec)
         R = cv2.Rodrigues(rvec)[0]
@@ -205,7 +205,7 @@ def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[
         z = (pts_world[v] @ R.T + tvec.reshape(1, 1, 3))[..., 2]
         med = float(np.median(z[ok]))
         if not med > 0:
-            raise DegenerateGeometryError(f"view {v}: its chained points lie behind the camera")
+            raise UnposedViewsError("its chained points lie behind the camera", views=[v])
         z = np.where(ok & (z > 1e-3 * med), z, med)
         depth.append(z)
     return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth,

@@ -35,7 +35,7 @@ from mvgeo.align.rotation_averaging import (
     relative_rotation_residuals_deg,
 )
 from mvgeo.align.translation_averaging import global_positions
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.errors import DegenerateGeometryError, UnposedViewsError
 
 __all__ = ["CHAIN_MAX_CONTRADICTED", "STARTS", "chain_contradicted_fraction", "choose_start", "init_from_positions",
            "initial_values", "other_start", "pair_relative_rotations"]
@@ -236,6 +236,6 @@ def init_from_positions(preds: Sequence[PairPrediction], sizes_hw: Sequence[tupl
             depth[v] = np.where(ok & (z > 1e-3 * med), z, med)
     missing = [v for v in range(n) if depth[v] is None]
     if missing:
-        raise DegenerateGeometryError(f"views {missing} have no pair with a usable pointmap and baseline")
+        raise UnposedViewsError("no pair with a usable pointmap and baseline", views=missing)
     return AlignInit(np.asarray(cam_from_world, np.float64).copy(), np.asarray(focal_px, np.float64).copy(), depth,
                      pair_similarities(preds, sizes_hw, cam_from_world, depth, focal_px))

@@ -72,7 +72,7 @@ from mvgeo.align.solve import (
 )
 from mvgeo.align.stats import CandidateSummary, Unregistered
 from mvgeo.align.verdict import loose_views, mostly_unexplained
-from mvgeo.common.errors import DegenerateGeometryError, InputError
+from mvgeo.common.errors import DegenerateGeometryError, InputError, UnposedViewsError
 from mvgeo.common.timing import StageTimer
 
 __all__ = ["MAX_REFOCUS", "choose_solution"]
@@ -159,11 +159,18 @@ def _summary(c: Candidate) -> CandidateSummary:
 
 def _first_start(graph: PairGraph, config, timer: StageTimer) -> tuple[str, float | None, StartValues | None]:
     """(first start, the fraction of the pairs the chained start contradicts or None, the chained start's
-    initial values on the graph or None): `choose_start`'s rule on the graph."""
+    initial values on the graph or None): `choose_start`'s rule on the graph. Where the chained start cannot
+    pose every view (its pointmaps do not connect them, though the verified pairs do), the averaged start
+    goes first, with None for the fraction (a chained second start on this graph then fails the same way and
+    is recorded as a failed candidate)."""
     if config.initial_poses != "auto":
         return choose_start(config.initial_poses), None, None
     with timer.stage("global_align"):
-        chain = start_values(graph, "chain", config)
+        try:
+            chain = start_values(graph, "chain", config)
+        except UnposedViewsError as exc:
+            _log.warning("the chained start cannot be built (%s): the averaged start goes first", exc)
+            return "averaged", None, None
         rotations = pair_relative_rotations(graph.pairs, pairs_K_align(graph.inputs, graph.pairs))
         contradicted = chain_contradicted_fraction(chain.init.cam_from_world, rotations,
                                                    config.max_pair_rotation_deg)

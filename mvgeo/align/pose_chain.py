@@ -25,7 +25,7 @@ import numpy as np
 from mvgeo.align.pairs import PairPrediction
 from mvgeo.align.pointmap_geometry import PNP_REFINE_POINTS, AlignInit, pair_similarities
 from mvgeo.common.deps import cv2
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.errors import UnposedViewsError
 from mvgeo.pnp import sqpnp
 
 
@@ -133,7 +133,7 @@ def init_from_pair_poses(preds: Sequence[PairPrediction], sizes_hw: Sequence[tup
             break
     missing = [v for v in range(n) if v not in poses]
     if missing:
-        raise DegenerateGeometryError(f"views {missing} could not be reached by any pair with a usable relative pose")
+        raise UnposedViewsError("not reached by any pair with a usable relative pose", views=missing)
     cam_from_world = np.zeros((n, 3, 4))
     depth_list = []
     for v in range(n):
@@ -143,7 +143,7 @@ def init_from_pair_poses(preds: Sequence[PairPrediction], sizes_hw: Sequence[tup
         ok = (conf[v] > 1.0) & (z > 0) & np.isfinite(z)
         med = float(np.median(z[ok])) if np.any(ok) else float("nan")
         if not med > 0:
-            raise DegenerateGeometryError(f"view {v}: no confident pixel with positive depth")
+            raise UnposedViewsError("no confident pixel with positive depth", views=[v])
         depth_list.append(np.where(ok & (z > 1e-3 * med), z, med))
     return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth_list,
                      pair_similarities(preds, sizes_hw, cam_from_world, depth_list, focal_init_px))

@@ -12,7 +12,8 @@ candidate's cloud where the candidate ran fewer iterations.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -30,7 +31,7 @@ from mvgeo.align.pairs import PairFailure, PairSet
 from mvgeo.align.pointmap_geometry import AlignInit
 from mvgeo.align.stats import FailedPair, RejectedPair, Unregistered
 from mvgeo.align.verdict import Verdict, judge_pairs, verdict
-from mvgeo.common.errors import DisconnectedViewsError
+from mvgeo.common.errors import DisconnectedViewsError, UnposedViewsError
 from mvgeo.common.timing import StageTimer
 
 __all__ = ["Candidate", "PairGraph", "StartValues", "adjust_and_judge", "cloud_alignment", "main_group_change_deg",
@@ -198,6 +199,17 @@ class StartValues:
     made_by: str = ""
 
 
+@contextmanager
+def naming_views(names: Sequence[str]) -> Iterator[None]:
+    """Inside the block, an `UnposedViewsError` (raised with view indices) is raised again naming the views."""
+    try:
+        yield
+    except UnposedViewsError as exc:
+        if exc.names is not None:
+            raise
+        raise exc.naming(names) from None
+
+
 def start_values(graph: PairGraph, start: str, config, *, inputs: AlignInputs | None = None,
                  pairs: PairSet | None = None) -> StartValues:
     """`start`'s initial values on the graph's views and pairs (or the given ones). `config`: `AlignConfig`.
@@ -206,7 +218,11 @@ def start_values(graph: PairGraph, start: str, config, *, inputs: AlignInputs | 
         DegenerateGeometryError: the start cannot pose a view.
     """
     inputs = graph.inputs if inputs is None else inputs
-    pairs = graph.pairs if pairs is None else pairs
+    with naming_views(inputs.names):
+        return _start_values(graph, start, config, inputs, graph.pairs if pairs is None else pairs)
+
+
+def _start_values(graph: PairGraph, start: str, config, inputs: AlignInputs, pairs: PairSet) -> StartValues:
     n = len(inputs)
     Hp, Wp = pairs.predictions[0].pts_i.shape[:2]
     focal_init = None
@@ -229,7 +245,7 @@ def solve(graph: PairGraph, start: str, config, timer: StageTimer, *, inputs: Al
     inputs = graph.inputs if inputs is None else inputs
     pairs = graph.pairs if pairs is None else pairs
     Hp, Wp = pairs.predictions[0].pts_i.shape[:2]
-    with timer.stage("global_align"):
+    with timer.stage("global_align"), naming_views(inputs.names):
         if values is None:
             values = start_values(graph, start, config, inputs=inputs, pairs=pairs)
         elif values.start != start:

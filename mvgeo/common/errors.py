@@ -88,6 +88,28 @@ class DegenerateGeometryError(DgsError):
     coincident points for Procrustes). Raised where a validity flag cannot carry it."""
 
 
+class UnposedViewsError(DegenerateGeometryError):
+    """A start or chaining step could not pose some views (no usable pair reaches them, or their pointmap
+    gives no pose). Raised with view indices where the names are not known; `naming` gives the same error
+    naming the views, for the caller that knows their names.
+
+    Args:
+        reason: what went wrong, without the views (e.g. "not connected to the others by any pair").
+        views: the view indices concerned.
+        names: their names, when known (the message lists them instead of the indices).
+    """
+
+    def __init__(self, reason: str, *, views: Sequence[int], names: Sequence[str] | None = None):
+        self.reason, self.views, self.names = reason, tuple(int(v) for v in views), (
+            None if names is None else tuple(names))
+        shown = list(self.names) if self.names is not None else list(self.views)
+        super().__init__(f"{'view' if len(shown) == 1 else 'views'} {shown}: {reason}")
+
+    def naming(self, names: Sequence[str]) -> UnposedViewsError:
+        """The same error with the views' names (`names[v]` for each index)."""
+        return UnposedViewsError(self.reason, views=self.views, names=[names[v] for v in self.views])
+
+
 class AlignmentRefusedError(DegenerateGeometryError):
     """The alignment's best solution is not supported by the evidence (`mvgeo.align.verdict`).
 

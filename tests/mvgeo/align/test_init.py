@@ -11,7 +11,8 @@ from mvgeo.align.global_align import GlobalAlignConfig, global_align
 from mvgeo.align.init import STARTS, chain_contradicted_fraction, choose_start, initial_values, other_start
 from mvgeo.align.pairs import PairGeometry, PairSet
 from mvgeo.align.pose_chain import init_from_pair_poses
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.align.solve import naming_views
+from mvgeo.common.errors import DegenerateGeometryError, UnposedViewsError
 from mvgeo.metrics import compare_poses
 from mvgeo.transforms import R_from_axis_angle
 
@@ -168,3 +169,21 @@ def test_pair_pose_chaining_init_is_exact_on_exact_pointmaps(rng):
                        focal_init_px=np.full(5, FOCAL))
     # The alignment rescales the world (pinned pair scales): same rotations (float32 round-off).
     assert np.allclose(res.cam_from_world[:, :, :3], init.cam_from_world[:, :, :3], atol=1e-5)
+
+
+def test_a_chain_that_cannot_reach_every_view_names_the_views_it_left_out(rng):
+    """Pointmaps of two separate pairs: the chained start raises `UnposedViewsError` with the indices of the
+    pair it could not reach; the solve names them by file (`solve.naming_views`)."""
+    poses, depths = make_views(4)
+    preds = make_pairs(poses, depths, FOCAL, rng, pairs=[(0, 1), (2, 3)])
+    sizes = [d.shape for d in depths]
+    with pytest.raises(UnposedViewsError) as info:
+        initial_values("chain", _pair_set(preds), sizes, None, GlobalAlignConfig(), 1.0, (32, 24))
+    assert set(info.value.views) in ({0, 1}, {2, 3}) and info.value.names is None
+    names = ["a.png", "b.png", "c.png", "d.png"]
+    with pytest.raises(UnposedViewsError) as named:
+        with naming_views(names):
+            raise info.value
+    assert named.value.views == info.value.views
+    assert str([names[v] for v in info.value.views]) in str(named.value)
+    assert "not connected to the others" in str(named.value)

@@ -21,7 +21,7 @@ from mvgeo.align.policy import choose_solution
 from mvgeo.align.solve import Candidate
 from mvgeo.align.stats import AlignStats, Unregistered
 from mvgeo.align.verdict import Reason, Verdict
-from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError
+from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, UnposedViewsError
 from mvgeo.common.imageio import list_images
 from mvgeo.common.timing import StageTimer
 from mvgeo.metrics import compare_poses
@@ -142,6 +142,22 @@ def test_auto_measures_the_chained_start_and_reuses_it(monkeypatch, contradicted
     else:
         assert script.calls == [("averaged", False), ("chain", False)] and chosen.start == "chain"
         assert given == [None, chain]
+
+
+def test_auto_starts_averaged_where_the_chained_start_cannot_be_built(monkeypatch):
+    """"auto": where the pairs' pointmaps do not connect every view (the chained start raises), the averaged
+    start goes first instead of the alignment failing; no contradicted fraction is measured."""
+    script = _Script(monkeypatch, {("chain", False): UnposedViewsError("not connected", views=[2]),
+                                   ("averaged", False): dict(explained=0.99)})
+
+    def no_chain(graph, start, config):
+        raise UnposedViewsError("not connected to the others by any pair whose pointmaps overlap", views=[2])
+
+    monkeypatch.setattr(policy, "start_values", no_chain)
+    chosen, summaries, measured = choose_solution(_Inputs(), _pairs(), [(0, 1), (0, 2), (1, 2)], _Refocusable(),
+                                                  AlignConfig(), StageTimer())
+    assert script.calls == [("averaged", False)] and chosen.start == "averaged" and measured is None
+    assert [(s.start, s.chosen) for s in summaries] == [("averaged", True)]
 
 
 def test_a_contradicted_first_start_is_solved_from_the_other_start(monkeypatch):
