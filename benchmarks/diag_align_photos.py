@@ -20,9 +20,9 @@ import numpy as np
 import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
 from eval.evaluate import FOCAL_PRIOR_OK
 from eval.pipeline import preset
+from eval.pipeline.align_stage import denoised_photos_config
 from eval.pipeline.calibration import better_determined, centre_std_over_spacing
 from eval.pipeline.stage_settings import round_settings
-from eval.pipeline.stages import denoised_photos_config
 from mvgeo.align import align_images
 from mvgeo.common.errors import AlignmentRefusedError, DisconnectedViewsError
 from mvgeo.metrics import compare_poses

@@ -14,8 +14,8 @@ import dataclasses
 import sys
 
 import eval.cli  # first: sets the thread policy before torch loads
+import eval.pipeline.align_stage as align_stage
 import eval.pipeline.config as config
-import eval.pipeline.stages as stages
 
 variants = [v for v in sys.argv[1].split(",") if v]
 name = next((v.split("=", 1)[1] for v in variants if v.startswith("preset=")), "fast")
@@ -48,7 +48,7 @@ for v in variants:
     elif v.startswith("photos="):
         fast = dataclasses.replace(fast, align=dataclasses.replace(fast.align, photos=v.split("=")[1]))
     elif v == "handover":
-        real = stages.choose_geometry
+        real = align_stage.choose_geometry
 
         def forced(mode, views, previous, current, *, current_error=None, _real=real):
             ch = _real(mode, views, previous, current, current_error=current_error)
@@ -56,7 +56,7 @@ for v in variants:
                 ch = dataclasses.replace(ch, used_previous=True, reason="handover forced; rule: " + ch.reason)
             return ch
 
-        stages.choose_geometry = forced
+        align_stage.choose_geometry = forced
     else:
         raise SystemExit(f"unknown variant {v}")
 config.PRESETS[name] = fast

@@ -2,7 +2,7 @@
 
 Everything before the splat (the working photos, the denoised photos, the alignment) is the run's own; only the
 splat's training target changes: `--noisy-detail W` trains on ``denoised + w * highpass(noisy - denoised)``
-with ``w = W * min(1, (25/255) / sigma)`` (`eval.pipeline.stages.noisy_detail_targets`, as the splat stage
+with ``w = W * min(1, (25/255) / sigma)`` (`eval.pipeline.splat_training.noisy_detail_targets`, as the splat stage
 builds it; `--fixed-weight`: ``w = W``; `--band-in-dark-clipped`: the band in dark clipped regions too). With
 the run's own setting the
 splat and the held-out scores repeat the run's to the last digit (checked on `llff_like` seed 0: 25.65 / 0.724 /
@@ -35,8 +35,8 @@ from denoise.detail import NoisyDetail
 from eval.evaluate import EvalConfig, _score_scene, score_reconstruction
 from eval.pipeline.config import PRESETS
 from eval.pipeline.inputs import WORKING_DIR
+from eval.pipeline.splat_training import noisy_detail_targets
 from eval.pipeline.stage_settings import stage_seed, train_config
-from eval.pipeline.stages import noisy_detail_targets
 from eval.pipeline.validate import validate_dataset_folder
 from eval.pipeline.views import read_views
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model

@@ -3,7 +3,7 @@
 Each FOLDER holds one image per training view (`<stem>.png`, e.g. a round's `denoised/` or `renders/`);
 `noisy` stands for the dataset's own `images/`. Prints PSNR / SSIM / LPIPS (`eval.image_metrics`)
 averaged over the views the first folder holds. `--mean A B` also scores the per-pixel mean of two of
-them (`eval.pipeline.stages.fuse_images`), and `--write-mean DIR` writes that mean into a copy of the
+them (`eval.pipeline.fuse_stage.fuse_images`), and `--write-mean DIR` writes that mean into a copy of the
 dataset whose training images are replaced by it (held-out images untouched), for `denoise-gs eval`.
 
 Run: `.venv/bin/python benchmarks/diag_train_estimates.py DATA NAME=FOLDER ... [--mean NAME NAME]
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from eval.image_metrics import score_images
-from eval.pipeline.stages import fuse_images
+from eval.pipeline.fuse_stage import fuse_images
 from eval.pipeline.validate import validate_dataset_folder
 from mvgeo.common.cli import run_cli
 from mvgeo.common.deps import cv2  # noqa: F401  (cv2 before anything that imports pycolmap)

@@ -117,9 +117,9 @@ class AlignSettings:
             features in the denoiser's texture); at sigma 50 the noisy photos were refused and N2V's
             aligned, until views cut off by contradicted pairs were located by PnP (`mvgeo.align.locate`):
             they align at 0.91 deg now (docs/bench/pipeline.md). After the noisy photos, the denoised ones
-            are matched with the noisy photos' detector (`eval.pipeline.stages.denoised_photos_config`): R2R's photos at
-            sigma 50 align so (1.1 deg) and were refused with the clean-photo one. "better_of" aligns both
-            (the denoised ones with the noisy photos' detector) and keeps the alignment whose camera centres
+            are matched with the noisy photos' detector (`eval.pipeline.align_stage.denoised_photos_config`):
+            R2R's photos at sigma 50 align so (1.1 deg) and were refused with the clean-photo one. "better_of"
+            aligns both (the denoised ones with the noisy photos' detector) and keeps the alignment whose camera centres
             the bundle adjustment determines better (`eval.pipeline.calibration.better_determined`; either one
             where the other is refused). Rounds >= 2 align the round's denoised photos.
         intrinsics: the photos' calibration at their input size (a COLMAP cameras.txt with one camera, or
@@ -178,7 +178,7 @@ class PipelineConfig:
         select_views: False = rounds >= 2 use every view (Table 2 ablation).
         fuse_noisy_splat: extension, not in the paper: each round's splat trains on the average of the
             denoised photo and the render, at its view, of a splat trained on the *noisy* photos with
-            the same alignment (`eval.pipeline.stages.fuse`). The two estimates of the clean image err
+            the same alignment (`eval.pipeline.fuse_stage.fuse`). The two estimates of the clean image err
             differently (the denoiser removes fine texture; the splat of the noisy photos keeps it and
             averages the noise across views), so their mean is better than either. Costs one more
             splat training per round. On the scenes measured it raised the held-out PSNR and lowered the
@@ -192,7 +192,7 @@ class PipelineConfig:
             over) and its noisy photos are the same, the fuse stage takes the previous round's renders
             of the noisy-photo splat for its views instead of training a new one on a subset of the
             same photos with the same start (the previous splat saw these views and more). Saves one
-            splat training per such round; False trains every round (`eval.pipeline.stages.fuse`,
+            splat training per such round; False trains every round (`eval.pipeline.fuse_stage.fuse`,
             docs/bench/pipeline_schedule.md).
         stop_when_unrefined: rounds >= 2: when a round's refine keeps the previous round's network
             (round 2's blind-spot-loss guard, `denoise.round2.refine_round2`, found the fine-tuned one no

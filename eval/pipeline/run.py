@@ -145,7 +145,7 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
         fuse_upstream: tuple[StageResult, ...] = (images, al)
         if settings.fuse.reuse_noisy_splat and previous is not None and "fuse" in previous.stages:
             # What the previous round's noisy-photo splat was trained from and rendered
-            # (`eval.pipeline.stages.fuse` reuses its renders when this round's inputs are the same).
+            # (`eval.pipeline.fuse_stage.fuse` reuses its renders when this round's inputs are the same).
             fuse_inputs.update(previous_align=previous.dir / "align", previous_noisy=working,
                                previous_noisy_renders=previous.dir / "noisy_renders")
             fuse_upstream += (previous.stages["align"], previous.stages["fuse"])

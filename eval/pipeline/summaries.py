@@ -312,7 +312,7 @@ class RefineSummary:
 # ----------------------------------------------------------------- align
 @dataclass(frozen=True)
 class AlignSummary:
-    """The align stage's summary: the product's (`eval.pipeline.stages.align`) or the ground-truth
+    """The align stage's summary: the product's (`eval.pipeline.align_stage.align`) or the ground-truth
     cameras' (`eval.baselines.gt_align`: `poses`, `points_from`). None: not recorded.
 
     Attributes:
@@ -370,7 +370,7 @@ class RecordedGeometryChoice:
 
 @dataclass(frozen=True)
 class FuseSummary:
-    """The fuse stage's summary (`eval.pipeline.stages.fuse`). None: not recorded.
+    """The fuse stage's summary (`eval.pipeline.fuse_stage.fuse`). None: not recorded.
 
     Attributes:
         views: the views fused, in the alignment's order.

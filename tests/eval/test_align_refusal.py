@@ -5,9 +5,9 @@ stops)."""
 import pytest
 
 import mvgeo.align
+from eval.pipeline.align_stage import align, as_pipeline_refusal
 from eval.pipeline.stage import StageContext
 from eval.pipeline.stage_settings import AlignStageSettings
-from eval.pipeline.stages import align, as_pipeline_refusal
 from mvgeo.align import AlignConfig
 from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, DisconnectedViewsError
 

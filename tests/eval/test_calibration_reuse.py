@@ -11,8 +11,8 @@ import pytest
 
 from eval.pipeline import preset, run_pipeline
 from eval.pipeline.align_decisions import INHERITED_KEY, AlignDecisions, FocalEstimate, InheritedCalibration
+from eval.pipeline.align_stage import _align_with_previous_calibration
 from eval.pipeline.calibration import focal_log_std, prefer_previous, previous_calibration
-from eval.pipeline.stages import _align_with_previous_calibration
 from mvgeo.camera import Camera
 from mvgeo.common.errors import ConfigError, DegenerateGeometryError, InputError
 from mvgeo.sparse_model import PosedImage, SparseModel, write_sparse_model

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import mvgeo.align
+from eval.pipeline.align_stage import align
 from eval.pipeline.inputs import SIZES_FILE, prepare_inputs, working_focal_prior
 from eval.pipeline.stage import StageContext
 from eval.pipeline.stage_settings import AlignStageSettings, InputsStageSettings
-from eval.pipeline.stages import align
 from mvgeo.align import AlignConfig
 from mvgeo.align.intrinsics import FocalPrior
 from mvgeo.common.errors import DisconnectedViewsError, InputError

@@ -1,5 +1,5 @@
 """Rounds >= 2 reuse the previous round's noisy-photo splat renders (`PipelineConfig.reuse_noisy_splat`):
-the decision (`eval.pipeline.stages.noisy_splat_reuse`) against hand-built alignments, and the real fuse
+the decision (`eval.pipeline.fuse_stage.noisy_splat_reuse`) against hand-built alignments, and the real fuse
 stage in a two-round pipeline whose round 2 is handed round 1's alignment, or not."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from eval.pipeline import SplatSettings, preset, run_pipeline
+from eval.pipeline.fuse_stage import ROTATION_ATOL, fuse, fuse_images, noisy_splat_reuse
 from eval.pipeline.stage_settings import round_settings
-from eval.pipeline.stages import ROTATION_ATOL, fuse, fuse_images, noisy_splat_reuse
 from eval.pipeline.views import read_views, write_views
 from mvgeo.camera import Camera
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model

@@ -10,7 +10,7 @@ import pytest
 
 from eval.methods import METHODS
 from eval.pipeline import preset, run_pipeline
-from eval.pipeline.stages import FUSE_WEIGHT, fuse_images
+from eval.pipeline.fuse_stage import FUSE_WEIGHT, fuse_images
 from eval.pipeline.views import read_views
 from tests.eval._tiny_stages import TinyStages, make_scene
 

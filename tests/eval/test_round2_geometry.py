@@ -19,13 +19,13 @@ from eval.pipeline.align_decisions import (
     PerPhotos,
     PhotosDecision,
 )
+from eval.pipeline.align_stage import _align_keeping_better_geometry
 from eval.pipeline.calibration import (
     centre_std_over_spacing,
     choose_geometry,
     restricted_ratios,
 )
 from eval.pipeline.config import AlignSettings, PipelineConfig
-from eval.pipeline.stages import _align_keeping_better_geometry
 from mvgeo.align import AlignResult, write_align_result
 from mvgeo.align.bundle import bundle_adjust
 from mvgeo.camera import Camera
@@ -350,7 +350,7 @@ def test_better_of_keeps_the_photos_whose_centres_are_better_determined(tmp_path
                                                                         kept):
     """`AlignSettings.photos` "better_of": both alignments run and the one with the smaller bundle-adjustment
     centre uncertainty is kept; the ground truth confirms it is the closer one."""
-    from eval.pipeline.stages import _align_first_round
+    from eval.pipeline.align_stage import _align_first_round
     from mvgeo.align import AlignConfig
 
     files, noisy_files = _round1_files(tmp_path)
@@ -373,7 +373,7 @@ def test_better_of_keeps_the_photos_whose_centres_are_better_determined(tmp_path
 
 
 def test_better_of_with_one_refusal_keeps_the_other(tmp_path, alignments):
-    from eval.pipeline.stages import _align_first_round
+    from eval.pipeline.align_stage import _align_first_round
     from mvgeo.align import AlignConfig
 
     files, noisy_files = _round1_files(tmp_path)

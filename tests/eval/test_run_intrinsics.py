@@ -10,10 +10,10 @@ import pytest
 
 from eval.cli import main
 from eval.pipeline import preset, run_pipeline
+from eval.pipeline.align_stage import align as align_stage
+from eval.pipeline.align_stage import working_camera
 from eval.pipeline.stage import StageContext
 from eval.pipeline.stage_settings import round_settings
-from eval.pipeline.stages import align as align_stage
-from eval.pipeline.stages import working_camera
 from mvgeo.common.errors import InputError
 from tests.eval._tiny_stages import TinyStages, make_scene
 

@@ -117,9 +117,10 @@ def test_product_code_table_enters_the_keys(tmp_path, monkeypatch, fresh_digests
 
 
 def test_fuse_weight_is_in_the_fuse_stage_key(tmp_path, monkeypatch, fresh_digests):
-    """`FUSE_WEIGHT` lives in `eval/pipeline/stages.py`: the package digest the product's fuse stage
+    """`FUSE_WEIGHT` lives in `eval/pipeline/fuse_stage.py`: the package digest the product's fuse stage
     carries changes with it (checked on a copy of the package, importable under another name)."""
-    assert {"eval.pipeline", "eval.pipeline.stages"} <= set(code_digests(product_stages().fuse, STAGE_CODE["fuse"]))
+    digests = code_digests(product_stages().fuse, STAGE_CODE["fuse"])
+    assert {"eval.pipeline", "eval.pipeline.fuse_stage"} <= set(digests)
     name = f"dgs_test_pipeline_{uuid.uuid4().hex[:8]}"
     copy = tmp_path / name
     shutil.copytree(REPO / "eval" / "pipeline", copy, ignore=shutil.ignore_patterns("__pycache__"))
@@ -127,12 +128,12 @@ def test_fuse_weight_is_in_the_fuse_stage_key(tmp_path, monkeypatch, fresh_diges
     before = source_digest(name)
     (copy / "notes.txt").write_text("not source")
     (copy / "__pycache__").mkdir()
-    (copy / "__pycache__" / "stages.cpython-312.pyc").write_bytes(b"\0")
+    (copy / "__pycache__" / "fuse_stage.cpython-312.pyc").write_bytes(b"\0")
     fresh_digests()
     assert source_digest(name) == before
-    text = (copy / "stages.py").read_text()
+    text = (copy / "fuse_stage.py").read_text()
     assert text.count("\nFUSE_WEIGHT = 0.5\n") == 1
-    (copy / "stages.py").write_text(text.replace("\nFUSE_WEIGHT = 0.5\n", "\nFUSE_WEIGHT = 0.6\n"))
+    (copy / "fuse_stage.py").write_text(text.replace("\nFUSE_WEIGHT = 0.5\n", "\nFUSE_WEIGHT = 0.6\n"))
     fresh_digests()
     assert source_digest(name) != before
 
