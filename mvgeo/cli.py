@@ -67,6 +67,11 @@ def _parser() -> argparse.ArgumentParser:
                         "averaging then positions from the tracks (GLOMAP's approach), or 'auto' (default: chaining "
                         "first unless the chained start contradicts most pairs' relative rotations; "
                         "mvgeo.align.init.choose_start)")
+    a.add_argument("--principal-point", choices=["auto", "centre"], default="auto",
+                   help="without --intrinsics: 'auto' (default) estimates the principal point for the accepted "
+                        "result and keeps it where the views determine it (views around an object do, close views "
+                        "do not; align.json principal_point says which and why); 'centre' keeps the image centre "
+                        "(COLMAP's default)")
     add_common_args(a)
 
     c = sub.add_parser("colmap", help="pycolmap SfM (CPU SIFT, exhaustive matching) into the same layout")
@@ -115,7 +120,7 @@ def _align(args: argparse.Namespace) -> int:
                       points_budget=args.points, bundle_adjust=args.ba, allow_partial=args.allow_partial,
                       downsample=args.downsample, dense_stereo=DenseStereoConfig(enabled=args.dense_stereo),
                       hole_fill=HoleFillConfig(enabled=args.hole_fill), initial_poses=args.initial_poses,
-                      exif_focal=args.exif_focal)
+                      exif_focal=args.exif_focal, principal_point=args.principal_point)
     result = align_images(paths, cfg, intrinsics=intr, cloud_images=cloud)
     write_align_result(plan, result)
     s = result.stats
@@ -123,6 +128,9 @@ def _align(args: argparse.Namespace) -> int:
         print(f"warning: {len(s.unregistered)} images not registered: {[u.name for u in s.unregistered]}",
               file=sys.stderr)
     prior = f", focal prior {s.focal_prior.focal_35mm:g} mm ({s.focal_prior.source})" if s.focal_prior else ""
+    pp = s.principal_point
+    if pp is not None and pp.kept:
+        prior += f", principal point {pp.offset_px[0]:+.1f}, {pp.offset_px[1]:+.1f} px off the centre (determined)"
     moved = [v.name for v in s.views_located_by_points if v.outcome == "re-posed"]
     if moved:
         print(f"note: {moved} re-posed where PnP on the other views' points puts them (align.json "

@@ -27,6 +27,7 @@ from mvgeo.align.intrinsics import FocalPrior, choose_focal_prior
 from mvgeo.align.locate import Located
 from mvgeo.align.pairs import PairSet, PointmapModel
 from mvgeo.align.policy import choose_solution
+from mvgeo.align.principal import with_principal_point
 from mvgeo.align.result import AlignResult
 from mvgeo.align.solve import Candidate, cloud_alignment
 from mvgeo.align.stats import AlignStats, BundleStats, CandidateSummary, FocalPriorStats, InconsistentPair, LocatedView
@@ -89,9 +90,10 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
         with timer.stage("pairwise"):
             pairs = model.predict_pairs(inputs.small, pair_list)
         chosen, candidates, contradicted = choose_solution(inputs, pairs, pair_list, model, config, timer)
+        chosen, principal = with_principal_point(chosen, config, timer)
         aligned = functools.cache(lambda: cloud_alignment(chosen, timer))  # run only if the cloud asks for it
-        cloud_inputs = chosen.inputs if pixels is None else pixels.restricted(
-            [inputs.names.index(n) for n in chosen.inputs.names])
+        cloud_inputs = chosen.inputs if pixels is None else dataclasses.replace(pixels.restricted(
+            [inputs.names.index(n) for n in chosen.inputs.names]), K_align=chosen.inputs.K_align)
         cloud = dense_cloud(cloud_inputs, chosen.result, chosen.ba, [(p.i, p.j) for p in chosen.pairs.predictions],
                             chosen.pairs.matches, config, timer, chosen.graph.grid_to_align, aligned=aligned)
         sparse = _sparse_model(chosen, cloud)
@@ -102,6 +104,7 @@ def align_images(images: Sequence[Path] | Sequence[np.ndarray], config: AlignCon
                        alignment)
         stats = dataclasses.replace(stats, chain_start_contradicted=None if contradicted is None else
                                     round(contradicted, 4),
+                                    principal_point=principal,
                                     focal_prior_unavailable=no_prior, focal_prior=None if prior is None else
                                     FocalPriorStats(prior.source, round(prior.focal_35mm, 3),
                                                     round(prior.focal_px(inputs.input_wh), 2)))
@@ -134,13 +137,17 @@ def _sparse_model(c: Candidate, cloud: DenseCloud) -> SparseModel:
     """PINHOLE cameras at the input size: one camera when the views share their intrinsics (known, or one
     shared focal), as COLMAP's single-camera mode writes them; else one per view."""
     (W0, H0), K = c.inputs.input_wh, c.inputs.intrinsics
-    Hp, Wp = c.result.depth[0].shape
+    (Wa, Ha), Hp, Wp = c.inputs.align_wh, *c.result.depth[0].shape
     f = c.result.focal_px
     one_camera = K is not None or bool(np.all(f == f[0]))
+    # Without intrinsics, the principal point is the image centre unless the views determined it (an estimated
+    # K_align, `mvgeo.align.principal`).
+    centre = ((W0 / 2.0, H0 / 2.0) if c.inputs.K_align is None
+              else (c.inputs.K_align[0, 0, 2] * W0 / Wa, c.inputs.K_align[0, 1, 2] * H0 / Ha))
     cameras, posed = {}, []
     for v, name in enumerate(c.inputs.names):
         cam = (Camera.pinhole(K.fx, K.fy, K.cx, K.cy, W0, H0) if K is not None else
-               Camera.pinhole(f[v] * W0 / Wp, f[v] * H0 / Hp, W0 / 2.0, H0 / 2.0, W0, H0))
+               Camera.pinhole(f[v] * W0 / Wp, f[v] * H0 / Hp, *centre, W0, H0))
         cam_id = 1 if one_camera else v + 1
         cameras.setdefault(cam_id, cam)
         posed.append(PosedImage(name, cam_id, c.result.cam_from_world[v]))

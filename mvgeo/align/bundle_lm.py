@@ -2,7 +2,8 @@
 
 Unknowns: per view a pose ``cam_from_world`` (left-multiplicative rotation
 update ``R <- exp([d]x) R``, translation), a log-focal shared by all views or
-one per view (principal point fixed), and per track a world point. View 0's
+one per view, optionally one principal point shared by all views
+(`LMProblem.optimize_principal`; else fixed), and per track a world point. View 0's
 pose is fixed; the remaining scale freedom is held by the LM damping (the
 metrics align by Sim(3) anyway). Residuals are reprojection errors in pixels
 with a Huber loss, minimised by iteratively reweighted least squares: each
@@ -13,7 +14,7 @@ Analytic Jacobian of the projection ``p = f (x / z, y / z) + c`` of
 ``x_c = R X + t``:
 
     dp/dx_c = f / z [[1, 0, -x/z], [0, 1, -y/z]]
-    dx_c/d(rot) = -[R X]x,  dx_c/dt = I,  dx_c/dX = R,  dp/dlog f = p - c.
+    dx_c/d(rot) = -[R X]x,  dx_c/dt = I,  dx_c/dX = R,  dp/dlog f = p - c,  dp/dc = I.
 
 `mvgeo.align.bundle` keeps the scipy `least_squares` solver as the slow,
 obvious reference (tests compare the two).
@@ -21,7 +22,7 @@ obvious reference (tests compare the two).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -37,8 +38,10 @@ class LMProblem:
         op: (K,) point of each observation.
         uv: (K, 2) observed pixels.
         f_index: (N,) focal unknown of each view (all 0 for a shared focal).
-        c: (2,) principal point.
+        c: (2,) principal point (the start, when `optimize_principal`).
         optimize_focal: False keeps the focals fixed.
+        optimize_principal: the principal point, shared by all views, is an unknown (its two columns follow
+            the focals' in the reduced camera system).
     """
 
     ov: np.ndarray
@@ -47,6 +50,16 @@ class LMProblem:
     f_index: np.ndarray
     c: np.ndarray
     optimize_focal: bool = True
+    optimize_principal: bool = False
+
+    @property
+    def n_principal(self) -> int:
+        """Unknowns of the principal point (2 or 0)."""
+        return 2 if self.optimize_principal else 0
+
+    def with_principal(self, c: np.ndarray) -> LMProblem:
+        """The same problem with principal point `c`."""
+        return replace(self, c=np.asarray(c, np.float64))
 
 
 def project(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.ndarray, pb: LMProblem):
@@ -70,13 +83,17 @@ def _robust_cost(r: np.ndarray, k: float) -> float:
 
 
 def _columns(pb: LMProblem, n: int, nf: int) -> tuple[np.ndarray, int]:
-    """(K, 7) global camera column of each observation's local unknowns (nc = dummy for fixed ones), nc."""
-    nc = 6 * (n - 1) + nf
-    cols = np.full((len(pb.ov), 7), nc, np.int64)
+    """(K, 7 + n_principal) global camera column of each observation's local unknowns (pose, focal, principal
+    point; nc = dummy for fixed ones), nc."""
+    npp = pb.n_principal
+    nc = 6 * (n - 1) + nf + npp
+    cols = np.full((len(pb.ov), 7 + npp), nc, np.int64)
     free = pb.ov > 0
     cols[free, :6] = (6 * (pb.ov[free] - 1))[:, None] + np.arange(6)
     if nf:
         cols[:, 6] = 6 * (n - 1) + pb.f_index[pb.ov]
+    if npp:
+        cols[:, 7:] = 6 * (n - 1) + nf + np.arange(npp)
     return cols, nc
 
 
@@ -96,17 +113,19 @@ def normal_equations(R, t, logf, X, pb: LMProblem, huber_px: float):
     dp[:, 0, 0] = dp[:, 1, 1] = f * iz
     dp[:, 0, 2] = -f * xc[:, 0] * iz * iz
     dp[:, 1, 2] = -f * xc[:, 1] * iz * iz
-    Jc = np.zeros((K, 2, 7))
+    Jc = np.zeros((K, 2, cols.shape[1]))
     Jc[:, :, :3] = -dp @ skew_unchecked(RX)
     Jc[:, :, 3:6] = dp
     if nf:
         Jc[:, :, 6] = r + pb.uv - pb.c  # p - c
+    if pb.optimize_principal:
+        Jc[:, 0, 7] = Jc[:, 1, 8] = 1.0
     Jc[pb.ov == 0, :, :6] = 0.0
     Jp = dp @ R[pb.ov]  # (K, 2, 3)
     Jc_w = Jc * w[:, None, None]
     Jp_w = Jp * w[:, None, None]
     JcT_w = np.transpose(Jc_w, (0, 2, 1))
-    Ucc = JcT_w @ Jc  # batched (K, 7, 7); matmul is several times faster than einsum here
+    Ucc = JcT_w @ Jc  # batched (K, 7, 7) (9 with the principal point); matmul is several times faster than einsum
     U = np.bincount((cols[:, :, None] * (nc + 1) + cols[:, None, :]).ravel(), Ucc.ravel(),
                     minlength=(nc + 1) ** 2).reshape(nc + 1, nc + 1)[:nc, :nc]
     gc = np.bincount(cols.ravel(), (JcT_w @ r[:, :, None]).ravel(), minlength=nc + 1)[:nc]
@@ -115,7 +134,7 @@ def normal_equations(R, t, logf, X, pb: LMProblem, huber_px: float):
                     minlength=P * 9).reshape(P, 3, 3)
     gp = np.bincount((pb.op[:, None] * 3 + np.arange(3)).ravel(), (JpT_w @ r[:, :, None]).reshape(K, 3).ravel(),
                      minlength=P * 3).reshape(P, 3)
-    Wk = JcT_w @ Jp  # (K, 7, 3)
+    Wk = JcT_w @ Jp  # (K, 7 or 9, 3)
     # Stored camera-column-major, (nc, P, 3), and returned as its (P, nc, 3) view: the Schur
     # complement's products take the (nc, 3 P) matrix without copying it (`reduced_camera_system`).
     W = np.bincount(((cols * P + pb.op[:, None])[:, :, None] * 3 + np.arange(3)).ravel(),
@@ -143,7 +162,18 @@ def reduced_camera_system(U, V, W, lam: float = 0.0):
 def solve_lm(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.ndarray, pb: LMProblem, *,
              huber_px: float, max_iters: int = 50, tol: float = 1e-10
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """Minimise the Huber reprojection cost; returns refined (R, t, logf, X, iterations)."""
+    """Minimise the Huber reprojection cost; returns refined (R, t, logf, X, iterations). With
+    `pb.optimize_principal` the refined principal point is `solve_lm_principal`'s; this function is that
+    one without it."""
+    R, t, logf, X, _, it = solve_lm_principal(R, t, logf, X, pb, huber_px=huber_px, max_iters=max_iters, tol=tol)
+    return R, t, logf, X, it
+
+
+def solve_lm_principal(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.ndarray, pb: LMProblem, *,
+                       huber_px: float, max_iters: int = 50, tol: float = 1e-10
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Minimise the Huber reprojection cost; returns refined (R, t, logf, X, principal point (2,), iterations)
+    (the principal point is `pb.c` unless `pb.optimize_principal`)."""
     n = len(R)
     nf = len(logf) if pb.optimize_focal else 0
     lam = 1e-3
@@ -161,26 +191,45 @@ def solve_lm(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.ndarray, pb: 
                 lam *= 10
                 continue
             dX = -np.einsum("pij,pj->pi", Vinv, gp + np.tensordot(W, dc, axes=([1], [0])))
-            R1, t1, lf1 = R.copy(), t.copy(), logf.copy()
+            R1, t1, lf1, pb1 = R.copy(), t.copy(), logf.copy(), pb
             if n > 1:
                 d = dc[:6 * (n - 1)].reshape(n - 1, 6)
                 R1[1:] = np.stack([so3_exp(v) for v in d[:, :3]]) @ R[1:]
                 t1[1:] = t[1:] + d[:, 3:]
             if nf:
-                lf1 = logf + dc[6 * (n - 1):]
+                lf1 = logf + dc[6 * (n - 1):6 * (n - 1) + nf]
+            if pb.optimize_principal:
+                pb1 = pb.with_principal(pb.c + dc[6 * (n - 1) + nf:])
             X1 = X + dX
-            r1 = project(R1, t1, lf1, X1, pb)[0]
+            r1 = project(R1, t1, lf1, X1, pb1)[0]
             cost1 = _robust_cost(r1, huber_px) if np.all(np.isfinite(r1)) else np.inf
             if cost1 < cost:
                 rel = (cost - cost1) / max(cost, 1e-300)
-                R, t, logf, X, cost = R1, t1, lf1, X1, cost1
+                R, t, logf, X, pb, cost = R1, t1, lf1, X1, pb1, cost1
                 lam = max(lam / 3.0, 1e-9)
                 improved = True
                 break
             lam *= 4.0
         if not improved or rel < tol:
             break
-    return R, t, logf, X, it
+    return R, t, logf, X, np.asarray(pb.c, np.float64), it
+
+
+def principal_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarray:
+    """(2,) standard deviation (pixels) of the shared principal point, as `log_focal_std` (Laplace
+    approximation, points marginalised, residual variance from the residuals); zeros unless
+    `pb.optimize_principal`."""
+    if not pb.optimize_principal:
+        return np.zeros(2)
+    n = len(R)
+    nf = len(logf) if pb.optimize_focal else 0
+    U, _, V, _, W, r = normal_equations(R, t, logf, X, pb, huber_px)
+    S = reduced_camera_system(U, V, W)[0]
+    dof = max(r.size - len(S) - 3 * len(X), 1)
+    sigma2 = float(np.sum(r * r)) / dof
+    cov = np.linalg.pinv(S, rcond=1e-12, hermitian=True) * sigma2
+    k = 6 * (n - 1) + nf
+    return np.sqrt(np.maximum(np.diag(cov)[k:k + 2], 0.0))
 
 
 def log_focal_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarray:
@@ -216,7 +265,7 @@ def _view_blocks(R, t, logf, X, pb: LMProblem, huber_px: float) -> tuple[np.ndar
         blocks[v] = S[6 * (v - 1):6 * v, 6 * (v - 1):6 * v]
     swap = np.arange(n)
     swap[[0, 1]] = [1, 0]
-    pb1 = LMProblem(swap[pb.ov], pb.op, pb.uv, pb.f_index[swap], pb.c, pb.optimize_focal)
+    pb1 = LMProblem(swap[pb.ov], pb.op, pb.uv, pb.f_index[swap], pb.c, pb.optimize_focal, pb.optimize_principal)
     U1, _, V1, _, W1, _ = normal_equations(R[swap], t[swap], logf, X, pb1, huber_px)
     blocks[0] = reduced_camera_system(U1, V1, W1)[0][:6, :6]  # old view 0 is now view 1
     return blocks, r
@@ -239,7 +288,7 @@ def camera_centre_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarr
     if n < 2:
         return np.zeros(n)
     blocks, r = _view_blocks(R, t, logf, X, pb, huber_px)
-    dof = max(r.size - 6 * (n - 1) - len(logf) - 3 * len(X), 1)
+    dof = max(r.size - 6 * (n - 1) - len(logf) - pb.n_principal - 3 * len(X), 1)
     sigma2 = float(np.sum(r * r)) / dof
     out = np.empty(n)
     for v in range(n):

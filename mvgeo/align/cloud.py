@@ -110,15 +110,24 @@ def reposed(res: GlobalAlignResult, cam_from_world: np.ndarray, focal_px: np.nda
     return out, rescale
 
 
+def _principal(inputs: AlignInputs) -> list[tuple[float, float]]:
+    """Per view, the principal point at the alignment size without known intrinsics: the centre, or the one
+    the views determined (`mvgeo.align.principal`: K_align without intrinsics)."""
+    Wa, Ha = inputs.align_wh
+    if inputs.K_align is None:
+        return [(Wa / 2.0, Ha / 2.0)] * len(inputs)
+    return [(float(K[0, 2]), float(K[1, 2])) for K in np.asarray(inputs.K_align, np.float64)]
+
+
 def _stereo_maps(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | None, pairs, matches, config,
                  timer: StageTimer, grid_to_align: float, aligned: Callable[[], GlobalAlignResult]):
     """Depth and confidence maps by flow stereo with the final cameras, their grids' K, the masks of their
     measured (not hole-filled) pixels, and the report."""
     Wa, Ha = inputs.align_wh
     with timer.stage("dense_stereo"):
-        K_a = (np.asarray(inputs.K_align, np.float64) if inputs.K_align is not None  # known: its principal point
-               else np.stack([np.array([[f, 0, Wa / 2.0], [0, f, Ha / 2.0], [0, 0, 1]])
-                              for f in res.focal_px * grid_to_align]))
+        K_a = (np.asarray(inputs.K_align, np.float64) if inputs.intrinsics is not None  # known: its principal point
+               else np.stack([np.array([[f, 0, cx], [0, f, cy], [0, 0, 1]])
+                              for f, (cx, cy) in zip(res.focal_px * grid_to_align, _principal(inputs), strict=True)]))
         stereo = stereo_depths(inputs.small, K_a, res.cam_from_world, pairs, {(i, j): uv for i, j, uv in matches},
                                config.dense_stereo)
     depth_maps, conf_maps = list(stereo.depth), list(stereo.conf)
@@ -167,11 +176,12 @@ def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | 
         res = aligned()
         depth_maps, conf_maps, pts_maps = res.depth, res.conf, res.pts_world
         Hp, Wp = res.depth[0].shape
-        if inputs.K_align is not None:  # known intrinsics at the pointmap grid (our pixel convention: exact)
-            Wa, Ha = inputs.align_wh
+        Wa, Ha = inputs.align_wh
+        if inputs.intrinsics is not None:  # known intrinsics at the pointmap grid (our pixel convention: exact)
             K_grid = [np.diag([Wp / Wa, Hp / Ha, 1.0]) @ K for K in np.asarray(inputs.K_align, np.float64)]
         else:
-            K_grid = [np.array([[f, 0, Wp / 2.0], [0, f, Hp / 2.0], [0, 0, 1]]) for f in res.focal_px]
+            K_grid = [np.array([[f, 0, cx * Wp / Wa], [0, f, cy * Hp / Ha], [0, 0, 1]])
+                      for f, (cx, cy) in zip(res.focal_px, _principal(inputs), strict=True)]
     with timer.stage("scene"):
         keep = covisibility_keep(pts_maps, depth_maps, conf_maps, res.cam_from_world, K_grid,
                                  rel_depth_tol=config.covisibility_rel_tol,

@@ -125,6 +125,10 @@ class AlignConfig:
             pairs at that focal instead of the pair focals' consensus or COLMAP's prior 1.2 max(W, H); the
             bundle adjustment still refines it, and re-estimates the pairs when it moves more than
             `refocus_min_change` (True). align.json `focal_prior`.
+        principal_point: without known intrinsics, "auto" (default) estimates the principal point for the
+            accepted solution and keeps it where the views determine it (`mvgeo.align.principal`: views around
+            an object do, close views do not); "centre" keeps it at the image centre (COLMAP's default).
+            align.json `principal_point`.
     """
 
     max_size_px: int = 640
@@ -160,8 +164,12 @@ class AlignConfig:
     max_candidates: int = 8
     hole_fill: HoleFillConfig = field(default_factory=HoleFillConfig)
     exif_focal: bool = True
+    principal_point: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.principal_point not in ("auto", "centre"):
+            raise ConfigError(f"unknown value {self.principal_point!r}", key="principal_point",
+                              expected="'auto' or 'centre'")
         if self.downsample not in ("pixel", "voxel"):
             raise ConfigError(f"unknown value {self.downsample!r}", key="downsample",
                               expected="'pixel' or 'voxel'")

@@ -48,6 +48,24 @@ class Unregistered:
 
 
 @dataclass(frozen=True)
+class PrincipalPointStats:
+    """The principal point the bundle adjustment estimated for the accepted solution (`mvgeo.align.principal`).
+
+    Attributes:
+        offset_px: (x, y) from the image centre, pixels at the input size.
+        std_px: its standard deviation (x, y), pixels at the input size.
+        kept: whether the output cameras carry it (determined, and the solution with it accepted); else
+            they keep the centre.
+        reason: the figures that decided.
+    """
+
+    offset_px: list[float]
+    std_px: list[float]
+    kept: bool
+    reason: str
+
+
+@dataclass(frozen=True)
 class FocalPriorStats:
     """The focal length the pairs started at without known intrinsics, where not COLMAP's generic prior.
 
@@ -196,6 +214,8 @@ class AlignStats:
     #: contradicts, which chose the first start (`mvgeo.align.init.choose_start`; NaN: no pair has a
     #: rotation); else None.
     chain_start_contradicted: float | None = None
+    #: None: not estimated (`AlignConfig.principal_point` "centre", known intrinsics, or a refused solution).
+    principal_point: PrincipalPointStats | None = None
 
     def to_json(self, *, extra_keys: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """A JSON-ready dict of the fields, with a caller's `extra_keys` (JSON values) beside them.
@@ -235,6 +255,8 @@ class AlignStats:
         kw["views_located_by_points"] = [LocatedView(**x) for x in kw.get("views_located_by_points", [])]
         if kw.get("focal_prior") is not None:
             kw["focal_prior"] = FocalPriorStats(**kw["focal_prior"])
+        if kw.get("principal_point") is not None:
+            kw["principal_point"] = PrincipalPointStats(**kw["principal_point"])
         return cls(**kw)
 
     def write(self, path: Path, *, extra_keys: Mapping[str, Any] | None = None) -> None:

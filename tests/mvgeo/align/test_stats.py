@@ -14,6 +14,7 @@ from mvgeo.align.stats import (
     FailedPair,
     InconsistentPair,
     LocatedView,
+    PrincipalPointStats,
     RejectedPair,
     Unregistered,
 )
@@ -44,7 +45,8 @@ def _stats(**changes) -> AlignStats:
         views_located_by_points=[LocatedView("c.png", 154, 63.8, 4000, "re-posed"),
                                  LocatedView("c.png", 113, 0.11, 4100, "kept")],
         n_points=5000, mean_confidence=4.5, timings_s={"load": 0.1, "total": 2.0},
-        config={"max_size_px": 320, "pairs": {"kind": "complete"}, "seed": 0})
+        config={"max_size_px": 320, "pairs": {"kind": "complete"}, "seed": 0},
+        principal_point=PrincipalPointStats([-16.5, 9.6], [1.8, 3.3], True, "determined: ..."))
     return dataclasses.replace(s, **changes)
 
 
@@ -56,7 +58,8 @@ def test_json_round_trip_is_the_identity():
     assert back == s
     assert isinstance(back.bundle_adjustment, BundleStats) and isinstance(back.candidates[1], CandidateSummary)
     assert back.unregistered[0].name == "d.png" and back.bundle_adjustment.centre_std_ratio == [0.01, 0.02, 0.03]
-    for empty in (_stats(bundle_adjustment=None, dense_stereo=None),
+    assert isinstance(back.principal_point, PrincipalPointStats) and back.principal_point.kept
+    for empty in (_stats(bundle_adjustment=None, dense_stereo=None, principal_point=None),
                   _stats(failed_pairs=[], candidates=[], unregistered=[], pairs_inconsistent=[])):
         assert AlignStats.from_json(json.loads(json.dumps(empty.to_json()))) == empty
 
