@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mvgeo.align.bundle_lm import LMProblem, principal_std, solve_lm_principal
+from mvgeo.align.bundle_lm import LMProblem, principal_step
 from mvgeo.align.inputs import AlignInputs
 from mvgeo.align.solve import Candidate, adjust_and_judge
 from mvgeo.align.stats import PrincipalPointStats
@@ -50,7 +50,7 @@ class PrincipalEstimate:
         principal_px: (2,) the estimate; offset_px: (2,) from the image centre; std_px: (2,) its standard
             deviation; focal_px: the focal adjusted with it.
         determined: whether the views determine it (`determined`); why: the figures that decided.
-        cam_from_world: (N, 3, 4) the poses adjusted with it (the next adjustment's start).
+        cam_from_world: (N, 3, 4) the poses it was estimated at (the next adjustment's start).
     """
 
     principal_px: np.ndarray
@@ -73,9 +73,9 @@ def determined(offset_px: np.ndarray, std_px: np.ndarray, focal_px: float) -> tu
 
 
 def estimate_principal(c: Candidate, config) -> PrincipalEstimate | None:
-    """The principal point the bundle adjustment finds on `c`'s adjusted tracks, from `c`'s adjusted poses,
-    focal and points (one more Levenberg-Marquardt solve with the principal point free), or None where it
-    does not apply (no bundle adjustment, or the calibration is known). `config`: `AlignConfig`."""
+    """The principal point `c`'s adjusted tracks imply: one Gauss-Newton step from `c`'s bundle adjustment
+    (poses, focal, points) with the principal point free (`bundle_lm.principal_step`), or None where it does
+    not apply (no bundle adjustment, or the calibration is known). `config`: `AlignConfig`."""
     b = c.ba
     if b is None or c.inputs.K_align is not None or b.track_xyz is None or b.obs_view is None or len(b.obs_view) == 0:
         return None
@@ -86,14 +86,12 @@ def estimate_principal(c: Candidate, config) -> PrincipalEstimate | None:
     logf = np.log(np.asarray(b.focal_px[:1] if shared else b.focal_px, np.float64))
     centre = np.array([Wa / 2.0, Ha / 2.0])
     pb = LMProblem(b.obs_view, b.obs_point, b.obs_uv, f_index, centre, True, True)
-    R, t, logf, X, principal, _ = solve_lm_principal(
-        b.cam_from_world[:, :, :3].copy(), b.cam_from_world[:, :, 3].copy(), logf, np.asarray(b.track_xyz, np.float64),
-        pb, huber_px=config.bundle.huber_px, max_iters=config.bundle.max_iters, tol=config.bundle.rel_tol)
-    std = principal_std(R, t, logf, X, pb.with_principal(principal), config.bundle.huber_px)
-    f = float(np.exp(np.median(logf)))
+    principal, std = principal_step(b.cam_from_world[:, :, :3], b.cam_from_world[:, :, 3], logf,
+                                    np.asarray(b.track_xyz, np.float64), pb, config.bundle.huber_px)
+    f = float(np.median(b.focal_px))
     offset = principal - centre
     ok, why = determined(offset, std, f)
-    return PrincipalEstimate(principal, offset, std, f, ok, why, np.concatenate([R, t[:, :, None]], axis=2))
+    return PrincipalEstimate(principal, offset, std, f, ok, why, b.cam_from_world)
 
 
 def _with_principal(inputs: AlignInputs, est: PrincipalEstimate) -> AlignInputs:

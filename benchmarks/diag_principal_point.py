@@ -1,0 +1,73 @@
+"""The principal point `mvgeo align` estimates (`mvgeo.align.principal`), against the calibration's, and what
+it does to the rotations: each set aligned with `AlignConfig.principal_point` "centre" and "auto" (the
+default) on the same images.
+
+Usage: .venv/bin/python benchmarks/diag_principal_point.py [--sets=temple,dtu,dtu_noisy,llff_like]
+[--dither=none,0,1,2] [--out=NAME]
+
+The sets, the dither and the EXIF focal as in `diag_verdict_perturbed.py` (12 views, poses only). Columns: set,
+dither seed, the calibration's principal point offset from the image centre (px, input size), the estimate's
+offset and standard deviation, whether it was kept (and the rule's figures), and the median / max rotation
+error over all pairs (deg) with the centre and with "auto".
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+from _common import cli_option, md_table, write_fragment
+from bench_real import OURS, dtu_set, exif_focal_35mm_of, prepare, temple_set
+from diag_verdict_perturbed import _synthetic, _variant
+
+from mvgeo.align.api import align_images
+from mvgeo.common.imageio import list_images, read_image
+from mvgeo.metrics import compare_poses
+
+
+def main() -> int:
+    sets = cli_option("sets", "temple,dtu,dtu_noisy,llff_like").split(",")
+    dithers = cli_option("dither", "none,0,1,2").split(",")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for name in sets:
+            if name in ("object_ring", "llff_like"):
+                paths, gt, K = _synthetic(name, work)
+            else:
+                s = temple_set() if name == "temple" else dtu_set("cluster")
+                if s is None:
+                    print(f"{name}: ../shared/data missing, skipped")
+                    continue
+                folder = prepare(s, work / name, noisy=name == "dtu_noisy", seed=0)
+                paths, gt, K = [p for p in list_images(folder) if p.name in s.gt], s.gt, s.K
+            h, w = read_image(paths[0]).shape[:2]
+            true_off = f"{K[0, 2] - w / 2:+.1f}, {K[1, 2] - h / 2:+.1f}"
+            for seed in dithers:
+                tagged = _variant(paths, work / f"{name}_{seed}", exif_focal_35mm_of(K, (w, h)), seed)
+                errs = {}
+                for mode in ("centre", "auto"):
+                    res = align_images(tagged, replace(OURS, principal_point=mode))
+                    m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)
+                    errs[mode] = f"{m.median_rotation_deg:.3f} / {float(m.rotation_deg.max()):.2f}"
+                    pp = res.stats.principal_point
+                kept = "" if pp is None else ("kept" if pp.kept else "centre") + ": " + pp.reason.split(": ", 1)[-1]
+                rows.append([name, seed, true_off,
+                             "" if pp is None else f"{pp.offset_px[0]:+.1f}, {pp.offset_px[1]:+.1f}",
+                             "" if pp is None else f"{pp.std_px[0]:.1f}, {pp.std_px[1]:.1f}",
+                             kept, errs["centre"], errs["auto"]])
+                print(" | ".join(str(x) for x in rows[-1]), flush=True)
+    table = md_table(["set", "dither seed", "true offset (px)", "estimated offset (px)", "its std (px)",
+                      "kept? (the rule's figures)", "rot med / max, centre (deg)", "rot med / max, auto (deg)"], rows)
+    out = cli_option("out", "")
+    if out:
+        write_fragment(out, "The principal point", table,
+                       "`python benchmarks/diag_principal_point.py " + " ".join(sys.argv[1:]) + "`")
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
