@@ -69,7 +69,7 @@ class BundleConfig:
         refine_principal: the principal point, one for all views, is an unknown of the LM solver (False: fixed
             at the image centre, as COLMAP's default); `BundleResult.principal_px` and `principal_std_px` give
             it. The alignment estimates it for its accepted result and keeps it only where the views determine
-            it (`mvgeo.align.principal`; docs/bench/verdict_perturbed.md, "The principal point").
+            it (`mvgeo.align.principal`; docs/bench/principal_point.md).
         readjust_min_gain: adjust once more when the adjusted poses triangulate at least this fraction
             more tracks than the start did (`bundle_adjust`); 0 never. 5 %: on the real benchmark sets the
             final candidates gain 0-3 % (temple 1889 -> 1889, DTU scan24 905 -> 905, 775 -> 781), starts a

@@ -4,19 +4,18 @@ Without a calibration the alignment, like COLMAP's mappers by default, puts the 
 centre. A real camera's is a few pixels to a few tens of pixels off, and on views that surround the object
 that offset is not absorbed: every camera looks off by the same small angle (offset / focal), the ring closes
 with it, and the rotations come out bent. Measured on the Middlebury temple ring (principal point 17 and 7 px
-off the centre of 640x480, focal 1520 px): the bundle adjustment on the alignment's own matches gives a median
-rotation error of 1.00 deg with the centre and 0.33 deg with the true principal point; on DTU scan24's close
-views 0.25 against 0.16 deg (docs/bench/verdict_perturbed.md, "The principal point").
+off the centre of 640x480, focal 1520 px): 1.00 deg median rotation error with the centre, 0.32 deg with the
+principal point estimated here (docs/bench/principal_point.md).
 
 On close views the principal point trades off against the rotations and the data hardly prefer one value
-(DTU scan24 with sigma 25/255 noise: a standard deviation of 13-20 px, and an estimate 16-27 px from the truth
-that doubled the rotation error). So it is estimated once the solution is accepted, by the bundle adjustment
-with the principal point as an unknown (one for all views), and kept only where the data determine it
-(`determined`): its standard deviation is below `MAX_STD_DEG` of view angle and its offset from the centre
-is significant (chi-square of the offset over its standard deviations above `MIN_CHI2`, two degrees of
-freedom at 99 %). The accepted solution is then adjusted and judged again with that principal point (as a
-known principal point is, `mvgeo.align.solve.ideal_matches`, the focal still free); it is kept if the verdict
-accepts it.
+(DTU scan24 with sigma 25/255 noise: a standard deviation of 13-19 px, estimates 19-38 px from the truth that
+doubled the rotation error where kept). So it is estimated once the solution is accepted, by one Gauss-Newton
+step of the bundle adjustment with the principal point free (one for all views), and kept only where the data
+determine it (`determined`): its standard deviation is below `MAX_STD_DEG` of view angle and its offset from
+the centre is significant (chi-square of the offset over its standard deviations above `MIN_CHI2`, two
+degrees of freedom at 99 %). The accepted solution is then adjusted and judged again with that principal
+point (as a known principal point is, `mvgeo.align.solve.ideal_matches`, the focal still free); it is kept if
+the verdict accepts it.
 """
 
 from __future__ import annotations
@@ -35,8 +34,9 @@ from mvgeo.common.timing import StageTimer
 __all__ = ["MAX_STD_DEG", "MIN_CHI2", "PrincipalEstimate", "determined", "estimate_principal",
            "with_principal_point"]
 
-#: The principal point's standard deviation, as an angle (std / focal), must be below this (deg). Measured:
-#: the temple ring 0.07-0.13 deg; DTU scan24 clean 0.31-0.43 deg, with noise 0.8-1.2 deg.
+#: The principal point's standard deviation, as an angle (std / focal), must be below this (deg). Measured
+#: (docs/bench/principal_point.md): the temple ring 0.12-0.14 deg, llff_like 0.13; DTU scan24 clean 0.41-0.44
+#: deg, with noise 0.98-1.17 deg.
 MAX_STD_DEG = 0.25
 #: Chi-square of the offset from the centre (two degrees of freedom) above which it is significant: 99 %.
 MIN_CHI2 = 9.21

@@ -361,7 +361,7 @@ def test_principal_std_matches_dense_reference(rng):
 def test_a_ring_determines_the_principal_point_and_the_poses_follow(rng):
     """On a ring of views a principal point 17 px off the centre is recovered to within three of its standard
     deviations, and the rotations come out closer to the truth than with the centre assumed (the temple's case,
-    docs/bench/verdict_perturbed.md)."""
+    docs/bench/principal_point.md)."""
     X, poses, uv, f, c_true = _ring(rng)
     names = [str(k) for k in range(len(poses))]
     start = poses.copy()
