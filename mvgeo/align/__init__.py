@@ -28,7 +28,8 @@ Stages (`api.align_images` is the orchestrator), each a module with a typed resu
    cut off (every link contradicted) are first located by PnP on points the main group triangulates from
    guided matches (`locate`, `guided`).
 4. `policy`: which candidates are solved (focal re-estimation, re-posing views PnP places elsewhere
-   (`solve.relocate`), pruning of contradicted pairs, the second start) and the one rule that chooses.
+   (`solve.relocate`), pruning of contradicted pairs, the second start) and the one rule that chooses;
+   then `principal`: the accepted result's principal point, kept where the views determine it.
 5. `cloud`: depth maps recomputed by flow stereo with the final cameras (`dense_stereo`, `hole_fill`;
    optionally from other pixels of the same views, `align_images`' `cloud_images`), co-visibility pruning
    and thinning (`scene`). With `AlignConfig.candidate_align_iters` set, the candidates run fewer global
