@@ -20,12 +20,12 @@ from dataclasses import replace
 from pathlib import Path
 
 from _common import cli_option, md_table, write_fragment
-from bench_real import OURS, dtu_set, exif_focal_35mm_of, prepare, temple_set
-from diag_verdict_perturbed import _synthetic, _variant
+from bench_real import OURS, exif_focal_35mm_of
+from diag_verdict_perturbed import _variant, set_images
 
 import mvgeo.align.principal as principal
 from mvgeo.align.api import align_images
-from mvgeo.common.imageio import list_images, read_image
+from mvgeo.common.imageio import read_image
 from mvgeo.metrics import compare_poses
 
 
@@ -36,15 +36,11 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         for name in sets:
-            if name in ("object_ring", "llff_like"):
-                paths, gt, K = _synthetic(name, work)
-            else:
-                s = temple_set() if name == "temple" else dtu_set("cluster")
-                if s is None:
-                    print(f"{name}: ../shared/data missing, skipped")
-                    continue
-                folder = prepare(s, work / name, noisy=name == "dtu_noisy", seed=0)
-                paths, gt, K = [p for p in list_images(folder) if p.name in s.gt], s.gt, s.K
+            got = set_images(name, work)
+            if got is None:
+                print(f"{name}: ../shared/data missing, skipped")
+                continue
+            paths, gt, K = got
             h, w = read_image(paths[0]).shape[:2]
             true_off = f"{K[0, 2] - w / 2:+.1f}, {K[1, 2] - h / 2:+.1f}"
             for seed in dithers:

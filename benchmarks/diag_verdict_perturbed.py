@@ -44,6 +44,18 @@ def _synthetic(name: str, work: Path):
     return list_images(d / "images"), gt, K
 
 
+def set_images(name: str, work: Path) -> tuple[list[Path], dict[str, np.ndarray], np.ndarray] | None:
+    """(image files, {name: reference cam_from_world}, calibration K) of a set named as `--sets` names them
+    (written under `work`), or None where ../shared/data lacks it."""
+    if name in ("object_ring", "llff_like"):
+        return _synthetic(name, work)
+    s = temple_set() if name == "temple" else dtu_set("cluster")
+    if s is None:
+        return None
+    folder = prepare(s, work / name, noisy=name == "dtu_noisy", seed=0)
+    return [p for p in list_images(folder) if p.name in s.gt], s.gt, s.K
+
+
 def _variant(paths: list[Path], out: Path, mm: int | None, dither: str) -> list[Path]:
     """The images, dithered with seed `dither` (unless "none"), as 8-bit PNGs carrying EXIF focal `mm` (unless
     None)."""
@@ -93,15 +105,11 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         for name in sets:
-            if name in ("object_ring", "llff_like"):
-                paths, gt, K = _synthetic(name, work)
-            else:
-                s = temple_set() if name == "temple" else dtu_set("cluster")
-                if s is None:
-                    print(f"{name}: ../shared/data missing, skipped")
-                    continue
-                folder = prepare(s, work / name, noisy=name == "dtu_noisy", seed=0)
-                paths, gt, K = [p for p in list_images(folder) if p.name in s.gt], s.gt, s.K
+            got = set_images(name, work)
+            if got is None:
+                print(f"{name}: ../shared/data missing, skipped")
+                continue
+            paths, gt, K = got
             h, w = read_image(paths[0]).shape[:2]
             for scale in scales:
                 # scale 0: no EXIF (the pairs' focal consensus or COLMAP's prior)

@@ -135,6 +135,17 @@ def test_solve_lm_converges_from_perturbed_state_and_reports_focal_uncertainty(r
     assert log_focal_std(R1, t1, lf1, X1, pb, 1.0)[0] == pytest.approx(0.0, abs=1e-9)
 
 
+def _moved_poses(R, t, x):
+    """The poses moved by the first 6 (N - 1) entries of `x`: per view but view 0 (fixed), a left rotation
+    update then a translation step, as `solve_lm` applies them."""
+    R_, t_ = R.copy(), t.copy()
+    for v in range(1, len(R)):
+        d = x[6 * (v - 1):6 * v]
+        R_[v] = so3_exp(d[:3]) @ R[v]
+        t_[v] = t[v] + d[3:]
+    return R_, t_
+
+
 def _dense_log_focal_std_reference(R, t, logf, X, pb, sigma2):
     """Slow, obvious `log_focal_std`: the central-difference Jacobian of every residual with respect to every
     pose but view 0's (fixed), the focal and every point; the focal's entry of sigma2 (J^T J)^+ (the scale
@@ -144,11 +155,7 @@ def _dense_log_focal_std_reference(R, t, logf, X, pb, sigma2):
     eps = 1e-6
 
     def res(x):
-        R_, t_ = R.copy(), t.copy()
-        for v in range(1, n):
-            d = x[6 * (v - 1):6 * v]
-            R_[v] = so3_exp(d[:3]) @ R[v]
-            t_[v] = t[v] + d[3:]
+        R_, t_ = _moved_poses(R, t, x)
         k = 6 * (n - 1)
         return project(R_, t_, logf + x[k:k + 1], X + x[k + 1:].reshape(P, 3), pb)[0].ravel()
 
@@ -340,11 +347,7 @@ def test_principal_std_matches_dense_reference(rng):
     k = 6 * (n - 1)
 
     def res(x):
-        R_, t_ = R.copy(), t.copy()
-        for v in range(1, n):
-            d = x[6 * (v - 1):6 * v]
-            R_[v] = so3_exp(d[:3]) @ R[v]
-            t_[v] = t[v] + d[3:]
+        R_, t_ = _moved_poses(R, t, x)
         return project(R_, t_, logf + x[k:k + 1], Xs + x[k + 3:].reshape(P, 3),
                        pb.with_principal(c + x[k + 1:k + 3]))[0].ravel()
 
