@@ -254,13 +254,12 @@ def bundle_adjust(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tup
     first = _triangulated(cam_from_world, focal_px, c, n, tracks)
     res = _adjust(cam_from_world, focal_px, c, n, first, config)
     if config.readjust_min_gain > 0 and res.n_points >= 10:
-        again = _triangulated(res.cam_from_world, res.focal_px, c, n, tracks)
+        # the tracks as the adjusted poses (and, when refined, principal point) triangulate them
+        c2 = res.principal_px if config.refine_principal and res.principal_px is not None else c
+        again = _triangulated(res.cam_from_world, res.focal_px, c2, n, tracks)
         if len(again[3]) >= (1.0 + config.readjust_min_gain) * len(first[3]):
             _log.info("bundle adjustment again: %d tracks triangulate from the adjusted poses, %d from the start",
                       len(again[3]), len(first[3]))
-            c2 = res.principal_px if config.refine_principal and res.principal_px is not None else c
-            if c2 is not c:  # the tracks as the refined principal point triangulates them
-                again = _triangulated(res.cam_from_world, res.focal_px, c2, n, tracks)
             res2 = _adjust(res.cam_from_world, res.focal_px, c2, n, again, config)
             res = replace(res2, reproj_rms_before_px=res.reproj_rms_before_px,
                           reproj_median_before_px=res.reproj_median_before_px, readjusted=True)

@@ -217,8 +217,8 @@ def solve_lm_principal(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.nda
 
 def principal_step(R, t, logf, X, pb: LMProblem, huber_px: float) -> tuple[np.ndarray, np.ndarray]:
     """((2,) principal point, (2,) its standard deviation) one Gauss-Newton step from the given state with the
-    principal point free (`pb.optimize_principal`), points marginalised; the standard deviation as
-    `principal_std` at the given state.
+    principal point free (`pb.optimize_principal`), points marginalised, and its standard deviation at the
+    given state (Laplace approximation, residual variance from the residuals, as `log_focal_std`).
 
     From a solution converged with the principal point fixed, the step is the linearised joint optimum. On
     close views the cost is so flat along the principal point that LM with its damping creeps there (DTU
@@ -241,19 +241,11 @@ def principal_step(R, t, logf, X, pb: LMProblem, huber_px: float) -> tuple[np.nd
 
 def principal_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarray:
     """(2,) standard deviation (pixels) of the shared principal point, as `log_focal_std` (Laplace
-    approximation, points marginalised, residual variance from the residuals); zeros unless
-    `pb.optimize_principal`."""
+    approximation, points marginalised, residual variance from the residuals; `principal_step`'s); zeros
+    unless `pb.optimize_principal`."""
     if not pb.optimize_principal:
         return np.zeros(2)
-    n = len(R)
-    nf = len(logf) if pb.optimize_focal else 0
-    U, _, V, _, W, r = normal_equations(R, t, logf, X, pb, huber_px)
-    S = reduced_camera_system(U, V, W)[0]
-    dof = max(r.size - len(S) - 3 * len(X), 1)
-    sigma2 = float(np.sum(r * r)) / dof
-    cov = np.linalg.pinv(S, rcond=1e-12, hermitian=True) * sigma2
-    k = 6 * (n - 1) + nf
-    return np.sqrt(np.maximum(np.diag(cov)[k:k + 2], 0.0))
+    return principal_step(R, t, logf, X, pb, huber_px)[1]
 
 
 def log_focal_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarray:

@@ -170,6 +170,10 @@ class AlignConfig:
         if self.principal_point not in ("auto", "centre"):
             raise ConfigError(f"unknown value {self.principal_point!r}", key="principal_point",
                               expected="'auto' or 'centre'")
+        if self.bundle.refine_principal:  # its cameras, stereo and verdict would still assume the centre
+            raise ConfigError("the alignment's candidates keep the principal point fixed",
+                              key="bundle.refine_principal",
+                              fix="leave it False; principal_point='auto' estimates it for the accepted result")
         if self.downsample not in ("pixel", "voxel"):
             raise ConfigError(f"unknown value {self.downsample!r}", key="downsample",
                               expected="'pixel' or 'voxel'")

@@ -50,7 +50,6 @@ class PrincipalEstimate:
         principal_px: (2,) the estimate; offset_px: (2,) from the image centre; std_px: (2,) its standard
             deviation; focal_px: the focal adjusted with it.
         determined: whether the views determine it (`determined`); why: the figures that decided.
-        cam_from_world: (N, 3, 4) the poses it was estimated at (the next adjustment's start).
     """
 
     principal_px: np.ndarray
@@ -59,7 +58,6 @@ class PrincipalEstimate:
     focal_px: float
     determined: bool
     why: str
-    cam_from_world: np.ndarray
 
 
 def determined(offset_px: np.ndarray, std_px: np.ndarray, focal_px: float) -> tuple[bool, str]:
@@ -91,7 +89,7 @@ def estimate_principal(c: Candidate, config) -> PrincipalEstimate | None:
     f = float(np.median(b.focal_px))
     offset = principal - centre
     ok, why = determined(offset, std, f)
-    return PrincipalEstimate(principal, offset, std, f, ok, why, b.cam_from_world)
+    return PrincipalEstimate(principal, offset, std, f, ok, why)
 
 
 def _with_principal(inputs: AlignInputs, est: PrincipalEstimate) -> AlignInputs:
@@ -123,7 +121,7 @@ def with_principal_point(c: Candidate, config, timer: StageTimer) -> tuple[Candi
     if not est.determined:
         return c, record(False, "not determined: " + est.why)
     s = c.graph.grid_to_align
-    start = replace(c.result, cam_from_world=est.cam_from_world, focal_px=np.full(len(c.inputs), est.focal_px / s))
+    start = replace(c.result, focal_px=np.full(len(c.inputs), est.focal_px / s))  # its poses: the adjustment's
     new = adjust_and_judge(c.graph, c.start, start, c.align_config, config, timer,
                            inputs=_with_principal(c.inputs, est), pairs=c.pairs, dropped=c.dropped,
                            unregistered=c.unregistered[len(c.graph.unregistered):], relocated=c.relocated)

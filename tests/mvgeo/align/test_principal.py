@@ -78,6 +78,9 @@ def test_known_intrinsics_a_refused_solution_and_the_centre_setting_are_left_alo
     assert with_principal_point(accepted, AlignConfig(principal_point="centre"), StageTimer()) == (accepted, None)
     with pytest.raises(ConfigError, match="principal_point"):
         replace(AlignConfig(), principal_point="center")
+    # The candidates' adjustment keeps it fixed: their verdict, stereo and cameras assume the given one.
+    with pytest.raises(ConfigError, match="bundle.refine_principal"):
+        AlignConfig(bundle=BundleConfig(refine_principal=True))
 
 
 def test_a_kept_principal_point_reaches_the_cameras_and_the_cloud():
