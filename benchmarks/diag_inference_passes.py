@@ -6,8 +6,7 @@ argv[1]: the run folder (.../runs/llff_like/seed0/n2v_fused), argv[2]: the clean
 argv[3]: the run's preset (default "fast").
 
 Usage: .venv/bin/python benchmarks/diag_inference_passes.py RUN CLEAN_DIR [PRESET]"""
-import json  # noqa: I001  (eval.cli sets the thread policy before torch loads)
-import sys
+import sys  # noqa: I001  (eval.cli sets the thread policy before torch loads)
 import time
 from pathlib import Path
 
@@ -20,13 +19,14 @@ from denoise.self_supervised import denoise_with_method
 from eval.image_metrics import score_images
 from eval.pipeline import preset
 from eval.pipeline.stage_settings import n2v_config, stage_seed
+from eval.pipeline.summaries import SelectionFile
 from eval.pipeline.views import read_views
 
 run, clean_dir = Path(sys.argv[1]), Path(sys.argv[2])
 cfg = preset(sys.argv[3] if len(sys.argv) > 3 else "fast")
 noisy = read_views(run / "inputs")
 clean = read_views(clean_dir, list(noisy))
-sel = json.loads((run / "round2" / "selection.json").read_text())["names"]
+sel = SelectionFile.read(run / "round2" / "selection.json").names
 print(f"torch threads {torch.get_num_threads()}; {len(noisy)} round-1 views, {len(sel)} round-2 views")
 m1 = load_checkpoint(run / "round1" / "n2v_model.pt")
 m2 = load_checkpoint(run / "round2" / "n2v_model.pt")

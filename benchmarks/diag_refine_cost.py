@@ -22,12 +22,13 @@ import numpy as np
 from denoise.inference import denoise_images
 from denoise.model import load_checkpoint
 from denoise.round2 import Round2Config, refine_round2
+from eval.pipeline.summaries import SelectionFile
 from eval.pipeline.views import read_views
 
 
 def main(run: Path, clean_dir: Path) -> dict:
     record = json.loads((run / "round2" / "stages" / "refine.json").read_text())
-    names = json.loads((run / "round2" / "selection.json").read_text())["names"]
+    names = SelectionFile.read(run / "round2" / "selection.json").names
     noisy = list(read_views(run / "inputs", names).values())
     renders = list(read_views(run / "round1" / "renders", names).values())
     clean = list(read_views(clean_dir, names).values())

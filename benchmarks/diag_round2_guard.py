@@ -21,7 +21,7 @@ def main() -> None:
 
     from denoise.model import load_checkpoint
     from denoise.round2 import blind_spot_blocks, guard_decision, spread_cells
-    from eval.pipeline.summaries import RefineSummary
+    from eval.pipeline.summaries import RefineSummary, SelectionFile
     from eval.pipeline.views import read_views
 
     ap = argparse.ArgumentParser()
@@ -30,7 +30,7 @@ def main() -> None:
     ap.add_argument("--cells", type=int, default=5)
     args = ap.parse_args()
     for run in args.runs:
-        names = json.loads((run / "round2" / "selection.json").read_text())["names"]
+        names = SelectionFile.read(run / "round2" / "selection.json").names
         noisy = read_views(run / "inputs", names)
         ys = [torch.from_numpy(np.ascontiguousarray(v.transpose(2, 0, 1))) for v in noisy.values()]
         before_model = load_checkpoint(run / "round1" / "n2v_model.pt")

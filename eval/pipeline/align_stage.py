@@ -31,6 +31,7 @@ from eval.pipeline.calibration import (
 )
 from eval.pipeline.inputs import working_focal_prior
 from eval.pipeline.stage import StageContext
+from eval.pipeline.summaries import AlignSummary
 from eval.pipeline.views import view_files
 from mvgeo.align.stats import AlignStats
 from mvgeo.camera import Camera
@@ -78,13 +79,9 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     res.write(out)  # sparse/0/*.bin, points.ply, align.json
     np.savez(out / "points.npz", xyz=np.asarray(aligned.points_xyz, np.float64),
              rgb=np.asarray(aligned.points_rgb, np.uint8), conf=np.asarray(aligned.points_conf, np.float64))
-    summary = {"registered": len(aligned.sparse_model.images), "points": int(len(aligned.points_xyz)),
-               "stats": json.loads(json.dumps(res.align_json(), default=str))}
-    if res.decisions.geometry is not None:
-        summary["geometry"] = res.decisions.geometry.to_json()
-    if res.decisions.photos is not None:
-        summary["photos"] = res.decisions.photos.to_json()
-    return summary
+    return AlignSummary(registered=len(aligned.sparse_model.images), points=int(len(aligned.points_xyz)),
+                        stats=json.loads(json.dumps(res.align_json(), default=str)),
+                        geometry=res.decisions.geometry, photos=res.decisions.photos).to_json()
 
 
 def working_camera(intrinsics: Path, image: Path) -> Camera:

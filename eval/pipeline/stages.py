@@ -26,7 +26,6 @@ gathers them all.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -42,6 +41,7 @@ from eval.pipeline.summaries import (
     DenoiseSummary,
     NoisyDetailRecord,
     RefineSummary,
+    SelectionFile,
     SelectSummary,
     SplatSummary,
     history_ends,
@@ -191,18 +191,18 @@ def select(ctx: StageContext) -> Mapping[str, object]:
     sparse = read_sparse_model(ctx.inputs["sparse"] / "0")
     stems = [n.rsplit(".", 1)[0] for n in sparse.names]
     if not s.select_views or len(stems) <= s.views:
-        selection = {"names": stems, "method": "all" if not s.select_views else "all (N <= K)"}
+        selection = SelectionFile(stems, "all" if not s.select_views else "all (N <= K)")
     else:
         from denoise.view_selection import select_views
 
         images = read_views(ctx.inputs["images"], stems)
         cfw = {stem: sparse.image(n).cam_from_world for stem, n in zip(stems, sparse.names, strict=True)}
         sel = select_views(cfw, images, s.views, seed=ctx.seed)
-        selection = {"names": list(sel.names), "method": "kmeans+laplacian",
-                     "cluster_of": {k: int(v) for k, v in dict(sel.cluster_of).items()},
-                     "laplacian_var": {k: float(v) for k, v in dict(sel.laplacian_var).items()}}
-    (ctx.work_dir / "selection.json").write_text(json.dumps(selection, indent=2) + "\n")
-    return SelectSummary(selected=list(selection["names"]), method=selection["method"]).to_json()
+        selection = SelectionFile(list(sel.names), "kmeans+laplacian",
+                                  cluster_of={k: int(v) for k, v in dict(sel.cluster_of).items()},
+                                  laplacian_var={k: float(v) for k, v in dict(sel.laplacian_var).items()})
+    selection.write(ctx.work_dir / "selection.json")
+    return SelectSummary(selected=list(selection.names), method=selection.method).to_json()
 
 
 def refine(ctx: StageContext) -> Mapping[str, object]:
@@ -217,7 +217,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     from denoise.round2 import refine_round2
 
     s = ctx.settings
-    names = json.loads((ctx.inputs["selection"]).read_text())["names"]
+    names = SelectionFile.read(ctx.inputs["selection"]).names
     noisy = read_views(ctx.inputs["noisy"], names)
     renders = read_views(ctx.inputs["renders"], names)
     model = load_checkpoint(ctx.inputs["model"], device=s.device)

@@ -30,8 +30,10 @@ torch nor the component packages' network code: report writing reads it.
 from __future__ import annotations
 
 import dataclasses
+import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from denoise.detail import NoisyDetail  # numpy and cv2 only
@@ -43,7 +45,7 @@ if TYPE_CHECKING:
 
 __all__ = ["AlignSummary", "DenoiseSummary", "ExportSummary", "FuseSummary", "HistoryEnds",
            "InputsSummary", "NoisyDetailRecord", "PhotoNoise", "RecordedGeometryChoice", "RefineSummary",
-           "SelectSummary", "SplatSummary", "WorkingSize", "history_ends"]
+           "SelectSummary", "SelectionFile", "SplatSummary", "WorkingSize", "history_ends"]
 
 
 def _opt[T](data: Mapping[str, Any], key: str, parse: Callable[[Any], T]) -> T | None:
@@ -485,6 +487,41 @@ class SelectSummary:
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> SelectSummary:
         return cls(_str_list(data.get("selected", [])), _opt(data, "method", str))
+
+
+@dataclass(frozen=True)
+class SelectionFile:
+    """selection.json, the select stage's output that the refine stage reads (`eval.pipeline.stages.select`).
+
+    Attributes:
+        names: the views kept for the round, in order (file stems).
+        method: "kmeans+laplacian", "all" (selection off) or "all (N <= K)".
+        cluster_of: with "kmeans+laplacian", view -> its pose cluster.
+        laplacian_var: with "kmeans+laplacian", view -> the variance of its Laplacian (the sharpness kept).
+    """
+
+    names: list[str]
+    method: str
+    cluster_of: dict[str, int] | None = None
+    laplacian_var: dict[str, float] | None = None
+
+    def to_json(self) -> dict[str, object]:
+        return _without_none({"names": list(self.names), "method": self.method,
+                              "cluster_of": None if self.cluster_of is None else dict(self.cluster_of),
+                              "laplacian_var": None if self.laplacian_var is None else dict(self.laplacian_var)})
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> SelectionFile:
+        return cls(_str_list(data.get("names", [])), str(data.get("method", "")),
+                   _opt(data, "cluster_of", lambda d: {str(k): int(v) for k, v in d.items()}),
+                   _opt(data, "laplacian_var", _float_map))
+
+    def write(self, path: Path) -> None:
+        path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
+
+    @classmethod
+    def read(cls, path: Path) -> SelectionFile:
+        return cls.from_json(json.loads(Path(path).read_text()))
 
 
 @dataclass(frozen=True)

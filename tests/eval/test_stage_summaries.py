@@ -21,6 +21,7 @@ from eval.pipeline.summaries import (
     PhotoNoise,
     RecordedGeometryChoice,
     RefineSummary,
+    SelectionFile,
     SelectSummary,
     SplatSummary,
     WorkingSize,
@@ -88,6 +89,9 @@ SPLAT = [
      "timings_s": {"optimize": 1.0}},
 ]
 SELECT = [{"selected": ["a", "c"], "method": "kmeans+laplacian"}, {"selected": ["a", "b"], "method": "all (N <= K)"}]
+SELECTION_FILE = [{"names": ["a", "c"], "method": "kmeans+laplacian", "cluster_of": {"a": 0, "b": 1, "c": 1},
+                   "laplacian_var": {"a": 0.002, "b": 0.001, "c": 0.003}},
+                  {"names": ["a", "b"], "method": "all"}]
 INPUTS = [
     {"max_size": 512, "sizes": {"a": {"input": [1024, 768], "working": [512, 384], "focal_35mm": 28.0},
                                 "b": {"input": [768, 1024], "working": [512, 384], "focal_35mm": None, "turned": 1}},
@@ -99,6 +103,7 @@ EXPORT = {"num_gaussians": 1234, "splat_bytes": 39488, "working_size": ["512x384
 CASES = ([(DenoiseSummary, s) for s in (DENOISE, DENOISE_PLAIN, *CLASSICAL_DENOISE)] + [(RefineSummary, REFINE)]
          + [(AlignSummary, s) for s in ALIGN] + [(FuseSummary, s) for s in FUSE]
          + [(SplatSummary, s) for s in SPLAT] + [(SelectSummary, s) for s in SELECT]
+         + [(SelectionFile, s) for s in SELECTION_FILE]
          + [(InputsSummary, s) for s in INPUTS] + [(ExportSummary, EXPORT)])
 
 
@@ -135,6 +140,9 @@ def test_the_readers_fields_hold_what_the_summaries_record():
     sizes = InputsSummary.from_json(INPUTS[0]).sizes
     assert sizes["b"] == WorkingSize((768, 1024), (512, 384), None, turned=1) and sizes["a"].focal_35mm == 28.0
     assert SelectSummary.from_json(SELECT[0]).selected == ["a", "c"]
+    chosen = SelectionFile.from_json(SELECTION_FILE[0])
+    assert chosen.names == ["a", "c"] and chosen.cluster_of["c"] == 1 and chosen.laplacian_var["b"] == 0.001
+    assert SelectionFile.from_json(SELECTION_FILE[1]).cluster_of is None
     assert ExportSummary.from_json(EXPORT).num_gaussians == 1234
 
 
