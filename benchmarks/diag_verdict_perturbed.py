@@ -4,7 +4,10 @@ rounding would change) and with starting focals off by a percent or two (the EXI
 millimetres: 74 mm carries +-0.7 %): every accepted result's rotation errors, every refusal's kind.
 
 Usage: .venv/bin/python benchmarks/diag_verdict_perturbed.py [--sets=object_ring,llff_like,temple,dtu,dtu_noisy]
-[--dither=none,0,1,2] [--focal-scales=1.0] [--methods=ours,global] [--out=NAME]
+[--dither=none,0,1,2] [--focal-scales=1.0] [--methods=ours,global] [--rotation-p=P,...] [--out=NAME]
+
+`--rotation-p` runs `ours` once per value of `AlignConfig.pair_rotation_p` (method `ours p=P`; default: the
+configuration's own).
 
 `global` runs pycolmap's global mapper (GLOMAP; `bench_real.run_pycolmap`, reading the same EXIF focal) on the
 same files. The issue's contract: a result or a named refusal, never a view more than 5 deg off. Columns: set,
@@ -21,6 +24,7 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -46,13 +50,23 @@ def _synthetic(name: str, work: Path):
 
 def set_images(name: str, work: Path) -> tuple[list[Path], dict[str, np.ndarray], np.ndarray] | None:
     """(image files, {name: reference cam_from_world}, calibration K) of a set named as `--sets` names them
-    (written under `work`), or None where ../shared/data lacks it."""
+    (written under `work`), or None where ../shared/data lacks it. `dtu_noisy:S` is `dtu_noisy` with noise seed
+    S; `dtu_s50:S` the DTU images with sigma 50/255 added, noise seed S."""
     if name in ("object_ring", "llff_like"):
         return _synthetic(name, work)
     s = temple_set() if name == "temple" else dtu_set("cluster")
     if s is None:
         return None
-    folder = prepare(s, work / name, noisy=name == "dtu_noisy", seed=0)
+    kind, _, seed = name.partition(":")
+    if kind == "dtu_s50":
+        folder = work / name.replace(":", "_")
+        folder.mkdir(parents=True)
+        rng = np.random.default_rng(int(seed or 0))
+        for f in s.files:
+            img = np.round(read_image(f) * 255.0) / 255.0
+            write_image(folder / f.name, np.clip(img + rng.normal(0.0, 50.0 / 255.0, img.shape), 0.0, 1.0))
+    else:
+        folder = prepare(s, work / name.replace(":", "_"), noisy=kind == "dtu_noisy", seed=int(seed or 0))
     return [p for p in list_images(folder) if p.name in s.gt], s.gt, s.K
 
 
@@ -79,6 +93,21 @@ def _variant(paths: list[Path], out: Path, mm: int | None, dither: str) -> list[
     return res
 
 
+def _ours_row(name, label, seed, scale, tagged, gt, config) -> list:
+    t = time.perf_counter()
+    try:
+        res = align_images(tagged, config)
+    except AlignmentRefusedError as exc:
+        return [name, label, seed, scale, f"refused: {exc.kind}", "0/12", "", "", time.perf_counter() - t]
+    except DegenerateGeometryError as exc:
+        why = f"failed: {type(exc).__name__}: {str(exc)[:80]}"
+        return [name, label, seed, scale, why, "0/12", "", "", time.perf_counter() - t]
+    m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)
+    rot = m.rotation_deg
+    return [name, label, seed, scale, "accepted", f"{m.n_registered}/{m.n_ref}", m.median_rotation_deg,
+            float(rot.max()) if rot.size else float("nan"), time.perf_counter() - t]
+
+
 def _summary(rows: list[list]) -> str:
     """Per set and method: runs, results returned, views registered (mean), median of the returned results'
     median rotation errors, the largest max, and how many returned a pair more than 5 deg off."""
@@ -101,6 +130,9 @@ def main() -> int:
     dithers = cli_option("dither", "none,0,1,2").split(",")
     scales = [float(s) for s in cli_option("focal-scales", "1.0").split(",")]
     methods = cli_option("methods", "ours").split(",")
+    ps = cli_option("rotation-p", "")
+    variants = ([("ours", OURS)] if not ps else
+                [(f"ours p={p}", replace(OURS, pair_rotation_p=float(p))) for p in ps.split(",")])
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -123,22 +155,9 @@ def main() -> int:
                         print(" | ".join(str(x) for x in rows[-1]), flush=True)
                     if "ours" not in methods:
                         continue
-                    t = time.perf_counter()
-                    try:
-                        res = align_images(tagged, OURS)
-                    except AlignmentRefusedError as exc:
-                        rows.append([name, "ours", seed, scale, f"refused: {exc.kind}", "0/12", "", "",
-                                     time.perf_counter() - t])
-                    except DegenerateGeometryError as exc:
-                        why = f"failed: {type(exc).__name__}: {str(exc)[:80]}"
-                        rows.append([name, "ours", seed, scale, why, "0/12", "", "", time.perf_counter() - t])
-                    else:
-                        m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)
-                        rot = m.rotation_deg
-                        rows.append([name, "ours", seed, scale, "accepted", f"{m.n_registered}/{m.n_ref}",
-                                     m.median_rotation_deg, float(rot.max()) if rot.size else float("nan"),
-                                     time.perf_counter() - t])
-                    print(" | ".join(str(x) for x in rows[-1]), flush=True)
+                    for label, config in variants:
+                        rows.append(_ours_row(name, label, seed, scale, tagged, gt, config))
+                        print(" | ".join(str(x) for x in rows[-1]), flush=True)
     table = md_table(["set", "method", "dither seed", "focal scale", "verdict", "registered", "rot med (deg)",
                       "rot max (deg)", "s"], rows)
     table += "\n\n" + _summary(rows)
