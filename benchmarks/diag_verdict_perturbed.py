@@ -4,10 +4,7 @@ rounding would change) and with starting focals off by a percent or two (the EXI
 millimetres: 74 mm carries +-0.7 %): every accepted result's rotation errors, every refusal's kind.
 
 Usage: .venv/bin/python benchmarks/diag_verdict_perturbed.py [--sets=object_ring,llff_like,temple,dtu,dtu_noisy]
-[--dither=none,0,1,2] [--focal-scales=1.0] [--methods=ours,global] [--rotation-p=P,...] [--out=NAME]
-
-`--rotation-p` runs `ours` once per value of `AlignConfig.pair_rotation_p` (method `ours p=P`; default: the
-configuration's own).
+[--dither=none,0,1,2] [--focal-scales=1.0] [--methods=ours,global] [--out=NAME]
 
 `global` runs pycolmap's global mapper (GLOMAP; `bench_real.run_pycolmap`, reading the same EXIF focal) on the
 same files. The issue's contract: a result or a named refusal, never a view more than 5 deg off. Columns: set,
@@ -24,7 +21,6 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -130,9 +126,7 @@ def main() -> int:
     dithers = cli_option("dither", "none,0,1,2").split(",")
     scales = [float(s) for s in cli_option("focal-scales", "1.0").split(",")]
     methods = cli_option("methods", "ours").split(",")
-    ps = cli_option("rotation-p", "")
-    variants = ([("ours", OURS)] if not ps else
-                [(f"ours p={p}", replace(OURS, pair_rotation_p=float(p))) for p in ps.split(",")])
+    variants = [("ours", OURS)]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)

@@ -65,8 +65,6 @@ __all__ = [
     "FocalEstimate",
     "estimate_relative_pose",
     "estimate_relative_pose_uncalibrated",
-    "refine_relative_pose",
-    "sampson_residuals",
     "estimate_fundamental",
     "focal_from_fundamental",
     "pose_from_essential",
@@ -354,31 +352,6 @@ def _refine(u1, u2, K1, K2, R0, t0, noise_floor_px: float, *, log_f0: float | No
         if np.linalg.cond(JtJ) > 1e14:
             rel_std = np.inf
     return R, t, (None if lf is None else float(np.exp(lf))), rel_std
-
-
-def refine_relative_pose(uv1_px: np.ndarray, uv2_px: np.ndarray, K1: np.ndarray, K2: np.ndarray, R0: np.ndarray,
-                         t0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """cam2_from_cam1 (R (3, 3), unit t (3,)) minimising the matches' squared Sampson distances (pixels), by LM
-    from (R0, t0) with the cameras fixed; the same solver `estimate_relative_pose` finishes with.
-
-    Args:
-        uv1_px, uv2_px: (M, 2) matched pixels, M >= 5; K1, K2: (3, 3) calibrations; R0, t0: the start.
-    """
-    u1, u2 = _check_matches(uv1_px, uv2_px)
-    t0 = np.asarray(t0, np.float64)
-    R, t, _, _ = _refine(u1, u2, np.asarray(K1, np.float64), np.asarray(K2, np.float64),
-                         np.asarray(R0, np.float64), t0 / np.linalg.norm(t0), 0.0)
-    return R, t
-
-
-def sampson_residuals(uv1_px: np.ndarray, uv2_px: np.ndarray, K1: np.ndarray, K2: np.ndarray, R: np.ndarray,
-                      t: np.ndarray) -> np.ndarray:
-    """(M,) signed Sampson distances (pixels) of the matches under cam2_from_cam1 (R, t) (t's norm ignored)."""
-    u1, u2 = _check_matches(uv1_px, uv2_px)
-    t = np.asarray(t, np.float64)
-    prob = _SampsonProblem(u1, u2, np.asarray(K1, np.float64), np.asarray(K2, np.float64),
-                           np.asarray(R, np.float64), t / np.linalg.norm(t), None, None)
-    return prob.residuals(np.zeros(5))
 
 
 def _finish(u1, u2, K1, K2, E, ransac_inliers, iterations, config, *, extra=None) -> RelativePoseResult:

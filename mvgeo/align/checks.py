@@ -21,17 +21,13 @@ from mvgeo.epipolar import essential_from_pose, fundamental_from_essential, samp
 
 @dataclass(frozen=True)
 class PairCheck:
-    """How well the final geometry explains one pair's verified matches: `explained_fraction` of them within
-    the Sampson threshold, the result's relative rotation `rotation_deviation_deg` from the one they imply, and
-    `own_pose_p`, where measured (`own_pose_preference`), how likely matches explained by the result's relative
-    pose would prefer another pose as much as these prefer their own (small: they contradict the result)."""
+    """How well the final geometry explains one pair's verified matches."""
 
     i: int
     j: int
     n_matches: int
     explained_fraction: float
     rotation_deviation_deg: float = float("nan")
-    own_pose_p: float = float("nan")
 
 
 def pair_consistency(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int],
@@ -162,85 +158,3 @@ def views_cut_off(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views
             matches[root(c.i)] += c.n_matches
     main = max(groups, key=lambda g: (len(groups[g]), matches[g], -min(groups[g])))
     return sorted(v for g, vs in groups.items() if g != main for v in vs)
-
-
-#: `own_pose_preference`'s residuals are truncated here (pixels; `AlignConfig.consistency_px`'s default): a
-#: match the result's geometry leaves farther out costs no more than this, as in the Sampson check.
-PREFERENCE_TRUNCATION_PX = 2.0
-#: ... and their noise is taken to be at least this (pixels): on a dozen matches a fitted pose can leave
-#: residuals far under a feature detector's localisation error (0.3-0.5 px on the shared real sets).
-PREFERENCE_NOISE_FLOOR_PX = 0.25
-
-
-def own_pose_preference(uv: np.ndarray, K_i: np.ndarray, K_j: np.ndarray, R_res: np.ndarray, t_res: np.ndarray,
-                        *, truncation_px: float = PREFERENCE_TRUNCATION_PX,
-                        noise_floor_px: float = PREFERENCE_NOISE_FLOOR_PX) -> float:
-    """How likely a pair's matches, explained by the result's relative pose, would prefer another pose as much
-    as they prefer their own best one: the p-value of an F-test of the result's pose (no free parameter) against
-    the pair's own (5: rotation and translation direction) on the matches' truncated squared Sampson distances.
-
-    The rotation check (`pair_rotation_deviation`) compares the result with the rotation one linear essential
-    matrix draws from the matches. On a weak pair (a few dozen matches, a narrow overlap) rotation and depth
-    relief trade off (the bas-relief ambiguity), and that rotation can be tens of degrees from the truth while
-    the matches fit the true pose almost as well. Measured on the synthetic orbit `object_ring` (12 views, 30 deg
-    steps): the right solution (every view within 0.6 deg) failed the rotation check on six pairs 13-103 deg
-    from their linear rotations, whose matches preferred their own poses at p = 1e-4..0.03, while the pairs a
-    wrong solution failed gave p < 1e-6.
-
-    Args:
-        uv: (M, 4) the pair's inlier matches (u_i, v_i, u_j, v_j), pixels; M > 5.
-        K_i, K_j: (3, 3) the result's calibrations of the two views.
-        R_res, t_res: cam_j_from_cam_i of the result (t's norm ignored; nonzero).
-
-    Returns:
-        The p-value; 1.0 where no pose fits the matches better than the result's.
-    """
-    from scipy.stats import f as f_dist
-
-    from mvgeo.align.loops import pose_from_matches
-    from mvgeo.twoview import refine_relative_pose, sampson_residuals
-
-    uv = np.asarray(uv, np.float64)
-    n = len(uv)
-    if n <= 5:
-        raise ValueError(f"own_pose_preference needs more than 5 matches, got {n}")
-    tau2 = truncation_px**2
-
-    def cost(R, t) -> float:
-        return float(np.minimum(sampson_residuals(uv[:, :2], uv[:, 2:], K_i, K_j, R, t) ** 2, tau2).sum())
-
-    at_result = cost(R_res, t_res)
-    best = at_result
-    starts = [(R_res, t_res)]
-    own = pose_from_matches(uv, K_i, K_j)
-    if own is not None:
-        starts.append(own)
-    for R0, t0 in starts:
-        try:
-            R1, t1 = refine_relative_pose(uv[:, :2], uv[:, 2:], K_i, K_j, R0, t0)
-        except (np.linalg.LinAlgError, ValueError):
-            continue
-        best = min(best, cost(R1, t1))
-    dof = n - 5
-    sigma2 = max(best / dof, noise_floor_px**2)
-    stat = (at_result - best) / 5.0 / sigma2
-    return float(f_dist.sf(stat, 5, dof)) if stat > 0 else 1.0
-
-
-def own_pose_preferences(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int],
-                         matches: Sequence[tuple[int, int, np.ndarray]]) -> list[float]:
-    """`own_pose_preference` of each pair (nan with 5 matches or fewer), principal point at the centre."""
-    W, H = size_wh
-    out = []
-    for i, j, uv in matches:
-        Ri, ti = cam_from_world[i][:, :3], cam_from_world[i][:, 3]
-        Rj, tj = cam_from_world[j][:, :3], cam_from_world[j][:, 3]
-        R = Rj @ Ri.T
-        t = tj - R @ ti
-        if len(uv) <= 5 or not np.linalg.norm(t) > 0:
-            out.append(float("nan"))
-            continue
-        Ki = np.array([[focal_px[i], 0, W / 2.0], [0, focal_px[i], H / 2.0], [0, 0, 1]])
-        Kj = np.array([[focal_px[j], 0, W / 2.0], [0, focal_px[j], H / 2.0], [0, 0, 1]])
-        out.append(own_pose_preference(uv, Ki, Kj, R, t))
-    return out

@@ -52,9 +52,6 @@ class AlignConfig:
         max_pair_rotation_deg: a pair whose relative rotation in the result is more than this off the
             one its inlier matches imply is inconsistent too (0: off). Catches wrong rotations of pairs
             whose epipolar geometry is nearly ambiguous (narrow field of view, few matches).
-        pair_rotation_p: with this > 0, a pair turned more than `max_pair_rotation_deg` counts only where its
-            matches also prefer their own relative pose over the result's at this significance (an F-test,
-            `mvgeo.align.checks.own_pose_preference`); 0: every such pair counts.
         max_focal_log_std: without known intrinsics, without any pair that determines the focal and without a
             focal prior (EXIF) the adjustment keeps within `refocus_min_change`, the bundle adjustment must
             determine it: a log-focal standard deviation above this (0.05) fails the alignment.
@@ -144,12 +141,10 @@ class AlignConfig:
     min_pair_explained: float = 0.5
     max_unexplained_fraction: float = 0.1
     max_pair_rotation_deg: float = DEFAULT_MAX_LOOP_DEG
-    pair_rotation_p: float = 0.0
     max_focal_log_std: float = 0.05
     max_centre_std_ratio: float = 1.0
     reject_unsupported_views: bool = True
     locate_cut_off_views: bool = True
-    locate_turned_pair_views: bool = False
     points_budget: int = 200_000
     downsample: str = "pixel"
     covisibility_rel_tol: float = 0.03

@@ -340,13 +340,10 @@ def adjust_and_judge(graph: PairGraph, start: str, res: GlobalAlignResult, align
                 feats[i] = f if inputs.K_align is None else _IdealKeypoints(
                     ideal_pixels(f.uv_px, inputs.K_align[i], inputs.align_wh), f)
     checks, bad = judge_pairs(res.cam_from_world, res.focal_px * s, inputs.align_wh, evidence, threshold_px=thr,
-                              min_explained=config.min_pair_explained, max_rotation_deg=config.max_pair_rotation_deg,
-                              rotation_p=config.pair_rotation_p)
+                              min_explained=config.min_pair_explained, max_rotation_deg=config.max_pair_rotation_deg)
     located: list[Located] = []
     if ba is not None and feats is not None and config.reject_unsupported_views and config.locate_cut_off_views:
-        cut = sorted(set(views_cut_off(checks, bad, n)) | set(views_hinged(checks, bad, n))
-                     | (turned_pair_views(bad, config.min_pair_explained) if config.locate_turned_pair_views
-                        else set()))
+        cut = sorted(set(views_cut_off(checks, bad, n)) | set(views_hinged(checks, bad, n)))
         if cut:
             with timer.stage("locate"):
                 located = locate_cut_off(res.cam_from_world, res.focal_px * s, inputs.align_wh, feats, checks, bad,
@@ -370,12 +367,6 @@ def adjust_and_judge(graph: PairGraph, start: str, res: GlobalAlignResult, align
                      focal_prior_used=prior is not None, located_views=[x.view for x in located if x.ok])
     return Candidate(start, graph, inputs, pairs, res, ba, rescale, align_cfg, checks, bad, list(dropped or []),
                      list(graph.unregistered) + list(unregistered or []), judged, located, list(relocated))
-
-
-def turned_pair_views(bad: Sequence[PairCheck], min_explained: float) -> set[int]:
-    """The views of the failing pairs whose matches the result explains but whose relative rotation it turns
-    away from the one they imply (the rotation check alone failed them)."""
-    return {v for c in bad if c.explained_fraction >= min_explained for v in (c.i, c.j)}
 
 
 def prior_confirmed(prior_px: float | None, pairs_focal_px: float | None, adjusted_focal_px: float,

@@ -28,14 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mvgeo.align.bundle import BundleResult
-from mvgeo.align.checks import (
-    PairCheck,
-    own_pose_preferences,
-    pair_consistency,
-    pair_rotation_deviation,
-    views_cut_off,
-    views_hinged,
-)
+from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_cut_off, views_hinged
 from mvgeo.common.errors import AlignmentRefusedError
 
 __all__ = ["Reason", "Verdict", "centre_std_ratio", "contradicting", "judge_pairs", "loose_views", "mostly_unexplained",
@@ -73,14 +66,11 @@ class Verdict:
 
 def judge_pairs(cam_from_world: np.ndarray, focal_align_px: np.ndarray, size_wh: tuple[int, int],
                 matches: Sequence[tuple[int, int, np.ndarray]], *, threshold_px: float, min_explained: float,
-                max_rotation_deg: float, rotation_p: float = 0.0) -> tuple[list[PairCheck], list[PairCheck]]:
+                max_rotation_deg: float) -> tuple[list[PairCheck], list[PairCheck]]:
     """Per pair, the Sampson check and the rotation check (`pair_rotation_deviation`); (checks, failing ones).
 
     A pair fails when it explains less than `min_explained` of its matches, or when the solution's relative
-    rotation is more than `max_rotation_deg` (0: off) off the one its matches imply under the final focal and,
-    with `rotation_p` > 0, its matches also prefer their own pose over the solution's at that significance
-    (`own_pose_preference`, measured for those pairs only): a weak pair whose matches fit the solution about as
-    well as the rotation they drew is ambiguous, not a contradiction.
+    rotation is more than `max_rotation_deg` (0: off) off the one its matches imply under the final focal.
     """
     if not matches:
         return [], []
@@ -88,15 +78,8 @@ def judge_pairs(cam_from_world: np.ndarray, focal_align_px: np.ndarray, size_wh:
     if max_rotation_deg > 0:
         dev = pair_rotation_deviation(cam_from_world, focal_align_px, size_wh, matches)
         checks = [replace(c, rotation_deviation_deg=d) for c, d in zip(checks, dev, strict=True)]
-        if rotation_p > 0:
-            turned = [k for k, c in enumerate(checks)
-                      if c.explained_fraction >= min_explained and c.rotation_deviation_deg > max_rotation_deg]
-            p = own_pose_preferences(cam_from_world, focal_align_px, size_wh, [matches[k] for k in turned])
-            for k, pk in zip(turned, p, strict=True):
-                checks[k] = replace(checks[k], own_pose_p=pk)
     bad = [c for c in checks if c.explained_fraction < min_explained
-           or (max_rotation_deg > 0 and c.rotation_deviation_deg > max_rotation_deg
-               and not (rotation_p > 0 and c.own_pose_p >= rotation_p))]
+           or (max_rotation_deg > 0 and c.rotation_deviation_deg > max_rotation_deg)]
     return checks, bad
 
 
