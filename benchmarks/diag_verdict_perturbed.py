@@ -28,7 +28,7 @@ from _common import cli_option, md_table, write_fragment
 from bench_real import OURS, dtu_set, exif_focal_35mm_of, prepare, run_pycolmap, temple_set
 
 from mvgeo.align.api import align_images
-from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError
+from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, DisconnectedViewsError
 from mvgeo.common.imageio import list_images, read_image, write_image
 from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
@@ -95,7 +95,7 @@ def _ours_row(name, label, seed, scale, tagged, gt, config) -> list:
         res = align_images(tagged, config)
     except AlignmentRefusedError as exc:
         return [name, label, seed, scale, f"refused: {exc.kind}", "0/12", "", "", time.perf_counter() - t]
-    except DegenerateGeometryError as exc:
+    except (DegenerateGeometryError, DisconnectedViewsError) as exc:
         why = f"failed: {type(exc).__name__}: {str(exc)[:80]}"
         return [name, label, seed, scale, why, "0/12", "", "", time.perf_counter() - t]
     m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)

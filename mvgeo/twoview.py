@@ -65,6 +65,7 @@ __all__ = [
     "FocalEstimate",
     "estimate_relative_pose",
     "estimate_relative_pose_uncalibrated",
+    "relative_rotation_std_deg",
     "estimate_fundamental",
     "focal_from_fundamental",
     "pose_from_essential",
@@ -352,6 +353,31 @@ def _refine(u1, u2, K1, K2, R0, t0, noise_floor_px: float, *, log_f0: float | No
         if np.linalg.cond(JtJ) > 1e14:
             rel_std = np.inf
     return R, t, (None if lf is None else float(np.exp(lf))), rel_std
+
+
+def relative_rotation_std_deg(uv1_px: np.ndarray, uv2_px: np.ndarray, K1: np.ndarray, K2: np.ndarray, R: np.ndarray,
+                              t: np.ndarray, *, inlier_px: float = 2.0, noise_floor_px: float = 0.25) -> float:
+    """How well a pair's matches pin its relative rotation at the pose (R, t) (cam2_from_cam1; t's norm ignored):
+    the largest standard deviation (deg) of the rotation, from the Gauss-Newton covariance of the five-parameter
+    relative pose on the matches' Sampson distances (pixels) within `inlier_px`, their noise taken as their RMS
+    but at least `noise_floor_px`. A linearisation: along a bas-relief valley (narrow field of view, few matches)
+    the true uncertainty is larger still. inf with fewer than 6 such matches or a singular system."""
+    u1, u2 = _check_matches(uv1_px, uv2_px)
+    t = np.asarray(t, np.float64)
+    prob = _SampsonProblem(u1, u2, np.asarray(K1, np.float64), np.asarray(K2, np.float64), np.asarray(R, np.float64),
+                           t / np.linalg.norm(t), None, None)
+    p0 = np.zeros(5)
+    r = prob.residuals(p0)
+    keep = np.abs(r) < inlier_px
+    if keep.sum() < 6:
+        return float("inf")
+    r, J = r[keep], prob.jacobian(p0)[keep]
+    sigma2 = max(float(r @ r) / (len(r) - 5), noise_floor_px**2)
+    JtJ = J.T @ J
+    if not np.all(np.isfinite(JtJ)) or np.linalg.cond(JtJ) > 1e14:
+        return float("inf")
+    cov = np.linalg.inv(JtJ)[:3, :3] * sigma2
+    return float(np.degrees(np.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0))))
 
 
 def _finish(u1, u2, K1, K2, E, ransac_inliers, iterations, config, *, extra=None) -> RelativePoseResult:

@@ -55,7 +55,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from mvgeo.align.checks import views_hinged
+from mvgeo.align.checks import unconfirmed_hinged
 from mvgeo.align.graph import components
 from mvgeo.align.init import chain_contradicted_fraction, choose_start, other_start, pair_relative_rotations
 from mvgeo.align.inputs import AlignInputs
@@ -110,8 +110,8 @@ def _pruned(c: Candidate, config, timer: StageTimer) -> Candidate | None:
     loose = set(loose_views(c.ba, config.max_centre_std_ratio)) if config.allow_partial else set()
     unsupported: set[int] = set()
     if config.allow_partial and config.reject_unsupported_views:  # views held by one pair PnP does not confirm
-        confirmed = {x.view for x in c.located if x.ok}
-        unsupported = set(views_hinged(c.checks, c.bad, len(c.inputs))) - confirmed - loose
+        unsupported = set(unconfirmed_hinged(c.checks, c.bad, len(c.inputs), [x.view for x in c.located if x.ok],
+                                             [x.view for x in c.located if x.placed_elsewhere])) - loose
         loose |= unsupported
     if not gone and not loose:
         return None

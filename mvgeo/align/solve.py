@@ -364,7 +364,8 @@ def adjust_and_judge(graph: PairGraph, start: str, res: GlobalAlignResult, align
     judged = verdict(checks, bad, inputs.names, ba=ba,
                      focal_determined=pairs.focal_determined or inputs.intrinsics is not None or prior_kept,
                      focal_undetermined_why=pairs.focal_undetermined_why, config=config,
-                     focal_prior_used=prior is not None, located_views=[x.view for x in located if x.ok])
+                     focal_prior_used=prior is not None, located_views=[x.view for x in located if x.ok],
+                     misplaced_views=[x.view for x in located if x.placed_elsewhere])
     return Candidate(start, graph, inputs, pairs, res, ba, rescale, align_cfg, checks, bad, list(dropped or []),
                      list(graph.unregistered) + list(unregistered or []), judged, located, list(relocated))
 

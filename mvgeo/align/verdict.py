@@ -11,8 +11,8 @@ Four reasons to refuse a solution, checked in this order (`verdict`):
   `mvgeo.align.locate`), not the solution;
 - `views_unsupported`: views linked to the main group of views only by contradicted pairs, e.g. a view
   whose every verified pair is contradicted, or a group hinged on them (`views_cut_off`,
-  `reject_unsupported_views`), and views held by a single explained pair (`views_hinged`), unless PnP on
-  the main group's points puts the view where the solution does (`mvgeo.align.locate`,
+  `reject_unsupported_views`), and views held by a single explained pair, alone or as a group (`views_hinged`),
+  unless PnP on the main group's points puts the view where the solution does (`mvgeo.align.locate`,
   `locate_cut_off_views`);
 - `positions_undetermined`: the bundle adjustment leaves a camera centre uncertain by more than
   `max_centre_std_ratio` times the median distance between neighbouring cameras;
@@ -28,7 +28,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mvgeo.align.bundle import BundleResult
-from mvgeo.align.checks import PairCheck, pair_consistency, pair_rotation_deviation, views_cut_off, views_hinged
+from mvgeo.align.checks import (
+    PairCheck,
+    pair_consistency,
+    pair_rotation_deviation,
+    pair_rotation_std,
+    unconfirmed_hinged,
+    views_cut_off,
+)
 from mvgeo.common.errors import AlignmentRefusedError
 
 __all__ = ["Reason", "Verdict", "centre_std_ratio", "contradicting", "judge_pairs", "loose_views", "mostly_unexplained",
@@ -67,7 +74,8 @@ class Verdict:
 def judge_pairs(cam_from_world: np.ndarray, focal_align_px: np.ndarray, size_wh: tuple[int, int],
                 matches: Sequence[tuple[int, int, np.ndarray]], *, threshold_px: float, min_explained: float,
                 max_rotation_deg: float) -> tuple[list[PairCheck], list[PairCheck]]:
-    """Per pair, the Sampson check and the rotation check (`pair_rotation_deviation`); (checks, failing ones).
+    """Per pair, the Sampson check, the rotation check (`pair_rotation_deviation`) and how well the matches pin
+    the rotation (`pair_rotation_std`, for `views_hinged`); (checks, failing ones).
 
     A pair fails when it explains less than `min_explained` of its matches, or when the solution's relative
     rotation is more than `max_rotation_deg` (0: off) off the one its matches imply under the final focal.
@@ -75,6 +83,8 @@ def judge_pairs(cam_from_world: np.ndarray, focal_align_px: np.ndarray, size_wh:
     if not matches:
         return [], []
     checks = pair_consistency(cam_from_world, focal_align_px, size_wh, matches, threshold_px=threshold_px)
+    std = pair_rotation_std(cam_from_world, focal_align_px, size_wh, matches, threshold_px=threshold_px)
+    checks = [replace(c, rotation_std_deg=d) for c, d in zip(checks, std, strict=True)]
     if max_rotation_deg > 0:
         dev = pair_rotation_deviation(cam_from_world, focal_align_px, size_wh, matches)
         checks = [replace(c, rotation_deviation_deg=d) for c, d in zip(checks, dev, strict=True)]
@@ -137,10 +147,11 @@ def _pair_phrase(c: PairCheck, names, max_rot: float) -> str:
 
 def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequence[str], *, ba: BundleResult | None,
             focal_determined: bool, focal_undetermined_why: str, config, focal_prior_used: bool = False,
-            located_views: Sequence[int] = ()) -> Verdict:
+            located_views: Sequence[int] = (), misplaced_views: Sequence[int] = ()) -> Verdict:
     """Every reason (module docstring) to refuse a solution. `config`: `AlignConfig`; `focal_prior_used`: the
     pairs started at a focal prior (EXIF), named in the `focal_undetermined` fix; `located_views`: views the
-    main group's points locate where the solution puts them (`mvgeo.align.locate`), not refused as cut off."""
+    main group's points locate where the solution puts them (`mvgeo.align.locate`), not refused as cut off;
+    `misplaced_views`: views they locate confidently elsewhere (`Located.placed_elsewhere`)."""
     reasons = []
     max_rot = config.max_pair_rotation_deg
     located = set(located_views)
@@ -160,12 +171,13 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
             + (". The bundle adjustment is off: the dense alignment alone is this coarse" if ba is None else "")),
             "enable the bundle adjustment (--ba)" if ba is None
             else "add views between the existing ones, or pass the calibration with --intrinsics"))
-    hinged = ([v for v in views_hinged(checks, bad, len(names)) if v not in located]
+    hinged = (unconfirmed_hinged(checks, bad, len(names), sorted(located), misplaced_views)
               if config.reject_unsupported_views else [])
     if hinged:
         reasons.append(Reason("views_unsupported", tuple(names[v] for v in hinged), (
-            f"{len(hinged)} of {len(names)} views rest on a single verified image pair each "
-            f"({', '.join(names[v] for v in hinged)}), and PnP on the other views' points does not put them where "
+            f"{len(hinged)} of {len(names)} views rest on a single verified image pair each, alone or as a group "
+            f"joined to the others by that pair ({', '.join(names[v] for v in hinged)}), and PnP on the other "
+            "views' points does not put them where "
             "the reconstruction does: one weak pair's relative pose can be tens of degrees off while its matches "
             "still fit it. Likely causes: too little overlap between these views and their neighbours, or too "
             "few matches (noise, blur, little texture)"),

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mvgeo.align.bundle import BundleResult
-from mvgeo.align.checks import PairCheck, views_cut_off, views_hinged
+from mvgeo.align.checks import PairCheck, bridges, hinged_groups, unconfirmed_hinged, views_cut_off, views_hinged
 from mvgeo.align.config import AlignConfig
 from mvgeo.align.verdict import (
     REASON_KINDS,
@@ -134,6 +134,84 @@ def test_a_view_held_by_one_pair_is_unsupported_unless_pnp_confirms_it():
     assert views_hinged(RING + cut, cut, 6) == [] and views_cut_off(RING + cut, cut, 6) == [5]
     assert views_hinged([PairCheck(0, 1, 40, 0.9, 1.0), PairCheck(1, 2, 40, 0.2, 30.0)],
                         [PairCheck(1, 2, 40, 0.2, 30.0)], 3) == []
+
+
+def test_a_group_joined_to_the_others_by_one_explained_pair_is_hinged():
+    """DTU scan24 at sigma 50 without the EXIF focal: four views joined to the other eight by one 12-match pair
+    came back turned 14-19 deg as a block, every pair among them explained. The group's views are hinged (the
+    smaller side of the bridge), the views of the well-linked group are not."""
+    well = [PairCheck(a, b, 50, 1.0, 1.0) for a, b in [(0, 1), (1, 2), (0, 2), (2, 3), (1, 3)]]
+    # a chain of two pairs off the group: its end view has one pair, the middle one is hinged through it
+    assert views_hinged(well + [PairCheck(3, 4, 12, 1.0, 1.0), PairCheck(4, 5, 30, 1.0, 1.0)], [], 6) == [4, 5]
+    chain = [PairCheck(4, 5, 30, 1.0, 1.0), PairCheck(5, 6, 30, 1.0, 1.0), PairCheck(4, 6, 30, 1.0, 1.0)]
+    hinge = [PairCheck(3, 4, 12, 1.0, 1.0)]
+    assert views_hinged(well + chain + hinge, [], 7) == [4, 5, 6]
+    # a second explained link into the group holds it (no bridge left)
+    assert views_hinged(well + chain + hinge + [PairCheck(0, 6, 20, 1.0, 1.0)], [], 7) == []
+    # a contradicted second link does not
+    wrong = [PairCheck(0, 6, 20, 0.9, 25.0)]
+    assert views_hinged(well + chain + hinge + wrong, wrong, 7) == [4, 5, 6]
+    # a bridge whose matches pin its rotation (3 x 0.5 deg within 5 deg) is no hinge for a group; a single view
+    # held by one pair stays hinged however strong the pair
+    strong = [replace(hinge[0], rotation_std_deg=0.5)]
+    assert views_hinged(well + chain + strong, [], 7) == []
+    assert views_hinged(well + [PairCheck(3, 4, 200, 1.0, 1.0, 0.2)], [], 5) == [4]
+    weak = [replace(hinge[0], rotation_std_deg=1.9)]
+    assert views_hinged(well + chain + weak, [], 7) == [4, 5, 6]
+    # equal sides: the one with fewer matches on its own pairs
+    a = [PairCheck(0, 1, 50, 1.0, 1.0), PairCheck(1, 2, 50, 1.0, 1.0), PairCheck(0, 2, 50, 1.0, 1.0)]
+    b = [PairCheck(3, 4, 20, 1.0, 1.0), PairCheck(4, 5, 20, 1.0, 1.0), PairCheck(3, 5, 20, 1.0, 1.0)]
+    assert views_hinged(a + b + [PairCheck(2, 3, 30, 1.0, 1.0)], [], 6) == [3, 4, 5]
+
+
+def test_a_hinged_group_is_confirmed_by_one_located_view_and_none_placed_elsewhere():
+    """A single hinged view needs PnP to locate it; a group (the temple ring broken at one pair: halves of six
+    views joined by a 21-match pair, PnP finding the black background's few points for one view of a half)
+    needs one view located and none that PnP puts confidently elsewhere (a block turned as a whole)."""
+    well = [PairCheck(a, b, 50, 1.0, 1.0, 0.2) for a, b in [(0, 1), (1, 2), (0, 2)]]
+    group = [PairCheck(a, b, 50, 1.0, 1.0, 0.2) for a, b in [(3, 4), (4, 5), (3, 5)]]
+    checks = well + group + [PairCheck(2, 3, 21, 1.0, 1.0, 2.6), PairCheck(0, 6, 30, 1.0, 1.0, 0.3)]
+    assert hinged_groups(checks, [], 7) == [(6,), (3, 4, 5)]
+    assert unconfirmed_hinged(checks, [], 7) == [3, 4, 5, 6]
+    assert unconfirmed_hinged(checks, [], 7, located=[4, 6]) == []
+    assert unconfirmed_hinged(checks, [], 7, located=[4, 6], misplaced=[5]) == [3, 5]
+    assert unconfirmed_hinged(checks, [], 7, located=[4]) == [6]
+    names = [f"v{k}" for k in range(7)]
+    assert _judge(checks, [], names=names, located=(4, 6)).ok
+    refused = verdict(checks, [], names, ba=None, focal_determined=True, focal_undetermined_why="",
+                      config=AlignConfig(), located_views=[4, 6], misplaced_views=[5])
+    assert [(r.kind, r.views) for r in refused.reasons] == [("views_unsupported", ("v3", "v5"))]
+
+
+def _bridges_by_removal(n, edges):
+    """Reference: an edge is a bridge when its endpoints are not joined without it."""
+    out = []
+    for k, (i, j) in enumerate(edges):
+        seen, stack = {i}, [i]
+        while stack:
+            v = stack.pop()
+            for m, (a, b) in enumerate(edges):
+                if m == k or v not in (a, b):
+                    continue
+                w = b if v == a else a
+                if w not in seen:
+                    seen.add(w)
+                    stack.append(w)
+        if j not in seen:
+            out.append(k)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_bridges_match_the_removal_reference_on_random_graphs(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 14))
+    m = int(rng.integers(1, 2 * n))
+    edges = []
+    for _ in range(m):
+        i, j = rng.choice(n, 2, replace=False)
+        edges.append((int(i), int(j)))  # repeats allowed: parallel edges are not bridges
+    assert bridges(n, edges) == _bridges_by_removal(n, edges)
 
 
 def test_pairs_of_views_pnp_confirms_do_not_count_against_the_whole():
