@@ -89,10 +89,12 @@ def _variant(paths: list[Path], out: Path, mm: int | None, dither: str) -> list[
     return res
 
 
-def _ours_row(name, label, seed, scale, tagged, gt, config) -> list:
+def _ours_row(name, seed, scale, tagged, gt) -> list:
+    """`mvgeo align`'s row (`bench_real.OURS`) for one variant of a set."""
+    label = "ours"
     t = time.perf_counter()
     try:
-        res = align_images(tagged, config)
+        res = align_images(tagged, OURS)
     except AlignmentRefusedError as exc:
         return [name, label, seed, scale, f"refused: {exc.kind}", "0/12", "", "", time.perf_counter() - t]
     except (DegenerateGeometryError, DisconnectedViewsError) as exc:
@@ -126,7 +128,6 @@ def main() -> int:
     dithers = cli_option("dither", "none,0,1,2").split(",")
     scales = [float(s) for s in cli_option("focal-scales", "1.0").split(",")]
     methods = cli_option("methods", "ours").split(",")
-    variants = [("ours", OURS)]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -149,9 +150,8 @@ def main() -> int:
                         print(" | ".join(str(x) for x in rows[-1]), flush=True)
                     if "ours" not in methods:
                         continue
-                    for label, config in variants:
-                        rows.append(_ours_row(name, label, seed, scale, tagged, gt, config))
-                        print(" | ".join(str(x) for x in rows[-1]), flush=True)
+                    rows.append(_ours_row(name, seed, scale, tagged, gt))
+                    print(" | ".join(str(x) for x in rows[-1]), flush=True)
     table = md_table(["set", "method", "dither seed", "focal scale", "verdict", "registered", "rot med (deg)",
                       "rot max (deg)", "s"], rows)
     table += "\n\n" + _summary(rows)

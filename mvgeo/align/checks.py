@@ -33,6 +33,18 @@ class PairCheck:
     rotation_std_deg: float = float("nan")
 
 
+def _pair_geometry(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int], i: int, j: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The result's cam_j_from_cam_i (R (3, 3), t (3,)) and the two views' calibrations (principal point at
+    the centre of `size_wh`)."""
+    W, H = size_wh
+    R = cam_from_world[j][:, :3] @ cam_from_world[i][:, :3].T
+    t = cam_from_world[j][:, 3] - R @ cam_from_world[i][:, 3]
+    Ki = np.array([[focal_px[i], 0, W / 2.0], [0, focal_px[i], H / 2.0], [0, 0, 1]])
+    Kj = np.array([[focal_px[j], 0, W / 2.0], [0, focal_px[j], H / 2.0], [0, 0, 1]])
+    return R, t, Ki, Kj
+
+
 def pair_consistency(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: tuple[int, int],
                      matches: Sequence[tuple[int, int, np.ndarray]], *, threshold_px: float = 2.0
                      ) -> list[PairCheck]:
@@ -45,15 +57,9 @@ def pair_consistency(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh: 
         matches: (i, j, uv) with uv (M, 4) = (u_i, v_i, u_j, v_j), our pixel convention.
         threshold_px: Sampson distance limit in pixels.
     """
-    W, H = size_wh
     out = []
     for i, j, uv in matches:
-        Ri, ti = cam_from_world[i][:, :3], cam_from_world[i][:, 3]
-        Rj, tj = cam_from_world[j][:, :3], cam_from_world[j][:, 3]
-        R = Rj @ Ri.T
-        t = tj - R @ ti
-        Ki = np.array([[focal_px[i], 0, W / 2.0], [0, focal_px[i], H / 2.0], [0, 0, 1]])
-        Kj = np.array([[focal_px[j], 0, W / 2.0], [0, focal_px[j], H / 2.0], [0, 0, 1]])
+        R, t, Ki, Kj = _pair_geometry(cam_from_world, focal_px, size_wh, i, j)
         if not np.linalg.norm(t) > 0:
             out.append(PairCheck(i, j, len(uv), 0.0))
             continue
@@ -76,13 +82,10 @@ def pair_rotation_deviation(cam_from_world: np.ndarray, focal_px: np.ndarray, si
     """
     from mvgeo.align.loops import rotation_angle_deg, rotation_from_matches
 
-    W, H = size_wh
     out = []
     for i, j, uv in matches:
-        Ki = np.array([[focal_px[i], 0, W / 2.0], [0, focal_px[i], H / 2.0], [0, 0, 1]])
-        Kj = np.array([[focal_px[j], 0, W / 2.0], [0, focal_px[j], H / 2.0], [0, 0, 1]])
+        R_res, _, Ki, Kj = _pair_geometry(cam_from_world, focal_px, size_wh, i, j)
         R_pair = rotation_from_matches(np.asarray(uv, np.float64), Ki, Kj)
-        R_res = cam_from_world[j][:, :3] @ cam_from_world[i][:, :3].T
         out.append(float("nan") if R_pair is None else rotation_angle_deg(R_res @ R_pair.T))
     return out
 
@@ -94,17 +97,13 @@ def pair_rotation_std(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh:
     centre."""
     from mvgeo.twoview import relative_rotation_std_deg
 
-    W, H = size_wh
     out = []
     for i, j, uv in matches:
         uv = np.asarray(uv, np.float64)
-        R = cam_from_world[j][:, :3] @ cam_from_world[i][:, :3].T
-        t = cam_from_world[j][:, 3] - R @ cam_from_world[i][:, 3]
+        R, t, Ki, Kj = _pair_geometry(cam_from_world, focal_px, size_wh, i, j)
         if not np.linalg.norm(t) > 0 or len(uv) < 6:
             out.append(float("inf"))
             continue
-        Ki = np.array([[focal_px[i], 0, W / 2.0], [0, focal_px[i], H / 2.0], [0, 0, 1]])
-        Kj = np.array([[focal_px[j], 0, W / 2.0], [0, focal_px[j], H / 2.0], [0, 0, 1]])
         out.append(relative_rotation_std_deg(uv[:, :2], uv[:, 2:], Ki, Kj, R, t, inlier_px=threshold_px))
     return out
 
