@@ -114,17 +114,31 @@ def pair_rotation_std(cam_from_world: np.ndarray, focal_px: np.ndarray, size_wh:
 HINGE_MAX_ROTATION_DEG = 5.0
 
 
+@dataclass(frozen=True)
+class Hinge:
+    """A view, or a group of views, whose placement rests on one explained pair (`hinges`): the views (sorted
+    indices) and that pair's check (its matches, and how well they pin the rotation)."""
+
+    views: tuple[int, ...]
+    pair: PairCheck
+
+
 def views_hinged(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int) -> list[int]:
     """The views of `hinged_groups`, sorted."""
     return sorted({v for g in hinged_groups(checks, bad, n_views) for v in g})
 
 
 def hinged_groups(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int) -> list[tuple[int, ...]]:
+    """The views of each of `hinges` (sorted view indices), singles first."""
+    return [h.views for h in hinges(checks, bad, n_views)]
+
+
+def hinges(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int) -> list[Hinge]:
     """Views whose placement rests on a single pair the result explains, in the main group (`views_cut_off`'s;
     of at least three views): each view with exactly one explained pair, alone, and each group of views joined
     to the others by one weak explained pair (a bridge of the graph of explained pairs whose matches pin its
     relative rotation no better than `HINGE_MAX_ROTATION_DEG` at three standard deviations; nan: not measured,
-    weak): the smaller side of it.
+    weak): the smaller side of it; each with that pair.
 
     Such views' placement rests on that one pair's relative pose. On a weak pair (a dozen matches, a narrow
     field of view) the rotation its matches imply can be 10-30 deg off while they still fit it (the bas-relief
@@ -132,7 +146,7 @@ def hinged_groups(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views
     solution followed such a pair with its view 17.5 and 32 deg off and every pair explained but the view's
     others; and (noise seed 1, no EXIF focal, the images dithered) four views joined to the other eight by one
     12-match pair (rotation standard deviation 1.9 deg) came back turned 14-19 deg as a block, every pair among
-    them explained. The verdict asks PnP on the other views' points to confirm them (`unconfirmed_hinged`).
+    them explained. The verdict asks PnP on the other views' points to confirm them (`unconfirmed_hinges`).
     A strong bridge is no hinge for a group: on the temple ring, broken at one contradicted pair, pairs of
     73-236 matches (0.3-0.6 deg) join groups that PnP on the black background cannot confirm.
 
@@ -140,7 +154,7 @@ def hinged_groups(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views
     view index.
 
     Returns:
-        The groups (sorted view indices), singles first.
+        The hinges, singles first, then by their views.
     """
     bad_keys = {(c.i, c.j) for c in bad}
     cut = set(views_cut_off(checks, bad, n_views))
@@ -148,28 +162,36 @@ def hinged_groups(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views
     if len(judged) < 3:  # two views held by their one pair: nothing else to locate them on
         return []
     edges = [c for c in checks if (c.i, c.j) not in bad_keys and c.i not in cut and c.j not in cut]
-    groups: set[tuple[int, ...]] = set()
+    found: dict[tuple[int, ...], PairCheck] = {}
     for k in bridges(n_views, [(c.i, c.j) for c in edges]):
         rest = [(c.i, c.j, c.n_matches) for m, c in enumerate(edges) if m != k]
         sides = (_reachable(edges[k].i, rest), _reachable(edges[k].j, rest))
         inner = [sum(n for i, j, n in rest if i in vs and j in vs) for vs in sides]
         side = min(zip(sides, inner, strict=True), key=lambda x: (len(x[0]), x[1], -min(x[0])))[0]
         if len(side) == 1 or not 3.0 * edges[k].rotation_std_deg <= HINGE_MAX_ROTATION_DEG:
-            groups.add(tuple(sorted(side)))
-    return sorted(groups, key=lambda g: (len(g), g))
+            found.setdefault(tuple(sorted(side)), edges[k])
+    return [Hinge(g, found[g]) for g in sorted(found, key=lambda g: (len(g), g))]
+
+
+def unconfirmed_hinges(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int,
+                       located: Sequence[int] = (), misplaced: Sequence[int] = ()) -> list[Hinge]:
+    """The `hinges` that PnP on the other views' points (`mvgeo.align.locate`) does not confirm, each with its
+    unconfirmed views: a single view unless it is `located`; a group's views, less the located ones, unless at
+    least one of them is located and none is `misplaced` (PnP puts it confidently elsewhere)."""
+    ok, off = set(located), set(misplaced)
+    out = []
+    for h in hinges(checks, bad, n_views):
+        g = set(h.views)
+        if len(g) == 1 or not (ok & g) or (off & g):
+            if g - ok:
+                out.append(Hinge(tuple(sorted(g - ok)), h.pair))
+    return out
 
 
 def unconfirmed_hinged(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int,
                        located: Sequence[int] = (), misplaced: Sequence[int] = ()) -> list[int]:
-    """The views of `hinged_groups` that PnP on the other views' points (`mvgeo.align.locate`) does not confirm:
-    a single view unless it is `located`; a group's views, less the located ones, unless at least one of them is
-    located and none is `misplaced` (PnP puts it confidently elsewhere). Sorted."""
-    ok, off = set(located), set(misplaced)
-    out: set[int] = set()
-    for g in hinged_groups(checks, bad, n_views):
-        if len(g) == 1 or not (ok & set(g)) or (off & set(g)):
-            out |= set(g) - ok
-    return sorted(out)
+    """The views of `unconfirmed_hinges`, sorted."""
+    return sorted({v for h in unconfirmed_hinges(checks, bad, n_views, located, misplaced) for v in h.views})
 
 
 def bridges(n_vertices: int, edges: Sequence[tuple[int, int]]) -> list[int]:

@@ -29,11 +29,12 @@ import numpy as np
 
 from mvgeo.align.bundle import BundleResult
 from mvgeo.align.checks import (
+    Hinge,
     PairCheck,
     pair_consistency,
     pair_rotation_deviation,
     pair_rotation_std,
-    unconfirmed_hinged,
+    unconfirmed_hinges,
     views_cut_off,
 )
 from mvgeo.common.errors import AlignmentRefusedError
@@ -145,6 +146,14 @@ def _pair_phrase(c: PairCheck, names, max_rot: float) -> str:
                else ""))
 
 
+def _hinge_phrase(h: Hinge, names) -> str:
+    c = h.pair
+    pin = (f", rotation standard deviation {c.rotation_std_deg:.2g} deg" if np.isfinite(c.rotation_std_deg)
+           else "")
+    group = ", ".join(names[v] for v in h.views)
+    return f"{group} on the pair ({names[c.i]}, {names[c.j]}): {c.n_matches} matches{pin}"
+
+
 def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequence[str], *, ba: BundleResult | None,
             focal_determined: bool, focal_undetermined_why: str, config, focal_prior_used: bool = False,
             located_views: Sequence[int] = (), misplaced_views: Sequence[int] = ()) -> Verdict:
@@ -171,12 +180,14 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
             + (". The bundle adjustment is off: the dense alignment alone is this coarse" if ba is None else "")),
             "enable the bundle adjustment (--ba)" if ba is None
             else "add views between the existing ones, or pass the calibration with --intrinsics"))
-    hinged = (unconfirmed_hinged(checks, bad, len(names), sorted(located), misplaced_views)
+    hinged = (unconfirmed_hinges(checks, bad, len(names), sorted(located), misplaced_views)
               if config.reject_unsupported_views else [])
     if hinged:
-        reasons.append(Reason("views_unsupported", tuple(names[v] for v in hinged), (
-            f"{len(hinged)} of {len(names)} views rest on a single verified image pair each, alone or as a group "
-            f"joined to the others by that pair ({', '.join(names[v] for v in hinged)}), and PnP on the other "
+        views = sorted({v for h in hinged for v in h.views})
+        listing = "; ".join(_hinge_phrase(h, names) for h in hinged)[:1500]
+        reasons.append(Reason("views_unsupported", tuple(names[v] for v in views), (
+            f"{len(views)} of {len(names)} views rest on a single verified image pair each, alone or as a group "
+            f"joined to the others by that pair ({listing}), and PnP on the other "
             "views' points does not put them where "
             "the reconstruction does: one weak pair's relative pose can be tens of degrees off while its matches "
             "still fit it. Likely causes: too little overlap between these views and their neighbours, or too "

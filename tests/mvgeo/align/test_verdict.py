@@ -7,7 +7,17 @@ import numpy as np
 import pytest
 
 from mvgeo.align.bundle import BundleResult
-from mvgeo.align.checks import PairCheck, bridges, hinged_groups, unconfirmed_hinged, views_cut_off, views_hinged
+from mvgeo.align.checks import (
+    Hinge,
+    PairCheck,
+    bridges,
+    hinged_groups,
+    hinges,
+    unconfirmed_hinged,
+    unconfirmed_hinges,
+    views_cut_off,
+    views_hinged,
+)
 from mvgeo.align.config import AlignConfig
 from mvgeo.align.verdict import (
     REASON_KINDS,
@@ -181,6 +191,25 @@ def test_a_hinged_group_is_confirmed_by_one_located_view_and_none_placed_elsewhe
     refused = verdict(checks, [], names, ba=None, focal_determined=True, focal_undetermined_why="",
                       config=AlignConfig(), located_views=[4, 6], misplaced_views=[5])
     assert [(r.kind, r.views) for r in refused.reasons] == [("views_unsupported", ("v3", "v5"))]
+
+
+def test_a_hinge_carries_its_pair_and_the_refusal_names_it():
+    """Each hinge is given with the pair it rests on, and the refusal names that pair, its matches and how well
+    they pin the rotation: the user sees which link to strengthen."""
+    well = [PairCheck(a, b, 50, 1.0, 1.0, 0.2) for a, b in [(0, 1), (1, 2), (0, 2)]]
+    group = [PairCheck(a, b, 50, 1.0, 1.0, 0.2) for a, b in [(3, 4), (4, 5), (3, 5)]]
+    link, single = PairCheck(2, 3, 21, 1.0, 1.0, 2.6), PairCheck(0, 6, 30, 1.0, 1.0, 0.3)
+    checks = well + group + [link, single]
+    assert hinges(checks, [], 7) == [Hinge((6,), single), Hinge((3, 4, 5), link)]
+    # the confirmed views leave the hinge; a confirmed hinge leaves the list
+    assert unconfirmed_hinges(checks, [], 7, located=[4, 6], misplaced=[5]) == [Hinge((3, 5), link)]
+    assert unconfirmed_hinges(checks, [], 7, located=[4]) == [Hinge((6,), single)]
+    names = [f"v{k}" for k in range(7)]
+    refused = verdict(checks, [], names, ba=None, focal_determined=True, focal_undetermined_why="",
+                      config=AlignConfig(), located_views=[4, 6], misplaced_views=[5])
+    (reason,) = refused.reasons
+    assert "v3, v5 on the pair (v2, v3): 21 matches, rotation standard deviation 2.6 deg" in reason.message
+    assert "(v0, v6)" not in reason.message
 
 
 def _bridges_by_removal(n, edges):
