@@ -66,7 +66,8 @@ def _config(method: str, lr: float, guard: bool) -> N2VConfig:
 LR = 0.06
 
 
-@pytest.mark.parametrize("method", ["r2r", "n2v"])
+# R2R (the default objective) in the default suite; N2V's run of the same guard (33 s on 2 cores) is `slow`.
+@pytest.mark.parametrize("method", ["r2r", pytest.param("n2v", marks=pytest.mark.slow)])
 def test_a_diverging_training_starts_again_at_half_the_rate(method, caplog, monkeypatch):
     import denoise.n2v as n2v
 
@@ -104,7 +105,8 @@ def test_a_diverging_training_starts_again_at_half_the_rate(method, caplog, monk
     assert _psnr(out, clean) > _psnr(out_ref, clean) - 1.0
 
 
-@pytest.mark.parametrize("steps", [300, 123])  # 123: a last, partial window
+# 123: two full windows and a last, partial one (the default suite); 300: six full windows (`slow`, 23 s)
+@pytest.mark.parametrize("steps", [pytest.param(300, marks=pytest.mark.slow), 123])
 def test_a_run_that_does_not_diverge_is_unchanged_to_the_bit(steps):
     noisy, _ = _images()
     on = train_with_method(noisy, replace(_config("r2r", 1e-3, True), steps=steps), seed=0)
