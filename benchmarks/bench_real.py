@@ -278,10 +278,10 @@ def run_pycolmap(label, mapper: str, folder: Path, gt, f_ref, stages: list[Stage
         return failed_row(label, method, exc, time.perf_counter() - t)
     sec = time.perf_counter() - t
     if stages is not None:
-        stages.append((label, method, {k: v for k, v in col.stats["timings_s"].items() if k != "total"}))
+        stages.append((label, method, {k: v for k, v in col.stats.timings_s.items() if k != "total"}))
     f = float(np.median([c.fx for c in col.sparse_model.cameras.values()]))
     return metrics_row(label, method, col.sparse_model.cam_from_world_by_name(), gt, f, f_ref, sec,
-                       tracks=int(col.stats["n_points"]))
+                       tracks=col.stats.n_points)
 
 
 def colmap_verified_pairs(folder: Path, names: list[str], min_inliers: int = 15) -> int:

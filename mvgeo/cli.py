@@ -156,8 +156,8 @@ def _colmap(args: argparse.Namespace) -> int:
     res = run_colmap(args.images_dir, replace(ColmapConfig(), mapper="global" if args.global_mapper else "incremental"))
     write_colmap_result(plan, res)
     s = res.stats
-    print(f"COLMAP ({s['mapper']}): registered {s['n_registered']}/{s['n_images']} images, {s['n_points']} points, "
-          f"{s['timings_s']['total']:.1f} s -> {args.out}")
+    print(f"COLMAP ({s.mapper}): registered {s.n_registered}/{s.n_images} images, {s.n_points} points, "
+          f"{s.timings_s['total']:.1f} s -> {args.out}")
     return 0
 
 

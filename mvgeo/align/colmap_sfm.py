@@ -12,7 +12,7 @@ import json
 import logging
 import shutil
 import tempfile
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from mvgeo.common.atomic import atomic_output_dir
@@ -49,12 +49,39 @@ class ColmapConfig:
     known_pinhole: tuple[float, float, float, float] | None = None
 
 
+@dataclass(frozen=True)
+class ColmapStats:
+    """The report of a pycolmap run (`OUT/colmap.json`, `to_json`).
+
+    Attributes:
+        mapper: "incremental" or "global".
+        n_images: images given.
+        n_registered: images in the largest model.
+        n_models: models the mapper returned.
+        unregistered: names of the images outside the largest model, sorted.
+        n_points: 3D points of the largest model.
+        timings_s: seconds per stage (features, matching, mapping) and "total".
+    """
+
+    mapper: str
+    n_images: int
+    n_registered: int
+    n_models: int
+    unregistered: list[str]
+    n_points: int
+    timings_s: dict[str, float]
+
+    def to_json(self) -> dict[str, object]:
+        """colmap.json's content."""
+        return asdict(self)
+
+
 @dataclass
 class ColmapResult:
-    """The largest reconstruction and a report."""
+    """The largest reconstruction and its report."""
 
     sparse_model: SparseModel
-    stats: dict
+    stats: ColmapStats
 
 
 def run_colmap(images_dir: str | Path, config: ColmapConfig = ColmapConfig(), *,
@@ -115,15 +142,9 @@ def run_colmap(images_dir: str | Path, config: ColmapConfig = ColmapConfig(), *,
         raise DegenerateGeometryError("COLMAP could not reconstruct any model from these images")
     best = max(recs.values(), key=lambda r: r.num_reg_images())
     model = from_pycolmap(best)
-    stats = {
-        "mapper": config.mapper,
-        "n_images": len(names),
-        "n_registered": len(model.images),
-        "n_models": len(recs),
-        "unregistered": sorted(set(names) - set(model.names)),
-        "n_points": int(len(model.points_xyz)),
-        "timings_s": timer.as_dict(),
-    }
+    stats = ColmapStats(mapper=config.mapper, n_images=len(names), n_registered=len(model.images),
+                        n_models=len(recs), unregistered=sorted(set(names) - set(model.names)),
+                        n_points=int(len(model.points_xyz)), timings_s=timer.as_dict())
     return ColmapResult(model, stats)
 
 
@@ -136,5 +157,5 @@ def write_colmap_result(out: str | Path | OutputPlan, result: ColmapResult, *, o
     plan = as_output_plan(out, command="mvgeo colmap", overwrite=overwrite)
     with atomic_output_dir(plan) as tmp:
         write_sparse_model(tmp / "sparse" / "0", result.sparse_model, binary=True)
-        (tmp / "colmap.json").write_text(json.dumps(result.stats, indent=2))
+        (tmp / "colmap.json").write_text(json.dumps(result.stats.to_json(), indent=2))
     return plan.out

@@ -1,5 +1,6 @@
 """`mvgeo align|colmap|compare` end to end on a small data_synth scene, and bad input (exit 2, no OUT)."""
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -7,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mvgeo.align.colmap_sfm import ColmapStats
 from mvgeo.cli import main
 from mvgeo.common.imageio import list_images, read_image, write_image
 from mvgeo.metrics import compare_poses
@@ -81,6 +83,12 @@ def test_align_poses_against_ground_truth_and_colmap(aligned, scene, tmp_path, c
         assert main(["compare", str(col / "sparse" / "0"), str(scene / "sparse" / "0"), "--json"]) == 0
         out = json.loads(capsys.readouterr().out)
         assert out["n_ref"] == 6 and 0 <= out["registered_fraction"] <= 1
+        # colmap.json is `ColmapStats.to_json`: every field, the registered count the model's
+        report = json.loads((col / "colmap.json").read_text())
+        assert set(report) == {f.name for f in dataclasses.fields(ColmapStats)}
+        assert report["mapper"] == "incremental" and report["n_images"] == 6
+        assert report["n_registered"] == len(read_sparse_model(col / "sparse" / "0").images)
+        assert report["timings_s"]["total"] > 0
     else:  # COLMAP may fail to initialise on 4 tiny noisy views; it must say so with exit 1 and no OUT
         assert code == 1 and not col.exists()
 
