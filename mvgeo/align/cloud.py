@@ -174,7 +174,7 @@ def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | 
         pts_maps = [backproject_depth(d, k, T) for d, k, T in zip(depth_maps, K_grid, res.cam_from_world, strict=True)]
     else:
         res = aligned()
-        depth_maps, conf_maps, pts_maps = res.depth, res.conf, res.pts_world
+        depth_maps, conf_maps = res.depth, res.conf
         Hp, Wp = res.depth[0].shape
         Wa, Ha = inputs.align_wh
         if inputs.intrinsics is not None:  # known intrinsics at the pointmap grid (our pixel convention: exact)
@@ -182,6 +182,11 @@ def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | 
         else:
             K_grid = [np.array([[f, 0, cx * Wp / Wa], [0, f, cy * Hp / Ha], [0, 0, 1]])
                       for f, (cx, cy) in zip(res.focal_px, _principal(inputs), strict=True)]
+        # The alignment's points lie on rays through the grid's centre; the output cameras may have another
+        # principal point (known, or estimated): each pixel's depth goes back along that camera's own ray, so
+        # that the cloud and the cameras agree (and the co-visibility pruning projects with the same K).
+        pts_maps = [backproject_depth(np.asarray(d, np.float64), k, T)
+                    for d, k, T in zip(depth_maps, K_grid, res.cam_from_world, strict=True)]
     with timer.stage("scene"):
         keep = covisibility_keep(pts_maps, depth_maps, conf_maps, res.cam_from_world, K_grid,
                                  rel_depth_tol=config.covisibility_rel_tol,

@@ -141,6 +141,44 @@ def test_the_dense_cloud_uses_a_known_off_centre_principal_point(llff6):
     assert med < max(1.5 * full, 0.04), (med, full)
 
 
+def test_without_the_stereo_the_cloud_lies_on_the_output_cameras_rays(llff6, monkeypatch):
+    """Dense stereo off, a known principal point 12 / 8 px off the centre (views cropped unevenly): each view's
+    points, as the co-visibility pruning gets them, project back through that view's output camera onto the
+    centres of their own pixels (the alignment's depth maps were measured on rays through the grid's centre)."""
+    from mvgeo.camera import Camera
+    from mvgeo.common.imageio import read_image
+
+    seen = []
+    real = cloud.covisibility_keep
+
+    def spy(pts_world, depth, conf, cam_from_world, K, **kw):
+        seen.append((pts_world, depth, cam_from_world, K))
+        return real(pts_world, depth, conf, cam_from_world, K, **kw)
+
+    monkeypatch.setattr(cloud, "covisibility_keep", spy)
+    gt = read_sparse_model(llff6 / "sparse" / "0")
+    cam0 = gt.camera_of(gt.names[0])
+    left, top = 24, 16
+    paths = list_images(llff6 / "images")
+    images = [read_image(p)[top:, left:] for p in paths]
+    H, W = images[0].shape[:2]
+    cam = Camera.pinhole(cam0.fx, cam0.fy, cam0.cx - left, cam0.cy - top, W, H)
+    config = dataclasses.replace(PREVIEW, seed=0,
+                                 dense_stereo=dataclasses.replace(PREVIEW.dense_stereo, enabled=False))
+    align_images(images, config, intrinsics=cam, names=[p.name for p in paths])
+    ((pts, depth, cams, K),) = seen
+    Hg, Wg = depth[0].shape
+    assert abs(K[0][0, 2] - (cam.cx * Wg / W)) < 1e-9 and abs(K[0][0, 2] - Wg / 2) > 1.0  # off the centre
+    for v in range(len(pts)):
+        x = pts[v].reshape(-1, 3) @ cams[v][:, :3].T + cams[v][:, 3]
+        ok = np.isfinite(x).all(axis=1) & (x[:, 2] > 0)
+        u = K[v][0, 0] * x[ok, 0] / x[ok, 2] + K[v][0, 2]
+        w = K[v][1, 1] * x[ok, 1] / x[ok, 2] + K[v][1, 2]
+        rows, cols = np.divmod(np.flatnonzero(ok), Wg)
+        np.testing.assert_allclose(u, cols + 0.5, atol=1e-6)
+        np.testing.assert_allclose(w, rows + 0.5, atol=1e-6)
+
+
 def test_a_view_the_stereo_leaves_empty_keeps_the_alignment_depth(llff6, monkeypatch):
     real = cloud.stereo_depths
 
