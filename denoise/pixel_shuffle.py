@@ -28,8 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MAX_PHOTOS", "MAX_STRIDE", "MIN_LEVEL_RATIO", "MIN_NOISE_STD", "NoiseLevels", "choose_stride", "merge_std",
-           "pd_merge", "pd_split", "shuffled", "stride_for", "unshuffled"]
+__all__ = ["MAX_PHOTOS", "MAX_STRIDE", "MIN_CORRELATED_NOISE_STD", "MIN_LEVEL_RATIO", "MIN_NOISE_STD",
+           "STRONG_LEVEL_RATIO", "NoiseLevels", "choose_stride", "merge_std", "pd_merge", "pd_split", "shuffled",
+           "stride_for", "unshuffled"]
 
 #: The largest stride `choose_stride` returns (16 sub-images; a 384 px photo's are 96 px).
 MAX_STRIDE = 4
@@ -43,6 +44,16 @@ MIN_LEVEL_RATIO = 0.8
 #: and 6.4 /255 at strides 1 and 2; DTU scan24's clean photos 0.9 and 1.3). The same scene with independent
 #: noise of 5/255 reads 5.8 and 7.8 (a ratio of 0.75): only this floor keeps such faint noise at stride 1.
 MIN_NOISE_STD = 8.0 / 255.0
+#: Noise that reads under this fraction of its stride-2 level on the photos counts as correlated from the lower
+#: floor `MIN_CORRELATED_NOISE_STD` up. Bilinearly demosaiced Poisson-Gaussian noise reads 0.13 (the temple
+#: ring) and 0.16 (DTU scan24), 0.20-0.22 on flat synthetic scenes; clean photos' texture 0.32 (the synthetic
+#: llff_like at 504 x 378; 0.41 at a smaller size), 0.54-0.55 (object_ring, hard_repetitive) and 0.69 (DTU scan24,
+#: the temple ring); white noise 0.75 (5/255) to 1.0. A photo whose background is black and clipped (the temple
+#: ring: 55 % of its area) reads its demosaiced noise at 6.6/255 in the stride-2 sub-images, under
+#: `MIN_NOISE_STD`: the PCA estimator takes the level of its least noisy patches, the clipped dark ones.
+STRONG_LEVEL_RATIO = 0.25
+#: The stride-2 level a `STRONG_LEVEL_RATIO` reading needs ([0, 1] units): clean real photos read 0.4-1.3/255.
+MIN_CORRELATED_NOISE_STD = 3.0 / 255.0
 #: Photos the levels are read on at most, spread over the list (about 0.3 s a photo and stride on one core
 #: at 384 x 384).
 MAX_PHOTOS = 6
@@ -149,7 +160,8 @@ def _level(images: Sequence[np.ndarray], stride: int) -> float:
 def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
                   min_ratio: float = MIN_LEVEL_RATIO) -> NoiseLevels:
     """1 (no PD) where the noise level reads about the same on the photos as on their stride-2 sub-images
-    (at least `min_ratio` of it), or is weak (under `MIN_NOISE_STD` there); else the smallest stride s >= 2
+    (at least `min_ratio` of it), or is weak (under `MIN_NOISE_STD` there, unless the photos read under
+    `STRONG_LEVEL_RATIO` of it and it is at least `MIN_CORRELATED_NOISE_STD`); else the smallest stride s >= 2
     whose level is at least `min_ratio` of stride s + 1's (`max_stride` at most).
 
     Reads at most `MAX_PHOTOS` photos, spread over the list; photos whose stride-`max_stride` sub-images
@@ -161,7 +173,9 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
     pick = big if len(big) <= MAX_PHOTOS else [big[int(i)] for i in np.linspace(0, len(big) - 1, MAX_PHOTOS)]
     level = {1: _level(pick, 1), 2: _level(pick, 2)}
     stride = 1
-    if level[2] >= MIN_NOISE_STD and level[1] < min_ratio * level[2]:
+    correlated = level[2] >= MIN_NOISE_STD and level[1] < min_ratio * level[2]
+    strongly = level[2] >= MIN_CORRELATED_NOISE_STD and level[1] < STRONG_LEVEL_RATIO * level[2]
+    if correlated or strongly:
         stride = 2
         while stride < max_stride:
             level[stride + 1] = _level(pick, stride + 1)

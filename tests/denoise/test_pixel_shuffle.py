@@ -8,6 +8,9 @@ import torch
 
 from data_synth.effects import EffectContext, apply_effects, parse_effect
 from denoise.pixel_shuffle import (
+    MIN_CORRELATED_NOISE_STD,
+    MIN_NOISE_STD,
+    STRONG_LEVEL_RATIO,
     choose_stride,
     merge_std,
     pd_merge,
@@ -89,6 +92,19 @@ def test_weak_or_unreadable_noise_gets_no_stride(rng):
     assert choose_stride([rng.random((40, 200, 3))]).stride == 1  # stride-4 sub-images under 16 px: not read
     many = [_bayer(s, k) for k, s in enumerate(scenes * 3)]
     assert choose_stride(many).stride == 2  # nine photos, six of them read
+
+
+def test_demosaiced_noise_that_reads_faint_gets_stride_two_by_its_ratio(rng):
+    """Demosaiced noise read under `MIN_NOISE_STD` in the sub-images (as on the temple ring, whose clipped black
+    background the PCA estimator reads) still reads far lower on the photos: `STRONG_LEVEL_RATIO` decides.
+    White noise at the same level reads alike on both and keeps stride 1."""
+    scenes = [_smooth_scene(rng) for _ in range(3)]
+    weak = [s + 0.45 * (_bayer(np.full_like(s, 0.5), k) - 0.5) for k, s in enumerate(scenes)]
+    read = choose_stride(weak)
+    assert MIN_CORRELATED_NOISE_STD <= read.level_by_stride[2] < MIN_NOISE_STD  # the case the ratio decides
+    assert read.level_by_stride[1] < STRONG_LEVEL_RATIO * read.level_by_stride[2] and read.stride == 2
+    white = [s + rng.normal(0, read.level_by_stride[2], s.shape).astype(np.float32) for s in scenes]
+    assert choose_stride(white).stride == 1
 
 
 def test_shuffled_and_unshuffled_are_inverse_over_a_list(rng):
