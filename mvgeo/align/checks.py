@@ -182,9 +182,9 @@ def unconfirmed_hinges(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_
     out = []
     for h in hinges(checks, bad, n_views):
         g = set(h.views)
-        if len(g) == 1 or not (ok & g) or (off & g):
-            if g - ok:
-                out.append(Hinge(tuple(sorted(g - ok)), h.pair))
+        confirmed = len(g) > 1 and bool(ok & g) and not (off & g)
+        if not confirmed and g - ok:
+            out.append(Hinge(tuple(sorted(g - ok)), h.pair))
     return out
 
 

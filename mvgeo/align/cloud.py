@@ -171,7 +171,6 @@ def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | 
     if config.dense_stereo.enabled:
         depth_maps, conf_maps, K_grid, measured, report = _stereo_maps(inputs, res, ba, pairs, matches, config,
                                                                        timer, grid_to_align, aligned)
-        pts_maps = [backproject_depth(d, k, T) for d, k, T in zip(depth_maps, K_grid, res.cam_from_world, strict=True)]
     else:
         res = aligned()
         depth_maps, conf_maps = res.depth, res.conf
@@ -182,11 +181,10 @@ def dense_cloud(inputs: AlignInputs, res: GlobalAlignResult, ba: BundleResult | 
         else:
             K_grid = [np.array([[f, 0, cx * Wp / Wa], [0, f, cy * Hp / Ha], [0, 0, 1]])
                       for f, (cx, cy) in zip(res.focal_px, _principal(inputs), strict=True)]
-        # The alignment's points lie on rays through the grid's centre; the output cameras may have another
-        # principal point (known, or estimated): each pixel's depth goes back along that camera's own ray, so
-        # that the cloud and the cameras agree (and the co-visibility pruning projects with the same K).
-        pts_maps = [backproject_depth(np.asarray(d, np.float64), k, T)
-                    for d, k, T in zip(depth_maps, K_grid, res.cam_from_world, strict=True)]
+    # Each pixel's depth goes back along the output camera's own ray (its principal point, known or estimated),
+    # so that the cloud and the cameras agree and the co-visibility pruning projects with the same K; the
+    # alignment's own points (`res.pts_world`) lie on rays through the grid's centre.
+    pts_maps = [backproject_depth(d, k, T) for d, k, T in zip(depth_maps, K_grid, res.cam_from_world, strict=True)]
     with timer.stage("scene"):
         keep = covisibility_keep(pts_maps, depth_maps, conf_maps, res.cam_from_world, K_grid,
                                  rel_depth_tol=config.covisibility_rel_tol,
