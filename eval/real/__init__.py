@@ -8,7 +8,7 @@ both (the `denoise-gs dataset import` command).
 
 from eval.real.api import KINDS, import_dataset, read_capture
 from eval.real.capture import BoundingSphere, Capture, CaptureView
-from eval.real.degrade import Degradation, parse_noise
+from eval.real.degrade import Degradation, DegradationStep, parse_noise
 from eval.real.layout import ImportConfig, write_capture
 
 __all__ = [
@@ -17,6 +17,7 @@ __all__ = [
     "Capture",
     "CaptureView",
     "Degradation",
+    "DegradationStep",
     "ImportConfig",
     "import_dataset",
     "parse_noise",

@@ -38,7 +38,9 @@ def add_dataset_parser(sub: argparse._SubParsersAction) -> None:
                      help="none (default), gaussian:SIGMA_8BIT (e.g. gaussian:25 = 25/255), "
                           "poisson-gaussian:GAIN,READ_SIGMA_8BIT (Var = GAIN x + (READ/255)^2, x in [0, 1]), or "
                           "bayer-pg:GAIN,READ_SIGMA_8BIT (that noise on a Bayer mosaic, then demosaiced: "
-                          "correlated between neighbouring pixels, as in a camera's photos)")
+                          "correlated between neighbouring pixels, as in a camera's photos), jpeg:QUALITY (a "
+                          "JPEG round trip), or steps joined by + and applied in order (e.g. "
+                          "bayer-pg:0.01,5+jpeg:90: a camera's noisy photo as it stores it)")
     imp.add_argument("--seed", type=seed, default=0, help="noise seed (default 0)")
     imp.add_argument("--views", type=int_range(2), default=None,
                      help="training views, spread over the candidates (default: all that are not held out)")

@@ -15,6 +15,11 @@ Spec strings (`--noise`):
   bilinear demosaicing: ``y = clip(x + D(n))`` (`data_synth.effects.noise.bayer_noise`).
   The noise is correlated between neighbouring pixels and between channels, as a
   camera's raw-to-RGB step leaves it; the image itself keeps its detail.
+- ``jpeg:Q``: a round trip through an 8-bit JPEG at libjpeg quality Q (4:2:0
+  chroma, OpenCV's encoder; `data_synth.effects.codec.jpeg`), as a camera or a
+  phone stores its photos.
+- ``A+B``: A, then B on its result, e.g. ``bayer-pg:0.01,5+jpeg:90`` (the noisy
+  photo as a camera writes it to a JPEG). Each step appears at most once.
 
 Noise is added to the (resized, quantised) clean image in [0, 1] float,
 clipped to [0, 1] (a file holds nothing else; a sensor saturates too) and
@@ -24,9 +29,10 @@ clean value is near 0 or 1 the difference `images - clean` is therefore a
 clipped Gaussian: on templeSparseRing's black background at sigma = 25 the
 whole images give std 19.2 and mean +6.1 (0..255 scale), pixels with clean
 values in [0.4, 0.6] give std 25.01 and mean +0.02.
-View i's stream is ``default_rng([seed, crc32(view name), 0])``
+Step k's random stream on view i is ``default_rng([seed, crc32(view name), k])``
 (`data_synth.effects.effect_rng`): adding or dropping a view does not change
-another view's noise.
+another view's noise, and ``N+jpeg:Q`` compresses exactly the noise that ``N``
+alone draws.
 """
 
 from __future__ import annotations
@@ -38,51 +44,83 @@ import numpy as np
 
 from mvgeo.common.errors import InputError
 
-__all__ = ["Degradation", "parse_noise"]
+__all__ = ["Degradation", "DegradationStep", "parse_noise"]
 
 _FIX = "write none, gaussian:SIGMA_8BIT (e.g. gaussian:25), poisson-gaussian:GAIN,READ_SIGMA_8BIT " \
-       "(e.g. poisson-gaussian:0.01,5) or bayer-pg:GAIN,READ_SIGMA_8BIT (e.g. bayer-pg:0.01,5)"
+       "(e.g. poisson-gaussian:0.01,5), bayer-pg:GAIN,READ_SIGMA_8BIT (e.g. bayer-pg:0.01,5) or jpeg:QUALITY, " \
+       "or several joined by + (e.g. bayer-pg:0.01,5+jpeg:90)"
+
+_FORMULAS = {
+    "gaussian": "y = clip(x + N(0, (sigma_8bit/255)^2)), x in [0, 1]",
+    "poisson_gaussian": "y = clip(gain * Poisson(x / gain) + N(0, (read_sigma_8bit/255)^2)), "
+                        "Var[y|x] = gain x + (read_sigma_8bit/255)^2",
+    "bayer_noise": "y = clip(x + D(n)), n = gain * Poisson(m / gain) - m + N(0, (read_sigma_8bit/255)^2) on the "
+                   "RGGB mosaic m of x, D = bilinear demosaicing",
+    "jpeg": "y = decode(encode_jpeg(round(255 x), quality)) / 255, libjpeg via OpenCV, 4:2:0 chroma",
+}
+
+
+@dataclass(frozen=True)
+class DegradationStep:
+    """One step of a `--noise` spec.
+
+    Attributes:
+        effect: the `data_synth` effect name ("gaussian", "poisson_gaussian", "bayer_noise", "jpeg").
+        params: the effect's parameters, as `data_synth` names them (e.g. {"sigma_8bit": 25.0}).
+    """
+
+    effect: str
+    params: dict[str, float]
+
+    def meta(self) -> dict[str, Any]:
+        return {"model": self.effect, "params": dict(self.params), "formula": _FORMULAS[self.effect]}
 
 
 @dataclass(frozen=True)
 class Degradation:
-    """A parsed `--noise` spec.
+    """A parsed `--noise` spec: its steps, applied in order.
 
     Attributes:
         spec: the text as given (normalised: lower case, no spaces).
-        effect: the `data_synth` effect name ("gaussian", "poisson_gaussian", "bayer_noise"), None for no noise.
-        params: the effect's parameters, as `data_synth` names them (e.g. {"sigma_8bit": 25.0}).
+        steps: the degradations in the order they are applied; empty for none.
     """
 
     spec: str
-    effect: str | None
-    params: dict[str, float]
+    steps: tuple[DegradationStep, ...] = ()
 
     @property
     def is_none(self) -> bool:
-        return self.effect is None
+        return not self.steps
+
+    @property
+    def effect(self) -> str | None:
+        """The first step's effect name (the noise model of a ``NOISE+jpeg:Q`` spec); None for none."""
+        return self.steps[0].effect if self.steps else None
+
+    @property
+    def params(self) -> dict[str, float]:
+        """The first step's parameters ({} for none)."""
+        return dict(self.steps[0].params) if self.steps else {}
 
     def meta(self, seed: int) -> dict[str, Any] | None:
-        """What meta.json records: the model, its parameters and formula, and the seed."""
-        if self.effect is None:
+        """What meta.json records: the steps (model, parameters, formula), the spec and the seed; a
+        one-step spec also has its step's keys at the top level."""
+        if not self.steps:
             return None
-        formula = {"gaussian": "y = clip(x + N(0, (sigma_8bit/255)^2)), x in [0, 1]",
-                   "poisson_gaussian": "y = clip(gain * Poisson(x / gain) + N(0, (read_sigma_8bit/255)^2)), "
-                                       "Var[y|x] = gain x + (read_sigma_8bit/255)^2",
-                   "bayer_noise": "y = clip(x + D(n)), n = gain * Poisson(m / gain) - m "
-                                  "+ N(0, (read_sigma_8bit/255)^2) on the RGGB mosaic m of x, "
-                                  "D = bilinear demosaicing"}[self.effect]
-        return {"model": self.effect, "spec": self.spec, "params": dict(self.params), "formula": formula,
-                "seed": int(seed), "stream": "numpy default_rng([seed, crc32(view name), 0]) per view"}
+        stream = "numpy default_rng([seed, crc32(view name), k]) per view, k the step's index"
+        out = {"spec": self.spec, "steps": [st.meta() for st in self.steps], "seed": int(seed), "stream": stream}
+        if len(self.steps) == 1:
+            out = {**self.steps[0].meta(), **out}
+        return out
 
     def apply(self, image: np.ndarray, *, seed: int, view_name: str, K: np.ndarray) -> np.ndarray:
         """The degraded copy of `image` ((H, W, 3) float32 in [0, 1]); unchanged copy for no noise."""
-        if self.effect is None:
+        if not self.steps:
             return np.array(image, dtype=np.float32, copy=True)
         from data_synth.effects import EffectContext, apply_effects, parse_effect
 
-        spec = parse_effect({"type": self.effect, **self.params}, key="--noise", path=None)
-        return apply_effects(image, (spec,), seed=seed, ctx=EffectContext(view_name=view_name, K=K))
+        specs = tuple(parse_effect({"type": st.effect, **st.params}, key="--noise", path=None) for st in self.steps)
+        return apply_effects(image, specs, seed=seed, ctx=EffectContext(view_name=view_name, K=K))
 
 
 def _numbers(text: str, count: int, spec: str) -> list[float]:
@@ -104,24 +142,38 @@ def parse_noise(text: str | None) -> Degradation:
     before any image is read.
 
     Raises:
-        InputError: unknown model, wrong count of numbers, or a value out of range.
+        InputError: unknown model, wrong count of numbers, a value out of range, or a step given twice.
     """
     spec = "none" if text is None else "".join(str(text).split()).lower()
-    kind, _, args = spec.partition(":")
-    if kind in ("none", "") and not args:
-        return Degradation("none", None, {})
+    if spec in ("none", ""):
+        return Degradation("none")
+    steps = tuple(_parse_step(part, spec) for part in spec.split("+"))
+    effects = [st.effect for st in steps]
+    if len(set(effects)) != len(effects):
+        raise InputError(f"--noise {spec!r} gives the same step twice", fix=_FIX)
+    return Degradation(spec, steps)
+
+
+def _parse_step(part: str, spec: str) -> DegradationStep:
+    kind, _, args = part.partition(":")
     if kind == "gaussian":
         (sigma,) = _numbers(args, 1, spec)
-        deg = Degradation(spec, "gaussian", {"sigma_8bit": sigma})
+        step = DegradationStep("gaussian", {"sigma_8bit": sigma})
     elif kind in ("poisson-gaussian", "poisson_gaussian"):
         gain, read = _numbers(args, 2, spec)
-        deg = Degradation(spec, "poisson_gaussian", {"gain": gain, "read_sigma_8bit": read})
+        step = DegradationStep("poisson_gaussian", {"gain": gain, "read_sigma_8bit": read})
     elif kind in ("bayer-pg", "bayer_pg"):
         gain, read = _numbers(args, 2, spec)
-        deg = Degradation(spec, "bayer_noise", {"gain": gain, "read_sigma_8bit": read})
+        step = DegradationStep("bayer_noise", {"gain": gain, "read_sigma_8bit": read})
+    elif kind == "jpeg":
+        (quality,) = _numbers(args, 1, spec)
+        if quality != int(quality):
+            raise InputError(f"--noise {spec!r}: the JPEG quality is a whole number from 1 to 100", fix=_FIX)
+        step = DegradationStep("jpeg", {"quality": int(quality)})
     else:
-        raise InputError(f"unknown noise model {kind!r} in --noise {spec!r}", fix=_FIX)
+        what = "an empty step" if not part else f"unknown noise model {kind!r}"
+        raise InputError(f"{what} in --noise {spec!r}", fix=_FIX)
     from data_synth.effects import parse_effect
 
-    parse_effect({"type": deg.effect, **deg.params}, key="--noise", path=None)  # range checks, ConfigError
-    return deg
+    parse_effect({"type": step.effect, **step.params}, key="--noise", path=None)  # range checks, ConfigError
+    return step

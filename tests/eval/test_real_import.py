@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 
+import cv2  # before pycolmap, which the importer loads
 import numpy as np
 import pytest
 
@@ -362,14 +363,34 @@ def test_poisson_gaussian_noise_variance_follows_the_signal(tmp_path, rng):
     assert json.loads((out / "meta.json").read_text())["noise"]["params"] == {"gain": a, "read_sigma_8bit": read}
 
 
+def test_noise_then_jpeg_compresses_exactly_the_noise_alone_draws(tmp_path, rng):
+    _write_par(tmp_path / "mb", rng, n=4)
+    alone = import_dataset("middlebury", tmp_path / "mb", tmp_path / "a", test=1, noise="gaussian:25", seed=2)
+    chain = import_dataset("middlebury", tmp_path / "mb", tmp_path / "b", test=1, noise="gaussian:25+jpeg:90", seed=2)
+    for f in sorted((alone / "images").iterdir()):
+        bgr = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        assert bgr.dtype == np.uint8  # 8-bit files: the JPEG step encodes exactly these values
+        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        expect = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        got = cv2.imread(str(chain / "images" / f.name), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(got, expect)
+        assert np.abs(got.astype(int) - bgr).max() > 0  # the compression changed the noisy photo
+    meta = json.loads((chain / "meta.json").read_text())["noise"]
+    assert [s["model"] for s in meta["steps"]] == ["gaussian", "jpeg"] and meta["steps"][1]["params"] == {"quality": 90}
+    assert "model" not in meta and meta["spec"] == "gaussian:25+jpeg:90"
+
+
 def test_parse_noise_rejects_what_it_does_not_know():
     assert parse_noise(None).is_none and parse_noise("none").is_none
     assert parse_noise("Gaussian: 10").params == {"sigma_8bit": 10.0}
     assert parse_noise("bayer-pg:0.01,5").effect == "bayer_noise"
+    chain = parse_noise("bayer-pg:0.01,5 + JPEG:90")
+    assert [s.effect for s in chain.steps] == ["bayer_noise", "jpeg"] and chain.steps[1].params == {"quality": 90}
     for bad, msg in [("gauss:3", "unknown noise model"), ("gaussian:", "expected 1 number"),
                      ("gaussian:1,2", "expected 1 number"), ("poisson-gaussian:0.1", "expected 2 numbers"),
                      ("bayer-pg:0.01", "expected 2 numbers"), ("bayer-pg:0,5", "out of range"),
-                     ("gaussian:-3", "out of range")]:
+                     ("gaussian:-3", "out of range"), ("jpeg:0", "out of range"), ("jpeg:90.5", "whole number"),
+                     ("gaussian:25+", "empty step"), ("jpeg:90+gaussian:5+jpeg:80", "same step twice")]:
         with pytest.raises(InputError, match=msg):
             parse_noise(bad)
 
