@@ -89,6 +89,9 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
                   "neighbouring pixels; its level /255 by stride: %s)", stride, stride,
                   levels.levels_255())
         work = shuffled(images, stride)
+    if levels.luma_level is not None:
+        _log.info("the images' colour patches read no fine noise (%s), their luma %.1f/255: chroma-subsampled noise, "
+                  "as a JPEG's; its level is read on the luma", levels.levels_255(), 255.0 * levels.luma_level)
     method = args.method
     if method == "auto":  # on the whole images: the dark fraction's blur is in pixels of the image
         choice = choose_objective(images)

@@ -19,6 +19,11 @@ AWGN-based denoiser meets real noises"; Lee et al. 2022, AP-BSN). The price: eac
 on their sub-images. For
 noise independent per pixel the two agree; correlated noise reads low on the photos and at its level on the
 sub-images. Photos with white or Poisson-Gaussian noise get stride 1 and are denoised exactly as without PD.
+
+A JPEG's noise reads low on the photos for another reason: its 4:2:0 chroma subsampling smooths the colour
+differences, while the luma keeps its noise, white (`denoise.noise_level.CHROMA_DEFICIT_RATIO`). Where the
+photos' luma reads the level their colour patches miss, the stride is 1 and the level is the luma's
+(`NoiseLevels.luma_level`; the denoisers read each photo's level the same way, `r2r_noise_std`).
 """
 
 from __future__ import annotations
@@ -125,14 +130,19 @@ class NoiseLevels:
         level_by_stride: {stride: the noise std the PCA estimator reads on the sub-images at that stride,
             [0, 1] units}, the median over each photo's sub-images, then over the photos read; stride 1 is the
             photos themselves. Strides past the one that decided are not read.
+        luma_level: where the photos' noise is chroma-subsampled (`denoise.noise_level.chroma_subsampled_sigma`
+            of the stride-1 level and this), the level their luma reads (RGB-equivalent, the median over the
+            photos read, `denoise.noise_level.luma_noise_sigma`), and the stride is 1; else None.
     """
 
     stride: int
     level_by_stride: dict[int, float]
+    luma_level: float | None = None
 
     def levels_255(self) -> str:
         """The levels read, /255, for a log line ("not measured" when none were read)."""
-        return ", ".join(f"{k}: {255.0 * v:.1f}" for k, v in self.level_by_stride.items()) or "not measured"
+        text = ", ".join(f"{k}: {255.0 * v:.1f}" for k, v in self.level_by_stride.items()) or "not measured"
+        return text if self.luma_level is None else f"{text}; luma: {255.0 * self.luma_level:.1f}"
 
     def levels_by_stride_255(self) -> dict[str, float]:
         """The levels read, /255 rounded to 0.01, keyed by the stride as a string (a JSON key); empty when
@@ -142,7 +152,8 @@ class NoiseLevels:
     def record(self) -> dict[str, object]:
         """What `denoise n2v`'s report.json records: the stride, and the levels read (/255) if any."""
         levels = self.levels_by_stride_255()
-        return {"pd_stride": self.stride, **({"noise_level_by_stride_255": levels} if levels else {})}
+        luma = {} if self.luma_level is None else {"noise_level_luma_255": round(255.0 * self.luma_level, 2)}
+        return {"pd_stride": self.stride, **({"noise_level_by_stride_255": levels} if levels else {}), **luma}
 
 
 def stride_for(images: Sequence[np.ndarray], setting: int) -> NoiseLevels:
@@ -159,7 +170,8 @@ def _level(images: Sequence[np.ndarray], stride: int) -> float:
 
 def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
                   min_ratio: float = MIN_LEVEL_RATIO) -> NoiseLevels:
-    """1 (no PD) where the noise level reads about the same on the photos as on their stride-2 sub-images
+    """1 (no PD) where the photos' noise is chroma-subsampled (a JPEG's: the module docstring), or where the
+    noise level reads about the same on the photos as on their stride-2 sub-images
     (at least `min_ratio` of it), or is weak (under `MIN_NOISE_STD` there, unless the photos read under
     `STRONG_LEVEL_RATIO` of it and it is at least `MIN_CORRELATED_NOISE_STD`); else the smallest stride s >= 2
     whose level is at least `min_ratio` of stride s + 1's (`max_stride` at most).
@@ -171,7 +183,14 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
     if not big:
         return NoiseLevels(1, {})
     pick = big if len(big) <= MAX_PHOTOS else [big[int(i)] for i in np.linspace(0, len(big) - 1, MAX_PHOTOS)]
-    level = {1: _level(pick, 1), 2: _level(pick, 2)}
+    level = {1: _level(pick, 1)}
+    if all(np.ndim(im) == 3 and np.shape(im)[2] == 3 for im in pick):
+        from denoise.noise_level import chroma_subsampled_sigma, luma_noise_sigma
+
+        luma = chroma_subsampled_sigma(level[1], float(np.median([luma_noise_sigma(im) for im in pick])))
+        if luma is not None:  # a JPEG's noise: white in the luma, which reads it
+            return NoiseLevels(1, {1: round(level[1], 6)}, round(luma, 6))
+    level[2] = _level(pick, 2)
     stride = 1
     correlated = level[2] >= MIN_NOISE_STD and level[1] < min_ratio * level[2]
     strongly = level[2] >= MIN_CORRELATED_NOISE_STD and level[1] < STRONG_LEVEL_RATIO * level[2]

@@ -78,7 +78,7 @@ from denoise.losses import neighbor2neighbor_loss
 from denoise.model import N2VModel
 from denoise.n2v import N2VConfig, StepBatch, new_model, optimise_unet, train_n2v
 from denoise.neighbor2neighbor import neighbour_choice, neighbour_subsample
-from denoise.noise_level import estimate_noise_sigma, estimate_noise_sigma_clipped
+from denoise.noise_level import chroma_subsampled_noise_sigma, estimate_noise_sigma, estimate_noise_sigma_clipped
 from denoise.parallel import run_tasks
 from denoise.patches import effective_patch_px, sample_patches
 from denoise.r2r import recorrupt
@@ -115,13 +115,19 @@ def r2r_noise_std(img: np.ndarray, *, noise_model: NoiseModel = "auto") -> float
         noise_model: ``"constant"``: `estimate_noise_sigma_clipped` (the unclipped patches' PCA estimate, or
             the clipped-noise fit where that is larger: a dark photo at a high noise level);
             ``"curve"``: the image's `NoiseCurve` evaluated at its `INTENSITY_BLUR_PX`
-            Gaussian blur; ``"auto"``: the curve where its signal-dependent term dominates at
-            the median intensity (`denoise.inference.signal_dependent_curve`, the N2V fusion's
-            rule), else the constant.
+            Gaussian blur; ``"auto"``: the constant read on the luma where the photo's noise is
+            chroma-subsampled (`denoise.noise_level.chroma_subsampled_noise_sigma`: a JPEG's colour
+            patches hold no fine noise, and a curve read on them would too), else the curve where its
+            signal-dependent term dominates at the median intensity
+            (`denoise.inference.signal_dependent_curve`, the N2V fusion's rule), else the constant.
 
     Returns:
         A float, or a ``[C, H, W]`` float32 tensor (``[0, 1]`` units).
     """
+    if noise_model == "auto":
+        luma = chroma_subsampled_noise_sigma(img)
+        if luma is not None:
+            return luma
     curve = signal_dependent_curve(img, noise_model)
     if curve is None:
         return estimate_noise_sigma_clipped(img)

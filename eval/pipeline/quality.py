@@ -60,6 +60,8 @@ class DenoiseQuality:
     #: (`denoise.pixel_shuffle.choose_stride`).
     pd_stride: int | None = None
     noise_level_by_stride_255: dict[str, float] = field(default_factory=dict)
+    #: round 1: where the photos' noise is chroma-subsampled (a JPEG's), the level their luma reads (/255).
+    noise_level_luma_255: float | None = None
 
 
 @dataclass(frozen=True)
@@ -166,7 +168,8 @@ def _denoise_quality(summary: DenoiseSummary) -> DenoiseQuality:
                           restarts=len(summary.training_restarts), kind="training",
                           noise_std_255=dict(noise.noise_std_255), signal_dependent=list(noise.signal_dependent),
                           pd_stride=summary.pd_stride,
-                          noise_level_by_stride_255=dict(summary.noise_level_by_stride_255 or {}))
+                          noise_level_by_stride_255=dict(summary.noise_level_by_stride_255 or {}),
+                          noise_level_luma_255=summary.noise_level_luma_255)
 
 
 def _fine_tuning_quality(summary: RefineSummary) -> DenoiseQuality:
@@ -307,6 +310,11 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
             lines.append(f"- the noise is correlated between neighbouring pixels, as a camera's demosaicing leaves it"
                          f"{f' (its level read on the photos and their sub-images: {read})' if read else ''}: the "
                          f"photos were denoised as {d.pd_stride} x {d.pd_stride} pixel-shuffled sub-images")
+        if d is not None and d.noise_level_luma_255 is not None:
+            colour = d.noise_level_by_stride_255.get("1")
+            lines.append("- the photos' colour differences hold no fine noise, as a JPEG's 4:2:0 chroma subsampling "
+                         f"leaves them{f' (their colour patches read {colour:.1f}/255)' if colour is not None else ''}"
+                         f": the noise level was read on their luma, {d.noise_level_luma_255:.1f}/255")
         a = q.align
         if a is not None:
             photos = f" ({a.photos} photos)" if a.photos else ""

@@ -109,6 +109,10 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
                   "denoising their %d x %d pixel-shuffled sub-images",
                   levels.levels_255(), stride, stride)
         photos = shuffled(photos, stride)
+    if levels.luma_level is not None:
+        _log.info("the photos' colour patches read no fine noise (%s), their luma %.1f/255: chroma-subsampled "
+                  "noise, as a JPEG's; its level is read on the luma", levels.levels_255(),
+                  255.0 * levels.luma_level)
     out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed)
     if stride > 1:
         n = stride * stride
@@ -122,6 +126,8 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
                           dark_clipped_fraction=dark_clipped_fraction,
                           training_restarts=list(model.restarts),  # a diverged training, restarted
                           pd_stride=stride, noise_level_by_stride_255=levels.levels_by_stride_255() or None,
+                          noise_level_luma_255=None if levels.luma_level is None else
+                          round(255.0 * levels.luma_level, 2),
                           noise=noise_levels(noisy, stds)).to_json()  # the report's noise level
 
 

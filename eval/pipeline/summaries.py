@@ -217,6 +217,8 @@ class DenoiseSummary:
         pd_stride: the pixel-shuffle stride the photos were denoised at (1: none).
         noise_level_by_stride_255: stride -> the noise level read on the sub-images at that stride, /255
             (`denoise.pixel_shuffle.NoiseLevels`); None where none was read.
+        noise_level_luma_255: where the photos' noise is chroma-subsampled (a JPEG's), the level their luma
+            reads, /255 (`denoise.pixel_shuffle.NoiseLevels.luma_level`); None otherwise.
         noise: each photo's noise level (the report's).
         denoiser: a classical denoiser's name (`eval.baselines`).
         sigma_est: a classical denoiser's noise estimate per view, [0, 1] units.
@@ -229,6 +231,7 @@ class DenoiseSummary:
     training_restarts: list[TrainingRestart] = field(default_factory=list)
     pd_stride: int | None = None
     noise_level_by_stride_255: dict[str, float] | None = None
+    noise_level_luma_255: float | None = None
     noise: PhotoNoise | None = None
     denoiser: str | None = None
     sigma_est: dict[str, float] | None = None
@@ -246,6 +249,7 @@ class DenoiseSummary:
             "objective": self.objective, "dark_clipped_fraction": self.dark_clipped_fraction,
             "training_restarts": restarts, "pd_stride": self.pd_stride,
             "noise_level_by_stride_255": self.noise_level_by_stride_255,
+            "noise_level_luma_255": self.noise_level_luma_255,
             **(self.noise.to_json() if self.noise is not None else {}),
             "denoiser": self.denoiser, "sigma_est": self.sigma_est})
 
@@ -258,6 +262,7 @@ class DenoiseSummary:
                    training_restarts=[TrainingRestart.from_json(r) for r in data.get("training_restarts", [])],
                    pd_stride=_opt(data, "pd_stride", int),
                    noise_level_by_stride_255=_opt(data, "noise_level_by_stride_255", _float_map),
+                   noise_level_luma_255=_opt(data, "noise_level_luma_255", float),
                    noise=PhotoNoise.from_json(data) if has_noise else None,
                    denoiser=_opt(data, "denoiser", str), sigma_est=_opt(data, "sigma_est", _float_map))
 

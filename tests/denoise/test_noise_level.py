@@ -17,6 +17,7 @@ from denoise.noise_level import (
     estimate_noise_sigma_pca,
     estimate_noise_sigma_robust,
     fit_clipped_noise_sigma,
+    luma_noise_sigma,
 )
 from denoise.unet import UNetConfig
 
@@ -195,3 +196,27 @@ def test_surround_level_matches_a_loop(rng):
                 want.append((outer.sum() - inner.sum()) / (outer.size - inner.size))
         assert len(got) == len(want) == len(_patches(img, patch_px, max_patches))
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_a_jpegs_noise_is_read_on_its_luma(rng):
+    """After a JPEG round trip (4:2:0 chroma) the colour patches hold no fine noise and read about 1/255 of
+    white noise of 25.5/255; the luma keeps it. `estimate_noise_sigma_clipped` and R2R's level read the luma
+    there, and read as before where the colour patches see the noise or where there is none."""
+    from data_synth.effects import EffectContext, apply_effects, parse_effect
+    from denoise.self_supervised import r2r_noise_std
+
+    eff = parse_effect({"type": "jpeg", "quality": 90}, key="noise", path=None)
+    base = 0.25 + 0.5 * _ramp(160, 160)  # in [0.27, 0.73]: little clipped
+    noisy = np.clip(base + rng.normal(0, 0.1, base.shape), 0, 1).astype(np.float32)
+    jpeg = apply_effects(noisy, (eff,), seed=0, ctx=EffectContext("v", np.eye(3)))
+    assert estimate_noise_sigma_pca(jpeg, exclude_clipped=True) < 0.1 * 0.1  # 0.6-1.3/255 on four seeds
+    # 101-103 % of the std on four seeds (JPEG's quantisation adds a little); 10 % bounds it.
+    assert estimate_noise_sigma_clipped(jpeg) == pytest.approx(0.1, rel=0.1)
+    assert float(r2r_noise_std(jpeg)) == estimate_noise_sigma_clipped(jpeg)
+    # White noise as a PNG holds it: the luma reads as the colour patches (within the estimator's few %),
+    # and the level is the colour one, to the bit.
+    assert luma_noise_sigma(noisy) == pytest.approx(estimate_noise_sigma_pca(noisy), rel=0.05)
+    colour = max(estimate_noise_sigma_pca(noisy, exclude_clipped=True), fit_clipped_noise_sigma(noisy))
+    assert estimate_noise_sigma_clipped(noisy) == colour
+    clean = apply_effects(base.astype(np.float32), (eff,), seed=0, ctx=EffectContext("v", np.eye(3)))
+    assert estimate_noise_sigma_clipped(clean) < 2 / 255  # a clean JPEG stays clean

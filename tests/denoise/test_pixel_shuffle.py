@@ -107,6 +107,29 @@ def test_demosaiced_noise_that_reads_faint_gets_stride_two_by_its_ratio(rng):
     assert choose_stride(white).stride == 1
 
 
+def _jpeg(img, quality, seed):
+    eff = parse_effect({"type": "jpeg", "quality": quality}, key="noise", path=None)
+    return apply_effects(img, (eff,), seed=seed, ctx=EffectContext("v", np.eye(3)))
+
+
+def test_a_jpegs_noise_reads_on_its_luma_and_gets_no_stride(rng):
+    """JPEG's 4:2:0 chroma subsampling leaves the colour directions of a patch without fine noise: the colour
+    patches read under 1/255, and the stride rule read that as correlated noise (stride 2, at a third of the
+    level). The luma keeps the noise, white: stride 1 at the luma's level."""
+    scenes = [_smooth_scene(rng) for _ in range(3)]
+    noisy = [np.clip(s + rng.normal(0, 0.1, s.shape), 0, 1).astype(np.float32) for s in scenes]
+    read = choose_stride([_jpeg(x, 90, k) for k, x in enumerate(noisy)])
+    assert read.level_by_stride[1] < 0.1 * 0.1  # the colour patches: 0.5-1.0/255 of 25.5 on three seeds
+    # The luma after the round trip: 102-105 % of the noise's std on three seeds of this scene (the
+    # quantisation adds a little); 10 % bounds it.
+    assert read.stride == 1 and read.luma_level == pytest.approx(0.1, rel=0.1)
+    assert set(read.level_by_stride) == {1} and read.record()["noise_level_luma_255"] == pytest.approx(25.5, rel=0.1)
+    png = choose_stride(noisy)  # the same noise without the JPEG: read on the colour patches, as before
+    assert png.stride == 1 and png.luma_level is None and set(png.level_by_stride) == {1, 2}
+    clean = choose_stride([_jpeg(s, 90, k) for k, s in enumerate(scenes)])
+    assert clean.stride == 1 and clean.luma_level is None
+
+
 def test_shuffled_and_unshuffled_are_inverse_over_a_list(rng):
     images = [rng.random((10, 14, 3)), rng.random((9, 11, 3))]
     parts = shuffled(images, 3)
@@ -133,3 +156,4 @@ def test_noise_levels_log_line_lists_the_levels_read():
 
     assert NoiseLevels(2, {1: 10 / 255, 2: 20 / 255}).levels_255() == "1: 10.0, 2: 20.0"
     assert NoiseLevels(1, {}).levels_255() == "not measured"
+    assert NoiseLevels(1, {1: 1 / 255}, 24 / 255).levels_255() == "1: 1.0; luma: 24.0"

@@ -238,3 +238,8 @@ def test_the_report_says_the_photos_were_denoised_as_pixel_shuffled_sub_images(t
     assert "denoised as 2 x 2 pixel-shuffled sub-images" in text and "12.6/255 at stride 2" in text
     for q in (with_summary(pd_stride=1, noise_level_by_stride_255={"1": 20.0, "2": 20.1}), round_quality(rnd)):
         assert "pixel-shuffled" not in "\n".join(quality_lines([q]))  # stride 1, or not recorded: no line
+    q = with_summary(pd_stride=1, noise_level_by_stride_255={"1": 1.0}, noise_level_luma_255=24.3)
+    text = "\n".join(quality_lines([q]))
+    assert "colour patches read 1.0/255" in text and "read on their luma, 24.3/255" in text
+    assert "pixel-shuffled" not in text
+    assert "luma" not in "\n".join(quality_lines([with_summary(pd_stride=2, noise_level_by_stride_255=levels)]))

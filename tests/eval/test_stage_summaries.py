@@ -37,7 +37,7 @@ DENOISE = {
     "train": {"loss": {"first": 1.25, "last": 0.5, "count": 400}},
     "objective": "neighbor2neighbor", "dark_clipped_fraction": 0.6132,
     "training_restarts": [{"step": 37, "lr": 0.003}, {"step": 52, "lr": 0.0015}],
-    "pd_stride": 2, "noise_level_by_stride_255": {"1": 4.1, "2": 12.62, "3": 12.8},
+    "pd_stride": 2, "noise_level_by_stride_255": {"1": 4.1, "2": 12.62, "3": 12.8}, "noise_level_luma_255": 24.3,
     "noise_std_255": {"view_000": 24.8, "view_001": 25.3}, "signal_dependent": ["view_001"],
 }
 DENOISE_PLAIN = {  # the preset's objective, no restart, stride 1 set by hand (no levels read)
@@ -122,6 +122,7 @@ def test_the_readers_fields_hold_what_the_summaries_record():
     assert d.training_restarts == [TrainingRestart(37, 0.003), TrainingRestart(52, 0.0015)]
     assert d.noise == PhotoNoise({"view_000": 24.8, "view_001": 25.3}, ["view_001"])
     assert (d.pd_stride, d.noise_level_by_stride_255) == (2, {"1": 4.1, "2": 12.62, "3": 12.8})
+    assert d.noise_level_luma_255 == 24.3
     nlm = DenoiseSummary.from_json(CLASSICAL_DENOISE[1])
     assert nlm.loss is None and nlm.noise is None and nlm.sigma_est == {"a": 0.098} and nlm.training_restarts == []
     r = RefineSummary.from_json(REFINE)
