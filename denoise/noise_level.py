@@ -334,7 +334,8 @@ LUMA_GAIN = float(np.linalg.norm(LUMA_WEIGHTS))
 #: keeps all of it. Measured (colour patches over luma): white noise and Poisson-Gaussian noise on DTU scan24
 #: and the temple ring 0.94-1.0 as PNGs, 0.04-0.07 after a JPEG round trip at quality 90 (0.03-0.04 on flat
 #: synthetic scenes at 75-95); demosaiced Poisson-Gaussian noise, correlated in the luma too, 0.25 on a flat
-#: synthetic scene and 0.41 on DTU scan24; clean photos 0.25-0.39 (their luma under `MIN_LUMA_NOISE_STD`).
+#: synthetic scene and 0.41 on DTU scan24 (0.13 as a JPEG, its luma 5.3/255); clean photos 0.25-0.39, and
+#: 0.11-0.31 as JPEGs (their luma 0.8-3.6/255): the floor `MIN_LUMA_NOISE_STD` keeps those out.
 CHROMA_DEFICIT_RATIO = 0.12
 #: The luma level (RGB-equivalent, [0, 1] units) a chroma-subsampled reading needs: clean photos' texture reads
 #: 0.8-3.6/255 in luma, demosaiced Poisson-Gaussian noise (gain 0.01, read 5/255) 4.7-5.4.
