@@ -90,8 +90,9 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
                   levels.levels_255())
         work = shuffled(images, stride)
     if levels.luma_level is not None:
-        _log.info("the images' colour patches read no fine noise (%s), their luma %.1f/255: chroma-subsampled noise, "
-                  "as a JPEG's; its level is read on the luma", levels.levels_255(), 255.0 * levels.luma_level)
+        _log.info("the images' colour patches read %.1f/255 of noise, their luma %.1f/255: chroma-subsampled noise, "
+                  "as a JPEG's; its level is read on the luma", 255.0 * levels.level_by_stride[1],
+                  255.0 * levels.luma_level)
     method = args.method
     if method == "auto":  # on the whole images: the dark fraction's blur is in pixels of the image
         choice = choose_objective(images)

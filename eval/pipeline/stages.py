@@ -110,8 +110,8 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
                   levels.levels_255(), stride, stride)
         photos = shuffled(photos, stride)
     if levels.luma_level is not None:
-        _log.info("the photos' colour patches read no fine noise (%s), their luma %.1f/255: chroma-subsampled "
-                  "noise, as a JPEG's; its level is read on the luma", levels.levels_255(),
+        _log.info("the photos' colour patches read %.1f/255 of noise, their luma %.1f/255: chroma-subsampled noise, "
+                  "as a JPEG's; its level is read on the luma", 255.0 * levels.level_by_stride[1],
                   255.0 * levels.luma_level)
     out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed)
     if stride > 1:
