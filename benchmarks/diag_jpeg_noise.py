@@ -9,7 +9,7 @@ spread over the training views; with `--clean`, the folder's `clean/` photos too
 
 With `--per-photo`, instead: for each dataset's 12 training photos as they are, at the stride `choose_stride`
 gives them, on how many photos (or sub-images) the denoisers read the level on the luma
-(`denoise.noise_level.chroma_subsampled_noise_sigma`), and the range of colour / luma and of the luma's level.
+(`denoise.noise_level.chroma_subsampled_noise_sigma`'s rule), and the range of colour / luma and of the luma's level.
 
 Usage: .venv/bin/python benchmarks/diag_jpeg_noise.py DATASET [DATASET ...] [--qualities 95 90 80] [--clean]
        .venv/bin/python benchmarks/diag_jpeg_noise.py DATASET [DATASET ...] --per-photo
@@ -21,19 +21,17 @@ from pathlib import Path
 import numpy as np
 
 import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
-from denoise.noise_level import chroma_subsampled_noise_sigma, estimate_noise_sigma_pca, luma_noise_sigma
+from data_synth.effects import EffectContext, apply_effects, parse_effect
+from denoise.noise_level import chroma_subsampled_sigma, estimate_noise_sigma_pca, luma_noise_sigma
 from denoise.pixel_shuffle import MAX_PHOTOS, choose_stride, pd_split, shuffled
-from mvgeo.common.deps import cv2
 from mvgeo.common.imageio import read_image
 
 
 def jpeg_round_trip(img: np.ndarray, quality: int) -> np.ndarray:
-    """`img` ((H, W, 3) in [0, 1]) through an 8-bit JPEG at `quality` (as `data_synth`'s `jpeg` effect)."""
-    bgr = np.ascontiguousarray(np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)[:, :, ::-1])
-    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise RuntimeError("OpenCV failed to encode a JPEG")
-    return np.ascontiguousarray(cv2.imdecode(buf, cv2.IMREAD_COLOR)[:, :, ::-1]).astype(np.float32) / 255.0
+    """`img` ((H, W, 3) in [0, 1]) through an 8-bit JPEG at `quality`: `data_synth`'s `jpeg` effect, as the
+    import's `+jpeg:Q` step applies it."""
+    effect = parse_effect({"type": "jpeg", "quality": int(quality)}, key="--qualities", path=None)
+    return apply_effects(img, (effect,), seed=0, ctx=EffectContext("diag", np.eye(3)))
 
 
 def level_255(images: list[np.ndarray], stride: int, luma: bool) -> float:
@@ -76,9 +74,11 @@ def per_photo(datasets: list[Path]) -> int:
         ims = [read_image(d / "images" / n) for n in json.loads((d / "split.json").read_text())["train"]]
         stride = choose_stride(ims).stride
         work = ims if stride == 1 else shuffled(ims, stride)
-        fired = sum(chroma_subsampled_noise_sigma(w) is not None for w in work)
+        # The readings `chroma_subsampled_noise_sigma` makes, each once.
         luma = np.array([luma_noise_sigma(w, exclude_clipped=True) for w in work])
-        ratio = np.array([estimate_noise_sigma_pca(w, exclude_clipped=True) for w in work]) / np.maximum(luma, 1e-9)
+        colour = np.array([estimate_noise_sigma_pca(w, exclude_clipped=True) for w in work])
+        fired = sum(chroma_subsampled_sigma(c, y) is not None for c, y in zip(colour, luma, strict=True))
+        ratio = colour / np.maximum(luma, 1e-9)
         print(f"| {d.name} | {stride} | {fired} of {len(work)} | {ratio.min():.2f}-{ratio.max():.2f} | "
               f"{255 * luma.min():.1f}-{255 * luma.max():.1f} |", flush=True)
     return 0

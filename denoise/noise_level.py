@@ -303,7 +303,7 @@ def fit_clipped_noise_sigma(img: np.ndarray, *, patch_px: int = CLIPPED_FIT_PATC
     return float(np.median(per_bin))
 
 
-def estimate_noise_sigma_clipped(img: np.ndarray) -> float:
+def estimate_noise_sigma_clipped(img: np.ndarray, *, read_luma: bool = True) -> float:
     """Std of additive Gaussian noise in a photo that may be clipped at 0 and 1: the larger of
     `estimate_noise_sigma_pca` on the unclipped patches and `fit_clipped_noise_sigma`.
 
@@ -314,10 +314,13 @@ def estimate_noise_sigma_clipped(img: np.ndarray) -> float:
     photo; the temple ring at sigma 25: 7 of 15, the fit raising the other eight by up to 0.5/255).
 
     A colour photo whose noise is chroma-subsampled (`chroma_subsampled_noise_sigma`: a JPEG's) gives the
-    level its luma reads instead: its colour patches read the smoothed colour differences' 1/255.
+    level its luma reads instead: its colour patches read the smoothed colour differences' 1/255. With
+    `read_luma` False the luma is not read: for a caller that has found the photo not chroma-subsampled by
+    `chroma_subsampled_noise_sigma` (its colour reading, the unclipped patches' alone, is never above this
+    one's, so this one would not find it either).
     """
     colour = max(estimate_noise_sigma_pca(img, exclude_clipped=True), fit_clipped_noise_sigma(img))
-    if np.ndim(img) == 3 and np.shape(img)[2] == 3:
+    if read_luma and np.ndim(img) == 3 and np.shape(img)[2] == 3:
         luma = chroma_subsampled_sigma(colour, luma_noise_sigma(img, exclude_clipped=True))
         if luma is not None:
             return luma

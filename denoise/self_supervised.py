@@ -129,8 +129,8 @@ def r2r_noise_std(img: np.ndarray, *, noise_model: NoiseModel = "auto") -> float
         if luma is not None:
             return luma
     curve = signal_dependent_curve(img, noise_model)
-    if curve is None:
-        return estimate_noise_sigma_clipped(img)
+    if curve is None:  # "auto" has read the luma above
+        return estimate_noise_sigma_clipped(img, read_luma=noise_model != "auto")
     blurred = cv2.GaussianBlur(np.ascontiguousarray(img, dtype=np.float32), (0, 0), INTENSITY_BLUR_PX)
     return curve.sigma_at(image_to_tensor(blurred.reshape(img.shape)))
 
