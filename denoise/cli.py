@@ -98,14 +98,15 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
         choice = choose_objective(images)
         method = choice.method
         chosen.update({"objective_rule": "auto", "dark_clipped_fraction": round(choice.dark_clipped_fraction, 4)})
+    noise_model = levels.noise_model if args.noise_model == "auto" else args.noise_model
     config = n2v_preset(args.preset, **overrides, method=method)
     grouped = args.grouped_wiener or args.grouped_wiener_passes > 1
     timer = StageTimer()
     with timer.stage("train"):
-        model = train_with_method(work, config, seed=args.seed, device=device, noise_model=args.noise_model)
+        model = train_with_method(work, config, seed=args.seed, device=device, noise_model=noise_model)
     with timer.stage("denoise"):
         out = denoise_with_method(model, work, config, passes=args.passes, seed=args.seed,
-                                  noise_model=args.noise_model, wiener=WienerConfig() if args.wiener else None,
+                                  noise_model=noise_model, wiener=WienerConfig() if args.wiener else None,
                                   grouped=GroupedWienerConfig(passes=args.grouped_wiener_passes)
                                   if grouped else None)
         if stride > 1:
@@ -119,7 +120,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
         atomic_write_text(tmp / "report.json", json.dumps({
             "images": [f.name for f in files], "preset": args.preset, "method": config.method,
             "steps": config.steps,
-            "passes": args.passes, "noise_model": args.noise_model, "seed": args.seed, "wiener": args.wiener,
+            "passes": args.passes, "noise_model": noise_model, "seed": args.seed, "wiener": args.wiener,
             "grouped_wiener": grouped, "grouped_wiener_passes": args.grouped_wiener_passes if grouped else 0,
             "final_loss": float(np.mean(model.history[-20:])),
             "timing_s": timer.as_dict(), **chosen}, indent=2))
@@ -172,7 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise-model", choices=NOISE_MODELS, default="auto",
                    help="noise level for n2v's centre-pixel fusion and r2r's recorruption: one per image "
                         "(constant: Gaussian noise), a per-intensity curve (signal-dependent, Poisson-Gaussian "
-                        "noise), or auto (the curve where shot noise dominates, per image)")
+                        "noise), the constant read on the luma (luma: a JPEG's chroma-subsampled noise), or auto "
+                        "(the curve where shot noise dominates, per image; luma where the photos' noise is "
+                        "chroma-subsampled)")
     p.add_argument("--wiener", action="store_true",
                    help="refine the network's output with the sliding-window DCT Wiener step (denoise.wiener: "
                         "the noisy image shrunk by the gains the output implies; about +0.9-1.8 dB on real photos)")

@@ -34,7 +34,13 @@ from denoise.fusion import fuse_with_observation
 from denoise.images import image_to_tensor, tensor_to_image
 from denoise.masking import mask_pixels
 from denoise.model import N2VModel
-from denoise.noise_level import NoiseCurve, estimate_noise_curve, estimate_noise_sigma, estimate_noise_sigma_pca
+from denoise.noise_level import (
+    NoiseCurve,
+    estimate_noise_curve,
+    estimate_noise_sigma,
+    estimate_noise_sigma_pca,
+    luma_noise_sigma,
+)
 from denoise.parallel import group_size, one_thread_per_task, run_tasks
 from mvgeo.common.errors import check_shape
 from mvgeo.common.progress import progress
@@ -50,8 +56,8 @@ MARGIN_PX = 48
 #: can only lose detail (measured 23 dB vs the input on a clean synthetic scene).
 CLEAN_SIGMA = 1.0 / 255
 
-NoiseModel = Literal["auto", "constant", "curve"]
-NOISE_MODELS: tuple[str, ...] = ("auto", "constant", "curve")
+NoiseModel = Literal["auto", "constant", "curve", "luma"]
+NOISE_MODELS: tuple[str, ...] = ("auto", "constant", "curve", "luma")
 
 
 def fusion_noise_sigma(img: np.ndarray, prior_mean: Tensor, *, noise_model: NoiseModel = "auto") -> float | Tensor:
@@ -65,18 +71,30 @@ def fusion_noise_sigma(img: np.ndarray, prior_mean: Tensor, *, noise_model: Nois
             the DTU photos, about 10/255 on the temple's black background); ``"curve"``: a
             per-pixel std from the image's `NoiseCurve` at `prior_mean`; ``"auto"``: the curve
             when its signal-dependent term dominates at the image's median intensity
-            (``gain * median > floor``, e.g. shot noise), else the constant.
+            (``gain * median > floor``, e.g. shot noise), else the constant; ``"luma"``: one std read on the
+            luma (`denoise.noise_level.luma_noise_sigma`, unclipped patches), for photos whose noise is
+            chroma-subsampled (a JPEG's; `denoise.pixel_shuffle.choose_stride` decides it for a set).
 
     Returns:
         A float, or a ``[1, 3, H, W]`` tensor.
     """
+    if noise_model == "luma":
+        return constant_noise_sigma_luma(img)
     curve = signal_dependent_curve(img, noise_model)
     return estimate_noise_sigma_pca(img, exclude_clipped=True) if curve is None else curve.sigma_at(prior_mean)
 
 
+def constant_noise_sigma_luma(img: np.ndarray) -> float:
+    """The noise model ``"luma"``'s std of one image: `luma_noise_sigma` of its unclipped patches (a colour
+    image), `estimate_noise_sigma_pca` of them (a gray one)."""
+    if np.ndim(img) == 3 and np.shape(img)[2] == 3:
+        return luma_noise_sigma(img, exclude_clipped=True)
+    return estimate_noise_sigma_pca(img, exclude_clipped=True)
+
+
 def signal_dependent_curve(img: np.ndarray, noise_model: NoiseModel) -> NoiseCurve | None:
     """The image's `NoiseCurve` where `noise_model` asks for one, else None (use one std): always for
-    ``"curve"``, never for ``"constant"``; for ``"auto"`` where the curve's signal-dependent term
+    ``"curve"``, never for ``"constant"`` or ``"luma"``; for ``"auto"`` where the curve's signal-dependent term
     dominates at the image's median intensity (``gain * median > floor``, e.g. shot noise).
 
     Raises:
@@ -84,7 +102,7 @@ def signal_dependent_curve(img: np.ndarray, noise_model: NoiseModel) -> NoiseCur
     """
     if noise_model not in NOISE_MODELS:
         raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {noise_model!r}")
-    if noise_model == "constant":
+    if noise_model in ("constant", "luma"):
         return None
     curve = estimate_noise_curve(img)
     return curve if noise_model == "curve" or curve.gain * float(np.median(img)) > curve.floor else None
@@ -221,7 +239,8 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
         noise_model: how the fusion's noise level is estimated when `noise_sigma` is None
             (`fusion_noise_sigma`): ``"constant"``, one std per image; ``"curve"``,
             signal-dependent (Poisson-Gaussian) noise, a per-image `NoiseCurve` evaluated per
-            pixel at the blind-spot prediction; ``"auto"`` picks one per image.
+            pixel at the blind-spot prediction; ``"auto"`` picks one per image; ``"luma"``, one std read on
+            the luma (`fusion_noise_sigma`).
         dihedral_ensemble: pass k runs on the k-th rotation/reflection (see `denoise_tensor`).
 
     Returns:

@@ -358,6 +358,41 @@ def luma_noise_sigma(img: np.ndarray, *, exclude_clipped: bool = False) -> float
     return estimate_noise_sigma_pca(luma, exclude_clipped=exclude_clipped) / LUMA_GAIN
 
 
+#: `luma_noise_spread`'s largest value for noise white in the luma: DTU scan24 with white noise at 10 and 25/255
+#: or Poisson-Gaussian noise, JPEGs at quality 90, and the temple ring at 25/255, 1.03-1.20; flat synthetic
+#: scenes 1.03. Demosaiced Poisson-Gaussian noise (gain 0.01, read 5/255) 2.8 on DTU scan24 as a JPEG at quality
+#: 90, 3.7 as a PNG, 4.5 on flat synthetic scenes as a JPEG. Texture spreads the eigenvalues too where the noise is
+#: faint (DTU's clean photos as JPEGs 3.9, with white noise of 5/255 2.7), but noise that faint is not read as
+#: a JPEG's (`MIN_LUMA_NOISE_STD`).
+WHITE_LUMA_MAX_SPREAD = 2.0
+
+
+def luma_noise_spread(img: np.ndarray, *, patch_px: int = 5, max_patches: int = 60000) -> float:
+    """How far the luma's noise is from white: the fifth smallest eigenvalue of the covariance of the luma's
+    unclipped `patch_px` x `patch_px` patches over the smallest.
+
+    White noise adds the same variance to every direction of the patch space, and the smallest eigenvalues,
+    which image structure leaves alone, are alike (ratio about 1). Noise correlated between neighbouring pixels
+    (a demosaicing's) holds little power at the finest scales and more at coarser ones: its eigenvalues spread
+    (`WHITE_LUMA_MAX_SPREAD`). inf where the smallest eigenvalue is 0 (a flat image); nan for images under a
+    patch or without 25 unclipped patches.
+
+    Args:
+        img: ``(H, W, 3)`` RGB in ``[0, 1]``.
+    """
+    luma = np.asarray(img, np.float64) @ np.asarray(LUMA_WEIGHTS)
+    patches = _patches(luma, patch_px, max_patches)
+    if patches is None:
+        return float("nan")
+    patches = _unclipped(patches)
+    if patches.shape[0] < patches.shape[1]:
+        return float("nan")
+    t = torch.from_numpy(np.ascontiguousarray(patches, dtype=np.float64))
+    t = t - t.mean(dim=0)
+    eig = np.sort(torch.linalg.eigvalsh(t.T @ t / t.shape[0]).numpy().clip(min=0.0))
+    return float(eig[4] / eig[0]) if eig[0] > 0 else float("inf")
+
+
 def chroma_subsampled_sigma(colour_sigma: float, luma_sigma: float) -> float | None:
     """`luma_sigma` where a photo whose colour patches read `colour_sigma` and whose luma reads `luma_sigma`
     (`luma_noise_sigma`) holds chroma-subsampled noise (``colour_sigma < CHROMA_DEFICIT_RATIO * luma_sigma``,

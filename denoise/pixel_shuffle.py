@@ -33,9 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MAX_PHOTOS", "MAX_STRIDE", "MIN_CORRELATED_NOISE_STD", "MIN_LEVEL_RATIO", "MIN_NOISE_STD",
-           "STRONG_LEVEL_RATIO", "NoiseLevels", "choose_stride", "merge_std", "pd_merge", "pd_split", "shuffled",
-           "stride_for", "unshuffled"]
+__all__ = ["JPEG_STRIDE", "MAX_PHOTOS", "MAX_STRIDE", "MIN_CORRELATED_NOISE_STD", "MIN_LEVEL_RATIO", "MIN_NOISE_STD",
+           "STRONG_LEVEL_RATIO", "SUB_CHROMA_DEFICIT_RATIO", "NoiseLevels", "choose_stride", "merge_std", "pd_merge",
+           "pd_split", "shuffled", "stride_for", "unshuffled"]
 
 #: The largest stride `choose_stride` returns (16 sub-images; a 384 px photo's are 96 px).
 MAX_STRIDE = 4
@@ -59,6 +59,19 @@ MIN_NOISE_STD = 8.0 / 255.0
 STRONG_LEVEL_RATIO = 0.25
 #: The stride-2 level a `STRONG_LEVEL_RATIO` reading needs ([0, 1] units): clean real photos read 0.4-1.3/255.
 MIN_CORRELATED_NOISE_STD = 3.0 / 255.0
+#: The stride for correlated noise under a JPEG's chroma subsampling (`choose_stride`). The colour levels that
+#: climb the strides for other noise read the subsampled colour differences there (DTU scan24 with
+#: `bayer-pg:0.01,5+jpeg:90`: 0.7, 4.0 and 6.8/255 at strides 1-3, which would take stride 3 or more), so the
+#: stride is the one that decorrelates a demosaicing's noise. Measured on those photos (R2R, 2000 steps, the
+#: Wiener steps, PSNR against the clean photos from 27.37 dB): stride 2 30.29 dB, stride 3 29.99 at the same
+#: level (11/255); stride 2 at the luma's level of the sub-images (20.7/255) 31.32.
+JPEG_STRIDE = 2
+#: Correlated noise counts as chroma-subsampled where the stride-2 sub-images' colour patches read under this
+#: fraction of their luma's level. Measured: DTU scan24's demosaiced Poisson-Gaussian noise as a JPEG at quality
+#: 90 0.18, its white noise of 25/255 as a JPEG 0.23; as PNGs, demosaiced noise 0.62 (0.78 on the temple ring)
+#: and Poisson-Gaussian 0.69. (Clean photos read under it too, 0.09, their texture in the luma, but their colour
+#: level is under `MIN_CORRELATED_NOISE_STD`: the noise does not count as correlated.)
+SUB_CHROMA_DEFICIT_RATIO = 0.4
 #: Photos the levels are read on at most, spread over the list (about 0.3 s a photo and stride on one core
 #: at 384 x 384).
 MAX_PHOTOS = 6
@@ -130,14 +143,21 @@ class NoiseLevels:
         level_by_stride: {stride: the noise std the PCA estimator reads on the sub-images at that stride,
             [0, 1] units}, the median over each photo's sub-images, then over the photos read; stride 1 is the
             photos themselves. Strides past the one that decided are not read.
-        luma_level: where the photos' noise is chroma-subsampled (`denoise.noise_level.chroma_subsampled_sigma`
-            of the stride-1 level and this), the level their luma reads (RGB-equivalent, the median over the
-            photos read, `denoise.noise_level.luma_noise_sigma`), and the stride is 1; else None.
+        luma_level: where the photos' noise is chroma-subsampled, the level their luma reads (RGB-equivalent,
+            the median over the photos read, `denoise.noise_level.luma_noise_sigma`) at `stride`: white noise
+            (`denoise.noise_level.chroma_subsampled_sigma` of the stride-1 level and this) at stride 1,
+            correlated noise at `JPEG_STRIDE` (`choose_stride`); else None.
     """
 
     stride: int
     level_by_stride: dict[int, float]
     luma_level: float | None = None
+
+    @property
+    def noise_model(self) -> str:
+        """The noise model the denoisers read each photo's level with (`denoise.inference.NoiseModel`):
+        ``"luma"`` where the photos' noise is chroma-subsampled, else ``"auto"``."""
+        return "auto" if self.luma_level is None else "luma"
 
     def levels_255(self) -> str:
         """The levels read, /255, for a log line ("not measured" when none were read)."""
@@ -161,11 +181,13 @@ def stride_for(images: Sequence[np.ndarray], setting: int) -> NoiseLevels:
     return choose_stride(images) if setting == 0 else NoiseLevels(int(setting), {})
 
 
-def _level(images: Sequence[np.ndarray], stride: int) -> float:
-    from denoise.noise_level import estimate_noise_sigma_pca
+def _level(images: Sequence[np.ndarray], stride: int, *, luma: bool = False) -> float:
+    """The median over `images` of the median over each one's stride-`stride` sub-images of the level the PCA
+    estimator reads on their colour patches (`luma`: on their luma, `denoise.noise_level.luma_noise_sigma`)."""
+    from denoise.noise_level import estimate_noise_sigma_pca, luma_noise_sigma
 
-    return float(np.median([np.median([estimate_noise_sigma_pca(p) for p in pd_split(im, stride)])
-                            for im in images]))
+    read = luma_noise_sigma if luma else estimate_noise_sigma_pca
+    return float(np.median([np.median([read(p) for p in pd_split(im, stride)]) for im in images]))
 
 
 def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
@@ -173,8 +195,11 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
     """1 (no PD) where the photos' noise is chroma-subsampled (a JPEG's: the module docstring), or where the
     noise level reads about the same on the photos as on their stride-2 sub-images
     (at least `min_ratio` of it), or is weak (under `MIN_NOISE_STD` there, unless the photos read under
-    `STRONG_LEVEL_RATIO` of it and it is at least `MIN_CORRELATED_NOISE_STD`); else the smallest stride s >= 2
-    whose level is at least `min_ratio` of stride s + 1's (`max_stride` at most).
+    `STRONG_LEVEL_RATIO` of it and it is at least `MIN_CORRELATED_NOISE_STD`); else, where the stride-2 sub-images'
+    colour patches read under `SUB_CHROMA_DEFICIT_RATIO` of their luma (correlated noise saved as a JPEG),
+    `JPEG_STRIDE` with the level read on the luma; else the smallest stride s >= 2 whose level is at least
+    `min_ratio` of stride s + 1's (`max_stride` at most). A JPEG's noise counts as white where its luma's
+    eigenvalues do not spread (`denoise.noise_level.luma_noise_spread`).
 
     Reads at most `MAX_PHOTOS` photos, spread over the list; photos whose stride-`max_stride` sub-images
     would be under 16 px a side are not read, and without any other the stride is 1.
@@ -184,16 +209,23 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
         return NoiseLevels(1, {})
     pick = big if len(big) <= MAX_PHOTOS else [big[int(i)] for i in np.linspace(0, len(big) - 1, MAX_PHOTOS)]
     level = {1: _level(pick, 1)}
-    if all(np.ndim(im) == 3 and np.shape(im)[2] == 3 for im in pick):
-        from denoise.noise_level import chroma_subsampled_sigma, luma_noise_sigma
+    colour = all(np.ndim(im) == 3 and np.shape(im)[2] == 3 for im in pick)
+    if colour:
+        from denoise.noise_level import WHITE_LUMA_MAX_SPREAD, chroma_subsampled_sigma, luma_noise_spread
 
-        luma = chroma_subsampled_sigma(level[1], float(np.median([luma_noise_sigma(im) for im in pick])))
-        if luma is not None:  # a JPEG's noise: white in the luma, which reads it
-            return NoiseLevels(1, {1: round(level[1], 6)}, round(luma, 6))
+        luma = chroma_subsampled_sigma(level[1], _level(pick, 1, luma=True))
+        if luma is not None and np.median([luma_noise_spread(im) for im in pick]) <= WHITE_LUMA_MAX_SPREAD:
+            return NoiseLevels(1, {1: round(level[1], 6)}, round(luma, 6))  # a JPEG's noise: white in the luma
     level[2] = _level(pick, 2)
     stride = 1
     correlated = level[2] >= MIN_NOISE_STD and level[1] < min_ratio * level[2]
     strongly = level[2] >= MIN_CORRELATED_NOISE_STD and level[1] < STRONG_LEVEL_RATIO * level[2]
+    if (correlated or strongly) and colour:
+        luma_2 = _level(pick, JPEG_STRIDE, luma=True)
+        if level[JPEG_STRIDE] < SUB_CHROMA_DEFICIT_RATIO * luma_2:
+            # Correlated noise under a JPEG's chroma subsampling (a camera's demosaiced noise saved as a JPEG):
+            # the sub-images' colour patches read the subsampled colour differences, not the noise.
+            return NoiseLevels(JPEG_STRIDE, {k: round(v, 6) for k, v in level.items()}, round(luma_2, 6))
     if correlated or strongly:
         stride = 2
         while stride < max_stride:

@@ -68,6 +68,7 @@ from denoise.inference import (
     MARGIN_PX,
     TILE_PX,
     NoiseModel,
+    constant_noise_sigma_luma,
     denoise_images,
     dihedral,
     mean_of_passes,
@@ -119,11 +120,17 @@ def r2r_noise_std(img: np.ndarray, *, noise_model: NoiseModel = "auto") -> float
             chroma-subsampled (`denoise.noise_level.chroma_subsampled_noise_sigma`: a JPEG's colour
             patches hold no fine noise, and a curve read on them would too), else the curve where its
             signal-dependent term dominates at the median intensity
-            (`denoise.inference.signal_dependent_curve`, the N2V fusion's rule), else the constant.
+            (`denoise.inference.signal_dependent_curve`, the N2V fusion's rule), else the constant;
+            ``"luma"``: the constant read on the luma whatever the colour patches read
+            (`denoise.inference.constant_noise_sigma_luma`), for a set of photos whose noise
+            `denoise.pixel_shuffle.choose_stride` found chroma-subsampled: their pixel-shuffled sub-images'
+            colour patches need not read under `denoise.noise_level.CHROMA_DEFICIT_RATIO` of it as the photos do.
 
     Returns:
         A float, or a ``[C, H, W]`` float32 tensor (``[0, 1]`` units).
     """
+    if noise_model == "luma":
+        return constant_noise_sigma_luma(img)
     if noise_model == "auto":
         luma = chroma_subsampled_noise_sigma(img)
         if luma is not None:

@@ -314,7 +314,8 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
             colour = d.noise_level_by_stride_255.get("1")
             lines.append("- the photos' colour differences hold no fine noise, as a JPEG's 4:2:0 chroma subsampling "
                          f"leaves them{f' (their colour patches read {colour:.1f}/255)' if colour is not None else ''}"
-                         f": the noise level was read on their luma, {d.noise_level_luma_255:.1f}/255")
+                         f": the noise level was read on their luma, {d.noise_level_luma_255:.1f}/255"
+                         f"{' (on the sub-images)' if d.pd_stride is not None and d.pd_stride > 1 else ''}")
         a = q.align
         if a is not None:
             photos = f" ({a.photos} photos)" if a.photos else ""

@@ -113,7 +113,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         _log.info("the photos' colour patches read %.1f/255 of noise, their luma %.1f/255: chroma-subsampled noise, "
                   "as a JPEG's; its level is read on the luma", 255.0 * levels.level_by_stride[1],
                   255.0 * levels.luma_level)
-    out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed)
+    out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed, levels.noise_model)
     if stride > 1:
         n = stride * stride
         out = unshuffled(out, stride, [im.shape for im in noisy.values()])
@@ -131,8 +131,9 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
                           noise=noise_levels(noisy, stds)).to_json()  # the report's noise level
 
 
-def _denoise_photos(photos: list[np.ndarray], n2v, s, seed: int):
-    """(denoised photos, each photo's noise std, the trained model): the denoise stage's network and steps."""
+def _denoise_photos(photos: list[np.ndarray], n2v, s, seed: int, noise_model: str):
+    """(denoised photos, each photo's noise std, the trained model): the denoise stage's network and steps;
+    `noise_model` (`denoise.pixel_shuffle.NoiseLevels.noise_model`) reads each photo's level."""
     from denoise.parallel import one_thread_per_task
     from denoise.self_supervised import denoise_with_method, r2r_noise_std, train_with_method
 
@@ -141,11 +142,12 @@ def _denoise_photos(photos: list[np.ndarray], n2v, s, seed: int):
     with one_thread_per_task():
         # Each photo's noise std, estimated once: R2R's recorruption and both networks' clipping correction
         # use it, and the report records it (N2V's fusion estimates its own).
-        stds = [r2r_noise_std(im) for im in photos]
+        stds = [r2r_noise_std(im, noise_model=noise_model) for im in photos]
         given = None if n2v.method == "n2v" else stds
-        model = train_with_method(photos, n2v, seed=seed, device=s.device, noise_sigma=given)
+        model = train_with_method(photos, n2v, seed=seed, device=s.device, noise_sigma=given,
+                                  noise_model=noise_model)
         out = denoise_with_method(model, photos, n2v, passes=s.passes, seed=seed, noise_sigma=given,
-                                  wiener=s.wiener, grouped=s.grouped)
+                                  noise_model=noise_model, wiener=s.wiener, grouped=s.grouped)
     return out, stds, model
 
 
@@ -227,7 +229,8 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     noisy = read_views(ctx.inputs["noisy"], names)
     renders = read_views(ctx.inputs["renders"], names)
     model = load_checkpoint(ctx.inputs["model"], device=s.device)
-    stride = stride_for(list(noisy.values()), s.pd_stride).stride
+    levels = stride_for(list(noisy.values()), s.pd_stride)
+    stride = levels.stride
     photos, targets = list(noisy.values()), list(renders.values())
     if stride > 1:
         photos, targets = shuffled(photos, stride), shuffled(targets, stride)
@@ -244,7 +247,8 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
             # up to the random maskings of inference), so a reverted round changes nothing.
             out = list(read_views(ctx.inputs["previous"], names).values())
         else:
-            out = denoise_images(model, photos, passes=s.passes, seed=ctx.seed, fuse=True)
+            out = denoise_images(model, photos, passes=s.passes, seed=ctx.seed, fuse=True,
+                                 noise_model=levels.noise_model)
             if stride > 1:
                 out = unshuffled(out, stride, [im.shape for im in noisy.values()])
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))

@@ -8,6 +8,8 @@ from denoise.images import images_to_tensors
 from denoise.model import load_checkpoint, save_checkpoint
 from denoise.n2v import N2VConfig, new_model
 from denoise.noise_level import (
+    LUMA_WEIGHTS,
+    WHITE_LUMA_MAX_SPREAD,
     NoiseCurve,
     _patches,
     _surround_level,
@@ -18,6 +20,7 @@ from denoise.noise_level import (
     estimate_noise_sigma_robust,
     fit_clipped_noise_sigma,
     luma_noise_sigma,
+    luma_noise_spread,
 )
 from denoise.unet import UNetConfig
 
@@ -220,3 +223,30 @@ def test_a_jpegs_noise_is_read_on_its_luma(rng):
     assert estimate_noise_sigma_clipped(noisy) == colour
     clean = apply_effects(base.astype(np.float32), (eff,), seed=0, ctx=EffectContext("v", np.eye(3)))
     assert estimate_noise_sigma_clipped(clean) < 2 / 255  # a clean JPEG stays clean
+
+
+def _spread_reference(img: np.ndarray, p: int = 5) -> float:
+    """`luma_noise_spread` by its definition: every p x p luma patch inside (0, 1), their covariance with numpy,
+    the fifth smallest eigenvalue over the smallest."""
+    y = np.asarray(img, np.float64) @ np.asarray(LUMA_WEIGHTS)
+    rows = [y[i:i + p, j:j + p].reshape(-1) for i in range(y.shape[0] - p + 1) for j in range(y.shape[1] - p + 1)]
+    rows = np.array([r for r in rows if r.min() > 0 and r.max() < 1])
+    eig = np.sort(np.linalg.eigvalsh(np.cov(rows.T, bias=True)))
+    return float(eig[4] / eig[0])
+
+
+def test_the_lumas_eigenvalue_spread_tells_white_noise_from_demosaiced_noise(rng):
+    """White noise adds the same variance to every direction of the patch space: the smallest eigenvalues are
+    alike. Demosaiced noise has little power at the finest scales: they spread."""
+    from data_synth.effects import EffectContext, apply_effects, parse_effect
+
+    base = (0.25 + 0.5 * _ramp(96, 96)).astype(np.float32)
+    white = np.clip(base + rng.normal(0, 0.05, base.shape), 0, 1).astype(np.float32)
+    eff = parse_effect({"type": "bayer_noise", "gain": 0.01, "read_sigma_8bit": 5.0}, key="noise", path=None)
+    demosaiced = apply_effects(base, (eff,), seed=0, ctx=EffectContext("v", np.eye(3)))
+    # All 8464 patches of a 96 px image (under max_patches): the same value as the definition, to round-off.
+    for img in (white, demosaiced):
+        assert luma_noise_spread(img) == pytest.approx(_spread_reference(img), rel=1e-9)
+    # White 1.03-1.05 on four seeds (the sample eigenvalues' own spread from 8464 patches); demosaiced 9.8-10.8.
+    assert luma_noise_spread(white) < WHITE_LUMA_MAX_SPREAD < luma_noise_spread(demosaiced)
+    assert np.isnan(luma_noise_spread(base[:4, :4]))  # smaller than a patch

@@ -243,3 +243,8 @@ def test_the_report_says_the_photos_were_denoised_as_pixel_shuffled_sub_images(t
     assert "colour patches read 1.0/255" in text and "read on their luma, 24.3/255" in text
     assert "pixel-shuffled" not in text
     assert "luma" not in "\n".join(quality_lines([with_summary(pd_stride=2, noise_level_by_stride_255=levels)]))
+    # Demosaiced noise saved as a JPEG: both lines, the level read on the sub-images' luma.
+    q = with_summary(pd_stride=2, noise_level_by_stride_255={"1": 0.7, "2": 3.7}, noise_level_luma_255=19.5)
+    text = "\n".join(quality_lines([q]))
+    assert "denoised as 2 x 2 pixel-shuffled sub-images" in text
+    assert "read on their luma, 19.5/255 (on the sub-images)" in text
