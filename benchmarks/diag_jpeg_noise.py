@@ -3,8 +3,9 @@
 For each imported dataset folder (`denoise-gs dataset import ... --noise ...`), its training photos as they are
 and after a JPEG round trip at each quality (OpenCV's encoder, 4:2:0 chroma, as `--noise ...+jpeg:Q` writes
 them): the PCA noise level of the colour patches on the photos and on their stride-2 sub-images
-(`denoise.pixel_shuffle`), the level the luma reads (`denoise.noise_level.luma_noise_sigma`, RGB-equivalent),
-and what `denoise.pixel_shuffle.choose_stride` decides from them. Levels /255, the median over six photos
+(`denoise.pixel_shuffle`), the level the luma reads (`denoise.noise_level.luma_noise_sigma`, RGB-equivalent)
+on both, the spread of the luma's patch eigenvalues (`denoise.noise_level.luma_noise_spread`: about 1 for white
+noise), and what `denoise.pixel_shuffle.choose_stride` decides from them. Levels /255, the median over six photos
 spread over the training views; with `--clean`, the folder's `clean/` photos too.
 
 With `--per-photo`, instead: for each dataset's 12 training photos as they are, at the stride `choose_stride`
@@ -22,7 +23,12 @@ import numpy as np
 
 import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
 from data_synth.effects import EffectContext, apply_effects, parse_effect
-from denoise.noise_level import chroma_subsampled_sigma, estimate_noise_sigma_pca, luma_noise_sigma
+from denoise.noise_level import (
+    chroma_subsampled_sigma,
+    estimate_noise_sigma_pca,
+    luma_noise_sigma,
+    luma_noise_spread,
+)
 from denoise.pixel_shuffle import MAX_PHOTOS, choose_stride, pd_split, shuffled
 from mvgeo.common.imageio import read_image
 
@@ -49,8 +55,8 @@ def main() -> int:
     if args.per_photo:
         return per_photo(args.datasets)
     print("| photos | JPEG quality | colour, photos | colour, stride 2 | luma, photos | colour / luma | "
-          "choose_stride |")
-    print("|---|---|---|---|---|---|---|")
+          "luma eigenvalue spread | luma, stride 2 | colour / luma, stride 2 | choose_stride |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for d in args.datasets:
         names = json.loads((d / "split.json").read_text())["train"]
         pick = [names[int(i)] for i in np.linspace(0, len(names) - 1, min(MAX_PHOTOS, len(names)))]
@@ -59,11 +65,13 @@ def main() -> int:
             for q in [None, *args.qualities]:
                 ims = base if q is None else [jpeg_round_trip(im, q) for im in base]
                 c1, c2, y1 = level_255(ims, 1, False), level_255(ims, 2, False), level_255(ims, 1, True)
+                y2 = level_255(ims, 2, True)
+                spread = float(np.median([luma_noise_spread(im) for im in ims]))
                 read = choose_stride(ims)
                 how = f"stride {read.stride}" + ("" if read.luma_level is None else
                                                  f", luma {255.0 * read.luma_level:.1f}")
                 print(f"| {d.name} {sub}/ | {q or 'none'} | {c1:.2f} | {c2:.2f} | {y1:.2f} | {c1 / max(y1, 1e-9):.2f} "
-                      f"| {how} |", flush=True)
+                      f"| {spread:.2f} | {y2:.2f} | {c2 / max(y2, 1e-9):.2f} | {how} |", flush=True)
     return 0
 
 

@@ -359,11 +359,12 @@ def luma_noise_sigma(img: np.ndarray, *, exclude_clipped: bool = False) -> float
 
 
 #: `luma_noise_spread`'s largest value for noise white in the luma: DTU scan24 with white noise at 10 and 25/255
-#: or Poisson-Gaussian noise, JPEGs at quality 90, and the temple ring at 25/255, 1.03-1.20; flat synthetic
-#: scenes 1.03. Demosaiced Poisson-Gaussian noise (gain 0.01, read 5/255) 2.8 on DTU scan24 as a JPEG at quality
-#: 90, 3.7 as a PNG, 4.5 on flat synthetic scenes as a JPEG. Texture spreads the eigenvalues too where the noise is
-#: faint (DTU's clean photos as JPEGs 3.9, with white noise of 5/255 2.7), but noise that faint is not read as
-#: a JPEG's (`MIN_LUMA_NOISE_STD`).
+#: or Poisson-Gaussian noise, JPEGs at quality 90, and the temple ring at 25/255, 1.04-1.20; flat synthetic
+#: scenes 1.03. Demosaiced Poisson-Gaussian noise (gain 0.01, read 5/255) 2.9 on DTU scan24 as a JPEG at quality
+#: 90, 3.8 as a PNG, 4.1-5.7 on the temple ring, 4.5 on flat synthetic scenes as a JPEG (the median over six
+#: photos of each one's spread). Texture spreads the eigenvalues too where the noise is faint (DTU's clean photos
+#: as JPEGs 4.1, with white noise of 5/255 2.7), but noise that faint is not read as a JPEG's
+#: (`MIN_LUMA_NOISE_STD`).
 WHITE_LUMA_MAX_SPREAD = 2.0
 
 

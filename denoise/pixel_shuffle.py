@@ -23,7 +23,10 @@ sub-images. Photos with white or Poisson-Gaussian noise get stride 1 and are den
 A JPEG's noise reads low on the photos for another reason: its 4:2:0 chroma subsampling smooths the colour
 differences, while the luma keeps its noise, white (`denoise.noise_level.CHROMA_DEFICIT_RATIO`). Where the
 photos' luma reads the level their colour patches miss, the stride is 1 and the level is the luma's
-(`NoiseLevels.luma_level`; the denoisers read each photo's level the same way, `r2r_noise_std`).
+(`NoiseLevels.luma_level`; the denoisers read each photo's level on its luma, `NoiseLevels.noise_model`). A
+camera's JPEG holds both: demosaiced noise, correlated in the luma too (its patch eigenvalues spread,
+`denoise.noise_level.luma_noise_spread`), under a subsampled chroma. Its stride is `JPEG_STRIDE` and its level
+the one the sub-images' luma reads, since their colour patches read the subsampled colour differences.
 """
 
 from __future__ import annotations
@@ -61,16 +64,16 @@ STRONG_LEVEL_RATIO = 0.25
 MIN_CORRELATED_NOISE_STD = 3.0 / 255.0
 #: The stride for correlated noise under a JPEG's chroma subsampling (`choose_stride`). The colour levels that
 #: climb the strides for other noise read the subsampled colour differences there (DTU scan24 with
-#: `bayer-pg:0.01,5+jpeg:90`: 0.7, 4.0 and 6.8/255 at strides 1-3, which would take stride 3 or more), so the
-#: stride is the one that decorrelates a demosaicing's noise. Measured on those photos (R2R, 2000 steps, the
-#: Wiener steps, PSNR against the clean photos from 27.37 dB): stride 2 30.29 dB, stride 3 29.99 at the same
-#: level (11/255); stride 2 at the luma's level of the sub-images (20.7/255) 31.32.
+#: `bayer-pg:0.01,5+jpeg:90`: 0.7, 3.7 and 6.4/255 at strides 1-3, which took stride 3), so the stride is the
+#: one that decorrelates a demosaicing's noise. Measured on those photos (R2R, 2000 steps, the Wiener steps,
+#: PSNR against the clean photos from 27.37 dB): stride 2 30.29 dB, stride 3 29.99 at the same level (11/255);
+#: stride 2 at the level the sub-images' luma reads 31.44 (docs/bench/denoise_real.md).
 JPEG_STRIDE = 2
 #: Correlated noise counts as chroma-subsampled where the stride-2 sub-images' colour patches read under this
 #: fraction of their luma's level. Measured: DTU scan24's demosaiced Poisson-Gaussian noise as a JPEG at quality
-#: 90 0.18, its white noise of 25/255 as a JPEG 0.23; as PNGs, demosaiced noise 0.62 (0.78 on the temple ring)
-#: and Poisson-Gaussian 0.69. (Clean photos read under it too, 0.09, their texture in the luma, but their colour
-#: level is under `MIN_CORRELATED_NOISE_STD`: the noise does not count as correlated.)
+#: 90 0.19, its white noise of 25/255 as a JPEG 0.23; as PNGs, demosaiced noise 0.63 (0.84 on the temple ring)
+#: and Poisson-Gaussian 0.69. (Clean photos read under it too, 0.04-0.08, their texture in the luma, but their
+#: colour level is under `MIN_CORRELATED_NOISE_STD`: the noise does not count as correlated.)
 SUB_CHROMA_DEFICIT_RATIO = 0.4
 #: Photos the levels are read on at most, spread over the list (about 0.3 s a photo and stride on one core
 #: at 384 x 384).
