@@ -85,7 +85,7 @@ def test_the_denoise_stage_trains_on_the_configured_device(tmp_path, monkeypatch
 
     seen = []
 
-    def recording(images, config, *, seed, device, noise_sigma=None):
+    def recording(images, config, *, seed, device, noise_sigma=None, noise_model="auto"):
         seen.append(device)
         raise Stop
 
