@@ -36,10 +36,10 @@ from denoise.masking import mask_pixels
 from denoise.model import N2VModel
 from denoise.noise_level import (
     NoiseCurve,
+    constant_noise_sigma_luma,
     estimate_noise_curve,
     estimate_noise_sigma,
     estimate_noise_sigma_pca,
-    luma_noise_sigma,
 )
 from denoise.parallel import group_size, one_thread_per_task, run_tasks
 from mvgeo.common.errors import check_shape
@@ -72,7 +72,7 @@ def fusion_noise_sigma(img: np.ndarray, prior_mean: Tensor, *, noise_model: Nois
             per-pixel std from the image's `NoiseCurve` at `prior_mean`; ``"auto"``: the curve
             when its signal-dependent term dominates at the image's median intensity
             (``gain * median > floor``, e.g. shot noise), else the constant; ``"luma"``: one std read on the
-            luma (`denoise.noise_level.luma_noise_sigma`, unclipped patches), for photos whose noise is
+            luma (`denoise.noise_level.constant_noise_sigma_luma`), for photos whose noise is
             chroma-subsampled (a JPEG's; `denoise.pixel_shuffle.choose_stride` decides it for a set).
 
     Returns:
@@ -82,14 +82,6 @@ def fusion_noise_sigma(img: np.ndarray, prior_mean: Tensor, *, noise_model: Nois
         return constant_noise_sigma_luma(img)
     curve = signal_dependent_curve(img, noise_model)
     return estimate_noise_sigma_pca(img, exclude_clipped=True) if curve is None else curve.sigma_at(prior_mean)
-
-
-def constant_noise_sigma_luma(img: np.ndarray) -> float:
-    """The noise model ``"luma"``'s std of one image: `luma_noise_sigma` of its unclipped patches (a colour
-    image), `estimate_noise_sigma_pca` of them (a gray one)."""
-    if np.ndim(img) == 3 and np.shape(img)[2] == 3:
-        return luma_noise_sigma(img, exclude_clipped=True)
-    return estimate_noise_sigma_pca(img, exclude_clipped=True)
 
 
 def signal_dependent_curve(img: np.ndarray, noise_model: NoiseModel) -> NoiseCurve | None:

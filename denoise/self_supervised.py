@@ -68,7 +68,6 @@ from denoise.inference import (
     MARGIN_PX,
     TILE_PX,
     NoiseModel,
-    constant_noise_sigma_luma,
     denoise_images,
     dihedral,
     mean_of_passes,
@@ -79,7 +78,12 @@ from denoise.losses import neighbor2neighbor_loss
 from denoise.model import N2VModel
 from denoise.n2v import N2VConfig, StepBatch, new_model, optimise_unet, train_n2v
 from denoise.neighbor2neighbor import neighbour_choice, neighbour_subsample
-from denoise.noise_level import chroma_subsampled_noise_sigma, estimate_noise_sigma, estimate_noise_sigma_clipped
+from denoise.noise_level import (
+    chroma_subsampled_noise_sigma,
+    constant_noise_sigma_luma,
+    estimate_noise_sigma,
+    estimate_noise_sigma_clipped,
+)
 from denoise.parallel import run_tasks
 from denoise.patches import effective_patch_px, sample_patches
 from denoise.r2r import recorrupt
@@ -122,7 +126,7 @@ def r2r_noise_std(img: np.ndarray, *, noise_model: NoiseModel = "auto") -> float
             signal-dependent term dominates at the median intensity
             (`denoise.inference.signal_dependent_curve`, the N2V fusion's rule), else the constant;
             ``"luma"``: the constant read on the luma whatever the colour patches read
-            (`denoise.inference.constant_noise_sigma_luma`), for a set of photos whose noise
+            (`denoise.noise_level.constant_noise_sigma_luma`), for a set of photos whose noise
             `denoise.pixel_shuffle.choose_stride` found chroma-subsampled: their pixel-shuffled sub-images'
             colour patches need not read under `denoise.noise_level.CHROMA_DEFICIT_RATIO` of it as the photos do.
 
