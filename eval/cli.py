@@ -144,7 +144,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if args.gt_pose_variants:
         methods += [m + GT_POSES_SUFFIX for m in args.methods
                     if m in METHODS and not METHODS[m].ground_truth_poses]
-    config = EvalConfig(methods=tuple(dict.fromkeys(methods)), seeds=args.seeds, preset=args.preset,
+    config = EvalConfig(methods=tuple(dict.fromkeys(methods)), seeds=args.seeds, first_seed=args.first_seed,
+                        preset=args.preset,
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
                         device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser,
                         grouped_wiener=args.grouped_wiener, grouped_wiener_passes=args.grouped_wiener_passes,
@@ -158,7 +159,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         dataset = validate_dataset_folder(working_dataset(folder, out, args.max_size))
         title = f"denoise-gs eval: {name}"
         settings = _eval_settings(config, dataset.root, name, args)
-        earlier = carried_rows(out, settings, {(name, m, s) for m in config.methods for s in range(config.seeds)})
+        earlier = carried_rows(out, settings, {(name, m, s) for m in config.methods for s in config.seed_values})
         if earlier.note:
             _log.warning("%s", earlier.note)
         rows = evaluate_dataset(dataset, out, config, scene=name, executor=executor,
@@ -176,7 +177,7 @@ def _eval_settings(config: EvalConfig, dataset_root: Path, scene: str, args: arg
     from eval.distributed import project_code
     from eval.pipeline.hashing import hash_json, hash_path
 
-    kept = {k: v for k, v in dataclasses.asdict(config).items() if k not in ("methods", "seeds")}
+    kept = {k: v for k, v in dataclasses.asdict(config).items() if k not in ("methods", "seeds", "first_seed")}
     return {"scene": scene, "dataset": hash_path(dataset_root), "max_size": args.max_size,
             "code": hash_json(project_code()), **kept}
 
@@ -365,6 +366,10 @@ def build_parser() -> argparse.ArgumentParser:
                                   "(images/, clean/, split.json, sparse/0/)")
     ev.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP)
     ev.add_argument("--seeds", type=positive_int, default=3, help="seeds per method (default 3)")
+    ev.add_argument("--first-seed", type=seed, default=0, metavar="K",
+                    help="the seeds are K .. K + seeds - 1 (default 0): runs an evaluation seed by seed, each "
+                         "into its own folder or, with the same code and settings, into one (its table "
+                         "keeps the earlier seeds' rows)")
     ev.add_argument("--methods", nargs="+", default=["instantsplat", "nlm_instantsplat", "n2v_round1",
                                                      "denoise_gs"], metavar="METHOD",
                     help="any of: " + "; ".join(f"{m.name}: {m.description}" for m in METHODS.values()

@@ -148,7 +148,10 @@ class EvalConfig:
 
     Attributes:
         methods: names from `eval.methods.METHODS`.
-        seeds: number of seeds (0 .. seeds-1).
+        seeds: number of seeds: `first_seed` .. `first_seed + seeds - 1`.
+        first_seed: the first seed (default 0). An evaluation in parts (`--first-seed 1 --seeds 2` after
+            `--seeds 1`) runs each seed once; into the same folder, with the same code and settings, its
+            table keeps the earlier seeds' rows (`eval.results.carried_rows`).
         preset: pipeline preset for every method.
         views: K for rounds >= 2; None = min(12, number of training views).
         pose_fit_iters: held-out pose refinement steps; None = `splat`'s default.
@@ -175,6 +178,7 @@ class EvalConfig:
 
     methods: tuple[str, ...] = ("instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs")
     seeds: int = 3
+    first_seed: int = 0
     preset: str = "default"
     views: int | None = None
     pose_fit_iters: int | None = None
@@ -200,12 +204,19 @@ class EvalConfig:
                              f"{', '.join(multi_round)}", fix=f"use {', '.join(one_round)}")
         if self.seeds < 1:
             raise InputError(f"--seeds must be at least 1, got {self.seeds}")
+        if self.first_seed < 0:
+            raise InputError(f"--first-seed must be at least 0, got {self.first_seed}")
         if self.grouped_wiener_passes is not None and (self.grouped_wiener is False or self.grouped_wiener_passes < 1):
             raise InputError(f"--grouped-wiener-passes {self.grouped_wiener_passes} needs the step on and at least "
                              "one pass", fix="give one of --no-grouped-wiener and --grouped-wiener-passes N >= 1")
         if self.noisy_detail is not None and not 0.0 <= self.noisy_detail <= 1.0:
             raise InputError(f"--noisy-detail must be in [0, 1], got {self.noisy_detail}")
         preset(self.preset)
+
+    @property
+    def seed_values(self) -> range:
+        """The seeds every method runs with, in order."""
+        return range(self.first_seed, self.first_seed + self.seeds)
 
     def selected(self) -> list[EvalMethod]:
         """The chosen methods in the registry's order (the ablations after the round 1 they share)."""
@@ -645,7 +656,7 @@ def evaluate_dataset(dataset: DatasetFolder, out: Path, config: EvalConfig, *, s
         check_settings(m.pipeline_config(base, config.denoiser))
     inputs = out / "inputs" / scene
     tasks = [EvalTask(scene, method, seed, dataset, base, inputs, out, config)
-             for seed in range(config.seeds) for method in methods]
+             for seed in config.seed_values for method in methods]
     check_eval_outputs(tasks)  # before anything is changed
     copy_train_inputs(dataset, inputs)
     save_heldout_references(out / HELDOUT_DIR / scene, dataset)

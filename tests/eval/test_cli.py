@@ -254,7 +254,7 @@ def test_eval_into_the_same_folder_extends_its_table_with_the_same_settings(tmp_
 
     def fake(dataset, out, config, *, scene, **kw):
         psnr = {"instantsplat": 22.0, "product": 25.0}
-        return [RunScores(scene, m, s, psnr[m] + s, 0.5, 0.2) for m in config.methods for s in range(config.seeds)]
+        return [RunScores(scene, m, s, psnr[m] + s, 0.5, 0.2) for m in config.methods for s in config.seed_values]
 
     monkeypatch.setattr(eval.cli, "evaluate_dataset", fake)
     root = tiny_dataset(tmp_path / "data").root
@@ -278,3 +278,33 @@ def test_eval_into_the_same_folder_extends_its_table_with_the_same_settings(tmp_
                  "--preset", "fast"]) == 0
     assert runs() == [("product", 0, 25.0)]
     assert "settings differ: preset" in capsys.readouterr().err
+
+
+def test_eval_seed_by_seed_into_one_folder(tmp_path, monkeypatch):
+    """`--first-seed K`: an evaluation run in parts, each part its own seeds, adds up to one table."""
+    from eval.results import RunScores
+
+    asked = []
+
+    def fake(dataset, out, config, *, scene, **kw):
+        asked.append(list(config.seed_values))
+        return [RunScores(scene, m, s, 20.0 + s, 0.5, 0.2) for m in config.methods for s in config.seed_values]
+
+    monkeypatch.setattr(eval.cli, "evaluate_dataset", fake)
+    root = tiny_dataset(tmp_path / "data").root
+    shutil.copytree(root / "images", root / "clean")
+    out = tmp_path / "out"
+    assert main(["eval", str(root), "--out", str(out), "--seeds", "1", "--methods", "product"]) == 0
+    assert main(["eval", str(root), "--out", str(out), "--first-seed", "1", "--seeds", "2",
+                 "--methods", "product"]) == 0
+    assert asked == [[0], [1, 2]]
+    rows = json.loads((out / "results.json").read_text())["runs"]
+    assert sorted((r["seed"], r["psnr_db"]) for r in rows) == [(0, 20.0), (1, 21.0), (2, 22.0)]
+    md = (out / "results.md").read_text()
+    assert "(3 seed(s))" in md and "| product | 21.00 ± 1.00 |" in md  # the mean over seeds 0-2
+
+
+def test_eval_first_seed_must_be_a_seed(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", "llff_like", "--out", str(tmp_path / "o"), "--first-seed", "-1"])
+    assert exc.value.code == 2 and "--first-seed" in capsys.readouterr().err

@@ -18,7 +18,7 @@ from eval.methods import METHODS
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.camera import Camera
-from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError
+from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, InputError
 from mvgeo.sparse_model import read_sparse_model
 from tests.eval._tiny_stages import TinyStages, make_scene, tiny_dataset
 
@@ -220,6 +220,19 @@ def test_degenerate_geometry_becomes_a_failed_row(tmp_path, dataset, monkeypatch
     assert not ok.error and ok.psnr_db == 20.0  # the other method's row is kept
     assert failed.error.startswith("DegenerateGeometryError: the focal length")
     assert all(math.isnan(v) for v in (failed.psnr_db, failed.ssim, failed.lpips))
+
+
+def test_first_seed_runs_those_seeds_only(tmp_path, dataset, monkeypatch):
+    """`--first-seed 2 --seeds 2`: seeds 2 and 3, each in its own seed folder, seed 0's folder never made."""
+    Harness(monkeypatch)
+    out = tmp_path / "out"
+    rows = evaluate_dataset(dataset, out, EvalConfig(methods=("instantsplat",), seeds=2, first_seed=2, preset="fast"),
+                            scene="s")
+    assert [(r.method, r.seed) for r in rows] == [("instantsplat", 2), ("instantsplat", 3)]
+    assert sorted(p.name for p in (out / "runs" / "s").iterdir()) == ["seed2", "seed3"]
+    assert list(EvalConfig(seeds=3, first_seed=1).seed_values) == [1, 2, 3]
+    with pytest.raises(InputError, match="--first-seed"):
+        EvalConfig(first_seed=-1)
 
 
 @pytest.mark.parametrize("error", [TypeError("bad argument"), RuntimeError("boom"), ValueError("shape"),
