@@ -110,9 +110,21 @@ def _cmd_run(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, splat=dataclasses.replace(config.splat, noisy_detail=args.noisy_detail))
     if args.pd_stride is not None:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, pd_stride=args.pd_stride))
+    if args.noise_model != "auto":
+        config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, noise_model=args.noise_model))
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
+
+
+#: `denoise.inference.NOISE_MODELS`, spelled out: that module loads torch, which a usage error need not wait for
+#: (tests/eval/test_cli_bad_args.py checks they agree).
+NOISE_MODEL_CHOICES = ("auto", "constant", "curve", "luma")
+NOISE_MODEL_HELP = ("how the denoisers read each photo's noise level: auto (default) as the photos' noise is found "
+                    "(on the luma where it is chroma-subsampled, as a JPEG's; else on the colour patches, with a "
+                    "per-intensity curve where shot noise dominates); constant, curve or luma to force one. A "
+                    "camera's JPEGs whose noise is too faint in the colour patches to be found (quality 80 and "
+                    "under, or a clipped black background) are denoised with --pd-stride 2 --noise-model luma")
 
 
 PD_STRIDE_HELP = ("extension, not in the paper: round 1 denoises pixel-shuffled sub-images of every N-th pixel, for "
@@ -149,7 +161,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                         views=args.views, pose_fit_iters=args.pose_fit_iters, splat_iters=args.splat_iters,
                         device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser,
                         grouped_wiener=args.grouped_wiener, grouped_wiener_passes=args.grouped_wiener_passes,
-                        noisy_detail=args.noisy_detail, pd_stride=args.pd_stride)
+                        noisy_detail=args.noisy_detail, pd_stride=args.pd_stride,
+                        noise_model=None if args.noise_model == "auto" else args.noise_model)
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
     with (resumable_output_dir(plan), output_lock(out),
@@ -336,6 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "the texture every view shows and averages the noise; denoise.detail). 0 = off. "
                           "Default: the preset's (0.2 with default and best, 0.5 with fast)")
     run.add_argument("--pd-stride", type=int_range(0, MAX_STRIDE), default=None, metavar="N", help=PD_STRIDE_HELP)
+    run.add_argument("--noise-model", choices=NOISE_MODEL_CHOICES, default="auto", help=NOISE_MODEL_HELP)
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",
@@ -402,6 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--pd-stride", type=int_range(0, MAX_STRIDE), default=None, metavar="N",
                     help="round 1's pixel-shuffle stride for every method that trains the UNet (see `run "
                          "--pd-stride`; an A/B comparison evaluates each setting into its own --out)")
+    ev.add_argument("--noise-model", choices=NOISE_MODEL_CHOICES, default="auto",
+                    help="the denoisers' noise model for every method that trains the UNet (see `run "
+                         "--noise-model`)")
     ev.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
                     help=MAX_SIZE_HELP + " (the clean images and ground-truth cameras are scaled alike)")
     ev.add_argument("--size", type=_size_wh, default=None, metavar="WxH",

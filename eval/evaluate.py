@@ -139,6 +139,8 @@ def base_pipeline_config(config: EvalConfig, views: int) -> PipelineConfig:
         base = dataclasses.replace(base, splat=dataclasses.replace(base.splat, noisy_detail=config.noisy_detail))
     if config.pd_stride is not None:
         base = dataclasses.replace(base, denoise=dataclasses.replace(base.denoise, pd_stride=config.pd_stride))
+    if config.noise_model is not None:
+        base = dataclasses.replace(base, denoise=dataclasses.replace(base.denoise, noise_model=config.noise_model))
     return base
 
 
@@ -174,6 +176,8 @@ class EvalConfig:
             on their photos as they are); None: the preset's. For A/B measurements, as `grouped_wiener`.
         pd_stride: round 1's pixel-shuffle stride for every method that trains the UNet
             (`DenoiseSettings.pd_stride`); None: the preset's. For A/B measurements, as `grouped_wiener`.
+        noise_model: the denoisers' noise model for every method that trains the UNet
+            (`DenoiseSettings.noise_model`); None: measured from the photos.
     """
 
     methods: tuple[str, ...] = ("instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs")
@@ -190,6 +194,7 @@ class EvalConfig:
     grouped_wiener_passes: int | None = None
     noisy_detail: float | None = None
     pd_stride: int | None = None
+    noise_model: str | None = None
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.methods if m not in METHODS]

@@ -66,6 +66,12 @@ class DenoiseSettings:
             demosaicing leaves it; 0 (default): the stride `denoise.pixel_shuffle.choose_stride` measures
             from the photos, 1 for independent noise (then nothing changes); 1: off; 2 to 4: that stride.
             Rounds >= 2 fine-tune and apply the network on the sub-images of the same stride.
+        noise_model: how the denoisers read each photo's (or sub-image's) noise level
+            (`denoise.inference.NoiseModel`); None (default): as `denoise.pixel_shuffle.choose_stride` finds
+            the photos' noise (on the luma where it is chroma-subsampled, as a JPEG's; else on the colour
+            patches, "auto"). "luma" reads the luma whatever was found: for a camera's JPEGs whose noise is
+            too faint in the colour patches to be found (quality 80 and under, or a clipped black
+            background; docs/bench/denoise_real.md), with `pd_stride` 2.
     """
 
     n2v_preset: str = "default"
@@ -80,6 +86,7 @@ class DenoiseSettings:
     grouped_wiener: bool = False
     grouped_wiener_passes: int = 1
     pd_stride: int = 0
+    noise_model: str | None = None
 
 
 @dataclass(frozen=True)
@@ -248,6 +255,11 @@ class PipelineConfig:
         if isinstance(stride, bool) or not isinstance(stride, numbers.Integral) or not 0 <= stride <= MAX_STRIDE:
             raise ConfigError(f"must be an integer from 0 to {MAX_STRIDE}, got {stride!r}",
                               key="denoise.pd_stride", expected="0 (measured from the photos), 1 (off) or a stride")
+        from denoise.inference import NOISE_MODELS
+
+        if self.denoise.noise_model is not None and self.denoise.noise_model not in NOISE_MODELS:
+            raise ConfigError(f"unknown noise model {self.denoise.noise_model!r}", key="denoise.noise_model",
+                              expected=f"one of {', '.join(NOISE_MODELS)}, or none (measured from the photos)")
         if self.denoise.round2_loss not in ("joint", "charbonnier"):
             raise ConfigError(f"unknown loss {self.denoise.round2_loss!r}", key="denoise.round2_loss",
                               expected="'joint' or 'charbonnier'")

@@ -89,6 +89,8 @@ class DenoiseStageSettings:
         grouped: the grouped Wiener step after it (`DenoiseSettings.grouped_wiener`); None: off.
         pd_stride: pixel-shuffle stride of the denoising (`DenoiseSettings.pd_stride`): 0 measured from the
             photos, 1 off.
+        noise_model: how each photo's noise level is read (`DenoiseSettings.noise_model`); None: as
+            `denoise.pixel_shuffle.choose_stride` finds the noise.
     """
 
     n2v: N2VConfig
@@ -99,6 +101,7 @@ class DenoiseStageSettings:
     wiener: WienerConfig | None = None
     grouped: GroupedWienerConfig | None = None
     pd_stride: int = 0
+    noise_model: str | None = None
 
 
 @dataclass(frozen=True)
@@ -112,12 +115,14 @@ class RefineStageSettings:
         pd_stride: pixel-shuffle stride of the fine-tuning and inference, as round 1's
             (`DenoiseSettings.pd_stride`: 0 measured from the photos, which gives round 1's stride for the
             same noise).
+        noise_model: as round 1's (`DenoiseSettings.noise_model`).
     """
 
     round2: Round2Config
     passes: int
     device: str
     pd_stride: int = 0
+    noise_model: str | None = None
 
 
 @dataclass(frozen=True)
@@ -320,9 +325,11 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
                                                                wiener=WienerConfig() if d.wiener else None,
                                                                grouped=GroupedWienerConfig(passes=d.grouped_wiener_passes)
                                                                if d.grouped_wiener
-                                                               else None, pd_stride=d.pd_stride),
+                                                               else None, pd_stride=d.pd_stride,
+                                                               noise_model=d.noise_model),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
-        refine=RefineStageSettings(round2_config(d), d.passes, config.device, d.pd_stride) if later else None)
+        refine=RefineStageSettings(round2_config(d), d.passes, config.device, d.pd_stride,
+                                   d.noise_model) if later else None)
 
 
 def check_settings(config: PipelineConfig) -> None:

@@ -113,7 +113,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         _log.info("the photos' colour patches read %.1f/255 of noise, their luma %.1f/255: chroma-subsampled noise, "
                   "as a JPEG's; its level is read on the luma", 255.0 * levels.level_by_stride[1],
                   255.0 * levels.luma_level)
-    out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed, levels.noise_model)
+    out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed, s.noise_model or levels.noise_model)
     if stride > 1:
         n = stride * stride
         out = unshuffled(out, stride, [im.shape for im in noisy.values()])
@@ -248,7 +248,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
             out = list(read_views(ctx.inputs["previous"], names).values())
         else:
             out = denoise_images(model, photos, passes=s.passes, seed=ctx.seed, fuse=True,
-                                 noise_model=levels.noise_model)
+                                 noise_model=s.noise_model or levels.noise_model)
             if stride > 1:
                 out = unshuffled(out, stride, [im.shape for im in noisy.values()])
     write_views(ctx.work_dir / "denoised", dict(zip(names, out, strict=True)))

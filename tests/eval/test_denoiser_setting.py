@@ -306,6 +306,53 @@ def test_pd_stride_is_validated_and_reaches_the_stage(tmp_path, capsys):
     assert "--pd-stride" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
+def test_the_noise_model_setting_overrides_the_measured_one(tmp_path, monkeypatch):
+    """`DenoiseSettings.noise_model`: None reads the level as the photos' noise is found (white noise in
+    PNGs: "auto", the colour patches); a model given is the one the denoisers use, whatever was found."""
+    import eval.pipeline.stages as stages
+
+    seen = []
+    real = stages._denoise_photos
+
+    def spy(photos, n2v, s, seed, noise_model):
+        seen.append(noise_model)
+        return real(photos, n2v, s, seed, noise_model)
+
+    monkeypatch.setattr(stages, "_denoise_photos", spy)
+    _flat_noisy_photos(tmp_path / "noisy", 2, (40, 46, 3))
+    stds = {}
+    for model in (None, "luma"):
+        summary, _ = _run_denoise_stage(tmp_path, f"work_{model}", 3, noise_model=model)
+        stds[model] = summary["noise_std_255"]
+    assert seen == ["auto", "luma"]
+    # White noise reads alike on the colour patches and the luma (the luma's RGB-equivalent level): the
+    # override changes the model, not the noise (about the true 0.1 = 25.5/255 both ways).
+    assert all(15 < v < 40 for m in stds.values() for v in m.values()), stds
+
+    cfg = preset("default")
+    assert cfg.denoise.noise_model is None and round_settings(cfg, 1).denoise.noise_model is None
+    luma = dataclasses.replace(preset("fast", rounds=2), denoise=dataclasses.replace(preset("fast").denoise,
+                                                                                       noise_model="luma"))
+    assert round_settings(luma, 1).denoise.noise_model == "luma"
+    assert round_settings(luma, 2).refine.noise_model == "luma"
+    with pytest.raises(ConfigError, match="denoise.noise_model"):
+        dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, noise_model="gray"))
+    for model in (None, "luma"):
+        cfg = EvalConfig(methods=("product",), noise_model=model)
+        assert base_pipeline_config(cfg, views=4).denoise.noise_model == model
+
+
+def test_the_cli_noise_model_choices_are_the_denoisers(tmp_path, capsys):
+    import eval.cli
+    from denoise.inference import NOISE_MODELS
+
+    assert eval.cli.NOISE_MODEL_CHOICES == NOISE_MODELS
+    scene = make_scene(tmp_path / "images", n=3)
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(scene), "--out", str(tmp_path / "o"), "--noise-model", "gray"])
+    assert exc.value.code == 2 and "--noise-model" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
 def test_the_refine_stage_fine_tunes_and_denoises_the_sub_images_at_round_1s_stride(tmp_path, monkeypatch):
     import denoise.round2 as round2
     from eval.pipeline.stage_settings import RefineStageSettings, round2_config
