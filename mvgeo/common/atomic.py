@@ -16,6 +16,7 @@ from pathlib import Path
 from mvgeo.common.errors import InputError
 from mvgeo.common.output import (
     LOCK_NAME,
+    MANIFEST_NAME,
     OWNER_SUFFIX,
     OutputPlan,
     OwnerFile,
@@ -141,19 +142,24 @@ def _move_entries_up(plan: OutputPlan, tmp: Path) -> None:
         raise InputError(f"--out is no longer empty ({sorted(others)[:3]} appeared while computing)",
                          path=plan.out, fix="choose another --out, or run the command again")
     moved: list[Path] = []
+    # The manifest last: it is what marks a finished output, so a command killed part-way through the moves
+    # leaves a folder that no later command takes for one (it holds some results and no manifest).
+    names = sorted(os.listdir(tmp), key=lambda n: (n == MANIFEST_NAME, n))
     try:
-        for name in sorted(os.listdir(tmp)):
+        for name in names:
             dst = path / name
             rename_no_replace(tmp / name, dst)  # never over an entry that appeared since the check above
             moved.append(dst)
         tmp.rmdir()
-    except OSError as exc:
-        for dst in moved:  # only what was just moved in: the folder was empty before
+    except BaseException as exc:  # a Ctrl-C between two moves too: only what was just moved in is taken out
+        for dst in moved:  # the folder was empty before
             if dst.is_dir() and not dst.is_symlink():
                 remove_tree(dst)
             else:
                 dst.unlink(missing_ok=True)
-        raise _commit_error(plan, exc) from None
+        if isinstance(exc, OSError):
+            raise _commit_error(plan, exc) from None
+        raise
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:

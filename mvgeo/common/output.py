@@ -599,6 +599,11 @@ def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path
                 raise InputError(f"--out holds only the temporary folder of an interrupted run ({shown})", path=out,
                                  fix="delete it yourself if no command is writing to --out now, or choose another "
                                      "--out; nothing was changed")
+            if stale_leftovers(path):  # `entries` leaves them out
+                raise InputError(f"--out holds an unfinished output ({shown}) beside the temporary folder of a "
+                                 "command killed while it moved its results in", path=out,
+                                 fix="if those are that command's, delete the folder and run it again; else choose "
+                                     "a new or empty folder for --out; nothing was changed")
             raise InputError(f"--out is a folder that holds files `{command}` did not write ({shown})", path=out,
                              fix="choose a new or empty folder for --out; nothing was changed")
         if state == "previous" and not resume:

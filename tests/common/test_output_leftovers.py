@@ -320,3 +320,72 @@ def test_a_file_appearing_in_an_empty_out_while_the_output_moves_in_is_kept(tmp_
             (tmp / "b.txt").write_text("ours")
             monkeypatch.setattr(atomic.os, "listdir", listdir_then_user_writes)
     assert (out / "a.txt").read_text() == "the user's" and seen
+
+
+def _entries_moved_then(out: Path, tmp_path: Path, *, kill: bool) -> None:
+    """A command writing two results into the empty `out`, interrupted after its first move up from the
+    temporary folder: SIGKILLed in a child process (`kill`), or a Ctrl-C here."""
+    import mvgeo.common.atomic as atomic
+
+    if kill:
+        ready = tmp_path / "ready"
+        _kill_when_ready(
+            "import pathlib, time\n"
+            "import mvgeo.common.atomic as atomic\n"
+            "from mvgeo.common.output import prepare_output\n"
+            "real, calls = atomic.rename_no_replace, []\n"
+            "def slow(src, dst):\n"
+            "    calls.append(dst)\n"
+            "    if len(calls) == 2:\n"
+            f"        pathlib.Path({str(ready)!r}).write_text('1')\n"
+            "        time.sleep(60)\n"
+            "    real(src, dst)\n"
+            "atomic.rename_no_replace = slow\n"
+            f"with atomic.atomic_output_dir(prepare_output({str(out)!r}, command={CMD!r})) as tmp:\n"
+            "    (tmp / 'a.txt').write_text('a')\n"
+            "    (tmp / 'b.txt').write_text('b')\n", ready)
+        return
+    real, calls = atomic.rename_no_replace, []
+
+    def interrupted(src, dst):
+        calls.append(dst)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        real(src, dst)
+
+    atomic.rename_no_replace = interrupted
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with atomic_output_dir(prepare_output(out, command=CMD)) as tmp:
+                (tmp / "a.txt").write_text("a")
+                (tmp / "b.txt").write_text("b")
+    finally:
+        atomic.rename_no_replace = real
+
+
+def test_a_command_killed_while_its_results_move_into_an_empty_out_leaves_no_finished_looking_output(tmp_path):
+    """The manifest moves last: a SIGKILL between the moves leaves some results and no manifest, so the next
+    command does not take the folder for a previous output (which --overwrite would replace, or a resume
+    would build on); it refuses the folder, naming what is in it."""
+    from mvgeo.common.output import MANIFEST_NAME
+
+    out = tmp_path / "out"
+    out.mkdir()
+    _entries_moved_then(out, tmp_path, kill=True)
+    assert (out / "a.txt").read_text() == "a" and MANIFEST_NAME not in os.listdir(out)
+    for overwrite in (False, True):
+        with pytest.raises(InputError, match=r"unfinished output \('a.txt'\)"):
+            prepare_output(out, command=CMD, overwrite=overwrite)
+    assert (out / "a.txt").read_text() == "a"
+
+
+def test_a_ctrl_c_while_the_results_move_into_an_empty_out_takes_them_out_again(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    _entries_moved_then(out, tmp_path, kill=False)
+    assert os.listdir(out) == []
+    plan = prepare_output(out, command=CMD)
+    assert plan.state == "empty"
+    with atomic_output_dir(plan) as tmp:
+        (tmp / "a.txt").write_text("a")
+    assert sorted(os.listdir(out)) == [".denoise-gs-output.json", "a.txt"]
