@@ -80,7 +80,9 @@ def load_views(data_dir: str | Path, *, split: str | None = "train", sparse_dir:
     """
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
-        raise InputError("data folder not found", path=data_dir)
+        raise InputError("data folder not found", path=data_dir,
+                         fix="give a folder with images/ and sparse/0/ (as `denoise-gs dataset import` or "
+                             "`mvgeo align --out` write it)")
     image_dir = data_dir / "images"
     if not image_dir.is_dir():
         raise InputError("no images/ folder", path=data_dir, fix="DATA_DIR must hold images/ and sparse/0/")
@@ -99,7 +101,8 @@ def load_views(data_dir: str | Path, *, split: str | None = "train", sparse_dir:
     for name in names:
         path = image_dir / name
         if not path.exists():
-            raise InputError(f"image {name!r} is in the COLMAP model but not in images/", path=path)
+            raise InputError(f"image {name!r} is in the COLMAP model but not in images/", path=path,
+                             fix="put the image back, or give the model that was made from these images")
         img = read_image(path)
         cam = sparse.camera_of(name)
         if img.shape[:2] != (cam.height, cam.width):
@@ -115,12 +118,14 @@ def read_point_cloud_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """xyz (P, 3) float64 and rgb (P, 3) uint8 from a point-cloud PLY (grey when it has no colour)."""
     path = Path(path)
     if not path.is_file():
-        raise InputError("initial point cloud not found", path=path)
+        raise InputError("initial point cloud not found", path=path,
+                         fix="give the points.ply `mvgeo align` writes, or --init depth")
     try:
         v = PlyData.read(str(path))["vertex"]
         xyz = np.stack([np.asarray(v[k], dtype=np.float64) for k in ("x", "y", "z")], 1)
     except Exception as exc:  # plyfile raises several types on corrupt input
-        raise InputError(f"cannot read a point cloud from this PLY ({exc})", path=path) from exc
+        raise InputError(f"cannot read a point cloud from this PLY ({exc})", path=path,
+                         fix="give a PLY of 3D points with x, y, z (e.g. `mvgeo align`'s)") from exc
     names = [p.name for p in v.properties]
     if all(k in names for k in ("red", "green", "blue")):
         rgb = np.stack([np.asarray(v[k]) for k in ("red", "green", "blue")], 1)

@@ -66,7 +66,8 @@ def read_gaussian_ply(path: str | Path, *, device: str | torch.device = "cpu") -
         ply = PlyData.read(str(path))
         vertex = ply["vertex"]
     except Exception as exc:  # plyfile raises several types for corrupt files
-        raise InputError(f"cannot read PLY ({exc})", path=path) from exc
+        raise InputError(f"cannot read PLY ({exc})", path=path,
+                         fix="give a 3DGS Gaussian PLY (e.g. a `splat train` output's point_cloud.ply)") from exc
     props = [p.name for p in vertex.properties]
     n_rest = sum(1 for p in props if p.startswith("f_rest_"))
     if n_rest % 3 != 0 or (n_rest // 3 + 1) not in (1, 4, 9, 16):

@@ -36,7 +36,8 @@ def read_colmap(src: str | Path, *, model_dir: str | Path | None = None, images_
     """
     src = Path(src)
     if not src.is_dir():
-        raise InputError("COLMAP project folder does not exist", path=src)
+        raise InputError("COLMAP project folder does not exist", path=src,
+                         fix="give the folder that holds sparse/0/ (or sparse/) and images/")
     model_dir = src / "sparse" / "0" if model_dir is None else Path(model_dir)
     images_dir = src / "images" if images_dir is None else Path(images_dir)
     model = read_sparse_model(model_dir)

@@ -92,7 +92,9 @@ def _read_colmap_cameras_txt(path: Path) -> Camera:
         try:
             cams = read_sparse_model(tmp).cameras
         except InputError as exc:
-            raise InputError(f"cannot parse COLMAP cameras file: {exc.message}", path=path) from exc
+            raise InputError(f"cannot parse COLMAP cameras file: {exc.message}", path=path,
+                             fix="write one camera line: CAMERA_ID MODEL WIDTH HEIGHT PARAMS... (COLMAP's "
+                                 "cameras.txt)") from exc
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     if len(cams) != 1:
@@ -107,7 +109,8 @@ def _read_mrcal(path: Path) -> Camera:
     try:
         model = mrcal.cameramodel(str(path))
     except Exception as exc:  # mrcal raises plain exceptions on bad files
-        raise InputError(f"cannot read mrcal camera model: {exc}", path=path) from exc
+        raise InputError(f"cannot read mrcal camera model: {exc}", path=path,
+                         fix="give an mrcal .cameramodel file as mrcal writes it, or a COLMAP cameras.txt") from exc
     lensmodel, p = model.intrinsics()
     if lensmodel not in _MRCAL_TO_COLMAP:
         raise InputError(f"unsupported mrcal lens model {lensmodel}", path=path,

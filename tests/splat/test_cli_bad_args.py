@@ -108,3 +108,24 @@ def test_view_unknown_host_is_refused_before_loading_and_a_busy_port_is_not(tmp_
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         check_listen_address("127.0.0.1", busy.getsockname()[1])
+
+
+@pytest.mark.parametrize("case", ["no data folder", "image missing", "bad init", "bad model"])
+def test_missing_or_unreadable_inputs_name_the_file_and_the_fix(dataset, tmp_path, capsys, case):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"not a ply")
+    if case == "image missing":
+        for f in (data / "images").iterdir():
+            f.unlink()
+    argv = {"no data folder": ["train", tmp_path / "nope", "--out", tmp_path / "o"],
+            "image missing": ["train", data, "--out", tmp_path / "o", "--init", "depth"],
+            "bad init": ["train", data, "--out", tmp_path / "o", "--init", bad],
+            "bad model": ["render", bad, "--cameras", data / "sparse" / "0", "--out", tmp_path / "o"]}[case]
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err and "fix:" in err, err
+    assert not (tmp_path / "o").exists()
