@@ -70,6 +70,7 @@ def main() -> int:
                 read = choose_stride(ims)
                 how = f"stride {read.stride}" + ("" if read.luma_level is None else
                                                  f", luma {255.0 * read.luma_level:.1f}")
+                how += "" if read.luma_hint_level is None else f" (hint: luma {255.0 * read.luma_hint_level:.1f})"
                 print(f"| {d.name} {sub}/ | {q or 'none'} | {c1:.2f} | {c2:.2f} | {y1:.2f} | {c1 / max(y1, 1e-9):.2f} "
                       f"| {spread:.2f} | {y2:.2f} | {c2 / max(y2, 1e-9):.2f} | {how} |", flush=True)
     return 0

@@ -89,6 +89,8 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
                   "neighbouring pixels; its level /255 by stride: %s)", stride, stride,
                   levels.levels_255())
         work = shuffled(images, stride)
+    if levels.hint() is not None and args.noise_model == "auto":
+        _log.warning("%s", levels.hint())
     if levels.luma_level is not None:
         _log.info("the images' colour patches read %.1f/255 of noise, their luma %.1f/255: chroma-subsampled noise, "
                   "as a JPEG's; its level is read on the luma", 255.0 * levels.level_by_stride[1],

@@ -36,9 +36,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["JPEG_STRIDE", "MAX_PHOTOS", "MAX_STRIDE", "MIN_CORRELATED_NOISE_STD", "MIN_LEVEL_RATIO", "MIN_NOISE_STD",
-           "STRONG_LEVEL_RATIO", "SUB_CHROMA_DEFICIT_RATIO", "NoiseLevels", "choose_stride", "merge_std", "pd_merge",
-           "pd_split", "shuffled", "stride_for", "unshuffled"]
+__all__ = ["JPEG_HINT_CHROMA_RATIO", "JPEG_STRIDE", "MAX_PHOTOS", "MAX_STRIDE", "MIN_CORRELATED_NOISE_STD",
+           "MIN_LEVEL_RATIO", "MIN_NOISE_STD", "STRONG_LEVEL_RATIO", "SUB_CHROMA_DEFICIT_RATIO", "NoiseLevels",
+           "choose_stride", "luma_hint_text", "merge_std", "pd_merge", "pd_split", "shuffled", "stride_for",
+           "unshuffled"]
 
 #: The largest stride `choose_stride` returns (16 sub-images; a 384 px photo's are 96 px).
 MAX_STRIDE = 4
@@ -75,6 +76,12 @@ JPEG_STRIDE = 2
 #: and Poisson-Gaussian 0.69. (Clean photos read under it too, 0.04-0.08, their texture in the luma, but their
 #: colour level is under `MIN_CORRELATED_NOISE_STD`: the noise does not count as correlated.)
 SUB_CHROMA_DEFICIT_RATIO = 0.4
+#: Photos whose colour patches read under this fraction of their luma's level look chroma-subsampled (a JPEG's)
+#: to `choose_stride`'s hint (`NoiseLevels.luma_hint_level`). Measured on the photos: a camera's JPEGs of
+#: demosaiced noise (`bayer-pg:0.01,5+jpeg:Q`, Q 70-95) 0.12-0.14 on DTU scan24 and 0.09-0.20 on the temple
+#: ring, DTU's clean photos as JPEGs 0.11; as PNGs, demosaiced noise 0.41 (0.16 on the temple ring, where its
+#: stride is found) and clean photos 0.25 (DTU) and 0.39 (the temple).
+JPEG_HINT_CHROMA_RATIO = 0.2
 #: Photos the levels are read on at most, spread over the list (about 0.3 s a photo and stride on one core
 #: at 384 x 384).
 MAX_PHOTOS = 6
@@ -150,11 +157,18 @@ class NoiseLevels:
             the median over the photos read, `denoise.noise_level.luma_noise_sigma`) at `stride`: white noise
             (`denoise.noise_level.chroma_subsampled_sigma` of the stride-1 level and this) at stride 1,
             correlated noise at `JPEG_STRIDE` (`choose_stride`); else None.
+        luma_hint_level: where no noise was found (stride 1, the colour patches' level) but the photos look
+            chroma-subsampled (colour patches under `JPEG_HINT_CHROMA_RATIO` of their luma) with a luma whose
+            eigenvalues spread (not white), the level their stride-2 sub-images' luma reads, if at least
+            `MIN_CORRELATED_NOISE_STD`: a camera's JPEG whose noise the colour patches cannot show (quality 80,
+            a clipped black background), or a clean photo's texture aliased into the luma. Nothing acts on it;
+            the run's report suggests `--pd-stride 2 --noise-model luma` for noisy photos. Else None.
     """
 
     stride: int
     level_by_stride: dict[int, float]
     luma_level: float | None = None
+    luma_hint_level: float | None = None
 
     @property
     def noise_model(self) -> str:
@@ -176,7 +190,22 @@ class NoiseLevels:
         """What `denoise n2v`'s report.json records: the stride, and the levels read (/255) if any."""
         levels = self.levels_by_stride_255()
         luma = {} if self.luma_level is None else {"noise_level_luma_255": round(255.0 * self.luma_level, 2)}
+        if self.luma_hint_level is not None:
+            luma["noise_level_luma_hint_255"] = round(255.0 * self.luma_hint_level, 2)
         return {"pd_stride": self.stride, **({"noise_level_by_stride_255": levels} if levels else {}), **luma}
+
+    def hint(self) -> str | None:
+        """Where `luma_hint_level` is set, what the user may try (a log line, the run's report); else None."""
+        return None if self.luma_hint_level is None else luma_hint_text(255.0 * self.level_by_stride[1],
+                                                                         255.0 * self.luma_hint_level)
+
+
+def luma_hint_text(colour_255: float, luma_2_255: float) -> str:
+    """The hint of `NoiseLevels.hint` from its two levels (/255)."""
+    return (f"the photos look like JPEGs (their colour patches read {colour_255:.1f}/255 of noise, their luma "
+            f"much more) and their luma's 2 x 2 pixel-shuffled sub-images read {luma_2_255:.1f}/255: if the photos "
+            "are visibly noisy (a camera's demosaiced noise, too faint in the colour patches to be found), "
+            "denoise them with --pd-stride 2 --noise-model luma; a clean photo's texture reads this way too")
 
 
 def stride_for(images: Sequence[np.ndarray], setting: int) -> NoiseLevels:
@@ -211,14 +240,18 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
     if not big:
         return NoiseLevels(1, {})
     pick = big if len(big) <= MAX_PHOTOS else [big[int(i)] for i in np.linspace(0, len(big) - 1, MAX_PHOTOS)]
+    from denoise.noise_level import WHITE_LUMA_MAX_SPREAD, chroma_subsampled_sigma, luma_noise_spread
+
     level = {1: _level(pick, 1)}
     colour = all(np.ndim(im) == 3 and np.shape(im)[2] == 3 for im in pick)
+    luma_1 = spread = None
     if colour:
-        from denoise.noise_level import WHITE_LUMA_MAX_SPREAD, chroma_subsampled_sigma, luma_noise_spread
-
-        luma = chroma_subsampled_sigma(level[1], _level(pick, 1, luma=True))
-        if luma is not None and np.median([luma_noise_spread(im) for im in pick]) <= WHITE_LUMA_MAX_SPREAD:
-            return NoiseLevels(1, {1: round(level[1], 6)}, round(luma, 6))  # a JPEG's noise: white in the luma
+        luma_1 = _level(pick, 1, luma=True)
+        luma = chroma_subsampled_sigma(level[1], luma_1)
+        if luma is not None:
+            spread = float(np.median([luma_noise_spread(im) for im in pick]))
+            if spread <= WHITE_LUMA_MAX_SPREAD:
+                return NoiseLevels(1, {1: round(level[1], 6)}, round(luma, 6))  # a JPEG's noise: white in the luma
     level[2] = _level(pick, 2)
     stride = 1
     correlated = level[2] >= MIN_NOISE_STD and level[1] < min_ratio * level[2]
@@ -236,4 +269,12 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
             if level[stride] >= min_ratio * level[stride + 1]:
                 break
             stride += 1
-    return NoiseLevels(stride, {k: round(v, 6) for k, v in level.items()})
+    levels = {k: round(v, 6) for k, v in level.items()}
+    if stride == 1 and colour and level[1] < JPEG_HINT_CHROMA_RATIO * luma_1:
+        if spread is None:
+            spread = float(np.median([luma_noise_spread(im) for im in pick]))
+        if spread > WHITE_LUMA_MAX_SPREAD:
+            luma_2 = _level(pick, JPEG_STRIDE, luma=True)
+            if luma_2 >= MIN_CORRELATED_NOISE_STD:
+                return NoiseLevels(1, levels, luma_hint_level=round(luma_2, 6))
+    return NoiseLevels(stride, levels)

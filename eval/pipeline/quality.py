@@ -62,6 +62,9 @@ class DenoiseQuality:
     noise_level_by_stride_255: dict[str, float] = field(default_factory=dict)
     #: round 1: where the photos' noise is chroma-subsampled (a JPEG's), the level their luma reads (/255).
     noise_level_luma_255: float | None = None
+    #: round 1: where no noise was found but the photos look like a camera's JPEGs, the level their stride-2
+    #: sub-images' luma reads (/255): the report suggests `--pd-stride 2 --noise-model luma`.
+    noise_level_luma_hint_255: float | None = None
 
 
 @dataclass(frozen=True)
@@ -169,7 +172,8 @@ def _denoise_quality(summary: DenoiseSummary) -> DenoiseQuality:
                           noise_std_255=dict(noise.noise_std_255), signal_dependent=list(noise.signal_dependent),
                           pd_stride=summary.pd_stride,
                           noise_level_by_stride_255=dict(summary.noise_level_by_stride_255 or {}),
-                          noise_level_luma_255=summary.noise_level_luma_255)
+                          noise_level_luma_255=summary.noise_level_luma_255,
+                          noise_level_luma_hint_255=summary.noise_level_luma_hint_255)
 
 
 def _fine_tuning_quality(summary: RefineSummary) -> DenoiseQuality:
@@ -316,6 +320,11 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
                          f"leaves them{f' (their colour patches read {colour:.1f}/255)' if colour is not None else ''}"
                          f": the noise level was read on their luma, {d.noise_level_luma_255:.1f}/255"
                          f"{' (on the sub-images)' if d.pd_stride is not None and d.pd_stride > 1 else ''}")
+        if d is not None and d.noise_level_luma_hint_255 is not None:
+            from denoise.pixel_shuffle import luma_hint_text
+
+            colour = d.noise_level_by_stride_255.get("1", float("nan"))
+            lines.append(f"- **{luma_hint_text(colour, d.noise_level_luma_hint_255)}**")
         a = q.align
         if a is not None:
             photos = f" ({a.photos} photos)" if a.photos else ""

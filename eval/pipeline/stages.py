@@ -109,6 +109,8 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
                   "denoising their %d x %d pixel-shuffled sub-images",
                   levels.levels_255(), stride, stride)
         photos = shuffled(photos, stride)
+    if levels.hint() is not None and s.noise_model is None:
+        _log.warning("%s", levels.hint())
     if levels.luma_level is not None:
         _log.info("the photos' colour patches read %.1f/255 of noise, their luma %.1f/255: chroma-subsampled noise, "
                   "as a JPEG's; its level is read on the luma", 255.0 * levels.level_by_stride[1],
@@ -128,6 +130,8 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
                           pd_stride=stride, noise_level_by_stride_255=levels.levels_by_stride_255() or None,
                           noise_level_luma_255=None if levels.luma_level is None else
                           round(255.0 * levels.luma_level, 2),
+                          noise_level_luma_hint_255=None if levels.luma_hint_level is None or s.noise_model else
+                          round(255.0 * levels.luma_hint_level, 2),
                           noise=noise_levels(noisy, stds)).to_json()  # the report's noise level
 
 

@@ -219,6 +219,9 @@ class DenoiseSummary:
             (`denoise.pixel_shuffle.NoiseLevels`); None where none was read.
         noise_level_luma_255: where the photos' noise is chroma-subsampled (a JPEG's), the level their luma
             reads, /255 (`denoise.pixel_shuffle.NoiseLevels.luma_level`); None otherwise.
+        noise_level_luma_hint_255: where no noise was found but the photos look like a camera's JPEGs, the level
+            their stride-2 sub-images' luma reads, /255 (`NoiseLevels.luma_hint_level`; the report suggests
+            `--pd-stride 2 --noise-model luma`); None otherwise, and where a noise model was given.
         noise: each photo's noise level (the report's).
         denoiser: a classical denoiser's name (`eval.baselines`).
         sigma_est: a classical denoiser's noise estimate per view, [0, 1] units.
@@ -232,6 +235,7 @@ class DenoiseSummary:
     pd_stride: int | None = None
     noise_level_by_stride_255: dict[str, float] | None = None
     noise_level_luma_255: float | None = None
+    noise_level_luma_hint_255: float | None = None
     noise: PhotoNoise | None = None
     denoiser: str | None = None
     sigma_est: dict[str, float] | None = None
@@ -250,6 +254,7 @@ class DenoiseSummary:
             "training_restarts": restarts, "pd_stride": self.pd_stride,
             "noise_level_by_stride_255": self.noise_level_by_stride_255,
             "noise_level_luma_255": self.noise_level_luma_255,
+            "noise_level_luma_hint_255": self.noise_level_luma_hint_255,
             **(self.noise.to_json() if self.noise is not None else {}),
             "denoiser": self.denoiser, "sigma_est": self.sigma_est})
 
@@ -263,6 +268,7 @@ class DenoiseSummary:
                    pd_stride=_opt(data, "pd_stride", int),
                    noise_level_by_stride_255=_opt(data, "noise_level_by_stride_255", _float_map),
                    noise_level_luma_255=_opt(data, "noise_level_luma_255", float),
+                   noise_level_luma_hint_255=_opt(data, "noise_level_luma_hint_255", float),
                    noise=PhotoNoise.from_json(data) if has_noise else None,
                    denoiser=_opt(data, "denoiser", str), sigma_est=_opt(data, "sigma_est", _float_map))
 

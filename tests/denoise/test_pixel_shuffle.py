@@ -156,6 +156,28 @@ def test_demosaiced_noise_saved_as_a_jpeg_gets_stride_two_at_the_luma_level(rng)
     assert white.stride == 1 and white.noise_model == "luma" and white.luma_level == pytest.approx(true, rel=0.1)
 
 
+def test_a_cameras_jpeg_whose_noise_the_colour_patches_cannot_show_gets_a_hint(rng):
+    """At JPEG quality 80 the sub-images' colour patches read the same demosaiced noise at 1.4/255, under the
+    floor a clean photo's texture reads up to: the stride stays 1 at the colour level (nothing is changed),
+    but `luma_hint_level` records the level the stride-2 sub-images' luma reads, which the report turns into
+    `--pd-stride 2 --noise-model luma`. Clean JPEGs of these flat scenes, the noise as PNGs (found) and white
+    noise as JPEGs (read on the luma) get no hint."""
+    scenes = [_smooth_scene(rng) for _ in range(3)]
+    q90 = choose_stride([_jpeg(_bayer(s, k), 90, k) for k, s in enumerate(scenes)])
+    q80 = choose_stride([_jpeg(_bayer(s, k), 80, k) for k, s in enumerate(scenes)])
+    assert q80.stride == 1 and q80.noise_model == "auto" and q80.luma_level is None
+    assert q80.level_by_stride[2] < MIN_CORRELATED_NOISE_STD  # why it is not found
+    # The same noise's level as quality 90 finds it (14.9/255 both; the JPEG's quality barely moves the luma).
+    assert q80.luma_hint_level == pytest.approx(q90.luma_level, rel=0.1)
+    assert "--pd-stride 2 --noise-model luma" in q80.hint()
+    assert q80.record()["noise_level_luma_hint_255"] == pytest.approx(255 * q80.luma_hint_level, abs=0.01)
+    for other in (choose_stride([_jpeg(s, 80, k) for k, s in enumerate(scenes)]),
+                  choose_stride([_bayer(s, k) for k, s in enumerate(scenes)]), q90,
+                  choose_stride([_jpeg(np.clip(s + rng.normal(0, 0.06, s.shape), 0, 1).astype(np.float32), 80, k)
+                                 for k, s in enumerate(scenes)])):
+        assert other.luma_hint_level is None and other.hint() is None
+
+
 def test_shuffled_and_unshuffled_are_inverse_over_a_list(rng):
     images = [rng.random((10, 14, 3)), rng.random((9, 11, 3))]
     parts = shuffled(images, 3)

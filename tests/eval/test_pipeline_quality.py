@@ -248,3 +248,16 @@ def test_the_report_says_the_photos_were_denoised_as_pixel_shuffled_sub_images(t
     text = "\n".join(quality_lines([q]))
     assert "denoised as 2 x 2 pixel-shuffled sub-images" in text
     assert "read on their luma, 19.5/255 (on the sub-images)" in text
+
+
+def test_the_report_suggests_the_luma_model_for_jpegs_whose_noise_was_not_found(tmp_path):
+    rnd = _round(tmp_path / "r", align_stats(n_registered=4))
+    summary = {**rnd.stages["denoise"].summary, "pd_stride": 1, "noise_level_by_stride_255": {"1": 0.6, "2": 1.4},
+               "noise_level_luma_hint_255": 19.6}
+    q = round_quality(RoundResult(index=1, dir=rnd.dir, stages={**rnd.stages, "denoise": _stage("denoise", {},
+                                                                                                    summary)}))
+    assert q.denoise.noise_level_luma_hint_255 == 19.6
+    text = "\n".join(quality_lines([q]))
+    assert "colour patches read 0.6/255" in text and "sub-images read 19.6/255" in text
+    assert "--pd-stride 2 --noise-model luma" in text
+    assert "--noise-model" not in "\n".join(quality_lines([round_quality(rnd)]))
