@@ -222,6 +222,13 @@ def _level(images: Sequence[np.ndarray], stride: int, *, luma: bool = False) -> 
     return float(np.median([np.median([read(p) for p in pd_split(im, stride)]) for im in images]))
 
 
+def _luma_spread(images: Sequence[np.ndarray]) -> float:
+    """The median over `images` of `denoise.noise_level.luma_noise_spread`."""
+    from denoise.noise_level import luma_noise_spread
+
+    return float(np.median([luma_noise_spread(im) for im in images]))
+
+
 def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
                   min_ratio: float = MIN_LEVEL_RATIO) -> NoiseLevels:
     """1 (no PD) where the photos' noise is chroma-subsampled (a JPEG's: the module docstring), or where the
@@ -240,7 +247,7 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
     if not big:
         return NoiseLevels(1, {})
     pick = big if len(big) <= MAX_PHOTOS else [big[int(i)] for i in np.linspace(0, len(big) - 1, MAX_PHOTOS)]
-    from denoise.noise_level import WHITE_LUMA_MAX_SPREAD, chroma_subsampled_sigma, luma_noise_spread
+    from denoise.noise_level import WHITE_LUMA_MAX_SPREAD, chroma_subsampled_sigma
 
     level = {1: _level(pick, 1)}
     colour = all(np.ndim(im) == 3 and np.shape(im)[2] == 3 for im in pick)
@@ -249,7 +256,7 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
         luma_1 = _level(pick, 1, luma=True)
         luma = chroma_subsampled_sigma(level[1], luma_1)
         if luma is not None:
-            spread = float(np.median([luma_noise_spread(im) for im in pick]))
+            spread = _luma_spread(pick)
             if spread <= WHITE_LUMA_MAX_SPREAD:
                 return NoiseLevels(1, {1: round(level[1], 6)}, round(luma, 6))  # a JPEG's noise: white in the luma
     level[2] = _level(pick, 2)
@@ -271,9 +278,7 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
             stride += 1
     levels = {k: round(v, 6) for k, v in level.items()}
     if stride == 1 and colour and level[1] < JPEG_HINT_CHROMA_RATIO * luma_1:
-        if spread is None:
-            spread = float(np.median([luma_noise_spread(im) for im in pick]))
-        if spread > WHITE_LUMA_MAX_SPREAD:
+        if (_luma_spread(pick) if spread is None else spread) > WHITE_LUMA_MAX_SPREAD:
             luma_2 = _level(pick, JPEG_STRIDE, luma=True)
             if luma_2 >= MIN_CORRELATED_NOISE_STD:
                 return NoiseLevels(1, levels, luma_hint_level=round(luma_2, 6))

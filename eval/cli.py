@@ -18,6 +18,7 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
+from denoise.inference import NOISE_MODELS
 from denoise.pixel_shuffle import MAX_STRIDE
 from eval.distributed import ClusterSettings, check_ray_address, ray_cluster
 from eval.evaluate import EvalConfig, evaluate_dataset, scene_dataset
@@ -117,9 +118,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-#: `denoise.inference.NOISE_MODELS`, spelled out: that module loads torch, which a usage error need not wait for
-#: (tests/eval/test_cli_bad_args.py checks they agree).
-NOISE_MODEL_CHOICES = ("auto", "constant", "curve", "luma")
+#: `--noise-model`'s choices: the denoisers' models ("auto" here: as the photos' noise is found).
+NOISE_MODEL_CHOICES = NOISE_MODELS
 NOISE_MODEL_HELP = ("how the denoisers read each photo's noise level: auto (default) as the photos' noise is found "
                     "(on the luma where it is chroma-subsampled, as a JPEG's; else on the colour patches, with a "
                     "per-intensity curve where shot noise dominates); constant, curve or luma to force one. A "
