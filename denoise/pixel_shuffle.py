@@ -162,7 +162,10 @@ class NoiseLevels:
             eigenvalues spread (not white), the level their stride-2 sub-images' luma reads, if at least
             `MIN_CORRELATED_NOISE_STD`: a camera's JPEG whose noise the colour patches cannot show (quality 80,
             a clipped black background), or a clean photo's texture aliased into the luma. Nothing acts on it;
-            the run's report suggests `--pd-stride 2 --noise-model luma` for noisy photos. Else None.
+            the run's report suggests `--pd-stride 2 --noise-model luma` for noisy photos. With a stride the
+            user gave (`stride_for`; `level_by_stride` then holds only that stride), the level the sub-images'
+            luma reads where their colour patches under-read it: the report suggests `--noise-model luma`.
+            Else None.
     """
 
     stride: int
@@ -196,21 +199,57 @@ class NoiseLevels:
 
     def hint(self) -> str | None:
         """Where `luma_hint_level` is set, what the user may try (a log line, the run's report); else None."""
-        return None if self.luma_hint_level is None else luma_hint_text(255.0 * self.level_by_stride[1],
-                                                                         255.0 * self.luma_hint_level)
+        if self.luma_hint_level is None:
+            return None
+        if 1 in self.level_by_stride:  # found by `choose_stride`
+            return luma_hint_text(255.0 * self.level_by_stride[1], 255.0 * self.luma_hint_level)
+        return luma_hint_text(255.0 * self.level_by_stride[self.stride], 255.0 * self.luma_hint_level,
+                              given_stride=self.stride)  # a stride the user gave (`stride_for`)
 
 
-def luma_hint_text(colour_255: float, luma_2_255: float) -> str:
-    """The hint of `NoiseLevels.hint` from its two levels (/255)."""
+def luma_hint_text(colour_255: float, luma_255: float, *, given_stride: int | None = None) -> str:
+    """The hint of `NoiseLevels.hint` from its two levels (/255): the photos' colour patches and their stride-2
+    sub-images' luma (`choose_stride`), or, with `given_stride`, both read on the sub-images of the stride the
+    user gave (`stride_for`)."""
+    if given_stride is not None:
+        return (f"--pd-stride {given_stride} was given, and the sub-images' colour patches read {colour_255:.1f}/255 "
+                f"of noise where their luma reads {luma_255:.1f}/255, as in a camera's JPEG: the denoisers read "
+                "each photo's level on its colour patches and would remove little of its noise; add --noise-model "
+                "luma to read it on the luma (a clean photo's texture reads this way too)")
     return (f"the photos look like JPEGs (their colour patches read {colour_255:.1f}/255 of noise, their luma "
-            f"much more) and their luma's 2 x 2 pixel-shuffled sub-images read {luma_2_255:.1f}/255: if the photos "
+            f"much more) and their luma's 2 x 2 pixel-shuffled sub-images read {luma_255:.1f}/255: if the photos "
             "are visibly noisy (a camera's demosaiced noise, too faint in the colour patches to be found), "
             "denoise them with --pd-stride 2 --noise-model luma; a clean photo's texture reads this way too")
 
 
-def stride_for(images: Sequence[np.ndarray], setting: int) -> NoiseLevels:
-    """The stride a `pd_stride` setting gives: `choose_stride` for 0, else the setting (nothing read)."""
-    return choose_stride(images) if setting == 0 else NoiseLevels(int(setting), {})
+def stride_for(images: Sequence[np.ndarray], setting: int, noise_model: str = "auto") -> NoiseLevels:
+    """The stride a `pd_stride` setting gives: `choose_stride` for 0, else the setting.
+
+    With a stride > 1 given and the `"auto"` noise model (`denoise.inference.NoiseModel`), the sub-images'
+    colour patches and luma are read (as `choose_stride` reads them): where the colour patches read under
+    `SUB_CHROMA_DEFICIT_RATIO` of a luma at least `MIN_CORRELATED_NOISE_STD`, `luma_hint_level` is the luma's
+    level and `NoiseLevels.hint` says to add `--noise-model luma`. The "auto" model reads each photo's level
+    on its colour patches, which a JPEG's chroma subsampling has smoothed: with the stride alone, a camera's
+    JPEGs are denoised at a fraction of their noise. Nothing else is read, and nothing acts on the hint.
+    """
+    if setting == 0:
+        return choose_stride(images)
+    stride = int(setting)
+    big = [im for im in images if min(np.shape(im)[:2]) >= 16 * stride]
+    if (stride == 1 or noise_model != "auto" or not big
+            or not all(np.ndim(im) == 3 and np.shape(im)[2] == 3 for im in big)):
+        return NoiseLevels(stride, {})
+    pick = _spread_pick(big)
+    colour, luma = _level(pick, stride), _level(pick, stride, luma=True)
+    hinted = colour < SUB_CHROMA_DEFICIT_RATIO * luma and luma >= MIN_CORRELATED_NOISE_STD
+    return NoiseLevels(stride, {stride: round(colour, 6)}, luma_hint_level=round(luma, 6) if hinted else None)
+
+
+def _spread_pick(images: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """At most `MAX_PHOTOS` of `images`, spread over the list."""
+    if len(images) <= MAX_PHOTOS:
+        return list(images)
+    return [images[int(i)] for i in np.linspace(0, len(images) - 1, MAX_PHOTOS)]
 
 
 def _level(images: Sequence[np.ndarray], stride: int, *, luma: bool = False) -> float:
@@ -246,7 +285,7 @@ def choose_stride(images: Sequence[np.ndarray], *, max_stride: int = MAX_STRIDE,
     big = [im for im in images if min(np.shape(im)[:2]) >= 16 * max_stride]
     if not big:
         return NoiseLevels(1, {})
-    pick = big if len(big) <= MAX_PHOTOS else [big[int(i)] for i in np.linspace(0, len(big) - 1, MAX_PHOTOS)]
+    pick = _spread_pick(big)
     from denoise.noise_level import WHITE_LUMA_MAX_SPREAD, chroma_subsampled_sigma
 
     level = {1: _level(pick, 1)}

@@ -323,8 +323,9 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
         if d is not None and d.noise_level_luma_hint_255 is not None:
             from denoise.pixel_shuffle import luma_hint_text
 
-            colour = d.noise_level_by_stride_255.get("1", float("nan"))
-            lines.append(f"- **{luma_hint_text(colour, d.noise_level_luma_hint_255)}**")
+            given = d.pd_stride if "1" not in d.noise_level_by_stride_255 else None  # a stride the user gave
+            colour = d.noise_level_by_stride_255.get("1" if given is None else str(given), float("nan"))
+            lines.append(f"- **{luma_hint_text(colour, d.noise_level_luma_hint_255, given_stride=given)}**")
         a = q.align
         if a is not None:
             photos = f" ({a.photos} photos)" if a.photos else ""

@@ -102,7 +102,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         choice = choose_objective(photos)
         n2v = dataclasses.replace(n2v, method=choice.method)
         objective, dark_clipped_fraction = choice.method, round(choice.dark_clipped_fraction, 4)
-    levels = stride_for(photos, s.pd_stride)
+    levels = stride_for(photos, s.pd_stride, s.noise_model or "auto")
     stride = levels.stride
     if stride > 1:
         _log.info("the photos' noise is correlated between neighbouring pixels (its level /255 by stride: %s): "
@@ -233,7 +233,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     noisy = read_views(ctx.inputs["noisy"], names)
     renders = read_views(ctx.inputs["renders"], names)
     model = load_checkpoint(ctx.inputs["model"], device=s.device)
-    levels = stride_for(list(noisy.values()), s.pd_stride)
+    levels = stride_for(list(noisy.values()), s.pd_stride, s.noise_model or "auto")
     stride = levels.stride
     photos, targets = list(noisy.values()), list(renders.values())
     if stride > 1:

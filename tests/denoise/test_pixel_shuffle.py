@@ -13,11 +13,13 @@ from denoise.pixel_shuffle import (
     MIN_CORRELATED_NOISE_STD,
     MIN_NOISE_STD,
     STRONG_LEVEL_RATIO,
+    SUB_CHROMA_DEFICIT_RATIO,
     choose_stride,
     merge_std,
     pd_merge,
     pd_split,
     shuffled,
+    stride_for,
     unshuffled,
 )
 
@@ -176,6 +178,29 @@ def test_a_cameras_jpeg_whose_noise_the_colour_patches_cannot_show_gets_a_hint(r
                   choose_stride([_jpeg(np.clip(s + rng.normal(0, 0.06, s.shape), 0, 1).astype(np.float32), 80, k)
                                  for k, s in enumerate(scenes)])):
         assert other.luma_hint_level is None and other.hint() is None
+
+
+def test_a_given_stride_on_a_cameras_jpeg_hints_at_the_luma_noise_model(rng):
+    """`--pd-stride 2` given without `--noise-model luma`: the denoisers would read each photo's level on its
+    colour patches, which a JPEG's chroma subsampling has smoothed (1.4/255 at quality 80 against 14.9 in the
+    luma), and remove little. `stride_for` reads both on the given stride's sub-images and hints at the luma
+    model; not for the same noise as PNGs (the colour patches read it), nor with a noise model given, nor
+    for stride 1 or 0."""
+    scenes = [_smooth_scene(rng) for _ in range(3)]
+    for quality in (80, 90):
+        photos = [_jpeg(_bayer(s, k), quality, k) for k, s in enumerate(scenes)]
+        given = stride_for(photos, 2)
+        assert given.stride == 2 and given.luma_hint_level is not None
+        assert given.level_by_stride[2] < SUB_CHROMA_DEFICIT_RATIO * given.luma_hint_level
+        # The level the luma reads is the one `choose_stride` finds at quality 90 (or hints at, at 80).
+        found = choose_stride(photos)
+        assert given.luma_hint_level == pytest.approx(found.luma_level or found.luma_hint_level, rel=1e-6)
+        assert "--pd-stride 2 was given" in given.hint() and "--noise-model luma" in given.hint()
+        assert given.record()["noise_level_luma_hint_255"] == pytest.approx(255 * given.luma_hint_level, abs=0.01)
+        assert stride_for(photos, 2, "luma").hint() is None and stride_for(photos, 2, "luma").level_by_stride == {}
+        assert stride_for(photos, 1).hint() is None
+    png = stride_for([_bayer(s, k) for k, s in enumerate(scenes)], 2)
+    assert png.hint() is None and png.level_by_stride[2] > MIN_CORRELATED_NOISE_STD
 
 
 def test_shuffled_and_unshuffled_are_inverse_over_a_list(rng):

@@ -261,3 +261,16 @@ def test_the_report_suggests_the_luma_model_for_jpegs_whose_noise_was_not_found(
     assert "colour patches read 0.6/255" in text and "sub-images read 19.6/255" in text
     assert "--pd-stride 2 --noise-model luma" in text
     assert "--noise-model" not in "\n".join(quality_lines([round_quality(rnd)]))
+
+
+def test_the_report_suggests_the_luma_model_with_a_given_stride(tmp_path):
+    """`--pd-stride 2` given alone on a camera's JPEGs: the levels were read on the given stride only
+    (`denoise.pixel_shuffle.stride_for`), and the bold line names that stride and `--noise-model luma`."""
+    rnd = _round(tmp_path / "r", align_stats(n_registered=4))
+    summary = {**rnd.stages["denoise"].summary, "pd_stride": 2, "noise_level_by_stride_255": {"2": 1.4},
+               "noise_level_luma_hint_255": 19.6}
+    q = round_quality(RoundResult(index=1, dir=rnd.dir, stages={**rnd.stages, "denoise": _stage("denoise", {},
+                                                                                                    summary)}))
+    text = "\n".join(quality_lines([q]))
+    assert "**--pd-stride 2 was given" in text and "colour patches read 1.4/255" in text
+    assert "luma reads 19.6/255" in text and "add --noise-model luma" in text and "nan" not in text
