@@ -14,13 +14,12 @@ Usage: .venv/bin/python benchmarks/diag_nlm_features.py [--sets=dtu_s50:0,dtu_s5
 
 from __future__ import annotations
 
-import tempfile
 import time
 from pathlib import Path
 
 from _common import cli_option, md_table
 from bench_real import OURS
-from diag_verdict_perturbed import set_images
+from diag_verdict_perturbed import each_set
 
 from mvgeo.align.api import align_images
 from mvgeo.common.deps import cv2
@@ -46,29 +45,22 @@ def main() -> int:
     sets = cli_option("sets", "dtu_s50:0,dtu_s50:1,dtu_s50:2,dtu_s50:3").split(",")
     strengths = [float(s) for s in cli_option("strengths", "0,20,40").split(",")]
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
-        for name in sets:
-            got = set_images(name, work)
-            if got is None:
-                print(f"{name}: ../shared/data missing, skipped")
+    for name, work, paths, gt, _ in each_set(sets):
+        for h in strengths:
+            files, filter_s = _filtered(paths, work / f"{name.replace(':', '_')}_nlm{h:g}", h)
+            t = time.perf_counter()
+            try:
+                res = align_images(files, OURS)
+            except AlignmentRefusedError as exc:
+                rows.append([name, h, f"refused: {exc.kind}", "", "", filter_s, time.perf_counter() - t])
                 continue
-            paths, gt, _ = got
-            for h in strengths:
-                files, filter_s = _filtered(paths, work / f"{name.replace(':', '_')}_nlm{h:g}", h)
-                t = time.perf_counter()
-                try:
-                    res = align_images(files, OURS)
-                except AlignmentRefusedError as exc:
-                    rows.append([name, h, f"refused: {exc.kind}", "", "", filter_s, time.perf_counter() - t])
-                    continue
-                except (DegenerateGeometryError, DisconnectedViewsError) as exc:
-                    rows.append([name, h, f"failed: {type(exc).__name__}", "", "", filter_s, time.perf_counter() - t])
-                    continue
-                m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)
-                rows.append([name, h, f"accepted, {m.n_registered}/{m.n_ref}", m.median_rotation_deg,
-                             float(m.rotation_deg.max()), filter_s, time.perf_counter() - t])
-                print(rows[-1], flush=True)
+            except (DegenerateGeometryError, DisconnectedViewsError) as exc:
+                rows.append([name, h, f"failed: {type(exc).__name__}", "", "", filter_s, time.perf_counter() - t])
+                continue
+            m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)
+            rows.append([name, h, f"accepted, {m.n_registered}/{m.n_ref}", m.median_rotation_deg,
+                         float(m.rotation_deg.max()), filter_s, time.perf_counter() - t])
+            print(rows[-1], flush=True)
     print(md_table(["set", "NLM strength", "verdict", "rot med (deg)", "rot max (deg)", "filter (s)", "align (s)"],
                    rows))
     return 0

@@ -15,13 +15,11 @@ error over all pairs (deg) with the centre, with "auto", and with the estimate k
 from __future__ import annotations
 
 import sys
-import tempfile
 from dataclasses import replace
-from pathlib import Path
 
 from _common import cli_option, md_table, write_fragment
 from bench_real import OURS, exif_focal_35mm_of
-from diag_verdict_perturbed import _variant, set_images
+from diag_verdict_perturbed import _variant, each_set
 
 import mvgeo.align.principal as principal
 from mvgeo.align.api import align_images
@@ -33,38 +31,31 @@ def main() -> int:
     sets = cli_option("sets", "temple,dtu,dtu_noisy,llff_like").split(",")
     dithers = cli_option("dither", "none,0,1,2").split(",")
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
-        for name in sets:
-            got = set_images(name, work)
-            if got is None:
-                print(f"{name}: ../shared/data missing, skipped")
-                continue
-            paths, gt, K = got
-            h, w = read_image(paths[0]).shape[:2]
-            true_off = f"{K[0, 2] - w / 2:+.1f}, {K[1, 2] - h / 2:+.1f}"
-            for seed in dithers:
-                tagged = _variant(paths, work / f"{name}_{seed}", exif_focal_35mm_of(K, (w, h)), seed)
-                errs = {}
-                for mode in ("centre", "auto", "always"):
-                    rule = principal.determined
-                    if mode == "always":
-                        principal.determined = lambda offset, std, f, rule=rule: (True, rule(offset, std, f)[1])
-                    try:
-                        res = align_images(tagged, replace(OURS, principal_point="centre" if mode == "centre"
-                                                           else "auto"))
-                    finally:
-                        principal.determined = rule
-                    m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)
-                    errs[mode] = f"{m.median_rotation_deg:.3f} / {float(m.rotation_deg.max()):.2f}"
-                    if mode == "auto":
-                        pp = res.stats.principal_point
-                kept = "" if pp is None else ("kept" if pp.kept else "centre") + ": " + pp.reason.split(": ", 1)[-1]
-                rows.append([name, seed, true_off,
-                             "" if pp is None else f"{pp.offset_px[0]:+.1f}, {pp.offset_px[1]:+.1f}",
-                             "" if pp is None else f"{pp.std_px[0]:.1f}, {pp.std_px[1]:.1f}",
-                             kept, errs["centre"], errs["auto"], errs["always"]])
-                print(" | ".join(str(x) for x in rows[-1]), flush=True)
+    for name, work, paths, gt, K in each_set(sets):
+        h, w = read_image(paths[0]).shape[:2]
+        true_off = f"{K[0, 2] - w / 2:+.1f}, {K[1, 2] - h / 2:+.1f}"
+        for seed in dithers:
+            tagged = _variant(paths, work / f"{name}_{seed}", exif_focal_35mm_of(K, (w, h)), seed)
+            errs = {}
+            for mode in ("centre", "auto", "always"):
+                rule = principal.determined
+                if mode == "always":
+                    principal.determined = lambda offset, std, f, rule=rule: (True, rule(offset, std, f)[1])
+                try:
+                    res = align_images(tagged, replace(OURS, principal_point="centre" if mode == "centre"
+                                                       else "auto"))
+                finally:
+                    principal.determined = rule
+                m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)
+                errs[mode] = f"{m.median_rotation_deg:.3f} / {float(m.rotation_deg.max()):.2f}"
+                if mode == "auto":
+                    pp = res.stats.principal_point
+            kept = "" if pp is None else ("kept" if pp.kept else "centre") + ": " + pp.reason.split(": ", 1)[-1]
+            rows.append([name, seed, true_off,
+                         "" if pp is None else f"{pp.offset_px[0]:+.1f}, {pp.offset_px[1]:+.1f}",
+                         "" if pp is None else f"{pp.std_px[0]:.1f}, {pp.std_px[1]:.1f}",
+                         kept, errs["centre"], errs["auto"], errs["always"]])
+            print(" | ".join(str(x) for x in rows[-1]), flush=True)
     table = md_table(["set", "dither seed", "true offset (px)", "estimated offset (px)", "its std (px)",
                       "kept? (the rule's figures)", "rot med / max, centre (deg)", "rot med / max, auto (deg)",
                       "rot med / max, kept regardless (deg)"], rows)

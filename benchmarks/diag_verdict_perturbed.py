@@ -21,6 +21,7 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +65,20 @@ def set_images(name: str, work: Path) -> tuple[list[Path], dict[str, np.ndarray]
     else:
         folder = prepare(s, work / name.replace(":", "_"), noisy=kind == "dtu_noisy", seed=int(seed or 0))
     return [p for p in list_images(folder) if p.name in s.gt], s.gt, s.K
+
+
+def each_set(names: list[str]) -> Iterator[tuple[str, Path, list[Path], dict[str, np.ndarray], np.ndarray]]:
+    """(name, working folder, image files, reference poses, K) of every set of `names` that `set_images` has,
+    written under a temporary working folder removed afterwards; a set ../shared/data lacks is announced and
+    skipped."""
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for name in names:
+            got = set_images(name, work)
+            if got is None:
+                print(f"{name}: ../shared/data missing, skipped")
+                continue
+            yield (name, work, *got)
 
 
 def _variant(paths: list[Path], out: Path, mm: int | None, dither: str) -> list[Path]:
@@ -129,29 +144,22 @@ def main() -> int:
     scales = [float(s) for s in cli_option("focal-scales", "1.0").split(",")]
     methods = cli_option("methods", "ours").split(",")
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
-        for name in sets:
-            got = set_images(name, work)
-            if got is None:
-                print(f"{name}: ../shared/data missing, skipped")
-                continue
-            paths, gt, K = got
-            h, w = read_image(paths[0]).shape[:2]
-            for scale in scales:
-                # scale 0: no EXIF (the pairs' focal consensus or COLMAP's prior)
-                mm = None if scale == 0 else exif_focal_35mm_of(K * np.diag([scale, scale, 1.0]), (w, h))
-                for seed in dithers:
-                    tagged = _variant(paths, work / f"{name}_{scale}_{seed}", mm, seed)
-                    if "global" in methods:
-                        r = run_pycolmap(name, "global", tagged[0].parent, gt, float(K[0, 0]))
-                        verdict = r[11] if r[2] == "0/12" and r[11] else "returned"
-                        rows.append([name, "pycolmap global", seed, scale, verdict, r[2], r[3], r[4], r[8]])
-                        print(" | ".join(str(x) for x in rows[-1]), flush=True)
-                    if "ours" not in methods:
-                        continue
-                    rows.append(_ours_row(name, seed, scale, tagged, gt))
+    for name, work, paths, gt, K in each_set(sets):
+        h, w = read_image(paths[0]).shape[:2]
+        for scale in scales:
+            # scale 0: no EXIF (the pairs' focal consensus or COLMAP's prior)
+            mm = None if scale == 0 else exif_focal_35mm_of(K * np.diag([scale, scale, 1.0]), (w, h))
+            for seed in dithers:
+                tagged = _variant(paths, work / f"{name}_{scale}_{seed}", mm, seed)
+                if "global" in methods:
+                    r = run_pycolmap(name, "global", tagged[0].parent, gt, float(K[0, 0]))
+                    verdict = r[11] if r[2] == "0/12" and r[11] else "returned"
+                    rows.append([name, "pycolmap global", seed, scale, verdict, r[2], r[3], r[4], r[8]])
                     print(" | ".join(str(x) for x in rows[-1]), flush=True)
+                if "ours" not in methods:
+                    continue
+                rows.append(_ours_row(name, seed, scale, tagged, gt))
+                print(" | ".join(str(x) for x in rows[-1]), flush=True)
     table = md_table(["set", "method", "dither seed", "focal scale", "verdict", "registered", "rot med (deg)",
                       "rot max (deg)", "s"], rows)
     table += "\n\n" + _summary(rows)
