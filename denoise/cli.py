@@ -77,7 +77,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px; N2V needs at least "
                              f"{MIN_SIDE_PX}x{MIN_SIDE_PX}", path=f, fix="remove it from the folder")
     overrides = {} if args.steps is None else {"steps": args.steps}
-    levels = stride_for(images, args.pd_stride, args.noise_model)
+    levels = stride_for(images, args.pd_stride, hint=args.noise_model == "auto")
     stride, chosen = levels.stride, levels.record()
     work = images
     small = [f for f, img in zip(files, images, strict=True) if min(img.shape[:2]) < MIN_SIDE_PX * stride]

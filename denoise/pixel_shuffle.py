@@ -222,21 +222,22 @@ def luma_hint_text(colour_255: float, luma_255: float, *, given_stride: int | No
             "denoise them with --pd-stride 2 --noise-model luma; a clean photo's texture reads this way too")
 
 
-def stride_for(images: Sequence[np.ndarray], setting: int, noise_model: str = "auto") -> NoiseLevels:
+def stride_for(images: Sequence[np.ndarray], setting: int, *, hint: bool = True) -> NoiseLevels:
     """The stride a `pd_stride` setting gives: `choose_stride` for 0, else the setting.
 
-    With a stride > 1 given and the `"auto"` noise model (`denoise.inference.NoiseModel`), the sub-images'
-    colour patches and luma are read (as `choose_stride` reads them): where the colour patches read under
-    `SUB_CHROMA_DEFICIT_RATIO` of a luma at least `MIN_CORRELATED_NOISE_STD`, `luma_hint_level` is the luma's
-    level and `NoiseLevels.hint` says to add `--noise-model luma`. The "auto" model reads each photo's level
-    on its colour patches, which a JPEG's chroma subsampling has smoothed: with the stride alone, a camera's
-    JPEGs are denoised at a fraction of their noise. Nothing else is read, and nothing acts on the hint.
+    With a stride > 1 given and `hint` (the caller leaves the noise model to the `"auto"` rule,
+    `denoise.inference.NoiseModel`, and reports the hint), the sub-images' colour patches and luma are read (as
+    `choose_stride` reads them): where the colour patches read under `SUB_CHROMA_DEFICIT_RATIO` of a luma at
+    least `MIN_CORRELATED_NOISE_STD`, `luma_hint_level` is the luma's level and `NoiseLevels.hint` says to add
+    `--noise-model luma`. The "auto" model reads each photo's level on its colour patches, which a JPEG's chroma
+    subsampling has smoothed: with the stride alone, a camera's JPEGs are denoised at a fraction of their
+    noise. Nothing else is read, and nothing acts on the hint.
     """
     if setting == 0:
         return choose_stride(images)
     stride = int(setting)
     big = [im for im in images if min(np.shape(im)[:2]) >= 16 * stride]
-    if (stride == 1 or noise_model != "auto" or not big
+    if (stride == 1 or not hint or not big
             or not all(np.ndim(im) == 3 and np.shape(im)[2] == 3 for im in big)):
         return NoiseLevels(stride, {})
     pick = _spread_pick(big)

@@ -102,7 +102,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         choice = choose_objective(photos)
         n2v = dataclasses.replace(n2v, method=choice.method)
         objective, dark_clipped_fraction = choice.method, round(choice.dark_clipped_fraction, 4)
-    levels = stride_for(photos, s.pd_stride, s.noise_model or "auto")
+    levels = stride_for(photos, s.pd_stride, hint=s.noise_model is None)
     stride = levels.stride
     if stride > 1:
         _log.info("the photos' noise is correlated between neighbouring pixels (its level /255 by stride: %s): "
@@ -225,7 +225,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     from denoise.inference import denoise_images
     from denoise.model import load_checkpoint, save_checkpoint
     from denoise.parallel import one_thread_per_task
-    from denoise.pixel_shuffle import NoiseLevels, shuffled, stride_for, unshuffled
+    from denoise.pixel_shuffle import shuffled, stride_for, unshuffled
     from denoise.round2 import refine_round2
 
     s = ctx.settings
@@ -233,8 +233,7 @@ def refine(ctx: StageContext) -> Mapping[str, object]:
     noisy = read_views(ctx.inputs["noisy"], names)
     renders = read_views(ctx.inputs["renders"], names)
     model = load_checkpoint(ctx.inputs["model"], device=s.device)
-    # A given stride needs no reading here (round 1's log and report hold the hint, if any).
-    levels = stride_for(list(noisy.values()), 0) if s.pd_stride == 0 else NoiseLevels(s.pd_stride, {})
+    levels = stride_for(list(noisy.values()), s.pd_stride, hint=False)  # round 1 reported any hint
     stride = levels.stride
     photos, targets = list(noisy.values()), list(renders.values())
     if stride > 1:

@@ -184,8 +184,8 @@ def test_a_given_stride_on_a_cameras_jpeg_hints_at_the_luma_noise_model(rng):
     """`--pd-stride 2` given without `--noise-model luma`: the denoisers would read each photo's level on its
     colour patches, which a JPEG's chroma subsampling has smoothed (1.4/255 at quality 80 against 14.9 in the
     luma), and remove little. `stride_for` reads both on the given stride's sub-images and hints at the luma
-    model; not for the same noise as PNGs (the colour patches read it), nor with a noise model given, nor
-    for stride 1 or 0."""
+    model; not for the same noise as PNGs (the colour patches read it), nor where the caller gives a noise
+    model (`hint=False`), nor for stride 1 or 0."""
     scenes = [_smooth_scene(rng) for _ in range(3)]
     for quality in (80, 90):
         photos = [_jpeg(_bayer(s, k), quality, k) for k, s in enumerate(scenes)]
@@ -197,7 +197,8 @@ def test_a_given_stride_on_a_cameras_jpeg_hints_at_the_luma_noise_model(rng):
         assert given.luma_hint_level == pytest.approx(found.luma_level or found.luma_hint_level, rel=1e-6)
         assert "--pd-stride 2 was given" in given.hint() and "--noise-model luma" in given.hint()
         assert given.record()["noise_level_luma_hint_255"] == pytest.approx(255 * given.luma_hint_level, abs=0.01)
-        assert stride_for(photos, 2, "luma").hint() is None and stride_for(photos, 2, "luma").level_by_stride == {}
+        unread = stride_for(photos, 2, hint=False)
+        assert unread.hint() is None and unread.level_by_stride == {}
         assert stride_for(photos, 1).hint() is None
     png = stride_for([_bayer(s, k) for k, s in enumerate(scenes)], 2)
     assert png.hint() is None and png.level_by_stride[2] > MIN_CORRELATED_NOISE_STD
