@@ -24,13 +24,13 @@ from eval.distributed import ClusterSettings, check_ray_address, ray_cluster
 from eval.evaluate import EvalConfig, evaluate_dataset, scene_dataset
 from eval.methods import GT_POSES_SUFFIX, METHODS
 from eval.pipeline import PRESETS, preset, run_pipeline, validate_dataset_folder
-from eval.pipeline.config import ALIGN_PHOTOS, DENOISE_METHODS, PipelineConfig
+from eval.pipeline.config import ALIGN_PHOTOS, DENOISE_METHODS, PASS_CLEAN_BELOW_255, PipelineConfig
 from eval.pipeline.inputs import working_dataset
 from eval.pipeline.lock import output_lock
 from eval.pipeline.validate import MIN_IMAGE_SIZE_PX
 from eval.real.cli import add_dataset_parser
 from eval.results import carried_rows, merge_rows, write_results
-from mvgeo.common.argtypes import fraction, int_range, nonneg_int, positive_int, seed
+from mvgeo.common.argtypes import fraction, int_range, nonneg_float, nonneg_int, positive_int, seed
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
@@ -113,6 +113,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, pd_stride=args.pd_stride))
     if args.noise_model != "auto":
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise, noise_model=args.noise_model))
+    if args.pass_clean_below is not None:
+        config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise,
+                                                                         pass_clean_below_255=args.pass_clean_below))
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
@@ -125,6 +128,12 @@ NOISE_MODEL_HELP = ("how the denoisers read each photo's noise level: auto (defa
                     "per-intensity curve where shot noise dominates); constant, curve or luma to force one. A "
                     "camera's JPEGs whose noise is too faint in the colour patches to be found (quality 80 and "
                     "under, or a clipped black background) are denoised with --pd-stride 2 --noise-model luma")
+
+
+PASS_CLEAN_HELP = ("extension, not in the paper: round 1 passes the photos through undenoised, training no network, "
+                   "when every photo's noise level reads under LEVEL/255 and nothing suggests noise the level misses "
+                   "(a camera's JPEG); clean photos read 0.5-1.0/255, sigma 25/255 reads 23-26. 0 = always denoise. "
+                   f"Default: the preset's ({PASS_CLEAN_BELOW_255:g} with default, best and fast)")
 
 
 PD_STRIDE_HELP = ("extension, not in the paper: round 1 denoises pixel-shuffled sub-images of every N-th pixel, for "
@@ -162,7 +171,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                         device=device, allow_focal_prior=not args.strict_focal, denoiser=args.denoiser,
                         grouped_wiener=args.grouped_wiener, grouped_wiener_passes=args.grouped_wiener_passes,
                         noisy_detail=args.noisy_detail, pd_stride=args.pd_stride,
-                        noise_model=None if args.noise_model == "auto" else args.noise_model)
+                        noise_model=None if args.noise_model == "auto" else args.noise_model,
+                        pass_clean_below=args.pass_clean_below)
     cluster = _cluster_settings(args, device)
     out = Path(args.out)
     with (resumable_output_dir(plan), output_lock(out),
@@ -350,6 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "Default: the preset's (0.2 with default and best, 0.5 with fast)")
     run.add_argument("--pd-stride", type=int_range(0, MAX_STRIDE), default=None, metavar="N", help=PD_STRIDE_HELP)
     run.add_argument("--noise-model", choices=NOISE_MODEL_CHOICES, default="auto", help=NOISE_MODEL_HELP)
+    run.add_argument("--pass-clean-below", type=nonneg_float, default=None, metavar="LEVEL", help=PASS_CLEAN_HELP)
     run.add_argument("--no-select", action="store_true", help="rounds >= 2 use every view (ablation)")
     run.add_argument("--force", action="store_true", help="re-run stages even when their outputs are complete")
     run.add_argument("--allow-focal-prior", action="store_true",
@@ -419,6 +430,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--noise-model", choices=NOISE_MODEL_CHOICES, default="auto",
                     help="the denoisers' noise model for every method that trains the UNet (see `run "
                          "--noise-model`)")
+    ev.add_argument("--pass-clean-below", type=nonneg_float, default=None, metavar="LEVEL",
+                    help="round 1's pass-through level for the methods that take the preset's (see `run "
+                         "--pass-clean-below`; the paper's loop always denoises)")
     ev.add_argument("--max-size", type=_max_size, default=PipelineConfig().max_size, metavar="N",
                     help=MAX_SIZE_HELP + " (the clean images and ground-truth cameras are scaled alike)")
     ev.add_argument("--size", type=_size_wh, default=None, metavar="WxH",

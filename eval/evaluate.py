@@ -141,6 +141,9 @@ def base_pipeline_config(config: EvalConfig, views: int) -> PipelineConfig:
         base = dataclasses.replace(base, denoise=dataclasses.replace(base.denoise, pd_stride=config.pd_stride))
     if config.noise_model is not None:
         base = dataclasses.replace(base, denoise=dataclasses.replace(base.denoise, noise_model=config.noise_model))
+    if config.pass_clean_below is not None:
+        base = dataclasses.replace(base, denoise=dataclasses.replace(base.denoise,
+                                                                     pass_clean_below_255=config.pass_clean_below))
     return base
 
 
@@ -178,6 +181,8 @@ class EvalConfig:
             (`DenoiseSettings.pd_stride`); None: the preset's. For A/B measurements, as `grouped_wiener`.
         noise_model: the denoisers' noise model for every method that trains the UNet
             (`DenoiseSettings.noise_model`); None: measured from the photos.
+        pass_clean_below: round 1's pass-through level (/255) for the methods that take the preset's
+            (`DenoiseSettings.pass_clean_below_255`; the paper's loop always denoises); None: the preset's.
     """
 
     methods: tuple[str, ...] = ("instantsplat", "nlm_instantsplat", "n2v_round1", "denoise_gs")
@@ -195,6 +200,7 @@ class EvalConfig:
     noisy_detail: float | None = None
     pd_stride: int | None = None
     noise_model: str | None = None
+    pass_clean_below: float | None = None
 
     def __post_init__(self) -> None:
         unknown = [m for m in self.methods if m not in METHODS]

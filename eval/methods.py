@@ -66,10 +66,11 @@ def paper_loop(base: PipelineConfig) -> PipelineConfig:
     length, whatever the preset's product splat runs), the denoised photos aligned, each round's own
     alignment, every round run. The baselines run it too: their splats see their own photos only, in their
     own recipe (the noisy photos' splat loses 0.7 dB from a second thousand iterations on DTU scan24,
-    docs/bench/splat_length_real.md: a longer one would flatter the product)."""
+    docs/bench/splat_length_real.md: a longer one would flatter the product). It denoises photos that read
+    as clean too (`DenoiseSettings.pass_clean_below_255` 0)."""
     return dataclasses.replace(base, fuse_noisy_splat=False, stop_when_unrefined=False,
                                splat=dataclasses.replace(base.splat, noisy_detail=0.0, iters=None),
-                               denoise=dataclasses.replace(base.denoise, method="n2v"),
+                               denoise=dataclasses.replace(base.denoise, method="n2v", pass_clean_below_255=0.0),
                                align=dataclasses.replace(base.align, reuse_geometry="never", photos="denoised"))
 
 

@@ -16,7 +16,8 @@ from typing import Literal
 
 from mvgeo.common.errors import ConfigError
 
-__all__ = ["ALIGN_PHOTOS", "PRESETS", "AlignSettings", "DenoiseSettings", "PipelineConfig", "SplatSettings", "preset"]
+__all__ = ["ALIGN_PHOTOS", "PASS_CLEAN_BELOW_255", "PRESETS", "AlignSettings", "DenoiseSettings", "PipelineConfig",
+           "SplatSettings", "preset"]
 
 Round2Loss = Literal["joint", "charbonnier"]
 DenoiseMethod = Literal["n2v", "neighbor2neighbor", "r2r", "auto"]
@@ -27,6 +28,9 @@ ReuseGeometry = Literal["auto", "never"]
 AlignPhotos = Literal["denoised", "noisy_first", "better_of"]
 #: The values of `AlignSettings.photos`.
 ALIGN_PHOTOS: tuple[str, ...] = ("denoised", "noisy_first", "better_of")
+#: The presets' `DenoiseSettings.pass_clean_below_255`: over the levels clean photos read (0.5-1.0/255 on
+#: DTU scan24 and the temple ring), under any noise worth a network (sigma 25/255 reads 23-26).
+PASS_CLEAN_BELOW_255 = 1.5
 
 
 @dataclass(frozen=True)
@@ -72,6 +76,12 @@ class DenoiseSettings:
             patches, "auto"). "luma" reads the luma whatever was found: for a camera's JPEGs whose noise is
             too faint in the colour patches to be found (quality 80 and under, or a clipped black
             background; docs/bench/denoise_real.md), with `pd_stride` 2.
+        pass_clean_below_255: round 1 passes the photos through undenoised, and trains no network, when every
+            photo's noise level (as the denoiser reads it, /255) is under this and nothing hints at noise the
+            level misses (`denoise.pixel_shuffle.NoiseLevels.hint`); a round 2 then does not run. Clean photos
+            read 0.5-1.0/255 (DTU scan24 and the temple ring at 384-512 px), photos with sigma 25/255 added
+            23-26; denoising clean photos changes them by nothing (50 dB from their input) in 31-49 % of the
+            run (docs/bench/pipeline.md, "Photos without added noise"). 0: always denoise (the paper's).
     """
 
     n2v_preset: str = "default"
@@ -87,6 +97,7 @@ class DenoiseSettings:
     grouped_wiener_passes: int = 1
     pd_stride: int = 0
     noise_model: str | None = None
+    pass_clean_below_255: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -260,6 +271,10 @@ class PipelineConfig:
         if self.denoise.noise_model is not None and self.denoise.noise_model not in NOISE_MODELS:
             raise ConfigError(f"unknown noise model {self.denoise.noise_model!r}", key="denoise.noise_model",
                               expected=f"one of {', '.join(NOISE_MODELS)}, or none (measured from the photos)")
+        level = self.denoise.pass_clean_below_255
+        if isinstance(level, bool) or not isinstance(level, numbers.Real) or not 0.0 <= level < 255.0:
+            raise ConfigError(f"must be a number from 0 to 255, got {level!r}", key="denoise.pass_clean_below_255",
+                              expected="a noise level /255 such as 1.5, or 0 (always denoise)")
         if self.denoise.round2_loss not in ("joint", "charbonnier"):
             raise ConfigError(f"unknown loss {self.denoise.round2_loss!r}", key="denoise.round2_loss",
                               expected="'joint' or 'charbonnier'")
@@ -352,13 +367,18 @@ class PipelineConfig:
 #: (`AlignSettings.reuse_intrinsics`, `reuse_geometry`) and, when a round keeps the previous round's
 #: poses, the previous round's noisy-photo splat (`reuse_noisy_splat`; docs/bench/pipeline_schedule.md),
 #: and stop after a round whose refine kept the previous network (`stop_when_unrefined`).
+#:
+#: All three pass photos that read as clean through round 1 undenoised (`DenoiseSettings.
+#: pass_clean_below_255` = `PASS_CLEAN_BELOW_255`).
 _ONE_ROUND = PipelineConfig(rounds=1, stop_when_unrefined=True,
-                            denoise=DenoiseSettings(method="auto", n2v_steps=2000, wiener=True, grouped_wiener=True),
+                            denoise=DenoiseSettings(method="auto", n2v_steps=2000, wiener=True, grouped_wiener=True,
+                                                    pass_clean_below_255=PASS_CLEAN_BELOW_255),
                             align=AlignSettings(photos="better_of"), splat=SplatSettings(iters=2000, noisy_detail=0.2))
 PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(
         rounds=1, stop_when_unrefined=True,
-        denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40, wiener=True),
+        denoise=DenoiseSettings(n2v_preset="fast", passes=2, round2_steps=40, wiener=True,
+                                pass_clean_below_255=PASS_CLEAN_BELOW_255),
         # PREVIEW thins its cloud to 20k points; at 256x192 and 12 views the splat started from
         # every point (~60k) scored +0.5 dB / LPIPS -0.09..-0.17 held out for 15-40 % more splat time
         # (docs/bench/pipeline.md, "the splat's point budget").

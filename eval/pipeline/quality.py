@@ -65,6 +65,8 @@ class DenoiseQuality:
     #: round 1: where no noise was found but the photos look like a camera's JPEGs, the level their stride-2
     #: sub-images' luma reads (/255): the report suggests `--pd-stride 2 --noise-model luma`.
     noise_level_luma_hint_255: float | None = None
+    #: round 1: the photos read as clean and were passed through undenoised (no network trained).
+    passed_through: bool = False
 
 
 @dataclass(frozen=True)
@@ -173,7 +175,8 @@ def _denoise_quality(summary: DenoiseSummary) -> DenoiseQuality:
                           pd_stride=summary.pd_stride,
                           noise_level_by_stride_255=dict(summary.noise_level_by_stride_255 or {}),
                           noise_level_luma_255=summary.noise_level_luma_255,
-                          noise_level_luma_hint_255=summary.noise_level_luma_hint_255)
+                          noise_level_luma_hint_255=summary.noise_level_luma_hint_255,
+                          passed_through=bool(summary.passed_through))
 
 
 def _fine_tuning_quality(summary: RefineSummary) -> DenoiseQuality:
@@ -303,6 +306,9 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
             restarts = f"; restarted {d.restarts} time(s) after diverging" if d.restarts else ""
             lines.append(f"- denoising: {what}{why}; {d.kind} loss {_fmt(d.loss_first, '.4g')} -> "
                          f"{_fmt(d.loss_last, '.4g')} over {d.steps} steps{restarts}")
+        if d is not None and d.passed_through:
+            lines.append("- denoising: **none: every photo's noise level read under the pass-through level "
+                         "(`--pass-clean-below`), so the photos were used as they are and no network was trained**")
         if d is not None and d.noise_std_255:
             v = np.array(list(d.noise_std_255.values()))
             dep = (f"; signal-dependent (e.g. shot noise) in {len(d.signal_dependent)} of them: the median of "

@@ -64,7 +64,7 @@ from eval.pipeline.stage import (
     withdraw_outputs,
 )
 from eval.pipeline.stage_settings import InputsStageSettings, RoundSettings, round_settings, stage_seed
-from eval.pipeline.stages import MODEL_FILE, PipelineStages, product_stages
+from eval.pipeline.stages import MODEL_FILE, PASS_THROUGH_UNWRITTEN, PipelineStages, product_stages
 from eval.pipeline.summaries import RefineSummary
 from eval.pipeline.validate import validate_run_inputs
 from mvgeo.common.output import prepare_output, resumable_output_dir
@@ -281,12 +281,20 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         den = runner.run(StageSpec(
             "denoise", rd, stages.denoise, stages.denoise_outputs, inputs={"noisy": working}, upstream=(prep,),
             settings=settings[0].denoise, seed=stage_seed(config.seed, 1, "denoise"),
-            code=stages.code.get("denoise", ())), label="round1/denoise")
+            code=stages.code.get("denoise", ()),
+            optional=tuple(o for o in stages.denoise_outputs if o in PASS_THROUGH_UNWRITTEN)),
+            label="round1/denoise")
         scene = _scene_stages(runner, stages, rd, den, config, settings[0], working=working)
         rounds.append(RoundResult(1, rd, {"denoise": den, **scene}))
         for rs in settings[1:]:
             r = rs.index
             prev, rd = rounds[-1], out / f"round{r}"
+            if r == 2 and MODEL_FILE not in den.outputs:  # round 1 passed its photos through: no network
+                stopped = StoppedRound(r, rd, {}, f"round {r} not run: round 1's photos read as clean and were "
+                                                  "not denoised, so there is no network to fine-tune; round 1's "
+                                                  "reconstruction is the result")
+                _log.info("%s", stopped.reason)
+                break
             model_stage = prev.stages.get("denoise") or prev.stages["refine"]
             sel = runner.run(StageSpec(
                 "select", rd, stages.select, ROUND2_OUTPUTS["select"],

@@ -11,7 +11,8 @@ relative to the stage's folder) into a private work folder `ctx.work_dir`.
    stage's key and the digest of the outputs it recorded;
 2. if `stages/<name>.json` holds that key and every declared output still
    matches the record (same files, sizes and sha256), the stage is skipped
-   (its recorded summary is returned);
+   (its recorded summary is returned). An output the spec declares optional
+   (`StageSpec.optional`) may be absent: the record says which were written;
 3. otherwise the committed outputs are checked to be the stage's own: every
    file in them (hidden ones included) must be one the record says the stage
    wrote, with the recorded sha256. A file the stage did not write, or one
@@ -177,6 +178,10 @@ class StageSpec:
         seed: enters the key and is handed to `fn`.
         code: modules or packages the stage runs besides `fn`'s own module (e.g. `"splat"`);
             their source digests enter the key (the module docstring's rule).
+        optional: those of `outputs` the function may leave unwritten (round 1's network, where the
+            photos pass through undenoised); the record lists the outputs written, a committed optional
+            output the run left unwritten is removed as the stage's own, and the stages after it see
+            only the written ones (`StageResult.outputs`).
     """
 
     name: str
@@ -189,6 +194,12 @@ class StageSpec:
     settings: Any = field(default_factory=dict)
     seed: int = 0
     code: tuple[str, ...] = ()
+    optional: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not set(self.optional) <= set(self.outputs):
+            raise ValueError(f"stage {self.name}: optional outputs {list(self.optional)} are not all among its "
+                             f"outputs {list(self.outputs)}")
 
     def key(self) -> str:
         """sha256 of name, settings, seed, hashed inputs' contents, code, and upstream keys and outputs."""
@@ -196,6 +207,7 @@ class StageSpec:
             "format": STAGE_FORMAT_VERSION,
             "name": self.name,
             "outputs": list(self.outputs),
+            **({"optional": list(self.optional)} if self.optional else {}),
             "settings": settings_json(self.settings),
             "seed": self.seed,
             "inputs": {k: hash_path(self.inputs[k]) for k in sorted(self.hashed_inputs)},
@@ -211,7 +223,8 @@ class StageResult:
     Attributes:
         name: stage name.
         key: the stage key its outputs correspond to.
-        outputs: output name -> committed path.
+        outputs: output name -> committed path, for the outputs written (an optional one left unwritten is
+            not in it).
         summary: what the stage function returned (JSON-able), as recorded.
         skipped: True when complete outputs with this key were found.
         seconds: wall time of the function when it ran (from the record when skipped).
@@ -639,7 +652,8 @@ def _reusable(spec: StageSpec, key: str, rec: dict | None, why: str) -> tuple[di
     if rec.get("key") != key:
         return None, "settings, inputs, code or upstream outputs changed"
     manifest = rec.get("manifest")
-    if not isinstance(manifest, Mapping) or set(manifest.get("outputs", {})) != set(spec.outputs):
+    recorded = set(manifest.get("outputs", {})) if isinstance(manifest, Mapping) else None
+    if recorded is None or not set(spec.outputs) - set(spec.optional) <= recorded <= set(spec.outputs):
         return None, "the record does not list the declared outputs"
     problem = verify_outputs(spec.stage_dir, manifest)
     if problem is not None:
@@ -682,12 +696,12 @@ class StageRunner:
         label = label or spec.name
         key = spec.key()
         record = _record_path(spec)
-        outputs = {o: spec.stage_dir / o for o in spec.outputs}
         old, why = _read_record(record)
         if not self.force:
             rec, why = _reusable(spec, key, old, why)
             if rec is not None:
                 _log.info("stage %s: complete (outputs checked), skipped", label)
+                outputs = {o: spec.stage_dir / o for o in spec.outputs if o in rec["manifest"]["outputs"]}
                 result = StageResult(spec.name, key, outputs, rec.get("summary", {}), True,
                                      float(rec.get("seconds", 0.0)), hash_json(rec["manifest"]))
                 self.results.append(result)
@@ -710,11 +724,12 @@ class StageRunner:
             with self.timer.stage(label):
                 summary = dict(spec.fn(ctx) or {})
             seconds = time.perf_counter() - start
-            missing = [o for o in spec.outputs if not (work / o).exists()]
+            missing = [o for o in spec.outputs if not (work / o).exists() and o not in spec.optional]
             if missing:
                 raise DgsError(f"stage {label} did not write its declared outputs {missing} "
                                f"(a bug in the stage function)")
-            manifest = output_manifest(work, spec.outputs)
+            written = [o for o in spec.outputs if (work / o).exists()]
+            manifest = output_manifest(work, written)
             body = {"key": key, "name": spec.name, "manifest": manifest, "code": code_digests(spec.fn, spec.code),
                     "seconds": round(seconds, 4), "seed": spec.seed, "settings": settings_json(spec.settings),
                     "summary": summary}
@@ -723,6 +738,7 @@ class StageRunner:
             except TypeError as exc:
                 raise DgsError(f"stage {label} returned a summary that is not JSON-able: {exc}") from exc
             commit_outputs(spec.stage_dir, spec.name, spec.outputs, work, body, manifest)
+        outputs = {o: spec.stage_dir / o for o in written}
         result = StageResult(spec.name, key, outputs, summary, False, seconds, hash_json(manifest))
         self.results.append(result)
         return result

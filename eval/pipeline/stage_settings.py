@@ -91,6 +91,8 @@ class DenoiseStageSettings:
             photos, 1 off.
         noise_model: how each photo's noise level is read (`DenoiseSettings.noise_model`); None: as
             `denoise.pixel_shuffle.choose_stride` finds the noise.
+        pass_clean_below_255: photos whose noise reads under this level (/255) on every photo pass through
+            undenoised (`DenoiseSettings.pass_clean_below_255`); 0: always denoise.
     """
 
     n2v: N2VConfig
@@ -102,6 +104,7 @@ class DenoiseStageSettings:
     grouped: GroupedWienerConfig | None = None
     pd_stride: int = 0
     noise_model: str | None = None
+    pass_clean_below_255: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -326,7 +329,8 @@ def round_settings(config: PipelineConfig, round_index: int) -> RoundSettings:
                                                                grouped=GroupedWienerConfig(passes=d.grouped_wiener_passes)
                                                                if d.grouped_wiener
                                                                else None, pd_stride=d.pd_stride,
-                                                               noise_model=d.noise_model),
+                                                               noise_model=d.noise_model,
+                                                               pass_clean_below_255=d.pass_clean_below_255),
         select=SelectStageSettings(config.views, config.select_views) if later else None,
         refine=RefineStageSettings(round2_config(d), d.passes, config.device, d.pd_stride,
                                    d.noise_model) if later else None)

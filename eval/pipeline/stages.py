@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,8 +49,8 @@ from eval.pipeline.summaries import (
 from eval.pipeline.views import read_views, write_views
 from mvgeo.sparse_model import PosedImage, SparseModel, read_sparse_model, write_sparse_model
 
-__all__ = ["DENOISE_OUTPUTS", "MODEL_FILE", "STAGE_CODE", "PipelineStages", "denoise", "product_stages", "refine",
-           "render", "select", "splat"]
+__all__ = ["DENOISE_OUTPUTS", "MODEL_FILE", "PASS_THROUGH_UNWRITTEN", "STAGE_CODE", "PipelineStages", "denoise",
+           "product_stages", "refine", "render", "select", "splat"]
 
 _log = logging.getLogger(__name__)
 
@@ -59,6 +59,9 @@ MODEL_FILE = "n2v_model.pt"
 #: What the product's denoise stage writes; a denoiser without a network (the evaluation's
 #: baselines) writes "denoised" alone and runs round 1 only.
 DENOISE_OUTPUTS = ("denoised", MODEL_FILE)
+#: The outputs the denoise stage leaves unwritten when it passes photos that read as clean through
+#: (`DenoiseStageSettings.pass_clean_below_255`): no network is trained, so a round 2 is not run.
+PASS_THROUGH_UNWRITTEN = frozenset({MODEL_FILE})
 
 
 @dataclass(frozen=True)
@@ -87,11 +90,14 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     denoise them all (`ctx.settings`: `DenoiseStageSettings`); with `keep_noisy` k, `denoised/` holds
     ``(1 - k) * network output + k * noisy photo``. Where the photos' noise is correlated between
     neighbouring pixels (`pd_stride` 0: `denoise.pixel_shuffle.choose_stride` measures it) all of this runs
-    on their pixel-shuffled sub-images, put back together after (`denoise.pixel_shuffle`). Returns a
-    `DenoiseSummary`'s JSON."""
+    on their pixel-shuffled sub-images, put back together after (`denoise.pixel_shuffle`). Where every
+    photo's noise level reads under `pass_clean_below_255` and nothing hints at noise the level misses
+    (`NoiseLevels.hint`), the photos are written as they are and no network is trained (`MODEL_FILE`
+    unwritten, `passed_through` in the summary). Returns a `DenoiseSummary`'s JSON."""
     from denoise.model import save_checkpoint
+    from denoise.parallel import one_thread_per_task
     from denoise.pixel_shuffle import merge_std, shuffled, stride_for, unshuffled
-    from denoise.self_supervised import choose_objective
+    from denoise.self_supervised import choose_objective, r2r_noise_std
     from eval.pipeline.quality import noise_levels
 
     s = ctx.settings
@@ -115,44 +121,67 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
         _log.info("the photos' colour patches read %.1f/255 of noise, their luma %.1f/255: chroma-subsampled noise, "
                   "as a JPEG's; its level is read on the luma", 255.0 * levels.level_by_stride[1],
                   255.0 * levels.luma_level)
-    out, stds, model = _denoise_photos(photos, n2v, s, ctx.seed, s.noise_model or levels.noise_model)
+    noise_model = s.noise_model or levels.noise_model
+    # Each photo's noise std, estimated once: R2R's recorruption and both networks' clipping correction use
+    # it, the report records it (N2V's fusion estimates its own), and it decides the pass-through.
+    with one_thread_per_task():
+        stds = [r2r_noise_std(im, noise_model=noise_model) for im in photos]
+    passed = _reads_clean(stds, s.pass_clean_below_255) and levels.hint() is None
+    model = None
+    if passed:
+        _log.info("every photo's noise level reads under %.1f/255 (at most %.2f/255): the photos are passed through "
+                  "undenoised and no network is trained (`pass_clean_below_255`, `--pass-clean-below 0` to "
+                  "denoise them anyway)", s.pass_clean_below_255, 255.0 * max(_level(v) for v in stds))
+        out = list(photos)
+    else:
+        out, model = _denoise_photos(photos, n2v, s, ctx.seed, noise_model, stds)
     if stride > 1:
         n = stride * stride
         out = unshuffled(out, stride, [im.shape for im in noisy.values()])
         stds = [merge_std(stds[i * n:(i + 1) * n], stride, im.shape) for i, im in enumerate(noisy.values())]
-    if s.keep_noisy > 0:
+    if s.keep_noisy > 0 and not passed:
         out = [(1.0 - s.keep_noisy) * d + s.keep_noisy * y for d, y in zip(out, noisy.values(), strict=True)]
     write_views(ctx.work_dir / "denoised", dict(zip(noisy, out, strict=True)))
-    save_checkpoint(ctx.work_dir / MODEL_FILE, model)
-    return DenoiseSummary(views=list(noisy), train=history_ends(model.history), objective=objective,
-                          dark_clipped_fraction=dark_clipped_fraction,
-                          training_restarts=list(model.restarts),  # a diverged training, restarted
+    if model is not None:
+        save_checkpoint(ctx.work_dir / MODEL_FILE, model)
+    return DenoiseSummary(views=list(noisy), train=None if model is None else history_ends(model.history),
+                          objective=objective, dark_clipped_fraction=dark_clipped_fraction,
+                          training_restarts=[] if model is None else list(model.restarts),  # a diverged training
                           pd_stride=stride, noise_level_by_stride_255=levels.levels_by_stride_255() or None,
                           noise_level_luma_255=None if levels.luma_level is None else
                           round(255.0 * levels.luma_level, 2),
                           noise_level_luma_hint_255=None if levels.luma_hint_level is None or s.noise_model else
                           round(255.0 * levels.luma_hint_level, 2),
+                          passed_through=passed or None,
                           noise=noise_levels(noisy, stds)).to_json()  # the report's noise level
 
 
-def _denoise_photos(photos: list[np.ndarray], n2v, s, seed: int, noise_model: str):
-    """(denoised photos, each photo's noise std, the trained model): the denoise stage's network and steps;
-    `noise_model` (`denoise.pixel_shuffle.NoiseLevels.noise_model`) reads each photo's level."""
+def _level(std) -> float:
+    """A photo's noise std (a float, or a per-pixel map for noise that grows with the intensity) as one
+    level: the map's median, as the report reads it (`eval.pipeline.quality.noise_levels`)."""
+    return float(std.median()) if hasattr(std, "median") else float(std)
+
+
+def _reads_clean(stds: Sequence, below_255: float) -> bool:
+    """Whether every photo's noise level (`_level`) is under `below_255`/255 (never, for 0)."""
+    return below_255 > 0 and all(255.0 * _level(v) < below_255 for v in stds)
+
+
+def _denoise_photos(photos: list[np.ndarray], n2v, s, seed: int, noise_model: str, stds: list):
+    """(denoised photos, the trained model): the denoise stage's network and steps; `noise_model`
+    (`denoise.pixel_shuffle.NoiseLevels.noise_model`) read each photo's noise std in `stds`."""
     from denoise.parallel import one_thread_per_task
-    from denoise.self_supervised import denoise_with_method, r2r_noise_std, train_with_method
+    from denoise.self_supervised import denoise_with_method, train_with_method
 
     # One torch thread per task for training and inference alike (`denoise.parallel`): the UNet's outputs
     # differ in the last float bits between thread counts, enough to flip a PNG level now and then.
     with one_thread_per_task():
-        # Each photo's noise std, estimated once: R2R's recorruption and both networks' clipping correction
-        # use it, and the report records it (N2V's fusion estimates its own).
-        stds = [r2r_noise_std(im, noise_model=noise_model) for im in photos]
         given = None if n2v.method == "n2v" else stds
         model = train_with_method(photos, n2v, seed=seed, device=s.device, noise_sigma=given,
                                   noise_model=noise_model)
         out = denoise_with_method(model, photos, n2v, passes=s.passes, seed=seed, noise_sigma=given,
                                   noise_model=noise_model, wiener=s.wiener, grouped=s.grouped)
-    return out, stds, model
+    return out, model
 
 
 def splat(ctx: StageContext) -> Mapping[str, object]:

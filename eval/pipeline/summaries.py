@@ -222,6 +222,8 @@ class DenoiseSummary:
         noise_level_luma_hint_255: where no noise was found but the photos look like a camera's JPEGs, the level
             their stride-2 sub-images' luma reads, /255 (`NoiseLevels.luma_hint_level`; the report suggests
             `--pd-stride 2 --noise-model luma`); None otherwise, and where a noise model was given.
+        passed_through: True where every photo's noise level read under `DenoiseStageSettings.
+            pass_clean_below_255`: the photos were written as they are, no network trained; None otherwise.
         noise: each photo's noise level (the report's).
         denoiser: a classical denoiser's name (`eval.baselines`).
         sigma_est: a classical denoiser's noise estimate per view, [0, 1] units.
@@ -236,6 +238,7 @@ class DenoiseSummary:
     noise_level_by_stride_255: dict[str, float] | None = None
     noise_level_luma_255: float | None = None
     noise_level_luma_hint_255: float | None = None
+    passed_through: bool | None = None
     noise: PhotoNoise | None = None
     denoiser: str | None = None
     sigma_est: dict[str, float] | None = None
@@ -255,6 +258,7 @@ class DenoiseSummary:
             "noise_level_by_stride_255": self.noise_level_by_stride_255,
             "noise_level_luma_255": self.noise_level_luma_255,
             "noise_level_luma_hint_255": self.noise_level_luma_hint_255,
+            "passed_through": self.passed_through,
             **(self.noise.to_json() if self.noise is not None else {}),
             "denoiser": self.denoiser, "sigma_est": self.sigma_est})
 
@@ -269,6 +273,7 @@ class DenoiseSummary:
                    noise_level_by_stride_255=_opt(data, "noise_level_by_stride_255", _float_map),
                    noise_level_luma_255=_opt(data, "noise_level_luma_255", float),
                    noise_level_luma_hint_255=_opt(data, "noise_level_luma_hint_255", float),
+                   passed_through=_opt(data, "passed_through", bool),
                    noise=PhotoNoise.from_json(data) if has_noise else None,
                    denoiser=_opt(data, "denoiser", str), sigma_est=_opt(data, "sigma_est", _float_map))
 

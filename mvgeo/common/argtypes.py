@@ -17,7 +17,7 @@ import math
 import re
 from collections.abc import Callable
 
-__all__ = ["SEED_MAX", "fraction", "int_range", "nonneg_int", "positive_float", "positive_int", "seed",
+__all__ = ["SEED_MAX", "fraction", "int_range", "nonneg_float", "nonneg_int", "positive_float", "positive_int", "seed",
            "size_wh"]
 
 #: Seeds are in [0, SEED_MAX] (numpy's and torch's generators both accept this range).
@@ -78,6 +78,14 @@ def positive_float(text: str) -> float:
     value = _float(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
+    return value
+
+
+def nonneg_float(text: str) -> float:
+    """A finite number >= 0."""
+    value = _float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}")
     return value
 
 

@@ -64,6 +64,9 @@ class TinyStages:
         #: When True, refine reports that its guard kept the previous network (as `eval.pipeline.stages.refine`
         #: records it), which ends the loop under `PipelineConfig.stop_when_unrefined`.
         self.refine_keeps_previous = False
+        #: When True, denoise passes the photos through and writes no network, as the product's stage does for
+        #: photos that read as clean (`DenoiseStageSettings.pass_clean_below_255`).
+        self.passes_through = False
 
     def _enter(self, name: str) -> None:
         self.calls[name] += 1
@@ -77,6 +80,9 @@ class TinyStages:
     def denoise(self, ctx: StageContext):
         self._enter("denoise")
         noisy = read_views(ctx.inputs["noisy"])
+        if self.passes_through:
+            write_views(ctx.work_dir / "denoised", noisy)
+            return {"views": list(noisy), "passed_through": True}
         out = {k: cv2.GaussianBlur(v, (0, 0), 1.0) for k, v in noisy.items()}
         # Write one output, then (maybe) fail: a half-done stage must leave nothing behind.
         write_views(ctx.work_dir / "denoised", out)

@@ -13,7 +13,7 @@ from eval.pipeline import preset, run_pipeline
 from eval.pipeline.config import DenoiseSettings, PipelineConfig
 from eval.pipeline.stage import StageContext
 from eval.pipeline.stage_settings import DenoiseStageSettings, n2v_config, round_settings
-from eval.pipeline.stages import denoise
+from eval.pipeline.stages import MODEL_FILE, denoise
 from eval.pipeline.views import read_views, write_views
 from mvgeo.common.errors import ConfigError, InputError
 from tests.eval._tiny_stages import TinyStages, make_scene
@@ -286,6 +286,70 @@ def test_the_stage_denoises_pixel_shuffled_sub_images_at_the_stride_given(tmp_pa
     assert all(15 < v < 40 for v in summaries[2]["noise_std_255"].values())
 
 
+def _clean_photos(folder, n: int = 2, shape=(48, 56, 3)) -> dict[str, np.ndarray]:
+    """`n` smooth textured 8-bit photos without noise (their level reads at the estimator's floor, 0.5/255)."""
+    h, w, _ = shape
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    photos = {}
+    for i in range(n):
+        phase = np.random.default_rng(i).random(3) * 6
+        img = np.stack([0.5 + 0.3 * np.sin(x / 5 + p) * np.cos(y / 7 - p) for p in phase], -1)
+        photos[f"v{i}"] = (np.round(img * 255) / 255).astype(np.float32)
+    write_views(folder, photos)
+    return photos
+
+
+def test_photos_that_read_clean_pass_through_without_a_network(tmp_path):
+    """`pass_clean_below_255`: photos whose every level reads under it are written as they are and no network
+    is trained; noisy photos, or the setting at 0, train as before."""
+    clean = _clean_photos(tmp_path / "noisy")
+    summary, out = _run_denoise_stage(tmp_path, "passed", 3, pass_clean_below_255=1.5)
+    assert summary["passed_through"] is True and "train" not in summary
+    assert not (tmp_path / "passed" / MODEL_FILE).exists()
+    assert all(np.array_equal(out[k], clean[k]) for k in clean)  # the photos, bit for bit
+    assert all(v < 1.5 for v in summary["noise_std_255"].values())
+    summary, out = _run_denoise_stage(tmp_path, "always", 3, pass_clean_below_255=0.0)
+    assert "passed_through" not in summary and summary["train"]["loss"]["count"] == 3
+    assert (tmp_path / "always" / MODEL_FILE).is_file()
+    _flat_noisy_photos(tmp_path / "noisy", 5)  # sigma 0.1 = 25.5/255 over the same names: trained
+    summary, _ = _run_denoise_stage(tmp_path, "trained", 3, pass_clean_below_255=1.5)
+    assert "passed_through" not in summary and summary["train"]["loss"]["count"] == 3
+    assert (tmp_path / "trained" / MODEL_FILE).is_file()
+
+
+def test_the_pass_through_rule_reads_every_photos_level():
+    from eval.pipeline.stages import _reads_clean
+
+    torch = pytest.importorskip("torch")
+    assert _reads_clean([0.5 / 255, 1.49 / 255], 1.5)
+    assert not _reads_clean([0.5 / 255, 1.51 / 255], 1.5)  # one photo over it: all are denoised
+    assert not _reads_clean([0.5 / 255], 0.0)  # 0: never
+    level_map = torch.full((3, 4, 4), 1.0 / 255)
+    level_map[0, 0, :3] = 9.0 / 255  # a per-pixel level counts by its median, as the report reads it
+    assert _reads_clean([level_map], 1.5) and not _reads_clean([level_map * 2], 1.5)
+
+
+def test_the_pass_through_setting_is_validated_and_reaches_the_stage(tmp_path, capsys):
+    from eval.pipeline.config import PASS_CLEAN_BELOW_255
+    from eval.methods import METHODS
+
+    for name in ("fast", "default", "best"):
+        assert round_settings(preset(name), 1).denoise.pass_clean_below_255 == PASS_CLEAN_BELOW_255
+    assert DenoiseSettings().pass_clean_below_255 == 0.0  # the paper's: always denoise
+    assert METHODS["denoise_gs"].configure(preset("default")).denoise.pass_clean_below_255 == 0.0
+    for bad in (-1.0, 300.0, True, float("nan"), "1"):
+        with pytest.raises(ConfigError, match="denoise.pass_clean_below_255"):
+            dataclasses.replace(preset("default"), denoise=dataclasses.replace(preset("default").denoise,
+                                                                              pass_clean_below_255=bad))
+    cfg = base_pipeline_config(EvalConfig(methods=("product",), pass_clean_below=0.0), views=4)
+    assert cfg.denoise.pass_clean_below_255 == 0.0
+    scene = make_scene(tmp_path / "images", n=3)
+    with pytest.raises(SystemExit) as exc:  # argparse's own refusal: exit 2, the option named
+        main(["run", str(scene), "--out", str(tmp_path / "o"), "--pass-clean-below", "-1"])
+    assert exc.value.code == 2
+    assert "--pass-clean-below" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
 def test_pd_stride_is_validated_and_reaches_the_stage(tmp_path, capsys):
     cfg = preset("default")
     assert cfg.denoise.pd_stride == 0 and round_settings(cfg, 1).denoise.pd_stride == 0
@@ -314,9 +378,9 @@ def test_the_noise_model_setting_overrides_the_measured_one(tmp_path, monkeypatc
     seen = []
     real = stages._denoise_photos
 
-    def spy(photos, n2v, s, seed, noise_model):
+    def spy(photos, n2v, s, seed, noise_model, stds):
         seen.append(noise_model)
-        return real(photos, n2v, s, seed, noise_model)
+        return real(photos, n2v, s, seed, noise_model, stds)
 
     monkeypatch.setattr(stages, "_denoise_photos", spy)
     _flat_noisy_photos(tmp_path / "noisy", 2, (40, 46, 3))

@@ -92,6 +92,26 @@ def test_a_round_whose_refine_kept_the_previous_network_ends_the_loop(tmp_path, 
     assert tiny.calls["refine"] == 1 and again.stopped.index == 2 and [r.index for r in again.rounds] == [1]
 
 
+def test_photos_passed_through_by_round_1_end_the_loop_there(tmp_path, scene):
+    """Round 1's denoise stage wrote no network (the photos read as clean): round 2 has nothing to fine-tune,
+    so it is not run, whatever `stop_when_unrefined` says; round 1's reconstruction is the result."""
+    tiny = TinyStages()
+    tiny.passes_through = True
+    out = tmp_path / "out"
+    cfg = dataclasses.replace(_cfg(rounds=3), stop_when_unrefined=False)
+    res = run_pipeline(scene, out, cfg, stages=tiny.stages())
+    assert dict(tiny.calls) == {"denoise": 1, "align": 1, "splat": 1, "render": 1}
+    assert [r.index for r in res.rounds] == [1] and res.stopped.index == 2 and res.stopped.stages == {}
+    assert "round 2 not run" in res.stopped.reason
+    assert not (out / "round1" / "n2v_model.pt").exists() and not (out / "round2").exists()
+    report = json.loads(res.report_json.read_text())
+    assert report["result_round"] == 1 and report["stopped"]["round"] == 2
+    md = res.report_md.read_text()
+    assert "round 2 not run" in md and "no network was trained" in md
+    again = run_pipeline(scene, out, cfg, stages=tiny.stages())  # resumed: every stage skipped
+    assert tiny.calls["denoise"] == 1 and again.stopped.index == 2 and not _leftovers(out)
+
+
 def test_a_refine_that_improved_goes_on(tmp_path, scene):
     tiny = TinyStages()
     res = run_pipeline(scene, tmp_path / "out", dataclasses.replace(_cfg(rounds=2), stop_when_unrefined=True),

@@ -325,6 +325,43 @@ def test_undeclared_output_and_bad_summary(tmp_path):
     assert not (tmp_path / "st" / "stages" / "s.json").exists()
 
 
+def test_an_optional_output_may_be_left_unwritten(tmp_path):
+    """`StageSpec.optional`: the stage may leave it unwritten (round 1's network where the photos pass through);
+    the record lists what was written, the stages after it see only that, and a committed one the next run
+    leaves unwritten is removed as the stage's own. The others stay required."""
+    st = tmp_path / "st"
+
+    def writes(with_d: bool):
+        def fn(ctx):
+            (ctx.work_dir / "a.txt").write_text("a")
+            if with_d:
+                (ctx.work_dir / "d").mkdir()
+                (ctx.work_dir / "d" / "b.txt").write_text("b")
+            return {"d": with_d}
+        return fn
+
+    runner = StageRunner()
+    full = runner.run(_spec(tmp_path, writes(True), optional=("d",), settings={"d": True}))
+    assert set(full.outputs) == {"a.txt", "d"} and (st / "d" / "b.txt").is_file()
+    bare = runner.run(_spec(tmp_path, writes(False), optional=("d",), settings={"d": False}))
+    assert not bare.skipped and set(bare.outputs) == {"a.txt"} and not (st / "d").exists()
+    rec = json.loads((st / "stages" / "s.json").read_text())
+    assert set(rec["manifest"]["outputs"]) == {"a.txt"} and set(rec["owned"]) == {"a.txt"}
+    again = runner.run(_spec(tmp_path, writes(False), optional=("d",), settings={"d": False}))
+    assert again.skipped and set(again.outputs) == {"a.txt"} and again.outputs_digest == bare.outputs_digest
+    # Without `optional` every declared output is required: a run that leaves one unwritten is refused.
+    with pytest.raises(DgsError, match=r"\['d'\]"):
+        runner.run(_spec(tmp_path, writes(False), settings={"d": False}))
+    # A user's file where the optional output would go is not the stage's: a run that would remove it stops.
+    (st / "d").mkdir()
+    (st / "d" / "mine.txt").write_text("user")
+    with pytest.raises(UnownedOutputError, match="mine.txt"):
+        runner.run(_spec(tmp_path, writes(False), optional=("d",), settings={"d": "changed"}))
+    assert (st / "d" / "mine.txt").read_text() == "user"
+    with pytest.raises(ValueError, match="optional"):
+        _spec(tmp_path, writes(False), optional=("e",))
+
+
 def test_presets_and_validation():
     assert set(PRESETS) == {"fast", "default", "best"}
     assert preset("fast", views=4, rounds=3).views == 4
