@@ -11,7 +11,8 @@ Protocol (issue 8):
   length is distorted and no single Sim(3) fits it), rendered with the
   reconstruction's own intrinsics (`heldout_camera`), each refined
   photometrically with the Gaussians frozen (`splat.pose_fit.fit_pose`, against the *noisy* held-out image: the
-  clean images serve scoring only), then rendered;
+  clean images serve scoring only; two Adam fits, at the full and a quarter of the learning rate, the pose of
+  lowest loss kept, since the full rate alone can overshoot and stay at the start), then rendered;
 - held-out renders are scored against the clean images (PSNR, SSIM, LPIPS),
   training poses against ground truth (`mvgeo.metrics.compare_poses`).
 

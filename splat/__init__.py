@@ -20,7 +20,8 @@ Layers (conventions: docs/conventions.md; gsplat is the compatibility target):
       presets in `splat.train.TRAIN_PRESETS` ("instantsplat" default, "gt_poses", "dense_views", "quick");
     * `splat.render.render_views(model, cameras, cam_from_world) -> list[HxWx3 float32]`;
     * `splat.pose_fit.fit_pose(model, image, camera, cam_from_world_init, *, iters) -> (3,4)`
-      (test-time pose optimisation with frozen Gaussians, InstantSplat's protocol);
+      (test-time pose optimisation with frozen Gaussians, InstantSplat's protocol; one fit per
+      `PoseFitConfig.lr_scales`, the pose of lowest loss kept);
 - CLI: `splat train DATA_DIR --out OUT [--iters N] [--optimize-poses] [--init POINTS.ply|depth]`,
   `splat render MODEL_DIR --cameras SPARSE_DIR --out DIR` (`splat.cli`).
 """

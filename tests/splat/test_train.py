@@ -145,7 +145,7 @@ def test_fit_pose_returns_the_best_pose_it_visited_not_its_last(scene):
     from splat.pose_fit import PoseFitConfig
 
     true = scene["poses"][4]
-    wild = PoseFitConfig(iters=15, lr=0.5, lr_final=0.4)
+    wild = PoseFitConfig(iters=15, lr=0.5, lr_final=0.4, lr_scales=(1.0,))
     fitted = fit_pose(scene["gt"], scene["images"][4], scene["camera"], true, config=wild)
     np.testing.assert_allclose(fitted, true, atol=1e-9)
     # With the default rate from a perturbed start the best pose is a fitted one, not the start.
@@ -153,3 +153,29 @@ def test_fit_pose_returns_the_best_pose_it_visited_not_its_last(scene):
     start = (se3_exp(xi) @ torch.cat([torch.as_tensor(true), torch.tensor([[0, 0, 0, 1.0]], dtype=torch.float64)]))
     start = start[:3].numpy()
     assert not np.allclose(fit_pose(scene["gt"], scene["images"][4], scene["camera"], start, iters=20), start)
+
+
+def test_fit_pose_keeps_the_best_of_its_fits_at_each_rate(scene):
+    """`PoseFitConfig.lr_scales`: one fit per scale of the rate from the same start, the lowest loss wins. From a
+    perturbed start a rate far too large overshoots (its best is the start); a tenth of it fits, and the
+    combined fit returns that fit's pose: the same as the single-rate fit, bit for bit."""
+    from splat.pose_fit import PoseFitConfig
+
+    true = scene["poses"][4]
+    xi = torch.tensor([0.02, -0.015, 0.01, 0.03, -0.02, 0.02], dtype=torch.float64)
+    start = (se3_exp(xi) @ torch.cat([torch.as_tensor(true), torch.tensor([[0, 0, 0, 1.0]], dtype=torch.float64)]))
+    start = start[:3].numpy()
+
+    def fit(scales):
+        cfg = PoseFitConfig(iters=25, lr=0.3, lr_final=0.2, lr_scales=scales)
+        return fit_pose(scene["gt"], scene["images"][4], scene["camera"], start, config=cfg)
+
+    def err(pose):
+        return float(np.linalg.norm(pose - true))
+
+    wild, tame, both = fit((1.0,)), fit((0.03,)), fit((1.0, 0.03))
+    assert err(tame) < 0.5 * err(start) and err(wild) > 0.9 * err(start)
+    np.testing.assert_array_equal(both, tame)
+    np.testing.assert_array_equal(fit((0.03, 1.0)), tame)  # the order of the scales does not matter here
+    with pytest.raises(ValueError, match="lr_scales"):
+        fit(())
