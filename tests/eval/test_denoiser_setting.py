@@ -330,8 +330,8 @@ def test_the_pass_through_rule_reads_every_photos_level():
 
 
 def test_the_pass_through_setting_is_validated_and_reaches_the_stage(tmp_path, capsys):
-    from eval.pipeline.config import PASS_CLEAN_BELOW_255
     from eval.methods import METHODS
+    from eval.pipeline.config import PASS_CLEAN_BELOW_255
 
     for name in ("fast", "default", "best"):
         assert round_settings(preset(name), 1).denoise.pass_clean_below_255 == PASS_CLEAN_BELOW_255
