@@ -19,7 +19,8 @@ import eval.cli  # noqa: F401  first: sets the thread policy before torch loads
 def main() -> int:
     from denoise.pixel_shuffle import shuffled, stride_for
     from denoise.self_supervised import r2r_noise_std
-    from eval.pipeline.stages import _level, _reads_clean
+    from eval.pipeline.quality import noise_level_255
+    from eval.pipeline.stages import _reads_clean
     from eval.pipeline.views import read_views
 
     below = float(cli_option("below", "1.5"))
@@ -35,7 +36,7 @@ def main() -> int:
         read = shuffled(photos, levels.stride) if levels.stride > 1 else photos
         stds = [r2r_noise_std(im, noise_model=levels.noise_model) for im in read]
         passed = _reads_clean(stds, below) and levels.hint() is None
-        print(f"| {folder} | {levels.stride} | {255 * max(_level(v) for v in stds):.2f} | "
+        print(f"| {folder} | {levels.stride} | {max(noise_level_255(v) for v in stds):.2f} | "
               f"{'yes' if levels.hint() is not None else 'no'} | {'passed through' if passed else 'denoised'} |",
               flush=True)
     return 0

@@ -28,8 +28,8 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 
-__all__ = ["AlignQuality", "DenoiseQuality", "RoundQuality", "SplatQuality", "camera_plot_png", "plot_axes",
-           "quality_lines", "round_quality"]
+__all__ = ["AlignQuality", "DenoiseQuality", "RoundQuality", "SplatQuality", "camera_plot_png", "noise_level_255",
+           "plot_axes", "quality_lines", "round_quality"]
 
 #: Points of the alignment's cloud drawn under the cameras (an even subsample).
 PLOT_POINTS = 4000
@@ -141,6 +141,12 @@ class RoundQuality:
         return json.loads(json.dumps(dataclasses.asdict(self), allow_nan=True))
 
 
+def noise_level_255(sigma: object) -> float:
+    """One photo's noise level /255 from its `r2r_noise_std` estimate: the number, or a per-pixel map's median
+    (noise that grows with the intensity)."""
+    return 255.0 * float(sigma.median() if hasattr(sigma, "median") else sigma)
+
+
 def noise_levels(images: Mapping[str, np.ndarray], stds: Sequence[object] | None = None) -> PhotoNoise:
     """The denoise stage's record of its photos' noise: each view's std /255 and the views whose noise grows
     with the intensity, as the default denoiser estimates it (`r2r_noise_std`; a per-pixel map's median).
@@ -154,12 +160,8 @@ def noise_levels(images: Mapping[str, np.ndarray], stds: Sequence[object] | None
         stds = [r2r_noise_std(img) for img in images.values()]
     if len(stds) != len(images):
         raise ValueError(f"{len(stds)} noise estimates for {len(images)} images")
-    levels, dependent = {}, []
-    for name, sigma in zip(images, stds, strict=True):
-        if isinstance(sigma, torch.Tensor):
-            sigma = float(sigma.median())
-            dependent.append(name)
-        levels[name] = 255.0 * float(sigma)
+    levels = {name: noise_level_255(sigma) for name, sigma in zip(images, stds, strict=True)}
+    dependent = [name for name, sigma in zip(images, stds, strict=True) if isinstance(sigma, torch.Tensor)]
     return PhotoNoise(levels, dependent)
 
 

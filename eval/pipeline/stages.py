@@ -98,7 +98,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     from denoise.parallel import one_thread_per_task
     from denoise.pixel_shuffle import merge_std, shuffled, stride_for, unshuffled
     from denoise.self_supervised import choose_objective, r2r_noise_std
-    from eval.pipeline.quality import noise_levels
+    from eval.pipeline.quality import noise_level_255, noise_levels
 
     s = ctx.settings
     noisy = read_views(ctx.inputs["noisy"])
@@ -131,7 +131,7 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
     if passed:
         _log.info("every photo's noise level reads under %.1f/255 (at most %.2f/255): the photos are passed through "
                   "undenoised and no network is trained (`pass_clean_below_255`, `--pass-clean-below 0` to "
-                  "denoise them anyway)", s.pass_clean_below_255, 255.0 * max(_level(v) for v in stds))
+                  "denoise them anyway)", s.pass_clean_below_255, max(noise_level_255(v) for v in stds))
         out = list(photos)
     else:
         out, model = _denoise_photos(photos, n2v, s, ctx.seed, noise_model, stds)
@@ -156,15 +156,12 @@ def denoise(ctx: StageContext) -> Mapping[str, object]:
                           noise=noise_levels(noisy, stds)).to_json()  # the report's noise level
 
 
-def _level(std) -> float:
-    """A photo's noise std (a float, or a per-pixel map for noise that grows with the intensity) as one
-    level: the map's median, as the report reads it (`eval.pipeline.quality.noise_levels`)."""
-    return float(std.median()) if hasattr(std, "median") else float(std)
-
-
 def _reads_clean(stds: Sequence, below_255: float) -> bool:
-    """Whether every photo's noise level (`_level`) is under `below_255`/255 (never, for 0)."""
-    return below_255 > 0 and all(255.0 * _level(v) < below_255 for v in stds)
+    """Whether every photo's noise level (`eval.pipeline.quality.noise_level_255`, as the report reads it) is
+    under `below_255`/255 (never, for 0)."""
+    from eval.pipeline.quality import noise_level_255
+
+    return below_255 > 0 and all(noise_level_255(v) < below_255 for v in stds)
 
 
 def _denoise_photos(photos: list[np.ndarray], n2v, s, seed: int, noise_model: str, stds: list):
