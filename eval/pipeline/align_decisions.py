@@ -104,6 +104,8 @@ class PhotosDecision:
         noisy_refused: the noisy photos' refusal (its first line), where they were tried and refused.
         denoised_refused: the denoised photos' refusal, where the noisy ones aligned and these were refused.
         comparison: "better_of" with both photos aligned: the figures that chose between them.
+        identical: the denoised photos held the noisy photos' pixels (passed through undenoised), so the
+            photos were aligned once (`eval.pipeline.align_stage.same_photos`).
 
     In JSON `comparison`'s keys sit beside `aligned` (one flat record); an unset optional is left out.
     """
@@ -112,6 +114,7 @@ class PhotosDecision:
     noisy_refused: str | None = None
     denoised_refused: str | None = None
     comparison: PhotosComparison | None = None
+    identical: bool = False
 
     def __post_init__(self) -> None:
         if self.aligned not in get_args(AlignedPhotos):
@@ -125,13 +128,16 @@ class PhotosDecision:
             out["noisy_refused"] = self.noisy_refused
         if self.denoised_refused is not None:
             out["denoised_refused"] = self.denoised_refused
+        if self.identical:
+            out["identical_photos"] = True
         return out
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> PhotosDecision:
         return cls(aligned=data["aligned"], noisy_refused=data.get("noisy_refused"),
                    denoised_refused=data.get("denoised_refused"),
-                   comparison=PhotosComparison.from_json(data) if "registered" in data else None)
+                   comparison=PhotosComparison.from_json(data) if "registered" in data else None,
+                   identical=bool(data.get("identical_photos", False)))
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,7 @@ calibration or geometry is kept (`eval.pipeline.calibration`, `eval.pipeline.ali
 from __future__ import annotations
 
 import dataclasses
+import filecmp
 import functools
 import json
 import logging
@@ -68,7 +69,8 @@ def align(ctx: StageContext) -> Mapping[str, object]:
     previous = ctx.inputs.get("previous_align")
     if previous is None:
         noisy = view_files(ctx.inputs["noisy"]) if s.reads_noisy else None
-        res = _align_first_round(align_images, files, noisy, cfg, keep_better=s.photos == "better_of")
+        res = _align_first_round(align_images, files, noisy, cfg, keep_better=s.photos == "better_of",
+                                 identical=noisy is not None and same_photos(files, noisy))
     else:
         res = _align_keeping_better_geometry(align_images, files, cfg, Path(previous), mode,
                                              s.reuse_geometry or "never")
@@ -92,8 +94,21 @@ def working_camera(intrinsics: Path, image: Path) -> Camera:
     return read_intrinsics(intrinsics).scaled(w, h)
 
 
+def same_photos(files: list[Path], noisy: Mapping[str, Path]) -> bool:
+    """Whether every denoised photo in `files` holds the same pixels as its noisy photo (`noisy`: stem ->
+    file), as where the denoise stage passed clean photos through (`pass_clean_below_255`). Stops at the
+    first photo that differs, so noisy photos cost one read of each of two files."""
+    for f in files:
+        other = noisy.get(f.stem)
+        if other is None:
+            return False
+        if not filecmp.cmp(f, other, shallow=False) and not np.array_equal(read_image(f), read_image(other)):
+            return False
+    return True
+
+
 def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] | None, cfg, *,
-                       keep_better: bool = False) -> AlignStageResult:
+                       keep_better: bool = False, identical: bool = False) -> AlignStageResult:
     """Round 1's alignment, with which photos it used (`AlignDecisions.photos`).
 
     Without `noisy` (stem -> file): the denoised `files`. With it, the noisy photos under the denoised
@@ -105,9 +120,21 @@ def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] |
       is refused.
     The denoised photos are matched with the detector for noisy photos once noisy photos were tried
     (`denoised_photos_config`). Both refused: the denoised photos' refusal is raised.
+
+    `identical` (`same_photos`: the denoised photos are the noisy ones, passed through undenoised): the
+    photos are aligned once, as the noisy photos, and a refusal is raised as it is; the record says so
+    (`PhotosDecision.identical`). A second alignment of the same pixels would only repeat the first with a
+    less sensitive detector, which is meant for a denoiser's texture.
     """
     noisy_refused = None
     from_noisy = None
+    if noisy is not None and identical:
+        try:
+            res = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files],
+                               cloud_images=files)
+        except (AlignmentRefusedError, DisconnectedViewsError) as exc:
+            raise as_pipeline_refusal(exc) from exc
+        return AlignStageResult(res, AlignDecisions(photos=PhotosDecision("noisy", identical=True)))
     if noisy is not None:
         try:
             # The poses from the noisy photos, the dense cloud (the splat's start) from the denoised ones.

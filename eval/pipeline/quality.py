@@ -76,6 +76,7 @@ class AlignQuality:
     Attributes:
         photos: which photos were aligned ("noisy" or "denoised"; None where not recorded).
         photos_reason: why those, where round 1 aligned both (`AlignSettings.photos` "better_of"); else None.
+        photos_identical: the denoised photos were the noisy ones (passed through), aligned once.
         focal_source: where the focal length came from, in words.
         focal_px: median focal length over the views (alignment pixels); focal_log_std: its standard
             deviation in log units from the bundle adjustment (0.01 = 1 %), NaN without one.
@@ -105,6 +106,7 @@ class AlignQuality:
     n_candidates: int
     least_constrained: list[tuple[str, float]] = field(default_factory=list)
     photos_reason: str | None = None
+    photos_identical: bool = False
 
 
 @dataclass(frozen=True)
@@ -215,6 +217,7 @@ def _align_quality(stats: AlignStats, summary: AlignSummary) -> AlignQuality:
         unregistered=[(u.name, u.reason) for u in stats.unregistered],
         photos=photos.aligned if photos is not None else None,
         photos_reason=photos.comparison.reason if photos is not None and photos.comparison is not None else None,
+        photos_identical=photos is not None and photos.identical,
         align_size_wh=list(stats.align_size_wh), focal_source=_focal_source(stats),
         focal_px=float(np.median(focals)) if focals else nan,
         focal_log_std=ba.focal_log_std if ba is not None and not stats.known_intrinsics else nan,
@@ -341,6 +344,8 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
                          "".join(f"; `{n}` left out: {why}" for n, why in a.unregistered))
             if a.photos_reason:
                 lines.append(f"  - of the noisy and the denoised photos' alignments, {a.photos_reason}")
+            if a.photos_identical:
+                lines.append("  - the denoised photos are the noisy ones (passed through undenoised): aligned once")
             std = (f", log-std {_fmt(a.focal_log_std, '.3f')} ({_fmt(100 * a.focal_log_std, '.1f')} %)"
                    if math.isfinite(a.focal_log_std) else "")
             w, h = a.align_size_wh

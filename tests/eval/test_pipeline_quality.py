@@ -151,6 +151,11 @@ def test_the_report_says_which_photos_round1_kept_and_why(tmp_path):
     assert "alignment (denoised photos)" in text and f"the noisy and the denoised photos' alignments, {reason}" in text
     plain = round_quality(_round(tmp_path / "plain", stats, with_splat=False))
     assert plain.align.photos_reason is None and "alignments," not in "\n".join(quality_lines([plain]))
+    same = round_quality(_round(tmp_path / "same", stats, with_splat=False,
+                                photos={"aligned": "noisy", "identical_photos": True}))
+    assert same.align.photos_identical and not plain.align.photos_identical
+    assert "are the noisy ones (passed through undenoised): aligned once" in "\n".join(quality_lines([same]))
+    assert "aligned once" not in "\n".join(quality_lines([plain]))
 
 
 def test_focal_source_names_the_calibration_or_the_prior(tmp_path):

@@ -401,6 +401,64 @@ def test_better_of_with_one_refusal_keeps_the_other(tmp_path, alignments):
     assert res.decisions.photos == PhotosDecision("noisy")
 
 
+@pytest.mark.parametrize("keep_better", [True, False])
+def test_photos_passed_through_are_aligned_once(tmp_path, alignments, keep_better):
+    """Denoised photos that are the noisy ones (the denoise stage passed them through): one alignment, of the
+    noisy photos with the configured detector, recorded as such; its refusal is raised, with the pipeline's
+    fix, without a second try on the same pixels."""
+    from eval.pipeline.align_stage import _align_first_round
+    from mvgeo.align import AlignConfig
+
+    files, noisy_files = _round1_files(tmp_path)
+    fake = _PhotoAlign(alignments["round1_poor"], alignments["round1_good"])
+    res = _align_first_round(fake, files, noisy_files, AlignConfig(), keep_better=keep_better, identical=True)
+    assert res.alignment.sparse_model is alignments["round1_poor"][0]
+    assert fake.calls == [("noisy", AlignConfig().pairwise.sensitive_below_noise, "denoised")]
+    assert res.decisions.photos == PhotosDecision("noisy", identical=True)
+    record = res.decisions.to_json()[PHOTOS_KEY]
+    assert record == {"aligned": "noisy", "identical_photos": True}
+    assert PhotosDecision.from_json(record) == res.decisions.photos
+    assert "identical_photos" not in PhotosDecision("noisy").to_json()  # older records read alike
+    refused = AlignmentRefusedError("the positions of 1 of 8 views do not determine the cameras",
+                                    kind="positions_undetermined", views=(ALL[3],), fix="pass --allow-partial")
+    fake = _PhotoAlign(refused, alignments["round1_good"])
+    with pytest.raises(AlignmentRefusedError) as info:
+        _align_first_round(fake, files, noisy_files, AlignConfig(), keep_better=keep_better, identical=True)
+    assert "pass --allow-partial" not in str(info.value.fix) and [c[0] for c in fake.calls] == ["noisy"]
+
+
+def test_same_photos_compares_pixels(tmp_path):
+    """`same_photos`: equal pixels count as the same photo whatever the file's bytes; one differing pixel, a
+    missing noisy photo or another size does not."""
+    from eval.pipeline.align_stage import same_photos
+    from mvgeo.common.imageio import write_image
+
+    rng = np.random.default_rng(0)
+    ims = {f"v{i}": rng.integers(0, 256, (12, 16, 3)).astype(np.float32) / 255.0 for i in range(3)}
+    for folder in ("denoised", "noisy"):
+        (tmp_path / folder).mkdir()
+        for stem, im in ims.items():
+            write_image(tmp_path / folder / f"{stem}.png", im)
+    files = sorted((tmp_path / "denoised").glob("*.png"))
+    noisy = {p.stem: p for p in (tmp_path / "noisy").glob("*.png")}
+    assert same_photos(files, noisy)
+    # the same pixels in another encoding (PNG compression level): still the same photos
+    import cv2
+
+    bgr = np.round(255.0 * ims["v1"][:, :, ::-1]).astype(np.uint8)
+    cv2.imwrite(str(noisy["v1"]), bgr, [cv2.IMWRITE_PNG_COMPRESSION, 0])
+    assert noisy["v1"].read_bytes() != files[1].read_bytes() and same_photos(files, noisy)
+    changed = ims["v2"].copy()
+    changed[5, 7, 1] = (round(255 * changed[5, 7, 1]) ^ 1) / 255.0
+    write_image(noisy["v2"], changed)
+    assert not same_photos(files, noisy)
+    write_image(noisy["v2"], ims["v2"])
+    assert same_photos(files, noisy)
+    assert not same_photos(files, {k: v for k, v in noisy.items() if k != "v0"})
+    write_image(noisy["v0"], ims["v0"][:, :8])
+    assert not same_photos(files, noisy)
+
+
 def test_better_of_without_a_known_uncertainty_keeps_the_noisy_photos(alignments):
     from eval.pipeline.calibration import better_determined
 
