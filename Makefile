@@ -5,6 +5,10 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.synced
 PYTEST_DEFAULT := -m "not slow and not bench and not gpu"
+# The tests run in TEST_WORKERS processes (pytest-xdist; one per core, at most 4, each with one OpenMP and
+# BLAS thread, tests/conftest.py); TEST_WORKERS=0 runs them in this process. On 2 cores the default suite
+# takes about half the time of one process (docs/bench/test_suite.md).
+TEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); if [ "$$n" -gt 4 ]; then n=4; fi; if [ "$$n" -lt 2 ]; then n=0; fi; echo $$n)
 
 export DGS_NO_PROGRESS ?=
 
@@ -26,10 +30,10 @@ $(STAMP): uv.lock pyproject.toml tools/setup_env.sh
 env: $(STAMP)
 
 test: $(STAMP)
-	$(PY) -m pytest $(PYTEST_DEFAULT)
+	$(PY) -m pytest -n $(TEST_WORKERS) $(PYTEST_DEFAULT)
 
 test-all: $(STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_WORKERS)
 
 # The benchmarks also need the `bench` dependency group (PyWavelets, bm3d: classical baselines).
 bench: $(STAMP)

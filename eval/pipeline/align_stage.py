@@ -36,7 +36,7 @@ from eval.pipeline.summaries import AlignSummary
 from eval.pipeline.views import view_files
 from mvgeo.align.stats import AlignStats
 from mvgeo.camera import Camera
-from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, DisconnectedViewsError
+from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, DisconnectedViewsError, InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.sparse_model import SparseModel, read_sparse_model
 
@@ -97,12 +97,18 @@ def working_camera(intrinsics: Path, image: Path) -> Camera:
 def same_photos(files: list[Path], noisy: Mapping[str, Path]) -> bool:
     """Whether every denoised photo in `files` holds the same pixels as its noisy photo (`noisy`: stem ->
     file), as where the denoise stage passed clean photos through (`pass_clean_below_255`). Stops at the
-    first photo that differs, so noisy photos cost one read of each of two files."""
+    first photo that differs, so noisy photos cost one read of each of two files. A file that does not
+    decode is not the same photo (the alignment, reading it, refuses it by name)."""
     for f in files:
         other = noisy.get(f.stem)
         if other is None:
             return False
-        if not filecmp.cmp(f, other, shallow=False) and not np.array_equal(read_image(f), read_image(other)):
+        if filecmp.cmp(f, other, shallow=False):
+            continue
+        try:
+            if not np.array_equal(read_image(f), read_image(other)):
+                return False
+        except InputError:  # not an image: the alignment reads it and says so
             return False
     return True
 

@@ -74,7 +74,7 @@ class _Stop(Exception):
 def _views(folder, names):
     folder.mkdir()
     for name in names:
-        (folder / name).write_bytes(b"")
+        (folder / name).write_bytes(folder.name.encode())  # placeholders that differ between the folders
     return folder
 
 

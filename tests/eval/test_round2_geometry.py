@@ -457,6 +457,8 @@ def test_same_photos_compares_pixels(tmp_path):
     assert not same_photos(files, {k: v for k, v in noisy.items() if k != "v0"})
     write_image(noisy["v0"], ims["v0"][:, :8])
     assert not same_photos(files, noisy)
+    noisy["v0"].write_bytes(b"not a photo")
+    assert not same_photos(files, noisy)
 
 
 def test_better_of_without_a_known_uncertainty_keeps_the_noisy_photos(alignments):
