@@ -30,10 +30,10 @@ $(STAMP): uv.lock pyproject.toml tools/setup_env.sh
 env: $(STAMP)
 
 test: $(STAMP)
-	$(PY) -m pytest -n $(TEST_WORKERS) $(PYTEST_DEFAULT)
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile $(PYTEST_DEFAULT)
 
 test-all: $(STAMP)
-	$(PY) -m pytest -n $(TEST_WORKERS)
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 # The benchmarks also need the `bench` dependency group (PyWavelets, bm3d: classical baselines).
 bench: $(STAMP)

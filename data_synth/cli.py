@@ -25,7 +25,7 @@ from data_synth.dataset import DATASET_COMMAND, write_dataset
 from data_synth.effects import EFFECTS
 from data_synth.scene_file import builtin_scenes, load_scene, scene_to_toml
 from data_synth.spec import RenderSpec
-from mvgeo.common.argtypes import positive_int, seed, size_wh
+from mvgeo.common.argtypes import out_path, positive_int, seed, size_wh
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.errors import InputError
 from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_overrides(show)
     render = sub.add_parser("render", help="render a scene into a dataset folder")
     _add_overrides(render)
-    render.add_argument("--out", required=True, help="output dataset folder; " + OUT_HELP)
+    render.add_argument("--out", type=out_path, required=True, help="output dataset folder; " + OUT_HELP)
     render.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     return parser
 

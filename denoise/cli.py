@@ -24,7 +24,7 @@ from denoise.pixel_shuffle import MAX_STRIDE, shuffled, stride_for, unshuffled
 from denoise.self_supervised import choose_objective, denoise_with_method, train_with_method
 from denoise.view_selection import select_views
 from denoise.wiener import WienerConfig
-from mvgeo.common.argtypes import int_range, nonneg_int, positive_int, seed
+from mvgeo.common.argtypes import int_range, nonneg_int, out_path, positive_int, seed
 from mvgeo.common.atomic import atomic_output_dir, atomic_write_text
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.deps import cv2
@@ -134,7 +134,7 @@ def _cmd_select(args: argparse.Namespace) -> int:
     from mvgeo.sparse_model import read_sparse_model
 
     out = None
-    if args.out:  # the resolved file: a symbolic link given as --out is written through, not replaced
+    if args.out is not None:  # the resolved file: a symbolic link given as --out is written through, not replaced
         out = prepare_output_file(args.out, command="denoise select", inputs=[args.sparse_dir, args.images],
                                   overwrite=args.overwrite, example_name="selection.json")
     model = read_sparse_model(args.sparse_dir)
@@ -161,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("n2v", help="train N2V on a folder of noisy images and denoise them")
     p.add_argument("images_dir", help="folder of noisy images (PNG/JPEG, 8/16-bit, RGB or gray)")
-    p.add_argument("--out", required=True,
+    p.add_argument("--out", type=out_path, required=True,
                    help="output folder: images/, model.pt, contact_sheet.png, report.json; " + OUT_HELP)
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the preset's)")
@@ -201,7 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--images", required=True, help="folder with the model's images")
     s.add_argument("--k", type=positive_int, default=12, help="number of views to select (k >= N keeps all)")
     s.add_argument("--seed", type=seed, default=0)
-    s.add_argument("--out", default=None, help="also write the JSON to this file (a new file; not a folder)")
+    s.add_argument("--out", type=out_path, default=None,
+                   help="also write the JSON to this file (a new file; not a folder)")
     s.add_argument("--overwrite", action="store_true",
                    help="replace the --out file when this command wrote it and it is unchanged "
                         "(nothing else is ever replaced)")

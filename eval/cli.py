@@ -15,6 +15,7 @@ import argparse
 import dataclasses
 import importlib.util
 import logging
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -30,7 +31,7 @@ from eval.pipeline.lock import output_lock
 from eval.pipeline.validate import MIN_IMAGE_SIZE_PX
 from eval.real.cli import add_dataset_parser
 from eval.results import carried_rows, merge_rows, write_results
-from mvgeo.common.argtypes import fraction, int_range, nonneg_float, nonneg_int, positive_int, seed
+from mvgeo.common.argtypes import fraction, int_range, nonneg_float, nonneg_int, out_path, positive_int, seed
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import InputError
@@ -77,7 +78,8 @@ def resolve_scene_source(scene: str) -> tuple[str, Path | str]:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     device = None if args.device is None else str(resolve_device(args.device))
-    config = preset(args.preset, views=args.views, rounds=args.rounds, seed=args.seed,
+    # The rounds go in last: whether a round 2 can run depends on the denoiser (`--denoiser`) set below.
+    config = preset(args.preset, views=args.views, seed=args.seed,
                     select_views=False if args.no_select else None, device=device)
     if args.allow_focal_prior:
         config = _allow_focal_prior(config)
@@ -116,6 +118,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.pass_clean_below is not None:
         config = dataclasses.replace(config, denoise=dataclasses.replace(config.denoise,
                                                                          pass_clean_below_255=args.pass_clean_below))
+    if args.rounds is not None:
+        config = dataclasses.replace(config, rounds=args.rounds)
     result = run_pipeline(args.images_dir, args.out, config, force=args.force)
     print(f"report: {result.report_md}")
     return 0
@@ -191,6 +195,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         _, md = write_results(out, merge_rows(earlier.rows, rows), title=title, settings=settings)
     kept = sorted({r.method for r in earlier.rows})
     print(f"results: {md}" + (f" (with the earlier rows of {', '.join(kept)})" if kept else ""))
+    if rows and all(r.error for r in rows):  # a table of n/a cells is not a result: say so in the exit status
+        print(f"error: every run of this evaluation failed ({len(rows)}); the first: {rows[0].method}, seed "
+              f"{rows[0].seed}: {rows[0].error.splitlines()[0][:300]}\n  the reasons: {md}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -288,6 +296,8 @@ def _size_wh(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected WxH such as 256x192, got {text!r}") from None
     if w < 32 or h < 32:
         raise argparse.ArgumentTypeError(f"images must be at least 32x32, got {text!r}")
+    if max(w, h) > 8192:  # the scene renderer's limit (data_synth RenderSpec.size)
+        raise argparse.ArgumentTypeError(f"images must be at most 8192 px a side, got {text!r}")
     return w, h
 
 
@@ -319,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "paper's second) on a folder of noisy images")
     run.add_argument("images_dir", type=Path,
                      help="folder of noisy images (PNG/JPEG/TIFF/WebP; HEIC and raw photos: convert them first)")
-    run.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP)
+    run.add_argument("--out", type=out_path, required=True, help=OUT_RESUME_HELP)
     run.add_argument("--preset", choices=sorted(PRESETS), default="default",
                      help="settings preset: fast (N2V, a 1000-iteration splat; make demo's), default (R2R or "
                           "Neighbor2Neighbor with the Wiener steps, a 2000-iteration splat), best (default with "
@@ -389,7 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("eval", help="score methods on a scene with ground truth")
     ev.add_argument("scene", help="built-in data_synth scene, scene .toml, or dataset folder "
                                   "(images/, clean/, split.json, sparse/0/)")
-    ev.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP)
+    ev.add_argument("--out", type=out_path, required=True, help=OUT_RESUME_HELP)
     ev.add_argument("--seeds", type=positive_int, default=3, help="seeds per method (default 3)")
     ev.add_argument("--first-seed", type=seed, default=0, metavar="K",
                     help="the seeds are K .. K + seeds - 1 (default 0): runs an evaluation seed by seed, each "
@@ -451,7 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
                           description="Change one pipeline knob at a time from a base configuration and report "
                                       "held-out PSNR / pose error against wall time per stage and end to end.")
     cost.add_argument("scene", help="built-in data_synth scene, scene .toml, or dataset folder")
-    cost.add_argument("--out", type=Path, required=True, help=OUT_RESUME_HELP + " (cached stages are reused)")
+    cost.add_argument("--out", type=out_path, required=True, help=OUT_RESUME_HELP + " (cached stages are reused)")
     cost.add_argument("--size", type=_size_wh, default=(128, 96), metavar="WxH",
                       help="image size for a scene rendered on the fly (default 128x96: a sweep in minutes)")
     cost.add_argument("--scene-views", type=int_range(2), default=10,

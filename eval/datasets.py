@@ -20,6 +20,7 @@ from pathlib import Path
 from eval.real.api import import_dataset
 from eval.real.dtu import dtu_cameras
 from eval.real.split import cluster_split, spread_split
+from mvgeo.common.argtypes import out_path
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP
 
@@ -57,7 +58,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="kind", required=True)
     d = sub.add_parser("dtu", help="DTU scan (MonoSDF crop) -> noisy evaluation dataset")
     d.add_argument("src", type=Path)
-    d.add_argument("--out", type=Path, required=True, help=OUT_HELP)
+    d.add_argument("--out", type=out_path, required=True, help=OUT_HELP)
     d.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     d.add_argument("--sigma", type=float, default=25.0, help="Gaussian noise std on the 0..255 scale")
     d.add_argument("--size", type=int, default=None, help="output side in pixels (default 384)")

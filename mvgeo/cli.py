@@ -10,12 +10,13 @@ apply_thread_policy()
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from mvgeo.common.argtypes import int_range, nonneg_int, positive_int
+from mvgeo.common.argtypes import int_range, nonneg_int, out_path, positive_int
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.errors import InputError
 from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output
@@ -28,7 +29,7 @@ def _parser() -> argparse.ArgumentParser:
 
     a = sub.add_parser("align", help="pose-free reconstruction: pairwise pointmaps + global alignment")
     a.add_argument("images_dir", type=Path)
-    a.add_argument("--out", type=Path, required=True, help=OUT_HELP)
+    a.add_argument("--out", type=out_path, required=True, help=OUT_HELP)
     a.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     a.add_argument("--max-size", type=int_range(16), default=640, help="long side for matching (px); default 640")
     a.add_argument("--pointmap-size", type=int_range(8), default=128, help="long side of the dense pointmaps (px)")
@@ -76,7 +77,7 @@ def _parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("colmap", help="pycolmap SfM (CPU SIFT, exhaustive matching) into the same layout")
     c.add_argument("images_dir", type=Path)
-    c.add_argument("--out", type=Path, required=True, help=OUT_HELP)
+    c.add_argument("--out", type=out_path, required=True, help=OUT_HELP)
     c.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     c.add_argument("--global", dest="global_mapper", action="store_true", help="global instead of incremental")
     add_common_args(c)
@@ -168,6 +169,10 @@ def _compare(args: argparse.Namespace) -> int:
     est = read_sparse_model(args.est)
     ref = read_sparse_model(args.ref)
     common = set(est.names) & set(ref.names)
+    if len(common) == 1:
+        raise InputError(f"the two models have one image in common ({sorted(common)[0]}): relative poses need two",
+                         path=args.est, fix="compare models that share at least two images (the poses are matched "
+                                            "by image file name)")
     if not common:
         raise InputError(f"no image names in common between the two models (EST has {len(est.names)} "
                          f"images, e.g. {est.names[:2]}; REF has {len(ref.names)}, e.g. {ref.names[:2]}): "
@@ -175,8 +180,9 @@ def _compare(args: argparse.Namespace) -> int:
                          fix="compare models of the same images; the poses are matched by image file name")
     m = compare_poses(est.cam_from_world_by_name(), ref.cam_from_world_by_name())
     out = {"n_ref": m.n_ref, "n_registered": m.n_registered, **m.summary()}
-    if args.json:
-        print(json.dumps(out, indent=2))
+    if args.json:  # a figure the views do not determine (NaN: the ATE of 2 views) is null, as JSON allows
+        print(json.dumps({k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in out.items()},
+                         indent=2, allow_nan=False))
     else:
         for k, v in out.items():
             print(f"{k:>24}: {v:.4g}" if isinstance(v, float) else f"{k:>24}: {v}")

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mvgeo.common.argtypes import int_range, positive_int, seed
+from mvgeo.common.argtypes import int_range, out_path, positive_int, seed
 from mvgeo.common.atomic import atomic_output_dir
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
@@ -180,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     tr = sub.add_parser("train", help="train Gaussians on DATA_DIR (images/ + sparse/0/, split.json train views)")
     tr.add_argument("data_dir", help="folder with images/ and sparse/0/ (and optionally split.json, depth/)")
-    tr.add_argument("--out", required=True, help=OUT_HELP)
+    tr.add_argument("--out", type=out_path, required=True, help=OUT_HELP)
     tr.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     tr.add_argument("--iters", type=positive_int, default=None, help="iterations (default: the preset's, 1000)")
     tr.add_argument("--optimize-poses", action=argparse.BooleanOptionalAction, default=False,
@@ -196,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     rd = sub.add_parser("render", help="render a trained model at the cameras of a COLMAP model")
     rd.add_argument("model_dir", help="`splat train` output folder (or a 3DGS point_cloud.ply)")
     rd.add_argument("--cameras", required=True, help="COLMAP model folder (cameras + images)")
-    rd.add_argument("--out", required=True, help="folder of PNGs; " + OUT_HELP)
+    rd.add_argument("--out", type=out_path, required=True, help="folder of PNGs; " + OUT_HELP)
     rd.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     rd.add_argument("--device", default="cpu", help=DEVICE_HELP)
     rd.set_defaults(func=_render)
@@ -204,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("model", help="`splat train` output folder (or a 3DGS point_cloud.ply)")
     ex.add_argument("--format", choices=("ply", "splat", "spz", "html"), default=None,
                     help="default: from --out's suffix; html writes a folder with index.html")
-    ex.add_argument("--out", required=True, help="output file (a folder for html)")
+    ex.add_argument("--out", type=out_path, required=True, help="output file (a folder for html)")
     ex.add_argument("--overwrite", action="store_true",
                     help="replace an existing --out written by this command and unchanged since (nothing else is "
                          "ever replaced)")

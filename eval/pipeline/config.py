@@ -252,7 +252,8 @@ class PipelineConfig:
                               expected=" or ".join(map(repr, DENOISE_METHODS)))
         if self.denoise.method != "n2v" and self.rounds >= 2:
             raise ConfigError(f"{self.denoise.method} runs round 1 only: round 2 fine-tunes a blind-spot (N2V) "
-                              f"network", key="denoise.method", fix="use --rounds 1, or --denoiser n2v")
+                              f"network", key="denoise.method",
+                              fix="use --rounds 1, or the N2V denoiser (`--denoiser n2v`, or `--preset fast`)")
         if not 0.0 <= self.denoise.keep_noisy < 1.0:
             raise ConfigError(f"must be in [0, 1), got {self.denoise.keep_noisy}", key="denoise.keep_noisy",
                               expected="a fraction of the noisy photo, 0 <= k < 1")

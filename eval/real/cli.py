@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from eval.real.api import KINDS, import_dataset
-from mvgeo.common.argtypes import int_range, positive_int, seed, size_wh
+from mvgeo.common.argtypes import int_range, out_path, positive_int, seed, size_wh
 from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP
 
 __all__ = ["add_dataset_parser"]
@@ -32,7 +32,7 @@ def add_dataset_parser(sub: argparse._SubParsersAction) -> None:
                      help="llff: poses_bounds.npy + images[_N]/; colmap: sparse/0 + images/; middlebury: "
                           "*_par.txt (or its folder); dtu: cameras.npz + images/")
     imp.add_argument("src", help="the capture folder (or the Middlebury *_par.txt file)")
-    imp.add_argument("--out", required=True, help=OUT_HELP)
+    imp.add_argument("--out", type=out_path, required=True, help=OUT_HELP)
     imp.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     imp.add_argument("--noise", default=None, metavar="SPEC",
                      help="none (default), gaussian:SIGMA_8BIT (e.g. gaussian:25 = 25/255), "
@@ -54,7 +54,7 @@ def add_dataset_parser(sub: argparse._SubParsersAction) -> None:
                           "views spread by angle around the cameras' ring (--views, default 12), held out the "
                           "views between them (all, or --test N)")
     size = imp.add_mutually_exclusive_group()
-    size.add_argument("--size", type=size_wh(min_px=8), default=None, metavar="WxH",
+    size.add_argument("--size", type=size_wh(min_px=8, max_px=8192), default=None, metavar="WxH",
                       help="resize every image to WxH (area filter; intrinsics scaled exactly)")
     size.add_argument("--max-size", type=int_range(8), default=None, metavar="PX",
                       help="downscale so that the longer side is at most PX")

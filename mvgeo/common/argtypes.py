@@ -16,9 +16,10 @@ import argparse
 import math
 import re
 from collections.abc import Callable
+from pathlib import Path
 
-__all__ = ["SEED_MAX", "fraction", "int_range", "nonneg_float", "nonneg_int", "positive_float", "positive_int", "seed",
-           "size_wh"]
+__all__ = ["SEED_MAX", "fraction", "int_range", "nonneg_float", "nonneg_int", "out_path", "positive_float",
+           "positive_int", "seed", "size_wh"]
 
 #: Seeds are in [0, SEED_MAX] (numpy's and torch's generators both accept this range).
 SEED_MAX = 2**32 - 1
@@ -115,3 +116,11 @@ def size_wh(min_px: int = 1, max_px: int | None = None) -> Callable[[str], tuple
 
     convert.__name__ = "size_wh"
     return convert
+
+
+def out_path(text: str) -> Path:
+    """An output path (``--out``): an empty or blank one is a usage error. `pathlib.Path("")` is the current
+    folder, so without this ``--out ""`` (an unset shell variable) would write into the current folder."""
+    if text.strip() == "":
+        raise argparse.ArgumentTypeError("is empty: pass an output folder or file")
+    return Path(text)

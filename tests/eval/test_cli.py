@@ -95,6 +95,31 @@ def test_run_wiener_flag(tmp_path, monkeypatch, flag, expected):
     assert seen["config"].denoise.wiener is expected
 
 
+@pytest.mark.parametrize("preset_name", ["default", "best", "fast"])
+def test_run_two_rounds_with_the_n2v_denoiser_from_any_preset(tmp_path, monkeypatch, capsys, preset_name):
+    """The paper's loop (`--denoiser n2v --rounds 2`) runs from every preset: the rounds are checked against the
+    denoiser given, not the preset's; a denoiser that cannot run a round 2 is refused, naming both fixes."""
+    seen = {}
+
+    def fake_run(images_dir, out, config, force=False):
+        seen["config"] = config
+        raise SystemExit(0)
+
+    monkeypatch.setattr(eval.cli, "run_pipeline", fake_run)
+    scene = make_scene(tmp_path / "images", n=4)
+    with pytest.raises(SystemExit):
+        main(["run", str(scene), "--out", str(tmp_path / "out"), "--views", "4", "--preset", preset_name,
+              "--denoiser", "n2v", "--rounds", "2"])
+    assert (seen["config"].denoise.method, seen["config"].rounds) == ("n2v", 2)
+    if preset_name == "fast":
+        return
+    seen.clear()
+    assert main(["run", str(scene), "--out", str(tmp_path / "out"), "--views", "4", "--preset", preset_name,
+                 "--rounds", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "round 1 only" in err and "--denoiser n2v" in err and "--preset fast" in err and not seen
+
+
 def test_run_corrupt_image(tmp_path, capsys):
     scene = make_scene(tmp_path / "images", n=4)
     (scene / "view_002.png").write_bytes(b"\x89PNG broken")
@@ -246,6 +271,32 @@ def test_gt_pose_variants_add_one_row_per_method_with_estimated_poses(tmp_path, 
                                "n2v_fused_round1@gt_poses")
     assert [m.name for m in eval.evaluate.EvalConfig(methods=seen["methods"]).selected()][-2:] == [
         "instantsplat@gt_poses", "n2v_fused_round1@gt_poses"]
+
+
+def test_eval_whose_every_run_failed_exits_1_with_the_reason(tmp_path, monkeypatch, capsys):
+    """The table is written either way; where no run of the invocation succeeded the command says so and exits
+    1; one run that succeeded is a result (a refusal of another method is a finding, exit 0)."""
+    from eval.results import RunScores
+
+    nan = float("nan")
+    outcome = {}
+
+    def fake(dataset, out, config, *, scene, **kw):
+        return [RunScores(scene, m, s, *((25.0, 0.8, 0.1) if outcome.get(m) else (nan, nan, nan)),
+                          error="" if outcome.get(m) else "needs initial points: no depth/ maps")
+                for m in config.methods for s in config.seed_values]
+
+    monkeypatch.setattr(eval.cli, "evaluate_dataset", fake)
+    root = tiny_dataset(tmp_path / "data").root
+    shutil.copytree(root / "images", root / "clean")
+    args = ["eval", str(root), "--seeds", "2", "--methods", "instantsplat", "3dgs_gt_poses"]
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "a")]) == 1
+    err = capsys.readouterr().err
+    assert "every run of this evaluation failed (4)" in err and "needs initial points" in err
+    assert (tmp_path / "a" / "results.md").is_file() and "Traceback" not in err
+    outcome["instantsplat"] = True
+    assert main([*args, "--out", str(tmp_path / "b")]) == 0
 
 
 def test_eval_into_the_same_folder_extends_its_table_with_the_same_settings(tmp_path, monkeypatch, capsys):

@@ -446,6 +446,10 @@ def test_cli_imports_and_bad_input_exits_2_without_traceback(tmp_path, rng, caps
     assert main(["dataset", "import", "llff", str(tmp_path / "llff"), "--out", str(tmp_path / "bad"),
                  "--noise", "speckle:3"]) == 2
     assert "unknown noise model" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:  # a size no image may have, refused before any image is read
+        main(["dataset", "import", "llff", str(tmp_path / "llff"), "--out", str(tmp_path / "bad"),
+              "--size", "100000x100000"])
+    assert info.value.code == 2 and "8..8192" in capsys.readouterr().err and not (tmp_path / "bad").exists()
 
 
 # -- camera check (eval.real.check) ---------------------------------------------------------------

@@ -79,6 +79,25 @@ def test_compare_with_common_names_still_works(tmp_path, rng, capsys):
     assert '"n_registered": 3' in capsys.readouterr().out
 
 
+def test_compare_json_is_strict_json_and_one_shared_image_is_refused(tmp_path, rng, capsys):
+    """Two shared views determine relative rotations but no ATE: --json prints null for it (standard JSON has
+    no NaN), the text output nan; one shared view determines nothing and is refused."""
+    import json
+
+    est, ref = tmp_path / "est", tmp_path / "ref"
+    write_sparse_model(est, _model(["a.png", "b.png", "c.png"], rng), binary=True)
+    write_sparse_model(ref, _model(["a.png", "b.png", "x.png"], rng), binary=True)
+    capsys.readouterr()
+    assert main(["compare", str(est), str(ref), "--json"]) == 0
+    text = capsys.readouterr().out
+    out = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+    assert out["n_registered"] == 2 and None in out.values() and "NaN" not in text
+    assert all(v is None or not isinstance(v, float) or np.isfinite(v) for v in out.values())
+    write_sparse_model(ref, _model(["a.png", "y.png", "z.png"], rng), binary=True)
+    assert_refused(main, ["compare", est, ref], capsys, inputs=[est, ref], watch=[tmp_path],
+                   message=["one image in common", "a.png", "fix:"])
+
+
 def _corruptions(good: bytes) -> dict[str, bytes]:
     return {
         "empty": b"",
