@@ -164,6 +164,12 @@ def _prepare_out(args: argparse.Namespace, command: str, kind: str, source: Path
 def _cmd_eval(args: argparse.Namespace) -> int:
     device = str(resolve_device(args.device))
     kind, source = resolve_scene_source(args.scene)
+    if kind == "dataset" and (args.size is not None or args.scene_views is not None):
+        given = " and ".join(o for o, v in (("--size", args.size), ("--scene-views", args.scene_views))
+                             if v is not None)
+        raise InputError(f"{given} apply to a scene rendered on the fly; this is a dataset folder, whose images "
+                         "and views are used as they are", path=source,
+                         fix="leave them out (--max-size downscales the dataset's images)")
     plan = _prepare_out(args, "denoise-gs eval", kind, source)
     methods = list(args.methods)
     if args.gt_pose_variants:

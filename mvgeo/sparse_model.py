@@ -175,7 +175,13 @@ def read_sparse_model(path: str | Path) -> SparseModel:
         files = ", ".join(f"{n}.{'bin' if has_bin else 'txt'}" for n in ("cameras", "images", "points3D"))
         raise InputError(f"cannot read the COLMAP model ({files}): a file is corrupt or inconsistent "
                          f"(pycolmap: {str(exc).strip()})", path=path, fix=fix) from exc
-    return from_pycolmap(rec)
+    try:
+        return from_pycolmap(rec)
+    except InputError as exc:  # e.g. a camera of no size (a negative width reads as a huge unsigned one)
+        if exc.path is not None:
+            raise
+        raise InputError(f"the COLMAP model holds a camera it cannot use: {exc.message}", path=path,
+                         fix=exc.fix or fix) from exc
 
 
 def cameras_bin_problem(path: str | Path) -> str | None:

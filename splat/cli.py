@@ -146,7 +146,11 @@ def _export(args) -> int:
     from splat.export import EXPORT_FORMATS, export_model
     from splat.viewer import export_html
 
-    fmt = args.format or Path(args.out).suffix.lstrip(".").lower()
+    suffix = Path(args.out).suffix.lstrip(".").lower()
+    fmt = args.format or suffix
+    if args.format and suffix in EXPORT_FORMATS and suffix != args.format:  # .splat bytes in a .ply file
+        raise InputError(f"--format {args.format} writes a .{args.format} file, --out names a .{suffix} one",
+                         path=args.out, fix=f"name --out ....{args.format}, or leave --format out")
     if fmt not in EXPORT_FORMATS:
         raise InputError(f"cannot tell the format from --out {args.out!r}",
                          fix=f"pass --format ({' | '.join(EXPORT_FORMATS)})")

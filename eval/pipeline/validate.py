@@ -206,6 +206,15 @@ def _sizes_match_cameras(root: Path, files: list[Path]) -> None:
     except InputError:  # no or no readable model: reported by the steps that read the cameras
         return
     by_stem = {Path(n).stem: n for n in model.names}
+    camera_of_stem = {Path(im.name).stem: im.camera_id for im in model.images}
+    used = {camera_of_stem[p.stem] for p in files if p.stem in camera_of_stem}
+    for camera_id in sorted(used):
+        problem = model.cameras[camera_id].pinhole_problem()
+        if problem is not None:  # every method splats with these cameras: it would fail after the training
+            raise InputError(f"camera {camera_id} of the ground-truth cameras cannot be rendered: {problem}",
+                             path=root / "sparse" / "0",
+                             fix="undistort the images and the model first (COLMAP's image_undistorter) and "
+                                 "import the undistorted ones; a focal length must be positive")
     for path in files:
         name = by_stem.get(path.stem)
         size = _upright_size(path)

@@ -47,7 +47,8 @@ def every_kth_split(n: int, test_every: int, train: int | None = None) -> tuple[
 def spread_split(n: int, train: int, test: int) -> tuple[list[int], list[int]]:
     """`train` indices spread evenly over ``0..n-1`` and `test` others, also spread (midway between)."""
     if train + test > n or train < 2 or test < 1:
-        raise InputError(f"cannot split {n} views into {train} training and {test} held-out views")
+        raise InputError(f"cannot split {n} views into {train} training and {test} held-out views",
+                         fix=f"ask for at least 2 training and 1 held-out view, {n} in all at most")
     tr = [int(v) for v in np.unique(np.round(np.linspace(0, n - 1, train)).astype(int))]
     rest = [i for i in range(n) if i not in tr]
     te = [rest[int(v)] for v in np.unique(np.round(np.linspace(0, len(rest) - 1, test + 2)[1:-1]).astype(int))]
@@ -77,7 +78,8 @@ def cluster_split(view_dirs_world: np.ndarray, train: int, test: int) -> tuple[l
     d = np.asarray(view_dirs_world, dtype=np.float64)
     n = len(d)
     if train + test > n or train < 2 or test < 1:
-        raise InputError(f"cannot split {n} views into {train} training and {test} held-out views")
+        raise InputError(f"cannot split {n} views into {train} training and {test} held-out views",
+                         fix=f"ask for at least 2 training and 1 held-out view, {n} in all at most")
     mean = d.mean(axis=0)
     mean /= np.linalg.norm(mean)
     cluster = np.argsort(-(d @ mean), kind="stable")[: train + test]

@@ -209,6 +209,35 @@ def test_eval_refuses_a_malformed_split_json(tmp_path, capsys, content, message)
                    message=[str(root / "split.json"), message, "fix:"])
 
 
+@pytest.mark.parametrize(("model", "params", "message"), [
+    ("OPENCV", [50.0, 50.0, 24.0, 20.0, 0.1, 0.0, 0.0, 0.0], "lens distortion"),
+    ("PINHOLE", [0.0, 50.0, 24.0, 20.0], "focal length is not positive"),
+])
+def test_eval_refuses_cameras_the_splat_cannot_render_before_any_compute(tmp_path, capsys, model, params, message):
+    """Every method splats with the dataset's cameras: a distorted one or a focal of 0 would fail after the
+    training, so the dataset check refuses it, naming sparse/0."""
+    from mvgeo.camera import Camera
+    from mvgeo.sparse_model import SparseModel, read_sparse_model, write_sparse_model
+
+    root = tiny_dataset(tmp_path / "data").root
+    shutil.copytree(root / "images", root / "clean")
+    sparse = root / "sparse" / "0"
+    good = read_sparse_model(sparse)
+    cam = good.cameras[1]
+    write_sparse_model(sparse, SparseModel({1: Camera(model, cam.width, cam.height, params)}, good.images,
+                                           good.points_xyz, good.points_rgb), binary=True)
+    assert_refused(main, ["eval", root, "--out", tmp_path / "out", "--methods", "instantsplat"], capsys,
+                   inputs=[root], watch=[tmp_path], message=[str(sparse), "camera 1", message, "fix:"])
+
+
+@pytest.mark.parametrize("options", [["--size", "64x48"], ["--scene-views", "6"],
+                                     ["--size", "64x48", "--scene-views", "6"]])
+def test_eval_refuses_the_rendering_options_on_a_dataset_folder(tmp_path, capsys, options):
+    root = _dataset(tmp_path)
+    assert_refused(main, ["eval", root, "--out", tmp_path / "out", *options], capsys, inputs=[root],
+                   watch=[tmp_path], message=[str(root), options[0], "scene rendered on the fly", "fix:"])
+
+
 def test_eval_split_and_methods(tmp_path, capsys):
     root = _dataset(tmp_path)
     (root / "split.json").write_text(json.dumps({"train": ["view_001"], "test": ["view_009"]}))

@@ -90,3 +90,13 @@ def test_cost_cli_bad_input(tmp_path, capsys):
     assert main(["cost", "llff_like", "--out", out, "--grid", "splat_iters=ten"]) == 2
     assert main(["cost", "llff_like", "--out", out, "--grid", "preset=huge"]) == 2
     assert not (tmp_path / "out").exists()  # nothing computed, nothing written
+
+
+def test_a_train_views_point_beyond_the_dataset_is_refused_before_any_compute(tmp_path):
+    """`train_views` larger than the dataset's training views would score all of them under another label."""
+    ds = _dataset(tmp_path)  # 5 training views
+    tiny = TinyStages()
+    cfg = CostConfig(base=preset("fast", rounds=1, views=4), grid={"train_views": (3, 999)})
+    with pytest.raises(InputError, match=r"train_views=999 asks for more training views than the dataset has \(5\)"):
+        run_cost_sweep(ds, tmp_path / "out", cfg, score=lambda *a: {}, stages=tiny.stages())
+    assert sum(tiny.calls.values()) == 0 and not (tmp_path / "out").exists()

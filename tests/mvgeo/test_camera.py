@@ -149,3 +149,16 @@ def test_interop_roundtrips(rng):
         np.testing.assert_allclose(o.project(P).uv_px, cam.project(P).uv_px, atol=1e-9)
     with pytest.raises(InputError):
         Camera.from_mrcal("LENSMODEL_CAHVOR", np.zeros(9), W, H)
+
+
+def test_pinhole_problem_names_distortion_and_a_focal_that_is_not_positive():
+    """`Camera.pinhole_problem`: None for pinholes and for distortion models whose coefficients are all zero."""
+    assert Camera("PINHOLE", 64, 48, [50.0, 51.0, 32.0, 24.0]).pinhole_problem() is None
+    assert Camera("SIMPLE_RADIAL", 64, 48, [50.0, 32.0, 24.0, 0.0]).pinhole_problem() is None
+    assert Camera("OPENCV", 64, 48, [50.0, 51.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0]).pinhole_problem() is None
+    assert "lens distortion" in Camera("OPENCV", 64, 48, [50.0, 51.0, 32.0, 24.0, 0.0, 0.0, 1e-4, 0.0]
+                                       ).pinhole_problem()
+    assert "lens distortion" in Camera("SIMPLE_RADIAL", 64, 48, [50.0, 32.0, 24.0, -0.2]).pinhole_problem()
+    for f in ([0.0, 51.0], [50.0, -1.0], [float("nan"), 51.0], [float("inf"), 51.0]):
+        problem = Camera("PINHOLE", 64, 48, [*f, 32.0, 24.0]).pinhole_problem()
+        assert problem is not None and "focal length is not positive" in problem

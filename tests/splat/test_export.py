@@ -252,5 +252,7 @@ def test_splat_export_cli_writes_each_format(tmp_path):
     assert main(["export", src, "--out", str(tmp_path / "a.splat"), "--overwrite"]) == 2
     assert (tmp_path / "a.splat").read_bytes() == b"edited"
     assert main(["export", src, "--out", str(tmp_path / "a.bin")]) == 2
+    assert main(["export", src, "--format", "splat", "--out", str(tmp_path / "x.ply")]) == 2  # .splat in a .ply
+    assert not (tmp_path / "x.ply").exists()
     assert main(["export", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "c.splat")]) == 2
     assert not (tmp_path / "c.splat").exists()
