@@ -155,6 +155,9 @@ def read_sparse_model(path: str | Path) -> SparseModel:
         InputError: the folder or its files are missing or unreadable.
     """
     path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError("is a file, not a COLMAP model folder", path=path,
+                         fix="pass the folder that holds cameras/images/points3D .bin or .txt (e.g. sparse/0)")
     if not path.is_dir():
         raise InputError("COLMAP model folder does not exist", path=path,
                          fix="pass a folder holding cameras/images/points3D .bin or .txt (e.g. sparse/0)")

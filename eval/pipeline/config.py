@@ -25,6 +25,9 @@ DenoiseMethod = Literal["n2v", "neighbor2neighbor", "r2r", "auto"]
 DENOISE_METHODS: tuple[str, ...] = ("n2v", "neighbor2neighbor", "r2r", "auto")
 ReuseIntrinsics = Literal["auto", "always", "never"]
 ReuseGeometry = Literal["auto", "never"]
+#: The most passes of the grouped Wiener step a configuration may ask for (`DenoiseSettings.grouped_wiener_passes`).
+MAX_GROUPED_WIENER_PASSES = 10
+
 AlignPhotos = Literal["denoised", "noisy_first", "better_of"]
 #: The values of `AlignSettings.photos`.
 ALIGN_PHOTOS: tuple[str, ...] = ("denoised", "noisy_first", "better_of")
@@ -258,9 +261,12 @@ class PipelineConfig:
             raise ConfigError(f"must be in [0, 1), got {self.denoise.keep_noisy}", key="denoise.keep_noisy",
                               expected="a fraction of the noisy photo, 0 <= k < 1")
         passes = self.denoise.grouped_wiener_passes
-        if isinstance(passes, bool) or not isinstance(passes, numbers.Integral) or passes < 1:
-            raise ConfigError(f"must be an integer >= 1, got {passes!r}", key="denoise.grouped_wiener_passes",
-                              expected="1 (one pass) or more")
+        if (isinstance(passes, bool) or not isinstance(passes, numbers.Integral) or
+                not 1 <= passes <= MAX_GROUPED_WIENER_PASSES):
+            raise ConfigError(f"must be an integer in [1, {MAX_GROUPED_WIENER_PASSES}], got {passes!r}",
+                              key="denoise.grouped_wiener_passes",
+                              expected=f"1 (one pass) to {MAX_GROUPED_WIENER_PASSES} (each pass takes about as long "
+                                       "as the first; the second gains 0.14-0.28 dB)")
         from denoise.pixel_shuffle import MAX_STRIDE
 
         stride = self.denoise.pd_stride

@@ -79,6 +79,15 @@ def test_compare_with_common_names_still_works(tmp_path, rng, capsys):
     assert '"n_registered": 3' in capsys.readouterr().out
 
 
+def test_compare_names_a_file_given_for_a_model_folder(tmp_path, rng, capsys):
+    est = tmp_path / "est"
+    write_sparse_model(est, _model(["a.png", "b.png", "c.png"], rng), binary=True)
+    ref = tmp_path / "ref.txt"
+    ref.write_text("not a model")
+    assert_refused(main, ["compare", est, ref], capsys, inputs=[est, ref], watch=[tmp_path],
+                   message=[str(ref), "is a file, not a COLMAP model folder", "fix:"])
+
+
 def test_compare_json_is_strict_json_and_one_shared_image_is_refused(tmp_path, rng, capsys):
     """Two shared views determine relative rotations but no ATE: --json prints null for it (standard JSON has
     no NaN), the text output nan; one shared view determines nothing and is refused."""
