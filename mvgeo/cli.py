@@ -100,13 +100,19 @@ def _align(args: argparse.Namespace) -> int:
     from mvgeo.align.graph import PairGraphSpec
     from mvgeo.align.hole_fill import HoleFillConfig
     from mvgeo.align.intrinsics import read_intrinsics
-    from mvgeo.common.imageio import list_images
+    from mvgeo.common.imageio import list_images, read_image
 
     paths = list_images(args.images_dir)
     if len(paths) < 2:
         raise InputError(f"need at least 2 images, found {len(paths)}", path=args.images_dir,
                          fix="add more views of the scene")
     intr = read_intrinsics(args.intrinsics) if args.intrinsics else None
+    if intr is not None:  # checked here too, where the file is known, before any image is matched
+        h, w = read_image(paths[0]).shape[:2]
+        if (intr.width, intr.height) != (w, h):
+            raise InputError(f"the calibration is for {intr.width}x{intr.height} images, the images are {w}x{h} "
+                             f"({paths[0].name})", path=args.intrinsics,
+                             fix="pass the calibration of these images at their size")
     cloud = None
     if args.cloud_images is not None:
         cloud = [args.cloud_images / p.name for p in paths]

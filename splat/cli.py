@@ -118,6 +118,10 @@ def _render(args) -> int:
     if not sparse.images:
         raise InputError("the camera model has no images to render", path=args.cameras)
     check_distinct_stems(sparse.names, path=args.cameras)  # one output file per view
+    for camera_id in sorted({im.camera_id for im in sparse.images}):
+        if (problem := sparse.cameras[camera_id].pinhole_problem()) is not None:  # before anything is rendered
+            raise InputError(f"camera {camera_id} cannot be rendered: {problem}", path=args.cameras,
+                             fix="undistort the images and cameras first (e.g. COLMAP image_undistorter)")
     model = read_gaussian_ply(ply, device=device)
     cams = [sparse.camera_of(n) for n in sparse.names]
     poses = np.stack([im.cam_from_world for im in sparse.images])

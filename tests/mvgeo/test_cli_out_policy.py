@@ -179,3 +179,11 @@ def test_align_previous_output_needs_overwrite(tmp_path, data, capsys, instant_a
 def test_colmap_out_is_the_image_folder(tmp_path, data, capsys):
     assert_refused(main, ["colmap", data / "images", "--out", data / "images"], capsys, tmp_path, "is the input")
     assert_refused(main, ["colmap", data / "images", "--out", data], capsys, tmp_path, "contains the input")
+
+
+def test_align_calibration_of_another_size_names_its_file(tmp_path, data, capsys, instant_align):
+    """The size check of `--intrinsics` names the calibration file, before any image is matched."""
+    (tmp_path / "big.txt").write_text("1 PINHOLE 640 480 600 600 320 240\n")
+    assert_refused(main, ["align", data / "images", "--out", tmp_path / "out", "--intrinsics", tmp_path / "big.txt"],
+                   capsys, tmp_path, str(tmp_path / "big.txt"), "for 640x480 images, the images are 32x24", "fix:")
+    assert not instant_align

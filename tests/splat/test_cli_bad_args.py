@@ -82,6 +82,24 @@ def test_render_views_sharing_a_stem_are_refused(dataset, tmp_path, capsys, monk
                    inputs=[dataset, model, cameras], watch=[tmp_path], message="two images share the name")
 
 
+def test_render_refuses_a_camera_it_cannot_render_naming_the_model(dataset, tmp_path, capsys, no_training):
+    """A distorted camera is refused before the Gaussians are read, naming the --cameras folder."""
+    from mvgeo.camera import Camera
+    from mvgeo.sparse_model import SparseModel, read_sparse_model, write_sparse_model
+
+    sparse = read_sparse_model(dataset / "sparse" / "0")
+    cam = sparse.cameras[sparse.images[0].camera_id]
+    distorted = Camera("OPENCV", cam.width, cam.height, [cam.fx, cam.fy, cam.cx, cam.cy, 0.05, 0.0, 0.0, 0.0])
+    cameras = tmp_path / "cameras"
+    write_sparse_model(cameras, SparseModel({c: distorted for c in sparse.cameras}, sparse.images,
+                                            sparse.points_xyz, sparse.points_rgb), binary=False)
+    model = tmp_path / "model.ply"
+    model.write_bytes(b"ply\n")  # never read: the camera is refused first
+    assert_refused(main, ["render", model, "--cameras", cameras, "--out", tmp_path / "renders"], capsys,
+                   inputs=[dataset, model, cameras], watch=[tmp_path],
+                   message=[str(cameras), "lens distortion", "fix:"])
+
+
 @pytest.mark.parametrize("port", ["99999", "-1"])
 def test_view_port_out_of_range_is_refused(dataset, tmp_path, capsys, port):
     model = tmp_path / "model.ply"
