@@ -7,7 +7,7 @@ STAMP := $(VENV)/.synced
 PYTEST_DEFAULT := -m "not slow and not bench and not gpu"
 # The tests run in TEST_WORKERS processes (pytest-xdist; one per core, at most 4, each with one OpenMP and
 # BLAS thread, tests/conftest.py); TEST_WORKERS=0 runs them in this process. On 2 cores the default suite
-# takes about half the time of one process (docs/bench/test_suite.md).
+# takes about 0.6x the time of one process (docs/bench/test_suite.md).
 TEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); if [ "$$n" -gt 4 ]; then n=4; fi; if [ "$$n" -lt 2 ]; then n=0; fi; echo $$n)
 
 export DGS_NO_PROGRESS ?=

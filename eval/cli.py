@@ -28,7 +28,7 @@ from eval.pipeline import PRESETS, preset, run_pipeline, validate_dataset_folder
 from eval.pipeline.config import ALIGN_PHOTOS, DENOISE_METHODS, PASS_CLEAN_BELOW_255, PipelineConfig
 from eval.pipeline.inputs import working_dataset
 from eval.pipeline.lock import output_lock
-from eval.pipeline.validate import MIN_IMAGE_SIZE_PX
+from eval.pipeline.validate import MIN_IMAGE_SIZE_PX, check_renderable_cameras
 from eval.real.cli import add_dataset_parser
 from eval.results import carried_rows, merge_rows, write_results
 from mvgeo.common.argtypes import fraction, int_range, nonneg_float, nonneg_int, out_path, positive_int, seed
@@ -167,7 +167,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if kind == "dataset" and (args.size is not None or args.scene_views is not None):
         given = " and ".join(o for o, v in (("--size", args.size), ("--scene-views", args.scene_views))
                              if v is not None)
-        raise InputError(f"{given} apply to a scene rendered on the fly; this is a dataset folder, whose images "
+        verb = "apply" if args.size is not None and args.scene_views is not None else "applies"
+        raise InputError(f"{given} {verb} to a scene rendered on the fly; this is a dataset folder, whose images "
                          "and views are used as they are", path=source,
                          fix="leave them out (--max-size downscales the dataset's images)")
     plan = _prepare_out(args, "denoise-gs eval", kind, source)
@@ -188,7 +189,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     with (resumable_output_dir(plan), output_lock(out),
           ray_cluster(cluster, preload=EVAL_PRELOAD, tasks=len(config.methods) * config.seeds) as executor):
         name, folder = scene_dataset(kind, source, out, size_wh=args.size, views=args.scene_views)
-        validate_dataset_folder(folder)
+        if any(m.endswith(GT_POSES_SUFFIX) or (m in METHODS and METHODS[m].ground_truth_poses)
+               for m in config.methods):  # these splat with the true cameras
+            check_renderable_cameras(validate_dataset_folder(folder))
+        else:
+            validate_dataset_folder(folder)
         dataset = validate_dataset_folder(working_dataset(folder, out, args.max_size))
         title = f"denoise-gs eval: {name}"
         settings = _eval_settings(config, dataset.root, name, args)
@@ -268,6 +273,11 @@ def _cmd_cost(args: argparse.Namespace) -> int:
         dataset = validate_dataset_folder(folder)
         if len(dataset.train) < 2:
             raise InputError("the cost sweep needs at least 2 training views", path=folder / "split.json")
+        asked = [v for v in grid.get("train_views", ()) if v > len(dataset.train)]
+        if asked and any(item.partition("=")[0] == "train_views" for item in args.grid or ()):
+            raise InputError(f"--grid train_views={','.join(map(str, asked))} asks for more training views than "
+                             f"the dataset has ({len(dataset.train)})", path=folder / "split.json",
+                             fix=f"use train_views values of 2..{len(dataset.train)}")
         base = dataclasses.replace(base, views=min(base.views, len(dataset.train)))
         rows = run_cost_sweep(dataset, out, dataclasses.replace(config, base=base), executor=executor)
         _, md = write_cost_results(out, rows, title=f"denoise-gs cost: {name}")

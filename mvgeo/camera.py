@@ -127,11 +127,13 @@ class Camera:
 
     def pinhole_problem(self) -> str | None:
         """Why this camera is not a pinhole the splat can render, in words, or None: a focal length that
-        is not positive and finite, or lens distortion (`dist` not zero)."""
+        is not positive and finite, or lens distortion (a distortion coefficient not zero)."""
         if not (np.isfinite(self.fx) and np.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
             return f"its focal length is not positive (fx {self.fx:g}, fy {self.fy:g} px)"
-        if np.any(self.dist != 0.0):
-            return f"it has lens distortion ({self.model} {self.dist.tolist()}); the splat renders pinhole cameras"
+        coefficients = self.params[3 if self.model in _SINGLE_FOCAL else 4:]
+        if np.any(coefficients != 0.0):
+            return (f"it has lens distortion ({self.model} {coefficients.tolist()}); the splat renders pinhole "
+                    "cameras")
         return None
 
     # -- pinhole part -------------------------------------------------------

@@ -183,7 +183,7 @@ def read_sparse_model(path: str | Path) -> SparseModel:
     except InputError as exc:  # e.g. a camera of no size (a negative width reads as a huge unsigned one)
         if exc.path is not None:
             raise
-        raise InputError(f"the COLMAP model holds a camera it cannot use: {exc.message}", path=path,
+        raise InputError(f"the COLMAP model cannot be used: {exc.message}", path=path,
                          fix=exc.fix or fix) from exc
 
 

@@ -153,10 +153,12 @@ def _export(args) -> int:
     suffix = Path(args.out).suffix.lstrip(".").lower()
     fmt = args.format or suffix
     if args.format and suffix in EXPORT_FORMATS and suffix != args.format:  # .splat bytes in a .ply file
-        raise InputError(f"--format {args.format} writes a .{args.format} file, --out names a .{suffix} one",
-                         path=args.out, fix=f"name --out ....{args.format}, or leave --format out")
+        what = "a folder with index.html" if args.format == "html" else f"a .{args.format} file"
+        raise InputError(f"--format {args.format} writes {what}, --out names a .{suffix} file", path=args.out,
+                         fix=f"name --out NAME.{args.format}" + (" (or a folder)" if args.format == "html" else "") +
+                             ", or leave --format out")
     if fmt not in EXPORT_FORMATS:
-        raise InputError(f"cannot tell the format from --out {args.out!r}",
+        raise InputError(f"cannot tell the format from --out '{args.out}'",
                          fix=f"pass --format ({' | '.join(EXPORT_FORMATS)})")
     inputs = [args.model, args.cameras]
     if fmt == "html":

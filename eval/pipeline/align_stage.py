@@ -127,27 +127,21 @@ def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] |
     The denoised photos are matched with the detector for noisy photos once noisy photos were tried
     (`denoised_photos_config`). Both refused: the denoised photos' refusal is raised.
 
-    `identical` (`same_photos`: the denoised photos are the noisy ones, passed through undenoised): the
-    photos are aligned once, as the noisy photos, and a refusal is raised as it is; the record says so
-    (`PhotosDecision.identical`). A second alignment of the same pixels would only repeat the first with a
-    less sensitive detector, which is meant for a denoiser's texture.
+    `identical` (`same_photos`: the denoised photos are the noisy ones, passed through undenoised): an
+    alignment of the noisy photos is kept as it is, under either mode, since the denoised photos' would align
+    the same pixels again; where the noisy photos are refused, the same pixels are still tried with the
+    detector for denoised photos. The record says so (`PhotosDecision.identical`).
     """
     noisy_refused = None
     from_noisy = None
-    if noisy is not None and identical:
-        try:
-            res = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files],
-                               cloud_images=files)
-        except (AlignmentRefusedError, DisconnectedViewsError) as exc:
-            raise as_pipeline_refusal(exc) from exc
-        return AlignStageResult(res, AlignDecisions(photos=PhotosDecision("noisy", identical=True)))
     if noisy is not None:
         try:
             # The poses from the noisy photos, the dense cloud (the splat's start) from the denoised ones.
             from_noisy = align_images([noisy[f.stem] for f in files], cfg, names=[f.name for f in files],
                                       cloud_images=files)
-            if not keep_better:
-                return AlignStageResult(from_noisy, AlignDecisions(photos=PhotosDecision("noisy")))
+            if not keep_better or identical:
+                return AlignStageResult(from_noisy, AlignDecisions(photos=PhotosDecision("noisy",
+                                                                                         identical=identical)))
         except (AlignmentRefusedError, DisconnectedViewsError) as exc:
             reason = str(exc).splitlines()[0]
             _log.warning("the noisy photos were refused by the alignment (%s); aligning the denoised ones",
@@ -171,7 +165,8 @@ def _align_first_round(align_images, files: list[Path], noisy: dict[str, Path] |
         _log.info("round 1 keeps %s", comparison.reason)
         photos = PhotosDecision("denoised" if keep_denoised else "noisy", comparison=comparison)
         return AlignStageResult(res if keep_denoised else from_noisy, AlignDecisions(photos=photos))
-    return AlignStageResult(res, AlignDecisions(photos=PhotosDecision("denoised", noisy_refused=noisy_refused)))
+    return AlignStageResult(res, AlignDecisions(photos=PhotosDecision("denoised", noisy_refused=noisy_refused,
+                                                                      identical=identical)))
 
 
 def denoised_photos_config(cfg):

@@ -339,7 +339,7 @@ def quality_lines(rounds: Sequence[RoundQuality]) -> list[str]:
             lines.append(f"- **{luma_hint_text(colour, d.noise_level_luma_hint_255, given_stride=given)}**")
         a = q.align
         if a is not None:
-            photos = f" ({a.photos} photos)" if a.photos else ""
+            photos = " (the photos, undenoised)" if a.photos_identical else f" ({a.photos} photos)" if a.photos else ""
             lines.append(f"- alignment{photos}: **{a.n_registered} of {a.n_images} views registered**" +
                          "".join(f"; `{n}` left out: {why}" for n, why in a.unregistered))
             if a.photos_reason:

@@ -19,7 +19,8 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import exif_orientation, read_image
 from mvgeo.common.jsonio import read_json_object
 
-__all__ = ["MIN_IMAGE_SIZE_PX", "DatasetFolder", "check_intrinsics", "validate_dataset_folder", "validate_run_inputs"]
+__all__ = ["MIN_IMAGE_SIZE_PX", "DatasetFolder", "check_intrinsics", "check_renderable_cameras",
+           "validate_dataset_folder", "validate_run_inputs"]
 
 #: Smallest image side accepted: LPIPS-AlexNet needs 31 px, alignment and the
 #: 4-level UNet need more than a handful of pixels; 32 covers all.
@@ -206,15 +207,6 @@ def _sizes_match_cameras(root: Path, files: list[Path]) -> None:
     except InputError:  # no or no readable model: reported by the steps that read the cameras
         return
     by_stem = {Path(n).stem: n for n in model.names}
-    camera_of_stem = {Path(im.name).stem: im.camera_id for im in model.images}
-    used = {camera_of_stem[p.stem] for p in files if p.stem in camera_of_stem}
-    for camera_id in sorted(used):
-        problem = model.cameras[camera_id].pinhole_problem()
-        if problem is not None:  # every method splats with these cameras: it would fail after the training
-            raise InputError(f"camera {camera_id} of the ground-truth cameras cannot be rendered: {problem}",
-                             path=root / "sparse" / "0",
-                             fix="undistort the images and the model first (COLMAP's image_undistorter) and "
-                                 "import the undistorted ones; a focal length must be positive")
     for path in files:
         name = by_stem.get(path.stem)
         size = _upright_size(path)
@@ -226,6 +218,34 @@ def _sizes_match_cameras(root: Path, files: list[Path]) -> None:
                              f"{cam.height}", path=path,
                              fix="give every image of images/ and clean/ its camera's size (re-import or "
                                  "re-render the dataset)")
+
+
+def check_renderable_cameras(dataset: DatasetFolder) -> None:
+    """Refuse ground-truth cameras (`sparse/0`) of the dataset's views that the splat cannot render: lens
+    distortion, or a focal length that is not positive (`Camera.pinhole_problem`). For the methods that splat
+    with the true cameras (`ground_truth_poses`, the `@gt_poses` variants), which would otherwise fail after
+    their training; the other methods render with their own pinhole cameras. A model that cannot be read is
+    left to the steps that read it.
+
+    Raises:
+        InputError: naming sparse/0, the camera and the fix.
+    """
+    from mvgeo.sparse_model import read_sparse_model
+
+    try:
+        model = read_sparse_model(dataset.root / "sparse" / "0")
+    except InputError:
+        return
+    views = set(dataset.train) | set(dataset.test)
+    used = {im.camera_id for im in model.images if Path(im.name).stem in views}
+    for camera_id in sorted(used):
+        problem = model.cameras[camera_id].pinhole_problem()
+        if problem is not None:
+            raise InputError(f"camera {camera_id} of the ground-truth cameras cannot be rendered: {problem}",
+                             path=dataset.root / "sparse" / "0",
+                             fix="undistort the images and the model first (COLMAP's image_undistorter) and "
+                                 "import the undistorted ones, or leave out the methods that splat with the "
+                                 "true cameras (3dgs_gt_poses, the @gt_poses variants)")
 
 
 def _upright_size(path: Path) -> tuple[int, int] | None:

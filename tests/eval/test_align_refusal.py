@@ -129,3 +129,28 @@ def test_noisy_first_falls_back_to_the_denoised_photos_and_reports_their_refusal
     with pytest.raises(AlignmentRefusedError):
         align(plain)
     assert calls == ["denoised"] and thresholds == [default]  # e.g. the oracle's clean photos
+
+
+@pytest.mark.parametrize(("noisy_bytes", "identical"), [(b"same", True), (b"other", False)])
+def test_the_stage_tells_the_alignment_whether_the_photos_were_passed_through(tmp_path, monkeypatch, noisy_bytes,
+                                                                              identical):
+    """`align` compares the denoised photos with the noisy ones (`same_photos`) and passes the answer on."""
+    import eval.pipeline.align_stage as stage
+
+    denoised, noisy = tmp_path / "denoised", tmp_path / "noisy"
+    for folder, data in ((denoised, b"same"), (noisy, noisy_bytes)):
+        folder.mkdir()
+        for name in ("000003.png", "000007.png"):
+            (folder / name).write_bytes(data)
+    seen = []
+
+    def record(align_images, files, noisy, cfg, *, keep_better=False, identical=False):
+        seen.append((keep_better, identical))
+        raise _Stop
+
+    monkeypatch.setattr(stage, "_align_first_round", record)
+    ctx = StageContext("align", tmp_path / "work", {"images": denoised, "noisy": noisy},
+                       AlignStageSettings(AlignConfig(), photos="better_of"), 0)
+    with pytest.raises(_Stop):
+        align(ctx)
+    assert seen == [(True, identical)]

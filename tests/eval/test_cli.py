@@ -213,9 +213,11 @@ def test_eval_refuses_a_malformed_split_json(tmp_path, capsys, content, message)
     ("OPENCV", [50.0, 50.0, 24.0, 20.0, 0.1, 0.0, 0.0, 0.0], "lens distortion"),
     ("PINHOLE", [0.0, 50.0, 24.0, 20.0], "focal length is not positive"),
 ])
-def test_eval_refuses_cameras_the_splat_cannot_render_before_any_compute(tmp_path, capsys, model, params, message):
-    """Every method splats with the dataset's cameras: a distorted one or a focal of 0 would fail after the
-    training, so the dataset check refuses it, naming sparse/0."""
+def test_eval_refuses_true_cameras_the_splat_cannot_render_before_any_compute(tmp_path, capsys, monkeypatch, model,
+                                                                             params, message):
+    """The methods that splat with the true cameras (3dgs_gt_poses, the @gt_poses variants) would fail after
+    their training on a distorted camera or a focal of 0: refused up front, naming sparse/0. Methods that
+    render with their own cameras still run on such a dataset."""
     from mvgeo.camera import Camera
     from mvgeo.sparse_model import SparseModel, read_sparse_model, write_sparse_model
 
@@ -226,16 +228,16 @@ def test_eval_refuses_cameras_the_splat_cannot_render_before_any_compute(tmp_pat
     cam = good.cameras[1]
     write_sparse_model(sparse, SparseModel({1: Camera(model, cam.width, cam.height, params)}, good.images,
                                            good.points_xyz, good.points_rgb), binary=True)
-    assert_refused(main, ["eval", root, "--out", tmp_path / "out", "--methods", "instantsplat"], capsys,
-                   inputs=[root], watch=[tmp_path], message=[str(sparse), "camera 1", message, "fix:"])
+    for methods in (["3dgs_gt_poses"], ["instantsplat", "product@gt_poses"]):
+        assert_refused(main, ["eval", root, "--out", tmp_path / "out", "--methods", *methods], capsys,
+                       inputs=[root], watch=[tmp_path], message=[str(sparse), "camera 1", message, "fix:"])
+    from eval.results import RunScores
 
-
-@pytest.mark.parametrize("options", [["--size", "64x48"], ["--scene-views", "6"],
-                                     ["--size", "64x48", "--scene-views", "6"]])
-def test_eval_refuses_the_rendering_options_on_a_dataset_folder(tmp_path, capsys, options):
-    root = _dataset(tmp_path)
-    assert_refused(main, ["eval", root, "--out", tmp_path / "out", *options], capsys, inputs=[root],
-                   watch=[tmp_path], message=[str(root), options[0], "scene rendered on the fly", "fix:"])
+    seen = []
+    monkeypatch.setattr(eval.cli, "evaluate_dataset", lambda dataset, out, config, *, scene, **kw: seen.append(
+        config.methods) or [RunScores(scene, m, 0, 25.0, 0.8, 0.1) for m in config.methods])
+    assert main(["eval", str(root), "--out", str(tmp_path / "own"), "--methods", "instantsplat"]) == 0
+    assert seen == [("instantsplat",)]
 
 
 def test_eval_split_and_methods(tmp_path, capsys):

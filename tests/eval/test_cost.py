@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 
@@ -92,11 +93,25 @@ def test_cost_cli_bad_input(tmp_path, capsys):
     assert not (tmp_path / "out").exists()  # nothing computed, nothing written
 
 
-def test_a_train_views_point_beyond_the_dataset_is_refused_before_any_compute(tmp_path):
-    """`train_views` larger than the dataset's training views would score all of them under another label."""
-    ds = _dataset(tmp_path)  # 5 training views
+def test_train_views_beyond_the_dataset(tmp_path, caplog, capsys):
+    """The default grid's train_views beyond a dataset's training views are left out with a warning (such a
+    point would use every view under another count's label); a value given in --grid is refused before any
+    compute, naming the dataset's count."""
+    from eval.cost import DEFAULT_GRID
+    from tests.eval._tiny_stages import tiny_dataset
+
+    ds = tiny_dataset(tmp_path / "data")  # 5 training views
+    shutil.copytree(ds.root / "images", ds.root / "clean")
+    assert max(DEFAULT_GRID["train_views"]) > 5
     tiny = TinyStages()
     cfg = CostConfig(base=preset("fast", rounds=1, views=4), grid={"train_views": (3, 999)})
-    with pytest.raises(InputError, match=r"train_views=999 asks for more training views than the dataset has \(5\)"):
-        run_cost_sweep(ds, tmp_path / "out", cfg, score=lambda *a: {}, stages=tiny.stages())
-    assert sum(tiny.calls.values()) == 0 and not (tmp_path / "out").exists()
+    score = lambda rd, ds, names: {"psnr_db": 20.0 + len(names), "ssim": 0.5, "lpips": 0.2,  # noqa: E731
+                                   "rot_err_deg": 1.0, "ate": 0.1}
+    rows = run_cost_sweep(ds, tmp_path / "out", cfg, score=score, stages=tiny.stages())
+    assert [r.name for r in rows] == ["base", "train_views=3"]
+    assert "train_views=999 left out of the sweep" in caplog.text
+    capsys.readouterr()
+    assert main(["cost", str(ds.root), "--out", str(tmp_path / "cli"), "--grid", "train_views=3,9"]) == 2
+    err = capsys.readouterr().err
+    assert "--grid train_views=9 asks for more training views than the dataset has (5)" in err, err
+    assert not (tmp_path / "cli" / "points").exists()

@@ -155,6 +155,7 @@ def test_the_report_says_which_photos_round1_kept_and_why(tmp_path):
                                 photos={"aligned": "noisy", "identical_photos": True}))
     assert same.align.photos_identical and not plain.align.photos_identical
     assert "are the noisy ones (passed through undenoised): aligned once" in "\n".join(quality_lines([same]))
+    assert "alignment (the photos, undenoised)" in "\n".join(quality_lines([same]))
     assert "aligned once" not in "\n".join(quality_lines([plain]))
 
 

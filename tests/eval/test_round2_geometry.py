@@ -404,8 +404,8 @@ def test_better_of_with_one_refusal_keeps_the_other(tmp_path, alignments):
 @pytest.mark.parametrize("keep_better", [True, False])
 def test_photos_passed_through_are_aligned_once(tmp_path, alignments, keep_better):
     """Denoised photos that are the noisy ones (the denoise stage passed them through): one alignment, of the
-    noisy photos with the configured detector, recorded as such; its refusal is raised, with the pipeline's
-    fix, without a second try on the same pixels."""
+    noisy photos with the configured detector, recorded as such. Where it is refused, the same pixels are
+    tried with the detector for denoised photos; both refused, the refusal is raised with the pipeline's fix."""
     from eval.pipeline.align_stage import _align_first_round
     from mvgeo.align import AlignConfig
 
@@ -422,9 +422,15 @@ def test_photos_passed_through_are_aligned_once(tmp_path, alignments, keep_bette
     refused = AlignmentRefusedError("the positions of 1 of 8 views do not determine the cameras",
                                     kind="positions_undetermined", views=(ALL[3],), fix="pass --allow-partial")
     fake = _PhotoAlign(refused, alignments["round1_good"])
+    res = _align_first_round(fake, files, noisy_files, AlignConfig(), keep_better=keep_better, identical=True)
+    assert res.alignment.sparse_model is alignments["round1_good"][0]
+    assert [c[:2] for c in fake.calls] == [("noisy", AlignConfig().pairwise.sensitive_below_noise), ("denoised", 0.0)]
+    assert res.decisions.photos == PhotosDecision("denoised", noisy_refused=str(refused).splitlines()[0],
+                                                  identical=True)
     with pytest.raises(AlignmentRefusedError) as info:
-        _align_first_round(fake, files, noisy_files, AlignConfig(), keep_better=keep_better, identical=True)
-    assert "pass --allow-partial" not in str(info.value.fix) and [c[0] for c in fake.calls] == ["noisy"]
+        _align_first_round(_PhotoAlign(refused, refused), files, noisy_files, AlignConfig(), keep_better=keep_better,
+                           identical=True)
+    assert "pass --allow-partial" not in str(info.value.fix)
 
 
 def test_same_photos_compares_pixels(tmp_path):
