@@ -122,15 +122,22 @@ def _cloud_pixels(inputs: AlignInputs, cloud_images, intrinsics: Camera | None, 
                              f"{inputs.input_wh[0]}x{inputs.input_wh[1]}", fix="pass the same views at the same size")
         return pixels
 
+    def about_the_cloud_images(exc: InputError) -> InputError:  # a problem of the set names no file: say whose
+        return exc if exc.path is not None else InputError(f"the cloud images: {exc.message}", fix=exc.fix)
+
     try:
         return same_size(load_inputs(cloud_images, names=inputs.names, intrinsics=intrinsics,
                                      max_size_px=config.max_size_px))
-    except InputError:
+    except InputError as exc:
         if intrinsics is None:
-            raise
+            raise about_the_cloud_images(exc) from exc
         # The calibration fits the images (checked on them): a size mismatch is the cloud images', say so.
-        same_size(load_inputs(cloud_images, names=inputs.names, intrinsics=None, max_size_px=config.max_size_px))
-        raise
+        try:
+            same_size(load_inputs(cloud_images, names=inputs.names, intrinsics=None,
+                                  max_size_px=config.max_size_px))
+        except InputError as plain:
+            raise about_the_cloud_images(plain) from plain
+        raise about_the_cloud_images(exc) from exc
 
 
 def _sparse_model(c: Candidate, cloud: DenseCloud) -> SparseModel:

@@ -90,3 +90,7 @@ def test_the_cloud_is_made_of_the_cloud_images(llff6, llff6_preview):
     calibration = Camera.pinhole(200.0, 200.0, 128.0, 96.0, 256, 192)  # fits the images: the cloud's are named
     with pytest.raises(InputError, match="the cloud images are 128x96, the images 256x192"):
         align_images(files, PREVIEW, intrinsics=calibration, cloud_images=[f[:96, :128] for f in flat])
+    mixed = [f[:96, :128] if k == 2 else f for k, f in enumerate(flat)]  # a problem of the set is named as theirs
+    for calib in (None, calibration):
+        with pytest.raises(InputError, match="the cloud images: images have different sizes"):
+            align_images(files, PREVIEW, intrinsics=calib, cloud_images=mixed)
