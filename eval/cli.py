@@ -189,11 +189,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     with (resumable_output_dir(plan), output_lock(out),
           ray_cluster(cluster, preload=EVAL_PRELOAD, tasks=len(config.methods) * config.seeds) as executor):
         name, folder = scene_dataset(kind, source, out, size_wh=args.size, views=args.scene_views)
+        given = validate_dataset_folder(folder)
         if any(m.endswith(GT_POSES_SUFFIX) or (m in METHODS and METHODS[m].ground_truth_poses)
                for m in config.methods):  # these splat with the true cameras
-            check_renderable_cameras(validate_dataset_folder(folder))
-        else:
-            validate_dataset_folder(folder)
+            check_renderable_cameras(given)
         dataset = validate_dataset_folder(working_dataset(folder, out, args.max_size))
         title = f"denoise-gs eval: {name}"
         settings = _eval_settings(config, dataset.root, name, args)
