@@ -369,20 +369,42 @@ def _triangulate_two_view_reference(rays1, rays2, cam2_from_cam1, *, method: Met
 
 
 def _dlt(rays: np.ndarray, P: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Homogeneous DLT. rays (V, N, 3) in each camera; P (V, 3, 4); observed (V, N). Returns (N, 3), finite mask."""
+    """Homogeneous DLT. rays (V, N, 3) in each camera; P (V, 3, 4); observed (V, N). Returns (N, 3), finite mask.
+
+    The SVD of each point's system takes only its observed views' rows: the points are grouped by their
+    number of views (a track is seen by a few of V views; the unobserved rows are zeros, which change neither
+    the singular values nor the null vector, and `_dlt_reference` keeps them)."""
     V, N, _ = rays.shape
-    # Each view contributes the two rows of  [r]_x P X = 0  that are independent for r_z != 0;
-    # using the unit ray and the full cross product (3 rows) avoids dividing by r_z.
     r = _unit(rays)
-    A = np.zeros((N, 3 * V, 4))
-    for v in range(V):
-        rx = np.zeros((N, 3, 3))
-        rx[:, 0, 1], rx[:, 0, 2] = -r[v, :, 2], r[v, :, 1]
-        rx[:, 1, 0], rx[:, 1, 2] = r[v, :, 2], -r[v, :, 0]
-        rx[:, 2, 0], rx[:, 2, 1] = -r[v, :, 1], r[v, :, 0]
-        rows = rx @ P[v]
-        A[:, 3 * v: 3 * v + 3] = np.where(observed[v][:, None, None], rows, 0.0)
-    # Condition: scale the translation column so that homogeneous w is comparable to xyz.
+    pts = np.zeros((N, 3))
+    finite = np.zeros(N, bool)
+    count = observed.sum(axis=0)
+    order = np.argsort(count, kind="stable")
+    views = np.argsort(~observed[:, order], axis=0, kind="stable").T  # per point (sorted): observed views first
+    bounds = np.flatnonzero(np.diff(np.r_[-1, count[order], V + 1]))
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        L = int(count[order[lo]])
+        idx = order[lo:hi]
+        vs = views[lo:hi, :L]  # (n, L) the observed views of these points
+        rows = np.einsum("nlij,nljk->nlik", _skew_rows(r[vs, idx[:, None]]), P[vs]).reshape(len(idx), 3 * L, 4)
+        if L < 2:  # zero rows up to 6, so that the SVD reports the 4 singular values the uniqueness test reads
+            rows = np.concatenate([rows, np.zeros((len(idx), 6 - 3 * L, 4))], axis=1)
+        pts[idx], finite[idx] = _dlt_solve(rows)
+    return pts, finite
+
+
+def _skew_rows(r: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) [r]x of unit rays r (..., 3): each view's three rows of  [r]x P X = 0  (two are independent
+    for r_z != 0; using all three avoids dividing by r_z)."""
+    rx = np.zeros(r.shape[:-1] + (3, 3))
+    rx[..., 0, 1], rx[..., 0, 2] = -r[..., 2], r[..., 1]
+    rx[..., 1, 0], rx[..., 1, 2] = r[..., 2], -r[..., 0]
+    rx[..., 2, 0], rx[..., 2, 1] = -r[..., 1], r[..., 0]
+    return rx
+
+
+def _dlt_solve(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) points and finite mask from (n, rows, 4) homogeneous systems A X = 0 (the null vector by SVD)."""
     _, S, Vt = np.linalg.svd(A)
     X = Vt[:, -1]
     w = X[:, 3]
@@ -390,8 +412,18 @@ def _dlt(rays: np.ndarray, P: np.ndarray, observed: np.ndarray) -> tuple[np.ndar
     # Second-smallest singular value ~ 0: the solution is not unique (e.g. a single view).
     unique = S[:, -2] > 1e-12 * S[:, 0]
     finite = unique & (np.abs(w) > 1e-15 * np.linalg.norm(xyz, axis=-1))
-    pts = xyz / np.where(finite, w, 1.0)[:, None]
-    return pts, finite
+    return xyz / np.where(finite, w, 1.0)[:, None], finite
+
+
+def _dlt_reference(rays: np.ndarray, P: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Slow, obvious `_dlt`: every point's system with all V views' rows (zeros where unobserved)."""
+    V, N, _ = rays.shape
+    r = _unit(rays)
+    A = np.zeros((N, 3 * V, 4))
+    for v in range(V):
+        rows = _skew_rows(r[v]) @ P[v]
+        A[:, 3 * v: 3 * v + 3] = np.where(observed[v][:, None, None], rows, 0.0)
+    return _dlt_solve(A)
 
 
 def triangulate_multiview(

@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mvgeo.transforms import skew_unchecked, so3_exp
+from mvgeo.transforms import so3_exp
 
 
 @dataclass
@@ -97,66 +97,144 @@ def _columns(pb: LMProblem, n: int, nf: int) -> tuple[np.ndarray, int]:
     return cols, nc
 
 
+@dataclass(frozen=True)
+class Couplings:
+    """The camera-point blocks ``W = J_c^T w J_p`` of the normal equations, one per observation.
+
+    A point is seen by a few of the views, so W, as a dense (P, nc, 3) matrix, is mostly zeros; each
+    observation k contributes the (m, 3) block `blocks[k]` at camera columns `cols[k]` and point `point[k]`
+    (column `nc` is the dummy of fixed unknowns, dropped). The Schur complement and the back substitution
+    work from these blocks (`reduced_camera_system`, `times_points`, `t_times_cameras`).
+
+    Attributes:
+        blocks: (K, m, 3), m = 7 (pose, focal) or 9 (and the principal point).
+        cols: (K, m) camera column of each row of the block.
+        point: (K,) point of each observation.
+        n_cameras: nc, the camera unknowns.
+        n_points: P.
+    """
+
+    blocks: np.ndarray
+    cols: np.ndarray
+    point: np.ndarray
+    n_cameras: int
+    n_points: int
+
+    def dense(self) -> np.ndarray:
+        """(P, nc, 3) W as a dense matrix (the tests' reference)."""
+        nc, P = self.n_cameras, self.n_points
+        flat = ((self.cols * P + self.point[:, None])[:, :, None] * 3 + np.arange(3)).ravel()
+        W = np.bincount(flat, self.blocks.ravel(), minlength=(nc + 1) * P * 3).reshape(nc + 1, P, 3)[:nc]
+        return W.transpose(1, 0, 2)
+
+    def scatter(self, blocks: np.ndarray) -> np.ndarray:
+        """(nc, 3 P) matrix of per-observation (K, m, 3) blocks laid out as W^T-style rows per camera column."""
+        nc, P = self.n_cameras, self.n_points
+        flat = ((self.cols * P + self.point[:, None])[:, :, None] * 3 + np.arange(3)).ravel()
+        return np.bincount(flat, blocks.ravel(), minlength=(nc + 1) * P * 3)[:nc * P * 3].reshape(nc, P * 3)
+
+    def times_points(self, v: np.ndarray) -> np.ndarray:
+        """(nc,) sum over the points of W_p v_p, for v (P, 3)."""
+        per_obs = np.einsum("kmj,kj->km", self.blocks, v[self.point])
+        return np.bincount(self.cols.ravel(), per_obs.ravel(), minlength=self.n_cameras + 1)[:self.n_cameras]
+
+    def t_times_cameras(self, dc: np.ndarray) -> np.ndarray:
+        """(P, 3) W_p^T dc for every point, for dc (nc,)."""
+        d = np.append(dc, 0.0)[self.cols]  # the dummy column reads 0
+        per_obs = np.einsum("kmj,km->kj", self.blocks, d)
+        return np.stack([np.bincount(self.point, per_obs[:, j], minlength=self.n_points) for j in range(3)],
+                        axis=1)
+
+
 def normal_equations(R, t, logf, X, pb: LMProblem, huber_px: float):
     """Blocks of the IRLS-weighted normal equations at the current state.
 
     Returns:
-        U (nc, nc), gc (nc,), V (P, 3, 3), gp (P, 3), W (P, nc, 3), residuals (K, 2).
+        U (nc, nc), gc (nc,), V (P, 3, 3), gp (P, 3), W (`Couplings`, per observation), residuals (K, 2).
     """
     n, P, K = len(R), len(X), len(pb.ov)
     nf = len(logf) if pb.optimize_focal else 0
     cols, nc = _columns(pb, n, nf)
+    m = cols.shape[1]
     r, xc, RX, z, f = project(R, t, logf, X, pb)
     w = _huber_weights(r, huber_px)
+    # d p / d x_c = [[a, 0, bx], [0, a, by]], written out per entry (batched 2x3 products are slower).
     iz = 1.0 / z
-    dp = np.zeros((K, 2, 3))
-    dp[:, 0, 0] = dp[:, 1, 1] = f * iz
-    dp[:, 0, 2] = -f * xc[:, 0] * iz * iz
-    dp[:, 1, 2] = -f * xc[:, 1] * iz * iz
-    Jc = np.zeros((K, 2, cols.shape[1]))
-    Jc[:, :, :3] = -dp @ skew_unchecked(RX)
-    Jc[:, :, 3:6] = dp
+    a = f * iz
+    bx = -a * xc[:, 0] * iz
+    by = -a * xc[:, 1] * iz
+    v0, v1, v2 = RX[:, 0], RX[:, 1], RX[:, 2]
+    Jc = np.zeros((K, 2, m))
+    # Rotation columns: -(d p / d x_c) [R X]x.
+    Jc[:, 0, 0], Jc[:, 0, 1], Jc[:, 0, 2] = bx * v1, a * v2 - bx * v0, -a * v1
+    Jc[:, 1, 0], Jc[:, 1, 1], Jc[:, 1, 2] = by * v1 - a * v2, -by * v0, a * v0
+    Jc[:, 0, 3], Jc[:, 0, 5] = a, bx
+    Jc[:, 1, 4], Jc[:, 1, 5] = a, by
     if nf:
         Jc[:, :, 6] = r + pb.uv - pb.c  # p - c
     if pb.optimize_principal:
         Jc[:, 0, 7] = Jc[:, 1, 8] = 1.0
     Jc[pb.ov == 0, :, :6] = 0.0
-    Jp = dp @ R[pb.ov]  # (K, 2, 3)
+    Ro = R[pb.ov]
+    Jp = np.stack([a[:, None] * Ro[:, 0] + bx[:, None] * Ro[:, 2],
+                   a[:, None] * Ro[:, 1] + by[:, None] * Ro[:, 2]], axis=1)  # (K, 2, 3) = (d p / d x_c) R
     Jc_w = Jc * w[:, None, None]
-    Jp_w = Jp * w[:, None, None]
     JcT_w = np.transpose(Jc_w, (0, 2, 1))
-    Ucc = JcT_w @ Jc  # batched (K, 7, 7) (9 with the principal point); matmul is several times faster than einsum
-    U = np.bincount((cols[:, :, None] * (nc + 1) + cols[:, None, :]).ravel(), Ucc.ravel(),
-                    minlength=(nc + 1) ** 2).reshape(nc + 1, nc + 1)[:nc, :nc]
+    # U: the observations of one view share their camera columns, so each view's block is one product.
+    U = np.zeros((nc + 1, nc + 1))
+    for v in range(n):
+        k = np.flatnonzero(pb.ov == v)
+        if len(k):
+            cv = cols[k[0]]
+            U[np.ix_(cv, cv)] += Jc_w[k].reshape(-1, m).T @ Jc[k].reshape(-1, m)
+    U = U[:nc, :nc]
     gc = np.bincount(cols.ravel(), (JcT_w @ r[:, :, None]).ravel(), minlength=nc + 1)[:nc]
-    JpT_w = np.transpose(Jp_w, (0, 2, 1))
-    V = np.bincount((pb.op[:, None] * 9 + np.arange(9)).ravel(), (JpT_w @ Jp).reshape(K, 9).ravel(),
-                    minlength=P * 9).reshape(P, 3, 3)
-    gp = np.bincount((pb.op[:, None] * 3 + np.arange(3)).ravel(), (JpT_w @ r[:, :, None]).reshape(K, 3).ravel(),
-                     minlength=P * 3).reshape(P, 3)
-    Wk = JcT_w @ Jp  # (K, 7 or 9, 3)
-    # Stored camera-column-major, (nc, P, 3), and returned as its (P, nc, 3) view: the Schur
-    # complement's products take the (nc, 3 P) matrix without copying it (`reduced_camera_system`).
-    W = np.bincount(((cols * P + pb.op[:, None])[:, :, None] * 3 + np.arange(3)).ravel(),
-                    Wk.ravel(), minlength=P * (nc + 1) * 3).reshape(nc + 1, P, 3)[:nc].transpose(1, 0, 2)
+    Jp_w = Jp * w[:, None, None]
+    Vk = Jp_w[:, 0, :, None] * Jp[:, 0, None, :] + Jp_w[:, 1, :, None] * Jp[:, 1, None, :]  # (K, 3, 3)
+    V = np.stack([np.bincount(pb.op, Vk[:, i, j], minlength=P) for i in range(3) for j in range(3)],
+                 axis=1).reshape(P, 3, 3)
+    gk = Jp_w[:, 0] * r[:, 0, None] + Jp_w[:, 1] * r[:, 1, None]
+    gp = np.stack([np.bincount(pb.op, gk[:, j], minlength=P) for j in range(3)], axis=1)
+    W = Couplings(JcT_w @ Jp, cols, pb.op, nc, P)  # (K, 7 or 9, 3) blocks
     return U, gc, V, gp, W, r
 
 
-def reduced_camera_system(U, V, W, lam: float = 0.0):
-    """Schur complement S = U - W V^-1 W^T (Marquardt damping lam on both diagonals) and W V^-1."""
+def reduced_camera_system(U: np.ndarray, V: np.ndarray, W: Couplings, lam: float = 0.0
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Schur complement ``S = U - sum_p W_p V_p^-1 W_p^T`` (Marquardt damping lam on both diagonals) and the
+    damped V^-1 (P, 3, 3).
+
+    With ``V_p^-1 = L_p L_p^T`` (Cholesky) the sum is ``G G^T``, G (nc, 3 P) holding each observation's block
+    times its point's L: one symmetric BLAS product over the (point, axis) index. The point blocks are
+    positive definite (the ridge below); where a Cholesky factor still fails numerically, the sum is formed
+    as ``W V^-1 W^T`` from two scatters instead.
+    """
     Ud = U + lam * np.diag(np.diag(U) + 1e-12)
     # A tiny relative ridge keeps points seen along one ray (rank-2 V) invertible.
     tr = np.trace(V, axis1=1, axis2=2)[:, None, None]
     Vd = V + lam * (V * np.eye(3)) + (1e-10 * tr + 1e-12) * np.eye(3)
     Vinv = np.linalg.inv(Vd)
-    P, nc = W.shape[:2]
-    # Y (P, nc, 3) as a view of a (nc, P, 3) array, like `normal_equations`' W: the transposes
-    # below are then free (same values as contiguous copies).
-    Yt = np.empty((nc, P, 3))
-    Y = np.matmul(W, Vinv, out=Yt.transpose(1, 0, 2))
-    # sum_p Y_p W_p^T as one BLAS product over the (point, axis) index.
-    S = Ud - np.transpose(Y, (1, 0, 2)).reshape(nc, -1) @ np.transpose(W, (1, 0, 2)).reshape(nc, -1).T
-    return S, Y, Vinv
+    try:
+        G = W.scatter(W.blocks @ np.linalg.cholesky(Vinv)[W.point])
+        S = Ud - G @ G.T
+    except np.linalg.LinAlgError:
+        S = Ud - W.scatter(W.blocks @ Vinv[W.point]) @ W.scatter(W.blocks).T
+    return S, Vinv
+
+
+def schur_step(U: np.ndarray, gc: np.ndarray, V: np.ndarray, gp: np.ndarray, W: Couplings, lam: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The damped Gauss-Newton step (camera unknowns (nc,), points (P, 3)) of the normal equations
+    ``[[U, W^T], [W, V]] [dc; dX] = -[gc; gp]`` (Marquardt damping `lam`): the reduced camera system solved
+    for dc, then each point's dX by back substitution.
+
+    Raises:
+        numpy.linalg.LinAlgError: the reduced system is singular.
+    """
+    S, Vinv = reduced_camera_system(U, V, W, lam)
+    rhs = -gc + W.times_points(np.einsum("pij,pj->pi", Vinv, gp))
+    dc = np.linalg.solve(S, rhs) if len(rhs) else np.zeros(0)
+    return dc, -np.einsum("pij,pj->pi", Vinv, gp + W.t_times_cameras(dc))
 
 
 def solve_lm(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.ndarray, pb: LMProblem, *,
@@ -183,14 +261,11 @@ def solve_lm_principal(R: np.ndarray, t: np.ndarray, logf: np.ndarray, X: np.nda
         U, gc, V, gp, W, _ = normal_equations(R, t, logf, X, pb, huber_px)
         improved, rel = False, 0.0
         for _ in range(10):
-            S, Y, Vinv = reduced_camera_system(U, V, W, lam)
-            rhs = -gc + np.transpose(Y, (1, 0, 2)).reshape(len(gc), -1) @ gp.reshape(-1)
             try:
-                dc = np.linalg.solve(S, rhs) if len(rhs) else np.zeros(0)
+                dc, dX = schur_step(U, gc, V, gp, W, lam)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            dX = -np.einsum("pij,pj->pi", Vinv, gp + np.tensordot(W, dc, axes=([1], [0])))
             R1, t1, lf1, pb1 = R.copy(), t.copy(), logf.copy(), pb
             if n > 1:
                 d = dc[:6 * (n - 1)].reshape(n - 1, 6)
@@ -230,8 +305,8 @@ def principal_step(R, t, logf, X, pb: LMProblem, huber_px: float) -> tuple[np.nd
     n = len(R)
     nf = len(logf) if pb.optimize_focal else 0
     U, gc, V, gp, W, r = normal_equations(R, t, logf, X, pb, huber_px)
-    S, Y, _ = reduced_camera_system(U, V, W)
-    rhs = -gc + np.transpose(Y, (1, 0, 2)).reshape(len(gc), -1) @ gp.reshape(-1)
+    S, Vinv = reduced_camera_system(U, V, W)
+    rhs = -gc + W.times_points(np.einsum("pij,pj->pi", Vinv, gp))
     Sinv = np.linalg.pinv(S, rcond=1e-12, hermitian=True)
     k = 6 * (n - 1) + nf
     dof = max(r.size - len(S) - 3 * len(X), 1)

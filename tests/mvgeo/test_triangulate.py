@@ -163,3 +163,30 @@ def test_sparse_angular_refinement_equals_dense_reference(rng):
     np.testing.assert_allclose(fast[finite], ref[finite], rtol=1e-11, atol=1e-11)
     np.testing.assert_array_equal(fast[~finite], pts[~finite])
     assert np.median(np.linalg.norm(fast[finite] - X[finite], axis=1)) < 0.05
+
+
+def test_dlt_on_observed_rows_equals_the_full_system(rng):
+    """`_dlt` (each point's SVD over its observed views only, grouped by their number) against
+    `_dlt_reference` (all V views' rows, zeros where unobserved): the same null vectors and the same
+    uniqueness verdicts, for tracks of every length from 0 to V views."""
+    from mvgeo.triangulate import _dlt, _dlt_reference
+
+    n, V = 400, 7
+    X = rng.uniform(-1, 1, (n, 3)) + [0, 0, 5]
+    R = np.stack([tf.so3_exp([0.04 * v, -0.08 * v, 0.01]) for v in range(V)])
+    C = np.stack([[0.3 * v, 0.1 * np.cos(v), 0.0] for v in range(V)])
+    t = -np.einsum("vij,vj->vi", R, C)
+    rays = np.einsum("vij,nj->vni", R, X) + t[:, None] + rng.normal(scale=1e-3, size=(V, n, 3))
+    obs = rng.random((V, n)) < rng.uniform(0.0, 1.0, n)  # track lengths spread over 0..V
+    obs[:, :3] = False
+    obs[:, 3:6] = False
+    obs[2, 3:6] = True  # one view: the null space is two-dimensional, not unique
+    assert set(obs.sum(0)) == set(range(V + 1))
+    P = np.concatenate([R, t[..., None]], axis=-1)
+    pts, finite = _dlt(rays, P, obs)
+    ref, finite_ref = _dlt_reference(rays, P, obs)
+    np.testing.assert_array_equal(finite, finite_ref)
+    assert not finite[:6].any()
+    # The same singular vectors from systems that differ by zero rows: rounding of the SVD only.
+    np.testing.assert_allclose(pts[finite], ref[finite], rtol=1e-9, atol=1e-9)
+    assert np.median(np.linalg.norm(pts[finite] - X[finite], axis=1)) < 0.05

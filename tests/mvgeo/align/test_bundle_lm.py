@@ -384,3 +384,61 @@ def test_a_ring_determines_the_principal_point_and_the_poses_follow(rng):
 
     # Measured over three draws: 2.2 deg with the centre assumed, 0.03-0.45 deg refined.
     assert rot(refined.cam_from_world) < 0.5 * rot(centre.cam_from_world)
+
+
+@pytest.mark.parametrize("principal", [False, True])
+def test_schur_step_equals_the_dense_normal_equations(rng, principal):
+    """The normal equations' blocks against J^T J of a central-difference Jacobian, and the Schur step
+    (`schur_step`: reduced camera system, back substitution from the per-observation blocks) against one
+    dense solve of the full damped system. Huber scale huge: IRLS weights all 1."""
+    from mvgeo.align.bundle_lm import schur_step
+
+    X, poses, uv, f = _scene(rng, n_views=4, n_pts=10, noise_px=0.5)
+    n, P = 4, 10
+    keep = rng.random((n, P)) < 0.7
+    keep[:2] = True  # every point in at least two views; the other views see a random subset
+    ov, op = np.nonzero(keep)
+    pb = LMProblem(ov, op, uv[ov, op], np.zeros(n, np.int64), np.array([W / 2, H / 2]),
+                   optimize_principal=principal)
+    R = np.stack([so3_exp(rng.normal(scale=0.01, size=3)) @ p[:, :3] for p in poses])
+    t = poses[:, :, 3] + rng.normal(scale=0.01, size=(n, 3))
+    logf = np.array([np.log(f * 1.02)])
+    Xp = X + rng.normal(scale=0.01, size=X.shape)
+    U, gc, V, gp, Wc, r = normal_equations(R, t, logf, Xp, pb, huber_px=1e12)
+    nc = len(gc)
+    assert nc == 6 * (n - 1) + 1 + 2 * principal
+
+    def res(x):
+        R_, t_ = R.copy(), t.copy()
+        for v in range(1, n):
+            R_[v] = so3_exp(x[6 * (v - 1):6 * (v - 1) + 3]) @ R[v]
+            t_[v] = t[v] + x[6 * (v - 1) + 3:6 * v]
+        k = 6 * (n - 1)
+        pb_ = pb.with_principal(pb.c + x[k + 1:k + 3]) if principal else pb
+        return project(R_, t_, logf + x[k:k + 1], Xp + x[nc:].reshape(P, 3), pb_)[0].ravel()
+
+    eps = 1e-6
+    J = np.stack([(res(eps * e) - res(-eps * e)) / (2 * eps) for e in np.eye(nc + 3 * P)], axis=1)
+    Wd = Wc.dense()  # (P, nc, 3)
+    N = np.zeros((nc + 3 * P, nc + 3 * P))
+    N[:nc, :nc] = U
+    N[nc:, :nc] = Wd.transpose(0, 2, 1).reshape(3 * P, nc)
+    N[:nc, nc:] = N[nc:, :nc].T
+    for p in range(P):
+        N[nc + 3 * p:nc + 3 * p + 3, nc + 3 * p:nc + 3 * p + 3] = V[p]
+    g = np.concatenate([gc, gp.ravel()])
+    # Central differences at eps 1e-6 of a smooth residual: ~1e-7 relative to the largest entry.
+    scale = np.abs(J.T @ J).max()
+    np.testing.assert_allclose(N, J.T @ J, atol=1e-6 * scale)
+    np.testing.assert_allclose(g, J.T @ r.ravel(), atol=1e-6 * np.abs(g).max())
+
+    lam = 1e-2
+    dc, dX = schur_step(U, gc, V, gp, Wc, lam)
+    Hd = N + lam * np.diag(np.diag(N))
+    Hd[:nc, :nc] += lam * 1e-12 * np.eye(nc)
+    for p in range(P):  # the point blocks' ridge, as `reduced_camera_system`
+        blk = slice(nc + 3 * p, nc + 3 * p + 3)
+        Hd[blk, blk] += (1e-10 * np.trace(V[p]) + 1e-12) * np.eye(3)
+    ref = np.linalg.solve(Hd, -g)
+    # The Schur complement is an exact rewriting of the same solve: rounding only.
+    np.testing.assert_allclose(np.concatenate([dc, dX.ravel()]), ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
