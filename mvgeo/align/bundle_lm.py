@@ -128,7 +128,8 @@ class Couplings:
         return W.transpose(1, 0, 2)
 
     def scatter(self, blocks: np.ndarray) -> np.ndarray:
-        """(nc, 3 P) matrix of per-observation (K, m, 3) blocks laid out as W^T-style rows per camera column."""
+        """(nc, 3 P) matrix of per-observation blocks (K, m, 3) laid out like W: row c, columns 3 p .. 3 p + 2
+        hold the sum of the block rows at camera column c of point p's observations."""
         nc, P = self.n_cameras, self.n_points
         flat = ((self.cols * P + self.point[:, None])[:, :, None] * 3 + np.arange(3)).ravel()
         return np.bincount(flat, blocks.ravel(), minlength=(nc + 1) * P * 3)[:nc * P * 3].reshape(nc, P * 3)

@@ -387,7 +387,7 @@ def test_a_ring_determines_the_principal_point_and_the_poses_follow(rng):
 
 
 @pytest.mark.parametrize("principal", [False, True])
-def test_schur_step_equals_the_dense_normal_equations(rng, principal):
+def test_schur_step_equals_the_dense_normal_equations(rng, principal, monkeypatch):
     """The normal equations' blocks against J^T J of a central-difference Jacobian, and the Schur step
     (`schur_step`: reduced camera system, back substitution from the per-observation blocks) against one
     dense solve of the full damped system. Huber scale huge: IRLS weights all 1."""
@@ -442,3 +442,15 @@ def test_schur_step_equals_the_dense_normal_equations(rng, principal):
     ref = np.linalg.solve(Hd, -g)
     # The Schur complement is an exact rewriting of the same solve: rounding only.
     np.testing.assert_allclose(np.concatenate([dc, dX.ravel()]), ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
+
+    # The reduced system without the Cholesky factors (its fallback where one fails): the same S.
+    from mvgeo.align.bundle_lm import reduced_camera_system
+
+    S, _ = reduced_camera_system(U, V, Wc, lam)
+
+    def failing(_):
+        raise np.linalg.LinAlgError("not positive definite")
+
+    monkeypatch.setattr(np.linalg, "cholesky", failing)
+    S_fallback, _ = reduced_camera_system(U, V, Wc, lam)
+    np.testing.assert_allclose(S_fallback, S, rtol=1e-10, atol=1e-12 * np.abs(S).max())
