@@ -33,6 +33,24 @@ def base_worktree(commit: str, prefix: str = "base_") -> Iterator[Path]:
         shutil.rmtree(work, ignore_errors=True)
 
 
+@contextlib.contextmanager
+def recorded_calls(owner: object, name: str) -> Iterator[list[tuple[tuple, dict]]]:
+    """Record every call of `owner.name` (a module's or class's function) made inside the block, as
+    (args, kwargs); the calls still run. The function is restored at the end of the block."""
+    real = getattr(owner, name)
+    calls: list[tuple[tuple, dict]] = []
+
+    def spy(*args, **kwargs):
+        calls.append((args, kwargs))
+        return real(*args, **kwargs)
+
+    setattr(owner, name, spy)
+    try:
+        yield calls
+    finally:
+        setattr(owner, name, real)
+
+
 def time_call(fn: Callable[[], object], *, repeat: int = 3, warmup: int = 1) -> float:
     """Median wall time in seconds of `fn()` over `repeat` runs after `warmup`."""
     for _ in range(warmup):

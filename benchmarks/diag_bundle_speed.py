@@ -3,7 +3,7 @@ a base commit against this checkout's, on the calls `mvgeo align` makes on real 
 them, alternating, and how far apart the results are.
 
 Usage: .venv/bin/python benchmarks/diag_bundle_speed.py BASE_COMMIT [REPEATS]
-(needs ../shared/data; the base's `mvgeo` package is extracted with `git archive BASE_COMMIT mvgeo`).
+(needs ../shared/data; the base is a temporary `git worktree` of BASE_COMMIT).
 
 The calls are recorded while `mvgeo align` (poses only, EXIF focal, `bench_real.py`'s `ours`) aligns the
 temple ring's 12 views (clean) and DTU scan24's 12 clustered training views, clean and with Gaussian noise
@@ -18,11 +18,11 @@ import os
 import pickle
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
-from bench_real import OURS, ROOT, dtu_set, exif_focal_35mm_of, prepare, temple_set
+from _common import ROOT, base_worktree, recorded_calls
+from bench_real import OURS, dtu_set, exif_focal_35mm_of, prepare, temple_set
 
 import mvgeo.align.solve as solve_mod
 from mvgeo.align.api import align_images
@@ -44,18 +44,8 @@ pickle.dump((sec, [(r.cam_from_world, r.focal_px, r.n_points) for r in out]), op
 def _record_calls(s, noisy: bool, work: Path) -> list[tuple]:
     wh = read_image(s.files[0]).shape[1::-1]
     folder = prepare(s, work, noisy=noisy, seed=0, exif_35mm=exif_focal_35mm_of(s.K, wh))
-    paths = [p for p in list_images(folder) if p.name in s.gt]
-    calls, real = [], solve_mod.bundle_adjust
-
-    def spy(*args, **kwargs):
-        calls.append((args, kwargs))
-        return real(*args, **kwargs)
-
-    solve_mod.bundle_adjust = spy
-    try:
-        align_images(paths, OURS)
-    finally:
-        solve_mod.bundle_adjust = real
+    with recorded_calls(solve_mod, "bundle_adjust") as calls:
+        align_images([p for p in list_images(folder) if p.name in s.gt], OURS)
     return calls
 
 
@@ -74,11 +64,12 @@ def main(base: str, repeats: int) -> int:
     if not sets:
         print("../shared/data holds neither set", file=sys.stderr)
         return 2
-    work = Path(tempfile.mkdtemp())
-    base_src = work / "base"
-    base_src.mkdir()
-    archive = subprocess.run(["git", "archive", base, "mvgeo"], check=True, capture_output=True, cwd=ROOT).stdout
-    subprocess.run(["tar", "-x", "-C", str(base_src)], input=archive, check=True)
+    with base_worktree(base, prefix="diag-bundle-") as base_src:
+        _compare(sets, base, base_src, base_src.parent, repeats)
+    return 0
+
+
+def _compare(sets, base: str, base_src: Path, work: Path, repeats: int) -> None:
     print(f"| photos | adjustments | base {base[:7]} (s) | this (s) | speed-up | largest rotation difference (deg) "
           "| largest focal difference (relative) | tracks |\n|---|---|---|---|---|---|---|---|")
     for label, s, noisy in sets:
@@ -98,7 +89,6 @@ def main(base: str, repeats: int) -> int:
         print(f"| {label} | {len(calls)} | {best['base']:.3f} | {best['this']:.3f} | "
               f"{best['base'] / best['this']:.2f}x | {dr:.2g} | {df:.2g} | "
               f"{'the same' if same_tracks else 'differ'} |")
-    return 0
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from _common import cli_option, md_table
+from _common import cli_option, md_table, recorded_calls
 from bench_real import OURS, dtu_for_script, exif_focal_35mm_of, prepare
 
 import mvgeo.align.solve as solve
@@ -32,19 +32,10 @@ def main() -> int:
         return 0
     configs = [tuple(int(v) for v in c.split("x")) for c in cli_option("configs", "4x100,8x100,4x50,4x0").split(",")]
     repeats = int(cli_option("repeats", "5"))
-    calls = []
-    original = solve.global_align
-
-    def spy(*args, **kwargs):
-        calls.append((args, kwargs))
-        return original(*args, **kwargs)
-
-    solve.global_align = spy
-    with tempfile.TemporaryDirectory(prefix="diag-ga-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="diag-ga-") as tmp, recorded_calls(solve, "global_align") as calls:
         wh = read_image(s.files[0]).shape[1::-1]
         folder = prepare(s, Path(tmp), True, 0, exif_focal_35mm_of(s.K, wh))
         align_images([p for p in list_images(folder) if p.name in s.gt], OURS)
-    solve.global_align = original
     (preds, sizes), kwargs = calls[0][0][:2], calls[0][1]
     base = kwargs["config"]
     times = {c: [] for c in configs}
@@ -52,7 +43,7 @@ def main() -> int:
         for c in (configs if rep % 2 == 0 else configs[::-1]):
             cfg = replace(base, pixel_stride=c[0], iters=c[1])
             t = time.perf_counter()
-            original(preds, sizes, **dict(kwargs, config=cfg))
+            solve.global_align(preds, sizes, **dict(kwargs, config=cfg))
             times[c].append(time.perf_counter() - t)
     h, w = sizes[0]
     print(f"{len(preds)} pairs, pointmaps {w}x{h}: at pixel stride k each pair's two pointmaps sample about "

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import recorded_calls
 from bench_real import OURS, dtu_set, exif_focal_35mm_of, prepare
 
 import mvgeo.twoview as tv
@@ -33,17 +34,8 @@ def _record_calls(noisy: bool, work: Path) -> list[tuple]:
     s = dtu_set("cluster")
     folder = prepare(s, work, noisy=noisy, seed=0, exif_35mm=exif_focal_35mm_of(s.K, (384, 384)))
     paths = [p for p in list_images(folder) if p.name in s.gt]
-    calls, refine = [], tv._refine
-
-    def spy(*args, **kwargs):
-        calls.append((args, kwargs))
-        return refine(*args, **kwargs)
-
-    tv._refine = spy
-    try:
+    with recorded_calls(tv, "_refine") as calls:
         align_images(paths, OURS)
-    finally:
-        tv._refine = refine
     return calls
 
 
