@@ -572,7 +572,9 @@ def task_graph(tasks: Sequence[EvalTask]) -> list[tuple[int, ...]]:
     task, not for the other variants reading the same folder (every variant reads `oracle_clean`'s
     points), so the variants' splats run side by side. Where no earlier task has run the method, the
     variant runs it, and writes its folder. A variant counts as having run its own method (`reconstruct`
-    starts with it), not its points' method: it never gets to that one where its own method fails.
+    starts with it), not its points' method: it never gets to that one where its own method fails with
+    anything but an alignment refusal (after a refusal it splats the denoised photos and does run its points'
+    method). So where no base run is listed, later variants wait for the first one: docs/cluster.md.
     """
     ran: set[tuple[str, int, str]] = set()  # (scene, seed, method name) of the methods earlier tasks ran
     writes, reads = [], []
