@@ -100,7 +100,7 @@ def _align(args: argparse.Namespace) -> int:
     from mvgeo.align.graph import PairGraphSpec
     from mvgeo.align.hole_fill import HoleFillConfig
     from mvgeo.align.intrinsics import read_intrinsics
-    from mvgeo.common.imageio import list_images, read_image
+    from mvgeo.common.imageio import list_images, read_image, upright_size
 
     paths = list_images(args.images_dir)
     if len(paths) < 2:
@@ -108,7 +108,7 @@ def _align(args: argparse.Namespace) -> int:
                          fix="add more views of the scene")
     intr = read_intrinsics(args.intrinsics) if args.intrinsics else None
     if intr is not None:  # checked here too, where the file is known, before any image is matched
-        h, w = read_image(paths[0]).shape[:2]
+        w, h = upright_size(paths[0]) or read_image(paths[0]).shape[1::-1]  # the header, else the pixels
         if (intr.width, intr.height) != (w, h):
             raise InputError(f"the calibration is for {intr.width}x{intr.height} images, the images are {w}x{h} "
                              f"({paths[0].name})", path=args.intrinsics,

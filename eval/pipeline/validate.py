@@ -16,7 +16,7 @@ from eval.pipeline.inputs import reference_working_size, working_size
 from eval.pipeline.views import view_files
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
-from mvgeo.common.imageio import exif_orientation, read_image
+from mvgeo.common.imageio import read_image, upright_size
 from mvgeo.common.jsonio import read_json_object
 
 __all__ = ["MIN_IMAGE_SIZE_PX", "DatasetFolder", "check_intrinsics", "check_renderable_cameras",
@@ -209,7 +209,7 @@ def _sizes_match_cameras(root: Path, files: list[Path]) -> None:
     by_stem = {Path(n).stem: n for n in model.names}
     for path in files:
         name = by_stem.get(path.stem)
-        size = _upright_size(path)
+        size = upright_size(path)
         if name is None or size is None:
             continue
         cam = model.camera_of(name)
@@ -248,27 +248,13 @@ def check_renderable_cameras(dataset: DatasetFolder) -> None:
                                  "true cameras (3dgs_gt_poses, the @gt_poses variants)")
 
 
-def _upright_size(path: Path) -> tuple[int, int] | None:
-    """(W, H) of an image as `read_image` returns it: the size from its header (Pillow), turned where its EXIF
-    orientation (`exif_orientation`, the rule `read_image` applies) turns it; None where Pillow cannot tell
-    (the image's own checks report it later)."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            w, h = im.size
-        return (h, w) if exif_orientation(path.read_bytes()) in (5, 6, 7, 8) else (w, h)
-    except (OSError, ValueError, SyntaxError):  # Pillow's errors on unreadable or odd files
-        return None
-
-
 def _one_orientation(files: dict[str, Path], folder: Path) -> None:
     """Refuse an evaluation dataset whose training photos are of two orientations (W x H and H x W).
     `denoise-gs run` turns such photos to one orientation (`prepare_inputs`), but an evaluation scores the
     poses and the splat in each photo's own frame, which that would turn by 90 degrees."""
     first: dict[tuple[int, int], str] = {}
     for n, p in files.items():
-        size = _upright_size(p)
+        size = upright_size(p)
         if size is not None:
             first.setdefault(size, n)
     for sa, a in first.items():

@@ -122,10 +122,7 @@ class Couplings:
 
     def dense(self) -> np.ndarray:
         """(P, nc, 3) W as a dense matrix (the tests' reference)."""
-        nc, P = self.n_cameras, self.n_points
-        flat = ((self.cols * P + self.point[:, None])[:, :, None] * 3 + np.arange(3)).ravel()
-        W = np.bincount(flat, self.blocks.ravel(), minlength=(nc + 1) * P * 3).reshape(nc + 1, P, 3)[:nc]
-        return W.transpose(1, 0, 2)
+        return self.scatter(self.blocks).reshape(self.n_cameras, self.n_points, 3).transpose(1, 0, 2)
 
     def scatter(self, blocks: np.ndarray) -> np.ndarray:
         """(nc, 3 P) matrix of per-observation blocks (K, m, 3) laid out like W: row c, columns 3 p .. 3 p + 2

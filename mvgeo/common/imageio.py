@@ -239,6 +239,21 @@ def exif_focal_35mm(path: str | Path) -> float | None:
     return mm if np.isfinite(mm) and mm > 0 else None
 
 
+def upright_size(path: str | Path) -> tuple[int, int] | None:
+    """(W, H) of an image as `read_image` returns it, without decoding its pixels: the size from its header
+    (Pillow), turned where its EXIF orientation (`exif_orientation`, the rule `read_image` applies) turns it;
+    None where Pillow cannot tell (the image's own checks report it when it is read)."""
+    from PIL import Image
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+        return (h, w) if exif_orientation(path.read_bytes()) in (5, 6, 7, 8) else (w, h)
+    except (OSError, ValueError, SyntaxError):  # Pillow's errors on unreadable or odd files
+        return None
+
+
 def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
     """Read an 8/16-bit image as float32 RGB in [0, 1], shape (H, W, 3).
 
