@@ -36,8 +36,9 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--pairs", default="auto", help="complete | window:K | auto (complete up to 24 images)")
     a.add_argument("--shared-focal", action="store_true", help="one focal for all views")
     a.add_argument("--iters", type=nonneg_int, default=100, help="global alignment iterations (default 100)")
-    a.add_argument("--align-stride", type=positive_int, default=4,
-                   help="global alignment on every K-th pixel row/column (default 4; 1 = all pixels)")
+    a.add_argument("--align-stride", type=positive_int, default=None,
+                   help="global alignment on every K-th pixel row/column of the pointmaps (default: "
+                        "AlignConfig's, 8; 1 = all pixels)")
     a.add_argument("--ba", action=argparse.BooleanOptionalAction, default=True,
                    help="sparse bundle adjustment on the feature tracks after the alignment (default: on)")
     a.add_argument("--dense-stereo", action=argparse.BooleanOptionalAction, default=True,
@@ -123,7 +124,7 @@ def _align(args: argparse.Namespace) -> int:
     cfg = AlignConfig(max_size_px=args.max_size, pairs=PairGraphSpec.parse(args.pairs),
                       pairwise=ClassicalPairConfig(pointmap_size_px=args.pointmap_size),
                       align=GlobalAlignConfig(iters=args.iters, shared_focal=args.shared_focal,
-                                              pixel_stride=args.align_stride),
+                                              pixel_stride=args.align_stride or AlignConfig().align.pixel_stride),
                       points_budget=args.points, bundle_adjust=args.ba, allow_partial=args.allow_partial,
                       downsample=args.downsample, dense_stereo=DenseStereoConfig(enabled=args.dense_stereo),
                       hole_fill=HoleFillConfig(enabled=args.hole_fill), initial_poses=args.initial_poses,

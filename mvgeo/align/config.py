@@ -30,7 +30,9 @@ class AlignConfig:
         pairwise: options of the classical pair estimator (incl. the pointmap resolution
             `pointmap_size_px`).
         align: options of the global alignment (`shared_focal` lives there); default 100 iterations on
-            every 4th pixel row/column, since the final poses come from the bundle adjustment.
+            every 8th pixel row/column of the pointmaps (16 x 16 samples of a 128-pixel one), since the final
+            poses come from the bundle adjustment: on the real sets the poses are those of every 4th to
+            the printed digit, at about two thirds of the stage's time (docs/bench/align_speed.md).
         candidate_align_iters: global-alignment iterations each candidate runs before its bundle adjustment;
             None (default): all of `align.iters`. Fewer (0: the start's values go to the adjustment as they
             are) run the full alignment once, for the chosen candidate's cloud, only where the cloud uses
@@ -134,7 +136,7 @@ class AlignConfig:
     max_size_px: int = 640
     pairs: PairGraphSpec = field(default_factory=PairGraphSpec)
     pairwise: ClassicalPairConfig = field(default_factory=ClassicalPairConfig)
-    align: GlobalAlignConfig = field(default_factory=lambda: GlobalAlignConfig(iters=100, pixel_stride=4))
+    align: GlobalAlignConfig = field(default_factory=lambda: GlobalAlignConfig(iters=100, pixel_stride=8))
     candidate_align_iters: int | None = None
     min_conf: float = 2.0
     consistency_px: float = 2.0

@@ -30,7 +30,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -88,8 +88,9 @@ class GlobalAlignConfig:
             threads were measured ~40x slower than one (spin-waiting threads).
         pixel_stride: only pixels on every `pixel_stride`-th row and column
             enter the objective (cost / stride^2); after the optimisation the
-            other pixels' log-depth receives the correction of their nearest
-            sampled pixel (the poses and focals only see the samples).
+            other pixels' log-depth receives the correction interpolated
+            bilinearly between the sampled pixels around them (the poses and
+            focals only see the samples).
         init: "procrustes" (DUSt3R: chain the pairs' pointmaps along the maximum
             spanning tree with weighted Procrustes, then PnP per view) or
             "pair_poses" (`mvgeo.align.pose_chain`: chain each tree pair's own
@@ -208,8 +209,7 @@ def init_from_spanning_tree(preds: Sequence[PairPrediction], sizes_hw: Sequence[
             raise UnposedViewsError("its chained points lie behind the camera", views=[v])
         z = np.where(ok & (z > 1e-3 * med), z, med)
         depth.append(z)
-    return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth,
-                     pair_similarities(preds, sizes_hw, cam_from_world, depth, focal_init_px))
+    return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth)
 
 
 # --------------------------------------------------------------------------- driver
@@ -258,6 +258,12 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
             raise InputError(f"unknown initialisation {config.init!r}", fix="use 'procrustes' or 'pair_poses'")
         init = init_from_spanning_tree(preds, sizes_hw, focal_init_px=focal_init_px)
 
+    if config.pixel_stride < 1:
+        raise InputError(f"pixel_stride must be >= 1, got {config.pixel_stride}")
+    stride = config.pixel_stride
+    if init.pair_sim is None:  # fitted on the pixels the objective samples
+        init = replace(init, pair_sim=pair_similarities(preds, sizes_hw, init.cam_from_world, init.depth,
+                                                        init.focal_px, pixel_stride=stride))
     dev, dt = torch.device(config.device), config.dtype
     # Renormalise the world so that the pair scales' geometric mean is already pinned.
     gm = math.exp(np.mean([math.log(s) for s, _, _ in init.pair_sim]))
@@ -278,9 +284,6 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
     T = lambda x: torch.as_tensor(np.asarray(x), dtype=dt, device=dev)  # noqa: E731
     params = _Params(log_depth, T(quat_from_R(world_from_cam_R)), T(world_from_cam_t), T(log_focal),
                      T(q_pair), T(t_pair), T(logs_pair), optimize_focal=config.optimize_focal)
-    if config.pixel_stride < 1:
-        raise InputError(f"pixel_stride must be >= 1, got {config.pixel_stride}")
-    stride = config.pixel_stride
     terms = _build_terms(preds, sizes_hw, offsets, dt, dev, stride=stride)
     n_full = int(offsets[-1] + sizes_hw[-1][0] * sizes_hw[-1][1])
     # With a stride, only the sampled pixels are unknowns: every tensor has the samples' size.
@@ -315,15 +318,21 @@ def global_align(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, 
 
 
 def _spread(delta: np.ndarray, sizes_hw, offsets, stride: int) -> np.ndarray:
-    """Give every unsampled pixel the log-depth change of its nearest sampled pixel (block copy)."""
+    """Give every unsampled pixel the log-depth change interpolated bilinearly between the sampled pixels
+    around it (`_sample_mask`'s grid); beyond the outermost samples the nearest one's."""
     delta = delta.copy()
     for v, (H, W) in enumerate(sizes_hw):
         d = delta[offsets[v]:offsets[v] + H * W].reshape(H, W)
         sub = d[stride // 2::stride, stride // 2::stride]
-        full = np.repeat(np.repeat(sub, stride, axis=0), stride, axis=1)
-        # Blocks are centred on their sample; pad the last ones by edge replication.
-        full = np.pad(full, ((0, max(0, H - full.shape[0])), (0, max(0, W - full.shape[1]))), mode="edge")
-        delta[offsets[v]:offsets[v] + H * W] = full[:H, :W].reshape(-1)
+        # Fractional sample index of every row and column, clamped to the samples' range.
+        fy = np.clip((np.arange(H) - stride // 2) / stride, 0, sub.shape[0] - 1)
+        fx = np.clip((np.arange(W) - stride // 2) / stride, 0, sub.shape[1] - 1)
+        y0, x0 = np.floor(fy).astype(int), np.floor(fx).astype(int)
+        y1, x1 = np.minimum(y0 + 1, sub.shape[0] - 1), np.minimum(x0 + 1, sub.shape[1] - 1)
+        wy, wx = (fy - y0)[:, None], (fx - x0)[None, :]
+        top = sub[y0][:, x0] * (1 - wx) + sub[y0][:, x1] * wx
+        bottom = sub[y1][:, x0] * (1 - wx) + sub[y1][:, x1] * wx
+        delta[offsets[v]:offsets[v] + H * W] = (top * (1 - wy) + bottom * wy).reshape(-1)
     return delta
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from mvgeo.align.global_align import GlobalAlignConfig, focal_estimates, init_from_spanning_tree
 from mvgeo.align.loops import pair_rotations
 from mvgeo.align.pairs import PairPrediction, PairSet
-from mvgeo.align.pointmap_geometry import AlignInit, pair_similarities, valid_pointmap_pixels
+from mvgeo.align.pointmap_geometry import AlignInit, valid_pointmap_pixels
 from mvgeo.align.pose_chain import pair_pose_from_pointmap
 from mvgeo.align.rotation_averaging import (
     average_rotations,
@@ -237,5 +237,4 @@ def init_from_positions(preds: Sequence[PairPrediction], sizes_hw: Sequence[tupl
     missing = [v for v in range(n) if depth[v] is None]
     if missing:
         raise UnposedViewsError("no pair with a usable pointmap and baseline", views=missing)
-    return AlignInit(np.asarray(cam_from_world, np.float64).copy(), np.asarray(focal_px, np.float64).copy(), depth,
-                     pair_similarities(preds, sizes_hw, cam_from_world, depth, focal_px))
+    return AlignInit(np.asarray(cam_from_world, np.float64).copy(), np.asarray(focal_px, np.float64).copy(), depth)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mvgeo.align.pairs import PairPrediction
-from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.transforms import umeyama
 
 __all__ = ["PNP_REFINE_POINTS", "AlignInit", "pair_similarities", "pixel_rays", "valid_pointmap_pixels",
@@ -46,12 +46,16 @@ def pixel_rays(H: int, W: int, focal_px: float) -> np.ndarray:
 
 @dataclass
 class AlignInit:
-    """Initial values (numpy float64) for the optimisation."""
+    """Initial values (numpy float64) for the optimisation.
+
+    `pair_sim`, each pair's similarity into the world, is None where the initialisation leaves it to
+    `global_align`, which fits it (`pair_similarities`) on the pixels its objective samples.
+    """
 
     cam_from_world: np.ndarray  # (N, 3, 4)
     focal_px: np.ndarray  # (N,)
     depth: list[np.ndarray]  # (H_n, W_n)
-    pair_sim: list[tuple[float, np.ndarray, np.ndarray]]  # pair frame -> world
+    pair_sim: list[tuple[float, np.ndarray, np.ndarray]] | None = None  # pair frame -> world
 
 
 def valid_pointmap_pixels(C: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -60,24 +64,32 @@ def valid_pointmap_pixels(C: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 
 def pair_similarities(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[int, int]], cam_from_world: np.ndarray,
-                      depth: Sequence[np.ndarray], focal_px: np.ndarray) -> list[tuple[float, np.ndarray, np.ndarray]]:
+                      depth: Sequence[np.ndarray], focal_px: np.ndarray, *, pixel_stride: int = 1
+                      ) -> list[tuple[float, np.ndarray, np.ndarray]]:
     """Each pair's similarity (s, R, t): pair frame -> world, by weighted Procrustes against the posed depth maps.
 
     Each view's posed depth map (world points, (H, W, 3)) is computed once and shared by its pairs.
+    `pixel_stride`: only the pixels on every `pixel_stride`-th row and column (offset `pixel_stride // 2`,
+    the global alignment's samples) enter the fit.
     """
+    k = pixel_stride
+    if k < 1:
+        raise InputError(f"pixel_stride must be >= 1, got {k}")
     posed: dict[int, np.ndarray] = {}
 
     def world_points(v: int) -> np.ndarray:
         if v not in posed:
             H, W = sizes_hw[v]
             R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
-            posed[v] = (pixel_rays(H, W, float(focal_px[v])) * depth[v][..., None] - t) @ R  # R^T (x - t)
+            rays = pixel_rays(H, W, float(focal_px[v]))[k // 2::k, k // 2::k]
+            posed[v] = (rays * depth[v][k // 2::k, k // 2::k, None] - t) @ R  # R^T (x - t)
         return posed[v]
 
     pair_sim = []
     for p in preds:
         src, dst, w = [], [], []
         for v, P, C in ((p.i, p.pts_i, p.conf_i), (p.j, p.pts_j, p.conf_j)):
+            P, C = P[k // 2::k, k // 2::k], C[k // 2::k, k // 2::k]
             ok = valid_pointmap_pixels(C, P)
             src.append(P[ok].astype(np.float64))
             dst.append(world_points(v)[ok])

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from mvgeo.align.pairs import PairPrediction
-from mvgeo.align.pointmap_geometry import PNP_REFINE_POINTS, AlignInit, pair_similarities
+from mvgeo.align.pointmap_geometry import PNP_REFINE_POINTS, AlignInit
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import UnposedViewsError
 from mvgeo.pnp import sqpnp
@@ -145,5 +145,4 @@ def init_from_pair_poses(preds: Sequence[PairPrediction], sizes_hw: Sequence[tup
         if not med > 0:
             raise UnposedViewsError("no confident pixel with positive depth", views=[v])
         depth_list.append(np.where(ok & (z > 1e-3 * med), z, med))
-    return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth_list,
-                     pair_similarities(preds, sizes_hw, cam_from_world, depth_list, focal_init_px))
+    return AlignInit(cam_from_world, np.asarray(focal_init_px, np.float64).copy(), depth_list)

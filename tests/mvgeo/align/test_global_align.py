@@ -11,12 +11,19 @@ from mvgeo.align.alignment_objective import (
     _build_terms,
     _Grid,
     _Params,
+    _sample_mask,
     _term_index,
     alignment_loss,
     alignment_loss_and_grads,
     alignment_loss_reference,
 )
-from mvgeo.align.global_align import GlobalAlignConfig, global_align, init_from_spanning_tree, pixel_rays
+from mvgeo.align.global_align import (
+    GlobalAlignConfig,
+    _spread,
+    global_align,
+    init_from_spanning_tree,
+    pixel_rays,
+)
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.metrics import compare_poses
 from mvgeo.transforms import quat_from_R
@@ -206,5 +213,27 @@ def test_pixel_stride_recovers_poses_and_fills_all_depths(rng):
     assert m_str.rotation_deg.max() < 0.1
     for d_full, d_str in zip(full.depth, strided.depth, strict=True):
         assert d_str.shape == d_full.shape and np.isfinite(d_str).all()
-        # Unsampled pixels get their sampled neighbour's correction: depths agree to a few percent.
+        # Unsampled pixels get their sampled neighbours' correction: depths agree to a few percent.
         assert np.median(np.abs(d_str / d_full - 1)) < 0.03
+
+
+@pytest.mark.parametrize("stride", [2, 3, 4, 8])
+def test_spread_interpolates_the_sampled_corrections_bilinearly(stride):
+    """`_spread` against its definition: a correction linear in the pixel coordinates, given at the samples
+    only, comes back exactly between the outermost samples (bilinear interpolation of a linear function)
+    and, beyond them, as its value at the clamped coordinate (the outermost sample's). Two views of
+    different sizes, so the second's offset is exercised."""
+    sizes = [(37, 45), (29, 21)]
+    coeffs = [(0.3, -0.02, 0.01), (-0.1, 0.004, 0.03)]
+    offsets = np.concatenate([[0], np.cumsum([h * w for h, w in sizes])[:-1]])
+    delta = np.zeros(sum(h * w for h, w in sizes))
+    for (H, W), o, (a, b, c) in zip(sizes, offsets, coeffs, strict=True):
+        y, x = np.mgrid[0:H, 0:W].astype(float)
+        mask = _sample_mask(H, W, stride).reshape(H, W)
+        delta[o:o + H * W] = np.where(mask, a + b * x + c * y, np.nan).reshape(-1)  # only samples are read
+    out = _spread(delta, sizes, offsets, stride)
+    for (H, W), o, (a, b, c) in zip(sizes, offsets, coeffs, strict=True):
+        ys, xs = np.arange(stride // 2, H, stride), np.arange(stride // 2, W, stride)
+        yc = np.clip(np.arange(H), ys[0], ys[-1])[:, None]
+        xc = np.clip(np.arange(W), xs[0], xs[-1])[None, :]
+        np.testing.assert_allclose(out[o:o + H * W].reshape(H, W), a + b * xc + c * yc, rtol=0, atol=1e-12)
