@@ -34,7 +34,7 @@ from eval.results import carried_rows, merge_rows, write_results
 from mvgeo.common.argtypes import fraction, int_range, nonneg_float, nonneg_int, out_path, positive_int, seed
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
-from mvgeo.common.errors import InputError
+from mvgeo.common.errors import AlignmentRefusedError, DisconnectedViewsError, InputError
 from mvgeo.common.output import OUT_RESUME_HELP, prepare_output, resumable_output_dir
 
 __all__ = ["build_parser", "main", "resolve_scene_source"]
@@ -278,10 +278,26 @@ def _cmd_cost(args: argparse.Namespace) -> int:
                              f"the dataset has ({len(dataset.train)})", path=folder / "split.json",
                              fix=f"use train_views values of 2..{len(dataset.train)}")
         base = dataclasses.replace(base, views=min(base.views, len(dataset.train)))
-        rows = run_cost_sweep(dataset, out, dataclasses.replace(config, base=base), executor=executor)
+        try:
+            rows = run_cost_sweep(dataset, out, dataclasses.replace(config, base=base), executor=executor)
+        except (DisconnectedViewsError, AlignmentRefusedError) as exc:
+            if kind == "dataset":
+                raise
+            raise _rendered_views_refusal(exc, args) from None
         _, md = write_cost_results(out, rows, title=f"denoise-gs cost: {name}")
     print(f"results: {md}")
     return 0
+
+
+def _rendered_views_refusal(exc: DisconnectedViewsError | AlignmentRefusedError, args: argparse.Namespace):
+    """An alignment refusal of a scene the command rendered (a built-in name or a scene file): the pipeline's
+    fix (leave photos out of the input folder, add photos) becomes the options that render the views."""
+    w, h = args.size
+    fix = (f"the scene's {args.scene_views} views rendered at {w}x{h} cannot all be related: render them larger "
+           "(--size) or more of them (--scene-views), or pass a dataset folder")
+    if isinstance(exc, DisconnectedViewsError):
+        return DisconnectedViewsError(exc.message, views=exc.views, path=exc.path, fix=fix)
+    return exc.with_fix(fix)
 
 
 def _cluster_settings(args: argparse.Namespace, device: str) -> ClusterSettings:

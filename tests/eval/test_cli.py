@@ -390,3 +390,27 @@ def test_eval_first_seed_must_be_a_seed(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["eval", "llff_like", "--out", str(tmp_path / "o"), "--first-seed", "-1"])
     assert exc.value.code == 2 and "--first-seed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["disconnected", "refused"])
+def test_cost_on_a_rendered_scene_names_the_render_options_in_a_refusal(tmp_path, capsys, monkeypatch, kind):
+    """An alignment refusal in a sweep over a scene the command renders: the pipeline's fix speaks of an input
+    folder the user does not have; `denoise-gs cost` names --size and --scene-views instead (exit 2 for views
+    that no pair relates, an input problem; 1 for a refused result, as every command exits on one)."""
+    import eval.cost
+    from eval.pipeline.align_stage import as_pipeline_refusal
+    from mvgeo.common.errors import AlignmentRefusedError, DisconnectedViewsError
+
+    def refused(*args, **kwargs):
+        exc = (DisconnectedViewsError("the pair graph is disconnected", views=["view_003.png"])
+               if kind == "disconnected" else
+               AlignmentRefusedError("1 of 4 views rest on a single pair", kind="views_unsupported",
+                                     views=["view_003.png"]))
+        raise as_pipeline_refusal(exc)
+
+    monkeypatch.setattr(eval.cost, "run_cost_sweep", refused)
+    code = main(["cost", "llff_like", "--out", str(tmp_path / "out"), "--size", "64x48", "--scene-views", "4"])
+    err = _err(capsys)
+    assert code == (2 if kind == "disconnected" else 1)
+    assert "--size" in err and "--scene-views" in err and "64x48" in err
+    assert "input folder" not in err and "Traceback" not in err
