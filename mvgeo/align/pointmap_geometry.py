@@ -70,29 +70,40 @@ def pair_similarities(preds: Sequence[PairPrediction], sizes_hw: Sequence[tuple[
 
     Each view's posed depth map (world points, (H, W, 3)) is computed once and shared by its pairs.
     `pixel_stride`: only the pixels on every `pixel_stride`-th row and column (offset `pixel_stride // 2`,
-    the global alignment's samples) enter the fit.
-    """
-    k = pixel_stride
-    if k < 1:
-        raise InputError(f"pixel_stride must be >= 1, got {k}")
-    posed: dict[int, np.ndarray] = {}
+    the global alignment's samples) enter the fit; a pair whose samples hold too few confident points for
+    it is fitted on all its pixels.
 
-    def world_points(v: int) -> np.ndarray:
-        if v not in posed:
+    Raises:
+        DegenerateGeometryError: a pair's fit is degenerate on all its pixels.
+    """
+    if pixel_stride < 1:
+        raise InputError(f"pixel_stride must be >= 1, got {pixel_stride}")
+    posed: dict[tuple[int, int], np.ndarray] = {}
+
+    def world_points(v: int, k: int) -> np.ndarray:
+        if (v, k) not in posed:
             H, W = sizes_hw[v]
             R, t = cam_from_world[v][:, :3], cam_from_world[v][:, 3]
             rays = pixel_rays(H, W, float(focal_px[v]))[k // 2::k, k // 2::k]
-            posed[v] = (rays * depth[v][k // 2::k, k // 2::k, None] - t) @ R  # R^T (x - t)
-        return posed[v]
+            posed[v, k] = (rays * depth[v][k // 2::k, k // 2::k, None] - t) @ R  # R^T (x - t)
+        return posed[v, k]
 
-    pair_sim = []
-    for p in preds:
+    def fit(p: PairPrediction, k: int) -> tuple[float, np.ndarray, np.ndarray]:
         src, dst, w = [], [], []
         for v, P, C in ((p.i, p.pts_i, p.conf_i), (p.j, p.pts_j, p.conf_j)):
             P, C = P[k // 2::k, k // 2::k], C[k // 2::k, k // 2::k]
             ok = valid_pointmap_pixels(C, P)
             src.append(P[ok].astype(np.float64))
-            dst.append(world_points(v)[ok])
+            dst.append(world_points(v, k)[ok])
             w.append(np.log(C[ok]))
-        pair_sim.append(weighted_umeyama(np.concatenate(src), np.concatenate(dst), np.concatenate(w)))
+        return weighted_umeyama(np.concatenate(src), np.concatenate(dst), np.concatenate(w))
+
+    pair_sim = []
+    for p in preds:
+        try:
+            pair_sim.append(fit(p, pixel_stride))
+        except DegenerateGeometryError:
+            if pixel_stride == 1:
+                raise
+            pair_sim.append(fit(p, 1))
     return pair_sim

@@ -237,3 +237,33 @@ def test_spread_interpolates_the_sampled_corrections_bilinearly(stride):
         yc = np.clip(np.arange(H), ys[0], ys[-1])[:, None]
         xc = np.clip(np.arange(W), xs[0], xs[-1])[None, :]
         np.testing.assert_allclose(out[o:o + H * W].reshape(H, W), a + b * xc + c * yc, rtol=0, atol=1e-12)
+
+
+def test_pair_similarities_fall_back_to_every_pixel_where_the_samples_hold_too_few(rng):
+    """The start's pair similarities are fitted on the alignment's samples; a pair with no confident point
+    on them (here: pair 0's confidence lowered to 1 on every sampled pixel) is fitted on all its pixels,
+    where the strided fit alone would be degenerate."""
+    from dataclasses import replace as dc_replace
+
+    from mvgeo.align.pointmap_geometry import pair_similarities, weighted_umeyama
+
+    poses, depths = make_views(4)
+    preds = make_pairs(poses, depths, FOCAL, rng, noise=0.002, focal_err=0.05)
+    sizes = [d.shape for d in depths]
+    init = init_from_spanning_tree(preds, sizes, focal_init_px=np.full(4, FOCAL))
+    k = 8
+    p0 = preds[0]
+    ci, cj = p0.conf_i.copy(), p0.conf_j.copy()
+    ci[k // 2::k, k // 2::k] = 1.0
+    cj[k // 2::k, k // 2::k] = 1.0
+    preds = [dc_replace(p0, conf_i=ci, conf_j=cj), *preds[1:]]
+    args = (preds, sizes, init.cam_from_world, init.depth, init.focal_px)
+    strided, full = pair_similarities(*args, pixel_stride=k), pair_similarities(*args)
+    s0, R0, t0 = strided[0]
+    assert s0 == full[0][0] and np.array_equal(R0, full[0][1]) and np.array_equal(t0, full[0][2])
+    # The other pairs keep their fit on the samples (fewer points: not the full fit's numbers).
+    assert all(a[0] != b[0] for a, b in zip(strided[1:], full[1:], strict=True))
+    # On its samples alone pair 0 has no confident point: the fit the fallback replaces is degenerate.
+    with pytest.raises(DegenerateGeometryError):
+        weighted_umeyama(np.zeros((0, 3)), np.zeros((0, 3)), np.log(np.concatenate(
+            [c[k // 2::k, k // 2::k][c[k // 2::k, k // 2::k] > 1.0] for c in (ci, cj)])))
