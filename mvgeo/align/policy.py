@@ -20,12 +20,16 @@ generation ends when no candidate calls for one:
 3. pruning: a candidate with contradicted pairs is solved again without them, where that keeps the views
    connected (with `allow_partial`: keeping the largest connected group, and also leaving out the views
    whose positions the tracks do not determine); once, or three times with `allow_partial`. It is still
-   judged against every verified pair, the dropped ones included. Accepted candidates are pruned too: on
-   object_ring's 28 training views of 32 (256x192) the accepted, self-consistent candidate is bent (5.8 deg
-   median, 22 deg max; its contradicted pairs hold under `max_unexplained_fraction` of the matches) and its
-   pruning is right (0.52 deg); on 21 DTU scan24 sets (`benchmarks/diag_real_subsets.py`'s clusters, clean
-   and two noise draws) the 7 such prunings left the rotation errors as they were on five and raised the max
-   by 0.06 and 0.16 deg on two, at 0.5-0.7 s each: the price of the ring;
+   judged against every verified pair, the dropped ones included. Accepted candidates are pruned too, of the
+   pairs whose matches they do not explain (`min_pair_explained`; `_prunable`): on object_ring's 28 training
+   views of 32 (256x192) the accepted, self-consistent candidate is bent (5.8 deg median, 22 deg max; its
+   contradicted pairs hold under `max_unexplained_fraction` of the matches) and its pruning is right (0.52
+   deg). A pair that fails only the rotation check is not pruned from an accepted candidate: it explains
+   its matches, which leave the rotation ambiguous. Pruned of such pairs too, 8 accepted candidates of 32
+   real and synthetic sets and 2 of 8 dithers of object_ring (`benchmarks/diag_accepted_prune.py`: DTU
+   scan24 clusters and the temple ring's layouts, clean and sigma 25/255, six noise draws of the DTU
+   cluster, object_ring, llff_like) came back with the same result on nine and a worse one on one (worst
+   pair 0.97 against 0.92 deg), at 0.3-2.9 s each;
 4. relocation (`mvgeo.align.solve.relocate`), before pruning: a candidate whose verdict cuts off views that
    PnP on the main group's points places confidently elsewhere (`mvgeo.align.locate`), and locates all the
    others where the candidate has them, is adjusted again from the PnP poses, once;
@@ -103,10 +107,21 @@ def _relocatable(c: Candidate) -> bool:
             and all(x.ok or x.placed_elsewhere for x in c.located))
 
 
-def _pruned(c: Candidate, config, timer: StageTimer) -> Candidate | None:
-    """`c` solved again without its contradicted pairs (and, with `allow_partial`, its undetermined views)."""
+def _prunable(c: Candidate, config) -> set[tuple[int, int]]:
+    """The contradicted pairs `c` would be solved again without, among those it was solved with: every failing
+    pair of a refused candidate; of an accepted one, only the pairs whose matches it does not explain
+    (`min_pair_explained`). A pair that fails only the rotation check is explained by the result: its matches
+    leave the rotation ambiguous (the check's reason), and solving again without it did not change the chosen
+    solution in any measured case (module docstring, item 3)."""
     present = {(p.i, p.j) for p in c.pairs.predictions} | {(g.i, g.j) for g in c.pairs.geometries}
-    gone = {(b.i, b.j) for b in c.bad} & present
+    bad = c.bad if not c.verdict.ok else [b for b in c.bad if b.explained_fraction < config.min_pair_explained]
+    return {(b.i, b.j) for b in bad} & present
+
+
+def _pruned(c: Candidate, config, timer: StageTimer) -> Candidate | None:
+    """`c` solved again without its contradicted pairs (`_prunable`; and, with `allow_partial`, its undetermined
+    views)."""
+    gone = _prunable(c, config)
     loose = set(loose_views(c.ba, config.max_centre_std_ratio)) if config.allow_partial else set()
     unsupported: set[int] = set()
     if config.allow_partial and config.reject_unsupported_views:  # views held by one pair PnP does not confirm
@@ -205,13 +220,9 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
     pending = [done[0]]
     prunes: dict[int, int] = {id(done[0]): 0}
     max_prunes = 3 if config.allow_partial else 1
-    def bad_present(c: Candidate) -> bool:
-        present = {(p.i, p.j) for p in c.pairs.predictions} | {(g.i, g.j) for g in c.pairs.geometries}
-        return bool({(b.i, b.j) for b in c.bad} & present)
-
     def settled(c: Candidate) -> bool:  # accepted, self-consistent, and nothing left to prune
         return (c.verdict.ok and _focal_consistent(c, config)
-                and not (bad_present(c) and prunes[id(c)] < max_prunes))
+                and not (_prunable(c, config) and prunes[id(c)] < max_prunes))
 
     second_tried = False
     while len(summaries) < config.max_candidates and not any(settled(c) for c in done):

@@ -16,7 +16,7 @@ from mvgeo.align.api import PREVIEW, AlignConfig, align_images
 from mvgeo.align.checks import PairCheck
 from mvgeo.align.global_align import GlobalAlignConfig
 from mvgeo.align.locate import Located
-from mvgeo.align.pairs import PairSet
+from mvgeo.align.pairs import PairGeometry, PairSet
 from mvgeo.align.policy import choose_solution
 from mvgeo.align.solve import Candidate
 from mvgeo.align.stats import AlignStats, Unregistered
@@ -222,6 +222,45 @@ def test_a_weak_view_gets_no_second_start(monkeypatch):
     with pytest.raises(DegenerateGeometryError, match="chain refused: views_unsupported"):
         _choose()
     assert script.calls == [("chain", False)]
+
+
+@pytest.mark.parametrize("accepted", [True, False])
+def test_an_accepted_candidate_is_pruned_only_of_pairs_whose_matches_it_does_not_explain(monkeypatch, accepted):
+    """Pair (0, 1) fails only the rotation check (it explains 90 % of its matches), pair (1, 2) explains 30 %
+    (under `min_pair_explained`): an accepted candidate is solved again without (1, 2) alone, a refused one
+    without both; with only the rotation-failing pair an accepted candidate is the solution, not solved again.
+    Without the rule (every failing pair pruned) the first case would drop (0, 1) too and the second would be
+    solved twice."""
+    geometries = [PairGeometry(0, 1, np.zeros((20, 4))), PairGeometry(1, 2, np.zeros((20, 4)))]
+    pairs = PairSet([], [], geometries, focal_determined=True)
+    rotation_only = PairCheck(0, 1, 100, 0.9, rotation_deviation_deg=15.0)
+    unexplained = PairCheck(1, 2, 100, 0.3, rotation_deviation_deg=2.0)
+    reasons = () if accepted else (Reason("views_unsupported", (), "refused"),)
+
+    def candidate(bad):
+        graph = SimpleNamespace(inputs=_Inputs(), pairs=pairs, refocused=False, unregistered=[])
+        return Candidate("chain", graph, graph.inputs, pairs, None, None, None, None,
+                         [rotation_only, unexplained, PairCheck(0, 2, 100, 1.0)], bad, verdict=Verdict(
+                             tuple(reasons)))
+
+    config = AlignConfig(initial_poses="chain")
+    assert policy._prunable(candidate([rotation_only, unexplained]), config) == (
+        {(1, 2)} if accepted else {(0, 1), (1, 2)})
+    assert policy._prunable(candidate([rotation_only]), config) == (set() if accepted else {(0, 1)})
+
+    solved, pruned = [], []
+    monkeypatch.setattr(policy, "pair_graph", lambda inputs, p, config, timer, refocused=False: SimpleNamespace(
+        inputs=inputs, pairs=p, refocused=refocused, unregistered=[]))
+    monkeypatch.setattr(policy, "solve", lambda graph, start, config, timer, **kw: solved.append(start)
+                        or candidate([rotation_only]))
+    monkeypatch.setattr(policy, "_pruned", lambda c, config, timer: pruned.append(c) and None)
+    if accepted:
+        chosen, summaries = _choose(pairs=pairs)
+        assert solved == ["chain"] and pruned == [] and summaries[0].chosen
+    else:
+        with pytest.raises(DegenerateGeometryError):
+            _choose(pairs=pairs)
+        assert pruned and pruned[0].start == "chain"  # (and the other start: it contradicts a third of the matches)
 
 
 @pytest.mark.parametrize("chain_explained, averaged_explained", [(0.6, 0.8), (0.8, 0.6)])
