@@ -59,11 +59,12 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
         workers: threads over the views (default: one per core); the masks do not depend on it.
     """
     n = len(pts_world)
+    flat_depth = [np.ascontiguousarray(d).reshape(-1) for d in depth]
+    flat_conf = [np.ascontiguousarray(c).reshape(-1) for c in conf]
+    flat_measured = None if measured is None else [np.ascontiguousarray(m).reshape(-1) for m in measured]
 
-    def keep_view(a: int) -> np.ndarray:
-        P = pts_world[a].reshape(-1, 3)
-        ca = conf[a].reshape(-1)
-        filled_a = None if measured is None else ~measured[a].reshape(-1)
+    def keep_chunk(a: int, P: np.ndarray, ca: np.ndarray, filled_a: np.ndarray | None) -> np.ndarray:
+        """The drop mask of `P`, some of view `a`'s points (their confidences `ca`, which are filled)."""
         drop = np.zeros(len(P), bool)
         confirmed = np.zeros(len(P), bool)
         seen = np.zeros(len(P), bool)
@@ -79,27 +80,43 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
                 v = K[b][1, 1] * x[:, 1] / z + K[b][1, 2]
             ok = (z > 0) & (u >= 0) & (u < Wb) & (v >= 0) & (v < Hb)
             idx = np.flatnonzero(ok)
-            col = np.floor(u[idx]).astype(np.int64)
-            row = np.floor(v[idx]).astype(np.int64)
-            db = depth[b][row, col]
-            cb = conf[b][row, col]
-            same = np.abs(z[idx] - db) < rel_depth_tol * db
-            better = (cb > ca[idx]) | ((cb == ca[idx]) & (b < a))
+            q = np.floor(v[idx]).astype(np.int64) * Wb + np.floor(u[idx]).astype(np.int64)  # pixel q, row-major
+            db = flat_depth[b][q]
+            cb = flat_conf[b][q]
+            zp = z[idx]
+            cp = ca[idx]
+            same = np.abs(zp - db) < rel_depth_tol * db
+            better = (cb > cp) | ((cb == cp) & (b < a))
             drop[idx[same & better]] = True
-            if measured is not None:  # the checks below: a measured point takes measured evidence only
-                keep_evidence = measured[b][row, col] | filled_a[idx]
-                idx, db = idx[keep_evidence], db[keep_evidence]
+            if flat_measured is not None:  # the checks below: a measured point takes measured evidence only
+                keep_evidence = flat_measured[b][q] | filled_a[idx]
+                idx, db, zp = idx[keep_evidence], db[keep_evidence], zp[keep_evidence]
             if consistency_rel_tol > 0:
-                confirmed[idx[np.abs(z[idx] - db) < consistency_rel_tol * db]] = True
+                confirmed[idx[np.abs(zp - db) < consistency_rel_tol * db]] = True
                 seen[idx[np.isfinite(db) & (db > 0)]] = True
             if free_space_rel_tol > 0:
-                drop[idx[z[idx] < (1.0 - free_space_rel_tol) * db]] = True
-        drop |= seen & ~confirmed
+                drop[idx[zp < (1.0 - free_space_rel_tol) * db]] = True
+        return drop | (seen & ~confirmed)
+
+    def keep_view(a: int) -> np.ndarray:
+        P = pts_world[a].reshape(-1, 3)
+        ca = conf[a].reshape(-1)
+        filled = None if measured is None else ~measured[a].reshape(-1)
+        # In chunks of `_CHUNK` points: every temporary stays small enough to be reused by the allocator
+        # rather than mapped and unmapped per operation (on 256 x 256 depth maps of 12 views the whole view at
+        # once took 2.5x as long, and longer with two threads than with one).
+        drop = np.concatenate([keep_chunk(a, P[s:s + _CHUNK], ca[s:s + _CHUNK],
+                                          None if filled is None else filled[s:s + _CHUNK])
+                               for s in range(0, len(P), _CHUNK)]) if len(P) else np.zeros(0, bool)
         return ~drop.reshape(depth[a].shape)
 
     # Views are independent and numpy releases the GIL in the per-pixel work: one thread per core.
     with ThreadPoolExecutor(max_workers=max(1, min(n, workers or os.cpu_count() or 1))) as pool:
         return list(pool.map(keep_view, range(n)))
+
+
+#: Points of a view projected at once by `covisibility_keep` (16384: 128 KiB per float64 temporary).
+_CHUNK = 16384
 
 
 def voxel_downsample_by_confidence(points: np.ndarray, conf: np.ndarray, budget: int) -> np.ndarray:

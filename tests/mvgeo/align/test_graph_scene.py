@@ -196,11 +196,16 @@ def _covisibility_reference(pts, depth, conf, cams, Ks, rel_tol, cons_tol, free_
     return keep
 
 
-@pytest.mark.parametrize("workers", [1, 3])
-def test_covisibility_matches_the_pixel_loop_with_any_number_of_threads(rng, workers):
+@pytest.mark.parametrize("workers, chunk", [(1, None), (3, None), (1, 7), (3, 50)])
+def test_covisibility_matches_the_pixel_loop_with_any_number_of_threads(rng, monkeypatch, workers, chunk):
     """Four views of a bumpy surface from nearby cameras, ties in confidence included: the vectorised,
-    threaded masks equal the pixel-by-pixel reference, for one thread or several."""
+    threaded masks equal the pixel-by-pixel reference, for one thread or several, and with each view's points
+    taken in chunks (7 and 50 of its 108 points; None: the default, the whole view at once here)."""
+    import mvgeo.align.scene as scene
     from mvgeo.transforms import R_from_axis_angle
+
+    if chunk is not None:
+        monkeypatch.setattr(scene, "_CHUNK", chunk)
 
     H, W, f = 9, 12, 10.0
     K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
