@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import bench_real as br
 import numpy as np
-from _common import cli_option, md_table, write_fragment
+from _common import cli_option, cpu_model, md_table, write_fragment
 from diag_real_subsets import _dtu_sets, _temple_sets, prepared
 
 import mvgeo.align.policy as policy
@@ -119,8 +118,7 @@ def main() -> int:
     policy._prunable = _new_prunable
     same = sum(a[2:6] == b[2:6] for a, b in zip(rows[::2], rows[1::2], strict=True))
     t = {r: sum(x[6] for x in rows if x[1] == r) for r in ("all", "unexplained")}
-    cpu = subprocess.run("lscpu | grep 'Model name'", shell=True, capture_output=True, text=True).stdout.strip()
-    body = (f"Machine: {cpu.split(':', 1)[-1].strip()}, {os.cpu_count()} cores; "
+    body = (f"Machine: {cpu_model()}, {os.cpu_count()} cores; "
             f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.\n\n"
             + md_table(["set", "accepted candidates pruned of", "registered", "rot med (deg)", "rot max (deg)",
                         "ATE / scale", "time (s)", "candidates", "pairs an accepted candidate was pruned of"], rows)
