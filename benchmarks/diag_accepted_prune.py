@@ -73,6 +73,9 @@ def _run(label, paths, gt, rule):
 
 
 def main() -> int:
+    if "-h" in sys.argv or "--help" in sys.argv:
+        print(__doc__)
+        return 0
     which = cli_option("sets", "real,synthetic").split(",")
     draws = int(cli_option("draws", "6"))
     dithers = int(cli_option("dithers", "6"))
