@@ -128,7 +128,9 @@ def main() -> int:
             + f"\n\nSame registered views, rotation errors and ATE on {same} of {len(rows) // 2} sets; time, all "
               f"sets: `all` {t['all']:.1f} s, `unexplained` {t['unexplained']:.1f} s "
               f"({t['unexplained'] / t['all']:.2f}x).\n")
-    print(write_fragment(out, "Accepted candidates pruned of every failing pair, or of the unexplained ones", body,
+    title = "Accepted candidates pruned of every failing pair, or of the unexplained ones" + (
+        ": object_ring under dither" if which == ["ring_dithers"] else "")
+    print(write_fragment(out, title, body,
                          f"`python benchmarks/diag_accepted_prune.py --sets={','.join(which)} --draws={draws} "
                          f"--dithers={dithers} --out={out}`"))
     return 0
