@@ -64,7 +64,8 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
     flat_measured = None if measured is None else [np.ascontiguousarray(m).reshape(-1) for m in measured]
 
     def keep_chunk(a: int, P: np.ndarray, ca: np.ndarray, filled_a: np.ndarray | None) -> np.ndarray:
-        """The drop mask of `P`, some of view `a`'s points (their confidences `ca`, which are filled)."""
+        """The drop mask of `P`, some of view `a`'s points: `ca` their confidences, `filled_a` which of them were
+        filled (None: all measured)."""
         drop = np.zeros(len(P), bool)
         confirmed = np.zeros(len(P), bool)
         seen = np.zeros(len(P), bool)
@@ -104,7 +105,7 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
         filled = None if measured is None else ~measured[a].reshape(-1)
         # In chunks of `_CHUNK` points: every temporary stays small enough to be reused by the allocator
         # rather than mapped and unmapped per operation (on 256 x 256 depth maps of 12 views the whole view at
-        # once took 2.5x as long, and longer with two threads than with one).
+        # once took about twice as long, and longer with two threads than with one).
         drop = np.concatenate([keep_chunk(a, P[s:s + _CHUNK], ca[s:s + _CHUNK],
                                           None if filled is None else filled[s:s + _CHUNK])
                                for s in range(0, len(P), _CHUNK)]) if len(P) else np.zeros(0, bool)
