@@ -115,8 +115,9 @@ class AlignConfig:
             positioning on the feature tracks; the pair-pose chaining where that fails) or "auto" (the
             stated rule, `mvgeo.align.init.choose_start`: chaining first, averaged second, unless the chained
             start contradicts most of the pairs' relative rotations).
-        second_start: when a candidate contradicts its pairs as a whole (`max_unexplained_fraction`), solve
-            once more from the other initialisation and let the selection rule choose (True).
+        second_start: when a candidate contradicts its pairs as a whole (`max_unexplained_fraction`), or the
+            first start's candidates are all refused, solve once more from the other initialisation and let
+            the selection rule choose (True).
         max_candidates: at most this many candidate solutions (starts, focal re-estimations, prunings)
             per alignment (8).
         hole_fill: with the dense stereo, wide holes of a view's depth map (textureless surfaces) are

@@ -11,9 +11,9 @@ Four reasons to refuse a solution, checked in this order (`verdict`):
   `mvgeo.align.locate`), not the solution;
 - `views_unsupported`: views linked to the main group of views only by contradicted pairs, e.g. a view
   whose every verified pair is contradicted, or a group hinged on them (`views_cut_off`,
-  `reject_unsupported_views`), and views held by a single explained pair, alone or as a group (`views_hinged`),
-  unless PnP on the main group's points puts the view where the solution does (`mvgeo.align.locate`,
-  `locate_cut_off_views`);
+  `reject_unsupported_views`), and views held by a single explained pair, alone or as a group
+  (`views_hinged`), unless PnP on the main group's points puts the view, or one view of the group and none
+  elsewhere, where the solution does (`mvgeo.align.locate`, `locate_cut_off_views`);
 - `positions_undetermined`: the bundle adjustment leaves a camera centre uncertain by more than
   `max_centre_std_ratio` times the median distance between neighbouring cameras;
 - `focal_undetermined`: neither a pair nor a focal prior the adjustment keeps (EXIF) determined the focal, and
@@ -164,8 +164,8 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
     reasons = []
     max_rot = config.max_pair_rotation_deg
     located = set(located_views)
-    orphans = views_cut_off(checks, bad, len(names)) if config.reject_unsupported_views else []
-    orphans = [v for v in orphans if v not in located]
+    orphans = (views_cut_off(checks, bad, len(names), located=sorted(located), misplaced=misplaced_views)
+               if config.reject_unsupported_views else [])
     against = contradicting(bad, located_views, orphans)
     if mostly_unexplained(checks, against, config.max_unexplained_fraction):
         total, unexplained = sum(c.n_matches for c in checks), sum(c.n_matches for c in against)

@@ -153,7 +153,10 @@ def test_orbit_view_with_undetermined_position_is_a_specific_failure(tmp_path):
     # one AMD EPYC the position check named view 15 (its ratio 19, the others <= 0.024); on an AMD EPYC Zen 4
     # the view-support check (ratio 0.14, but both of its pairs inconsistent: 70 % explained and 24 deg off,
     # 30 %); on a 2-core Intel Xeon the single-pair check named view 7, at the gap where the unchecked result
-    # breaks (views 9-14 turned 24 deg as a group). Each names views that border a gap of the ring.
+    # breaks (views 9-14 turned 24 deg as a group). Each names views that border a gap of the ring. Both starts
+    # are solved (the first one's candidates all refused); where the other start's refusal explains more
+    # matches it is the one reported, and it can name a group hinged at a gap with the views that border it
+    # (on an AMD EPYC: view 7 on its pair with view 6, views 9-15 on the pair (9, 10)).
     with pytest.raises(AlignmentRefusedError) as info:
         align_images(paths, cfg)
     assert info.value.kind in ("views_unsupported", "positions_undetermined"), info.value
@@ -162,7 +165,13 @@ def test_orbit_view_with_undetermined_position_is_a_specific_failure(tmp_path):
 
     held = {ring_index(n) for n in split["test"]}
     at_gap = {n for n in train if (ring_index(n) - 1) % 24 in held or (ring_index(n) + 1) % 24 in held}
-    assert info.value.views and set(info.value.views) <= at_gap, (info.value.views, sorted(at_gap))
+    named = set(info.value.views)
+    def steps(a: str, b: str) -> int:  # along the ring of 24
+        d = abs(ring_index(a) - ring_index(b))
+        return min(d, 24 - d)
+
+    between = {n for n in train if any(steps(n, g) < 8 for g in named & at_gap)}  # up to the next gap
+    assert named & at_gap and named <= between, (info.value.views, sorted(at_gap))
     # With both checks off a result is returned, and view 15 is the view it does not pin or support.
     res = align_images(paths, replace(cfg, max_centre_std_ratio=0.0, reject_unsupported_views=False))
     ratio = res.stats.bundle_adjustment.centre_std_ratio
@@ -214,12 +223,15 @@ def test_denser_orbit_is_registered_or_its_unsupported_view_named(tmp_path):
         assert m.n_registered >= 14
     assert m.median_rotation_deg < 1.5 and m.ate.rmse < 0.05
     raw = replace(cfg, pairwise=replace(cfg.pairwise, two_view=replace(cfg.pairwise.two_view, refine=False)))
-    with pytest.raises(AlignmentRefusedError) as info:
-        align_images(paths, raw)
-    # Refused for unsupported views: view_001 cut off by contradicted pairs, and the half of the ring that hangs
-    # on one weak pair beside it (`mvgeo.align.checks.hinged_groups`), named first.
-    assert info.value.kind == "views_unsupported" and "view_002.png" in str(info.value)
-    res = align_images(paths, replace(raw, allow_partial=True))
+    try:
+        # The chained start's candidates are refused for unsupported views (view_001 cut off by contradicted
+        # pairs, and the half of the ring that hangs on one weak pair beside it); the averaged start, solved
+        # since, registered all 28 on an AMD EPYC (0.47 deg median, worst view 1.1 deg, ATE 0.023 m).
+        res = align_images(paths, raw)
+        assert [c.start for c in res.stats.candidates][0] == "chain" and not res.stats.candidates[0].chosen
+    except AlignmentRefusedError as exc:  # where both starts are refused (chained: "view_002.png" named first)
+        assert exc.kind == "views_unsupported", exc
+        res = align_images(paths, replace(raw, allow_partial=True))
     m = compare_poses(res.sparse_model.cam_from_world_by_name(), gt)
     assert m.n_registered >= 3
     assert m.median_rotation_deg < 1.5 and m.ate.rmse < 0.05

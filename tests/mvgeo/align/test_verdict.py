@@ -119,6 +119,22 @@ def test_a_view_the_main_groups_points_locate_is_not_refused():
     assert [r.views for r in other.reasons] == [("view_005.png",)]
 
 
+def test_a_group_cut_off_at_both_ends_is_registered_where_pnp_locates_one_of_its_views():
+    """An orbit broken at two held-out views (object_ring, 28 of 32, dither seed 2): both gaps crossed only by weak
+    pairs that fail the rotation check while the result is right. One view of the cut-off group located by PnP on
+    the main group's points registers the group; one of its views placed elsewhere keeps the others refused."""
+    main = [PairCheck(i, j, 100, 1.0, 1.0) for i in range(5) for j in (i + 1, i + 2) if j < 5]
+    group = [PairCheck(i, j, 100, 1.0, 1.0) for i, j in ((5, 6), (6, 7), (5, 7), (6, 8), (7, 8))]
+    weak = [PairCheck(4, 5, 24, 0.96, 14.7), PairCheck(0, 8, 13, 0.92, 35.8)]
+    names = [f"view_{k:03d}.png" for k in range(9)]
+    refused = _judge(main + group + weak, weak, names=names)
+    assert [(r.kind, r.views) for r in refused.reasons] == [("views_unsupported", tuple(names[5:]))]
+    assert _judge(main + group + weak, weak, names=names, located=(8,)).ok
+    turned = verdict(main + group + weak, weak, names, ba=None, focal_determined=True, focal_undetermined_why="",
+                     config=AlignConfig(), located_views=[8], misplaced_views=[6])
+    assert [(r.kind, r.views) for r in turned.reasons] == [("views_unsupported", tuple(names[5:8]))]
+
+
 def test_one_consistent_pair_is_enough_where_pnp_confirms_the_view():
     wrong = [PairCheck(4, 5, 30, 0.23, 72.0)]
     assert _judge(RING + [PairCheck(0, 5, 40, 0.9, 1.0)] + wrong, wrong, located=(5,)).ok
