@@ -270,8 +270,9 @@ def views_cut_off(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views
     it where the result does (`mvgeo.align.locate`); it is not cut off. Nor is the rest of its group, joined
     to it by explained pairs, unless PnP puts one of the group's views confidently elsewhere (`misplaced`: a
     block turned as a whole, as `unconfirmed_hinges` asks): the explained pairs place the group on the
-    located view as they place the main group's views on each other (the single pairs within such a group
-    are not examined: `hinges` looks at the main group only). Measured on object_ring (28 of 32
+    located view as they place the main group's views on each other; a part of the group that hangs on the
+    rest by a weak bridge needs a located view of its own (`_located_parts`; single views held by one strong
+    pair are not examined: `hinges` looks at the main group only). Measured on object_ring (28 of 32
     views, dither seed 2): the ring broken at two held-out views, both gaps crossed only by weak pairs
     (13-24 matches) whose matches imply rotations 13-36 deg off while the result is within 0.9 deg of the
     truth; PnP located view_023 at the far end of the 14-view group (31 inliers, 0.49 deg from the result).
@@ -311,5 +312,25 @@ def views_cut_off(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views
             matches[root(c.i)] += c.n_matches
     main = max(groups, key=lambda g: (len(groups[g]), matches[g], -min(groups[g])))
     ok, off = set(located), {root(v) for v in misplaced if judged[v]}
-    linked = {root(v) for v in ok if judged[v]} - off
-    return sorted(v for g, vs in groups.items() if g != main and g not in linked for v in vs if v not in ok)
+    linked: set[int] = set()
+    for g in {root(v) for v in ok if judged[v]} - off - {main}:
+        linked |= _located_parts(groups[g], [c for c in checks if (c.i, c.j) not in bad_keys and root(c.i) == g], ok)
+    return sorted(v for g, vs in groups.items() if g != main for v in vs if v not in ok and v not in linked)
+
+
+def _located_parts(views: Sequence[int], edges: Sequence[PairCheck], located: set[int]) -> set[int]:
+    """The views of a group in a part that holds a located view, the parts being what the group's weak bridges
+    separate. `edges`: the group's explained pairs; a weak bridge: one whose matches pin its relative rotation
+    no better than `HINGE_MAX_ROTATION_DEG` at three standard deviations (nan: not measured, weak), as `hinges`
+    judges them."""
+    index = {v: k for k, v in enumerate(views)}
+    local = [(index[c.i], index[c.j]) for c in edges]
+    weak = {k for k in bridges(len(views), local) if not 3.0 * edges[k].rotation_std_deg <= HINGE_MAX_ROTATION_DEG}
+    rest = [(views[a], views[b], 0) for k, (a, b) in enumerate(local) if k not in weak]
+    out, unplaced = set(), set(views)
+    while unplaced:
+        part = _reachable(min(unplaced), rest)
+        if part & located:
+            out |= part
+        unplaced -= part
+    return out

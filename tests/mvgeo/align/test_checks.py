@@ -62,19 +62,29 @@ def _reference(checks, bad, n):
     return [v for v in judged if label[v] != main]
 
 
-def _reference_linked(checks, bad, n, located, misplaced):
-    """Slow and obvious: `_reference`'s cut-off views, less the located ones and the groups (connected by
-    explained pairs) holding a located view and no misplaced one."""
+def _labels(pairs, n):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    adj = coo_matrix((np.ones(len(pairs)), ([c.i for c in pairs], [c.j for c in pairs])), shape=(n, n))
+    return connected_components(adj, directed=False)
+
+
+def _reference_linked(checks, bad, n, located, misplaced):
+    """Slow and obvious: `_reference`'s cut-off views, less the located ones and the groups (connected by
+    explained pairs) holding a located view and no misplaced one: of such a group, the parts that its weak
+    bridges separate (an explained pair whose removal adds a component; 3 std of its rotation over 5 deg, or
+    not measured) holding a located view."""
     bad_keys = {(c.i, c.j) for c in bad}
     good = [c for c in checks if (c.i, c.j) not in bad_keys]
-    adj = coo_matrix((np.ones(len(good)), ([c.i for c in good], [c.j for c in good])), shape=(n, n))
-    _, label = connected_components(adj, directed=False)
+    count, label = _labels(good, n)
+    weak = [c for c in good if not 3.0 * c.rotation_std_deg <= 5.0
+            and _labels([d for d in good if d is not c], n)[0] > count]
+    _, part = _labels([c for c in good if c not in weak], n)
     cut = _reference(checks, bad, n)
     vouched = {label[v] for v in located if v in cut} - {label[v] for v in misplaced if v in cut}
-    return [v for v in cut if v not in located and label[v] not in vouched]
+    return [v for v in cut if v not in located
+            and not (label[v] in vouched and any(part[w] == part[v] for w in located))]
 
 
 def test_views_cut_off_with_located_views_match_the_reference_on_random_pair_graphs():
@@ -83,10 +93,10 @@ def test_views_cut_off_with_located_views_match_the_reference_on_random_pair_gra
         n = int(rng.integers(2, 10))
         all_pairs = list(itertools.combinations(range(n), 2))
         keep = rng.random(len(all_pairs)) < 0.4
-        checks = [PairCheck(i, j, int(rng.integers(20, 200)), 1.0)
+        checks = [PairCheck(i, j, int(rng.integers(20, 200)), 1.0, 1.0, float(rng.choice([0.5, 3.0, np.nan])))
                   for (i, j), k in zip(all_pairs, keep, strict=True) if k]
         bad = [c for c in checks if rng.random() < 0.3]
-        located = [v for v in range(n) if rng.random() < 0.2]
+        located = [v for v in range(n) if rng.random() < 0.3]
         misplaced = [v for v in range(n) if v not in located and rng.random() < 0.2]
         assert views_cut_off(checks, bad, n, located=located, misplaced=misplaced) == _reference_linked(
             checks, bad, n, located, misplaced)
@@ -96,12 +106,18 @@ def test_a_located_view_vouches_for_its_group_unless_one_is_placed_elsewhere():
     """A ring 0..7 broken at two gaps (0-1... 3 | 4..7 | 0): the links (3, 4) and (7, 0) contradicted, as weak
     pairs across held-out views are while the result is right. PnP locating one view of {4..7} on the main
     group's points links the whole group; a view of it that PnP puts confidently elsewhere does not allow it."""
-    checks = [PairCheck(k, (k + 1) % 8, 100, 1.0) for k in range(8)]
+    checks = [PairCheck(k, (k + 1) % 8, 100, 1.0, 1.0, 0.3) for k in range(8)]  # rotations pinned to 0.3 deg
     bad = [c for c in checks if (c.i, c.j) in ((3, 4), (7, 0))]
     assert views_cut_off(checks, bad, 8) == [4, 5, 6, 7]
     assert views_cut_off(checks, bad, 8, located=[6]) == []
     assert views_cut_off(checks, bad, 8, located=[6], misplaced=[5]) == [4, 5, 7]
     assert views_cut_off(checks, bad, 8, located=[2]) == [4, 5, 6, 7]  # a main-group view vouches for no other
+    # {4, 5} hang on {6, 7} by the weak bridge (5, 6), whose matches do not pin its rotation: it needs a located
+    # view of its own
+    rigid = [PairCheck(c.i, c.j, 100, 1.0, 1.0, 2.5 if (c.i, c.j) == (5, 6) else 0.3) for c in checks]
+    bad = [c for c in rigid if (c.i, c.j) in ((3, 4), (7, 0))]
+    assert views_cut_off(rigid, bad, 8, located=[6]) == [4, 5]
+    assert views_cut_off(rigid, bad, 8, located=[6, 4]) == []
 
 
 def test_views_cut_off_match_the_reference_on_random_pair_graphs():
