@@ -25,13 +25,13 @@ import time
 from pathlib import Path
 
 import bench_real as br
-import numpy as np
 from _common import cli_option, cpu_model, md_table, write_fragment
+from diag_located_groups import dithered_copies
 from diag_real_subsets import _dtu_sets, _temple_sets, prepared
 
 import mvgeo.align.policy as policy
 from mvgeo.align.api import align_images
-from mvgeo.common.imageio import list_images, read_image, write_image
+from mvgeo.common.imageio import list_images, read_image
 from mvgeo.metrics import compare_poses
 from mvgeo.sparse_model import read_sparse_model
 
@@ -104,16 +104,9 @@ def main() -> int:
             d = render_scene("object_ring", work / "ring", size_wh=(256, 192), views=32)
             train = json.loads((d / "split.json").read_text())["train"]
             gt = read_sparse_model(d / "sparse" / "0").cam_from_world_by_name()
-            for seed in range(dithers):
-                f = work / f"ring_dither{seed}"
-                f.mkdir()
-                rng = np.random.default_rng(seed)
-                for p in list_images(d / "images"):
-                    if p.name in train:
-                        im = read_image(p)
-                        write_image(f / p.name, np.clip(np.round((im + rng.normal(0.0, 0.5 / 255, im.shape)) * 255.0)
-                                                        / 255.0, 0.0, 1.0))
-                jobs.append((f"object_ring, dither seed {seed}", list_images(f), gt))
+            paths = [p for p in list_images(d / "images") if p.name in train]
+            jobs += [(f"object_ring, dither seed {seed}", dithered_copies(paths, work / f"ring_dither{seed}", seed), gt)
+                     for seed in range(dithers)]
         for k, (label, paths, gt) in enumerate(jobs):
             for rule in ("all", "unexplained") if k % 2 == 0 else ("unexplained", "all"):
                 rows.append(_run(label, paths, gt, rule))

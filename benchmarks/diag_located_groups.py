@@ -52,22 +52,61 @@ def worst_view_deg(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> flo
     return worst
 
 
-def _run(label: str, paths: list[Path], gt: dict, rule: str) -> list:
-    verdict_module.views_cut_off = views_cut_off if rule == "group" else _only_the_view
+def align_row(label: str, rule: str, paths: list[Path], gt: dict, extra=lambda res: []) -> list:
+    """One `align_images` run with the default benchmark config as a table row: set, rule, registered, rotation
+    median and max, worst view, ATE / scale, seconds, `extra(result)` (blank when refused), the refusal."""
     t = time.perf_counter()
     try:
         res = align_images(paths, br.OURS)
     except Exception as exc:  # report, keep going
         return [label, rule, "refused", "", "", "", "", round(time.perf_counter() - t, 2),
-                f"{type(exc).__name__}: {str(exc)[:80]}".replace("|", "/")]
-    finally:
-        verdict_module.views_cut_off = views_cut_off
+                *[""] * len(extra(None)), f"{type(exc).__name__}: {str(exc)[:80]}".replace("|", "/")]
     sec = time.perf_counter() - t
     est = res.sparse_model.cam_from_world_by_name()
     m = compare_poses(est, gt)
     return [label, rule, f"{m.n_registered}/{m.n_ref}", round(m.median_rotation_deg, 3),
             round(float(m.rotation_deg.max()), 3), round(worst_view_deg(est, gt), 2),
-            round(m.ate.rmse / br.scene_scale(gt), 5), round(sec, 2), ""]
+            round(m.ate.rmse / br.scene_scale(gt), 5), round(sec, 2), *extra(res), ""]
+
+
+def compare_rules(jobs, rules: tuple[str, str], run) -> tuple[list[list], str]:
+    """`run(label, paths, gt, rule)` for both `rules` on every job, alternating which goes first; (the rows,
+    a sentence: the sets whose registered views, errors and ATE differ between the rules, the time of each)."""
+    rows = []
+    for k, (label, paths, gt) in enumerate(jobs):
+        for rule in rules if k % 2 == 0 else rules[::-1]:
+            rows.append(run(label, paths, gt, rule))
+            print(rows[-1], file=sys.stderr, flush=True)
+    pairs = [sorted(rows[k:k + 2], key=lambda r: r[1] != rules[0]) for k in range(0, len(rows), 2)]
+    same = sum(a[2:7] == b[2:7] for a, b in pairs)
+    changed = [f"{a[0]}: {a[2]} -> {b[2]}" for a, b in pairs if a[2:7] != b[2:7]]
+    t = {r: sum(x[7] for x in rows if x[1] == r) for r in rules}
+    return rows, (f"Same registered views, rotation errors and ATE on {same} of {len(pairs)} sets"
+                  + (f"; changed: {'; '.join(changed)}" if changed else "")
+                  + f". Time, all sets: `{rules[0]}` {t[rules[0]]:.1f} s, `{rules[1]}` {t[rules[1]]:.1f} s.\n")
+
+
+def machine_line() -> str:
+    return f"Machine: {cpu_model()}, {os.cpu_count()} cores; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.\n\n"
+
+
+def dithered_copies(paths: list[Path], out: Path, seed: int) -> list[Path]:
+    """The images re-quantised with a dither of 0.5/255 (Gaussian, seed `seed`, then rounded to 8 bits) in `out`."""
+    out.mkdir()
+    rng = np.random.default_rng(seed)
+    for p in paths:
+        im = read_image(p)
+        write_image(out / p.name, np.clip(np.round((im + rng.normal(0.0, 0.5 / 255, im.shape)) * 255.0) / 255.0,
+                                          0.0, 1.0))
+    return list_images(out)
+
+
+def _run(label: str, paths: list[Path], gt: dict, rule: str) -> list:
+    verdict_module.views_cut_off = views_cut_off if rule == "group" else _only_the_view
+    try:
+        return align_row(label, rule, paths, gt)
+    finally:
+        verdict_module.views_cut_off = views_cut_off
 
 
 def _jobs(work: Path, draws: int, dithers: int) -> list[tuple[str, list[Path], dict]]:
@@ -86,19 +125,11 @@ def _jobs(work: Path, draws: int, dithers: int) -> list[tuple[str, list[Path], d
         d = render_scene(scene, work / scene, **kw)
         train = json.loads((d / "split.json").read_text())["train"]
         gt = read_sparse_model(d / "sparse" / "0").cam_from_world_by_name()
-        jobs.append((scene, [p for p in list_images(d / "images") if p.name in train], gt))
-        if scene != "object_ring":
-            continue
-        for seed in range(dithers):
-            f = work / f"ring_dither{seed}"
-            f.mkdir()
-            rng = np.random.default_rng(seed)
-            for p in list_images(d / "images"):
-                if p.name in train:
-                    im = read_image(p)
-                    write_image(f / p.name, np.clip(np.round((im + rng.normal(0.0, 0.5 / 255, im.shape)) * 255.0)
-                                                    / 255.0, 0.0, 1.0))
-            jobs.append((f"object_ring, dither seed {seed}", list_images(f), gt))
+        paths = [p for p in list_images(d / "images") if p.name in train]
+        jobs.append((scene, paths, gt))
+        if scene == "object_ring":
+            jobs += [(f"object_ring, dither seed {seed}", dithered_copies(paths, work / f"ring_dither{seed}", seed),
+                      gt) for seed in range(dithers)]
     return jobs
 
 
@@ -109,23 +140,12 @@ def main() -> int:
     draws = int(cli_option("draws", "6"))
     dithers = int(cli_option("dithers", "8"))
     out = cli_option("out", "located_groups")
-    rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (label, paths, gt) in enumerate(_jobs(Path(tmp), draws, dithers)):
-            for rule in ("view", "group") if k % 2 == 0 else ("group", "view"):
-                rows.append(_run(label, paths, gt, rule))
-                print(rows[-1], file=sys.stderr, flush=True)
-    pairs = [sorted(rows[k:k + 2], key=lambda r: r[1] != "view") for k in range(0, len(rows), 2)]
-    same = sum(a[2:7] == b[2:7] for a, b in pairs)
-    changed = [f"{a[0]}: {a[2]} -> {b[2]}" for a, b in pairs if a[2:7] != b[2:7]]
-    t = {r: sum(x[7] for x in rows if x[1] == r) for r in ("view", "group")}
-    body = (f"Machine: {cpu_model()}, {os.cpu_count()} cores; "
-            f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.\n\n"
+        rows, summary = compare_rules(_jobs(Path(tmp), draws, dithers), ("view", "group"), _run)
+    body = (machine_line()
             + md_table(["set", "a located view vouches for", "registered", "rot med (deg)", "rot max (deg)",
                         "worst view (deg)", "ATE / scale", "time (s)", "refused"], rows)
-            + f"\n\nSame registered views, rotation errors and ATE on {same} of {len(pairs)} sets"
-            + (f"; changed: {'; '.join(changed)}" if changed else "")
-            + f". Time, all sets: `view` {t['view']:.1f} s, `group` {t['group']:.1f} s.\n")
+            + "\n\n" + summary)
     print(write_fragment(out, "A located view vouching for itself, or for its group of views", body,
                          f"`python benchmarks/diag_located_groups.py --draws={draws} --dithers={dithers} "
                          f"--out={out}`"))

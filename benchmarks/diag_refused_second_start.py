@@ -10,19 +10,14 @@ Usage: .venv/bin/python benchmarks/diag_refused_second_start.py [--draws=6] [--d
 """
 from __future__ import annotations
 
-import os
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import bench_real as br
-from _common import cli_option, cpu_model, md_table, write_fragment
-from diag_located_groups import _jobs, worst_view_deg
+from _common import cli_option, md_table, write_fragment
+from diag_located_groups import _jobs, align_row, compare_rules, machine_line
 
 import mvgeo.align.policy as policy
-from mvgeo.align.api import align_images
-from mvgeo.metrics import compare_poses
 
 _refused_too = policy._exhausted_start
 
@@ -33,23 +28,18 @@ def _drifting_only(done, config) -> bool:
                for k in done)
 
 
+def _starts(res) -> list[str]:
+    """The candidates' starts, the chosen one marked (one column; None: the column's width)."""
+    return [""] if res is None else [", ".join(c.start + (" (chosen)" if c.chosen else "")
+                                               for c in res.stats.candidates)]
+
+
 def _run(label: str, paths: list[Path], gt: dict, rule: str) -> list:
     policy._exhausted_start = _refused_too if rule == "refused" else _drifting_only
-    t = time.perf_counter()
     try:
-        res = align_images(paths, br.OURS)
-    except Exception as exc:  # report, keep going
-        return [label, rule, "refused", "", "", "", "", round(time.perf_counter() - t, 2), "",
-                f"{type(exc).__name__}: {str(exc)[:80]}".replace("|", "/")]
+        return align_row(label, rule, paths, gt, _starts)
     finally:
         policy._exhausted_start = _refused_too
-    sec = time.perf_counter() - t
-    est = res.sparse_model.cam_from_world_by_name()
-    m = compare_poses(est, gt)
-    starts = ", ".join(c.start + (" (chosen)" if c.chosen else "") for c in res.stats.candidates)
-    return [label, rule, f"{m.n_registered}/{m.n_ref}", round(m.median_rotation_deg, 3),
-            round(float(m.rotation_deg.max()), 3), round(worst_view_deg(est, gt), 2),
-            round(m.ate.rmse / br.scene_scale(gt), 5), round(sec, 2), starts, ""]
 
 
 def main() -> int:
@@ -59,23 +49,12 @@ def main() -> int:
     draws = int(cli_option("draws", "6"))
     dithers = int(cli_option("dithers", "8"))
     out = cli_option("out", "refused_second_start")
-    rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (label, paths, gt) in enumerate(_jobs(Path(tmp), draws, dithers)):
-            for rule in ("drifting", "refused") if k % 2 == 0 else ("refused", "drifting"):
-                rows.append(_run(label, paths, gt, rule))
-                print(rows[-1], file=sys.stderr, flush=True)
-    pairs = [sorted(rows[k:k + 2], key=lambda r: r[1] != "drifting") for k in range(0, len(rows), 2)]
-    same = sum(a[2:7] == b[2:7] for a, b in pairs)
-    changed = [f"{a[0]}: {a[2]} -> {b[2]}" for a, b in pairs if a[2:7] != b[2:7]]
-    t = {r: sum(x[7] for x in rows if x[1] == r) for r in ("drifting", "refused")}
-    body = (f"Machine: {cpu_model()}, {os.cpu_count()} cores; "
-            f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.\n\n"
+        rows, summary = compare_rules(_jobs(Path(tmp), draws, dithers), ("drifting", "refused"), _run)
+    body = (machine_line()
             + md_table(["set", "other start after", "registered", "rot med (deg)", "rot max (deg)",
                         "worst view (deg)", "ATE / scale", "time (s)", "candidates' starts", "refused"], rows)
-            + f"\n\nSame registered views, rotation errors and ATE on {same} of {len(pairs)} sets"
-            + (f"; changed: {'; '.join(changed)}" if changed else "")
-            + f". Time, all sets: `drifting` {t['drifting']:.1f} s, `refused` {t['refused']:.1f} s.\n")
+            + "\n\n" + summary)
     print(write_fragment(out, "The other start after a drifting focal only, or after refusals too", body,
                          f"`python benchmarks/diag_refused_second_start.py --draws={draws} --dithers={dithers} "
                          f"--out={out}`"))

@@ -168,9 +168,15 @@ def hinges(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int) 
         sides = (_reachable(edges[k].i, rest), _reachable(edges[k].j, rest))
         inner = [sum(n for i, j, n in rest if i in vs and j in vs) for vs in sides]
         side = min(zip(sides, inner, strict=True), key=lambda x: (len(x[0]), x[1], -min(x[0])))[0]
-        if len(side) == 1 or not 3.0 * edges[k].rotation_std_deg <= HINGE_MAX_ROTATION_DEG:
+        if len(side) == 1 or _weak(edges[k]):
             found.setdefault(tuple(sorted(side)), edges[k])
     return [Hinge(g, found[g]) for g in sorted(found, key=lambda g: (len(g), g))]
+
+
+def _weak(c: PairCheck) -> bool:
+    """The pair's matches pin its relative rotation no better than `HINGE_MAX_ROTATION_DEG` at three standard
+    deviations (nan: not measured, weak)."""
+    return not 3.0 * c.rotation_std_deg <= HINGE_MAX_ROTATION_DEG
 
 
 def unconfirmed_hinges(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views: int,
@@ -320,12 +326,11 @@ def views_cut_off(checks: Sequence[PairCheck], bad: Sequence[PairCheck], n_views
 
 def _located_parts(views: Sequence[int], edges: Sequence[PairCheck], located: set[int]) -> set[int]:
     """The views of a group in a part that holds a located view, the parts being what the group's weak bridges
-    separate. `edges`: the group's explained pairs; a weak bridge: one whose matches pin its relative rotation
-    no better than `HINGE_MAX_ROTATION_DEG` at three standard deviations (nan: not measured, weak), as `hinges`
-    judges them."""
+    separate. `edges`: the group's explained pairs; a weak bridge: a bridge that `_weak` judges, as `hinges`
+    does."""
     index = {v: k for k, v in enumerate(views)}
     local = [(index[c.i], index[c.j]) for c in edges]
-    weak = {k for k in bridges(len(views), local) if not 3.0 * edges[k].rotation_std_deg <= HINGE_MAX_ROTATION_DEG}
+    weak = {k for k in bridges(len(views), local) if _weak(edges[k])}
     rest = [(views[a], views[b], 0) for k, (a, b) in enumerate(local) if k not in weak]
     out, unplaced = set(), set(views)
     while unplaced:

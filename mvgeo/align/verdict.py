@@ -164,7 +164,7 @@ def verdict(checks: Sequence[PairCheck], bad: Sequence[PairCheck], names: Sequen
     reasons = []
     max_rot = config.max_pair_rotation_deg
     located = set(located_views)
-    orphans = (views_cut_off(checks, bad, len(names), located=sorted(located), misplaced=misplaced_views)
+    orphans = (views_cut_off(checks, bad, len(names), located=located_views, misplaced=misplaced_views)
                if config.reject_unsupported_views else [])
     against = contradicting(bad, located_views, orphans)
     if mostly_unexplained(checks, against, config.max_unexplained_fraction):

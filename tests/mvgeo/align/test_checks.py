@@ -87,15 +87,27 @@ def _reference_linked(checks, bad, n, located, misplaced):
             and not (label[v] in vouched and any(part[w] == part[v] for w in located))]
 
 
+def _random_pair_graph(rng, rotation_std=False):
+    """(n, checks, bad): n views, each pair checked with probability 0.4, each check failing with probability
+    0.3; with `rotation_std`, each pair's rotation pinned to 0.5 deg (strong), 3 deg or not measured (weak)."""
+    n = int(rng.integers(2, 10))
+    all_pairs = list(itertools.combinations(range(n), 2))
+    keep = rng.random(len(all_pairs)) < 0.4
+
+    def check(i, j):
+        n_matches = int(rng.integers(20, 200))
+        if not rotation_std:
+            return PairCheck(i, j, n_matches, 1.0)
+        return PairCheck(i, j, n_matches, 1.0, 1.0, float(rng.choice([0.5, 3.0, np.nan])))
+
+    checks = [check(i, j) for (i, j), k in zip(all_pairs, keep, strict=True) if k]
+    return n, checks, [c for c in checks if rng.random() < 0.3]
+
+
 def test_views_cut_off_with_located_views_match_the_reference_on_random_pair_graphs():
     rng = np.random.default_rng(1)
     for _ in range(300):
-        n = int(rng.integers(2, 10))
-        all_pairs = list(itertools.combinations(range(n), 2))
-        keep = rng.random(len(all_pairs)) < 0.4
-        checks = [PairCheck(i, j, int(rng.integers(20, 200)), 1.0, 1.0, float(rng.choice([0.5, 3.0, np.nan])))
-                  for (i, j), k in zip(all_pairs, keep, strict=True) if k]
-        bad = [c for c in checks if rng.random() < 0.3]
+        n, checks, bad = _random_pair_graph(rng, rotation_std=True)
         located = [v for v in range(n) if rng.random() < 0.3]
         misplaced = [v for v in range(n) if v not in located and rng.random() < 0.2]
         assert views_cut_off(checks, bad, n, located=located, misplaced=misplaced) == _reference_linked(
@@ -123,12 +135,7 @@ def test_a_located_view_vouches_for_its_group_unless_one_is_placed_elsewhere():
 def test_views_cut_off_match_the_reference_on_random_pair_graphs():
     rng = np.random.default_rng(0)
     for _ in range(300):
-        n = int(rng.integers(2, 10))
-        all_pairs = list(itertools.combinations(range(n), 2))
-        keep = rng.random(len(all_pairs)) < 0.4
-        checks = [PairCheck(i, j, int(rng.integers(20, 200)), 1.0)
-                  for (i, j), k in zip(all_pairs, keep, strict=True) if k]
-        bad = [c for c in checks if rng.random() < 0.3]
+        n, checks, bad = _random_pair_graph(rng)
         assert views_cut_off(checks, bad, n) == _reference(checks, bad, n)
 
 
