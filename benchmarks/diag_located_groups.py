@@ -86,6 +86,12 @@ def compare_rules(jobs, rules: tuple[str, str], run) -> tuple[list[list], str]:
                   + f". Time, all sets: `{rules[0]}` {t[rules[0]]:.1f} s, `{rules[1]}` {t[rules[1]]:.1f} s.\n")
 
 
+def candidate_starts(res) -> list[str]:
+    """`align_row`'s `extra`: one column, the candidates' starts with the chosen one marked."""
+    return [""] if res is None else [", ".join(c.start + (" (chosen)" if c.chosen else "")
+                                               for c in res.stats.candidates)]
+
+
 def machine_line() -> str:
     return f"Machine: {cpu_model()}, {os.cpu_count()} cores; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.\n\n"
 

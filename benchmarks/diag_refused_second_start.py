@@ -15,7 +15,7 @@ import tempfile
 from pathlib import Path
 
 from _common import cli_option, md_table, write_fragment
-from diag_located_groups import _jobs, align_row, compare_rules, machine_line
+from diag_located_groups import _jobs, align_row, candidate_starts, compare_rules, machine_line
 
 import mvgeo.align.policy as policy
 
@@ -28,16 +28,10 @@ def _drifting_only(done, config) -> bool:
                for k in done)
 
 
-def _starts(res) -> list[str]:
-    """The candidates' starts, the chosen one marked (one column; None: the column's width)."""
-    return [""] if res is None else [", ".join(c.start + (" (chosen)" if c.chosen else "")
-                                               for c in res.stats.candidates)]
-
-
 def _run(label: str, paths: list[Path], gt: dict, rule: str) -> list:
     policy._exhausted_start = _refused_too if rule == "refused" else _drifting_only
     try:
-        return align_row(label, rule, paths, gt, _starts)
+        return align_row(label, rule, paths, gt, candidate_starts)
     finally:
         policy._exhausted_start = _refused_too
 
