@@ -157,6 +157,37 @@ def _allow_focal_prior(config):
 EVAL_PRELOAD = ("eval.evaluate",)
 COST_PRELOAD = ("eval.cost",)
 
+def _training_views(kind: str, source: Path | str, size_wh: tuple[int, int] | None, scene_views: int | None) -> int:
+    """How many training views the evaluated dataset has, known before any output is written: a dataset
+    folder's split, or the split a scene will be rendered with (`--size`, `--scene-views`)."""
+    if kind == "dataset":
+        return len(validate_dataset_folder(Path(source)).train)
+    from data_synth.rigs import rig_views, split_views  # data_synth imports open3d: scenes only
+    from data_synth.scene_file import load_scene
+
+    spec = load_scene(source, size_wh=size_wh, views=scene_views)
+    return len(split_views([v.name for v in rig_views(spec.rig)], spec.split)["train"])
+
+
+def _check_training_views(kind: str, source: Path | str, args: argparse.Namespace, command: str, *,
+                          views: int | None) -> int:
+    """`_training_views`, refused up front (before `--out` is written) when they are fewer than two, or than
+    `views` (the `--views` given) asks for."""
+    dataset = kind == "dataset"
+    n = _training_views(kind, source, None if dataset else args.size, None if dataset else args.scene_views)
+    where = Path(source) / "split.json" if dataset else None
+    what = "the dataset's split" if dataset else (
+        f"the scene rendered with {args.scene_views if args.scene_views is not None else 'its own number of'} "
+        "views")
+    more = "list more training views in split.json" if dataset else "render more views with --scene-views"
+    if n < 2:
+        raise InputError(f"{command} needs at least 2 training views; {what} has {n}", path=where, fix=more)
+    if views is not None and views > n:
+        raise InputError(f"--views {views} asks for more views than the {n} training views {what} has",
+                         path=where, fix=f"pass --views of 2..{n}, or {more}")
+    return n
+
+
 def _prepare_out(args: argparse.Namespace, command: str, kind: str, source: Path | str):
     return prepare_output(args.out, command=command, inputs=[source if kind != "builtin" else None], resume=True)
 
@@ -171,6 +202,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         raise InputError(f"{given} {verb} to a scene rendered on the fly; this is a dataset folder, whose images "
                          "and views are used as they are", path=source,
                          fix="leave them out (--max-size downscales the dataset's images)")
+    _check_training_views(kind, source, args, "denoise-gs eval", views=args.views)
     plan = _prepare_out(args, "denoise-gs eval", kind, source)
     methods = list(args.methods)
     if args.gt_pose_variants:
@@ -255,8 +287,14 @@ def _cmd_cost(args: argparse.Namespace) -> int:
 
     device = str(resolve_device(args.device))
     kind, source = resolve_scene_source(args.scene)
-    plan = _prepare_out(args, "denoise-gs cost", kind, source)
     grid = _parse_grid(args.grid, args.knobs)
+    n_train = _check_training_views(kind, source, args, "the cost sweep", views=None)  # K is capped to them
+    asked = [v for v in grid.get("train_views", ()) if v > n_train]
+    if asked and any(item.partition("=")[0] == "train_views" for item in args.grid or ()):
+        raise InputError(f"--grid train_views={','.join(map(str, asked))} asks for more training views than "
+                         f"the dataset has ({n_train})", path=Path(source) / "split.json" if kind == "dataset"
+                         else None, fix=f"use train_views values of 2..{n_train}")
+    plan = _prepare_out(args, "denoise-gs cost", kind, source)
     base = preset(args.preset, rounds=args.rounds, views=args.views, seed=args.seed, device=device)
     base = dataclasses.replace(base, max_size=None)  # the sweep scores against clean images at their own size
     if not args.strict_focal:
@@ -270,13 +308,6 @@ def _cmd_cost(args: argparse.Namespace) -> int:
         name, folder = scene_dataset(kind, source, out, size_wh=args.size if kind != "dataset" else None,
                                      views=args.scene_views if kind != "dataset" else None)
         dataset = validate_dataset_folder(folder)
-        if len(dataset.train) < 2:
-            raise InputError("the cost sweep needs at least 2 training views", path=folder / "split.json")
-        asked = [v for v in grid.get("train_views", ()) if v > len(dataset.train)]
-        if asked and any(item.partition("=")[0] == "train_views" for item in args.grid or ()):
-            raise InputError(f"--grid train_views={','.join(map(str, asked))} asks for more training views than "
-                             f"the dataset has ({len(dataset.train)})", path=folder / "split.json",
-                             fix=f"use train_views values of 2..{len(dataset.train)}")
         base = dataclasses.replace(base, views=min(base.views, len(dataset.train)))
         try:
             rows = run_cost_sweep(dataset, out, dataclasses.replace(config, base=base), executor=executor)

@@ -699,16 +699,31 @@ def scene_dataset(kind: str, source: Path | str, out: Path, *, size_wh: tuple[in
         kind, source: from `eval.cli.resolve_scene_source`.
         out: the evaluation folder.
         size_wh, views: image size and view count overrides for rendered scenes (None: the scene's).
+
+    A scene rendered before into the same folder is reused while its resolved scene (`scene.toml`) is this
+    one; else it is rendered again (the folder is this command's own: `write_dataset` replaces only a dataset
+    it wrote, unchanged).
     """
     if kind == "dataset":
         return Path(source).name, Path(source)
-    from data_synth import render_scene  # open3d: seconds to import, needed for scenes only
+    from data_synth import load_scene, scene_to_toml, write_dataset  # open3d: seconds to import, scenes only
 
     name = Path(source).stem if kind == "scene_file" else str(source)
     tag = "" if size_wh is None and views is None else f"_{size_wh[0]}x{size_wh[1]}" if size_wh else ""
     tag += f"_{views}v" if views is not None else ""
     folder = out / "data" / f"{name}{tag}"
-    if not (folder / "split.json").is_file():
-        render_scene(source, folder, size_wh=size_wh, views=views)
+    spec = load_scene(source, size_wh=size_wh, views=views)
+    if (folder / "split.json").is_file():
+        # Reused only while it is this scene: the file may have been edited since, or another scene file of the
+        # same name given (the dataset's scene.toml is the resolved scene it was rendered from).
+        try:
+            same = (folder / "scene.toml").read_text(encoding="utf-8") == scene_to_toml(spec)
+        except (OSError, UnicodeDecodeError):
+            same = False
+        if same:
+            return name, folder
+        _log.warning("the scene %s differs from the one rendered into %s before: rendering it again", source,
+                     folder)
+    write_dataset(spec, folder, overwrite=folder.exists())
     return name, folder
 

@@ -39,7 +39,7 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import exif_focal_35mm, read_image
 
 __all__ = ["DATA_DIR", "SIZES_FILE", "WORKING_DIR", "prepare_inputs", "read_sizes", "reference_working_size",
-           "resize_area", "working_dataset", "working_focal_prior", "working_size"]
+           "nearest_depth", "resize_area", "working_dataset", "working_focal_prior", "working_size"]
 
 #: Folder of the working images inside OUT, and the sizes file inside it.
 WORKING_DIR = "inputs"
@@ -153,16 +153,40 @@ def working_focal_prior(working_dir: str | Path):
     return common_focal_prior(values, stems)
 
 
-def _recorded_dataset(data_dir: Path, name: str, source: Path, max_size: int) -> bool:
+#: What `working_dataset` copies of an evaluation dataset, downscaled or as it is (`depth/` where it exists).
+_COPIED = ("images", "clean", "depth", "sparse/0", "split.json")
+
+
+def _source_digest(folder: Path) -> str:
+    """Hash of the files of `folder` that `working_dataset` copies: a changed source dataset at the same path
+    is made again."""
+    from eval.pipeline.hashing import hash_json, hash_path
+
+    return hash_json({part: hash_path(folder / part) for part in _COPIED if (folder / part).exists()})
+
+
+def _recorded_dataset(data_dir: Path, name: str, source: Path, max_size: int, digest: str) -> bool:
     """`data_dir/name` is the complete working-size dataset its record says `working_dataset` made from
-    `source` at `max_size` (every file as recorded)."""
+    `source` at `max_size` from the files of hash `digest` (`_source_digest`), every file as recorded."""
     try:
         rec = json.loads((data_dir / RECORD_DIR / f"{name}.json").read_text(encoding="utf-8"))
         return (isinstance(rec, dict) and not rec.get("pending") and rec.get("source") == str(source)
+                and rec.get("source_digest") == digest
                 and rec.get("max_size") == max_size and isinstance(rec.get("manifest"), dict)
                 and verify_outputs(data_dir, rec["manifest"]) is None)
     except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
         return False
+
+
+def nearest_depth(depth: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
+    """(H', W') depth map at `size_wh`: each pixel takes the depth of the input pixel under its centre (a depth
+    is a surface's, not a colour to average: an area filter would put points between a foreground edge and the
+    background behind it; misses, inf, stay misses)."""
+    H, W = depth.shape
+    w, h = size_wh
+    cols = np.minimum(((np.arange(w) + 0.5) * W / w).astype(np.int64), W - 1)
+    rows = np.minimum(((np.arange(h) + 0.5) * H / h).astype(np.int64), H - 1)
+    return np.ascontiguousarray(depth[rows[:, None], cols[None, :]])
 
 
 def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -> Path:
@@ -171,9 +195,11 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
     `folder` itself when no image's long side exceeds `max_size` (or `max_size` is None); else
     `out/data/<name>_max<N>/`, made once (reused while its record `out/data/stages/<name>_max<N>.json` says
     it is complete and unchanged): the noisy and clean images downscaled with the area filter (16-bit PNG),
-    the ground-truth cameras scaled to match (`Camera.scaled`, poses unchanged), `split.json` copied. Other
-    files of `folder` are not copied. It is written in a hidden work folder and committed with the record
-    (`eval.pipeline.stage.commit_written`), so only a folder this function made is ever replaced.
+    the ground-truth cameras scaled to match (`Camera.scaled`, poses unchanged), `split.json` copied, and
+    `depth/` maps where the dataset has them (`nearest_depth`). Other files of `folder` are not copied; when
+    those it copies change (`_source_digest`), it is made again. It is written in a hidden work folder and
+    committed with the record (`eval.pipeline.stage.commit_written`), so only a folder this function made is
+    ever replaced.
 
     Raises:
         InputError: an image whose size differs from its ground-truth camera's.
@@ -192,8 +218,8 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
     if max_size is None or all(max(s) <= max_size for s in sizes.values()):
         return folder
     data_dir, name = out / DATA_DIR, f"{folder.name}_max{max_size}"
-    target, source = data_dir / name, folder.resolve()
-    if _recorded_dataset(data_dir, name, source, max_size):
+    target, source, digest = data_dir / name, folder.resolve(), _source_digest(folder)
+    if _recorded_dataset(data_dir, name, source, max_size, digest):
         return target
     gt = read_sparse_model(folder / "sparse" / "0")
     cameras = {}
@@ -214,6 +240,15 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
         write_sparse_model(tmp / "sparse" / "0", SparseModel(cameras, gt.images, gt.points_xyz, gt.points_rgb),
                            binary=False)
         (tmp / "split.json").write_bytes((folder / "split.json").read_bytes())
+        if (folder / "depth").is_dir():  # data_synth's depth maps (the `3dgs_gt_poses` baseline's points)
+            (tmp / "depth").mkdir()
+            for f in sorted((folder / "depth").glob("*.npy")):
+                stem = f.stem
+                wh = sizes.get(("clean", stem), sizes.get(("images", stem)))
+                if wh is not None:
+                    np.save(tmp / "depth" / f.name, nearest_depth(np.load(f, allow_pickle=False),
+                                                                  working_size(*wh, max_size)))
 
-    commit_written(data_dir, name, (name,), write, {"source": str(source), "max_size": max_size})
+    commit_written(data_dir, name, (name,), write, {"source": str(source), "source_digest": digest,
+                                                   "max_size": max_size})
     return target

@@ -542,6 +542,21 @@ def _is_cwd_or_ancestor(path: Path) -> bool:
     return path == cwd or path in cwd.parents
 
 
+#: Bytes `mvgeo.common.atomic` adds to `--out`'s name for the folders it keeps beside it while it writes:
+#: `.<name>.tmp-TAG` / `.<name>.old-TAG` (TAG: 8 hex digits) and their owner files (`OWNER_SUFFIX`).
+_SIBLING_EXTRA = len(".") + len(".tmp-") + 8 + len(OWNER_SUFFIX)
+
+
+def _check_name_length(out: Path, path: Path) -> None:
+    """Refuse an `--out` whose name leaves no room for the folders written beside it (`_SIBLING_EXTRA`): the
+    file system would refuse them only when the output is written, after the work."""
+    longest = _NAME_MAX - _SIBLING_EXTRA
+    n = len(os.fsencode(path.name))
+    if n > longest:
+        raise InputError(f"--out's folder name is too long ({n} bytes; at most {longest}, to leave room for the "
+                         "temporary folder written beside it)", path=out, fix="choose a shorter --out name")
+
+
 def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path | None] = (),
                    overwrite: bool = False, resume: bool = False) -> OutputPlan:
     """Check `out` against the output policy (module docstring) before any work; create nothing, with one
@@ -630,6 +645,8 @@ def prepare_output(out: str | Path, *, command: str, inputs: Iterable[str | Path
         # Replacing renames `path` inside its parent; writing into an empty or resumed folder creates
         # entries inside `path` itself.
         _check_writable(path.parent if state == "previous" and not resume else path, out)
+    if not resume and state != "empty":  # the output is written beside `path`, then renamed into place
+        _check_name_length(out, path)
     return OutputPlan(out=out, path=path, command=command, state=state, overwrite=overwrite, resume=resume,
                       inputs=resolved_inputs)
 

@@ -503,3 +503,21 @@ def test_output_file_in_a_folder_still_to_be_made(tmp_path):
     with pytest.raises(RuntimeError):
         write_output_file(bad, CMD, fail)
     assert not (tmp_path / "other").exists()
+
+
+def test_a_name_too_long_for_the_temporary_folder_beside_it_is_refused_up_front(tmp_path):
+    # The temporary sibling `.<name>.tmp-XXXXXXXX` and its owner file add 20 bytes to the name; the file system
+    # takes 255. The longest name that fits is written; one byte more is refused before any work.
+    longest = 255 - len(".") - len(".tmp-") - 8 - len(".owner")
+    plan = prepare_output(tmp_path / ("a" * longest), command=CMD)
+    with atomic_output_dir(plan) as tmp:
+        (tmp / "x.txt").write_text("x")
+    assert (tmp_path / ("a" * longest) / "x.txt").is_file()
+    with pytest.raises(InputError, match="too long"):
+        prepare_output(tmp_path / ("b" * (longest + 1)), command=CMD)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a" * longest]
+    empty = tmp_path / ("c" * 250)  # an existing empty folder is written in place: no sibling, no limit
+    empty.mkdir()
+    with atomic_output_dir(prepare_output(empty, command=CMD)) as tmp:
+        (tmp / "y.txt").write_text("y")
+    assert (empty / "y.txt").is_file()

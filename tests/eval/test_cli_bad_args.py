@@ -98,3 +98,30 @@ def test_the_denoise_stage_trains_on_the_configured_device(tmp_path, monkeypatch
     with pytest.raises(Stop):
         stages.denoise(ctx)
     assert seen == ["cuda:1"]
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["eval", "llff_like", "--size", "64x48", "--scene-views", "2", "--methods", "3dgs_gt_poses"],
+     ["needs at least 2 training views", "the scene rendered with 2 views has 1", "--scene-views"]),
+    (["eval", "llff_like", "--size", "64x48", "--scene-views", "4", "--views", "5", "--methods", "denoise_gs"],
+     ["--views 5", "3 training views", "--views of 2..3"]),
+    (["cost", "llff_like", "--size", "64x48", "--scene-views", "2"], ["the cost sweep needs at least 2 training"]),
+    (["cost", "llff_like", "--size", "64x48", "--scene-views", "4", "--grid", "train_views=9", "--knobs",
+      "train_views"], ["train_views=9", "(3)"]),
+])
+def test_too_few_training_views_of_a_rendered_scene_are_refused_before_it_is_rendered(tmp_path, capsys, no_work, argv,
+                                                                                    message):
+    assert_refused(main, [*argv, "--out", tmp_path / "O"], capsys, inputs=[], watch=[tmp_path], message=message)
+
+
+def test_eval_views_above_a_datasets_training_views_is_refused_before_any_output(tmp_path, capsys, no_work):
+    import json
+    import shutil
+
+    root = tmp_path / "ds"
+    make_scene(root / "images", n=4)
+    shutil.copytree(root / "images", root / "clean")
+    (root / "sparse" / "0").mkdir(parents=True)
+    (root / "split.json").write_text(json.dumps({"train": ["view_001", "view_002", "view_003"], "test": ["view_000"]}))
+    assert_refused(main, ["eval", root, "--out", tmp_path / "O", "--methods", "denoise_gs", "--views", "5"], capsys,
+                   inputs=[root], watch=[tmp_path], message=["--views 5", "split.json", "3 training views"])

@@ -12,7 +12,14 @@ import pytest
 
 from eval.cli import build_parser
 from eval.pipeline import PipelineConfig, run_pipeline
-from eval.pipeline.inputs import SIZES_FILE, WORKING_DIR, resize_area, working_dataset, working_size
+from eval.pipeline.inputs import (
+    SIZES_FILE,
+    WORKING_DIR,
+    nearest_depth,
+    resize_area,
+    working_dataset,
+    working_size,
+)
 from eval.pipeline.publish import input_size_cameras
 from mvgeo.camera import Camera
 from mvgeo.common.errors import InputError
@@ -128,6 +135,45 @@ def test_eval_dataset_is_scaled_with_its_cameras(tmp_path):
     assert (scaled.width, scaled.height, scaled.fx, scaled.cx) == (48, 32, 40.0, 24.0)
     assert json.loads((small / "split.json").read_text())["test"] == ["view_002"]
     assert working_dataset(root, tmp_path / "out", 48) == small  # reused
+    assert not (small / "depth").exists()  # none to copy
+
+
+def test_eval_dataset_is_made_again_when_its_source_changes_and_takes_its_depth_maps(tmp_path):
+    root = tmp_path / "ds"
+    make_scene(root / "images", n=3, size_wh=(96, 64))
+    make_scene(root / "clean", n=3, size_wh=(96, 64), seed=1)
+    cam = Camera.pinhole(80.0, 80.0, 48.0, 32.0, 96, 64)
+    imgs = [PosedImage(f"view_{i:03d}.png", 1, np.hstack([np.eye(3), [[i * 0.1], [0], [0]]])) for i in range(3)]
+    write_sparse_model(root / "sparse" / "0", SparseModel({1: cam}, imgs), binary=False)
+    (root / "split.json").write_text(json.dumps({"train": ["view_000", "view_001"], "test": ["view_002"]}))
+    (root / "depth").mkdir()
+    depth = np.arange(64 * 96, dtype=np.float32).reshape(64, 96)
+    depth[:10, :10] = np.inf  # misses stay misses
+    for i in range(3):
+        np.save(root / "depth" / f"view_{i:03d}.npy", depth + i)
+    small = working_dataset(root, tmp_path / "out", 48)
+    d = np.load(small / "depth" / "view_001.npy")
+    assert d.shape == (32, 48) and np.array_equal(d, nearest_depth(depth + 1, (48, 32)))
+    assert np.isinf(d[:5, :5]).all()
+    before = read_image(small / "images" / "view_000.png")
+    # The dataset at the same path is replaced by another (e.g. rendered again): the working copy follows it.
+    shutil.rmtree(root / "images")
+    make_scene(root / "images", n=3, size_wh=(96, 64), seed=7)
+    assert working_dataset(root, tmp_path / "out", 48) == small
+    after = read_image(small / "images" / "view_000.png")
+    assert not np.array_equal(before, after)
+    np.testing.assert_allclose(after, resize_area(read_image(root / "images" / "view_000.png"), (48, 32)),
+                               atol=1 / 65535)
+
+
+def test_nearest_depth_against_a_loop(rng):
+    depth = rng.random((7, 10)).astype(np.float32)
+    for wh in [(5, 3), (10, 7), (4, 4)]:
+        ref = np.empty((wh[1], wh[0]), np.float32)
+        for y in range(wh[1]):
+            for x in range(wh[0]):  # the input pixel under the output pixel's centre
+                ref[y, x] = depth[int((y + 0.5) * 7 / wh[1]), int((x + 0.5) * 10 / wh[0])]
+        assert np.array_equal(nearest_depth(depth, wh), ref)
 
 
 def test_cli_max_size_values():
