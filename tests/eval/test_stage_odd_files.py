@@ -104,7 +104,7 @@ def test_the_toolkits_own_json_files_deeply_nested_give_typed_errors_or_not_ours
 
     (tmp_path / "data" / RECORD_DIR).mkdir(parents=True)
     (tmp_path / "data" / RECORD_DIR / "scene.json").write_text(NESTED)
-    assert _recorded_dataset(tmp_path / "data", "scene", tmp_path / "src", 512) is False
+    assert _recorded_dataset(tmp_path / "data", "scene", tmp_path / "src", 512, "0" * 64) is False
 
     cache = tmp_path / "scores.json"
     cache.write_text(NESTED)
