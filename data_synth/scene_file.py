@@ -80,7 +80,8 @@ def read_toml(path: Path) -> dict[str, Any]:
                          path=path, fix="pass a .toml scene file saved as UTF-8 (`data-synth list` shows the "
                          "built-in scenes)") from exc
     except OSError as exc:
-        raise InputError(f"cannot read scene file: {exc.strerror}", path=path) from exc
+        raise InputError(f"cannot read scene file: {exc.strerror}", path=path,
+                         fix="make the file readable (its permissions), or pass another scene file") from exc
 
 
 def merge_tables(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:

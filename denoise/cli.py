@@ -131,6 +131,7 @@ def _cmd_n2v(args: argparse.Namespace) -> int:
 
 
 def _cmd_select(args: argparse.Namespace) -> int:
+    from mvgeo.common.imageio import upright_size
     from mvgeo.sparse_model import read_sparse_model
 
     out = None
@@ -145,6 +146,11 @@ def _cmd_select(args: argparse.Namespace) -> int:
         if not path.is_file():
             raise InputError(f"image {im.name!r} of the sparse model is missing", path=path,
                              fix="pass the folder holding the model's images with --images")
+        cam, wh = model.camera_of(im.name), upright_size(path)
+        if wh is not None and wh != (cam.width, cam.height):
+            raise InputError(f"image {im.name!r} is {wh[0]}x{wh[1]} but its camera in the sparse model is "
+                             f"{cam.width}x{cam.height}", path=path,
+                             fix="pass the images the model was made from, at their size, with --images")
         poses[im.name] = im.cam_from_world
         paths[im.name] = path
     sel = select_views(poses, paths, k=args.k, seed=args.seed)

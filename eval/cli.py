@@ -31,7 +31,16 @@ from eval.pipeline.lock import output_lock
 from eval.pipeline.validate import MIN_IMAGE_SIZE_PX, check_renderable_cameras
 from eval.real.cli import add_dataset_parser
 from eval.results import carried_rows, merge_rows, write_results
-from mvgeo.common.argtypes import fraction, int_range, nonneg_float, nonneg_int, out_path, positive_int, seed
+from mvgeo.common.argtypes import (
+    fraction,
+    half_open_fraction,
+    int_range,
+    nonneg_float,
+    nonneg_int,
+    out_path,
+    positive_int,
+    seed,
+)
 from mvgeo.common.cli import add_common_args, run_cli
 from mvgeo.common.device import DEVICE_HELP, resolve_device
 from mvgeo.common.errors import AlignmentRefusedError, DisconnectedViewsError, InputError
@@ -408,7 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="round 1's self-supervised objective on the UNet (default: the preset's: auto with "
                           "default and best, R2R unless a fifth of the photos is black and clipped, then "
                           "neighbor2neighbor; n2v with fast; only n2v runs more than one round)")
-    run.add_argument("--keep-noisy", type=float, default=None, metavar="K",
+    run.add_argument("--keep-noisy", type=half_open_fraction, default=None, metavar="K",
                      help="fraction of the noisy photo kept in round 1's photos, (1 - K) * denoised + K * noisy, "
                           "0 <= K < 1 (the splat averages the noise across views, not the blur). Default: the "
                           "preset's")

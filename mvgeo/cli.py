@@ -22,6 +22,18 @@ from mvgeo.common.errors import InputError
 from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output
 
 
+def _pair_graph(text: str) -> str:
+    """`--pairs`, checked by the parser (`PairGraphSpec.parse`)."""
+    from mvgeo.align.graph import PairGraphSpec
+    from mvgeo.common.errors import ConfigError
+
+    try:
+        PairGraphSpec.parse(text)
+    except ConfigError:
+        raise argparse.ArgumentTypeError(f"expected complete, auto or window:K (K >= 1), got {text!r}") from None
+    return text
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mvgeo", description=__doc__)
     add_common_args(p)
@@ -33,7 +45,8 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     a.add_argument("--max-size", type=int_range(16), default=640, help="long side for matching (px); default 640")
     a.add_argument("--pointmap-size", type=int_range(8), default=128, help="long side of the dense pointmaps (px)")
-    a.add_argument("--pairs", default="auto", help="complete | window:K | auto (complete up to 24 images)")
+    a.add_argument("--pairs", default="auto", type=_pair_graph,
+                   help="complete | window:K | auto (complete up to 24 images)")
     a.add_argument("--shared-focal", action="store_true", help="one focal for all views")
     a.add_argument("--iters", type=nonneg_int, default=100, help="global alignment iterations (default 100)")
     a.add_argument("--align-stride", type=positive_int, default=None,
@@ -116,6 +129,11 @@ def _align(args: argparse.Namespace) -> int:
                              fix="pass the calibration of these images at their size")
     cloud = None
     if args.cloud_images is not None:
+        if not args.cloud_images.is_dir():
+            raise InputError("--cloud-images is not a folder" if args.cloud_images.exists() else
+                             "--cloud-images does not exist", path=args.cloud_images,
+                             fix="pass the folder of the same views (e.g. the denoised photos), file names as in "
+                                 "the images folder")
         cloud = [args.cloud_images / p.name for p in paths]
         missing = [c.name for c in cloud if not c.is_file()]
         if missing:

@@ -7,6 +7,8 @@ quaternions are wxyz; pycolmap's `Rigid3d` is xyzw and is converted here only.
 
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -172,6 +174,10 @@ def read_sparse_model(path: str | Path) -> SparseModel:
         problem = cameras_bin_problem(path / "cameras.bin")
         if problem is not None:
             raise InputError(f"corrupt COLMAP cameras file: {problem}", path=path / "cameras.bin", fix=fix)
+    if has_txt and not has_bin:  # pycolmap reads a text model with a line missing without complaint
+        problem = images_txt_problem(path / "images.txt")
+        if problem is not None:
+            raise InputError(f"corrupt COLMAP images file: {problem}", path=path / "images.txt", fix=fix)
     try:
         rec = pycolmap.Reconstruction(str(path))
     except Exception as exc:  # pycolmap raises plain exceptions (internal check text) on corrupt files
@@ -185,6 +191,51 @@ def read_sparse_model(path: str | Path) -> SparseModel:
             raise
         raise InputError(f"the COLMAP model cannot be used: {exc.message}", path=path,
                          fix=exc.fix or fix) from exc
+
+
+def _numbers(tokens: list[str]) -> bool:
+    try:
+        return all(math.isfinite(float(t)) for t in tokens)
+    except ValueError:
+        return False
+
+
+def images_txt_problem(path: str | Path) -> str | None:
+    """What is wrong with a COLMAP text `images.txt`, or None when its structure is sound.
+
+    Layout (COLMAP `WriteImagesText`): comment lines (``#``; ``# Number of images: N, ...`` in COLMAP's own),
+    then two lines per image: ``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`` and its POINTS2D as
+    ``X Y POINT3D_ID`` triples (an empty line without points). COLMAP's reader, as pycolmap's, skips blank lines
+    only before an image line and takes the next line as its points whatever it holds: with one line missing,
+    an image line is read as points and the image vanishes without an error.
+    """
+    lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+    declared, n, k = None, 0, 0
+    while k < len(lines):
+        line = lines[k].strip()
+        k += 1
+        if line.startswith("#"):
+            m = re.match(r"#\s*Number of images:\s*(\d+)", line)
+            declared = int(m[1]) if m else declared
+            continue
+        if not line:
+            continue
+        tokens = line.split()
+        if len(tokens) < 10 or not _numbers(tokens[:9]):
+            return (f"line {k} is not an image line (IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME): "
+                    f"{line[:100]!r}")
+        n += 1
+        if k == len(lines):  # the last image without its points line: COLMAP reads it as an image without points
+            break
+        points = lines[k].split()
+        k += 1
+        if len(points) % 3 or not _numbers(points):
+            return (f"line {k}, the POINTS2D line of image {' '.join(tokens[9:])!r}, is not (X, Y, POINT3D_ID) "
+                    f"triples: {lines[k - 1].strip()[:100]!r} (a line missing above it? Every image takes two "
+                    "lines, the second empty where it has no points)")
+    if declared is not None and declared != n:
+        return f"the header says {declared} image(s), the file holds {n}"
+    return None
 
 
 def cameras_bin_problem(path: str | Path) -> str | None:

@@ -68,7 +68,17 @@ def _init_points(args, data_dir: Path, views):
                              "data-synth folder with depth/")
     if args.init == "depth":
         return points_from_depth(data_dir, views, stride_px=args.depth_stride)
-    return read_point_cloud_ply(args.init)
+    xyz, rgb = read_point_cloud_ply(args.init)
+    if len(xyz) < 2:
+        raise InputError(f"--init holds {len(xyz)} point(s); the splat needs at least 2 to start from",
+                         path=args.init, fix="pass a point cloud with points (e.g. `mvgeo align`'s points.ply), or "
+                                             "leave --init out to start from sparse/0's points")
+    bad = ~np.isfinite(np.asarray(xyz, np.float64)).all(axis=1)
+    if bad.any():
+        raise InputError(f"--init: {int(bad.sum())} of its {len(xyz)} points are NaN or infinite (the first: "
+                         f"vertex {int(np.flatnonzero(bad)[0])})", path=args.init,
+                         fix="remove those vertices, or write the cloud again")
+    return xyz, rgb
 
 
 def _train(args) -> int:

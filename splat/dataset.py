@@ -93,10 +93,15 @@ def load_views(data_dir: str | Path, *, split: str | None = "train", sparse_dir:
         unknown = sorted(set(wanted) - set(names))
         if unknown:
             raise InputError(f"split '{split}' names images with no camera pose: {unknown[:5]}",
-                             path=data_dir / "split.json")
+                             path=data_dir / "split.json",
+                             fix="name only images that sparse/0 has a camera for (their file names)")
         names = [n for n in names if n in set(wanted)]
+        if not names:
+            raise InputError(f"split.json's '{split}' list is empty: no images to use", path=data_dir / "split.json",
+                             fix=f"list the images of the '{split}' views, or leave split.json out to use them all")
     if not names:
-        raise InputError("no posed images to use", path=data_dir)
+        raise InputError("no posed images to use: sparse/0 has no image", path=data_dir,
+                         fix="point at a model with registered images (e.g. what `mvgeo align --out` writes)")
     images, cameras = [], []
     for name in names:
         path = image_dir / name

@@ -180,15 +180,19 @@ def validate_dataset_folder(root: Path) -> DatasetFolder:
     test = [Path(n).stem for n in split["test"]]
     if not train or not test:
         raise InputError(f"split.json needs training and held-out views (has {len(train)} train, "
-                         f"{len(test)} test)", path=split_path)
+                         f"{len(test)} test)", path=split_path, fix=split_fix)
     if set(train) & set(test):
-        raise InputError(f"views {sorted(set(train) & set(test))} are both train and test", path=split_path)
+        raise InputError(f"views {sorted(set(train) & set(test))} are both train and test", path=split_path,
+                         fix="list each view under one of them: a held-out view must not be trained on")
     for name in train:
         if name not in images:
-            raise InputError(f"training view {name!r} has no noisy image", path=root / "images")
+            raise InputError(f"training view {name!r} has no noisy image", path=root / "images",
+                             fix=f"put {name} into images/, or take it out of split.json's train list")
     for name in test:
         if name not in clean:
-            raise InputError(f"held-out view {name!r} has no clean image", path=root / "clean")
+            raise InputError(f"held-out view {name!r} has no clean image", path=root / "clean",
+                             fix=f"put {name} into clean/ (the held-out views are scored against it), or take it "
+                                 "out of split.json's test list")
     _one_orientation({n: images[n] for n in train}, root / "images")
     # clean/ of the training views too, where there is one: `oracle_clean` splats them
     _sizes_match_cameras(root, [images[n] for n in train] + [clean[n] for n in train + test if n in clean])

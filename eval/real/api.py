@@ -33,7 +33,8 @@ def read_capture(kind: str, src: str | Path, *, llff_factor: int | None = None) 
         InputError: unknown kind, or the reader's input errors.
     """
     if llff_factor is not None and kind != "llff":
-        raise InputError(f"--factor applies to LLFF captures only, not {kind}")
+        raise InputError(f"--factor applies to LLFF captures only, not {kind}",
+                         fix="leave --factor out (--size or --max-size scales any capture)")
     if kind == "llff":
         return read_llff(src, factor=llff_factor)
     if kind == "colmap":

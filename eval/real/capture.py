@@ -80,7 +80,8 @@ class Capture:
 
     def __post_init__(self) -> None:
         if not self.views:
-            raise InputError(f"the {self.kind} capture has no views", path=self.source)
+            raise InputError(f"the {self.kind} capture has no views", path=self.source,
+                             fix="point at a capture whose camera file lists its images")
         for v in self.views:
             _check_camera(v, self.kind, self.source)
         names = [v.name for v in self.views]

@@ -97,6 +97,11 @@ def read_llff(src: str | Path, *, factor: int | None = None) -> Capture:
     if factor is not None and factor < 1:
         raise InputError(f"the LLFF image factor must be >= 1, got {factor}")
     folder = src / ("images" if factor is None else f"images_{factor}")
+    if factor is not None and not folder.is_dir():
+        have = sorted(p.name for p in src.glob("images_*") if p.is_dir())
+        raise InputError(f"--factor {factor} reads {folder.name}/, which this capture does not have", path=folder,
+                         fix=(f"pass --factor with one of its folders ({', '.join(have)}), or " if have else "")
+                         + "leave --factor out to import images/")
     files = list_images(folder)
     if len(files) != len(arr):
         raise InputError(f"poses_bounds.npy has {len(arr)} rows but {folder.name}/ holds {len(files)} images",
@@ -106,11 +111,13 @@ def read_llff(src: str | Path, *, factor: int | None = None) -> Capture:
     for i, (row, file) in enumerate(zip(arr.astype(np.float64), files, strict=True)):
         what = f"row {i} ({file.name})"
         if not np.all(np.isfinite(row)):
-            raise InputError(f"{what} holds a non-finite value", path=npy)
+            raise InputError(f"{what} holds a non-finite value", path=npy,
+                             fix="write poses_bounds.npy again (LLFF's imgs2poses.py, or COLMAP's poses)")
         pose = row[:15].reshape(3, 5)
         H, W, f = pose[:, 4]
         if H <= 0 or W <= 0 or f <= 0:
-            raise InputError(f"{what}: hwf must be positive, got H={H:g} W={W:g} f={f:g}", path=npy)
+            raise InputError(f"{what}: hwf must be positive, got H={H:g} W={W:g} f={f:g}", path=npy,
+                             fix="write poses_bounds.npy again: each row is a 3x5 [R | t | (H, W, f)] and near, far")
         w, h = image_size_wh(file)
         if factor is not None and (abs(w - W / factor) > 1.0 or abs(h - H / factor) > 1.0):
             raise InputError(f"{file.name} is {w}x{h}, but the poses' full size {W:g}x{H:g} / {factor} is "

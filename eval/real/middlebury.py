@@ -42,6 +42,12 @@ PIXEL_OFFSET_PX = 0.5
 _FIELDS = 1 + 9 + 9 + 3
 
 
+#: The fix of a malformed camera file: its layout.
+_PAR_FIX = ("write it as Middlebury's *_par.txt: the number of views on the first line, then per view one line "
+            "NAME k11 k12 k13 k21 k22 k23 k31 k32 k33 r11 ... r33 t1 t2 t3 (21 numbers after the name: "
+            "K, then R and t of x_cam = R x_world + t)")
+
+
 def find_par_file(src: Path) -> Path:
     """The `*_par.txt` file: `src` itself, or the only one inside folder `src`.
 
@@ -52,7 +58,8 @@ def find_par_file(src: Path) -> Path:
     if src.is_file():
         return src
     if not src.is_dir():
-        raise InputError("Middlebury capture does not exist", path=src)
+        raise InputError("Middlebury capture does not exist", path=src,
+                         fix="pass the folder that holds the *_par.txt camera file and the images, or that file")
     found = sorted(src.glob("*_par.txt"))
     if len(found) != 1:
         raise InputError(f"expected one *_par.txt camera file in the folder, found {len(found)}"
@@ -82,11 +89,11 @@ def read_middlebury(src: str | Path) -> Capture:
                          fix="check that it is a readable text file (Middlebury's *_par.txt)") from exc
     lines = [(i + 1, ln.split()) for i, ln in enumerate(text.splitlines()) if ln.strip()]
     if not lines:
-        raise InputError("the camera file is empty", path=par)
+        raise InputError("the camera file is empty", path=par, fix=_PAR_FIX)
     head_no, head = lines[0]
     if len(head) != 1 or not head[0].isdigit():
         raise InputError(f"line {head_no}: the first line must be the number of views, got {' '.join(head)!r}",
-                         path=par)
+                         path=par, fix=_PAR_FIX)
     count = int(head[0])
     body = lines[1:]
     if len(body) != count:
@@ -97,21 +104,22 @@ def read_middlebury(src: str | Path) -> Capture:
         where = f"line {line_no}"
         if len(tok) != _FIELDS:
             raise InputError(f"{where} has {len(tok)} fields, expected {_FIELDS} "
-                             "(name k11..k33 r11..r33 t1 t2 t3)", path=par)
+                             "(name k11..k33 r11..r33 t1 t2 t3)", path=par, fix=_PAR_FIX)
         try:
             vals = np.array([float(v) for v in tok[1:]], dtype=np.float64)
         except ValueError:
-            raise InputError(f"{where}: a camera value is not a number", path=par) from None
+            raise InputError(f"{where}: a camera value is not a number", path=par, fix=_PAR_FIX) from None
         if not np.all(np.isfinite(vals)):
-            raise InputError(f"{where}: a camera value is not finite", path=par)
+            raise InputError(f"{where}: a camera value is not finite", path=par, fix=_PAR_FIX)
         K, R, t = vals[:9].reshape(3, 3), vals[9:18].reshape(3, 3), vals[18:]
         if K[2, 2] == 0 or abs(K[2, 0]) > 0 or abs(K[2, 1]) > 0:
-            raise InputError(f"{where}: K's last row must be (0, 0, k33) with k33 != 0", path=par)
+            raise InputError(f"{where}: K's last row must be (0, 0, k33) with k33 != 0", path=par, fix=_PAR_FIX)
         K = K / K[2, 2]
         if abs(K[0, 1]) > 1e-9 * abs(K[0, 0]) or K[1, 0] != 0:
-            raise InputError(f"{where}: K has skew ({K[0, 1]:g}), which a pinhole camera cannot hold", path=par)
+            raise InputError(f"{where}: K has skew ({K[0, 1]:g}), which a pinhole camera cannot hold", path=par,
+                             fix=_PAR_FIX)
         if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise InputError(f"{where}: focal lengths must be positive", path=par)
+            raise InputError(f"{where}: focal lengths must be positive", path=par, fix=_PAR_FIX)
         R = rotation_checked(R, what=where, path=par)
         file = par.parent / tok[0]
         if not file.is_file():

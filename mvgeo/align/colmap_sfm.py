@@ -96,7 +96,8 @@ def run_colmap(images_dir: str | Path, config: ColmapConfig = ColmapConfig(), *,
     paths = list_images(images_dir)
     names = image_names if image_names is not None else [p.name for p in paths]
     if len(names) < 2:
-        raise InputError(f"need at least 2 images, got {len(names)}", path=images_dir)
+        raise InputError(f"need at least 2 images, got {len(names)}", path=images_dir,
+                         fix="put the photos (PNG or JPEG) of one scene in the folder, at least two")
     for n in names:
         read_image(images_dir / n)  # named InputError for corrupt files (COLMAP would skip them silently)
     if config.mapper not in ("incremental", "global"):

@@ -18,8 +18,9 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["SEED_MAX", "fraction", "int_range", "nonneg_float", "nonneg_int", "out_path", "positive_float",
-           "positive_int", "seed", "size_wh"]
+__all__ = [
+    "SEED_MAX", "fraction", "half_open_fraction", "int_range", "nonneg_float", "nonneg_int", "out_path",
+    "positive_float", "positive_int", "seed", "size_wh"]
 
 #: Seeds are in [0, SEED_MAX] (numpy's and torch's generators both accept this range).
 SEED_MAX = 2**32 - 1
@@ -95,6 +96,14 @@ def fraction(text: str) -> float:
     value = _float(text)
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"must be a number in [0, 1], got {text!r}")
+    return value
+
+
+def half_open_fraction(text: str) -> float:
+    """A number in ``[0, 1)``."""
+    value = _float(text)
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be a number in [0, 1), got {text!r}")
     return value
 
 

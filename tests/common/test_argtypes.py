@@ -38,3 +38,28 @@ def test_an_empty_out_is_a_usage_error_everywhere(tmp_path, monkeypatch, capsys,
     assert "argument --out: is empty" in capsys.readouterr().err
     assert list(cwd.iterdir()) == [] and list(images.iterdir()) == []
     assert out_path("a/b") == Path("a/b")
+
+
+@pytest.mark.parametrize(("text", "ok"), [("0", True), ("0.5", True), ("0.999", True), ("1", False), ("-0.1", False),
+                                          ("nan", False), ("inf", False), ("half", False)])
+def test_half_open_fraction(text, ok):
+    import argparse
+
+    from mvgeo.common.argtypes import half_open_fraction
+
+    if ok:
+        assert half_open_fraction(text) == float(text)
+    else:
+        with pytest.raises(argparse.ArgumentTypeError):
+            half_open_fraction(text)
+
+
+def test_keep_noisy_is_checked_as_the_option_the_user_typed(capsys):
+    from eval.cli import main
+
+    try:
+        code = main(["run", "IMAGES", "--out", "O", "--keep-noisy", "-1"])
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == 2 and "argument --keep-noisy: must be a number in [0, 1)" in err and "denoise.keep_noisy" not in err

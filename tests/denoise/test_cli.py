@@ -122,6 +122,12 @@ def test_select_cli(tmp_path, rng, capsys):
     (img_dir / "03.png").unlink()
     assert main(["select", str(sparse), "--images", str(img_dir)]) == 2
     assert "03.png" in capsys.readouterr().err
+    # An image of another size than its camera: refused, naming both sizes (its sharpness would be measured on
+    # other pixels than the model's).
+    write_image(img_dir / "03.png", rng.random((24, 32, 3)))
+    assert main(["select", str(sparse), "--images", str(img_dir)]) == 2
+    err = capsys.readouterr().err
+    assert "03.png" in err and "32x24" in err and "32x32" in err and "fix:" in err
 
 
 def test_n2v_cli_auto_method_chooses_from_the_photos(tmp_path):

@@ -72,3 +72,42 @@ def test_errors(tmp_path):
         Camera("PINHOLE", 10, 10, [1.0, 2.0])
     with pytest.raises(InputError, match="missing camera"):
         SparseModel({}, [PosedImage("a.png", 3, np.eye(4))])
+
+
+def _image_lines(path):
+    lines = (path / "images.txt").read_text().split("\n")
+    return lines, [k for k, ln in enumerate(lines) if ln and not ln.startswith("#")]
+
+
+def test_a_text_model_missing_a_line_is_refused_not_read_short(tmp_path, rng):
+    # pycolmap takes the line after an image line as its points whatever it holds: with an empty POINTS2D line
+    # gone, the next image's line is read as points and that image vanishes without an error.
+    model = _random_model(rng, n=4)
+    write_sparse_model(tmp_path / "m", model, binary=False)
+    lines, data = _image_lines(tmp_path / "m")
+    assert len(data) == 4 and lines[data[0] + 1] == ""  # COLMAP's layout: image line, then an empty points line
+    assert len(read_sparse_model(tmp_path / "m").images) == 4
+
+    spaced = lines[:data[1]] + ["", ""] + lines[data[1]:]  # blank lines before an image line: COLMAP skips them
+    (tmp_path / "m" / "images.txt").write_text("\n".join(spaced))
+    assert len(read_sparse_model(tmp_path / "m").images) == 4
+
+    del lines[data[1] + 1]  # the second image's (empty) points line
+    (tmp_path / "m" / "images.txt").write_text("\n".join(lines))
+    with pytest.raises(InputError, match="POINTS2D line of image") as exc:
+        read_sparse_model(tmp_path / "m")
+    assert exc.value.path.name == "images.txt" and exc.value.fix
+
+
+def test_a_text_model_whose_header_count_disagrees_is_refused(tmp_path, rng):
+    write_sparse_model(tmp_path / "m", _random_model(rng, n=4), binary=False)
+    lines, data = _image_lines(tmp_path / "m")
+    del lines[data[-1]:data[-1] + 2]  # the last image, both its lines: the file is sound but one short
+    (tmp_path / "m" / "images.txt").write_text("\n".join(lines))
+    with pytest.raises(InputError, match="header says 4 image"):
+        read_sparse_model(tmp_path / "m")
+    header = [k for k, ln in enumerate(lines) if ln.startswith("# Number of images")]
+    assert len(header) == 1
+    lines[header[0]] = "# a hand-written model without the count"
+    (tmp_path / "m" / "images.txt").write_text("\n".join(lines))
+    assert len(read_sparse_model(tmp_path / "m").images) == 3

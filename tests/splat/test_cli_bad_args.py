@@ -147,3 +147,30 @@ def test_missing_or_unreadable_inputs_name_the_file_and_the_fix(dataset, tmp_pat
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err and "fix:" in err, err
     assert not (tmp_path / "o").exists()
+
+
+_PLY_HEAD = ("ply\nformat ascii 1.0\nelement vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
+             "end_header\n")
+
+
+@pytest.mark.parametrize(("body", "n", "message"), [("", 0, "holds 0 point(s)"),
+                                                    ("0 0 1\nnan 0 1\n1 1 1\n", 3, "1 of its 3 points are NaN")])
+def test_an_init_cloud_without_usable_points_is_named_with_a_fix(dataset, tmp_path, capsys, no_training, body, n,
+                                                                 message):
+    ply = tmp_path / "init.ply"
+    ply.write_text(_PLY_HEAD.format(n=n) + body)
+    err = assert_refused(main, ["train", str(dataset), "--out", str(tmp_path / "o"), "--init", str(ply)], capsys,
+                         inputs=[dataset, ply], watch=[tmp_path], message=[message, "init.ply", "fix:"])
+    assert "pass --init" not in err  # they did
+
+
+def test_an_empty_training_split_names_split_json_and_the_fix(dataset, tmp_path, capsys, no_training):
+    import json
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    split = json.loads((data / "split.json").read_text())
+    (data / "split.json").write_text(json.dumps({"train": [], "test": split["test"] or split["train"][:1]}))
+    assert_refused(main, ["train", str(data), "--out", str(tmp_path / "o"), "--init", "depth"], capsys,
+                   inputs=[data], watch=[tmp_path], message=["split.json", "'train' list is empty", "fix:"])

@@ -176,8 +176,12 @@ def test_bad_input_exit_2_and_no_output(case, scene, tmp_path, capsys):
     assert not list(tmp_path.glob(".out.tmp-*"))
 
 
-def test_unknown_pairs_spec_is_exit_2(scene, tmp_path):
-    assert main(["align", str(scene / "images"), "--out", str(tmp_path / "o"), "--pairs", "ring"]) == 2
+def test_unknown_pairs_spec_is_a_usage_error(scene, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["align", str(scene / "images"), "--out", str(tmp_path / "o"), "--pairs", "ring"])
+    assert exc.value.code == 2
+    assert "argument --pairs: expected complete, auto or window:K" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
 
 
 def test_disconnected_images_exit_2_or_partial_registration(scene, tmp_path, capsys):
