@@ -432,7 +432,7 @@ def test_cli_imports_and_bad_input_exits_2_without_traceback(tmp_path, rng, caps
     par = tmp_path / "mb" / "tmpl_par.txt"
     lines = par.read_text().splitlines()
     par.write_text("\n".join([lines[0], *lines[1:-1], lines[-1].rsplit(" ", 1)[0]]) + "\n")
-    _write_llff(tmp_path / "llff", rng, n=3)
+    good_poses, _ = _write_llff(tmp_path / "llff", rng, n=3)
     np.save(tmp_path / "llff" / "poses_bounds.npy", np.zeros((3, 3, 5)))
     cases = [(["middlebury", str(tmp_path / "mb")], "line 6 has 21 fields"),
              (["llff", str(tmp_path / "llff")], "poses_bounds.npy must be an (N, 17)"),
@@ -441,8 +441,24 @@ def test_cli_imports_and_bad_input_exits_2_without_traceback(tmp_path, rng, caps
     for args, msg in cases:
         assert main(["dataset", "import", *args, "--out", str(tmp_path / "bad")]) == 2
         err = capsys.readouterr().err
-        assert msg in err and "Traceback" not in err, err
+        assert msg in err and "Traceback" not in err and "fix:" in err, err
         assert not (tmp_path / "bad").exists()
+    bad_par = [("", "the camera file is empty"), ("five\n", "the first line must be the number of views"),
+               (lines[0] + "\n" + lines[1].replace(lines[1].split()[1], "x", 1) + "\n", "not a number")]
+    for text, msg in bad_par:  # each names the file and says how the file is laid out
+        par.write_text(text if msg != "not a number" else "1\n" + text.split("\n", 1)[1])
+        assert main(["dataset", "import", "middlebury", str(par), "--out", str(tmp_path / "bad")]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and "tmpl_par.txt" in err and "fix: write it as Middlebury's" in err, err
+    np.save(tmp_path / "llff" / "poses_bounds.npy", good_poses)
+    assert main(["dataset", "import", "llff", str(tmp_path / "llff"), "--out", str(tmp_path / "bad"),
+                 "--factor", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "--factor 2 reads images_2/" in err and "leave --factor out" in err, err
+    assert main(["dataset", "import", "middlebury", str(tmp_path / "mb"), "--out", str(tmp_path / "bad"),
+                 "--factor", "2"]) == 2
+    assert "fix: leave --factor out" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
     assert main(["dataset", "import", "llff", str(tmp_path / "llff"), "--out", str(tmp_path / "bad"),
                  "--noise", "speckle:3"]) == 2
     assert "unknown noise model" in capsys.readouterr().err

@@ -135,6 +135,10 @@ def test_cloud_images_colour_the_cloud(aligned, scene, tmp_path, capsys):
     assert main(["align", str(scene / "images"), "--out", str(tmp_path / "o2"), "--cloud-images", str(grey)]) == 2
     err = capsys.readouterr().err
     assert "view_002.png" in err and "Traceback" not in err and not (tmp_path / "o2").exists()
+    assert main(["align", str(scene / "images"), "--out", str(tmp_path / "o3"), "--cloud-images",
+                 str(tmp_path / "nope")]) == 2
+    err = capsys.readouterr().err
+    assert "--cloud-images does not exist" in err and "fix:" in err and not (tmp_path / "o3").exists()
 
 
 @pytest.mark.parametrize("case", ["missing", "empty", "one_image", "corrupt", "mixed_sizes", "turned", "duplicate"])
