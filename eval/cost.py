@@ -186,7 +186,8 @@ class CostPoint:
         stage_s: stage label (`roundN/stage`) -> wall seconds when it ran.
         total_s: sum of `stage_s` (end to end, scoring excluded).
         psnr_db, ssim, lpips: held-out means against the clean images.
-        rot_err_deg, ate: training-pose errors after Sim(3).
+        rot_err_deg, ate: training-pose errors: the median relative rotation error over the pairs of views,
+            and the ATE after Sim(3).
     """
 
     name: str
@@ -407,8 +408,8 @@ def cost_markdown(rows: Sequence[CostPoint], *, title: str) -> str:
     stage_names = list(dict.fromkeys(s for r in rows for s in r.stage_s))
     for knob in dict.fromkeys(r.knob for r in rows):
         label = "base configuration" if knob == "base" else f"{knob}: {KNOBS[knob][0]}"
-        lines += [f"## {label}", "", "| value | PSNR (dB) | SSIM | LPIPS | rot. err. (deg) | ATE | end to end (s) | "
-                  "slowest stages (s) |", "|---|---|---|---|---|---|---|---|"]
+        lines += [f"## {label}", "", "| value | PSNR (dB) | SSIM | LPIPS | rot. err. median (deg) | ATE | "
+                  "end to end (s) | slowest stages (s) |", "|---|---|---|---|---|---|---|---|"]
         knob_rows = [r for r in rows if r.knob == knob]
         for r in knob_rows:
             top = sorted(r.stage_s.items(), key=lambda kv: -kv[1])[:3]
@@ -436,7 +437,7 @@ def plot_cost(rows: Sequence[CostPoint], folder: Path) -> list[Path]:
     base = next((r for r in rows if r.knob == "base"), None)
     paths = []
     for metric, label, fname in (("psnr_db", "held-out PSNR (dB)", "psnr_vs_time.png"),
-                                 ("rot_err_deg", "training rotation error (deg)", "pose_vs_time.png")):
+                                 ("rot_err_deg", "training rotation error, median (deg)", "pose_vs_time.png")):
         n = max(1, len(knobs))
         cols = min(4, n)
         nrows = (n + cols - 1) // cols

@@ -370,7 +370,8 @@ def score_reconstruction(run_dir: Path, dataset: DatasetFolder, train_names: lis
         train_names: the training views it saw (default `dataset.train`).
 
     Returns:
-        Held-out means ``psnr_db``, ``ssim``, ``lpips`` and pose errors ``rot_err_deg``, ``ate``.
+        Held-out means ``psnr_db``, ``ssim``, ``lpips`` and the training poses' errors ``rot_err_deg`` (the median
+        relative rotation error over pairs of views) and ``ate``.
     """
     gt = read_sparse_model(dataset.root / "sparse" / "0")
     model = read_gaussian_ply(Path(run_dir) / "point_cloud.ply", device=device)

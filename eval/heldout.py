@@ -50,11 +50,16 @@ def _centre(cfw: np.ndarray) -> np.ndarray:
     return -cfw[:3, :3].T @ cfw[:3, 3]
 
 
+#: `register_sim3` takes the rotation from the cameras' orientations when the reference centres' second
+#: principal extent is under this fraction of the first (nearly collinear: a line of cameras).
+COLLINEAR_RATIO = 0.1
+
+
 def register_sim3(est: Mapping[str, np.ndarray], ref: Mapping[str, np.ndarray]) -> tuple[Sim3, bool]:
     """Sim(3) `est_from_ref` from cameras present in both (matched by name).
 
-    Umeyama on the camera centres; when the centres are collinear (rotation
-    about the line undetermined) the rotation is the chordal mean of the
+    Umeyama on the camera centres; when the centres are collinear or nearly so (`COLLINEAR_RATIO`: the
+    rotation about the line is undetermined, or set by noise) the rotation is the chordal mean of the
     per-camera `R_est^T R_ref`, and scale and translation are refit with it.
 
     Returns:
@@ -75,7 +80,11 @@ def register_sim3(est: Mapping[str, np.ndarray], ref: Mapping[str, np.ndarray]) 
     if spread_ref <= 1e-12 or spread_est <= 1e-12:
         raise DegenerateGeometryError("camera centres coincide: the Sim(3) scale is undetermined")
     sim = umeyama(c_ref, c_est, with_scale=True) if len(names) >= 3 else None
-    if sim is not None and sim.well_posed:
+    # The centres fix the roll about their line only as well as they leave it: with the second principal
+    # extent under `COLLINEAR_RATIO` of the first, noise of a thousandth of the line's length turned Umeyama's
+    # rotation by 5-26 deg, where the cameras' orientations give it to their own error (a tenth of a degree).
+    ext = np.linalg.svd(c_ref - c_ref.mean(0), compute_uv=False)
+    if sim is not None and sim.well_posed and ext[1] >= COLLINEAR_RATIO * ext[0]:
         return sim, False
     # x_cam = R_ref x_ref + .. = R_est x_est + ..  with x_est = s R x_ref + t  =>  R_ref = R_est R.
     R = average_rotations_chordal(np.stack([E[n][:, :3].T @ F[n][:, :3] for n in names]))

@@ -38,7 +38,7 @@ METRICS: dict[str, tuple[str, bool]] = {
     "psnr_db": ("PSNR (dB)", True),
     "ssim": ("SSIM", True),
     "lpips": ("LPIPS", False),
-    "rot_err_deg": ("rot. err. (deg)", False),
+    "rot_err_deg": ("rot. err. median (deg)", False),
     "ate": ("ATE (GT units)", False),
     "seconds": ("time (s)", False),
 }
@@ -51,7 +51,7 @@ class RunScores:
     Attributes:
         scene, method, seed: identify the run.
         psnr_db, ssim, lpips: held-out views against the clean images.
-        rot_err_deg: mean relative rotation error of the training poses (NaN when poses are given).
+        rot_err_deg: median relative rotation error over the pairs of training views (NaN when poses are given).
         ate: absolute trajectory error of the training camera centres after Sim(3), GT units (NaN when given).
         seconds: end-to-end wall time of the method (pipeline methods: the sum of their stages' recorded
             times, stages reused from the cache included).

@@ -181,12 +181,18 @@ def ate(est_centres, ref_centres, *, with_scale: bool = True, weights=None) -> A
         `AteResult`.
 
     Raises:
-        DegenerateGeometryError: fewer than 2 centres, or all estimated centres coincide.
+        DegenerateGeometryError: fewer than 2 centres, or all estimated (or, with scale, reference) centres
+            coincide.
     """
     est = np.asarray(est_centres, dtype=np.float64)
     ref = np.asarray(ref_centres, dtype=np.float64)
     check_shape(est, ["N", 3], "est_centres")
     check_shape(ref, [est.shape[0], 3], "ref_centres")
+    spread = np.abs(ref - ref.mean(axis=0)).max(initial=0.0)
+    if with_scale and spread <= 1e-12 * max(float(np.abs(ref).max(initial=0.0)), 1e-300):
+        # Umeyama's scale would be 0 (every estimate collapsed onto the one point, an ATE of 0): no Sim(3)
+        # relates a spread of centres to a single one (a camera turning about its centre).
+        raise DegenerateGeometryError("ate: all reference centres coincide; the Sim(3) scale is undetermined")
     sim = umeyama(est, ref, weights=weights, with_scale=with_scale)
     aligned = sim.apply(est)
     err = np.linalg.norm(aligned - ref, axis=-1)

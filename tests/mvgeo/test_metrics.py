@@ -121,3 +121,21 @@ def test_compare_poses_registration_and_perfect_match(rng):
     assert set(m.summary()) >= {"rra@5", "rta@10", "auc@20", "ate_rmse", "registered_fraction"}
     with pytest.raises(DegenerateGeometryError):
         mt.compare_poses(est, {names[0]: ref_T[0]})
+
+
+def test_ate_is_undetermined_when_the_reference_centres_coincide(rng):
+    # Cameras turning about one centre (pure rotation): Umeyama's scale is 0 and every estimated centre lands on
+    # that point, an ATE of 0 for any estimate. It is reported as undetermined instead.
+    from scipy.spatial.transform import Rotation
+
+    from mvgeo.metrics import ate, compare_poses
+
+    est = rng.normal(size=(6, 3))
+    with pytest.raises(DegenerateGeometryError, match="reference centres coincide"):
+        ate(est, np.zeros((6, 3)))
+    assert ate(est, np.zeros((6, 3)), with_scale=False).rmse > 0  # SE(3): the estimate's spread is its error
+    ref = {f"{i}": np.hstack([Rotation.from_rotvec(rng.normal(0, 0.3, 3)).as_matrix(), np.zeros((3, 1))])
+           for i in range(6)}
+    moved = {k: np.hstack([v[:, :3], rng.normal(size=(3, 1))]) for k, v in ref.items()}
+    m = compare_poses(moved, ref)
+    assert m.ate is None and np.isnan(m.summary()["ate_rmse"])
