@@ -127,7 +127,12 @@ def splat_bytes(model: GaussianModel) -> bytes:
     rot = np.clip(np.rint(_unit_quats(a["quats"].astype(np.float64)) * 128.0 + 128.0), 0, 255)
     rec = np.empty(n, dtype=[("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
     rec["pos"] = a["means"]
-    rec["scale"] = np.exp(a["log_scales"].astype(np.float64))
+    scale = np.exp(a["log_scales"].astype(np.float64))
+    if not (scale <= np.finfo(np.float32).max).all():
+        raise InputError(f"the model has scales beyond float32's range (log scale up to "
+                         f"{float(a['log_scales'].max()):.3g}); .splat stores them as float32",
+                         fix="re-train (a scale that large is a diverged Gaussian), or export as .ply")
+    rec["scale"] = scale
     rec["rgba"] = np.clip(np.rint(rgba * 255.0), 0, 255)
     rec["rot"] = rot
     out = rec[order].tobytes()
@@ -188,7 +193,7 @@ def _spz_fractional_bits(means: np.ndarray, preferred: int) -> int:
     limit = 2 ** 23 - 1
     peak = float(np.abs(means).max()) if means.size else 0.0
     for bits in range(preferred, -1, -1):
-        if peak * 2.0 ** bits + 0.5 <= limit:
+        if np.rint(peak * 2.0 ** bits) <= limit:  # as the positions are rounded (`spz_bytes`)
             return bits
     raise InputError(f"a Gaussian lies {peak:.3g} units from the origin; .spz positions are 24-bit fixed point "
                      f"(at most {limit} units)", fix="export as .ply or .splat")

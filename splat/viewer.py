@@ -95,8 +95,11 @@ def viewer_arrays(model: GaussianModel) -> dict[str, np.ndarray]:
         scales = np.exp(model.log_scales.detach().double().cpu().numpy())
         rgb = 0.5 + SH_C0 * model.sh0.detach().double().cpu().numpy()[:, 0, :]
         opacity = torch.sigmoid(model.opacity_logits.detach().double()).cpu().numpy()
-    if not (np.isfinite(means).all() and np.isfinite(q).all() and np.isfinite(scales).all()):
-        raise InputError("the model has NaN or inf parameters; it cannot be viewed")
+    bad = [name for name, v in (("means", means), ("quats", q), ("log_scales", scales), ("sh0", rgb),
+                                ("opacity_logits", opacity)) if not np.isfinite(v).all()]
+    if bad:  # viser would cast NaN colours and opacities to an arbitrary byte without a word
+        raise InputError(f"the model's {', '.join(bad)} contain NaN or inf (or scales beyond float range); it "
+                         "cannot be viewed", fix="re-train, or view an earlier checkpoint")
     R = R_from_quat(q / np.linalg.norm(q, axis=1, keepdims=True))  # (N, 3, 3)
     cov = np.einsum("nij,nj,nkj->nik", R, scales ** 2, R)
     return {"centers": means.astype(np.float32), "covariances": cov.astype(np.float32),

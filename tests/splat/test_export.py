@@ -256,3 +256,22 @@ def test_splat_export_cli_writes_each_format(tmp_path):
     assert not (tmp_path / "x.ply").exists()
     assert main(["export", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "c.splat")]) == 2
     assert not (tmp_path / "c.splat").exists()
+
+
+def test_spz_keeps_the_finest_fixed_point_a_coordinate_fits_as_rounded():
+    # 24-bit positions hold round(p * 2**bits) up to 2**23 - 1: a coordinate of exactly that many 12-bit steps fits
+    # 12 bits (before: one bit fewer, 2.4e-4 off); half a step beyond it does not.
+    edge = 8388607 / 4096
+    assert export._spz_fractional_bits(np.array([[edge, 0.0, 0.0]]), 12) == 12
+    assert export._spz_fractional_bits(np.array([[edge + 0.6 / 4096, 0.0, 0.0]]), 12) == 11
+    assert export._spz_fractional_bits(np.array([[8388607.0, 0.0, 0.0]]), 12) == 0
+    with pytest.raises(InputError, match="24-bit"):
+        export._spz_fractional_bits(np.array([[8388607.6, 0.0, 0.0]]), 12)
+
+
+def test_splat_refuses_scales_beyond_float32():
+    m = _model(4, seed=2)
+    with torch.no_grad():
+        m.log_scales[1, 0] = 89.0  # exp(89) overflows float32: the file would hold inf
+    with pytest.raises(InputError, match="beyond float32"):
+        splat_bytes(m)

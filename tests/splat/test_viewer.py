@@ -54,6 +54,17 @@ def test_viewer_arrays_match_a_per_gaussian_reference():
     np.testing.assert_array_equal(a["centers"], p["means"].astype(np.float32))
 
 
+@pytest.mark.parametrize("name", ["opacity_logits", "sh0", "means", "log_scales"])
+def test_viewer_arrays_refuse_non_finite_parameters_naming_them(name):
+    from mvgeo.common.errors import InputError
+
+    model = _model(6, seed=3)
+    with torch.no_grad():
+        getattr(model, name).view(-1)[2] = float("nan")
+    with pytest.raises(InputError, match=name):  # viser would cast a NaN colour or opacity to some byte
+        viewer_arrays(model)
+
+
 def test_viewer_camera_is_the_colmap_view():
     cfw = look_at_cam_from_world([0.3, -0.2, -3.0], [0.0, 0.1, 0.0]).numpy()
     cam = Camera.pinhole(400.0, 400.0, 160.0, 120.0, 320, 240)
