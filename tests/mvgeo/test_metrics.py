@@ -139,3 +139,83 @@ def test_ate_is_undetermined_when_the_reference_centres_coincide(rng):
     moved = {k: np.hstack([v[:, :3], rng.normal(size=(3, 1))]) for k, v in ref.items()}
     m = compare_poses(moved, ref)
     assert m.ate is None and np.isnan(m.summary()["ate_rmse"])
+
+
+def test_ate_value_against_a_direct_least_squares_fit(rng):
+    # A non-zero ATE checked against its definition: the RMSE of the centres after the Sim(3) that minimises it,
+    # found here by scipy's least squares over (rotation vector, translation, log scale) from several starts.
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    ref = rng.normal(size=(12, 3))
+    est = 0.4 * ref @ Rotation.from_rotvec([0.3, -1.2, 0.5]).as_matrix().T + [1.0, 2.0, -0.5]
+    est += rng.normal(0, 0.05, est.shape)
+
+    def resid(p):
+        return (np.exp(p[6]) * est @ Rotation.from_rotvec(p[:3]).as_matrix().T + p[3:6] - ref).ravel()
+
+    best = min((least_squares(resid, np.r_[Rotation.random(random_state=k).as_rotvec(), 0, 0, 0, 0.0], xtol=1e-15,
+                              ftol=1e-15, gtol=1e-15) for k in range(5)), key=lambda r: r.cost)
+    err = np.linalg.norm(best.fun.reshape(-1, 3), axis=1)
+    res = mt.ate(est, ref)
+    assert res.rmse > 0.05  # not a near-zero case
+    assert res.rmse == pytest.approx(np.sqrt(np.mean(err ** 2)), rel=1e-6)
+    assert res.mean == pytest.approx(err.mean(), rel=1e-5)
+    assert res.median == pytest.approx(np.median(err), rel=1e-5)
+    assert res.max == pytest.approx(err.max(), rel=1e-5)
+
+
+def test_compare_poses_pair_errors_and_medians_against_a_loop(rng):
+    from scipy.spatial.transform import Rotation
+
+    ref = {f"v{i}": np.hstack([Rotation.random(random_state=i).as_matrix(), rng.normal(size=(3, 1))])
+           for i in range(7)}
+    est = {}
+    for k, (name, P) in enumerate(ref.items()):  # each view turned and moved by its own amount, the last by 40 deg
+        d = Rotation.from_rotvec(rng.normal(0, np.radians(1.0 + 0.3 * k), 3)).as_matrix()
+        if k == 6:
+            d = Rotation.from_rotvec(np.radians(40.0) * np.array([0.6, 0.0, 0.8])).as_matrix()
+        est[name] = np.hstack([d @ P[:, :3], 2.0 * P[:, 3:] + rng.normal(0, 0.05, (3, 1))])
+    names = list(ref)
+    rot, tra = [], []
+    for a in range(len(names)):
+        for b in range(a + 1, len(names)):
+            def rel(P, Q):  # cam_a_from_cam_b, the documented relative pose (`RelativePoseErrors`)
+                R = P[:, :3] @ Q[:, :3].T
+                return R, P[:, 3] - R @ Q[:, 3]
+            Rr, tr = rel(ref[names[a]], ref[names[b]])
+            Re, te = rel(est[names[a]], est[names[b]])
+            rot.append(np.degrees(Rotation.from_matrix(Re @ Rr.T).magnitude()))
+            c = te @ tr / (np.linalg.norm(te) * np.linalg.norm(tr))
+            tra.append(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    m = mt.compare_poses(est, ref)
+    np.testing.assert_allclose(np.sort(m.rotation_deg), np.sort(rot), atol=1e-9)
+    np.testing.assert_allclose(np.sort(m.translation_deg), np.sort(tra), atol=1e-7)
+    assert m.median_rotation_deg == pytest.approx(np.median(rot), abs=1e-9)
+    assert m.median_translation_deg == pytest.approx(np.median(tra), abs=1e-7)
+    assert np.median(rot) < 0.9 * np.mean(rot) or np.median(rot) > 1.1 * np.mean(rot)  # a median, not a mean
+    worse = np.maximum(rot, tra)  # the AUC is of the worse of the two errors of each pair
+    for thr, value in m.auc.items():
+        assert value == pytest.approx(mt.pose_auc(worse, thresholds=(thr,))[thr], abs=1e-12)
+
+
+def test_rpe_rmse_values_against_a_loop(rng):
+    from scipy.spatial.transform import Rotation
+
+    ref = random_poses(rng, 6)
+    est = ref.copy()
+    for k in range(6):
+        est[k, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.02, 3)).as_matrix() @ est[k, :3, :3]
+        est[k, :3, 3] += rng.normal(0, 0.1, 3)
+    r = mt.rpe(est, ref, delta=2)
+    t_err, r_err = [], []
+    for k in range(4):
+        def motion(P, Q):  # cam_k_from_cam_{k+2} as 4x4
+            A, B = np.eye(4), np.eye(4)
+            A[:3], B[:3] = P[:3], Q[:3]
+            return A @ np.linalg.inv(B)
+        E = np.linalg.inv(motion(ref[k], ref[k + 2])) @ motion(est[k], est[k + 2])
+        t_err.append(np.linalg.norm(E[:3, 3]))
+        r_err.append(np.degrees(Rotation.from_matrix(E[:3, :3]).magnitude()))
+    assert r.translation_rmse == pytest.approx(np.sqrt(np.mean(np.square(t_err))), rel=1e-9)
+    assert r.rotation_rmse_deg == pytest.approx(np.sqrt(np.mean(np.square(r_err))), rel=1e-7)
