@@ -106,13 +106,15 @@ class BayerNoiseParams(PoissonGaussianParams):
 @register_effect("bayer_noise", BayerNoiseParams)
 def bayer_noise(image: np.ndarray, params: BayerNoiseParams, ctx: EffectContext,
                 rng: np.random.Generator) -> np.ndarray:
-    """Poisson-Gaussian noise of a Bayer sensor as bilinear demosaicing leaves it: correlated in space and colour.
+    """Poisson-Gaussian noise of a Bayer sensor as bilinear demosaicing leaves it: correlated in space.
 
     ``y = x + D(n)``: ``n`` is Poisson-Gaussian noise on the RGGB mosaic of ``x`` (each site samples one
     colour; ``Var[n] = a x_site + sigma^2``) and ``D`` is `bilinear_demosaic`. A camera's raw-to-RGB step
     interpolates each missing colour from neighbouring noisy sites, so its noise is no longer independent
-    from pixel to pixel or channel to channel, which is what pixel-wise self-supervised denoisers (N2V, R2R,
-    Neighbor2Neighbor) assume. ``D`` is linear, so only the noise passes through it: the image keeps its
+    from pixel to pixel, which is what pixel-wise self-supervised denoisers (N2V, R2R, Neighbor2Neighbor)
+    assume. Bilinear demosaicing fills each colour from that colour's own sites, so the three channels' noises
+    stay independent of each other (a camera's edge-aware demosaicing, e.g. VNG, mixes them too; not
+    simulated). ``D`` is linear, so only the noise passes through it: the image keeps its
     full colour detail and a difference from the clean image is the noise alone (a real demosaicing also
     blurs and fringes the image; that is not simulated). Per pixel the noise std is the site's at the
     sampled colour and 1/2 or 1/4 of the variance elsewhere (the mean of 2 or 4 sites).

@@ -13,8 +13,9 @@ Spec strings (`--noise`):
   gain, 1 / full-well electrons; S: the read noise on the 0..255 scale).
 - ``bayer-pg:A,S``: the same noise on the RGGB Bayer mosaic of the photo, then
   bilinear demosaicing: ``y = clip(x + D(n))`` (`data_synth.effects.noise.bayer_noise`).
-  The noise is correlated between neighbouring pixels and between channels, as a
-  camera's raw-to-RGB step leaves it; the image itself keeps its detail.
+  The noise is correlated between neighbouring pixels, as a camera's raw-to-RGB
+  step leaves it (each channel from its own sites: the channels' noises stay
+  independent); the image itself keeps its detail.
 - ``jpeg:Q``: a round trip through an 8-bit JPEG at libjpeg quality Q (4:2:0
   chroma, OpenCV's encoder; `data_synth.effects.codec.jpeg`), as a camera or a
   phone stores its photos.

@@ -168,6 +168,17 @@ def test_exposure_vignetting_quantize_jpeg(rng):
     assert 0 < np.abs(j - smooth).mean() < 0.02  # lossy but close on a smooth ramp
 
 
+@pytest.mark.parametrize("bits", [4, 8, 16])
+def test_quantize_rounds_each_value_to_its_nearest_level_exactly(bits, rng):
+    # The reference in exact arithmetic: a float32 value times an integer is exact in float64 (24 + 16 bits).
+    x = rng.uniform(size=(300, 300, 3)).astype(np.float32)
+    x[0, 0, 0] = np.float32(0.3)  # 0.3 * 15 is 4.50000018 in float64: level 5 at 4 bits
+    levels = 2**bits - 1
+    q = apply_effects(x, _fx({"type": "quantize", "bits": bits}), seed=0, ctx=_ctx())
+    expected = (np.rint(x.astype(np.float64) * levels) / levels).astype(np.float32)
+    np.testing.assert_array_equal(q, expected)
+
+
 def test_random_streams_depend_only_on_seed_view_and_index():
     img = np.full((32, 32, 3), 0.5, np.float32)
     g = {"type": "gaussian", "sigma": 0.1, "clip": False}
