@@ -1,7 +1,8 @@
 """Applying a trained `N2VModel`: masked-mean or single-pass prediction, tiled.
 
-The N2V paper averages the prediction over K random maskings to reduce the
-variance of the estimate; ``passes=0`` runs one pass on the unmasked image.
+N2V predicts in one pass on the unmasked image (``passes=0``); averaging the
+prediction over K random maskings (``passes=K``) is this package's option: a
+blind-spot estimate of every pixel, averaged to reduce its variance.
 Large images are processed in tiles: each tile's *core* is predicted from the
 core plus `margin_px` of context on every side and only the core is kept, so
 tiles never blend and there is no seam as long as the margin covers what the
@@ -217,7 +218,7 @@ def denoise_images(model: N2VModel, images: Sequence[np.ndarray], *, passes: int
     Args:
         model: from `train_n2v`, `finetune_round2` or `load_checkpoint`.
         images: ``(H, W, 3)`` float32 RGB in ``[0, 1]`` (grayscale ``(H, W)`` / ``(H, W, 1)`` accepted).
-        passes: K random maskings averaged (N2V paper: 8); 0 = one pass on the unmasked image.
+        passes: K random maskings averaged; 0 = one pass on the unmasked image (as N2V predicts).
         seed: seeds the maskings.
         tile_px, margin_px: tiling (see `predict_tiled`).
         clean_sigma: images with an estimated noise std below this ([0, 1] units) are

@@ -10,9 +10,11 @@ every channel). Replacement strategies:
   random position of the ``(2 r + 1)^2`` window around the pixel, the centre
   pixel included;
 - ``"median"`` (N2V2): the per-channel median of the window without the centre
-  pixel (the lower median of the ``(2 r + 1)^2 - 1`` values).
+  pixel (the lower median of its values), the window cropped at the image's edge
+  as N2V2's reference does.
 
-Window positions outside the image are mirrored back (half-sample symmetric).
+For ``"uniform_withCP"`` window positions outside the image are mirrored back
+(half-sample symmetric).
 All randomness comes from the `generator` argument.
 """
 
@@ -92,10 +94,13 @@ def mask_pixels(x: Tensor, *, p: float = 0.04, replacement: Replacement = "permu
             oy, ox = torch.meshgrid(off, off, indexing="ij")
             keep = (oy != 0) | (ox != 0)
             oy, ox = oy[keep], ox[keep]  # (K,) window offsets without the centre
-            rows = reflect_index(yi[:, None] + oy[None, :], h)
-            cols = reflect_index(xi[:, None] + ox[None, :], w)
-            vals = x[bi[:, None], :, rows, cols]  # (M, K, C)
-            masked[bi, :, yi, xi] = vals.median(dim=1).values
+            rows, cols = yi[:, None] + oy[None, :], xi[:, None] + ox[None, :]
+            # The window is cropped at the image's edge: mirrored back, its positions would land on the centre
+            # pixel itself near the edge (in the outer `radius` rows and columns) and leak its noise.
+            inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+            vals = x[bi[:, None], :, rows.clamp(0, h - 1), cols.clamp(0, w - 1)]  # (M, K, C)
+            vals = vals.masked_fill(~inside[:, :, None], float("nan"))
+            masked[bi, :, yi, xi] = vals.nanmedian(dim=1).values
     else:
         raise ValueError(f"replacement must be one of {REPLACEMENTS}, got {replacement!r}")
     return MaskedBatch(masked=masked, mask=mask)

@@ -118,11 +118,15 @@ def warp_view(image_j: np.ndarray, depth_i: np.ndarray, K_i: np.ndarray, cam_i_f
         depth_j = np.asarray(depth_j, np.float64)
         if depth_j.shape != (hj, wj):
             raise ShapeError(f"depth_j must be {(hj, wj)}, got {depth_j.shape}")
-        ri = np.clip(np.rint(np.where(valid, row_j, 0)), 0, hj - 1).astype(int)
-        ci = np.clip(np.rint(np.where(valid, col_j, 0)), 0, wj - 1).astype(int)
-        dj = depth_j[ri, ci]
-        with np.errstate(invalid="ignore"):
-            valid &= np.isfinite(dj) & (np.abs(dj - z_j) <= depth_rel_tol * z_j)
+        # Every pixel the bilinear sample below mixes must see the same surface: a single (nearest) depth
+        # sample let an occluder's colour into 0.6 % of the pixels along its edge.
+        r0 = np.floor(np.where(valid, row_j, 0)).astype(int)
+        c0 = np.floor(np.where(valid, col_j, 0)).astype(int)
+        for dr in (0, 1):
+            for dc in (0, 1):
+                dj = depth_j[np.clip(r0 + dr, 0, hj - 1), np.clip(c0 + dc, 0, wj - 1)]
+                with np.errstate(invalid="ignore"):
+                    valid &= np.isfinite(dj) & (np.abs(dj - z_j) <= depth_rel_tol * z_j)
     map_x = np.where(valid, col_j, -1).astype(np.float32)
     map_y = np.where(valid, row_j, -1).astype(np.float32)
     warped = cv2.remap(image_j, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -1,7 +1,8 @@
 """Noise2Void training of the UNet (Krull et al. 2019), with the N2V2 options.
 
 Training follows the paper: random patches from all views; each pixel masked
-independently with probability ``p = 0.04`` and its value replaced (see
+independently with probability ``p`` (``mask_prob``, 0.04 here, chosen by measurement;
+N2V's reference code masks about 0.2 % of a patch) and its value replaced (see
 `denoise.masking`); ``out = masked + alpha * UNet(masked)`` with
 ``alpha = 0.5`` (normalised units, `denoise.model`); mean-squared error against
 the *unmasked* noisy value on the masked pixels only. Adam with a linear
@@ -79,7 +80,7 @@ class N2VConfig:
         lr: peak Adam learning rate.
         warmup_frac: fraction of `steps` with a linear learning-rate warm-up.
         min_lr_frac: the cosine decay ends at ``lr * min_lr_frac``.
-        mask_prob: probability that a pixel is masked (N2V: 0.04).
+        mask_prob: probability that a pixel is masked (0.04; N2V's reference code: about 0.002).
         replacement: ``"permute"`` (N2V paper), ``"uniform_withCP"`` or ``"median"`` (N2V2).
         radius: window radius for ``uniform_withCP`` / ``median`` (N2V: 5).
         alpha: residual scale in ``out = masked + alpha * UNet(masked)``.
