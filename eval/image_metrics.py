@@ -50,6 +50,9 @@ def _to_batch(img: np.ndarray, name: str) -> torch.Tensor:
     arr = np.asarray(img)
     if arr.ndim != 3 or arr.shape[2] != 3:
         raise ShapeError(f"{name}: expected an (H, W, 3) image, got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.floating):  # 8-bit values scored as [0, 1] ones: PSNR off by 48 dB
+        raise TypeError(f"{name}: expected a float image in [0, 1], got {arr.dtype} (divide by 255 or 65535 first, "
+                        "or read it with `mvgeo.common.imageio.read_image`)")
     return torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32)).permute(2, 0, 1)[None]
 
 
@@ -74,6 +77,7 @@ def score_images(preds: Sequence[np.ndarray], targets: Sequence[np.ndarray], *,
 
     Raises:
         ShapeError: different counts or sizes.
+        TypeError: an integer image (scored as [0, 1] values it would be meaningless).
     """
     if len(preds) != len(targets):
         raise ShapeError(f"preds and targets: {len(preds)} vs {len(targets)} images")
