@@ -18,14 +18,13 @@ from pathlib import Path
 
 from mvgeo.common.argtypes import int_range, nonneg_int, out_path, positive_int
 from mvgeo.common.cli import add_common_args, run_cli
-from mvgeo.common.errors import InputError
+from mvgeo.common.errors import ConfigError, InputError
 from mvgeo.common.output import OUT_HELP, OVERWRITE_HELP, prepare_output
 
 
 def _pair_graph(text: str) -> str:
     """`--pairs`, checked by the parser (`PairGraphSpec.parse`)."""
     from mvgeo.align.graph import PairGraphSpec
-    from mvgeo.common.errors import ConfigError
 
     try:
         PairGraphSpec.parse(text)

@@ -243,8 +243,7 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
         if (folder / "depth").is_dir():  # data_synth's depth maps (the `3dgs_gt_poses` baseline's points)
             (tmp / "depth").mkdir()
             for f in sorted((folder / "depth").glob("*.npy")):
-                stem = f.stem
-                wh = sizes.get(("clean", stem), sizes.get(("images", stem)))
+                wh = sizes.get(("clean", f.stem), sizes.get(("images", f.stem)))
                 if wh is not None:
                     np.save(tmp / "depth" / f.name, nearest_depth(np.load(f, allow_pickle=False),
                                                                   working_size(*wh, max_size)))

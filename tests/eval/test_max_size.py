@@ -118,14 +118,19 @@ def test_cameras_scaled_to_the_input_size():
         input_size_cameras(sparse, {**sizes, "a": {"input": (384, 288), "working": (100, 75)}})
 
 
-def test_eval_dataset_is_scaled_with_its_cameras(tmp_path):
-    root = tmp_path / "ds"
+def _eval_dataset(root):
+    """Three 96x64 views (noisy, clean, their cameras), two for training: an evaluation dataset folder."""
     make_scene(root / "images", n=3, size_wh=(96, 64))
     make_scene(root / "clean", n=3, size_wh=(96, 64), seed=1)
     cam = Camera.pinhole(80.0, 80.0, 48.0, 32.0, 96, 64)
     imgs = [PosedImage(f"view_{i:03d}.png", 1, np.hstack([np.eye(3), [[i * 0.1], [0], [0]]])) for i in range(3)]
     write_sparse_model(root / "sparse" / "0", SparseModel({1: cam}, imgs), binary=False)
     (root / "split.json").write_text(json.dumps({"train": ["view_000", "view_001"], "test": ["view_002"]}))
+    return root
+
+
+def test_eval_dataset_is_scaled_with_its_cameras(tmp_path):
+    root = _eval_dataset(tmp_path / "ds")
     assert working_dataset(root, tmp_path / "out", 96) == root  # nothing above the limit: used as is
     small = working_dataset(root, tmp_path / "out", 48)
     assert small == tmp_path / "out" / "data" / "ds_max48"
@@ -139,13 +144,7 @@ def test_eval_dataset_is_scaled_with_its_cameras(tmp_path):
 
 
 def test_eval_dataset_is_made_again_when_its_source_changes_and_takes_its_depth_maps(tmp_path):
-    root = tmp_path / "ds"
-    make_scene(root / "images", n=3, size_wh=(96, 64))
-    make_scene(root / "clean", n=3, size_wh=(96, 64), seed=1)
-    cam = Camera.pinhole(80.0, 80.0, 48.0, 32.0, 96, 64)
-    imgs = [PosedImage(f"view_{i:03d}.png", 1, np.hstack([np.eye(3), [[i * 0.1], [0], [0]]])) for i in range(3)]
-    write_sparse_model(root / "sparse" / "0", SparseModel({1: cam}, imgs), binary=False)
-    (root / "split.json").write_text(json.dumps({"train": ["view_000", "view_001"], "test": ["view_002"]}))
+    root = _eval_dataset(tmp_path / "ds")
     (root / "depth").mkdir()
     depth = np.arange(64 * 96, dtype=np.float32).reshape(64, 96)
     depth[:10, :10] = np.inf  # misses stay misses
