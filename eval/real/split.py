@@ -45,13 +45,22 @@ def every_kth_split(n: int, test_every: int, train: int | None = None) -> tuple[
 
 
 def spread_split(n: int, train: int, test: int) -> tuple[list[int], list[int]]:
-    """`train` indices spread evenly over ``0..n-1`` and `test` others, also spread (midway between)."""
+    """`train` indices spread evenly over ``0..n-1`` and exactly `test` others, also spread.
+
+    The held-out views are the remaining views at ``round(linspace(0, R - 1, test + 2)[1:-1])`` (R of
+    them: midway between, away from both ends). Where that rounding gives the same view twice (few
+    remaining views, e.g. ``test`` = R), they are the views at the centres of `test` equal bins of the
+    remaining ones instead, ``floor((k + 0.5) R / test)``, which are distinct whenever ``test <= R``.
+    """
     if train + test > n or train < 2 or test < 1:
         raise InputError(f"cannot split {n} views into {train} training and {test} held-out views",
                          fix=f"ask for at least 2 training and 1 held-out view, {n} in all at most")
     tr = [int(v) for v in np.unique(np.round(np.linspace(0, n - 1, train)).astype(int))]
     rest = [i for i in range(n) if i not in tr]
-    te = [rest[int(v)] for v in np.unique(np.round(np.linspace(0, len(rest) - 1, test + 2)[1:-1]).astype(int))]
+    picks = np.unique(np.round(np.linspace(0, len(rest) - 1, test + 2)[1:-1]).astype(int))
+    if len(picks) < test:
+        picks = ((np.arange(test) + 0.5) * len(rest) // test).astype(int)
+    te = [rest[int(v)] for v in picks]
     return tr, te
 
 

@@ -271,6 +271,23 @@ def test_every_kth_split_is_llffs_protocol():
         every_kth_split(20, 1)
 
 
+def test_spread_split_holds_out_exactly_the_views_asked_for(tmp_path, rng):
+    from eval.real.split import spread_split
+
+    for n in range(3, 40):
+        for train in range(2, n):
+            for test in range(1, n - train + 1):
+                tr, te = spread_split(n, train, test)
+                assert len(tr) == train and len(te) == test and te == sorted(te) and not set(tr) & set(te)
+    assert spread_split(49, 12, 4)[1] == [10, 19, 29, 38]  # midway between training views where that works
+    assert spread_split(16, 12, 4)[1] == [2, 6, 9, 13]  # 4 of the 4 others, not 2 of them
+    _write_par(tmp_path / "mb", rng, n=8)
+    out = import_dataset("middlebury", tmp_path / "mb", tmp_path / "ds", test=4)
+    split = json.loads((out / "split.json").read_text())
+    assert len(split["train"]) == 4 and len(split["test"]) == 4
+    assert len(list((out / "images").iterdir())) == 8
+
+
 def test_ring_split_keeps_the_ring_closed_whatever_the_file_order():
     from eval.real.split import ring_split
 
