@@ -8,7 +8,11 @@
       split.json        {"train": [...], "test": [...]} file names
       meta.json         importer, source, conversions, split rule, sizes, noise model and seed
 
-Only the training and held-out views are written. Resizing uses OpenCV's area
+Only the training and held-out views are written. The photographs are taken as
+stored: an EXIF Orientation tag (phone JPEGs) is not applied, since every
+format's cameras describe the stored pixel array (COLMAP, and LLFF's poses
+computed by it, ignore the tag; `eval.real.capture.image_size_wh` reads the
+stored size). Resizing uses OpenCV's area
 filter; in our pixel convention (image spanning [0, W] x [0, H]) a resize maps
 ``u -> u W'/W``, ``v -> v H'/H`` exactly, so the intrinsics scale exactly
 (`mvgeo.camera.Camera.scaled`).
@@ -209,7 +213,7 @@ def write_capture(capture: Capture, out: str | Path | OutputPlan, config: Import
             (tmp / sub).mkdir()
         for cam_id, i in enumerate(chosen, start=1):
             view = capture.views[i]
-            img = read_image(view.image_path)
+            img = read_image(view.image_path, apply_orientation=False)  # the pixels the camera describes
             h, w = img.shape[:2]
             if (w, h) != view.camera.size_wh:
                 raise InputError(f"the image is {w}x{h} but its camera is {view.camera.width}x"

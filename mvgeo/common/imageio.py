@@ -254,11 +254,13 @@ def upright_size(path: str | Path) -> tuple[int, int] | None:
         return None
 
 
-def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
+def read_image(path: str | Path, *, gray_to_rgb: bool = True, apply_orientation: bool = True) -> np.ndarray:
     """Read an 8/16-bit image as float32 RGB in [0, 1], shape (H, W, 3).
 
     Grayscale files are replicated to three channels; alpha is dropped. A JPEG's or WebP's EXIF
-    Orientation tag is applied (the array is the photo as a viewer shows it).
+    Orientation tag is applied (the array is the photo as a viewer shows it) unless `apply_orientation` is
+    False: then the array is the pixels as stored, which is what cameras calibrated by COLMAP (which
+    ignores the tag) describe.
 
     Raises:
         InputError: missing, unreadable or corrupt file (named).
@@ -285,7 +287,8 @@ def read_image(path: str | Path, *, gray_to_rgb: bool = True) -> np.ndarray:
         raise InputError(f"unsupported pixel type {img.dtype}", path=path, fix="use 8- or 16-bit images")
     if img.ndim == 2:
         img = img[:, :, None]
-    img = apply_exif_orientation(img, exif_orientation(data))
+    if apply_orientation:
+        img = apply_exif_orientation(img, exif_orientation(data))
     if img.shape[2] == 4:
         img = img[:, :, :3]
     if img.shape[2] == 1:

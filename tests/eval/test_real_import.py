@@ -202,6 +202,32 @@ def test_colmap_missing_image_is_named(tmp_path, rng):
     assert not (tmp_path / "ds").exists()
 
 
+@pytest.mark.parametrize("orientation", [3, 6])
+def test_photos_with_an_exif_orientation_are_imported_as_stored(tmp_path, orientation):
+    """COLMAP ignores the EXIF Orientation tag: its cameras describe the stored pixels, and so must clean/."""
+    from PIL import Image
+
+    W, H = 48, 32
+    stored = np.zeros((H, W, 3), np.uint8)
+    stored[: H // 2, : W // 3] = 255  # a bright block in the stored top-left corner
+    (tmp_path / "col" / "images").mkdir(parents=True)
+    cams, images = {}, []
+    for i in range(3):
+        exif = Image.Exif()
+        exif[0x0112] = orientation  # 3: turned 180 deg, 6: 90 deg (a phone held upright)
+        Image.fromarray(stored).save(tmp_path / "col" / "images" / f"v{i}.jpg", exif=exif, quality=100)
+        cams[i + 1] = Camera.pinhole(40.0, 40.0, W / 2, H / 2, W, H)
+        cfw = np.eye(4)[:3]
+        cfw[0, 3] = 0.1 * i
+        images.append(PosedImage(f"v{i}.jpg", i + 1, cfw))
+    write_sparse_model(tmp_path / "col" / "sparse" / "0",
+                       SparseModel(cams, images, np.zeros((0, 3)), np.zeros((0, 3), np.uint8)), binary=False)
+    out = import_dataset("colmap", tmp_path / "col", tmp_path / "ds", test=1)
+    clean = read_image(out / "clean" / "v1.png")
+    assert clean.shape == (H, W, 3)
+    assert clean[: H // 2, : W // 3].mean() > 0.95 and clean[H // 2 :, W // 3 :].mean() < 0.05
+
+
 # -- Middlebury -----------------------------------------------------------------------------------
 
 
