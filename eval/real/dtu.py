@@ -6,8 +6,10 @@ order, and then the file must hold exactly one camera per image),
 `world_mat_i` (4 x 4; its top 3 x 4 is the projection ``K [R | t]`` of the
 original 1600 x 1200 image, world units mm) and `scale_mat_i` (maps the unit
 sphere around the object to world coordinates). We use the normalised world
-(object inside the unit sphere): ``P = world_mat[:3] @ scale_mat``, decomposed
-into ``K [R | t]`` (OpenCV axes, pixel centres at integers as OpenCV's).
+(object inside the unit sphere): ``P = world_mat[:3] @ scale_mat``, its sign
+chosen so that its left 3 x 3 has a positive determinant (a projection is
+defined up to scale, sign included), decomposed into ``K [R | t]`` (OpenCV
+axes, pixel centres at integers as OpenCV's).
 
 Pixels: for MonoSDF's 384 x 384 images (a centre crop of 1200 x 1200, then a
 resize) K is mapped with ``u' = 0.32 (u - 200)``, ``v' = 0.32 v`` (the
@@ -81,6 +83,8 @@ def dtu_cameras(npz_path: Path, n: int | Sequence[int], *, size_wh: tuple[int, i
             raise InputError(f"view {i}: world_mat_{i} @ scale_mat_{i} is not a camera projection (its left 3x3 "
                              "is singular or not finite)", path=npz_path,
                              fix=f"check world_mat_{i} and scale_mat_{i}")
+        if np.linalg.det(P[:, :3]) < 0:  # P and -P are the same projection; K [R | t] has det(K R) > 0
+            P = -P
         K, R, c_h = cv2.decomposeProjectionMatrix(P)[:3]
         K = K / K[2, 2]
         if np.linalg.det(R) < 0:

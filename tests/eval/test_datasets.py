@@ -64,6 +64,21 @@ def test_dtu_dataset_cameras_reproject_like_the_source(tmp_path):
     assert json.loads((out / "meta.json").read_text())["noise"]["params"]["sigma_8bit"] == 25
 
 
+def test_dtu_projection_of_negative_scale_is_the_same_camera(tmp_path):
+    from eval.real.dtu import read_dtu
+
+    _fake_dtu(tmp_path / "dtu", n=3)
+    (tmp_path / "neg").mkdir()
+    (tmp_path / "neg" / "images").symlink_to(tmp_path / "dtu" / "images")
+    mats = dict(np.load(tmp_path / "dtu" / "cameras.npz"))
+    for key in [k for k in mats if k.startswith("world_mat_")]:
+        mats[key] = np.vstack([-mats[key][:3], mats[key][3:]])  # -P: the same projection
+    np.savez(tmp_path / "neg" / "cameras.npz", **mats)
+    for a, b in zip(read_dtu(tmp_path / "dtu").views, read_dtu(tmp_path / "neg").views, strict=True):
+        np.testing.assert_allclose(b.camera.params, a.camera.params, rtol=1e-12)
+        np.testing.assert_allclose(b.cam_from_world, a.cam_from_world, atol=1e-12)
+
+
 def test_spread_split_and_errors(tmp_path):
     tr, te = spread_split(49, 12, 4)
     assert len(tr) == 12 and len(te) == 4 and tr[0] == 0 and tr[-1] == 48 and not set(tr) & set(te)
