@@ -173,17 +173,23 @@ def project_gaussians(
     # EWA Jacobian J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]] applied row by row.
     T0 = (fx * inv_z)[:, None] * rows[0] - (fx * tx * inv_z * inv_z)[:, None] * rows[2]
     T1 = (fy * inv_z)[:, None] * rows[1] - (fy * ty * inv_z * inv_z)[:, None] * rows[2]
-    a0, b, c0 = (T0 * T0).sum(-1), (T0 * T1).sum(-1), (T1 * T1).sum(-1)
+    # The 2D covariance, its determinant and inverse in float64, rounded once (as csrc/projection.cpp does):
+    # det = a c - b^2 = |T0 x T1|^2 + ... is tiny next to a c for a thin Gaussian, and in float32 the
+    # difference lost every digit for needles ~100 px long and sub-pixel thin (their antialiased opacity
+    # off by up to 100 %, some culled; tests/splat/test_tiles_projection.py).
+    T0d, T1d = T0.double(), T1.double()
+    a0, b, c0 = (T0d * T0d).sum(-1), (T0d * T1d).sum(-1), (T1d * T1d).sum(-1)
     det_orig = a0 * c0 - b * b
     a = a0 + eps2d
     c = c0 + eps2d
     det = a * c - b * b
     ok_det = det > 0
     det_safe = torch.where(ok_det, det, torch.ones_like(det))
-    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], -1)
+    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], -1).to(means.dtype)
+    a, c = a.to(means.dtype), c.to(means.dtype)
 
     if antialiased:
-        comp = torch.sqrt(torch.clamp(det_orig / det_safe, min=0.0))
+        comp = torch.sqrt(torch.clamp(det_orig / det_safe, min=0.0)).to(opacities.dtype)
         opac = opacities * comp
     else:
         opac = opacities
