@@ -14,12 +14,17 @@ With ``r^2 = x^2 + y^2``, ``a = 1 + k1 r^2 + k2 r^4 + k3 r^6``,
 Validity: the model is only a usable lens model where the radial map
 ``r -> r a(r)/b(r)`` is increasing and ``b > 0`` (beyond that radius,
 projection folds back and distinct rays land on the same pixel). Points
-outside that region are flagged invalid rather than projected silently.
+outside that region are flagged invalid rather than projected silently. The
+region is the disc up to the *first* radius where the map stops increasing
+(or ``b`` reaches 0), not every radius where it happens to increase: with
+``k1 < 0 < k2`` the map can rise again further out, and a ray there lands on
+a pixel that a ray inside the disc also reaches.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -34,13 +39,42 @@ class DistortResult:
         xy_dist: (..., 2).
         d_xy: (..., 2, 2) Jacobian ``d xy_dist / d xy``.
         d_dist: (..., 2, 8) Jacobian w.r.t. ``[k1, k2, p1, p2, k3, k4, k5, k6]``.
-        valid: (...) bool, inside the monotonic region of the radial map with ``b > 0``.
+        valid: (...) bool, inside the model's valid disc (module docstring): the radial map increases and
+            ``b > 0`` from the centre out to the point.
     """
 
     xy_dist: np.ndarray
     d_xy: np.ndarray
     d_dist: np.ndarray
     valid: np.ndarray
+
+
+def _first_positive_root(coeffs: np.ndarray) -> float:
+    """Smallest ``s > 0`` where the polynomial (coefficients lowest order first) reaches 0, or inf.
+
+    Real roots count; a complex pair close to the real axis counts where the polynomial is <= 0 at its real
+    part (a dip below zero that rounding turned into a complex pair).
+    """
+    c = np.trim_zeros(np.asarray(coeffs, dtype=np.float64), "b")
+    if c.size <= 1:
+        return np.inf
+    roots = np.roots(c[::-1])
+    re = roots.real
+    keep = (re > 0) & ((roots.imag == 0) | (np.polynomial.polynomial.polyval(re, c) <= 0))
+    return float(re[keep].min()) if np.any(keep) else np.inf
+
+
+@lru_cache(maxsize=64)
+def _valid_radius2(dist: tuple[float, ...]) -> float:
+    """Squared radius ``s = r^2`` of the model's valid disc for ``dist`` (8,): the first ``s > 0`` where
+    ``d(r a/b)/dr`` or ``b`` reaches 0 (inf when neither does)."""
+    k1, k2, _, _, k3, k4, k5, k6 = dist
+    P = np.polynomial.polynomial
+    a = np.array([1.0, k1, k2, k3])
+    b = np.array([1.0, k4, k5, k6])
+    # d(r a/b)/dr = N(s) / b^2 with N = a b + 2 s (a' b - a b'), ' = d/ds.
+    n = P.polyadd(P.polymul(a, b), 2 * P.polymulx(P.polysub(P.polymul(P.polyder(a), b), P.polymul(a, P.polyder(b)))))
+    return min(_first_positive_root(n), _first_positive_root(b))
 
 
 def distort(xy, dist) -> DistortResult:
@@ -83,8 +117,9 @@ def distort(xy, dist) -> DistortResult:
     d_dist[..., 1, 2] = r2 + 2 * y * y
     d_dist[..., 0, 3] = r2 + 2 * x * x
     d_dist[..., 1, 3] = 2 * x * y
-    # Monotonic radial map: d(r rad)/dr = rad + 2 r^2 drad > 0.
-    valid = (b > 0) & (rad + 2 * r2 * drad > 0) & np.isfinite(xd) & np.isfinite(yd)
+    # Monotonic radial map: d(r rad)/dr = rad + 2 r^2 drad > 0 here and at every smaller radius.
+    s_max = _valid_radius2(tuple(float(v) for v in (k1, k2, p1, p2, k3, k4, k5, k6)))
+    valid = (r2 < s_max) & (b > 0) & (rad + 2 * r2 * drad > 0) & np.isfinite(xd) & np.isfinite(yd)
     return DistortResult(xy_dist=np.stack([xd, yd], -1), d_xy=d_xy, d_dist=d_dist, valid=valid)
 
 

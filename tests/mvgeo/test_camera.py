@@ -121,6 +121,29 @@ def test_unproject_flags_points_beyond_distortion_fold():
     assert np.all(np.isfinite(pr.uv_px))
 
 
+def test_projection_beyond_the_first_fold_is_invalid_where_the_map_rises_again(rng):
+    # k1 < 0 < k2: r_d = r (1 - 0.4 r^2 + 0.05 r^4) rises to r^2 = 1.07, falls until r^2 = 3.73, then rises again.
+    # A ray at r = 2 lands on the pixel of a ray at r ~ 0.431 (inside the image): it is beyond the fold although
+    # the map increases there.
+    cam = Camera("OPENCV", W, H, np.array([300.0, 300.0, 320.0, 240.0, -0.4, 0.05, 0.0, 0.0]))
+    pr = cam.project(np.array([[0.431, 0.0, 1.0], [1.0, 0.0, 1.0], [2.0, 0.0, 1.0], [2.5, 0.0, 1.0]]))
+    assert pr.valid.tolist() == [True, True, False, False]
+    assert abs(pr.uv_px[2, 0] - 440.0) < 1e-9 and cam.in_image(pr.uv_px[2])
+    un = cam.unproject(pr.uv_px[2:3])
+    assert un.valid[0] and abs(un.rays_cam[0, 0] - 0.4314) < 1e-4  # the pixel's ray is the one inside the disc
+    # The valid disc against a dense radial scan of the map, for random (rational) models.
+    s = np.linspace(0.0, 16.0, 160001)[1:]
+    for _ in range(200):
+        k1, k2, k3, k4, k5, k6 = rng.normal(size=6) * [0.5, 0.3, 0.1, 0.5, 0.3, 0.1]
+        cam = Camera("FULL_OPENCV", W, H, np.array([300.0, 300.0, 320.0, 240.0, k1, k2, 0, 0, k3, k4, k5, k6]))
+        b = 1 + k4 * s + k5 * s**2 + k6 * s**3
+        r_d = np.sqrt(s) * (1 + k1 * s + k2 * s**2 + k3 * s**3) / b
+        ok = np.r_[True, np.diff(r_d) > 0] & (b > 0)
+        ref = np.minimum.accumulate(ok)  # valid up to the first radius where the map stops increasing
+        got = cam.project(np.c_[np.sqrt(s), np.zeros_like(s), np.ones_like(s)]).valid
+        assert np.count_nonzero(got != ref) <= 2  # the boundary sample itself
+
+
 def test_scaled_camera_exact_in_pixel_edge_convention(rng):
     cam = make_camera("OPENCV", rng)
     half = cam.scaled(W // 2, H // 2)
