@@ -360,6 +360,11 @@ def _view_blocks(R, t, logf, X, pb: LMProblem, huber_px: float) -> tuple[np.ndar
     return blocks, r
 
 
+#: `camera_centre_std`: a view's 6x6 block whose smallest eigenvalue is at most this times its largest is
+#: singular (rounding in the Schur complement leaves ~1e-16 relative; a determined view measured 3e-4).
+_SINGULAR_BLOCK_RCOND = 1e-12
+
+
 def camera_centre_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarray:
     """(N,) largest standard deviation of each camera centre (world units) when the other cameras are held.
 
@@ -371,7 +376,10 @@ def camera_centre_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarr
     camera to itself: a view tied to the rest by two-view tracks only gets a
     direction from each pair but no distance, so its block is (near) singular
     along that direction. A centre c = -R^T t moves by ``-R^T dt - R^T [t]x d``
-    under the update (d, dt) of its rotation and translation.
+    under the update (d, dt) of its rotation and translation. A block that is
+    singular to rounding (a view with too few observations to fix its six pose
+    parameters, e.g. two points) gives inf: its inverse is rounding noise of
+    either sign, and its largest eigenvalue alone can look small.
     """
     n = len(R)
     if n < 2:
@@ -384,9 +392,14 @@ def camera_centre_std(R, t, logf, X, pb: LMProblem, huber_px: float) -> np.ndarr
         tx = np.array([[0.0, -t[v][2], t[v][1]], [t[v][2], 0.0, -t[v][0]], [-t[v][1], t[v][0], 0.0]])
         J = np.concatenate([-R[v].T @ tx, -R[v].T], axis=1)
         try:
-            cc = J @ np.linalg.inv(blocks[v]) @ J.T * sigma2
+            w, Q = np.linalg.eigh(0.5 * (blocks[v] + blocks[v].T))
         except np.linalg.LinAlgError:
             out[v] = np.inf
             continue
+        if not (np.all(np.isfinite(w)) and w[0] > _SINGULAR_BLOCK_RCOND * w[-1]):
+            out[v] = np.inf
+            continue
+        JQ = J @ Q
+        cc = (JQ / w) @ JQ.T * sigma2
         out[v] = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cc + cc.T))[-1], 0.0)))
     return out

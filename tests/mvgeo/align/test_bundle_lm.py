@@ -254,6 +254,24 @@ def test_camera_centre_std_flags_a_view_tied_by_two_view_tracks_only(rng):
     assert np.all(camera_centre_std(R2, t2, lf2, X2, pb2, huber_px=1.0) / spacing < 0.05)
 
 
+@pytest.mark.parametrize("n_obs", [1, 2])
+def test_camera_centre_std_is_inf_for_a_view_with_too_few_observations(n_obs):
+    """View 3 keeps one or two observations (points the other views pin): two to four equations for its six
+    pose parameters, so its block is singular and its centre undetermined. The inverse of a block singular to
+    rounding has eigenvalues of either sign; with two observations its largest alone came out 0.02 (1.5 % of
+    the camera spacing, as well pinned as the other views)."""
+    X, poses, uv, f = _scene(np.random.default_rng(0), n_views=4, n_pts=80, noise_px=0.5)
+    n, P = 4, 80
+    ov, op = np.repeat(np.arange(n), P), np.tile(np.arange(P), n)
+    keep = ~((ov == 3) & (op >= n_obs))
+    pb = LMProblem(ov[keep], op[keep], uv.reshape(-1, 2)[keep], np.zeros(n, np.int64), np.array([W / 2, H / 2]))
+    R, t, logf, Xs, _ = solve_lm(poses[:, :, :3].copy(), poses[:, :, 3].copy(), np.array([np.log(f)]), X.copy(),
+                                 pb, huber_px=2.0)
+    std = camera_centre_std(R, t, logf, Xs, pb, huber_px=2.0)
+    assert np.isinf(std[3])
+    assert np.all(np.isfinite(std[:3])) and np.all(std[:3] < 0.05)
+
+
 def test_a_start_that_rejects_tracks_is_adjusted_again_on_them():
     """Tracks are triangulated from the start: rays more than 3 deg apart there are dropped. A start a few
     degrees off therefore adjusts on a subset; `bundle_adjust` triangulates again from its result and, with
