@@ -34,7 +34,7 @@ from eval.pipeline.inputs import working_focal_prior
 from eval.pipeline.stage import StageContext
 from eval.pipeline.summaries import AlignSummary
 from eval.pipeline.views import view_files
-from mvgeo.align.stats import AlignStats
+from mvgeo.align.stats import AlignStats, BundleStats
 from mvgeo.camera import Camera
 from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, DisconnectedViewsError, InputError
 from mvgeo.common.imageio import read_image
@@ -245,14 +245,30 @@ def _previous_geometry(previous: Path, model: SparseModel, stats: AlignStats,
     images = [model.image(v) for v in views]
     sub = SparseModel({im.camera_id: model.cameras[im.camera_id] for im in images}, images,
                       model.points_xyz, model.points_rgb)
-    ba = stats.bundle_adjustment
-    if ba is not None and ba.centre_std_ratio is not None:
-        ba = dataclasses.replace(ba, centre_std_ratio=restricted_ratios(model, stats, views))
+    ba = None if stats.bundle_adjustment is None else _restricted_bundle_stats(model, stats, views)
     out_stats = dataclasses.replace(stats, n_images=len(views), n_registered=len(views), bundle_adjustment=ba)
     pts = np.load(previous / "points.npz")
     decisions = dataclasses.replace(AlignDecisions.read(previous / "align.json"), geometry=choice)
     return AlignStageResult(AlignResult(sub, np.asarray(pts["xyz"], np.float64), np.asarray(pts["rgb"], np.uint8),
                                         np.asarray(pts["conf"], np.float64), out_stats), decisions)
+
+
+def _restricted_bundle_stats(model: SparseModel, stats: AlignStats, views: list[str]) -> BundleStats:
+    """`stats.bundle_adjustment` with its per-view lists restricted to `views`, in that order, and `views` as
+    the list they follow: `centre_std_ratio` re-expressed over the `views` cameras' spacing
+    (`restricted_ratios`); a list that does not match the alignment's views becomes None."""
+    ba = stats.bundle_adjustment
+    before = list(model.names) if ba.views is None else list(ba.views)
+
+    def pick(values: list | None) -> list | None:
+        if values is None or len(values) != len(before) or not set(views) <= set(before):
+            return None
+        at = dict(zip(before, values, strict=True))
+        return [at[v] for v in views]
+
+    ratios = None if ba.centre_std_ratio is None else restricted_ratios(model, stats, views)
+    return dataclasses.replace(ba, centre_std_ratio=ratios, dense_depth_scale=pick(ba.dense_depth_scale),
+                               dense_depth_log_mad=pick(ba.dense_depth_log_mad), views=list(views))
 
 
 def _align_with_previous_calibration(align_images, files: list[Path], cfg, previous: Path,

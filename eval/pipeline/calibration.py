@@ -145,11 +145,22 @@ def _centres(model: SparseModel, names: Sequence[str]) -> np.ndarray:
     return np.array(out).reshape(-1, 3)
 
 
-def _ratios(stats: AlignStats) -> list[float] | None:
-    """align.json `bundle_adjustment.centre_std_ratio` (one per registered view, in the sparse model's
-    order), or None when absent."""
-    ratios = None if stats.bundle_adjustment is None else stats.bundle_adjustment.centre_std_ratio
-    return None if ratios is None else [float(r) for r in ratios]
+def _ratios(stats: AlignStats, names: Sequence[str]) -> dict[str, float] | None:
+    """align.json `bundle_adjustment.centre_std_ratio` by view name, for the model's `names`; None when absent
+    or when it does not cover exactly `names`.
+
+    The list follows `bundle_adjustment.views` (the alignment's input order, which `mvgeo.align` takes as
+    given: the pipeline's stem order, not the sparse model's name order, e.g. `v.png` before `v-1.png`); an
+    align.json written before `views` was recorded has the list in `names` order.
+    """
+    ba = stats.bundle_adjustment
+    ratios = None if ba is None else ba.centre_std_ratio
+    if ratios is None:
+        return None
+    order = list(names) if ba.views is None else list(ba.views)
+    if len(ratios) != len(order) or len(set(order)) != len(order) or set(order) != set(names):
+        return None
+    return {n: float(r) for n, r in zip(order, ratios, strict=True)}
 
 
 def centre_std_over_spacing(model: SparseModel, stats: AlignStats,
@@ -157,19 +168,19 @@ def centre_std_over_spacing(model: SparseModel, stats: AlignStats,
     """Per view of `views`: its camera-centre standard deviation over the median nearest-neighbour
     distance among the `views` cameras, both in `model`'s frame; None when unknown.
 
-    `stats` is the alignment's align.json; its `bundle_adjustment.centre_std_ratio` lists, in
-    `model.names` order, each centre's std over the median nearest-neighbour distance among all of
-    `model`'s cameras (`mvgeo.align`). Unknown: the list is absent or does not match the model, a
+    `stats` is the alignment's align.json; its `bundle_adjustment.centre_std_ratio` lists, in the order of
+    `bundle_adjustment.views` (`_ratios`), each centre's std over the median nearest-neighbour distance among
+    all of `model`'s cameras (`mvgeo.align`). Unknown: the list is absent or does not match the model, a
     view is not in the model, fewer than 3 views, or the spacing is zero.
     """
-    ratios, names = _ratios(stats), list(model.names)
-    if ratios is None or len(ratios) != len(names) or len(views) < 3 or not set(views) <= set(names):
+    names = list(model.names)
+    by_name = _ratios(stats, names)
+    if by_name is None or len(views) < 3 or not set(views) <= set(names):
         return None
     spacing_all = _nearest_neighbour_spacing(_centres(model, names))
     spacing_views = _nearest_neighbour_spacing(_centres(model, views))
     if not (spacing_all > 0 and spacing_views > 0):
         return None
-    by_name = dict(zip(names, ratios, strict=True))
     return {v: by_name[v] * spacing_all / spacing_views for v in views}
 
 

@@ -28,6 +28,7 @@ from eval.pipeline.calibration import (
 from eval.pipeline.config import AlignSettings, PipelineConfig
 from mvgeo.align import AlignResult, write_align_result
 from mvgeo.align.bundle import bundle_adjust
+from mvgeo.align.stats import AlignStats
 from mvgeo.camera import Camera
 from mvgeo.common.errors import (
     AlignmentRefusedError,
@@ -222,6 +223,43 @@ def test_align_stage_hands_round1_geometry_to_round2(tmp_path, alignments):
                                            "never", "never")
     assert paper.alignment.sparse_model is alignments["round2_poor"][0]
     assert not paper.decisions.geometry.used_previous
+
+
+def _listed_in(stats, order: list[str], names: list[str]):
+    """`stats` with its per-view ratios listed in `order` (recorded as `bundle_adjustment.views`), as
+    `mvgeo.align` lists them in its input order; `names`: the order they are listed in now."""
+    ba = stats.bundle_adjustment
+    at = dict(zip(names, ba.centre_std_ratio, strict=True))
+    return dataclasses.replace(stats, bundle_adjustment=dataclasses.replace(
+        ba, centre_std_ratio=[at[v] for v in order], views=list(order)))
+
+
+def test_ratios_follow_the_views_the_alignment_lists_them_for(tmp_path, alignments):
+    """`mvgeo.align` lists `centre_std_ratio` in its input order (`bundle_adjustment.views`): the pipeline's
+    stem order, which is not the sparse model's name order (`v.png` before `v-1.png`). Each figure belongs
+    to the view it was listed for, whatever the model's order."""
+    model, stats = alignments["round1_good"]
+    order = [ALL[i] for i in (3, 0, 7, 5, 1, 6, 2, 4)]
+    listed = _listed_in(stats, order, model.names)
+    expected = centre_std_over_spacing(model, stats, SELECTED)
+    got = centre_std_over_spacing(model, listed, SELECTED)
+    assert got == pytest.approx(expected, rel=1e-12)
+    # A list that does not name the model's views is unknown, not misattributed.
+    wrong = _listed_in(stats, [*ALL[:-1], "other.png"], [*model.names[:-1], "other.png"])
+    assert centre_std_over_spacing(model, wrong, SELECTED) is None
+    # The handed-over alignment lists the restricted figures for the selected views, so round 3 reads
+    # them for the right views too.
+    prev_dir = _write_previous(tmp_path / "prev", model, listed)
+    files = [tmp_path / "round2" / v for v in reversed(SELECTED)]
+    res = _align_keeping_better_geometry(_FakeAlign(alignments["round2_poor"]), files, None, prev_dir, "never", "auto")
+    assert res.decisions.geometry.used_previous
+    assert res.decisions.geometry.previous_centre_std == pytest.approx(float(np.median(list(expected.values()))))
+    ba = res.alignment.stats.bundle_adjustment
+    assert ba.views == list(reversed(SELECTED)) and len(ba.centre_std_ratio) == len(SELECTED)
+    res.write(tmp_path / "round2_align")
+    handed = AlignStats.read(tmp_path / "round2_align" / "align.json")
+    again = centre_std_over_spacing(res.alignment.sparse_model, handed, SELECTED)
+    assert again == pytest.approx(expected, rel=1e-9)
 
 
 def test_a_handed_over_alignment_keeps_the_previous_rounds_records(tmp_path, alignments):
