@@ -42,6 +42,7 @@ changed (`run_pipeline`).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, fields
@@ -63,9 +64,15 @@ from eval.pipeline.stage import (
     code_digests,
     withdraw_outputs,
 )
-from eval.pipeline.stage_settings import InputsStageSettings, RoundSettings, round_settings, stage_seed
+from eval.pipeline.stage_settings import (
+    InputsStageSettings,
+    RefineStageSettings,
+    RoundSettings,
+    round_settings,
+    stage_seed,
+)
 from eval.pipeline.stages import MODEL_FILE, PASS_THROUGH_UNWRITTEN, PipelineStages, product_stages
-from eval.pipeline.summaries import RefineSummary
+from eval.pipeline.summaries import DenoiseSummary, RefineSummary
 from eval.pipeline.validate import validate_run_inputs
 from mvgeo.common.output import prepare_output, resumable_output_dir
 from mvgeo.common.timing import StageTimer
@@ -168,6 +175,26 @@ def _scene_stages(runner: StageRunner, stages: PipelineStages, rd: Path, images:
                               settings=settings.render, seed=0, code=stages.code.get("render", ())),
                     label=f"{label}/render")
     return {**out, "splat": sp, "render": re}
+
+
+def refine_settings_as_round1(refine: RefineStageSettings, denoised: StageResult) -> RefineStageSettings:
+    """`refine` with round 1's pixel-shuffle stride and noise model where it would measure its own (`pd_stride`
+    0, no `noise_model`), read from round 1's denoise summary (`denoised`; unchanged where that does not
+    record them).
+
+    Every later round fine-tunes the network round 1 trained, which learned the photos at round 1's stride; the
+    refine stage measured the stride again on its K selected views only, and a subset can read otherwise
+    (noise levels that differ from photo to photo, near `denoise.pixel_shuffle.MIN_NOISE_STD`): the network
+    would then be fine-tuned and applied at a stride it never learned."""
+    summary = DenoiseSummary.from_json(denoised.summary)
+    if summary.pd_stride is None:
+        return refine
+    changes: dict[str, object] = {}
+    if refine.pd_stride == 0:
+        changes["pd_stride"] = summary.pd_stride
+    if refine.noise_model is None:  # round 1's: `NoiseLevels.noise_model` of its measurement
+        changes["noise_model"] = "luma" if summary.noise_level_luma_255 is not None else "auto"
+    return dataclasses.replace(refine, **changes)
 
 
 def planned_run_outputs(out: Path, stages: PipelineStages,
@@ -307,7 +334,7 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
                 inputs={"noisy": working, "selection": rd / "selection.json",
                         "model": prev.dir / MODEL_FILE, "renders": prev.dir / "renders",
                         "previous": prev.dir / "denoised"},
-                upstream=(sel, model_stage, prev.stages["render"]), settings=rs.refine,
+                upstream=(sel, model_stage, prev.stages["render"]), settings=refine_settings_as_round1(rs.refine, den),
                 seed=stage_seed(config.seed, r, "refine"), code=stages.code.get("refine", ())),
                 label=f"round{r}/refine")
             kept, why = RefineSummary.from_json(ref.summary).kept_previous()

@@ -116,9 +116,10 @@ class RefineStageSettings:
         passes: inference maskings averaged per image; 0: one pass on the unmasked image.
         device: torch device.
         pd_stride: pixel-shuffle stride of the fine-tuning and inference, as round 1's
-            (`DenoiseSettings.pd_stride`: 0 measured from the photos, which gives round 1's stride for the
-            same noise).
-        noise_model: as round 1's (`DenoiseSettings.noise_model`).
+            (`DenoiseSettings.pd_stride`; 0: the runner puts in the stride round 1 measured,
+            `eval.pipeline.run.refine_settings_as_round1`).
+        noise_model: as round 1's (`DenoiseSettings.noise_model`; None: the runner puts in the one round 1
+            measured).
     """
 
     round2: Round2Config

@@ -119,6 +119,45 @@ def test_a_refine_that_improved_goes_on(tmp_path, scene):
     assert [r.index for r in res.rounds] == [1, 2] and res.stopped is None
 
 
+def test_later_rounds_refine_at_round_1s_stride_and_noise_model(tmp_path, scene):
+    """Every round fine-tunes round 1's network, which learned the photos at round 1's pixel-shuffle stride:
+    the refine stage takes round 1's stride and noise model (its denoise summary) instead of measuring them
+    again on its K selected views, which can read otherwise (below)."""
+    import cv2
+
+    from denoise.pixel_shuffle import stride_for
+
+    # Noise correlated between neighbouring pixels at a level that differs from photo to photo: all 12 photos
+    # read stride 1, the 6 noisiest (the sharpest by the Laplacian) stride 2.
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur(rng.random((192, 256, 3)).astype(np.float32), (0, 0), 6) * 0.6 + 0.2
+    photos = []
+    for level in np.linspace(4, 12, 12) / 255:
+        n = cv2.GaussianBlur(rng.standard_normal(base.shape).astype(np.float32), (0, 0), 0.7)
+        photos.append(np.clip(base + n * (level / n.std()), 0, 1))
+    assert stride_for(photos, 0).stride == 1 and stride_for(photos[6:], 0, hint=False).stride == 2
+
+    tiny = TinyStages()
+    seen = []
+
+    def denoise(ctx):
+        return {**tiny.denoise(ctx), "pd_stride": 2, "noise_level_luma_255": 6.5}
+
+    def refine(ctx):
+        seen.append((ctx.settings.pd_stride, ctx.settings.noise_model))
+        return tiny.refine(ctx)
+
+    stages = dataclasses.replace(tiny.stages(), denoise=denoise, refine=refine)
+    run_pipeline(scene, tmp_path / "out", _cfg(rounds=3), stages=stages)
+    assert seen == [(2, "luma"), (2, "luma")]
+    # A stride and noise model the user set are kept (round 1 used them too).
+    seen.clear()
+    cfg = _cfg(rounds=2)
+    cfg = dataclasses.replace(cfg, denoise=dataclasses.replace(cfg.denoise, pd_stride=3, noise_model="auto"))
+    run_pipeline(scene, tmp_path / "out2", cfg, stages=stages)
+    assert seen == [(3, "auto")]
+
+
 def test_rerun_skips_complete_stages(tmp_path, scene):
     tiny = TinyStages()
     out = tmp_path / "out"
