@@ -193,6 +193,10 @@ def validate_dataset_folder(root: Path) -> DatasetFolder:
             raise InputError(f"held-out view {name!r} has no clean image", path=root / "clean",
                              fix=f"put {name} into clean/ (the held-out views are scored against it), or take it "
                                  "out of split.json's test list")
+        if name not in images:  # the target of the held-out pose fit (`eval.evaluate`): the clean one serves scoring
+            raise InputError(f"held-out view {name!r} has no noisy image", path=root / "images",
+                             fix=f"put {name} into images/ (the pose-free methods fit its camera to the noisy photo "
+                                 "before it is scored), or take it out of split.json's test list")
     _one_orientation({n: images[n] for n in train}, root / "images")
     # clean/ of the training views too, where there is one: `oracle_clean` splats them
     _sizes_match_cameras(root, [images[n] for n in train] + [clean[n] for n in train + test if n in clean])

@@ -253,6 +253,15 @@ def test_eval_split_and_methods(tmp_path, capsys):
     assert main(["eval", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "out")]) == 2
 
 
+def test_eval_refuses_a_held_out_view_without_its_noisy_photo_before_any_output(tmp_path, capsys):
+    """The pose-free methods fit each held-out camera to the noisy held-out photo before scoring against the
+    clean one: a dataset without it ended every such run in a KeyError after its training."""
+    root = _dataset(tmp_path)
+    (root / "images" / "view_000.png").unlink()
+    assert_refused(main, ["eval", root, "--out", tmp_path / "out"], capsys, inputs=[root], watch=[tmp_path],
+                   message=[str(root / "images"), "held-out view 'view_000' has no noisy image", "fix:"])
+
+
 def test_eval_dataset_without_cameras(tmp_path, capsys):
     root = _dataset(tmp_path)  # sparse/0 exists but holds no COLMAP files
     assert main(["eval", str(root), "--out", str(tmp_path / "out"), "--methods", "3dgs_gt_poses"]) == 2
