@@ -109,25 +109,42 @@ def summarise(rows: Sequence[RunScores]) -> dict[str, dict[str, dict[str, Summar
 _DIGITS = {"psnr_db": 2, "ssim": 3, "lpips": 3, "rot_err_deg": 2, "ate": 4, "seconds": 0}
 
 
+def _valid_seeds(rows: Sequence[RunScores], scene: str, method: str, metric: str) -> frozenset[int]:
+    """The seeds of `method`'s rows in `scene` whose `metric` is a number (its cell's values)."""
+    return frozenset(r.seed for r in rows if r.scene == scene and r.method == method
+                     and not math.isnan(getattr(r, metric)))
+
+
 def results_markdown(rows: Sequence[RunScores], *, title: str = "Evaluation") -> str:
-    """Per-scene tables, mean ± std over seeds, best value per column in bold."""
+    """Per-scene tables, mean ± std over seeds, best value per column in bold.
+
+    A cell is the mean over the seeds its method has a value for: a failed run (NaN) is left out of it, and
+    the runs are listed under the table. A cell over fewer seeds than the scene was run with says so
+    ("(2 of 3 seeds)"), and a column's best value is bold only where every cell of it is over the same seeds:
+    a method that failed on the hard seeds would otherwise be ranked on the easy ones only.
+    """
     summary = summarise(rows)
     lines = [f"# {title}", "", "Held-out views scored against the clean images; mean ± sample std over seeds "
-             "(n = seeds). Training-pose errors after Sim(3) registration to ground truth.", ""]
+             "(a cell over fewer seeds than its scene's, a failed run left out, says how many; the best value is "
+             "bold only in a column whose cells are all over the same seeds). Training-pose errors after Sim(3) "
+             "registration to ground truth.", ""]
     for scene, methods in summary.items():
-        seeds = max(c["psnr_db"].n for c in methods.values())
+        seeds = len({r.seed for r in rows if r.scene == scene})
         lines += [f"## {scene} ({seeds} seed(s))", "",
                   "| method | " + " | ".join(lbl for lbl, _ in METRICS.values()) + " |",
                   "|---" * (len(METRICS) + 1) + "|"]
         best = {}
         for m, (_, higher) in METRICS.items():
             vals = [c[m].mean for c in methods.values() if c[m].n]
-            if vals and m != "seconds":
+            same_seeds = len({_valid_seeds(rows, scene, method, m) for method, c in methods.items() if c[m].n}) == 1
+            if vals and m != "seconds" and same_seeds:
                 best[m] = max(vals) if higher else min(vals)
         for method, cells in methods.items():
             row = []
             for m in METRICS:
                 text = cells[m].format(_DIGITS[m])
+                if 0 < cells[m].n < seeds:
+                    text += f" ({cells[m].n} of {seeds} seeds)"
                 if m in best and cells[m].n and cells[m].mean == best[m] and len(methods) > 1:
                     text = f"**{text}**"
                 row.append(text)

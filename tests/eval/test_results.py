@@ -43,6 +43,24 @@ def test_files(tmp_path):
         assert (tmp_path / "figures" / f"{m}.png").stat().st_size > 1000
 
 
+def test_a_method_that_failed_on_a_seed_is_not_ranked_on_the_other_seeds():
+    """B fails on seed 0, the hard one, and is behind A on both seeds they share: its mean over the easy seeds
+    (24.00) is above A's over all three (21.67), but the table does not mark it best, and says it is over
+    two seeds of three."""
+    from eval.results import results_markdown
+
+    nan = float("nan")
+    rows = [RunScores("s", "A", 0, 15.0, 0.5, 0.5), RunScores("s", "B", 0, nan, nan, nan, error="refused"),
+            *(RunScores("s", m, seed, v, 0.7, 0.3) for seed in (1, 2) for m, v in (("A", 25.0), ("B", 24.0)))]
+    text = results_markdown(rows)
+    assert "| A | 21.67 ± 5.77 |" in text
+    assert "| B | 24.00 ± 0.00 (2 of 3 seeds) |" in text and "**" not in text
+    assert "- B, seed 0: refused" in text
+    # Every method on the same seeds (the failed seed left out of both): ranked as usual.
+    same = [r for r in rows if r.seed != 0]
+    assert "| A | **25.00 ± 0.00** |" in results_markdown(same)
+
+
 def test_heldout_grid_from_saved_renders(tmp_path):
     """The figure a reader looks at first: clean | noisy | one render per method, for each held-out view."""
     from eval.evaluate import save_heldout_renders
