@@ -248,8 +248,10 @@ def gt_pose_variant(method: EvalMethod, points_from: EvalMethod) -> EvalMethod:
     ones), splatted with the ground-truth cameras and no pose learning, initialised from `points_from`'s
     alignment points placed on the true cameras' rays (`eval.baselines.gt_align`). Every variant takes
     the same points (`ORACLE_CLEAN`'s: the clean photos' alignment, oracle information like the true
-    cameras), so the variants differ only in their photos: against `oracle_clean@gt_poses` a variant shows
-    what its denoising costs with the geometry taken out. (Each method's own points made the comparison
+    cameras), so the variants differ only in their photos and their own method's splat recipe (its length
+    and `noisy_detail`: under `default`, `product` and `oracle_clean` splat 2000 iterations, the noisy-photo
+    baselines and `n2v_round1` 1000, the length each scores best at): against `oracle_clean@gt_poses` a
+    variant shows what its denoising costs with the geometry taken out. (Each method's own points made the comparison
     one of starts: with the poses held, a splat cannot move a misplaced start in its iterations; on DTU
     scan24 the N2V photos scored 20.84 dB from N2V's own alignment points and 22.79 dB from the noisy
     photos'. The noisy photos' points fail where the noisy photos do not align, e.g. DTU at sigma 50.)"""
