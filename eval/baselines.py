@@ -20,7 +20,7 @@ from denoise.noise_level import estimate_noise_sigma
 from eval.pipeline.stage import StageContext
 from eval.pipeline.summaries import AlignSummary, DenoiseSummary
 from eval.pipeline.validate import DatasetFolder
-from eval.pipeline.views import read_views, write_views
+from eval.pipeline.views import read_views, view_files, write_views
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.sparse_model import SparseModel, read_sparse_model, write_sparse_model
@@ -52,8 +52,10 @@ def nlm_denoise(ctx: StageContext) -> Mapping[str, object]:
     return DenoiseSummary(denoiser="skimage.denoise_nl_means", sigma_est=sigmas).to_json()
 
 
-def oracle_clean_denoise(clean_files: Mapping[str, Path], ctx: StageContext) -> Mapping[str, object]:
-    """`oracle_clean`: a perfect denoiser. The clean training photos go to alignment and splatting.
+def oracle_clean_denoise(ctx: StageContext) -> Mapping[str, object]:
+    """`oracle_clean`: a perfect denoiser. The clean training photos (`ctx.inputs["clean"]`, the dataset's
+    `clean/`, whose content enters the stage's key: `PipelineStages.denoise_inputs`) go to alignment and
+    splatting.
 
     It reads `clean/` of the training views, so it is not a method a user could run: it is the
     ceiling of every denoise-then-reconstruct method on the scene with these settings (what the
@@ -63,6 +65,7 @@ def oracle_clean_denoise(clean_files: Mapping[str, Path], ctx: StageContext) -> 
         InputError: a training view without a clean image.
     """
     noisy = read_views(ctx.inputs["noisy"])
+    clean_files = view_files(ctx.inputs["clean"])
     missing = [n for n in noisy if n not in clean_files]
     if missing:
         raise InputError(f"oracle_clean: no clean image for {missing}", fix="use a dataset with clean/ for every view")

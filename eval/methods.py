@@ -131,10 +131,13 @@ def nlm_stages(dataset: DatasetFolder) -> PipelineStages:
 
 
 def oracle_clean_stages(dataset: DatasetFolder) -> PipelineStages:
-    """`oracle_clean`: the clean training photos as round 1's "denoised" photos."""
-    return dataclasses.replace(product_eval_stages(dataset),
-                               denoise=functools.partial(oracle_clean_denoise, dataset.clean),
-                               denoise_outputs=CLASSICAL_DENOISE_OUTPUTS)
+    """`oracle_clean`: the clean training photos as round 1's "denoised" photos (the folder of the dataset's
+    clean photos is an input of the denoise stage, so a changed clean photo re-runs it)."""
+    folders = sorted({Path(p).parent for p in dataset.clean.values()})
+    if len(folders) != 1:
+        raise ValueError(f"oracle_clean reads the clean photos from one folder; the dataset's are in {folders}")
+    return dataclasses.replace(product_eval_stages(dataset), denoise=oracle_clean_denoise,
+                               denoise_outputs=CLASSICAL_DENOISE_OUTPUTS, denoise_inputs={"clean": folders[0]})
 
 
 @dataclass(frozen=True)

@@ -306,7 +306,8 @@ def run_pipeline(images_dir: str | Path, out: str | Path, config: PipelineConfig
         working = out / WORKING_DIR
         rd = out / "round1"
         den = runner.run(StageSpec(
-            "denoise", rd, stages.denoise, stages.denoise_outputs, inputs={"noisy": working}, upstream=(prep,),
+            "denoise", rd, stages.denoise, stages.denoise_outputs, inputs={**stages.denoise_inputs, "noisy": working},
+            hashed_inputs=tuple(sorted(stages.denoise_inputs)), upstream=(prep,),
             settings=settings[0].denoise, seed=stage_seed(config.seed, 1, "denoise"),
             code=stages.code.get("denoise", ()),
             optional=tuple(o for o in stages.denoise_outputs if o in PASS_THROUGH_UNWRITTEN)),

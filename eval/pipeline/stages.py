@@ -29,6 +29,7 @@ import dataclasses
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -82,6 +83,14 @@ class PipelineStages:
     #: What `denoise` writes into the round folder: `DENOISE_OUTPUTS`, or ("denoised",) for a
     #: denoiser without a network, which cannot start a round 2 (no `MODEL_FILE` to fine-tune).
     denoise_outputs: tuple[str, ...] = DENOISE_OUTPUTS
+    #: Files or folders outside the run that `denoise` reads besides the working photos, by their name in
+    #: `ctx.inputs`; their contents enter its key (`StageSpec.hashed_inputs`), so a changed one re-runs it
+    #: (`oracle_clean`'s clean photos). "noisy" is the working photos' name and may not be used.
+    denoise_inputs: Mapping[str, Path] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if "noisy" in self.denoise_inputs:
+            raise ValueError("denoise_inputs may not name an input 'noisy': the working photos have that name")
 
 
 def denoise(ctx: StageContext) -> Mapping[str, object]:

@@ -3,7 +3,8 @@
 
 from __future__ import annotations
 
-import functools
+import dataclasses
+import shutil
 
 import numpy as np
 import pytest
@@ -50,15 +51,45 @@ def test_classical_denoise_stages(tmp_path, fn):
 def test_oracle_clean_stage(tmp_path):
     clean, folder = _noisy_folder(tmp_path)
     write_views(tmp_path / "clean", {"a": clean})
-    files = {"a": next((tmp_path / "clean").iterdir())}
-    stage = functools.partial(oracle_clean_denoise, files)
-    res = StageRunner().run(StageSpec("denoise", tmp_path / "r", stage, CLASSICAL_DENOISE_OUTPUTS,
-                                      inputs={"noisy": folder}))
+    res = StageRunner().run(StageSpec("denoise", tmp_path / "r", oracle_clean_denoise, CLASSICAL_DENOISE_OUTPUTS,
+                                      inputs={"noisy": folder, "clean": tmp_path / "clean"}, hashed_inputs=("clean",)))
     # The clean photo replaces the noisy one (16-bit PNG round trip: error < 1e-4).
     np.testing.assert_allclose(read_views(res.outputs["denoised"])["a"], clean, atol=1e-4)
+    write_views(tmp_path / "other", {"b": clean})
     with pytest.raises(InputError, match="no clean image"):
-        StageRunner().run(StageSpec("denoise", tmp_path / "r2", functools.partial(oracle_clean_denoise, {}),
-                                    CLASSICAL_DENOISE_OUTPUTS, inputs={"noisy": folder}))
+        StageRunner().run(StageSpec("denoise", tmp_path / "r2", oracle_clean_denoise, CLASSICAL_DENOISE_OUTPUTS,
+                                    inputs={"noisy": folder, "clean": tmp_path / "other"}))
+
+
+def test_changed_clean_photos_rerun_the_oracles_round_1(tmp_path):
+    """`oracle_clean`'s denoise stage reads the dataset's clean photos: a changed clean photo (the noisy ones
+    unchanged) re-runs it, and its photos are the clean photos as they are now, not those of the first run."""
+    from eval.methods import METHODS
+    from eval.pipeline import preset, run_pipeline
+    from mvgeo.common.imageio import read_image, write_image
+    from tests.eval._tiny_stages import TinyStages, tiny_dataset
+
+    ds = tiny_dataset(tmp_path / "ds")
+    clean_dir = next(iter(ds.clean.values())).parent
+    stages = METHODS["oracle_clean"].stages(ds)
+    assert stages.denoise_inputs == {"clean": clean_dir}
+    tiny = TinyStages()
+    stages = dataclasses.replace(tiny.stages(), denoise=stages.denoise, denoise_outputs=stages.denoise_outputs,
+                                 denoise_inputs=stages.denoise_inputs)
+    noisy = tmp_path / "noisy"
+    noisy.mkdir()
+    for n in ds.train:
+        shutil.copy(ds.images[n], noisy / ds.images[n].name)
+    cfg = dataclasses.replace(preset("fast", views=3, rounds=1), fuse_noisy_splat=False)
+    cfg = dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, noisy_detail=0.0))
+    first = run_pipeline(noisy, tmp_path / "out", cfg, stages=stages)
+    assert not first.rounds[0].stages["denoise"].skipped
+    changed = ds.clean[ds.train[0]]
+    write_image(changed, read_image(changed) * 0.5)  # the clean photo changes, the noisy one does not
+    second = run_pipeline(noisy, tmp_path / "out", cfg, stages=stages)
+    assert not second.rounds[0].stages["denoise"].skipped
+    denoised = read_views(tmp_path / "out" / "round1" / "denoised")[ds.train[0]]
+    np.testing.assert_allclose(denoised, read_image(changed), atol=1e-4)
 
 
 @pytest.mark.parametrize("sigma", [0.02, 0.05, 0.1])
