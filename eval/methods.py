@@ -359,6 +359,12 @@ def splat_photos(round_dir: Path) -> Path:
     return fused if fused.is_dir() else Path(round_dir) / "denoised"
 
 
+#: The code the ground-truth-pose align stage (`eval.baselines.gt_align`) runs besides its own module (the
+#: rule: `eval.pipeline.stage`): the splat's packages (`splat.dataset.points_from_depth`) and `eval.heldout`
+#: (`register_sim3` places a variant's points on the true cameras' rays), so that an edit in either re-runs it.
+GT_ALIGN_CODE: tuple[str, ...] = (*STAGE_CODE["splat"], "eval.heldout")
+
+
 def _splat_on_ground_truth(stages: PipelineStages, config: PipelineConfig, dataset: DatasetFolder, inputs: Path,
                            folder: Path, estimate: Path | None = None, noisy: Path | None = None) -> Reconstruction:
     """(a) and the `@gt_poses` variants: `gt_align` then the pipeline's splat stage on the photos in
@@ -371,7 +377,7 @@ def _splat_on_ground_truth(stages: PipelineStages, config: PipelineConfig, datas
     align_inputs = gt_align_inputs(dataset, estimate)
     al = runner.run(StageSpec("align", rd, functools.partial(gt_align, dataset), ("align",), inputs=align_inputs,
                               hashed_inputs=tuple(align_inputs), settings=GtAlignSettings(tuple(dataset.train)),
-                              code=STAGE_CODE["splat"]), label="gt_poses/align")
+                              code=GT_ALIGN_CODE), label="gt_poses/align")
     seed = stage_seed(config.seed, 1, "splat")
     settings = splat_stage_settings(config, seed=seed)
     splat_inputs, hashed = {"images": inputs, "align": rd / "align"}, ("images",)

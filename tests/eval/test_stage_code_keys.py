@@ -180,3 +180,33 @@ def test_stage_code_table_is_complete():
                 missing = _imported_project_packages(package) - {p.split(".")[0] for p in code}
                 assert not missing, (stage, package, missing)
         assert all(len(d) == 64 for d in code_digests(getattr(product, stage), code).values())
+
+
+def _imported_project_modules(module: str) -> set[str]:
+    """Project modules `module`'s source imports (lazy imports included), and those of the `eval` modules outside
+    `eval.pipeline` among them, recursively."""
+    found: set[str] = set()
+    todo = [module]
+    while todo:
+        f = REPO / (todo.pop().replace(".", "/") + ".py")
+        for node in ast.walk(ast.parse(f.read_text(), filename=str(f))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module] if isinstance(node, ast.ImportFrom) and node.module and not node.level else []
+            for n in names:
+                if n.split(".")[0] in PROJECT_PACKAGES and n not in found:
+                    found.add(n)
+                    if (n.startswith("eval.") and not n.startswith("eval.pipeline")
+                            and (REPO / (n.replace(".", "/") + ".py")).is_file()):
+                        todo.append(n)
+    return found
+
+
+def test_ground_truth_align_code_covers_what_it_imports():
+    """The `@gt_poses` align stage's key covers every project module `eval.baselines` runs (`register_sim3` of
+    `eval.heldout` places a variant's points): an edit in one re-runs it."""
+    from eval.methods import GT_ALIGN_CODE
+
+    code = {"eval.baselines", *GT_ALIGN_CODE}
+    uncovered = {m for m in _imported_project_modules("eval.baselines")
+                 if not any(m == c or m.startswith(c + ".") for c in code)}
+    assert not uncovered
