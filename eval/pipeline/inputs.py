@@ -165,13 +165,26 @@ def _source_digest(folder: Path) -> str:
     return hash_json({part: hash_path(folder / part) for part in _COPIED if (folder / part).exists()})
 
 
+#: The code that makes a working-size dataset (`working_dataset`: the area filter, the PNG writing, the cameras'
+#: scaling); its source digests are in the dataset's record, so a dataset made by other code is made again.
+_DATASET_CODE = ("eval.pipeline", "mvgeo")
+
+
+def _dataset_code() -> dict[str, str]:
+    """`_DATASET_CODE` -> source digest (`eval.pipeline.hashing.source_digest`)."""
+    from eval.pipeline.hashing import source_digest
+
+    return {name: source_digest(name) for name in _DATASET_CODE}
+
+
 def _recorded_dataset(data_dir: Path, name: str, source: Path, max_size: int, digest: str) -> bool:
     """`data_dir/name` is the complete working-size dataset its record says `working_dataset` made from
-    `source` at `max_size` from the files of hash `digest` (`_source_digest`), every file as recorded."""
+    `source` at `max_size` from the files of hash `digest` (`_source_digest`) with the code there is now
+    (`_dataset_code`), every file as recorded."""
     try:
         rec = json.loads((data_dir / RECORD_DIR / f"{name}.json").read_text(encoding="utf-8"))
         return (isinstance(rec, dict) and not rec.get("pending") and rec.get("source") == str(source)
-                and rec.get("source_digest") == digest
+                and rec.get("source_digest") == digest and rec.get("code") == _dataset_code()
                 and rec.get("max_size") == max_size and isinstance(rec.get("manifest"), dict)
                 and verify_outputs(data_dir, rec["manifest"]) is None)
     except (OSError, UnicodeDecodeError, ValueError, RecursionError):  # RecursionError: deeply nested JSON
@@ -194,9 +207,10 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
 
     `folder` itself when no image's long side exceeds `max_size` (or `max_size` is None); else
     `out/data/<name>_max<N>/`, made once (reused while its record `out/data/stages/<name>_max<N>.json` says
-    it is complete and unchanged): the noisy and clean images downscaled with the area filter (16-bit PNG),
-    the ground-truth cameras scaled to match (`Camera.scaled`, poses unchanged), `split.json` copied, and
-    `depth/` maps where the dataset has them (`nearest_depth`). Other files of `folder` are not copied; when
+    it is complete and unchanged, and was made by the code there is now: `_DATASET_CODE`): the noisy and
+    clean images downscaled with the area filter (16-bit PNG), the ground-truth cameras scaled to match
+    (`Camera.scaled`, poses unchanged), `split.json` copied, and `depth/` maps where the dataset has them
+    (`nearest_depth`). Other files of `folder` are not copied; when
     those it copies change (`_source_digest`), it is made again. It is written in a hidden work folder and
     committed with the record (`eval.pipeline.stage.commit_written`), so only a folder this function made is
     ever replaced.
@@ -249,5 +263,5 @@ def working_dataset(folder: str | Path, out: str | Path, max_size: int | None) -
                                                                   working_size(*wh, max_size)))
 
     commit_written(data_dir, name, (name,), write, {"source": str(source), "source_digest": digest,
-                                                   "max_size": max_size})
+                                                   "max_size": max_size, "code": _dataset_code()})
     return target

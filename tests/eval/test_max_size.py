@@ -165,6 +165,27 @@ def test_eval_dataset_is_made_again_when_its_source_changes_and_takes_its_depth_
                                atol=1 / 65535)
 
 
+def test_eval_dataset_is_made_again_by_changed_code(tmp_path, monkeypatch):
+    """The working-size dataset records the code that made it: with another area filter (an edit of
+    `eval.pipeline` or `mvgeo`, a new source digest) it is made again, not reused from the old code."""
+    import eval.pipeline.inputs as inputs_mod
+
+    root = _eval_dataset(tmp_path / "ds")
+    small = working_dataset(root, tmp_path / "out", 48)
+    before = read_image(small / "images" / "view_000.png")
+    assert working_dataset(root, tmp_path / "out", 48) == small  # reused by the same code
+
+    def nearest(img, size_wh):
+        return np.ascontiguousarray(img[::2, ::2]) if img.shape[1] != size_wh[0] else img
+
+    monkeypatch.setattr(inputs_mod, "resize_area", nearest)
+    monkeypatch.setattr(inputs_mod, "_dataset_code", lambda: {"eval.pipeline": "edited", "mvgeo": "edited"})
+    assert working_dataset(root, tmp_path / "out", 48) == small
+    after = read_image(small / "images" / "view_000.png")
+    assert not np.array_equal(before, after)
+    np.testing.assert_allclose(after, read_image(root / "images" / "view_000.png")[::2, ::2], atol=1 / 65535)
+
+
 def test_nearest_depth_against_a_loop(rng):
     depth = rng.random((7, 10)).astype(np.float32)
     for wh in [(5, 3), (10, 7), (4, 4)]:
