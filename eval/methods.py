@@ -394,10 +394,12 @@ def _denoised_before_refusal(method: EvalMethod, config: PipelineConfig, folder:
     """A `@gt_poses` variant's photos when its method's own alignment refused them: round 1's completed
     `denoised/` (what its splat would have trained on). The variant needs the photos, not the method's
     poses, so a scene whose photos the method cannot align (the temple ring at sigma 25) still shows
-    what its denoising does with the true cameras. Re-raises `err` where round 1 did not get that far, or
-    where the splat would have trained on fused photos (they need the noisy photos' splat)."""
+    what its denoising does with the true cameras. Re-raises `err` where round 1 did not get that far, where
+    the splat would have trained on fused photos (they need the noisy photos' splat), or where a method of
+    several rounds has round 1's splat recorded (a later round refused; its photos are not round 1's). A
+    method of one round refused in round 1 whatever records an earlier run with other settings left there."""
     rd = folder / "round1"
-    if config.fuse_noisy_splat or (rd / "stages" / "splat.json").is_file():
+    if config.fuse_noisy_splat or (config.rounds > 1 and (rd / "stages" / "splat.json").is_file()):
         raise err
     seconds = completed_seconds(rd, "denoise")  # None: no record, or a commit that was cut short
     if seconds is None:

@@ -148,6 +148,30 @@ def test_a_gt_pose_variant_splats_the_denoised_photos_its_method_could_not_align
     assert h.scored[-1]["est"] is None and h.scored[-1]["ply"] == rd / "point_cloud.ply"
 
 
+def test_a_gt_pose_variant_after_a_refusal_does_not_depend_on_an_earlier_runs_records(tmp_path, dataset,
+                                                                                       monkeypatch):
+    # An earlier evaluation into the folder aligned and splatted round 1 (its splat record stays); with other
+    # denoiser settings the method's alignment now refuses. The variant splats round 1's new denoised photos,
+    # as it does in a new folder, instead of failing on the earlier run's splat record.
+    h = Harness(monkeypatch)
+    assert not run_task(_task(dataset, tmp_path, "n2v_round1@gt_poses")).error
+    tiny_align = h.tiny.align
+
+    def align(ctx):
+        if "oracle_clean" not in str(ctx.work_dir):
+            raise AlignmentRefusedError("the reconstruction is inconsistent with 2 of 3 verified image pairs",
+                                        kind="pairs_contradicted")
+        return tiny_align(ctx)
+
+    monkeypatch.setattr(h.tiny, "align", align)
+    task = _task(dataset, tmp_path, "n2v_round1@gt_poses")
+    task = dataclasses.replace(task, base=dataclasses.replace(
+        task.base, denoise=dataclasses.replace(task.base.denoise, n2v_steps=7)))
+    row = run_task(task)
+    assert not row.error and row.psnr_db == 20.0
+    assert h.tiny.calls["denoise"] == 2  # round 1 denoised again with the new settings, then splatted
+
+
 def _ring_of_cameras(rng, est_from_ref, n=5):
     """n reference cameras looking down +z at the points near z = 5, and the same cameras in the estimated
     world x_est = s R x_ref + t: R_e = R R_s^T, t_e = s t - R_e t_s."""
