@@ -42,8 +42,9 @@ for name in args.methods:
     variant = gt_pose_variant(own, ORACLE_CLEAN)
     round_dir = seed_dir / own.folder() / "round1"
     points_dir = seed_dir / ORACLE_CLEAN.folder() / "round1"  # every variant starts from the clean photos' points
+    photos = splat_photos(round_dir, own.pipeline_config(base).fuse_noisy_splat)
     rec = _splat_on_ground_truth(variant.stages(dataset), variant.pipeline_config(base), dataset,
-                                 splat_photos(round_dir), seed_dir / variant.folder(), estimate=points_dir)
+                                 photos, seed_dir / variant.folder(), estimate=points_dir)
     m = held_out_at_true_poses(rec.round_dir, dataset)
     print(f"| {variant.name} | {m['psnr_db']:.2f} | {m['ssim']:.3f} | {m['lpips']:.3f} |", flush=True)
 sys.exit(0)

@@ -353,10 +353,11 @@ def share_round1(src_run: Path, dst_run: Path) -> bool:
     return True
 
 
-def splat_photos(round_dir: Path) -> Path:
-    """The photos a pipeline round's splat trained on: `fused/` when the round fused, else `denoised/`."""
-    fused = Path(round_dir) / "fused"
-    return fused if fused.is_dir() else Path(round_dir) / "denoised"
+def splat_photos(round_dir: Path, fused: bool) -> Path:
+    """The photos a pipeline round's splat trained on: `fused/` when its run fused (`fused`:
+    `PipelineConfig.fuse_noisy_splat`), else `denoised/`. Decided by the settings, not by what the folder
+    holds: a `fused/` an earlier run left there (with fusion on) is not what this run's splat trained on."""
+    return Path(round_dir) / ("fused" if fused else "denoised")
 
 
 #: The code the ground-truth-pose align stage (`eval.baselines.gt_align`) runs besides its own module (the
@@ -436,8 +437,9 @@ def reconstruct(method: EvalMethod, dataset: DatasetFolder, base: PipelineConfig
         points = own if method.gt_pose_points_from in (None, method.gt_pose_variant_of) else reconstruct(
             method.gt_pose_points_from, dataset, base, seed=seed, denoiser=denoiser, inputs=inputs, seed_dir=seed_dir,
             wait_for_lock=True)
-        rec = _splat_on_ground_truth(stages, config, dataset, splat_photos(own.round_dir), folder,
-                                     estimate=points.round_dir, noisy=own.round_dir.parent / WORKING_DIR)
+        photos = splat_photos(own.round_dir, config.fuse_noisy_splat)  # the variant's fusion is its method's
+        rec = _splat_on_ground_truth(stages, config, dataset, photos, folder, estimate=points.round_dir,
+                                     noisy=own.round_dir.parent / WORKING_DIR)
         return dataclasses.replace(rec, seconds=own.seconds + rec.seconds)
     if method.ground_truth_poses:
         return _splat_on_ground_truth(stages, config, dataset, inputs, folder)

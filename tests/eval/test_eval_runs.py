@@ -172,6 +172,26 @@ def test_a_gt_pose_variant_after_a_refusal_does_not_depend_on_an_earlier_runs_re
     assert h.tiny.calls["denoise"] == 2  # round 1 denoised again with the new settings, then splatted
 
 
+def test_a_gt_pose_variant_splats_the_photos_its_method_trained_on_now(tmp_path, dataset, monkeypatch):
+    # An earlier evaluation into the folder ran `product` with a preset that fused (its fused/ stays in the
+    # round folder); now the preset does not fuse and `product` trains on denoised/: so does its variant.
+    h = Harness(monkeypatch)
+    task = _task(dataset, tmp_path, "product@gt_poses")
+    assert not run_task(dataclasses.replace(task, base=dataclasses.replace(task.base, fuse_noisy_splat=True))).error
+    seed_dir = tmp_path / "out" / "runs" / "s" / "seed0"
+    assert (seed_dir / "product" / "round1" / "fused").is_dir()
+    read: list = []
+    tiny_splat = h.tiny.splat
+
+    def splat(ctx):
+        read.append((ctx.work_dir.parent.parent.name, ctx.inputs["images"].name))
+        return tiny_splat(ctx)
+
+    monkeypatch.setattr(h.tiny, "splat", splat)
+    assert not run_task(task).error
+    assert read == [("product", "denoised"), ("product@gt_poses", "denoised")]
+
+
 def _ring_of_cameras(rng, est_from_ref, n=5):
     """n reference cameras looking down +z at the points near z = 5, and the same cameras in the estimated
     world x_est = s R x_ref + t: R_e = R R_s^T, t_e = s t - R_e t_s."""
