@@ -10,7 +10,10 @@ from mvgeo import transforms as tf
 from mvgeo import transforms_torch as tt
 from mvgeo import twoview as tv
 from mvgeo.camera import Camera
+from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError
+from mvgeo.epipolar import sampson_distance
+from mvgeo.metrics import rotation_error_deg
 from mvgeo.pnp import estimate_absolute_pose
 from mvgeo.ransac import RansacConfig
 from mvgeo.triangulate import triangulate_two_view
@@ -94,9 +97,43 @@ def test_planar_scene_calibrated_ok_uncalibrated_flagged(rng):
     sc = make_two_view(rng, planar=True, outlier_ratio=0.2, noise_px=0.3)
     # The 5-point solver is not degenerate for planes (Nister 2004).
     res = tv.estimate_relative_pose(sc.u1, sc.u2, sc.K, sc.K)
-    assert res.success
+    assert (res.success and rotation_error_deg(res.R, sc.R) < 2.0) or "ambiguous" in res.reason
     unc = tv.estimate_relative_pose_uncalibrated(sc.u1, sc.u2, (W, H))
     assert not unc.success and unc.homography_ratio >= 0.9 and "homography" in unc.reason
+
+
+@pytest.mark.parametrize(("noise_px", "max_wrong", "min_right"), [(0.3, 0, 12), (1.0, 4, 10)])
+def test_planar_scene_calibrated_rarely_returns_the_planes_other_pose(noise_px, max_wrong, min_right):
+    """A plane has two relative poses that explain the matches (the homography's two decompositions, 6-10 deg
+    apart on these scenes); the essential fit ended on the wrong one and reported success on 9 of these 24
+    scenes at 0.3 px (9 right) and 13 at 1 px (5 right). Now a success is the right pose (the homography's
+    decomposition, unrefined: within 0.8 deg at 0.3 px, 3.1 deg at 1 px) or the pair fails naming the ambiguity,
+    except on 4
+    scenes at 1 px, where the essential model's extra freedom fits the plane's noise (its Sampson distances
+    read 0.7 of the noise) and GRIC prefers it (`twoview.homography_gric_margin`)."""
+    right = ambiguous = wrong = 0
+    for seed in range(24):
+        sc = make_two_view(np.random.default_rng(seed), planar=True, outlier_ratio=0.2, noise_px=noise_px)
+        res = tv.estimate_relative_pose(sc.u1, sc.u2, sc.K, sc.K)
+        if res.success and rotation_error_deg(res.R, sc.R) < 4.0:
+            right += 1
+        elif res.success:
+            wrong += 1
+        elif "ambiguous" in res.reason:
+            ambiguous += 1
+    assert wrong <= max_wrong and right >= min_right and ambiguous >= 4, (right, wrong, ambiguous)
+
+
+def test_homography_gric_prefers_the_plane_only_without_relief(rng):
+    sc = make_two_view(rng, planar=True, outlier_ratio=0.0, noise_px=0.5)
+    res = tv.estimate_relative_pose(sc.u1, sc.u2, sc.K, sc.K)
+    Hm = cv2.findHomography(sc.u1, sc.u2, 0)[0]
+    assert tv.homography_gric_margin(sc.u1, sc.u2, Hm, sampson_distance(res.F, sc.u1, sc.u2)) > 0
+    general = make_two_view(rng, outlier_ratio=0.0, noise_px=0.5)
+    res = tv.estimate_relative_pose(general.u1, general.u2, general.K, general.K)
+    assert res.success
+    Hm = cv2.findHomography(general.u1, general.u2, 0)[0]
+    assert tv.homography_gric_margin(general.u1, general.u2, Hm, sampson_distance(res.F, general.u1, general.u2)) < 0
 
 
 def test_all_outliers(rng):
