@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import dataclasses
 import filecmp
+import json
 import logging
 import os
 import shutil
@@ -66,6 +67,7 @@ from eval.image_metrics import score_images
 from eval.methods import METHODS, EvalMethod, reconstruct, with_splat_iters
 from eval.pipeline import PipelineConfig, preset
 from eval.pipeline.config import DENOISE_METHODS, DenoiseMethod
+from eval.pipeline.hashing import source_digest
 from eval.pipeline.run import RUN_COMMAND, SCENE_OUTPUTS, planned_run_outputs
 from eval.pipeline.stage import (
     RECORD_DIR,
@@ -702,8 +704,10 @@ def scene_dataset(kind: str, source: Path | str, out: Path, *, size_wh: tuple[in
         size_wh, views: image size and view count overrides for rendered scenes (None: the scene's).
 
     A scene rendered before into the same folder is reused while its resolved scene (`scene.toml`) is this
-    one; else it is rendered again (the folder is this command's own: `write_dataset` replaces only a dataset
-    it wrote, unchanged).
+    one and the renderer's code (`data_synth`, its source digest in `out/data/stages/<folder>.render.json`)
+    is the code there is now; else it is rendered again (the folder is this command's own: `write_dataset`
+    replaces only a dataset it wrote, unchanged). A render by the same code gives the same bytes, and the
+    runs' inputs are compared by content, so rendering again changes nothing after it.
     """
     if kind == "dataset":
         return Path(source).name, Path(source)
@@ -713,18 +717,27 @@ def scene_dataset(kind: str, source: Path | str, out: Path, *, size_wh: tuple[in
     tag = "" if size_wh is None and views is None else f"_{size_wh[0]}x{size_wh[1]}" if size_wh else ""
     tag += f"_{views}v" if views is not None else ""
     folder = out / "data" / f"{name}{tag}"
+    record = out / "data" / RECORD_DIR / f"{folder.name}.render.json"
     spec = load_scene(source, size_wh=size_wh, views=views)
+    code = {"data_synth": source_digest("data_synth")}
     if (folder / "split.json").is_file():
         # Reused only while it is this scene: the file may have been edited since, or another scene file of the
-        # same name given (the dataset's scene.toml is the resolved scene it was rendered from).
+        # same name given (the dataset's scene.toml is the resolved scene it was rendered from); and only while
+        # the renderer is the code that rendered it (an edit of a degradation or the renderer changes the data).
         try:
             same = (folder / "scene.toml").read_text(encoding="utf-8") == scene_to_toml(spec)
-        except (OSError, UnicodeDecodeError):
-            same = False
-        if same:
+            same_code = json.loads(record.read_text(encoding="utf-8")).get("code") == code
+        except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+            same, same_code = False, False
+        if same and same_code:
             return name, folder
-        _log.warning("the scene %s differs from the one rendered into %s before: rendering it again", source,
-                     folder)
+        _log.warning("the %s rendered into %s before differs from the one now: rendering it again",
+                     "scene" if not same else "renderer's code", folder)
+    record.unlink(missing_ok=True)
     write_dataset(spec, folder, overwrite=folder.exists())
+    record.parent.mkdir(parents=True, exist_ok=True)
+    tmp = record.with_name(f".{record.name}.tmp")
+    tmp.write_text(json.dumps({"scene": str(source), "code": code}, indent=1), encoding="utf-8")
+    os.replace(tmp, record)
     return name, folder
 
