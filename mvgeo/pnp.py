@@ -97,7 +97,8 @@ class AbsolutePoseResult:
     """Camera pose from 2-D/3-D matches, with validity.
 
     Attributes:
-        success: enough inliers and a converged refinement.
+        success: at least ``min_inliers`` inliers for the refined pose (the refinement's convergence is
+            not required: it may stop at ``lm_iterations``; the inliers are re-selected with its pose).
         reason: empty on success, else why not.
         cam_from_world: (3, 4) (identity when nothing was found).
         inlier_mask: (N,) bool, reprojection error < threshold for the final pose.

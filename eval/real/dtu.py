@@ -89,6 +89,13 @@ def dtu_cameras(npz_path: Path, n: int | Sequence[int], *, size_wh: tuple[int, i
         K = K / K[2, 2]
         if np.linalg.det(R) < 0:
             raise InputError(f"view {i}: projection decomposes to a reflection", path=npz_path)
+        # A pinhole camera holds no skew: dropping it moves a pixel by |skew| |y| (y normalised, up to the
+        # image's half-height over fy); refused past 0.05 px (scan24's moves pixels by 3e-5 px).
+        skew_px = abs(K[0, 1]) * 600.0 / abs(K[1, 1])
+        if skew_px > 0.05:
+            raise InputError(f"view {i}: the camera has skew ({K[0, 1]:g}: {skew_px:.2g} px at the image's edge), "
+                             "which a pinhole camera cannot hold", path=npz_path,
+                             fix="undistort/resample the images to a camera without skew first")
         C = (c_h[:3] / c_h[3]).reshape(3)
         K_px = to_pixels @ K
         K_px[0, 2] += 0.5

@@ -649,3 +649,20 @@ def test_dtu_cameras_file_that_is_not_an_archive_is_named(tmp_path, rng, capsys,
     err = capsys.readouterr().err
     assert "cameras.npz: holds a single array, not an .npz archive" in err and "Traceback" not in err, err
     assert not (tmp_path / "bad").exists()
+
+
+def test_dtu_camera_with_skew_is_refused_not_dropped(tmp_path, rng):
+    """A pinhole camera holds no skew; dropping it would move pixels at the edge by |skew| 600 / fy."""
+    mats = _write_dtu(tmp_path / "dtu", rng)
+    K_skew = np.array([[2892.3, 2.0, 823.2], [0.0, 2883.2, 619.1], [0.0, 0.0, 1.0]])  # 0.42 px at the edge
+    K = np.array([[2892.3, 0.0, 823.2], [0.0, 2883.2, 619.1], [0.0, 0.0, 1.0]])
+    original = mats["world_mat_2"][:3].copy()
+    mats["world_mat_2"][:3] = K_skew @ np.linalg.inv(K) @ original
+    np.savez(tmp_path / "dtu" / "cameras.npz", **mats)
+    with pytest.raises(InputError, match=r"view 2: the camera has skew \(2: 0.42 px"):
+        import_dataset("dtu", tmp_path / "dtu", tmp_path / "ds", test=1)
+    assert not (tmp_path / "ds").exists()
+    K_small = np.array([[2892.3, 0.1, 823.2], [0.0, 2883.2, 619.1], [0.0, 0.0, 1.0]])  # 0.02 px: kept
+    mats["world_mat_2"][:3] = K_small @ np.linalg.inv(K) @ original
+    np.savez(tmp_path / "dtu" / "cameras.npz", **mats)
+    assert import_dataset("dtu", tmp_path / "dtu", tmp_path / "ds", test=1).is_dir()
