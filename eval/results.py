@@ -158,14 +158,30 @@ def results_markdown(rows: Sequence[RunScores], *, title: str = "Evaluation") ->
     return "\n".join(lines)
 
 
+def seed_shortfalls(rows: Sequence[RunScores], metric: str) -> dict[tuple[str, str], str]:
+    """(scene, method) -> "n/N" where `method`'s `metric` in `scene` is a mean over fewer seeds (n) than the
+    scene was run with (N; a failed run is left out of its mean)."""
+    out = {}
+    for scene, methods in summarise(rows).items():
+        seeds = len({r.seed for r in rows if r.scene == scene})
+        for method, cells in methods.items():
+            if 0 < cells[metric].n < seeds:
+                out[(scene, method)] = f"{cells[metric].n}/{seeds}"
+    return out
+
+
 def plot_bars(rows: Sequence[RunScores], path: Path, *, metric: str = "psnr_db") -> Path:
-    """Bar chart of `metric` per method (error bars: std over seeds), one group per scene; PNG."""
+    """Bar chart of `metric` per method (error bars: std over seeds), one group per scene; PNG.
+
+    A bar over fewer seeds than its scene's (a failed run left out; `seed_shortfalls`) is hatched and labelled
+    with its seed count ("2/3"), as its cell in results.md says."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     summary = summarise(rows)
+    short = seed_shortfalls(rows, metric)
     scenes = list(summary)
     methods = list(dict.fromkeys(m for s in summary.values() for m in s))
     width = 0.8 / max(1, len(methods))
@@ -173,8 +189,12 @@ def plot_bars(rows: Sequence[RunScores], path: Path, *, metric: str = "psnr_db")
     for j, method in enumerate(methods):
         means = [summary[s][method][metric].mean if method in summary[s] else np.nan for s in scenes]
         stds = [summary[s][method][metric].std if method in summary[s] else np.nan for s in scenes]
-        ax.bar(np.arange(len(scenes)) + (j - (len(methods) - 1) / 2) * width, means, width,
-               yerr=np.nan_to_num(stds), capsize=2, label=method)
+        x = np.arange(len(scenes)) + (j - (len(methods) - 1) / 2) * width
+        bars = ax.bar(x, means, width, yerr=np.nan_to_num(stds), capsize=2, label=method)
+        for k, scene in enumerate(scenes):
+            if (scene, method) in short:
+                bars[k].set_hatch("//")
+                ax.text(x[k], means[k], short[(scene, method)], ha="center", va="bottom", fontsize=6)
     ax.set_xticks(np.arange(len(scenes)), scenes)
     ax.set_ylabel(METRICS[metric][0])
     ax.legend(fontsize=7, ncols=2)

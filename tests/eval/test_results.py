@@ -61,6 +61,18 @@ def test_a_method_that_failed_on_a_seed_is_not_ranked_on_the_other_seeds():
     assert "| A | **25.00 ± 0.00** |" in results_markdown(same)
 
 
+def test_a_bar_over_fewer_seeds_says_so(tmp_path):
+    """The bar chart marks the same shortfall as the table (B failed on one seed of three)."""
+    from eval.results import plot_bars, seed_shortfalls
+
+    nan = float("nan")
+    rows = [RunScores("s", "A", 0, 15.0, 0.5, 0.5), RunScores("s", "B", 0, nan, nan, nan, error="refused"),
+            *(RunScores("s", m, seed, v, 0.7, 0.3) for seed in (1, 2) for m, v in (("A", 25.0), ("B", 24.0)))]
+    assert seed_shortfalls(rows, "psnr_db") == {("s", "B"): "2/3"}
+    assert seed_shortfalls([r for r in rows if r.seed != 0], "psnr_db") == {}
+    assert plot_bars(rows, tmp_path / "bars.png").stat().st_size > 0
+
+
 def test_heldout_grid_from_saved_renders(tmp_path):
     """The figure a reader looks at first: clean | noisy | one render per method, for each held-out view."""
     from eval.evaluate import save_heldout_renders
