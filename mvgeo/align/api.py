@@ -142,10 +142,15 @@ def _cloud_pixels(inputs: AlignInputs, cloud_images, intrinsics: Camera | None, 
 
 def _sparse_model(c: Candidate, cloud: DenseCloud) -> SparseModel:
     """PINHOLE cameras at the input size: one camera when the views share their intrinsics (known, or one
-    shared focal), as COLMAP's single-camera mode writes them; else one per view."""
+    shared focal), as COLMAP's single-camera mode writes them; else one per view.
+
+    An estimated focal is one of square pixels at the alignment size (the bundle adjustment's, the dense
+    stereo's; `grid_to_align` converts the pointmap grid's by its width), scaled to the input size per axis
+    as the images were resized: where the grid's aspect ratio rounds differently from the image's (e.g. 250x165
+    with a 96x63 grid), scaling fy by the grid's height would make it 0.6 % longer than fx."""
     (W0, H0), K = c.inputs.input_wh, c.inputs.intrinsics
-    (Wa, Ha), Hp, Wp = c.inputs.align_wh, *c.result.depth[0].shape
-    f = c.result.focal_px
+    (Wa, Ha) = c.inputs.align_wh
+    f = c.result.focal_px * c.graph.grid_to_align  # alignment pixels
     one_camera = K is not None or bool(np.all(f == f[0]))
     # Without intrinsics, the principal point is the image centre unless the views determined it (an estimated
     # K_align, `mvgeo.align.principal`).
@@ -154,7 +159,7 @@ def _sparse_model(c: Candidate, cloud: DenseCloud) -> SparseModel:
     cameras, posed = {}, []
     for v, name in enumerate(c.inputs.names):
         cam = (Camera.pinhole(K.fx, K.fy, K.cx, K.cy, W0, H0) if K is not None else
-               Camera.pinhole(f[v] * W0 / Wp, f[v] * H0 / Hp, *centre, W0, H0))
+               Camera.pinhole(f[v] * W0 / Wa, f[v] * H0 / Ha, *centre, W0, H0))
         cam_id = 1 if one_camera else v + 1
         cameras.setdefault(cam_id, cam)
         posed.append(PosedImage(name, cam_id, c.result.cam_from_world[v]))

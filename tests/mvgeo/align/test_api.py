@@ -94,3 +94,27 @@ def test_the_cloud_is_made_of_the_cloud_images(llff6, llff6_preview):
     for calib in (None, calibration):
         with pytest.raises(InputError, match="the cloud images: images have different sizes"):
             align_images(files, PREVIEW, intrinsics=calib, cloud_images=mixed)
+
+
+def test_an_estimated_focal_is_square_at_the_input_size_whatever_the_grid_rounds_to():
+    """The focal is estimated for square pixels at the alignment size; a pointmap grid whose aspect ratio rounds
+    away from the image's (250x165 at a 96x63 grid) does not make the written fy differ from fx (it was 0.57 %
+    longer: fy scaled by the grid's height)."""
+    from types import SimpleNamespace
+
+    from mvgeo.align.api import _sparse_model
+    from mvgeo.align.cloud import DenseCloud
+
+    for (W0, H0), (Wa, Ha), (Wp, Hp) in [((250, 165), (250, 165), (96, 63)), ((6000, 4000), (640, 427), (128, 85))]:
+        f_grid = 80.0
+        inputs = SimpleNamespace(input_wh=(W0, H0), align_wh=(Wa, Ha), intrinsics=None, K_align=None,
+                                 names=["a.png", "b.png"])
+        pose = np.hstack([np.eye(3), np.zeros((3, 1))])
+        c = SimpleNamespace(inputs=inputs, graph=SimpleNamespace(grid_to_align=Wa / Wp),
+                            result=SimpleNamespace(depth=[np.ones((Hp, Wp))] * 2, focal_px=np.full(2, f_grid),
+                                                   cam_from_world=np.stack([pose, pose])))
+        cloud = DenseCloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0, np.float32), None)
+        cam = _sparse_model(c, cloud).cameras[1]
+        f_align = f_grid * Wa / Wp  # the bundle adjustment's and the dense stereo's focal
+        np.testing.assert_allclose([cam.fx, cam.fy], [f_align * W0 / Wa, f_align * H0 / Ha], rtol=1e-12)
+        assert (cam.cx, cam.cy) == (W0 / 2.0, H0 / 2.0)
