@@ -243,31 +243,32 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
                 break
             second_tried = True
             root = done[0]
-            makers = [lambda root=root: solve(root.graph, other_start(root.start), config, timer,
-                                              values=values(root.graph, other_start(root.start)))]
+            other = other_start(root.start)
+            makers = [(other, lambda root=root, other=other: solve(root.graph, other, config, timer,
+                                                                  values=values(root.graph, other)))]
             c = root
         else:
             c = pending.pop(0)
             if (_focal_consistent(c, config) or c.graph.refocused >= MAX_REFOCUS
                     or not isinstance(model, RefocusableModel)):
                 # Pairs at the right focal (or no way to recompute them): prune, then the other start.
-                makers = [lambda c=c: _pruned(c, config, timer)] if prunes[id(c)] < max_prunes else []
+                makers = [(c.start, lambda c=c: _pruned(c, config, timer))] if prunes[id(c)] < max_prunes else []
                 if _relocatable(c):
-                    makers.insert(0, lambda c=c: relocate(c, config, timer))
+                    makers.insert(0, (c.start, lambda c=c: relocate(c, config, timer)))
                 if (config.second_start and not second_tried and c.start == first and not c.dropped
                         and mostly_unexplained(c.checks, c.bad, config.max_unexplained_fraction)):
                     second_tried = True
-                    makers.append(lambda c=c: solve(c.graph, other_start(c.start), config, timer,
-                                                    values=values(c.graph, other_start(c.start))))
+                    makers.append((other_start(c.start), lambda c=c: solve(
+                        c.graph, other_start(c.start), config, timer, values=values(c.graph, other_start(c.start)))))
             else:  # the pairs assumed a focal the bundle adjustment rejects: recompute them first
-                makers = [lambda c=c: _refocused(c, inputs, pair_list, model, config, timer)]
-        for make in makers:
+                makers = [(c.start, lambda c=c: _refocused(c, inputs, pair_list, model, config, timer))]
+        for start, make in makers:  # (the start the successor is solved from, the successor)
             if len(summaries) >= config.max_candidates:
                 break
             try:
                 new = make()
             except (InputError, DegenerateGeometryError) as exc:
-                summaries.append(CandidateSummary(c.start, None, None, False, 0, 0.0, [], error=str(exc)[:300]))
+                summaries.append(CandidateSummary(start, None, None, False, 0, 0.0, [], error=str(exc)[:300]))
                 continue
             if new is None:
                 continue

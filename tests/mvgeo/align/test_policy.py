@@ -340,6 +340,19 @@ def test_a_failing_successor_is_recorded_and_skipped(monkeypatch):
     assert summaries[1].error.startswith("stand-in failure") and not summaries[1].chosen
 
 
+def test_a_failing_other_start_is_recorded_under_its_own_start(monkeypatch):
+    """The other start's failure is the other start's line in align.json `candidates`: it was recorded under the
+    start of the candidate that called for it ("chain" for the averaged start's failure)."""
+    refused = dict(explained=0.5, reasons=("pairs_contradicted",), mostly=True)
+    script = _Script(monkeypatch, {("chain", False): dict(explained=0.99, f_pairs=150.0, f_ba=200.0),
+                                   ("chain", True): {**refused, "f_pairs": 200.0, "f_ba": 200.0},
+                                   ("averaged", True): DegenerateGeometryError("stand-in failure")})
+    chosen, summaries = _choose(pairs=_pairs(focal_px=150.0))
+    assert script.calls == [("chain", False), ("chain", True), ("averaged", True)]
+    assert chosen.start == "chain" and summaries[0].chosen
+    assert [(s.start, s.error) for s in summaries] == [("chain", ""), ("chain", ""), ("averaged", "stand-in failure")]
+
+
 def test_the_candidate_budget(monkeypatch):
     """A refused first start with a moved focal: refocus, then (still contradicted) the other start on the
     refocused pairs; `max_candidates` stops the generation."""
