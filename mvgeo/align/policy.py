@@ -146,8 +146,9 @@ def _pruned(c: Candidate, config, timer: StageTimer) -> Candidate | None:
                          else "its pairs are inconsistent with the reconstruction of the others")
             for v in range(len(names)) if v not in keep]
     dropped = c.dropped + sorted((names[i], names[j]) for i, j in gone)
-    _log.warning("solving again without %d pairs the result does not explain %s%s", len(gone), sorted(gone),
-                 f" and without views {[u.name for u in lost]}" if lost else "")
+    _log.warning("solving again without %d pairs the result does not explain %s%s", len(gone),
+                 [(names[i], names[j]) for i, j in sorted(gone)], f" and without views {[u.name for u in lost]}"
+                 if lost else "")
     return solve(c.graph, c.start, config, timer, inputs=c.inputs.restricted(keep), pairs=pairs.restricted(keep),
                  dropped=dropped, unregistered=c.unregistered[len(c.graph.unregistered):] + lost)
 

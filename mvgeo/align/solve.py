@@ -83,7 +83,8 @@ def _loop_check(inputs: AlignInputs, pairs: PairSet, config) -> tuple[PairSet, l
     if not loop.removed:
         return pairs, []
     _log.warning("loop check: %d of %d loops of three pairs are inconsistent; rejected pairs %s",
-                 loop.n_inconsistent, loop.n_triangles, sorted(loop.removed))
+                 loop.n_inconsistent, loop.n_triangles,
+                 [(inputs.names[i], inputs.names[j]) for i, j in sorted(loop.removed)])
     gone = {(min(i, j), max(i, j)) for i, j in loop.removed}
     kept = replace(pairs, predictions=[p for p in preds if (min(p.i, p.j), max(p.i, p.j)) not in gone],
                    geometries=[g for g in pairs.geometries if (min(g.i, g.j), max(g.i, g.j)) not in gone],

@@ -376,7 +376,7 @@ def test_the_candidate_budget(monkeypatch):
 FOCAL = 30.0
 
 
-def test_allow_partial_drops_views_whose_pairs_the_result_contradicts(rng, monkeypatch):
+def test_allow_partial_drops_views_whose_pairs_the_result_contradicts(rng, monkeypatch, caplog):
     """Control flow: a pair judged inconsistent whose removal cuts a view off -> that view is unregistered
     (with allow_partial) and the rest is solved again; without allow_partial the result fails."""
     poses, depths = make_views(5)
@@ -401,7 +401,11 @@ def test_allow_partial_drops_views_whose_pairs_the_result_contradicts(rng, monke
     with pytest.raises(DegenerateGeometryError, match="v3.png, v4.png"):
         align_images(images, cfg, names=names, model=model)
     calls.clear()
-    res = align_images(images, dataclasses.replace(cfg, allow_partial=True), names=names, model=model)
+    with caplog.at_level("WARNING", logger="mvgeo.align.policy"):
+        res = align_images(images, dataclasses.replace(cfg, allow_partial=True), names=names, model=model)
+    # the pairs by name (their indices were those of the views being solved, not the user's list)
+    assert "without 1 pairs the result does not explain [('v3.png', 'v4.png')] and without views ['v4.png']" \
+        in caplog.text
     assert calls == [5, 4]  # first solve, then the 4 kept views (judged on every pair among them)
     assert sorted(res.sparse_model.cam_from_world_by_name()) == names[:4]
     assert res.stats.unregistered == [Unregistered("v4.png",

@@ -58,9 +58,11 @@ def _with_false_pair(rng):
     return poses, [false if (p.i, p.j) == (1, 4) else p for p in preds]
 
 
-def test_pair_graph_rejects_a_planted_false_pair_by_its_loops(rng):
+def test_pair_graph_rejects_a_planted_false_pair_by_its_loops(rng, caplog):
     _, preds = _with_false_pair(rng)
-    graph = pair_graph(_inputs(rng, 6), PairSet(preds, [], [], focal_determined=True), FAST, StageTimer())
+    with caplog.at_level("WARNING", logger="mvgeo.align.solve"):
+        graph = pair_graph(_inputs(rng, 6), PairSet(preds, [], [], focal_determined=True), FAST, StageTimer())
+    assert "rejected pairs [('v1.png', 'v4.png')]" in caplog.text  # by name
     assert [(r.i, r.j) for r in graph.rejected] == [("v1.png", "v4.png")]
     r = graph.rejected[0]
     assert isinstance(r, RejectedPair) and r.inconsistent_loops > r.consistent_loops
