@@ -415,7 +415,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help=MAX_SIZE_HELP)
     run.add_argument("--denoiser", choices=DENOISE_METHODS, default=None,
                      help="round 1's self-supervised objective on the UNet (default: the preset's: auto with "
-                          "default and best, R2R unless a fifth of the photos is black and clipped, then "
+                          "default and best, R2R unless over a fifth of the photos' area (mean over the photos) "
+                          "is black and clipped, then "
                           "neighbor2neighbor; n2v with fast; only n2v runs more than one round)")
     run.add_argument("--keep-noisy", type=half_open_fraction, default=None, metavar="K",
                      help="fraction of the noisy photo kept in round 1's photos, (1 - K) * denoised + K * noisy, "
