@@ -97,12 +97,13 @@ def test_a_kept_principal_point_reaches_the_cameras_and_the_cloud():
     result = SimpleNamespace(depth=[np.zeros((72, 96))], focal_px=np.array([90.0, 90.0]),
                              cam_from_world=np.repeat(np.eye(4)[None, :3], 2, axis=0))
     cloud = SimpleNamespace(xyz=np.zeros((0, 3)), rgb=np.zeros((0, 3)))
-    cams = _sparse_model(SimpleNamespace(inputs=inputs, result=result), cloud).cameras
+    graph = SimpleNamespace(grid_to_align=320 / 96)  # alignment pixels per pointmap pixel
+    cams = _sparse_model(SimpleNamespace(inputs=inputs, result=result, graph=graph), cloud).cameras
     assert len(cams) == 1
     cam = cams[1]
     np.testing.assert_allclose([cam.fx, cam.fy, cam.cx, cam.cy], [90.0 * 640 / 96, 90.0 * 480 / 72, 300.0, 260.0])
     assert _principal(inputs) == [(150.0, 130.0)] * 2
     centred = replace(inputs, K_align=None)
     assert _principal(centred) == [(160.0, 120.0)] * 2
-    cam = _sparse_model(SimpleNamespace(inputs=centred, result=result), cloud).cameras[1]
+    cam = _sparse_model(SimpleNamespace(inputs=centred, result=result, graph=graph), cloud).cameras[1]
     np.testing.assert_allclose([cam.cx, cam.cy], [320.0, 240.0])
