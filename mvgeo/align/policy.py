@@ -246,24 +246,27 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
             root = done[0]
             other = other_start(root.start)
             makers = [(other, lambda root=root, other=other: solve(root.graph, other, config, timer,
-                                                                  values=values(root.graph, other)))]
+                                                                  values=values(root.graph, other)), False)]
             c = root
         else:
             c = pending.pop(0)
             if (_focal_consistent(c, config) or c.graph.refocused >= MAX_REFOCUS
                     or not isinstance(model, RefocusableModel)):
                 # Pairs at the right focal (or no way to recompute them): prune, then the other start.
-                makers = [(c.start, lambda c=c: _pruned(c, config, timer))] if prunes[id(c)] < max_prunes else []
+                makers = [(c.start, lambda c=c: _pruned(c, config, timer), True)] if prunes[id(c)] < max_prunes else []
                 if _relocatable(c):
-                    makers.insert(0, (c.start, lambda c=c: relocate(c, config, timer)))
+                    makers.insert(0, (c.start, lambda c=c: relocate(c, config, timer), False))
                 if (config.second_start and not second_tried and c.start == first and not c.dropped
                         and mostly_unexplained(c.checks, c.bad, config.max_unexplained_fraction)):
                     second_tried = True
                     makers.append((other_start(c.start), lambda c=c: solve(
-                        c.graph, other_start(c.start), config, timer, values=values(c.graph, other_start(c.start)))))
+                        c.graph, other_start(c.start), config, timer, values=values(c.graph, other_start(c.start))),
+                        False))
             else:  # the pairs assumed a focal the bundle adjustment rejects: recompute them first
-                makers = [(c.start, lambda c=c: _refocused(c, inputs, pair_list, model, config, timer))]
-        for start, make in makers:  # (the start the successor is solved from, the successor)
+                makers = [(c.start, lambda c=c: _refocused(c, inputs, pair_list, model, config, timer), False)]
+        # (the start the successor is solved from, the successor, whether it is a pruning: a relocation or a
+        # refocus does not use up the prunings, so an accepted relocated candidate is still pruned)
+        for start, make, is_pruning in makers:
             if len(summaries) >= config.max_candidates:
                 break
             try:
@@ -277,7 +280,7 @@ def choose_solution(inputs: AlignInputs, pairs: PairSet, pair_list: Sequence[tup
                 _log.warning("the %s start did not settle; solved from the %s start", c.start, new.start)
                 prunes[id(new)] = 0
             else:
-                prunes[id(new)] = prunes[id(c)] + (1 if new.graph is c.graph else 0)
+                prunes[id(new)] = prunes[id(c)] + int(is_pruning)
             done.append(new)
             summaries.append(_summary(new))
             pending.append(new)

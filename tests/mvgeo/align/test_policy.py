@@ -590,3 +590,30 @@ def test_relocation_is_tried_only_when_it_can_lift_the_refusal():
     assert not policy._relocatable(cand([there, lost]))  # view 3 would stay cut off
     assert not policy._relocatable(cand([there], relocated=[there]))  # once
     assert not Located(2, 80, 30.0, 900).placed_elsewhere  # no pose to move it to
+
+
+def test_an_accepted_relocated_candidate_is_still_pruned(monkeypatch):
+    """A relocation is not a pruning: it shares its parent's pair graph, and counting it as one used up the only
+    pruning (without allow_partial), so a relocated candidate accepted with a prunable pair was taken unpruned
+    (the module docstring's item 3: accepted candidates are pruned too)."""
+    script = _Script(monkeypatch, {("chain", False): dict(explained=0.9, reasons=("views_cut_off",))})
+    made = {}
+
+    def relocate(c, config, timer):
+        made["relocated"] = _candidate(c.graph, c.start, explained=0.95)
+        return made["relocated"]
+
+    def pruned(c, config, timer):  # the refused parent's pruning is still refused; the relocated one's is not
+        if c is not made.get("relocated"):
+            return _candidate(c.graph, c.start, explained=0.8, reasons=("views_cut_off",))
+        made["pruned"] = _candidate(c.graph, c.start, explained=0.99)
+        return made["pruned"]
+
+    monkeypatch.setattr(policy, "_relocatable", lambda c: "relocated" not in made)
+    monkeypatch.setattr(policy, "relocate", relocate)
+    monkeypatch.setattr(policy, "_pruned", pruned)
+    monkeypatch.setattr(policy, "_prunable", lambda c, config: c is made.get("relocated"))
+    chosen, summaries = _choose()
+    assert script.calls == [("chain", False)]
+    assert chosen is made["pruned"]
+    assert [s.explained_fraction for s in summaries] == [0.9, 0.95, 0.8, 0.99]
