@@ -21,12 +21,28 @@ from mvgeo.common.deps import cv2
 _MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float64)
 
 
+def one_channel_if_equal(img: np.ndarray) -> np.ndarray:
+    """`img` as an array; ``(H, W)`` (its first channel) where it is ``(H, W, C)`` with all channels equal.
+
+    A gray photo read as RGB (`mvgeo.common.imageio.read_image` replicates its one channel) holds the same
+    noise in every channel, not independent noise: its colour patches span a third of the patch space (the
+    PCA tail of `estimate_noise_sigma_pca` read 0) and its luma holds the whole noise (`luma_noise_sigma`
+    read it 1.5x too high). The estimators here read such a photo on its one channel.
+    """
+    a = np.asarray(img)
+    if a.ndim == 3 and a.shape[2] > 1 and bool((a == a[:, :, :1]).all()):
+        return a[:, :, 0]
+    return a
+
+
 def estimate_noise_sigma(img: np.ndarray) -> float:
     """Standard deviation of additive white noise, in the image's units ([0, 1]).
 
     Args:
-        img: ``(H, W, 3)`` RGB or ``(H, W)`` / ``(H, W, 1)`` gray; images under 3x3 return 0.
+        img: ``(H, W, 3)`` RGB or ``(H, W)`` / ``(H, W, 1)`` gray (three equal channels count as gray,
+            `one_channel_if_equal`); images under 3x3 return 0.
     """
+    img = one_channel_if_equal(img)
     a = np.asarray(img, dtype=np.float64)
     if a.ndim == 3:
         a = a.mean(axis=2)  # equal weights keep white noise white (std / sqrt(3) if independent per channel)
@@ -35,7 +51,7 @@ def estimate_noise_sigma(img: np.ndarray) -> float:
         return 0.0
     conv = cv2.filter2D(a, cv2.CV_64F, _MASK)[1:-1, 1:-1]
     sigma = np.sqrt(np.pi / 2) * np.abs(conv).sum() / (6.0 * (w - 2) * (h - 2))
-    if np.asarray(img).ndim == 3 and np.asarray(img).shape[2] == 3:
+    if img.ndim == 3 and img.shape[2] == 3:
         sigma *= np.sqrt(3.0)  # back to per-channel noise, assuming independent channels
     return float(sigma)
 
@@ -129,13 +145,14 @@ def _grid_step(h: int, w: int, patch_px: int, max_patches: int) -> int:
 
 
 def _patches(img: np.ndarray, patch_px: int, max_patches: int = 200000) -> np.ndarray | None:
-    """Patches of `img` as rows ``(N, C * P * P)``, on a regular grid thinned to about `max_patches`.
+    """Patches of `img` as rows ``(N, C * P * P)``, on a regular grid thinned to about `max_patches`; an image
+    whose channels are all equal as one channel (`one_channel_if_equal`).
 
     None if the image is smaller than a patch.
     """
     if patch_px < 2:
         raise ValueError(f"patch_px must be >= 2, got {patch_px}")
-    a = np.asarray(img, dtype=np.float64)
+    a = np.asarray(one_channel_if_equal(img), dtype=np.float64)
     if a.ndim == 2:
         a = a[:, :, None]
     h, w, c = a.shape
@@ -272,6 +289,7 @@ def fit_clipped_noise_sigma(img: np.ndarray, *, patch_px: int = CLIPPED_FIT_PATC
     """
     from denoise.clipping import clipped_sides, clipped_variance, undo_clipping_bias
 
+    img = one_channel_if_equal(img)
     patches = _patches(img, patch_px, max_patches)
     if patches is None:
         return 0.0
@@ -324,6 +342,7 @@ def estimate_noise_sigma_clipped(img: np.ndarray, *, read_luma: bool = True) -> 
     `chroma_subsampled_noise_sigma` (its colour reading, the unclipped patches' alone, is never above this
     one's, so this one would not find it either).
     """
+    img = one_channel_if_equal(img)
     colour = max(estimate_noise_sigma_pca(img, exclude_clipped=True), fit_clipped_noise_sigma(img))
     if read_luma and np.ndim(img) == 3 and np.shape(img)[2] == 3:
         luma = chroma_subsampled_sigma(colour, luma_noise_sigma(img, exclude_clipped=True))
@@ -354,11 +373,15 @@ def luma_noise_sigma(img: np.ndarray, *, exclude_clipped: bool = False) -> float
     """The std of white RGB noise that leaves `img`'s luma as noisy as it reads: `estimate_noise_sigma_pca` on
     the luma (``LUMA_WEIGHTS``), over ``LUMA_GAIN``. On white noise it reads as the colour patches do; where
     the colour differences were smoothed (JPEG's chroma subsampling) it still reads the noise the photo had.
+    Three equal channels (a gray photo read as RGB, the same noise in each) read as that one channel.
 
     Args:
         img: ``(H, W, 3)`` RGB in ``[0, 1]``.
         exclude_clipped: as `estimate_noise_sigma_pca`'s.
     """
+    gray = one_channel_if_equal(img)
+    if gray.ndim == 2:  # a gray photo read as RGB: its luma is the channel, with all of its noise
+        return estimate_noise_sigma_pca(gray, exclude_clipped=exclude_clipped)
     luma = np.asarray(img, np.float64) @ np.asarray(LUMA_WEIGHTS)
     return estimate_noise_sigma_pca(luma, exclude_clipped=exclude_clipped) / LUMA_GAIN
 
@@ -400,6 +423,7 @@ def luma_noise_spread(img: np.ndarray, *, patch_px: int = 5, max_patches: int = 
 def constant_noise_sigma_luma(img: np.ndarray) -> float:
     """The noise model ``"luma"``'s std of one image (`denoise.inference.NoiseModel`): `luma_noise_sigma` of its
     unclipped patches (a colour image), `estimate_noise_sigma_pca` of them (a gray one)."""
+    img = one_channel_if_equal(img)
     if np.ndim(img) == 3 and np.shape(img)[2] == 3:
         return luma_noise_sigma(img, exclude_clipped=True)
     return estimate_noise_sigma_pca(img, exclude_clipped=True)
@@ -418,6 +442,7 @@ def chroma_subsampled_noise_sigma(img: np.ndarray) -> float | None:
     """The luma's level (`luma_noise_sigma`, unclipped patches) where `img`'s noise is chroma-subsampled
     (`chroma_subsampled_sigma` against its colour patches' `estimate_noise_sigma_pca`); None for a photo
     whose colour patches read the noise, a clean one, or a gray one."""
+    img = one_channel_if_equal(img)
     if np.ndim(img) != 3 or np.shape(img)[2] != 3:
         return None
     return chroma_subsampled_sigma(estimate_noise_sigma_pca(img, exclude_clipped=True),

@@ -250,3 +250,24 @@ def test_the_lumas_eigenvalue_spread_tells_white_noise_from_demosaiced_noise(rng
     # White 1.03-1.05 on four seeds (the sample eigenvalues' own spread from 8464 patches); demosaiced 9.8-10.8.
     assert luma_noise_spread(white) < WHITE_LUMA_MAX_SPREAD < luma_noise_spread(demosaiced)
     assert np.isnan(luma_noise_spread(base[:4, :4]))  # smaller than a patch
+
+
+def test_a_gray_photo_read_as_rgb_reads_its_noise_as_the_gray_photo(rng):
+    """A gray photo read as RGB (`mvgeo.common.imageio.read_image` replicates its one channel) holds the same
+    noise in every channel: the estimators that assume independent channels read it on the one channel. (Its
+    colour patches span a third of the patch space, so their PCA tail read 0 and the N2V fusion, at a noise
+    std of 0, returned the noisy photo; the luma, which holds the whole noise, read it 1.5x too high.)"""
+    from denoise.inference import fusion_noise_sigma
+    from denoise.noise_level import chroma_subsampled_noise_sigma, constant_noise_sigma_luma
+
+    gray = np.clip(0.1 + 0.8 * _ramp(120, 120)[..., 0] + rng.normal(0, 0.1, (120, 120)), 0, 1).astype(np.float32)
+    rgb = np.repeat(gray[..., None], 3, axis=2)
+    for estimate in (estimate_noise_sigma, estimate_noise_sigma_pca, fit_clipped_noise_sigma,
+                     estimate_noise_sigma_clipped, constant_noise_sigma_luma, luma_noise_sigma):
+        assert estimate(rgb) == pytest.approx(estimate(gray) if estimate is not luma_noise_sigma
+                                              else estimate_noise_sigma_pca(gray), rel=1e-9), estimate.__name__
+    assert estimate_noise_sigma_pca(rgb, exclude_clipped=True) == pytest.approx(0.1, rel=0.05)
+    assert estimate_noise_curve(rgb) == estimate_noise_curve(gray)
+    assert chroma_subsampled_noise_sigma(rgb) is None
+    x = torch.from_numpy(rgb.transpose(2, 0, 1).copy())[None]
+    assert float(fusion_noise_sigma(rgb, x, noise_model="constant")) == pytest.approx(0.1, rel=0.05)
