@@ -354,6 +354,16 @@ def estimate_noise_sigma_clipped(img: np.ndarray, *, read_luma: bool = True) -> 
 #: BT.601 luma weights, the Y of JPEG's YCbCr. White RGB noise of std ``s`` has std ``LUMA_GAIN * s`` in luma.
 LUMA_WEIGHTS = (0.299, 0.587, 0.114)
 LUMA_GAIN = float(np.linalg.norm(LUMA_WEIGHTS))
+
+
+def _luma(img: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float64 luma (``LUMA_WEIGHTS``) of an ``(H, W, 3)`` RGB image in ``[0, 1]``; exactly 1 where all
+    three channels are at 1 (the weights sum to 1, but in float64 to 0.9999999999999999: a blown highlight
+    would not count as clipped, `_unclipped`)."""
+    a = np.asarray(img, np.float64)
+    y = a @ np.asarray(LUMA_WEIGHTS)
+    y[(a >= 1.0).all(axis=2)] = 1.0
+    return y
 #: A colour photo's noise counts as chroma-subsampled where its colour patches read under this fraction of the
 #: level its luma reads (`luma_noise_sigma`). JPEG's 4:2:0 chroma subsampling averages the colour differences
 #: over 2 x 2 pixels and its decoder interpolates them back, so the colour directions of a patch hold no fine
@@ -382,8 +392,7 @@ def luma_noise_sigma(img: np.ndarray, *, exclude_clipped: bool = False) -> float
     gray = one_channel_if_equal(img)
     if gray.ndim == 2:  # a gray photo read as RGB: its luma is the channel, with all of its noise
         return estimate_noise_sigma_pca(gray, exclude_clipped=exclude_clipped)
-    luma = np.asarray(img, np.float64) @ np.asarray(LUMA_WEIGHTS)
-    return estimate_noise_sigma_pca(luma, exclude_clipped=exclude_clipped) / LUMA_GAIN
+    return estimate_noise_sigma_pca(_luma(img), exclude_clipped=exclude_clipped) / LUMA_GAIN
 
 
 #: `luma_noise_spread`'s largest value for noise white in the luma: DTU scan24 with white noise at 10 and 25/255
@@ -409,8 +418,7 @@ def luma_noise_spread(img: np.ndarray, *, patch_px: int = 5, max_patches: int = 
     Args:
         img: ``(H, W, 3)`` RGB in ``[0, 1]``.
     """
-    luma = np.asarray(img, np.float64) @ np.asarray(LUMA_WEIGHTS)
-    patches = _patches(luma, patch_px, max_patches)
+    patches = _patches(_luma(img), patch_px, max_patches)
     if patches is None:
         return float("nan")
     patches = _unclipped(patches)

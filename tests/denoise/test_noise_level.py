@@ -271,3 +271,18 @@ def test_a_gray_photo_read_as_rgb_reads_its_noise_as_the_gray_photo(rng):
     assert chroma_subsampled_noise_sigma(rgb) is None
     x = torch.from_numpy(rgb.transpose(2, 0, 1).copy())[None]
     assert float(fusion_noise_sigma(rgb, x, noise_model="constant")) == pytest.approx(0.1, rel=0.05)
+
+
+def test_the_lumas_unclipped_patches_leave_out_blown_white(rng):
+    """A pixel at 1 in all three channels has luma 1 (the weights sum to 1), so its patches are clipped in the
+    luma. (In float64 the weights' dot product with (1, 1, 1) is 0.9999999999999999: a blown highlight counted as
+    unclipped and its noise-free patches pulled the level down: 0.072 for 0.1 here, 22.2/255 for 25/255 on a
+    DTU scan24 photo.)"""
+    base = 0.25 + 0.5 * _ramp(120, 120)
+    base[:, :60] = 1.5  # blown white: every channel clipped at 1
+    noisy = np.clip(base + rng.normal(0, 0.1, base.shape), 0, 1)
+    assert ((noisy >= 1).all(axis=2)).mean() > 0.45
+    rest = noisy[:, 60:]
+    assert luma_noise_sigma(noisy, exclude_clipped=True) == pytest.approx(
+        luma_noise_sigma(rest, exclude_clipped=True), rel=0.03)
+    assert luma_noise_sigma(noisy, exclude_clipped=True) == pytest.approx(0.1, rel=0.05)
