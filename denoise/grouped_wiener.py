@@ -152,7 +152,9 @@ def grouped_wiener(noisy: np.ndarray, pilot: np.ndarray, sigma: float | np.ndarr
     """The noisy photo denoised group by group with the pilot's statistics (module docstring).
 
     Args:
-        noisy: ``(H, W, 3)`` RGB or ``(H, W)`` gray in ``[0, 1]`` (values at 0 and 1 count as clipped).
+        noisy: ``(H, W, 3)`` RGB or ``(H, W)`` gray in ``[0, 1]`` (values at 0 and 1 count as clipped); three
+            equal channels (a gray photo read as RGB) are filtered as gray, with the mean of the pilot's channels,
+            and returned in three channels.
         pilot: the same photo denoised, same shape.
         sigma: the noise std: one number, or per pixel (and channel) in the shape of `noisy`.
         config: `GroupedWienerConfig`.
@@ -166,6 +168,13 @@ def grouped_wiener(noisy: np.ndarray, pilot: np.ndarray, sigma: float | np.ndarr
     if y_in.shape != p_in.shape or not (y_in.ndim == 2 or (y_in.ndim == 3 and y_in.shape[2] == 3)):
         raise ValueError(f"noisy {y_in.shape} and pilot {p_in.shape} must both be (H, W, 3) or (H, W)")
     gray = y_in.ndim == 2
+    if not gray and (y_in == y_in[..., :1]).all():
+        # A gray photo read as RGB: the same noise in every channel, not the independent noise of the opponent
+        # space. Filtered as the gray photo (the pilot's channels' mean, the noise's RMS over the channels).
+        sig = np.asarray(sigma, np.float64)
+        out = grouped_wiener(y_in[..., 0], p_in.mean(axis=2),
+                             sig if sig.ndim < 3 else np.sqrt(np.mean(sig ** 2, axis=2)), config)
+        return np.repeat(out[..., None], 3, axis=2)
     # Colour: the opponent space, where each channel's variance is the OPPONENT-squared mix of the RGB ones.
     to_work = np.ones((1, 1)) if gray else OPPONENT
     y_rgb, p_rgb = (y_in[..., None], p_in[..., None]) if gray else (y_in, p_in)

@@ -148,7 +148,8 @@ def dct_wiener(noisy: np.ndarray, pilot: np.ndarray, sigma: float | np.ndarray,
     """The noisy photo filtered with the Wiener gains of a denoised one (module docstring).
 
     Args:
-        noisy: ``(H, W, 3)`` RGB or ``(H, W)`` gray, in ``[0, 1]``.
+        noisy: ``(H, W, 3)`` RGB or ``(H, W)`` gray, in ``[0, 1]``; three equal channels (a gray photo read as
+            RGB) are filtered as gray, with the mean of the pilot's channels, and returned in three channels.
         pilot: the same photo denoised, same shape.
         sigma: the noise std: one number, or per pixel and channel ``(H, W, 3)`` (``(H, W)`` for gray).
         config: `WienerConfig`.
@@ -165,6 +166,11 @@ def dct_wiener(noisy: np.ndarray, pilot: np.ndarray, sigma: float | np.ndarray,
         return dct_wiener_gray(y, p, var, config).astype(np.float32)
     if y.ndim != 3 or y.shape[2] != 3:
         raise ValueError(f"expected (H, W, 3) or (H, W), got {y.shape}")
+    if (y == y[..., :1]).all():
+        # A gray photo read as RGB: the same noise in every channel, not independent noise (the opponent space's
+        # luminance would hold 3x the variance it assumes). Filtered as the gray photo, against the pilot's gray.
+        gray = dct_wiener_gray(y[..., 0], p.mean(axis=2), var if var.ndim == 0 else var.mean(axis=2), config)
+        return np.repeat(gray[..., None], 3, axis=2).astype(np.float32)
     yo, po = y @ OPPONENT.T, p @ OPPONENT.T
     # Independent channels: each opponent channel's variance is the OPPONENT-squared mix of the RGB ones.
     # (The rows are unit vectors: one variance for all RGB channels is the same in every opponent channel.)

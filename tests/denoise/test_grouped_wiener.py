@@ -215,3 +215,19 @@ def test_two_passes_are_the_step_run_again_on_its_own_output():
     np.testing.assert_array_equal(got, twice)
     mse_once, mse_twice = (float(np.mean((x - clean) ** 2)) for x in (once[0], twice))
     assert mse_twice < mse_once, (mse_once, mse_twice)
+
+
+def test_a_gray_photo_read_as_rgb_is_filtered_as_the_gray_photo():
+    """Three equal channels hold the same noise, not the independent noise of the opponent space: such a photo is
+    filtered as the gray one, its pilot's channels averaged and the noise std's RMS over the channels taken."""
+    rng = np.random.default_rng(9)
+    clean, _ = _photo(rng, (20, 22), 0.1)
+    gray = clean[..., 0]
+    noisy = gray + rng.normal(0, 0.1, gray.shape)
+    pilot = gray + rng.normal(0, 0.02, gray.shape)
+    rgb = np.repeat(noisy[..., None], 3, axis=2)
+    prgb = np.repeat(pilot[..., None], 3, axis=2) + np.array([0.0, 0.01, -0.01])
+    cfg = GroupedWienerConfig(patch_px=3, search_radius_px=3, group_size=10, stride_px=2)
+    want = np.repeat(grouped_wiener(noisy, pilot, 0.1, cfg)[..., None], 3, axis=2)
+    np.testing.assert_allclose(grouped_wiener(rgb, prgb, 0.1, cfg), want, atol=1e-6)
+    np.testing.assert_allclose(grouped_wiener(rgb, prgb, np.full(rgb.shape, 0.1), cfg), want, atol=1e-6)
