@@ -42,23 +42,28 @@ def test_tile_starts_cover():
 
 
 def test_tiled_equals_whole_image_no_seams(trained, rng):
-    # Whole-image prediction vs 32 px cores with 48 px of context. The 4-level UNet's exact
-    # receptive field is larger than 48 px, but the influence of far pixels decays fast:
-    # differences must be tiny everywhere and, in particular, not concentrated on tile borders.
-    x = torch.from_numpy(add_noise(rng, smooth_scene(rng, 100, 90), 0.1).transpose(2, 0, 1).copy())[None]
+    # Whole-image prediction vs 32 px cores with 48 px of context, on an image larger than a core and its
+    # margins (128 px), so that it is tiled. The 4-level UNet's receptive field is larger than 48 px and its
+    # max-pooling grid sits differently in each tile, so tiling is not exact; but the influence of far
+    # pixels decays fast: differences stay under one 8-bit step (3.9e-3; measured 2.3e-3 at most, 1.1e-5 on
+    # average, against a noise level of 0.1) and are not concentrated on tile borders.
+    h, w = 200, 180
+    assert min(h, w) > 32 + 2 * 48
+    x = torch.from_numpy(add_noise(rng, smooth_scene(rng, h, w), 0.1).transpose(2, 0, 1).copy())[None]
     with torch.no_grad():
         whole = trained.apply(x)
         tiled = predict_tiled(trained, x, tile_px=32, margin_px=48)
     diff = (whole - tiled).abs()
-    assert diff.max().item() < 2e-3  # vs a noise level of 0.1; 8-bit quantisation step is 3.9e-3
+    assert diff.max().item() < 1 / 255 and diff.mean().item() < 1e-4
     # Seam check: the output's jump across each tile border is no larger than elsewhere.
     dx = (tiled[..., :, 1:] - tiled[..., :, :-1]).abs().mean(dim=(0, 1, 2))
-    borders = [s - 1 for s in tile_starts(90, 32)[1:]]
-    others = [i for i in range(89) if i not in borders]
+    borders = [s - 1 for s in tile_starts(w, 32)[1:]]
+    others = [i for i in range(w - 1) if i not in borders]
     assert dx[borders].mean() < 1.5 * dx[others].mean()
-    # With enough context (margin >= image) tiling is exact.
+    # An image that fits in a core and its margins is processed whole: exactly the network's output.
     with torch.no_grad():
-        exact = predict_tiled(trained, x, tile_px=32, margin_px=100)
+        exact = predict_tiled(trained, x[..., :100, :90], tile_px=32, margin_px=100)
+        whole = trained.apply(x[..., :100, :90])
     torch.testing.assert_close(exact, whole, rtol=0, atol=1e-6)  # float32 conv re-ordering only
 
 
