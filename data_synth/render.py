@@ -2,8 +2,9 @@
 
 Clean RGB is box-filtered over an n x n stratified grid of rays per pixel.
 Depth (z in the camera frame, `inf` where the pixel-centre ray misses), alpha
-(fraction of a pixel's rays that hit) and normals (camera frame, unit,
-facing the camera; zero where nothing is hit) are computed only when asked.
+(fraction of a pixel's rays that hit) and normals (camera frame, unit, on
+the side of the surface the camera sees, decided by the face; zero where
+nothing is hit) are computed only when asked.
 Shading is Lambertian with one directional light and an ambient term (or
 unlit): view-independent, so a surface point has the same colour in every view.
 """
@@ -50,7 +51,8 @@ class RayHits:
     Attributes:
         hit: (M,) bool; t: (M,) float32 ray parameter (z-depth for unit-z directions), inf on a miss;
         object_index: (M,) int64 (-1 on a miss); points_world: (M, 3) float32;
-        normals_world: (M, 3) float32 unit shading normals facing the ray origin (0 on a miss), or
+        normals_world: (M, 3) float32 unit shading normals on the side of the hit face that faces the ray
+        origin (an interpolated normal at a grazing hit may point slightly away from it), 0 on a miss, or
         None when not computed.
     """
 
@@ -126,6 +128,11 @@ class SceneRenderer:
         n_world = None
         if normals:
             n_world = out["primitive_normals"].numpy().astype(np.float32)
+            # Two-sided surfaces: the side seen is decided by the face (geometric) normal. Deciding it
+            # with the interpolated normal instead would turn that normal inwards where a grazing ray
+            # sees a face whose vertex normals already point away (a smooth object's silhouette):
+            # shading that depends on the view.
+            seen_from_back = np.sum(n_world * dirs32, axis=1) > 0
             prim = out["primitive_ids"].numpy().astype(np.int64)
             uvs = out["primitive_uvs"].numpy()
             for k, mesh in enumerate(self.meshes):
@@ -142,9 +149,7 @@ class SceneRenderer:
                 flip = np.sum(smooth * n_world[sel], axis=1) < 0
                 smooth[flip] *= -1
                 n_world[sel] = smooth / np.maximum(np.linalg.norm(smooth, axis=1, keepdims=True), 1e-12)
-            # Two-sided surfaces: normals face the ray origin.
-            facing = np.sum(n_world * dirs32, axis=1) > 0
-            n_world[facing] *= -1
+            n_world[seen_from_back] *= -1
             n_world[~hit] = 0
         return RayHits(hit=hit, t=t, object_index=object_index, points_world=points, normals_world=n_world)
 

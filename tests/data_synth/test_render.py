@@ -132,3 +132,26 @@ def test_look_at_roll_and_degenerate_up():
     np.testing.assert_allclose(pose[:, :3], np.eye(3), atol=1e-12)  # OpenCV axes: y down = -up
     with pytest.raises(DegenerateGeometryError):
         look_at_cam_from_world(np.zeros(3), np.array([0.0, 0.0, 5.0]), np.array([0.0, 0.0, 1.0]))
+
+
+def test_smooth_normals_stay_outward_at_silhouettes():
+    # A closed smooth (interpolated-normal) sphere: every hit's shading normal points out of the sphere,
+    # also where a grazing ray at the silhouette sees a face whose vertex normals already turn away from
+    # the camera. Turned inwards there, the rim's shading would depend on the view (Lambertian: it must not).
+    obj = ObjectSpec(name="s", shape="sphere", texture="t", radius=1.0, resolution=8,
+                     translate=(0.0, 0.0, 0.0)).validated(key="s", path=None)
+    r = _renderer([obj])
+    cam = Camera("PINHOLE", 64, 64, np.array([80.0, 80.0, 32.0, 32.0]))
+    rims = 0
+    for position in ([0.0, -4.0, 0.3], [3.0, 2.5, -1.0], [-2.0, 0.5, 3.5]):
+        pose = look_at_cam_from_world(np.array(position), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+        R = pose[:, :3]
+        centre = -R.T @ pose[:, 3]
+        dirs_cam, _ = camera_rays(cam, sample_positions((64, 64), 3).reshape(-1, 2))
+        hits = r.cast(centre, dirs_cam @ R, normals=True)
+        radial = hits.points_world[hits.hit] / np.linalg.norm(hits.points_world[hits.hit], axis=1, keepdims=True)
+        outward = np.sum(hits.normals_world[hits.hit] * radial, axis=1)
+        # Smooth normals of an 8-segment sphere are within ~25 degrees of the radial direction.
+        assert outward.min() > 0.8
+        rims += int(np.sum(np.sum(hits.normals_world[hits.hit] * (dirs_cam @ R)[hits.hit], axis=1) > 0))
+    assert rims > 0  # the views do have grazing hits whose (outward) shading normal faces away from the camera
