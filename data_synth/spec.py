@@ -145,11 +145,15 @@ class RigSpec:
     extent: tuple[float, ...] = spec_field((0.3, 0.15), length=2, range=(0.0, None),
                                            doc="forward: half-extent (right, down) of the layout, scene units")
     depth_jitter: float = spec_field(0.05, range=(0.0, None), doc="forward: std of motion along the view axis")
-    position_jitter: float = spec_field(0.02, range=(0.0, None), doc="std of per-view position noise")
-    rotation_jitter_deg: float = spec_field(1.0, range=(0.0, 45.0), doc="std of per-view rotation noise")
-    radius: float = spec_field(3.0, range=(0.0, None), doc="ring/sphere: distance to look_at")
+    position_jitter: float = spec_field(0.02, range=(0.0, None), doc="std of per-view position noise, per world axis")
+    rotation_jitter_deg: float = spec_field(1.0, range=(0.0, 45.0),
+                                            doc="std of per-view rotation noise, per rotation-vector component")
+    radius: float = spec_field(3.0, range=(0.0, None),
+                               doc="ring: horizontal distance from look_at (perpendicular to up; the camera is "
+                                   "sqrt(radius^2 + height^2) from look_at); sphere: distance to look_at")
     height: float = spec_field(1.0, doc="ring: camera height above look_at (along up)")
-    start_deg: float = spec_field(0.0, doc="ring: azimuth of the first view")
+    start_deg: float = spec_field(0.0, doc="ring: azimuth of the first view, counter-clockwise about up from "
+                                           "up x (1, 0, 0) (+y for up = +z; up x (0, 1, 0) when up is near x)")
     elevation_deg: tuple[float, ...] = spec_field((10.0, 60.0), length=2, range=(-90.0, 90.0),
                                                   doc="sphere: elevation band")
     seed: int = spec_field(0, range=(0, 2**32 - 1), doc="seed of the pose jitter")

@@ -153,3 +153,15 @@ def test_builtin_rigs_look_at_their_target(rig):
         # World up appears upwards: a point above the target has smaller camera y.
         above = R @ (np.array(spec.look_at) + np.array([0, 0, 0.1])) + t
         assert above[1] / above[2] < 0
+
+
+def test_ring_rig_places_cameras_as_documented():
+    # radius is horizontal (perpendicular to up), height is along up; the first view sits at azimuth
+    # start_deg from up x (1, 0, 0) (+y for up = +z) and the ring runs counter-clockwise about up.
+    from data_synth.spec import RigSpec
+
+    spec = RigSpec(type="ring", views=4, radius=2.0, height=0.5, start_deg=0.0, look_at=(1.0, -1.0, 0.3),
+                   position_jitter=0.0, rotation_jitter_deg=0.0)
+    centres = np.array([-v.cam_from_world[:, :3].T @ v.cam_from_world[:, 3] for v in rig_views(spec)])
+    offsets = centres - np.array(spec.look_at)
+    np.testing.assert_allclose(offsets, [[0, 2, 0.5], [-2, 0, 0.5], [0, -2, 0.5], [2, 0, 0.5]], atol=1e-12)
