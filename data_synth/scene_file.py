@@ -113,7 +113,23 @@ def resolve_inheritance(path: Path, *, _depth: int = 0) -> dict[str, Any]:
         if not base_path.is_file():
             raise ConfigError(f"base scene {base!r} not found", key="base", path=path,
                               expected="a built-in scene name or a path relative to this file")
-    return merge_tables(resolve_inheritance(base_path, _depth=_depth + 1), data)
+    return merge_tables(_rig_for_type(resolve_inheritance(base_path, _depth=_depth + 1), data), data)
+
+
+def _rig_for_type(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    """`base` with its `[rig]` keys that do not apply to the rig type `override` switches to left out.
+
+    Tables merge key by key, so a scene that changes the rig `type` of its base would otherwise inherit the
+    base type's own keys (a `forward` rig's `extent`, ...) and be refused for keys it never wrote. The keys
+    the new type takes (`look_at`, `up`, `seed`, ...) are still inherited.
+    """
+    rig, new = base.get("rig"), override.get("rig")
+    if not (isinstance(rig, Mapping) and isinstance(new, Mapping)):
+        return dict(base)
+    new_type, old_type = new.get("type"), rig.get("type", "forward")
+    if new_type == old_type or new_type not in RIG_KEYS:
+        return dict(base)  # same type, or an unknown one (refused with its key when the scene is parsed)
+    return {**base, "rig": {k: v for k, v in rig.items() if k in RIG_KEYS[new_type]}}
 
 
 def parse_scene(data: Mapping[str, Any], *, path: Path | None = None) -> SceneSpec:

@@ -6,7 +6,7 @@ import tomllib
 
 import pytest
 
-from data_synth import builtin_scenes, load_scene, parse_scene
+from data_synth import builtin_scenes, load_scene, parse_scene, rig_views
 from data_synth.scene_file import scene_to_toml
 from data_synth.toml_writer import dumps
 from mvgeo.common.errors import ConfigError, InputError
@@ -135,3 +135,20 @@ def test_toml_writer_round_trip():
     data = {"a": 1, "b": 1.5e-7, "c": "q\"uote", "d": [1, 2], "e": [[0.1, 0.2], [0.3, 0.4]], "f": True,
             "t": {"x": 0.1, "sub": {"y": "z"}}, "arr": [{"k": 1}, {"k": 2, "n": {"m": 3}}], "empty": []}
     assert tomllib.loads(dumps(data)) == data
+
+
+def test_inheriting_scene_may_change_the_rig_type(tmp_path):
+    # The base's forward-only rig keys (extent, pattern, ...) are not carried into a ring rig; the keys a
+    # ring takes (up, seed, jitter) still are, and the child's own keys win.
+    child = write_scene(tmp_path, 'base = "llff_like"\n[rig]\ntype = "ring"\nradius = 2.0\n'
+                                  'look_at = [0.0, 3.0, 0.5]\n', "ring.toml")
+    spec = load_scene(child)
+    llff = load_scene("llff_like")
+    assert spec.rig.type == "ring" and spec.rig.radius == 2.0 and spec.rig.look_at == (0.0, 3.0, 0.5)
+    assert spec.rig.views == llff.rig.views and spec.rig.position_jitter == llff.rig.position_jitter
+    assert len(rig_views(spec.rig)) == llff.rig.views
+    # A key that does not apply to the child's own rig type is still refused, naming it.
+    bad = write_scene(tmp_path, 'base = "llff_like"\n[rig]\ntype = "ring"\nextent = [0.1, 0.1]\n', "bad.toml")
+    with pytest.raises(ConfigError) as info:
+        load_scene(bad)
+    assert info.value.key == "rig.extent"
