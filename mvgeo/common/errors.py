@@ -11,8 +11,24 @@ from collections.abc import Sequence
 from pathlib import Path
 
 
+def _rebuilt(cls: type[DgsError], args: tuple, state: dict) -> DgsError:
+    """`cls`'s error with `args` and attributes `state`, without calling its `__init__` (`DgsError.__reduce__`)."""
+    err = cls.__new__(cls, *args)
+    err.args = args
+    err.__dict__.update(state)
+    return err
+
+
 class DgsError(Exception):
-    """Base class of every error this project raises on purpose."""
+    """Base class of every error this project raises on purpose.
+
+    Pickled as its arguments and attributes, not through `__init__`: an error whose constructor takes
+    keyword-only arguments (`AlignmentRefusedError`'s `kind`, `UnposedViewsError`'s `views`) raised in a
+    Ray task (`eval.distributed`) or another process reaches the caller as itself, with its attributes.
+    """
+
+    def __reduce__(self) -> tuple:
+        return _rebuilt, (type(self), self.args, dict(self.__dict__))
 
 
 class InputError(DgsError):

@@ -1,9 +1,11 @@
 import os
+import pickle
 
 import numpy as np
 import pytest
 
 from mvgeo.common import ConfigError, InputError, ShapeError, StageTimer, atomic_output_dir, check_shape
+from mvgeo.common.errors import AlignmentRefusedError, DisconnectedViewsError, UnposedViewsError
 from mvgeo.common.imageio import list_images, read_image, write_image
 from mvgeo.common.output import MANIFEST_NAME, prepare_output, read_manifest
 
@@ -16,6 +18,20 @@ def test_input_error_names_path_and_fix(tmp_path):
 def test_config_error_names_key():
     err = ConfigError("unknown key", key="cameras.rig.radus", path="scene.toml", expected="one of radius, count")
     assert "cameras.rig.radus" in str(err) and "scene.toml" in str(err)
+
+
+@pytest.mark.parametrize("err", [
+    ConfigError("unknown key", key="a.b", path="scene.toml", expected="c"),
+    AlignmentRefusedError("the focal is not determined", kind="focal", views=("v1",), fix="add photos"),
+    UnposedViewsError("no pair reaches them", views=[2], names=None),
+    DisconnectedViewsError("not connected", views=("v3",), path="images", fix="add photos"),
+    InputError("bad", path="x.png", fix="re-export it"),
+])
+def test_errors_pickle_as_themselves(err):
+    """A Ray task's error reaches the driver pickled: the same type, message and attributes, even where the
+    constructor takes keyword-only arguments."""
+    back = pickle.loads(pickle.dumps(err))
+    assert type(back) is type(err) and str(back) == str(err) and vars(back) == vars(err)
 
 
 def test_check_shape():

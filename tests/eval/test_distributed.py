@@ -39,7 +39,7 @@ from eval.distributed import (
 from eval.evaluate import EvalConfig, evaluate_dataset, expected_costs, share_keys, task_graph
 from eval.pipeline import preset
 from eval.pipeline.validate import DatasetFolder
-from mvgeo.common.errors import InputError
+from mvgeo.common.errors import AlignmentRefusedError, InputError
 from tests.common.cli_contract import assert_refused
 from tests.eval._tiny_stages import TinyStages, make_scene, tiny_dataset
 
@@ -369,6 +369,19 @@ def test_executor_raises_a_task_error_as_its_own_type(cluster):
     ex, _ = cluster
     with pytest.raises(KeyError, match="no action for b"):
         ex.run(rendezvous, [("a", "", ""), ("b", "fail", ""), ("c", "", "")])
+
+
+def refuse(item):
+    raise AlignmentRefusedError("the focal length is not determined", kind="focal", views=(item,), fix="add photos")
+
+
+def test_executor_raises_an_alignment_refusal_as_itself(cluster):
+    """`denoise-gs cost` turns a refusal into its own fix (`_rendered_views_refusal`): on Ray it must reach the
+    driver as the `AlignmentRefusedError` the serial path gets, not as Ray's `UnserializableException`."""
+    ex, _ = cluster
+    with pytest.raises(AlignmentRefusedError, match="not determined") as err:
+        ex.run(refuse, ["v1"])
+    assert (err.value.kind, err.value.views, err.value.fix) == ("focal", ("v1",), "add photos")
 
 
 PROBE = "tests.eval._warm_probe"
