@@ -522,9 +522,11 @@ def ray_cluster(settings: ClusterSettings, *, worker_setup: Callable[[], None] |
         return
     # Short path: Ray's Unix sockets live in it (at most 107 bytes). The workers run at the driver's niceness,
     # as the serial path's work does; Ray's own default (15) starves them beside any other work on the machine.
+    # Ray adds `worker_niceness` to the niceness of its raylet, which inherits the driver's: 0 keeps it (the
+    # driver's own niceness here would count it twice, e.g. 10 -> 19 under `nice -n 10`).
     temp_dir = tempfile.mkdtemp(prefix="dgs-ray-")
     kwargs.update(num_cpus=settings.workers, object_store_memory=LOCAL_OBJECT_STORE_BYTES, _temp_dir=temp_dir,
-                  _system_config={"worker_niceness": os.nice(0)})
+                  _system_config={"worker_niceness": 0})
     with _loopback_only(), _connected(ray, kwargs, settings, temp_dir, preload, tasks) as executor:
         yield executor
 

@@ -16,6 +16,8 @@ import functools
 import math
 import os
 import socket
+import subprocess
+import sys
 import time
 import zlib
 from pathlib import Path
@@ -363,6 +365,30 @@ def test_tasks_run_at_the_drivers_niceness(cluster):
     cluster's run at the driver's, as the serial path's work does."""
     ex, _ = cluster
     assert ex.run(niceness, [0, 1]) == [os.nice(0)] * 2
+
+
+NICENESS_PROBE = """
+import os
+from eval.distributed import ClusterSettings, ray_cluster
+
+def niceness(_item):
+    return os.nice(0)
+
+with ray_cluster(ClusterSettings(workers=2)) as ex:
+    print(os.nice(0), *ex.run(niceness, [0, 1]))
+"""
+
+
+def test_a_niced_command_runs_its_workers_at_its_niceness():
+    """Ray adds its `worker_niceness` to the niceness of the raylet, which inherits the driver's: a command run
+    under `nice -n 3` (from a shell at 0) had its workers at 6, under `nice -n 10` at 19."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    done = subprocess.run([sys.executable, "-c", NICENESS_PROBE], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=300, preexec_fn=lambda: os.nice(3))
+    assert done.returncode == 0, done.stderr[-2000:]
+    driver, *workers = map(int, done.stdout.split())
+    assert driver == min(19, os.nice(0) + 3)
+    assert workers == [driver, driver]
 
 
 def test_executor_raises_a_task_error_as_its_own_type(cluster):
