@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 from collections.abc import Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -39,6 +38,7 @@ from mvgeo.align.pairs import PairFailure, PairGeometry, PairPrediction, PairSet
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError
 from mvgeo.common.progress import progress, progress_bar
+from mvgeo.common.threads import pool_threads
 from mvgeo.transforms import skew
 from mvgeo.triangulate import TriangulationCriteria
 from mvgeo.twoview import TwoViewConfig, estimate_relative_pose, estimate_relative_pose_uncalibrated
@@ -127,7 +127,8 @@ class ClassicalPairConfig:
             within 9 % of their median.
         focal_agree_log: the agreement tolerance of `focal_min_agreeing`, |log(f / median)|.
         workers: threads for SIFT, matching, relative poses and dense
-            pointmaps (0: one per CPU core, as pycolmap's default).
+            pointmaps (0: the caller's, `mvgeo.common.threads.pool_threads`: one per core by default,
+            as pycolmap's; one on a one-CPU Ray task).
         dense_top_k: dense pointmaps only for each view's `dense_top_k` pairs
             with the most inliers (plus a spanning tree that keeps the graph
             connected); 0: every pair (DUSt3R's complete graph). The sparse
@@ -243,7 +244,7 @@ class ClassicalPointmapModel:
     def _pool(self) -> ThreadPoolExecutor:
         # Threads: OpenCV and BLAS release the GIL; every task is independent and deterministic,
         # and results are collected in submission order.
-        return ThreadPoolExecutor(max_workers=self.config.workers or os.cpu_count() or 1)
+        return ThreadPoolExecutor(max_workers=pool_threads(self.config.workers))
 
     def match(self, images: Sequence[np.ndarray], pairs: Sequence[tuple[int, int]]) -> MatchSet:
         """Features and putative matches (`mvgeo.align.features.detect_and_match`); computed once for the

@@ -22,7 +22,6 @@ Pixels no pair triangulates get depth NaN and confidence 1 (no information).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -33,6 +32,7 @@ from mvgeo.align.dense_pairs import flow_checks, pair_flows
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import DegenerateGeometryError, ShapeError
 from mvgeo.common.progress import progress_bar
+from mvgeo.common.threads import pool_threads
 from mvgeo.transforms import skew
 from mvgeo.triangulate import TriangulationCriteria, triangulate_two_view
 
@@ -56,7 +56,8 @@ class DenseStereoConfig:
         angle_ref_deg: triangulation angle at which the angle term of the confidence saturates.
         conf_max: confidence of a perfect pixel is 1 + conf_max.
         triangulation: validity criteria of each two-view triangulation.
-        workers: threads over pairs (0: one per CPU core; OpenCV and numpy release the GIL).
+        workers: threads over pairs (0: the caller's, `mvgeo.common.threads.pool_threads`; OpenCV and numpy
+            release the GIL).
         min_coverage: `mvgeo.align` keeps the global alignment's depth map for a view whose fused
             stereo depth covers less than this fraction of its pixels.
     """
@@ -237,7 +238,7 @@ def stereo_depths(images: Sequence[np.ndarray], K: np.ndarray, cam_from_world: n
                            config)
 
     with progress_bar(total=len(pairs), desc="dense stereo") as bar, \
-            ThreadPoolExecutor(max_workers=config.workers or os.cpu_count() or 1) as pool:
+            ThreadPoolExecutor(max_workers=pool_threads(config.workers)) as pool:
         # Results in submission order: the same output for any number of workers.
         for (i, j), (d_i, q_i, d_j, q_j) in zip(pairs, pool.map(one, pairs), strict=True):
             cand_d[i].append(d_i)

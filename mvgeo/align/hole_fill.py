@@ -30,7 +30,6 @@ carves them away.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -40,6 +39,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.linalg import spsolve
 
 from mvgeo.common.deps import cv2
+from mvgeo.common.threads import pool_threads
 
 __all__ = ["HoleFillConfig", "fill_depth_holes", "harmonic_fill", "wide_holes"]
 
@@ -125,8 +125,9 @@ def fill_depth_holes(depth: Sequence[np.ndarray], conf: Sequence[np.ndarray],
         depth: N (H, W) z-depth maps, NaN (or <= 0) where there is no depth.
         conf: N (H, W) confidences.
         config: options.
-        workers: threads over the views (default: one per core; SciPy's sparse LU solve releases the GIL,
-            measured 1.5x faster on two cores for DTU scan24's 12 views); the results do not depend on it.
+        workers: threads over the views (default: the caller's, `mvgeo.common.threads.pool_threads`; SciPy's
+            sparse LU solve releases the GIL, measured 1.5x faster on two cores for DTU scan24's 12 views); the
+            results do not depend on it.
 
     Returns:
         depth, conf (float64 copies with the holes filled) and N (H, W) bool masks of the filled pixels.
@@ -154,7 +155,7 @@ def fill_depth_holes(depth: Sequence[np.ndarray], conf: Sequence[np.ndarray],
 
     if len(depth) != len(conf):
         raise ValueError(f"{len(depth)} depth maps but {len(conf)} confidence maps")
-    n_workers = max(1, min(len(depth), workers or os.cpu_count() or 1))
+    n_workers = pool_threads(workers, len(depth))
     with ThreadPoolExecutor(max_workers=n_workers) as pool:
         out = list(pool.map(one, depth, conf))
     return [o[0] for o in out], [o[1] for o in out], [o[2] for o in out]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -16,6 +15,7 @@ from mvgeo.camera import Camera
 from mvgeo.common.deps import cv2
 from mvgeo.common.errors import InputError
 from mvgeo.common.imageio import read_image
+from mvgeo.common.threads import pool_threads
 
 __all__ = ["AlignInputs", "load_inputs"]
 
@@ -57,9 +57,9 @@ def _read(images: Sequence[Path] | Sequence[np.ndarray], names: Sequence[str] | 
         raise InputError(f"need at least 2 images, got {len(images)}", fix="add more views of the scene")
     if all(isinstance(x, (str, Path)) for x in images):
         paths = [Path(x) for x in images]
-        # Decoding and the float conversion release the GIL: one thread per core. `map` returns in order
-        # and raises the first unreadable file's error in file order, as the serial loop did.
-        with ThreadPoolExecutor(max_workers=max(1, min(len(paths), os.cpu_count() or 1))) as pool:
+        # Decoding and the float conversion release the GIL: the caller's threads (`pool_threads`). `map` returns
+        # in order and raises the first unreadable file's error in file order, as the serial loop did.
+        with ThreadPoolExecutor(max_workers=pool_threads(None, len(paths))) as pool:
             arrays = list(pool.map(read_image, paths))
         names = list(names) if names is not None else [p.name for p in paths]
     else:

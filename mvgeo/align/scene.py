@@ -8,11 +8,12 @@ keeping the most confident point per voxel.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+
+from mvgeo.common.threads import pool_threads
 
 
 def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarray], conf: Sequence[np.ndarray],
@@ -56,7 +57,8 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
             views' points; without the second the filled points of a background no stereo measures (the
             temple ring's black backdrop, 57-88 % of each view filled) went unchecked, and the clean photos'
             splat at the true cameras held out 2.5 dB lower.
-        workers: threads over the views (default: one per core); the masks do not depend on it.
+        workers: threads over the views (default: the caller's, `mvgeo.common.threads.pool_threads`); the masks
+            do not depend on it.
     """
     n = len(pts_world)
     flat_depth = [np.ascontiguousarray(d).reshape(-1) for d in depth]
@@ -111,8 +113,8 @@ def covisibility_keep(pts_world: Sequence[np.ndarray], depth: Sequence[np.ndarra
                                for s in range(0, len(P), _CHUNK)]) if len(P) else np.zeros(0, bool)
         return ~drop.reshape(depth[a].shape)
 
-    # Views are independent and numpy releases the GIL in the per-pixel work: one thread per core.
-    with ThreadPoolExecutor(max_workers=max(1, min(n, workers or os.cpu_count() or 1))) as pool:
+    # Views are independent and numpy releases the GIL in the per-pixel work: the caller's threads.
+    with ThreadPoolExecutor(max_workers=pool_threads(workers, n)) as pool:
         return list(pool.map(keep_view, range(n)))
 
 

@@ -75,6 +75,21 @@ def torch_threads(n: int | None) -> Iterator[None]:
         torch.set_num_threads(saved)
 
 
+def pool_threads(workers: int | None = None, items: int | None = None) -> int:
+    """Threads of a pool over independent pieces of work (pairs, views, files): `workers` when given (> 0),
+    else torch's current intra-op thread count, the threads the caller runs with: the cores by default
+    (`OMP_NUM_THREADS` where set), the CPUs Ray gives a task (`eval.distributed`, one by default), so that
+    N one-CPU tasks on N cores do not run N pools of one thread per core. The machine's cores where torch
+    is not loaded (nothing has scoped its threads). At most `items` when given; at least 1.
+    """
+    if workers is not None and workers > 0:
+        n = int(workers)
+    else:
+        torch = sys.modules.get("torch")
+        n = torch.get_num_threads() if torch is not None else (os.cpu_count() or 1)
+    return max(1, min(n, items) if items is not None else n)
+
+
 @contextmanager
 def blas_threads(n: int) -> Iterator[None]:
     """Run the block with at most `n` threads in every loaded BLAS; `n <= 0`: unchanged."""
@@ -114,4 +129,4 @@ def blas_thread_counts() -> list[int]:
 
 
 __all__ = ["OMP_WAIT_POLICY_DEFAULT", "apply_thread_policy", "blas_thread_counts", "blas_threads", "native_threads",
-           "torch_threads"]
+           "pool_threads", "torch_threads"]

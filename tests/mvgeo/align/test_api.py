@@ -23,6 +23,38 @@ def test_native_threads_limits_and_restores():
     assert blas_thread_counts() == before and cv2.getNumThreads() == cv_before
 
 
+def test_the_alignment_pools_run_the_callers_threads(tmp_path, monkeypatch):
+    """A one-CPU Ray task runs with one torch thread (`eval.distributed`): its alignment's pools over pairs,
+    views and files ran one thread per core of the node (2 at once per task on 2 cores, 16 on a 16-core
+    node), where the task was given one."""
+    import mvgeo.align.inputs as inputs
+    from mvgeo.align.classical_pairs import ClassicalPairConfig, ClassicalPointmapModel
+    from mvgeo.common.imageio import write_image
+    from mvgeo.common.threads import pool_threads, torch_threads
+
+    sizes = []
+
+    class Recorder(inputs.ThreadPoolExecutor):
+        def __init__(self, max_workers=None, **kw):
+            sizes.append(max_workers)
+            super().__init__(max_workers, **kw)
+
+    monkeypatch.setattr(inputs, "ThreadPoolExecutor", Recorder)
+    files = [tmp_path / f"{k}.png" for k in range(3)]
+    for f in files:
+        write_image(f, np.full((8, 8, 3), 0.5, np.float32))
+    with torch_threads(1):
+        assert pool_threads() == 1 and pool_threads(4) == 4 and pool_threads(0, 3) == 1
+        with ClassicalPointmapModel()._pool() as pool:
+            assert pool._max_workers == 1
+        inputs._read(files, None)
+    assert sizes == [1]
+    with torch_threads(3):
+        assert pool_threads() == 3 and pool_threads(None, 2) == 2
+        with ClassicalPointmapModel(ClassicalPairConfig(workers=2))._pool() as pool:
+            assert pool._max_workers == 2
+
+
 def test_result_and_typed_report(llff6, llff6_preview):
     res = llff6_preview
     names = [p.name for p in list_images(llff6 / "images")]
