@@ -27,7 +27,7 @@ import functools
 import logging
 import os
 import shutil
-import tempfile
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,7 +50,7 @@ from eval.pipeline.stage_settings import splat_stage_settings, stage_seed
 from eval.pipeline.stages import STAGE_CODE
 from eval.pipeline.validate import DatasetFolder
 from mvgeo.common.errors import DegenerateGeometryError, DisconnectedViewsError
-from mvgeo.common.output import read_manifest, write_manifest
+from mvgeo.common.output import OwnerFile, read_manifest, remove_stale_leftovers, remove_tree, write_manifest
 
 __all__ = ["GT_POSES_SUFFIX", "METHODS", "ORACLE_CLEAN", "EvalMethod", "Reconstruction", "gt_pose_variant",
            "reconstruct", "share_round1", "splat_photos", "with_splat_iters"]
@@ -333,8 +333,13 @@ def share_round1(src_run: Path, dst_run: Path) -> bool:
     if dst.exists() or not (src / "stages").is_dir():
         return False
     dst.parent.mkdir(parents=True, exist_ok=True)
-    # A new folder of this call's own (a fixed name could be a folder of the user's, which is never removed).
-    tmp = Path(tempfile.mkdtemp(prefix=".round1.link-", dir=dst.parent)) / "round1"
+    # A temporary folder with an owner file (`mvgeo.common.output.OwnerFile`), as the commands' own: one that a
+    # killed call left (a worker killed while linking) is taken for a leftover and removed, by the next call
+    # here and by `prepare_output` when the evaluation opens this run folder again, instead of making the
+    # run folder one that holds files `denoise-gs run` did not write (a resumed evaluation was refused).
+    remove_stale_leftovers(dst.parent, dst.name)
+    tmp = dst.parent / f".{dst.name}.tmp-{uuid.uuid4().hex[:8]}"
+    owner = OwnerFile(tmp)
 
     def link(a: str, b: str) -> None:
         try:
@@ -347,7 +352,9 @@ def share_round1(src_run: Path, dst_run: Path) -> bool:
                         ignore=lambda d, names: [n for n in names if n.startswith(".")])
         os.replace(tmp, dst)
     finally:
-        shutil.rmtree(tmp.parent, ignore_errors=True)  # this call's own folder (empty after the rename)
+        if os.path.lexists(tmp):
+            remove_tree(tmp)
+        owner.release()
     if read_manifest(dst_run) is None:  # the run folder is ours: `denoise-gs run` resumes into it
         write_manifest(dst_run, RUN_COMMAND, record_files=False)
     return True

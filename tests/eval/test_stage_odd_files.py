@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import os
+from pathlib import Path
 
 import pytest
 
@@ -51,6 +53,48 @@ def test_linking_round1_never_removes_a_users_folder_named_like_its_temporary_on
     assert (mine / "notes.txt").read_text() == "mine"
     assert (dst / "round1" / "stages" / "denoise.json").read_text() == "{}"
     assert sorted(p.name for p in dst.iterdir() if p.name.startswith(".round1")) == [".round1.link-tmp"]
+
+
+KILLED_WHILE_LINKING = """
+import os, signal, sys
+from eval.methods import share_round1
+calls = []
+real_link = os.link
+
+def link(a, b):
+    if calls:
+        os.kill(os.getpid(), signal.SIGKILL)  # a worker killed while it links round 1
+    calls.append(a)
+    real_link(a, b)
+
+os.link = link
+share_round1(sys.argv[1], sys.argv[2])
+"""
+
+
+def test_a_round1_link_cut_short_by_a_kill_is_a_leftover_the_next_run_removes(tmp_path):
+    """A worker killed while `share_round1` linked round 1 left its temporary folder in the ablation's run folder,
+    which then held a file `denoise-gs run` did not write: the resumed evaluation was refused."""
+    import subprocess
+    import sys
+
+    from eval.methods import share_round1
+    from eval.pipeline.run import RUN_COMMAND
+    from mvgeo.common.output import prepare_output
+
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    (src / "round1" / "stages").mkdir(parents=True)
+    (src / "round1" / "stages" / "denoise.json").write_text("{}")
+    (src / "round1" / "n2v_model.pt").write_text("net")
+    repo = Path(__file__).resolve().parents[2]
+    done = subprocess.run([sys.executable, "-c", KILLED_WHILE_LINKING, str(src), str(dst)], cwd=repo,
+                          env={**os.environ, "PYTHONPATH": str(repo)}, capture_output=True, text=True, timeout=120)
+    assert done.returncode == -9, done.stderr[-2000:]
+    assert not (dst / "round1").exists() and any(dst.iterdir())  # the kill came mid-copy
+    prepare_output(dst, command=RUN_COMMAND, resume=True)  # not refused
+    assert share_round1(src, dst)
+    assert sorted(p.name for p in dst.iterdir()) == [".denoise-gs-output.json", "round1"]
+    assert (dst / "round1" / "n2v_model.pt").read_text() == "net"
 
 
 def test_a_pending_record_naming_other_paths_as_retired_removes_nothing_else(tmp_path):
