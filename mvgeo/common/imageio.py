@@ -257,13 +257,15 @@ def upright_size(path: str | Path) -> tuple[int, int] | None:
 def read_image(path: str | Path, *, gray_to_rgb: bool = True, apply_orientation: bool = True) -> np.ndarray:
     """Read an 8/16-bit image as float32 RGB in [0, 1], shape (H, W, 3).
 
-    Grayscale files are replicated to three channels; alpha is dropped. A JPEG's or WebP's EXIF
+    Grayscale files are replicated to three channels; an alpha channel that is opaque everywhere is dropped,
+    and a photo with transparent pixels is refused (their colour, often black, is not a photo of the scene:
+    denoised, aligned and splatted, it would be fitted as one). A JPEG's or WebP's EXIF
     Orientation tag is applied (the array is the photo as a viewer shows it) unless `apply_orientation` is
     False: then the array is the pixels as stored, which is what cameras calibrated by COLMAP (which
     ignores the tag) describe.
 
     Raises:
-        InputError: missing, unreadable or corrupt file (named).
+        InputError: missing, unreadable or corrupt file, or one with transparent pixels (named).
     """
     from mvgeo.common.deps import cv2
 
@@ -289,7 +291,13 @@ def read_image(path: str | Path, *, gray_to_rgb: bool = True, apply_orientation:
         img = img[:, :, None]
     if apply_orientation:
         img = apply_exif_orientation(img, exif_orientation(data))
-    if img.shape[2] == 4:
+    if img.shape[2] == 4:  # cv2 gives gray + alpha and palette + transparency as BGRA too
+        transparent = int(np.count_nonzero(img[:, :, 3] < np.iinfo(img.dtype).max))
+        if transparent:
+            raise InputError(f"the image has transparent pixels ({transparent} of {img.shape[0] * img.shape[1]}); "
+                             "their colour is not a photo of the scene and would be reconstructed as one", path=path,
+                             fix="flatten it onto a background (e.g. `magick IN -background white -alpha remove "
+                                 "-alpha off OUT`), or re-export the photo without transparency")
         img = img[:, :, :3]
     if img.shape[2] == 1:
         if not gray_to_rgb:

@@ -14,3 +14,29 @@ def test_check_distinct_stems_ignores_the_suffix_and_the_case(tmp_path):
         with pytest.raises(InputError, match="two images share the name") as err:
             check_distinct_stems(names, path=tmp_path)
         assert err.value.path == tmp_path and names[-1] in str(err.value)
+
+
+def test_read_image_refuses_transparent_pixels_and_drops_an_opaque_alpha(tmp_path):
+    """A photo's transparent pixels hold no colour of the scene (exporters often leave them black): read as
+    RGB they would be denoised, aligned and splatted as a black patch, so such a file is refused by name. An
+    alpha channel that is opaque everywhere (a screenshot, an export) is dropped as before."""
+    import numpy as np
+
+    from mvgeo.common.errors import InputError
+    from mvgeo.common.imageio import read_image
+
+    Image = pytest.importorskip("PIL.Image")
+    rgb = np.zeros((24, 40, 3), np.uint8)
+    rgb[..., 0] = np.linspace(0, 255, 40, dtype=np.uint8)[None, :]
+    alpha = np.full((24, 40), 255, np.uint8)
+    Image.fromarray(np.dstack([rgb, alpha])).save(tmp_path / "opaque.png")
+    np.testing.assert_array_equal(read_image(tmp_path / "opaque.png"), rgb / np.float32(255))
+    alpha[:, :5] = 0
+    Image.fromarray(np.dstack([rgb, alpha])).save(tmp_path / "cut out.png")
+    Image.fromarray(np.dstack([rgb[..., 0], alpha])).save(tmp_path / "gray alpha.png")  # LA
+    pal = Image.fromarray(rgb).convert("P", palette=Image.Palette.ADAPTIVE, colors=64)
+    pal.save(tmp_path / "palette.png", transparency=int(np.asarray(pal)[0, 0]))  # tRNS: one index transparent
+    for name in ("cut out.png", "gray alpha.png", "palette.png"):
+        with pytest.raises(InputError, match="transparent pixels") as err:
+            read_image(tmp_path / name)
+        assert err.value.path == tmp_path / name and "flatten" in err.value.fix
