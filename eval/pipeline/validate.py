@@ -6,6 +6,7 @@ Everything a stage would reject hours later is rejected here with an
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,7 +34,9 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
     """Check the inputs of `run_pipeline`; return stem -> image file.
 
     Checks: the folder exists and holds images with distinct stems, each one
-    decodes and is at least `MIN_IMAGE_SIZE_PX` on each side, all have one
+    decodes and is at least `MIN_IMAGE_SIZE_PX` on each side, no two hold the same pixels (a copy of a
+    photo under another name carries no geometry; the alignment refuses identical images, but it sees the
+    denoised photos, in which the denoiser has made the copies differ), all have one
     working size (after `config.max_size`: every stage, the alignment first,
     works on the working images and assumes one camera; inputs of different
     sizes that downscale to one size are accepted, and so are photos turned by
@@ -50,8 +53,14 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
     images_dir = Path(images_dir)
     files = view_files(images_dir)
     seen: list[tuple[Path, tuple[int, int], tuple[int, int]]] = []
+    digests: dict[str, Path] = {}
     for path in files.values():
         img = read_image(path)
+        digest = hashlib.sha1(repr(img.shape).encode() + img.tobytes()).hexdigest()
+        if digest in digests:
+            raise InputError(f"images {digests[digest].name!r} and {path.name!r} hold the same pixels (a duplicate "
+                             "view carries no geometry)", path=path, fix="remove one of them from the folder")
+        digests[digest] = path
         if min(img.shape[:2]) < MIN_IMAGE_SIZE_PX:
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]} px; at least {MIN_IMAGE_SIZE_PX} px per "
                              "side is needed", path=path, fix="use larger images")

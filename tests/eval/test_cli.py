@@ -174,6 +174,21 @@ def test_run_sizes_are_compared_at_the_working_size(tmp_path):
         validate_run_inputs(scene, dataclasses.replace(cfg, max_size=96))
 
 
+def test_run_refuses_a_copy_of_a_photo_up_front(tmp_path, capsys):
+    """A photo twice under two names carries no geometry. The alignment refuses identical images, but in
+    the run it sees the denoised photos, which the denoiser makes differ: the copy went on as a view of
+    its own. Refused before any work, naming the two photos."""
+    scene = make_scene(tmp_path / "images", n=4, size_wh=(64, 48))
+    shutil.copy(scene / "view_002.png", scene / "view_002 (1).png")
+    cfg = preset("fast", views=3)
+    with pytest.raises(InputError, match=r"'view_002.png' and 'view_002 \(1\).png' hold the same pixels"):
+        validate_run_inputs(scene, cfg)
+    assert_refused(main, ["run", scene, "--out", tmp_path / "out", "--views", "3"], capsys,
+                   inputs=[scene], watch=[tmp_path], message=["view_002.png", "remove one of them"])
+    (scene / "view_002 (1).png").unlink()
+    assert list(validate_run_inputs(scene, cfg)) == ["view_000", "view_001", "view_002", "view_003"]
+
+
 def _dataset(tmp_path):
     root = tmp_path / "ds"
     make_scene(root / "images", n=4)
