@@ -5,8 +5,8 @@ the images every stage works on. Each input larger than that is resized once, wi
 filter (each output pixel the mean of the input pixels it covers: no aliasing of noise or
 texture), and written as a 16-bit PNG into `OUT/inputs/`; smaller inputs are copied unchanged
 (8-bit values survive 16-bit PNG exactly). `OUT/inputs/sizes.json` keeps each view's input and
-working size, so the final cameras can also be written at the input resolution
-(`eval.pipeline.publish`), and the photo's EXIF 35 mm-equivalent focal length (`focal_35mm`, null
+working size, so the final cameras can also be written at the input resolution and under the photo's
+file name (`eval.pipeline.publish`), and the photo's EXIF 35 mm-equivalent focal length (`focal_35mm`, null
 without one), which the PNGs do not carry: the alignment starts at it (`working_focal_prior`).
 
 Every stage assumes one camera, so the working images share one size (`reference_working_size`: the
@@ -90,7 +90,8 @@ def prepare_inputs(ctx: StageContext) -> Mapping[str, object]:
         img = read_image(path)
         size = working_size(img.shape[1], img.shape[0], max_size)
         images[stem] = resize_area(img, size)
-        sizes[stem] = WorkingSize((img.shape[1], img.shape[0]), (int(size[0]), int(size[1])), exif_focal_35mm(path))
+        sizes[stem] = WorkingSize((img.shape[1], img.shape[0]), (int(size[0]), int(size[1])), exif_focal_35mm(path),
+                                  file=path.name)
     ref = reference_working_size([v.working_wh for v in sizes.values()])
     for stem, v in list(sizes.items()):
         if v.working_wh != ref and v.working_wh == ref[::-1]:  # a photo turned by 90 degrees
@@ -103,9 +104,10 @@ def prepare_inputs(ctx: StageContext) -> Mapping[str, object]:
     return InputsSummary(max_size=max_size, sizes=sizes, resized=resized, turned=turned or None).to_json()
 
 
-def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int] | int]]:
+def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int] | int | str | None]]:
     """`sizes.json` -> stem -> {"input": (W, H), "working": (W, H), "turned": quarter turns counter-clockwise
-    from the photo to its working image (0 or 1; 0 where the file does not say)}.
+    from the photo to its working image (0 or 1; 0 where the file does not say), "file": the photo's file
+    name in the input folder (None where the file does not say)}.
 
     Raises:
         InputError: missing or malformed file.
@@ -119,6 +121,11 @@ def read_sizes(path: str | Path) -> dict[str, dict[str, tuple[int, int] | int]]:
             if turned not in (0, 1) or isinstance(turned, bool):
                 raise ValueError(f"view {stem!r}: turned must be 0 or 1, got {turned!r}")
             out[stem]["turned"] = turned
+            file = v.get("file")
+            if file is not None and (not isinstance(file, str) or not file or Path(file).name != file
+                                     or Path(file).stem != stem):
+                raise ValueError(f"view {stem!r}: file must be the name of its photo, got {file!r}")
+            out[stem]["file"] = file
         return out
     except RecursionError:  # deeply nested JSON
         raise InputError("cannot read the working sizes (JSON nested too deeply)", path=path,

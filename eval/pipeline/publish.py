@@ -5,7 +5,8 @@ Outputs (in OUT):
     scene.splat                 the Gaussians in antimatter15's .splat (web viewers, SuperSplat)
     view/index.html             offline browser viewer of the scene and its cameras (viser's client)
     cameras/working/            the final cameras at the working size (COLMAP text)
-    cameras/input/              the same poses with intrinsics scaled to each input photo's size
+    cameras/input/              the same poses with intrinsics scaled to each input photo's size, under
+                                the photos' file names
 
 The input-resolution cameras let the poses be reused on the full-size photos: a pixel
 quantity scales by `W_in / W_work` in x and `H_in / H_work` in y (`mvgeo.camera.Camera.scaled`).
@@ -67,7 +68,8 @@ def turn_back(camera: Camera, cam_from_world: np.ndarray) -> tuple[Camera, np.nd
 
 def input_size_cameras(sparse: SparseModel, sizes: Mapping[str, Mapping[str, object]]) -> SparseModel:
     """`sparse` (working-size cameras) with each image's camera scaled to its input size, and turned back
-    where its working image was turned (`turn_back`; `sizes` as `read_sizes` returns them).
+    where its working image was turned (`turn_back`; `sizes` as `read_sizes` returns them), named as its
+    photo is in the input folder (`IMG_0001.JPG`, not the working `IMG_0001.png`) where `sizes` records it.
 
     Images that share a camera, an input size and a turn keep sharing one; an image whose input size
     or turn differs from its camera's other images gets its own camera (new id).
@@ -95,7 +97,7 @@ def input_size_cameras(sparse: SparseModel, sizes: Mapping[str, Mapping[str, obj
         if key not in new_id:
             new_id[key] = im.camera_id if im.camera_id not in cameras else max([*cameras, *sparse.cameras]) + 1
             cameras[new_id[key]] = cam.scaled(*key[1])
-        images.append(PosedImage(im.name, new_id[key], cam_from_world))
+        images.append(PosedImage(sizes[stem].get("file") or im.name, new_id[key], cam_from_world))
     return SparseModel(cameras, images, sparse.points_xyz, sparse.points_rgb)
 
 

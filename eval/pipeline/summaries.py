@@ -151,17 +151,21 @@ class WorkingSize:
         working_wh: its working image's (width, height), px.
         focal_35mm: the photo's EXIF 35 mm-equivalent focal length, mm; None: not in its EXIF.
         turned: quarter turns counter-clockwise from the photo to its working image (0 or 1).
+        file: the photo's file name in the input folder (``IMG_0001.JPG``; the working image is
+            ``IMG_0001.png``), which names it in `cameras/input/`; None: not recorded (an older record).
     """
 
     input_wh: tuple[int, int]
     working_wh: tuple[int, int]
     focal_35mm: float | None = None
     turned: int = 0
+    file: str | None = None
 
     def to_json(self) -> dict[str, object]:
-        """``{"input": [W, H], "working": [W, H], "focal_35mm": ...}``, plus ``"turned": 1`` for a turned photo."""
+        """``{"input": [W, H], "working": [W, H], "focal_35mm": ...}``, plus ``"turned": 1`` for a turned photo
+        and ``"file"`` where recorded."""
         return {"input": list(self.input_wh), "working": list(self.working_wh), "focal_35mm": self.focal_35mm,
-                **({"turned": self.turned} if self.turned else {})}
+                **({"turned": self.turned} if self.turned else {}), **({"file": self.file} if self.file else {})}
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> WorkingSize:
@@ -172,7 +176,8 @@ class WorkingSize:
         """
         w, h = data["input"]
         ww, wh = data["working"]
-        return cls((int(w), int(h)), (int(ww), int(wh)), _opt(data, "focal_35mm", float), int(data.get("turned", 0)))
+        return cls((int(w), int(h)), (int(ww), int(wh)), _opt(data, "focal_35mm", float), int(data.get("turned", 0)),
+                   _opt(data, "file", str))
 
 
 @dataclass(frozen=True)

@@ -69,7 +69,8 @@ def test_pipeline_works_at_the_working_size_and_reports_it(tmp_path):
     for p in (out / "round1" / "renders").glob("*.png"):
         assert read_image(p).shape == (144, 192, 3)
     sizes = json.loads((out / WORKING_DIR / SIZES_FILE).read_text())
-    assert sizes["view_000"] == {"input": [384, 288], "working": [192, 144], "focal_35mm": None}  # PNG, no EXIF
+    assert sizes["view_000"] == {"input": [384, 288], "working": [192, 144], "focal_35mm": None,  # PNG, no EXIF
+                                 "file": "view_000.png"}
     # the working image is the area-filtered input
     np.testing.assert_allclose(read_image(out / WORKING_DIR / "view_000.png"),
                                resize_area(read_image(scene / "view_000.png"), (192, 144)), atol=1 / 65535)

@@ -94,7 +94,8 @@ SELECTION_FILE = [{"names": ["a", "c"], "method": "kmeans+laplacian", "cluster_o
                   {"names": ["a", "b"], "method": "all"}]
 INPUTS = [
     {"max_size": 512, "sizes": {"a": {"input": [1024, 768], "working": [512, 384], "focal_35mm": 28.0},
-                                "b": {"input": [768, 1024], "working": [512, 384], "focal_35mm": None, "turned": 1}},
+                                "b": {"input": [768, 1024], "working": [512, 384], "focal_35mm": None, "turned": 1,
+                                      "file": "b.JPG"}},
      "resized": ["a", "b"], "turned": ["b"]},
     {"max_size": None, "sizes": {"a": {"input": [64, 48], "working": [64, 48], "focal_35mm": None}}, "resized": []},
 ]
@@ -139,7 +140,8 @@ def test_the_readers_fields_hold_what_the_summaries_record():
     assert SplatSummary.from_json(SPLAT[1]).noisy_detail.detail == NoisyDetail(0.5)
     assert SplatSummary.from_json({}).num_gaussians is None and SplatSummary.from_json({}).optimize_s is None
     sizes = InputsSummary.from_json(INPUTS[0]).sizes
-    assert sizes["b"] == WorkingSize((768, 1024), (512, 384), None, turned=1) and sizes["a"].focal_35mm == 28.0
+    assert sizes["b"] == WorkingSize((768, 1024), (512, 384), None, turned=1, file="b.JPG")
+    assert sizes["a"].focal_35mm == 28.0 and sizes["a"].file is None
     assert SelectSummary.from_json(SELECT[0]).selected == ["a", "c"]
     chosen = SelectionFile.from_json(SELECTION_FILE[0])
     assert chosen.names == ["a", "c"] and chosen.cluster_of["c"] == 1 and chosen.laplacian_var["b"] == 0.001

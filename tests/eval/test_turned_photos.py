@@ -147,7 +147,34 @@ def test_a_turned_photo_that_is_also_downscaled_is_reported_as_resized(tmp_path)
     summary = json.loads((out / "stages" / "inputs.json").read_text())["summary"]
     assert summary["turned"] == ["view_001"] and summary["resized"] == ["view_000", "view_001", "view_002"]
     assert json.loads((out / WORKING_DIR / SIZES_FILE).read_text())["view_001"] == {
-        "input": [96, 128], "working": [64, 48], "focal_35mm": None, "turned": 1}
+        "input": [96, 128], "working": [64, 48], "focal_35mm": None, "turned": 1, "file": "view_001.png"}
+
+
+def test_input_size_cameras_name_the_photos_files(tmp_path):
+    """`cameras/input/` is for the photos as they are: each camera is named as its photo is in the input
+    folder (a JPEG, an upper-case suffix), not as the working PNG, so COLMAP and other tools pointed at the
+    photos find them. A `sizes.json` that does not record the file keeps the working name."""
+    scene = make_scene(tmp_path / "photos", n=3, size_wh=(64, 48))
+    write_image(scene / "view_001.JPG", read_image(scene / "view_001.png"))
+    (scene / "view_001.png").unlink()
+    _turn(scene / "view_002.png")
+    out = tmp_path / "out"
+    run_pipeline(scene, out, PipelineConfig(views=3, rounds=1), stages=TinyStages().stages())
+    working = read_sparse_model(out / "round1" / "sparse" / "0")
+    assert sorted(working.names) == ["view_000.png", "view_001.png", "view_002.png"]
+    sizes = read_sizes(out / WORKING_DIR / SIZES_FILE)
+    full = input_size_cameras(working, sizes)
+    assert sorted(full.names) == ["view_000.png", "view_001.JPG", "view_002.png"]
+    assert (full.camera_of("view_002.png").width, full.camera_of("view_002.png").height) == (48, 64)
+    np.testing.assert_array_equal(full.image("view_001.JPG").cam_from_world,
+                                  working.image("view_001.png").cam_from_world)
+    older = {stem: {k: v for k, v in entry.items() if k != "file"} for stem, entry in sizes.items()}
+    assert sorted(input_size_cameras(working, older).names) == sorted(working.names)
+    raw = json.loads((out / WORKING_DIR / SIZES_FILE).read_text())
+    raw["view_000"]["file"] = "../view_000.png"
+    (out / WORKING_DIR / SIZES_FILE).write_text(json.dumps(raw))
+    with pytest.raises(InputError, match="file must be the name of its photo"):
+        read_sizes(out / WORKING_DIR / SIZES_FILE)
 
 
 def test_an_evaluation_image_of_another_size_than_its_camera_is_refused(tmp_path):
