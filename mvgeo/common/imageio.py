@@ -7,6 +7,7 @@ this module stays light (`tests/common/test_import_light.py`).
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,9 +23,16 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 UNREADABLE_PHOTO_SUFFIXES = (".heic", ".heif", ".avif", ".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".raf",
                              ".orf", ".rw2", ".pef", ".srw")
 
+_log = logging.getLogger(__name__)
+#: Folders whose subfolders of images `list_images` has warned about (once per folder and process).
+_warned_subfolders: set[Path] = set()
+
 
 def list_images(folder: str | Path) -> list[Path]:
     """Sorted image files (by name) directly inside `folder`.
+
+    Images in its subfolders are not used; a warning names the (non-hidden) subfolders that hold some, so
+    no photo is left out without a word.
 
     Raises:
         InputError: the folder is missing, not a folder, holds no images, or holds a broken
@@ -70,7 +78,28 @@ def _list_images(folder: Path) -> list[Path]:
     if not files:
         raise InputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder", path=folder,
                          fix="put PNG/JPEG images directly in this folder")
+    _warn_about_subfolders(folder, entries)
     return files
+
+
+def _warn_about_subfolders(folder: Path, entries: list[Path]) -> None:
+    """Warn (once per folder) about the non-hidden subfolders of `folder` that hold image files: their images
+    are not used."""
+    if folder in _warned_subfolders:
+        return
+    held = {}
+    for sub in sorted(p for p in entries if not p.name.startswith(".") and p.is_dir()):
+        try:
+            n = sum(1 for q in sub.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES and q.is_file())
+        except OSError:  # an unreadable subfolder: nothing to say about it
+            continue
+        if n:
+            held[sub.name] = n
+    if held:
+        _warned_subfolders.add(folder)
+        _log.warning("%s: %d image(s) in its subfolder(s) %s are not used, only the images directly in the folder "
+                     "(move them up to use them)", folder, sum(held.values()),
+                     ", ".join(f"{name}/ ({n})" for name, n in held.items()))
 
 
 def check_distinct_stems(names: Sequence[str], *, path: str | Path) -> None:

@@ -40,3 +40,23 @@ def test_read_image_refuses_transparent_pixels_and_drops_an_opaque_alpha(tmp_pat
         with pytest.raises(InputError, match="transparent pixels") as err:
             read_image(tmp_path / name)
         assert err.value.path == tmp_path / name and "flatten" in err.value.fix
+
+
+def test_list_images_warns_once_about_images_in_subfolders(tmp_path, caplog):
+    """Only the images directly in the folder are used: images in a subfolder were left out without a word."""
+    import logging
+
+    import numpy as np
+
+    from mvgeo.common.imageio import list_images, write_image
+
+    img = np.zeros((8, 8, 3), np.float32)
+    for name in ("a.png", "more/b.png", "more/c.JPG", ".hidden/d.png", "empty/notes.txt"):
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        write_image(tmp_path / name, img) if name.endswith(("png", "JPG")) else (tmp_path / name).write_text("x")
+    with caplog.at_level(logging.WARNING, logger="mvgeo.common.imageio"):
+        assert list_images(tmp_path) == [tmp_path / "a.png"]
+        assert list_images(tmp_path) == [tmp_path / "a.png"]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "2 image(s)" in warnings[0] and "more/ (2)" in warnings[0], warnings
+    assert ".hidden" not in warnings[0] and "empty" not in warnings[0]
