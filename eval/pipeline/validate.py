@@ -33,7 +33,8 @@ MIN_VIEWS = 2
 def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, Path]:
     """Check the inputs of `run_pipeline`; return stem -> image file.
 
-    Checks: the folder exists and holds images with distinct stems, each one
+    Checks: the folder exists and holds images with distinct stems and no white space in their names (the
+    run's COLMAP text cameras cannot hold it), each one
     decodes and is at least `MIN_IMAGE_SIZE_PX` on each side, no two hold the same pixels (a copy of a
     photo under another name carries no geometry; the alignment refuses identical images, but it sees the
     denoised photos, in which the denoiser has made the copies differ), all have one
@@ -55,6 +56,12 @@ def validate_run_inputs(images_dir: Path, config: PipelineConfig) -> dict[str, P
     seen: list[tuple[Path, tuple[int, int], tuple[int, int]]] = []
     digests: dict[str, Path] = {}
     for path in files.values():
+        if any(ch.isspace() for ch in path.name):
+            # The run writes its cameras as COLMAP text models (`cameras/`), whose images.txt cannot hold a
+            # name with white space: COLMAP and pycolmap read it back cut at the first space.
+            raise InputError(f"the file name {path.name!r} holds white space, which the COLMAP cameras this "
+                             "command writes cannot hold", path=path,
+                             fix="rename the photos without spaces (e.g. replace them with _)")
         img = read_image(path)
         digest = hashlib.sha1(repr(img.shape).encode() + img.tobytes()).hexdigest()
         if digest in digests:
