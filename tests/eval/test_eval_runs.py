@@ -124,10 +124,8 @@ def test_a_gt_pose_variant_splats_its_methods_photos_with_the_true_cameras(tmp_p
     assert h.tiny.calls["splat"] == 3 and h.tiny.calls["align"] == 2
 
 
-def test_a_gt_pose_variant_splats_the_denoised_photos_its_method_could_not_align(tmp_path, dataset, monkeypatch):
-    # The method's alignment refuses its photos (as the temple ring at sigma 25 does): the method's row fails,
-    # its variant still splats round 1's denoised photos with the true cameras from oracle_clean's points.
-    h = Harness(monkeypatch)
+def _refuse_but_the_oracle(h, monkeypatch):
+    """Every alignment but oracle_clean's refuses its photos (as the temple ring's at sigma 25 do)."""
     tiny_align = h.tiny.align
 
     def align(ctx):
@@ -137,6 +135,13 @@ def test_a_gt_pose_variant_splats_the_denoised_photos_its_method_could_not_align
         return tiny_align(ctx)
 
     monkeypatch.setattr(h.tiny, "align", align)
+
+
+def test_a_gt_pose_variant_splats_the_denoised_photos_its_method_could_not_align(tmp_path, dataset, monkeypatch):
+    # The method's alignment refuses its photos (as the temple ring at sigma 25 does): the method's row fails,
+    # its variant still splats round 1's denoised photos with the true cameras from oracle_clean's points.
+    h = Harness(monkeypatch)
+    _refuse_but_the_oracle(h, monkeypatch)
     assert run_task(_task(dataset, tmp_path, "n2v_round1")).error.startswith("AlignmentRefusedError")
     row = run_task(_task(dataset, tmp_path, "n2v_round1@gt_poses"))
     assert row.method == "n2v_round1@gt_poses" and not row.error
@@ -155,15 +160,7 @@ def test_a_gt_pose_variant_after_a_refusal_does_not_depend_on_an_earlier_runs_re
     # as it does in a new folder, instead of failing on the earlier run's splat record.
     h = Harness(monkeypatch)
     assert not run_task(_task(dataset, tmp_path, "n2v_round1@gt_poses")).error
-    tiny_align = h.tiny.align
-
-    def align(ctx):
-        if "oracle_clean" not in str(ctx.work_dir):
-            raise AlignmentRefusedError("the reconstruction is inconsistent with 2 of 3 verified image pairs",
-                                        kind="pairs_contradicted")
-        return tiny_align(ctx)
-
-    monkeypatch.setattr(h.tiny, "align", align)
+    _refuse_but_the_oracle(h, monkeypatch)
     task = _task(dataset, tmp_path, "n2v_round1@gt_poses")
     task = dataclasses.replace(task, base=dataclasses.replace(
         task.base, denoise=dataclasses.replace(task.base.denoise, n2v_steps=7)))
