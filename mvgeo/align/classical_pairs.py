@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from mvgeo.align.dense_pairs import pair_flows, pair_pointmap, rotated_180
+from mvgeo.align.dense_pairs import pair_flows, pair_pointmap, quarter_turns
 from mvgeo.align.features import MatchSet, detect_and_match, extract_features, match_features
 from mvgeo.align.graph import components, maximum_spanning_tree
 from mvgeo.align.pair_focal import consensus_focal, why_no_focal
@@ -343,7 +343,7 @@ class ClassicalPointmapModel:
 
         def flows(i, j, a, b, R):
             """`pair_flows` of pair (i, j), from the previous `relate` when its inputs are the same."""
-            key = (digests[i], digests[j], a.tobytes(), b.tobytes(), rotated_180(R))
+            key = (digests[i], digests[j], a.tobytes(), b.tobytes(), quarter_turns(R))
             out = previous.get(key)
             if out is None:
                 out = pair_flows(small[i], small[j], a, b, R)

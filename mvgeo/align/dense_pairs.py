@@ -16,7 +16,8 @@ from mvgeo.common.deps import cv2
 from mvgeo.epipolar import sampson_distance
 from mvgeo.triangulate import triangulate_two_view
 
-__all__ = ["dense_flow", "flow_checks", "pair_flows", "pair_pointmap", "pair_pointmap_reference", "rotated_180"]
+__all__ = ["dense_flow", "flow_checks", "pair_flows", "pair_pointmap", "pair_pointmap_reference", "quarter_turns",
+           "rotated_180"]
 
 
 def _resize(image: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -59,38 +60,68 @@ def dense_flow(gray_a: np.ndarray, gray_b: np.ndarray, uv_a_px: np.ndarray, uv_b
     return dis.calc(gray_a, gray_b, np.ascontiguousarray(init, dtype=np.float32))
 
 
-def _flow_rotated_180(gray_a, gray_b, uv_a_px, uv_b_px) -> tuple[np.ndarray, np.ndarray]:
-    """Flows a -> b and b -> a when b is turned upside down relative to a (in-plane rotation
-    near 180 deg, e.g. a camera on the far side of a ring rig: DIS flow, which searches small
-    displacements coarse to fine, finds nothing there). Flow against b rotated by 180 deg
-    (pixel p -> (W, H) - p in our convention), then express both flows in b's own pixels."""
+def _turn_points(uv_px: np.ndarray, k: int, wh: tuple[int, int]) -> np.ndarray:
+    """Pixels (our convention) of a W x H image as pixels of ``np.rot90(image, k)`` (k quarter turns
+    counter-clockwise): one turn maps (u, v) to (v, W - u)."""
+    W, H = wh
+    uv = np.asarray(uv_px, np.float32)
+    for _ in range(k % 4):
+        uv = np.stack([uv[..., 1], W - uv[..., 0]], -1)
+        W, H = H, W
+    return uv
+
+
+def _flow_turned(gray_a, gray_b, uv_a_px, uv_b_px, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flows a -> b and b -> a when b's image plane is turned by `k` quarter turns relative to a's (a camera
+    held sideways, k = 1 or 3; a camera on the far side of a ring, k = 2: DIS flow, which searches small
+    displacements coarse to fine, finds nothing there). Flow against ``np.rot90(b, k)`` on a canvas both
+    fit in (zero-padded at the bottom and right, which keeps every pixel's coordinates), then express both
+    flows in b's own pixels."""
     H, W = gray_b.shape
-    wh = np.array([W, H], np.float32)
-    b_rot = np.ascontiguousarray(gray_b[::-1, ::-1])
-    uv_b_rot = wh - uv_b_px
-    f_ab_rot = dense_flow(gray_a, b_rot, uv_a_px, uv_b_rot)
-    f_ba_rot = dense_flow(b_rot, gray_a, uv_b_rot, uv_a_px)
-    v, u = np.mgrid[0:H, 0:W].astype(np.float32) + 0.5
-    p = np.stack([u, v], -1)
-    # a -> b: target in b = (W, H) - target in rotated b.
-    flow_ab = (wh - (p + f_ab_rot)) - p
-    # b -> a at b's pixel p: rotated-b pixel (W, H) - p, stored at the 180-deg-rotated grid index.
-    flow_ba = f_ba_rot[::-1, ::-1] + (wh - p) - p
+    Ha, Wa = gray_a.shape
+    b_rot = np.ascontiguousarray(np.rot90(gray_b, k))
+    Hr, Wr = b_rot.shape
+    Hc, Wc = max(Ha, Hr), max(Wa, Wr)
+
+    def canvas(g):
+        out = np.zeros((Hc, Wc), g.dtype)
+        out[:g.shape[0], :g.shape[1]] = g
+        return out
+
+    uv_b_rot = _turn_points(uv_b_px, k, (W, H))
+    f_ab_rot = dense_flow(canvas(gray_a), canvas(b_rot), uv_a_px, uv_b_rot)[:Ha, :Wa]
+    f_ba_rot = dense_flow(canvas(b_rot), canvas(gray_a), uv_b_rot, uv_a_px)[:Hr, :Wr]
+    va, ua = np.mgrid[0:Ha, 0:Wa].astype(np.float32) + 0.5
+    pa = np.stack([ua, va], -1)
+    # a -> b: the target in turned b, turned back (the inverse of k turns is 4 - k turns of the turned image).
+    flow_ab = _turn_points(pa + f_ab_rot, (4 - k) % 4, (Wr, Hr)) - pa
+    # b -> a at b's pixel p: the turned image's pixel of p holds its flow; turning that grid back puts it at p.
+    vb, ub = np.mgrid[0:H, 0:W].astype(np.float32) + 0.5
+    pb = np.stack([ub, vb], -1)
+    flow_ba = np.rot90(f_ba_rot, -k) + _turn_points(pb, k, (W, H)) - pb
     return np.ascontiguousarray(flow_ab, np.float32), np.ascontiguousarray(flow_ba, np.float32)
 
 
+def quarter_turns(R_b_from_a: np.ndarray) -> int:
+    """Quarter turns (0-3, counter-clockwise in b's image) that bring b's image plane nearest a's: the relative
+    rotation's turn of the image plane rounded to 90 deg (the only way `pair_flows` depends on the rotation)."""
+    roll = np.degrees(np.arctan2(R_b_from_a[1, 0], R_b_from_a[0, 0]))
+    return int(np.round(roll / 90.0)) % 4
+
+
 def rotated_180(R_b_from_a: np.ndarray) -> bool:
-    """Whether `pair_flows` matches against b turned by 180 deg: the relative rotation turns the image plane
-    by more than 135 deg (the only way `pair_flows` depends on the rotation)."""
-    return bool(abs(np.degrees(np.arctan2(R_b_from_a[1, 0], R_b_from_a[0, 0]))) > 135.0)
+    """Whether `pair_flows` matches against b turned by 180 deg (the relative rotation turns the image plane
+    by more than 135 deg)."""
+    return quarter_turns(R_b_from_a) == 2
 
 
 def pair_flows(gray_a: np.ndarray, gray_b: np.ndarray, uv_a_px: np.ndarray, uv_b_px: np.ndarray,
                R_b_from_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Flows a -> b and b -> a ((H, W, 2) each) seeded by the matches; against b turned by 180 deg
-    when the relative rotation `R_b_from_a` turns the image plane by more than 135 deg (`rotated_180`)."""
-    if rotated_180(R_b_from_a):
-        return _flow_rotated_180(gray_a, gray_b, uv_a_px, uv_b_px)
+    """Flows a -> b and b -> a ((H, W, 2) each) seeded by the matches; against b turned by quarter turns when
+    the relative rotation `R_b_from_a` turns the image plane by more than 45 deg (`quarter_turns`)."""
+    k = quarter_turns(R_b_from_a)
+    if k:
+        return _flow_turned(gray_a, gray_b, uv_a_px, uv_b_px, k)
     return dense_flow(gray_a, gray_b, uv_a_px, uv_b_px), dense_flow(gray_b, gray_a, uv_b_px, uv_a_px)
 
 

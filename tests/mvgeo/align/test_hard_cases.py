@@ -10,6 +10,8 @@ from mvgeo.align.bundle import BundleConfig
 from mvgeo.align.classical_pairs import ClassicalPairConfig
 from mvgeo.common.errors import AlignmentRefusedError, DegenerateGeometryError, InputError
 from mvgeo.common.imageio import list_images
+from mvgeo.metrics import compare_poses
+from mvgeo.sparse_model import read_sparse_model
 
 FAST = replace(PREVIEW, max_size_px=160, pairwise=ClassicalPairConfig(pointmap_size_px=64),
                align=replace(PREVIEW.align, iters=60), bundle=BundleConfig(max_nfev=30))
@@ -172,13 +174,16 @@ def test_orbit_view_with_undetermined_position_is_a_specific_failure(tmp_path):
 
     between = {n for n in train if any(steps(n, g) < 8 for g in named & at_gap)}  # up to the next gap
     assert named & at_gap and named <= between, (info.value.views, sorted(at_gap))
-    # With both checks off a result is returned, and view 15 is the view it does not pin or support.
+    # With both checks off a result is returned, and it is wrong: the refusal is right. (How view 15 shows it
+    # depends on the render and the CPU: not pinned, its centre ratio 19 against <= 0.024 for the others; both
+    # of its pairs inconsistent; or, on the render with view-independent silhouette shading, pinned (0.057) with
+    # its pair with view 17 31 deg off, the ring 20 deg off at worst, 2.4 deg median.)
     res = align_images(paths, replace(cfg, max_centre_std_ratio=0.0, reject_unsupported_views=False))
-    ratio = res.stats.bundle_adjustment.centre_std_ratio
-    pairs_15 = [(p.i, p.j) for p in res.stats.pairs_inconsistent if "view_015.png" in (p.i, p.j)]
-    loose = max(ratio) > 5.0 and sorted(ratio)[-2] < 0.1
-    unsupported = len(pairs_15) >= 2  # both of its pairs (with views 14 and 17)
-    assert loose or unsupported, (ratio, res.stats.pairs_inconsistent)
+    ref = {im.name: im.cam_from_world for im in read_sparse_model(d / "sparse" / "0").images}
+    est = {im.name: im.cam_from_world for im in res.sparse_model.images}
+    errors = compare_poses(est, {n: ref[n] for n in train})
+    assert errors.rotation_deg.max() > 5.0, (errors.median_rotation_deg, res.stats.pairs_inconsistent)
+    assert any("view_015.png" in (p.i, p.j) for p in res.stats.pairs_inconsistent), res.stats.pairs_inconsistent
 
 
 @pytest.mark.slow
