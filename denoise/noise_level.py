@@ -364,6 +364,8 @@ def _luma(img: np.ndarray) -> np.ndarray:
     y = a @ np.asarray(LUMA_WEIGHTS)
     y[(a >= 1.0).all(axis=2)] = 1.0
     return y
+
+
 #: A colour photo's noise counts as chroma-subsampled where its colour patches read under this fraction of the
 #: level its luma reads (`luma_noise_sigma`). JPEG's 4:2:0 chroma subsampling averages the colour differences
 #: over 2 x 2 pixels and its decoder interpolates them back, so the colour directions of a patch hold no fine

@@ -83,6 +83,7 @@ from eval.pipeline.validate import DatasetFolder
 from eval.pipeline.views import write_views
 from eval.results import RunScores, check_results_owned
 from mvgeo.camera import Camera
+from mvgeo.common.atomic import atomic_write_text
 from mvgeo.common.errors import DegenerateGeometryError, InputError
 from mvgeo.common.imageio import read_image
 from mvgeo.common.output import prepare_output
@@ -735,9 +736,6 @@ def scene_dataset(kind: str, source: Path | str, out: Path, *, size_wh: tuple[in
                      "scene" if not same else "renderer's code", folder)
     record.unlink(missing_ok=True)
     write_dataset(spec, folder, overwrite=folder.exists())
-    record.parent.mkdir(parents=True, exist_ok=True)
-    tmp = record.with_name(f".{record.name}.tmp")
-    tmp.write_text(json.dumps({"scene": str(source), "code": code}, indent=1), encoding="utf-8")
-    os.replace(tmp, record)
+    atomic_write_text(record, json.dumps({"scene": str(source), "code": code}, indent=1))
     return name, folder
 

@@ -109,6 +109,11 @@ def summarise(rows: Sequence[RunScores]) -> dict[str, dict[str, dict[str, Summar
 _DIGITS = {"psnr_db": 2, "ssim": 3, "lpips": 3, "rot_err_deg": 2, "ate": 4, "seconds": 0}
 
 
+def _scene_seeds(rows: Sequence[RunScores], scene: str) -> int:
+    """How many seeds `scene` was run with (failed runs included)."""
+    return len({r.seed for r in rows if r.scene == scene})
+
+
 def _valid_seeds(rows: Sequence[RunScores], scene: str, method: str, metric: str) -> frozenset[int]:
     """The seeds of `method`'s rows in `scene` whose `metric` is a number (its cell's values)."""
     return frozenset(r.seed for r in rows if r.scene == scene and r.method == method
@@ -129,7 +134,7 @@ def results_markdown(rows: Sequence[RunScores], *, title: str = "Evaluation") ->
              "bold only in a column whose cells are all over the same seeds). Training-pose errors after Sim(3) "
              "registration to ground truth.", ""]
     for scene, methods in summary.items():
-        seeds = len({r.seed for r in rows if r.scene == scene})
+        seeds = _scene_seeds(rows, scene)
         lines += [f"## {scene} ({seeds} seed(s))", "",
                   "| method | " + " | ".join(lbl for lbl, _ in METRICS.values()) + " |",
                   "|---" * (len(METRICS) + 1) + "|"]
@@ -163,7 +168,7 @@ def seed_shortfalls(rows: Sequence[RunScores], metric: str) -> dict[tuple[str, s
     scene was run with (N; a failed run is left out of its mean)."""
     out = {}
     for scene, methods in summarise(rows).items():
-        seeds = len({r.seed for r in rows if r.scene == scene})
+        seeds = _scene_seeds(rows, scene)
         for method, cells in methods.items():
             if 0 < cells[metric].n < seeds:
                 out[(scene, method)] = f"{cells[metric].n}/{seeds}"

@@ -57,6 +57,7 @@ from mvgeo.epipolar import (
     project_to_essential,
     sampson_distance,
 )
+from mvgeo.metrics import rotation_error_deg
 from mvgeo.ransac import RansacConfig, ransac
 from mvgeo.transforms import skew_unchecked, so3_exp_and_left_jacobian
 from mvgeo.triangulate import TriangulationCriteria, _two_view_in_front_pm, triangulate_two_view
@@ -512,7 +513,9 @@ def _homography_inliers(u1: np.ndarray, u2: np.ndarray, thr: float) -> np.ndarra
     """(N,) bool inliers of the best homography ``u2 ~ H u1`` (transfer error < `thr` px), or None."""
     if len(u1) < 4:
         return None
-    # USAC_ACCURATE as in the uncalibrated estimator; plain RANSAC where USAC asserts on degenerate samples.
+    # USAC_ACCURATE (local optimisation): on llff_like's ten focal pairs it found about as many or more
+    # homography inliers than plain RANSAC with 2000 iterations, in 6 ms instead of 32 ms per pair. Plain
+    # RANSAC where USAC asserts on degenerate sample sets.
     try:
         Hm, hmask = cv2.findHomography(u1, u2, cv2.USAC_ACCURATE, thr, maxIters=2000, confidence=0.999)
     except cv2.error:
@@ -597,7 +600,7 @@ def _resolve_planar(u1, u2, K1, K2, out: RelativePoseResult, config: TwoViewConf
         t = t / np.linalg.norm(t)
         tri = triangulate_two_view(r1, r2, np.c_[R, t], method="mid2", criteria=_CHEIRALITY)
         count = int((tri.in_front & tri.finite).sum())
-        same = [k for k, p in enumerate(poses) if _angle_deg(R, p[1]) <= 1.0]
+        same = [k for k, p in enumerate(poses) if float(rotation_error_deg(R, p[1])) <= 1.0]
         if not same:
             poses.append((count, R, t))
         elif count > poses[same[0]][0]:
@@ -609,18 +612,13 @@ def _resolve_planar(u1, u2, K1, K2, out: RelativePoseResult, config: TwoViewConf
     if rival[0] >= config.planar_rival_front * best_front:
         return replace(out, success=False, reason=(
             f"a homography explains the inliers as well as E (planar scene; GRIC margin {margin:.0f}) and its two "
-            f"poses, {_angle_deg(R, rival[1]):.1f} deg apart, put {best_front} and {rival[0]} of the {len(idx)} "
-            "inliers in front of both cameras: the relative pose is ambiguous"))
-    if _angle_deg(out.R, R) <= _angle_deg(out.R, rival[1]):
+            f"poses, {float(rotation_error_deg(R, rival[1])):.1f} deg apart, put {best_front} and {rival[0]} of "
+            f"the {len(idx)} inliers in front of both cameras: the relative pose is ambiguous"))
+    if float(rotation_error_deg(out.R, R)) <= float(rotation_error_deg(out.R, rival[1])):
         return out
     E = essential_from_pose(R, t)
     return _finish(u1, u2, K1, K2, E / np.linalg.norm(E), out.inlier_mask, out.iterations,
                    replace(config, refine=False))
-
-
-def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """Angle (deg) of the rotation ``Ra^T Rb``."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def estimate_fundamental(uv1_px, uv2_px, *, config: TwoViewConfig | None = None):
@@ -757,15 +755,8 @@ def estimate_relative_pose_uncalibrated(
     F, mask, iters = estimate_fundamental(u1, u2, config=config)
     if F is None or mask.sum() < 8:
         return _failure(n, "no fundamental matrix with >= 8 inliers", iters)
-    h_ratio = 0.0
-    # USAC_ACCURATE (local optimisation): on llff_like's ten focal pairs it found about as many or more
-    # homography inliers than plain RANSAC with 2000 iterations, in 6 ms instead of 32 ms per pair.
-    try:
-        Hm, hmask = cv2.findHomography(u1, u2, cv2.USAC_ACCURATE, thr, maxIters=2000, confidence=0.999)
-    except cv2.error:  # USAC asserts on some degenerate sample sets: plain RANSAC then
-        Hm, hmask = cv2.findHomography(u1, u2, cv2.RANSAC, thr, maxIters=2000, confidence=0.999)
-    if Hm is not None and hmask is not None:
-        h_ratio = float(hmask.sum()) / float(mask.sum())
+    hmask = _homography_inliers(u1, u2, thr)
+    h_ratio = 0.0 if hmask is None else float(hmask.sum()) / float(mask.sum())
     focal = focal_from_fundamental(F, (W, H), search_range=config.focal_search_range)
     f0 = focal.focal_px
     K0 = _K(f0, c)

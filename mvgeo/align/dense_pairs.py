@@ -16,8 +16,7 @@ from mvgeo.common.deps import cv2
 from mvgeo.epipolar import sampson_distance
 from mvgeo.triangulate import triangulate_two_view
 
-__all__ = ["dense_flow", "flow_checks", "pair_flows", "pair_pointmap", "pair_pointmap_reference", "quarter_turns",
-           "rotated_180"]
+__all__ = ["dense_flow", "flow_checks", "pair_flows", "pair_pointmap", "pair_pointmap_reference", "quarter_turns"]
 
 
 def _resize(image: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
@@ -107,12 +106,6 @@ def quarter_turns(R_b_from_a: np.ndarray) -> int:
     rotation's turn of the image plane rounded to 90 deg (the only way `pair_flows` depends on the rotation)."""
     roll = np.degrees(np.arctan2(R_b_from_a[1, 0], R_b_from_a[0, 0]))
     return int(np.round(roll / 90.0)) % 4
-
-
-def rotated_180(R_b_from_a: np.ndarray) -> bool:
-    """Whether `pair_flows` matches against b turned by 180 deg (the relative rotation turns the image plane
-    by more than 135 deg)."""
-    return quarter_turns(R_b_from_a) == 2
 
 
 def pair_flows(gray_a: np.ndarray, gray_b: np.ndarray, uv_a_px: np.ndarray, uv_b_px: np.ndarray,
